@@ -1,0 +1,50 @@
+"""The structure's linear operators, as every later stage sees them.
+
+Whatever made them (the beam model of structure.py, or matrix files through matrices.py), a
+structure is: distributed K and M (and optionally C) over its free DOFs, the rows of the DOFs the
+constraints act on, and, for base excitation, the support-motion influence vector.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+from petsc4py import PETSc
+
+
+@dataclass
+class Operators:
+    """Distributed structural operators on `comm`. K and M are symmetric, M positive definite.
+
+    influence        r over the free DOFs: the displacement of the structure that follows a unit
+                     support motion (the paper's Eq. 26 shape). Total u = u_rel + r * Omega(t).
+    base_mass_load   M_(free, all) r_all: the support-motion load is -base_mass_load * Omega''(t).
+                     It includes the mass coupling to the prescribed support DOF (DESIGN.md).
+    rigid_modes      number of zero-energy modes of (K, M); > 0 only for an unsupported structure.
+    eigen_scale      a typical eigenvalue of (K, M), rad^2/s^2 (sets default solver shifts).
+    mesh             the beam mesh for beam models (positions of nodes, DOF rows), else None.
+    """
+
+    comm: PETSc.Comm
+    K: PETSc.Mat
+    M: PETSc.Mat
+    C: Optional[PETSc.Mat] = None
+    influence: Optional[PETSc.Vec] = None
+    base_mass_load: Optional[PETSc.Vec] = None
+    rigid_modes: int = 0
+    eigen_scale: float = 1.0
+    mesh: Optional[object] = None
+
+    @property
+    def size(self) -> int:
+        """Global number of free DOFs."""
+        return self.K.getSize()[0]
+
+    def ownership_range(self) -> tuple[int, int]:
+        return self.K.getOwnershipRange()
+
+    def destroy(self) -> None:
+        """Free the PETSc objects (collective on comm)."""
+        for obj in (self.K, self.M, self.C, self.influence, self.base_mass_load):
+            if obj is not None:
+                obj.destroy()

@@ -1,0 +1,54 @@
+"""Shared test set-up. The suite runs serially and under `mpirun -n 2 python -m mpi4py -m pytest`.
+
+Under MPI every rank runs every test. Rules that keep a failure from hanging the job:
+- assert only on values every rank agrees on, or reduce the condition first (`assert_all`);
+- use `shared_tmp_path` (rank 0's tmp_path) for files all ranks read or write.
+"""
+import pytest
+from mpi4py import MPI
+from petsc4py import PETSc
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_configure(config):
+    config.addinivalue_line("markers", "parallel: needs 2 MPI ranks; runs in the 2-rank pass")
+    if MPI.COMM_WORLD.rank > 0:  # one report, from rank 0
+        reporter = config.pluginmanager.getplugin("terminalreporter")
+        if reporter is not None:
+            config.pluginmanager.unregister(reporter)
+
+
+def pytest_collection_modifyitems(config, items):
+    if MPI.COMM_WORLD.size >= 2:
+        return
+    skip = pytest.mark.skip(reason="needs 2 MPI ranks (runs in the 2-rank pass)")
+    for item in items:
+        if "parallel" in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture
+def comm():
+    return PETSc.COMM_WORLD
+
+
+@pytest.fixture
+def shared_tmp_path(tmp_path):
+    """Rank 0's tmp_path, the same directory on every rank."""
+    return MPI.COMM_WORLD.bcast(tmp_path, root=0)
+
+
+def assert_all(condition, message=""):
+    """Assert a condition that may differ between ranks: fails on every rank if it fails on one."""
+    ok = MPI.COMM_WORLD.allreduce(bool(condition), op=MPI.LAND)
+    assert ok, message or "failed on at least one rank"
+
+
+def to_numpy(vec):
+    """The whole of a distributed Vec as a numpy array, on every rank. Collective."""
+    scatter, full = PETSc.Scatter.toAll(vec)
+    scatter.scatter(vec, full, addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+    values = full.getArray().copy()
+    scatter.destroy()
+    full.destroy()
+    return values

@@ -1,0 +1,180 @@
+"""The beam model: exact Euler-Bernoulli frequencies, boundary conditions, influence vectors, layout.
+
+Frequencies come from SLEPc on the distributed matrices (dbf_hpc.modes), compared with closed forms.
+"""
+import numpy as np
+import pytest
+from petsc4py import PETSc
+from scipy.optimize import brentq
+
+from conftest import assert_all, to_numpy
+from dbf_hpc.errors import InputError
+from dbf_hpc.modes import reference_modes
+from dbf_hpc.structure import Beam, BeamMesh, assemble_beam
+
+# The paper's Table 1 beam.
+TABLE1 = dict(length=1.0, E=117e9, I=0.000878e-12, A=0.29e-6, rho=11800.0)
+
+
+def beam(**changes):
+    return Beam(**{**TABLE1, **changes})
+
+
+def omegas(b, count, **kw):
+    ops = assemble_beam(b, **kw)
+    modes = reference_modes(ops, count=count)
+    omega = modes.omega.copy()
+    modes.destroy()
+    ops.destroy()
+    return omega
+
+
+def roots(f, count, step=0.01):
+    """The first `count` roots above 0.5 of a continuous f, bracketed on a fine grid."""
+    x = np.arange(0.5, 4 * count + 10, step)
+    fx = f(x)
+    found = [brentq(f, a, b, xtol=1e-14) for a, b, fa, fb in zip(x[:-1], x[1:], fx[:-1], fx[1:])
+             if np.sign(fa) != np.sign(fb)]
+    return np.array(found[:count])
+
+
+def beta_omega(b, beta_l):
+    return np.sqrt(b.EI / b.rhoA) * (beta_l / b.length) ** 2
+
+
+def test_pinned_pinned_frequencies_match_euler_bernoulli_first_ten_modes():
+    b = beam(elements=200)
+    n = np.arange(1, 11)
+    exact = np.sqrt(b.EI / b.rhoA) * (n * np.pi / b.length) ** 2
+    assert np.max(np.abs(omegas(b, 10) / exact - 1)) < 1e-6
+
+
+def test_cantilever_frequencies_match_clamped_free_roots():
+    beta_l = roots(lambda x: np.cos(x) + 1 / np.cosh(x), 6)
+    np.testing.assert_allclose(beta_l[:4], [1.8751, 4.6941, 7.8548, 10.9955], atol=1e-4)
+    b = beam(elements=120, left="clamped", right="free")
+    assert np.max(np.abs(omegas(b, 6) / beta_omega(b, beta_l) - 1)) < 1e-6
+
+
+def test_clamped_sliding_frequencies_match_tan_plus_tanh_roots():
+    beta_l = roots(lambda x: np.sin(x) + np.cos(x) * np.tanh(x), 5)  # tan + tanh = 0
+    b = beam(elements=120, left="clamped", right="sliding")
+    assert np.max(np.abs(omegas(b, 5) / beta_omega(b, beta_l) - 1)) < 1e-6
+
+
+def test_pinned_sliding_beam_is_half_a_pinned_beam_of_twice_the_length():
+    b = beam(elements=120, right="sliding")
+    n = np.arange(1, 6)
+    exact = beta_omega(b, (2 * n - 1) * np.pi / 2)
+    assert np.max(np.abs(omegas(b, 5) / exact - 1)) < 1e-6
+
+
+def test_free_free_beam_has_two_rigid_modes_then_the_cos_cosh_roots():
+    beta_l = roots(lambda x: np.cos(x) - 1 / np.cosh(x), 3)
+    b = beam(elements=120, left="free", right="free")
+    assert BeamMesh(b).rigid_modes() == 2
+    omega = omegas(b, 5)
+    assert np.all(omega[:2] < 1e-4 * omega[2])
+    assert np.max(np.abs(omega[2:] / beta_omega(b, beta_l) - 1)) < 1e-6
+
+
+def test_middle_support_makes_the_first_mode_that_of_one_pinned_span():
+    b = beam(elements=100, supports=(0.5,))
+    exact = np.sqrt(b.EI / b.rhoA) * (np.pi / 0.5) ** 2
+    assert abs(omegas(b, 1)[0] / exact - 1) < 1e-7
+
+
+def test_frequency_error_falls_as_h_to_the_fourth():
+    b_exact = beam()
+    exact = np.sqrt(b_exact.EI / b_exact.rhoA) * (3 * np.pi) ** 2
+    errors = [omegas(beam(elements=ne), 3)[2] / exact - 1 for ne in (6, 12, 24)]
+    assert all(e > 0 for e in errors), "consistent mass Hermite elements bound frequencies from above"
+    rates = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all(np.abs(rates - 4) < 0.2), rates
+
+
+def test_mesh_puts_a_node_at_every_constraint_and_probe():
+    points = [0.1234, 0.5, 0.987654, 0.25]
+    mesh = BeamMesh(beam(elements=50), points)
+    for p in points:
+        assert mesh.x[mesh.node_at(p)] == pytest.approx(p, abs=1e-15)
+    h = np.diff(mesh.x)
+    assert 50 <= mesh.elements <= 54 and h.max() <= 1.0 / 50 + 1e-15  # never coarser than asked
+
+
+def test_dofs_removed_by_each_boundary_condition():
+    for left, right, removed in [("pinned", "pinned", 2), ("clamped", "free", 2),
+                                 ("clamped", "clamped", 4), ("sliding", "free", 1), ("free", "free", 0)]:
+        mesh = BeamMesh(beam(elements=10, left=left, right=right))
+        assert mesh.n_free == 2 * 11 - removed
+
+
+@pytest.mark.parametrize("left,right,end,shape", [
+    ("pinned", "pinned", "left", lambda s: 1 - s),            # paper Eq. 26
+    ("pinned", "pinned", "right", lambda s: s),
+    ("clamped", "free", "left", lambda s: np.ones_like(s)),   # rigid translation of a cantilever
+    ("clamped", "clamped", "left", lambda s: 1 - 3 * s**2 + 2 * s**3),  # pseudo-static, exact for cubics
+])
+def test_influence_vector_is_the_support_motion_consistent_with_the_supports(left, right, end, shape):
+    b = beam(elements=40, left=left, right=right)
+    ops = assemble_beam(b, base_end=end)
+    r = to_numpy(ops.influence)
+    mesh = ops.mesh
+    free_w = mesh.row[:, 0] >= 0
+    expected = shape(mesh.x[free_w] / b.length)
+    assert np.max(np.abs(r[mesh.row[free_w, 0]] - expected)) < 1e-8
+    ops.destroy()
+
+
+def test_support_motion_modal_load_matches_the_paper_integral():
+    # Paper Eq. 33: the modal load of y = Omega (1 - x/L) is -rho A int phi_n (1 - x/L) dx Omega''
+    # = -sqrt(2 rho A L) / (n pi) Omega'' for the modes of Eq. 29.
+    b = beam(elements=200)
+    ops = assemble_beam(b, base_end="left")
+    modes = reference_modes(ops, count=6)
+    loads = []
+    for i in range(6):
+        col = modes.vectors.getColumn(i)
+        loads.append(abs(col.dot(ops.base_mass_load)))
+        modes.vectors.restoreColumn(i, col)
+    n = np.arange(1, 7)
+    np.testing.assert_allclose(loads, np.sqrt(2 * b.rhoA * b.length) / (n * np.pi), rtol=1e-6)
+    modes.destroy()
+    ops.destroy()
+
+
+def test_base_excitation_needs_a_transverse_support_at_that_end():
+    with pytest.raises(InputError, match="transverse support"):
+        assemble_beam(beam(elements=10, left="sliding", right="clamped"), base_end="left")
+
+
+@pytest.mark.parametrize("change,word", [(dict(E=-1.0), "E"), (dict(length=0.0), "length"),
+                                         (dict(elements=0), "elements"), (dict(left="hinged"), "left"),
+                                         (dict(supports=(1.5,)), "support")])
+def test_bad_beam_parameters_are_clear_errors(change, word):
+    with pytest.raises(InputError, match=word):
+        beam(**change)
+
+
+@pytest.mark.parametrize("left,right", [("pinned", "pinned"), ("clamped", "free")])
+@pytest.mark.parallel
+def test_operators_on_two_ranks_equal_those_on_one(left, right):
+    b = beam(elements=37, left=left, right=right)
+    world = assemble_beam(b, comm=PETSc.COMM_WORLD, base_end="left")
+    alone = assemble_beam(b, comm=PETSc.COMM_SELF, base_end="left")
+    lo, hi = world.K.getOwnershipRange()
+    assert_all(hi > lo, "each rank owns rows")
+    same = True
+    for A, B in ((world.K, alone.K), (world.M, alone.M)):
+        for i in range(lo, hi):
+            cols_a, vals_a = A.getRow(i)
+            cols_b, vals_b = B.getRow(i)
+            same &= np.array_equal(cols_a, cols_b) and np.allclose(vals_a, vals_b, rtol=1e-14, atol=0)
+    for u, v in ((world.influence, alone.influence), (world.base_mass_load, alone.base_mass_load)):
+        same &= np.allclose(u.getArray(), v.getArray()[lo:hi], rtol=1e-10, atol=1e-10)  # solver round-off
+    assert_all(same, "distributed rows differ from the serial assembly")
+    w_world = reference_modes(world, count=4).omega
+    w_alone = reference_modes(alone, count=4).omega
+    assert_all(np.allclose(w_world, w_alone, rtol=1e-10))
+    world.destroy()
+    alone.destroy()
