@@ -60,7 +60,7 @@ def eigen_solver(ops: Operators, K: PETSc.Mat, nev: int, prefix: str, tol: float
     return eps
 
 
-def _solve(eps: SLEPc.EPS, nev: int, what: str) -> tuple[np.ndarray, list]:
+def solve_lowest(eps: SLEPc.EPS, nev: int, what: str) -> tuple[np.ndarray, list]:
     """Solve and return the nev converged eigenpairs sorted by eigenvalue. Collective."""
     eps.setDimensions(nev)
     eps.solve()
@@ -108,7 +108,7 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
         if count < 1 or count > n:
             raise InputError(f"number of modes must be between 1 and {n} (the free DOFs), got {count}")
         eps = eigen_solver(ops, ops.K, count, prefix)
-        values, vectors = _solve(eps, count, "reference modes")
+        values, vectors = solve_lowest(eps, count, "reference modes")
     else:
         if not max_frequency_hz > 0:
             raise InputError(f"max_frequency_hz must be positive, got {max_frequency_hz}")
@@ -116,7 +116,7 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
         nev = min(8, n)
         eps = eigen_solver(ops, ops.K, nev, prefix)
         while True:
-            values, vectors = _solve(eps, nev, "reference modes")
+            values, vectors = solve_lowest(eps, nev, "reference modes")
             if values[-1] > lam_max or nev == n:
                 break
             for v in vectors:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+import numpy as np
 from petsc4py import PETSc
 
 
@@ -48,3 +49,26 @@ class Operators:
         for obj in (self.K, self.M, self.C, self.influence, self.base_mass_load):
             if obj is not None:
                 obj.destroy()
+
+
+def owned_rows(n: int, comm) -> tuple[int, int]:
+    """The rows [start, end) this rank owns in PETSc's default layout of n rows. Collective."""
+    n_local, _ = PETSc.Sys.splitOwnership(n, comm=comm)
+    start = comm.tompi4py().exscan(n_local) or 0
+    return start, start + n_local
+
+
+def aij_from_owned_triplets(comm, n: int, rows, cols, values) -> PETSc.Mat:
+    """An assembled n x n AIJ matrix from (row, col, value) triplets of this rank's own rows
+    (duplicates are summed). Collective; no values move between ranks."""
+    start, end = owned_rows(n, comm)
+    rows = np.asarray(rows, dtype=np.int64)
+    key, inverse = np.unique((rows - start) * n + np.asarray(cols, dtype=np.int64), return_inverse=True)
+    summed = np.bincount(inverse, weights=np.asarray(values, dtype=float), minlength=key.size)
+    local_row, col = np.divmod(key, n)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(local_row, minlength=end - start))])
+    A = PETSc.Mat().createAIJ(size=((end - start, n), (end - start, n)),
+                              csr=(indptr.astype(PETSc.IntType), col.astype(PETSc.IntType), summed),
+                              comm=comm)
+    A.assemble()
+    return A

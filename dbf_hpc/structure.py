@@ -17,7 +17,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .errors import InputError
-from .operators import Operators
+from .operators import Operators, aij_from_owned_triplets, owned_rows
 
 W, THETA = 0, 1
 BOUNDARIES = {"pinned": (W,), "clamped": (W, THETA), "free": (), "sliding": (THETA,)}
@@ -160,10 +160,8 @@ def _assemble(comm, mesh: BeamMesh, element_mats, fixed_values=None):
     of A_(free, fixed) @ fixed_values as a Vec.
     """
     n = mesh.n_free
-    n_local, _ = PETSc.Sys.splitOwnership(n, comm=comm)
-    rstart = comm.tompi4py().exscan(n_local) or 0
-    rend = rstart + n_local
-    if n_local:
+    rstart, rend = owned_rows(n, comm)
+    if rend > rstart:
         owned_nodes = mesh.free_dofs[[rstart, rend - 1]] // 2
         first, last = max(owned_nodes[0] - 1, 0), min(owned_nodes[1], mesh.elements - 1)
     else:
@@ -176,22 +174,14 @@ def _assemble(comm, mesh: BeamMesh, element_mats, fixed_values=None):
     ri = np.broadcast_to(rows[:, :, None], mats.shape)
     cj = np.broadcast_to(rows[:, None, :], mats.shape)
     take = (ri >= rstart) & (ri < rend) & (cj >= 0)
-    key = (ri[take] - rstart) * n + cj[take]
-    key, inverse = np.unique(key, return_inverse=True)
-    values = np.bincount(inverse, weights=mats[take], minlength=key.size)
-    local_row, col = np.divmod(key, n)
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(local_row, minlength=n_local))])
-    A = PETSc.Mat().createAIJ(size=((n_local, n), (n_local, n)),
-                              csr=(indptr.astype(PETSc.IntType), col.astype(PETSc.IntType), values),
-                              comm=comm)
-    A.assemble()
+    A = aij_from_owned_triplets(comm, n, ri[take], cj[take], mats[take])
     if fixed_values is None:
         return A
     f = fixed_values[all_dofs] * (rows < 0)
     contrib = np.einsum("eij,ej->ei", mats, f)
     mine = (rows >= rstart) & (rows < rend)
     coupling = A.createVecLeft()
-    coupling.array[:] = np.bincount(rows[mine] - rstart, weights=contrib[mine], minlength=n_local)
+    coupling.array[:] = np.bincount(rows[mine] - rstart, weights=contrib[mine], minlength=rend - rstart)
     return A, coupling
 
 

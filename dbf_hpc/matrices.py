@@ -1,0 +1,190 @@
+"""External structural operators: K, M (and optionally C) from files, for any FE model.
+
+The matrices are over the structure's free DOFs (boundary conditions already applied). Formats,
+chosen by the file name:
+    *.mtx                 Matrix Market, coordinate (general or symmetric), real
+    anything else         PETSc binary (MatView/VecView with a binary viewer)
+Vectors (influence vector, support-motion mass load) may also be *.npy or *.txt (one value a line).
+
+Every rank reads only its own rows into the distributed matrix; a Matrix Market file is parsed on
+every rank (text is not seekable by row), which is fine for the sizes such files are used for.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from petsc4py import PETSc
+
+from .errors import InputError
+from .operators import Operators, aij_from_owned_triplets, owned_rows
+
+# ||A - A^T||_F / ||A||_F above this is not a symmetric operator.
+SYMMETRY_TOL = 1e-10
+
+
+def _readable(path: str, what: str) -> None:
+    if not os.path.isfile(path):
+        raise InputError(f"{what} file {path!r} does not exist")
+    if not os.access(path, os.R_OK):
+        raise InputError(f"{what} file {path!r} is not readable")
+
+
+def _read_matrix_market(path: str, what: str):
+    """(shape, rows, cols, values, symmetric) of a coordinate Matrix Market file, 0-based."""
+    with open(path, encoding="ascii", errors="replace") as f:
+        header = f.readline().lower().split()
+        if len(header) < 5 or header[0] != "%%matrixmarket" or header[1] != "matrix":
+            raise InputError(f"{what} file {path!r} is not a Matrix Market matrix")
+        layout, field, symmetry = header[2], header[3], header[4]
+        if layout != "coordinate" or field not in ("real", "integer") or symmetry not in ("general", "symmetric"):
+            raise InputError(f"{what} file {path!r}: only real coordinate general/symmetric Matrix Market "
+                             f"is supported, got {layout} {field} {symmetry}")
+        line = f.readline()
+        while line.startswith("%"):
+            line = f.readline()
+        try:
+            nrows, ncols, nnz = (int(v) for v in line.split())
+            data = np.loadtxt(f, ndmin=2) if nnz else np.zeros((0, 3))
+        except ValueError as e:
+            raise InputError(f"{what} file {path!r} is malformed: {e}") from None
+    if data.shape != (nnz, 3):
+        raise InputError(f"{what} file {path!r} declares {nnz} entries but holds {data.shape[0]}")
+    rows, cols, values = data[:, 0].astype(np.int64) - 1, data[:, 1].astype(np.int64) - 1, data[:, 2]
+    if nnz and (rows.min() < 0 or cols.min() < 0 or rows.max() >= nrows or cols.max() >= ncols):
+        raise InputError(f"{what} file {path!r} has an entry outside its {nrows} x {ncols} size")
+    return (nrows, ncols), rows, cols, values, symmetry == "symmetric"
+
+
+def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
+    """A distributed AIJ matrix from a Matrix Market or PETSc binary file. Collective."""
+    comm = comm or PETSc.COMM_WORLD
+    _readable(path, what)
+    if path.endswith(".mtx"):
+        shape, rows, cols, values, symmetric = _read_matrix_market(path, what)
+        if shape[0] != shape[1]:
+            raise InputError(f"{what} file {path!r} is {shape[0]} x {shape[1]}, not square")
+        if symmetric:
+            off = rows != cols
+            rows, cols, values = (np.concatenate([rows, cols[off]]), np.concatenate([cols, rows[off]]),
+                                  np.concatenate([values, values[off]]))
+        start, end = owned_rows(shape[0], comm)
+        mine = (rows >= start) & (rows < end)
+        return aij_from_owned_triplets(comm, shape[0], rows[mine], cols[mine], values[mine])
+    viewer = PETSc.Viewer().createBinary(path, mode="r", comm=comm)
+    A = PETSc.Mat().create(comm=comm)
+    A.setType(PETSc.Mat.Type.AIJ)
+    try:
+        A.load(viewer)
+    except PETSc.Error:
+        raise InputError(f"{what} file {path!r} is not a PETSc binary matrix") from None
+    finally:
+        viewer.destroy()
+    m, n = A.getSize()
+    if m != n:
+        raise InputError(f"{what} file {path!r} is {m} x {n}, not square")
+    return A
+
+
+def load_vector(path: str, template: PETSc.Vec, what: str = "vector") -> PETSc.Vec:
+    """A Vec laid out like `template` from .npy, .txt, .mtx (array or coordinate) or PETSc binary.
+    Collective."""
+    _readable(path, what)
+    n = template.getSize()
+    vec = template.duplicate()
+    if path.endswith((".npy", ".txt", ".mtx")):
+        try:
+            if path.endswith(".npy"):
+                values = np.load(path, allow_pickle=False)
+            elif path.endswith(".txt"):
+                values = np.loadtxt(path, ndmin=1)
+            else:
+                values = _read_matrix_market_vector(path, what)
+        except (ValueError, OSError) as e:
+            raise InputError(f"{what} file {path!r} is malformed: {e}") from None
+        values = np.asarray(values, dtype=float).ravel()
+        if values.size != n:
+            raise InputError(f"{what} file {path!r} has {values.size} entries; the matrices have {n} rows")
+        start, end = vec.getOwnershipRange()
+        vec.array[:] = values[start:end]
+        return vec
+    viewer = PETSc.Viewer().createBinary(path, mode="r", comm=template.getComm())
+    try:
+        loaded = PETSc.Vec().load(viewer)
+    except PETSc.Error:
+        raise InputError(f"{what} file {path!r} is not a PETSc binary vector") from None
+    finally:
+        viewer.destroy()
+    if loaded.getSize() != n:
+        raise InputError(f"{what} file {path!r} has {loaded.getSize()} entries; the matrices have {n} rows")
+    # Reload into the matrices' layout (a loaded Vec takes PETSc's default split, which may differ).
+    scatter = PETSc.Scatter().create(loaded, None, vec, None)
+    scatter.scatter(loaded, vec, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+    scatter.destroy()
+    loaded.destroy()
+    return vec
+
+
+def _read_matrix_market_vector(path: str, what: str) -> np.ndarray:
+    with open(path, encoding="ascii", errors="replace") as f:
+        header = f.readline().lower().split()
+    if len(header) >= 3 and header[2] == "array":
+        with open(path, encoding="ascii") as f:
+            lines = [ln for ln in f if not ln.startswith("%")]
+        rows, cols = (int(v) for v in lines[0].split())
+        if cols != 1:
+            raise InputError(f"{what} file {path!r} is a {rows} x {cols} array, not a vector")
+        return np.array([float(v) for v in lines[1:]])
+    shape, rows, cols, values, _ = _read_matrix_market(path, what)
+    if shape[1] != 1:
+        raise InputError(f"{what} file {path!r} is {shape[0]} x {shape[1]}, not a vector")
+    out = np.zeros(shape[0])
+    np.add.at(out, rows, values)
+    return out
+
+
+def asymmetry(A: PETSc.Mat) -> float:
+    """||A - A^T||_F / ||A||_F. Collective."""
+    At = A.transpose(PETSc.Mat())
+    At.axpy(-1.0, A, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+    norm = A.norm(PETSc.NormType.FROBENIUS)
+    value = At.norm(PETSc.NormType.FROBENIUS) / norm if norm > 0 else 0.0
+    At.destroy()
+    return value
+
+
+def load_operators(stiffness: str, mass: str, damping: str | None = None, influence: str | None = None,
+                   base_mass_load: str | None = None, comm=None) -> Operators:
+    """Operators of an external FE model. Collective on comm (default COMM_WORLD).
+
+    influence       r over the free DOFs for base excitation (needed for a base excitation)
+    base_mass_load  M_(free, all) r_all including the coupling to the prescribed support DOFs; when
+                    not given, M r is used, which neglects that coupling (DESIGN.md)
+    Sizes must agree and K, M (and C) must be symmetric.
+    """
+    comm = comm or PETSc.COMM_WORLD
+    K = load_matrix(stiffness, comm, "stiffness")
+    M = load_matrix(mass, comm, "mass")
+    C = load_matrix(damping, comm, "damping") if damping else None
+    n = K.getSize()[0]
+    for name, A, path in (("mass", M, mass), ("damping", C, damping)):
+        if A is not None and A.getSize()[0] != n:
+            raise InputError(f"{name} matrix {path!r} is {A.getSize()[0]} x {A.getSize()[0]}; "
+                             f"the stiffness is {n} x {n}")
+    for name, A, path in (("stiffness", K, stiffness), ("mass", M, mass), ("damping", C, damping)):
+        if A is not None and asymmetry(A) > SYMMETRY_TOL:
+            raise InputError(f"{name} matrix {path!r} is not symmetric "
+                             f"(||A - A^T|| / ||A|| = {asymmetry(A):.3g})")
+    if base_mass_load and not influence:
+        raise InputError("a base mass load needs the influence vector as well")
+    ops = Operators(comm=comm, K=K, M=M, C=C)
+    if influence:
+        template = K.createVecRight()
+        ops.influence = load_vector(influence, template, "influence vector")
+        if base_mass_load:
+            ops.base_mass_load = load_vector(base_mass_load, template, "base mass load")
+        else:
+            ops.base_mass_load = template.duplicate()
+            M.mult(ops.influence, ops.base_mass_load)
+        template.destroy()
+    return ops

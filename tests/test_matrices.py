@@ -1,0 +1,128 @@
+"""External operators from files: exact round trips, the same modes as the beam they came from,
+and clear errors for files that cannot be operators."""
+import numpy as np
+import pytest
+import scipy.io
+import scipy.sparse
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from conftest import assert_all, to_numpy
+from dbf_hpc.errors import InputError
+from dbf_hpc.matrices import load_matrix, load_operators
+from dbf_hpc.modes import reference_modes
+from dbf_hpc.structure import Beam, assemble_beam
+
+TABLE1 = dict(length=1.0, E=117e9, I=0.000878e-12, A=0.29e-6, rho=11800.0)
+
+
+def to_scipy(A):
+    """The whole of a distributed Mat as a scipy CSR matrix, on every rank. Collective."""
+    lo, hi = A.getOwnershipRange()
+    indptr, indices, values = A.getValuesCSR()
+    rows = np.repeat(np.arange(lo, hi), np.diff(indptr))
+    comm = MPI.COMM_WORLD if A.getComm().getSize() > 1 else MPI.COMM_SELF
+    parts = comm.allgather((rows, indices, values))
+    r, c, v = (np.concatenate(p) for p in zip(*parts))
+    n = A.getSize()[0]
+    return scipy.sparse.csr_matrix((v, (r, c)), shape=(n, n))
+
+
+@pytest.fixture
+def beam_files(shared_tmp_path):
+    """The Table 1 beam's K and M written as PETSc binary and as Matrix Market (by scipy, an
+    independent writer), and its influence vector as .npy."""
+    ops = assemble_beam(Beam(**TABLE1, elements=30), base_end="left")
+    K, M = to_scipy(ops.K), to_scipy(ops.M)
+    r = to_numpy(ops.influence)
+    paths = {name: str(shared_tmp_path / name) for name in ("K.bin", "M.bin", "K.mtx", "M.mtx", "r.npy")}
+    for A, name in ((ops.K, "K.bin"), (ops.M, "M.bin")):
+        viewer = PETSc.Viewer().createBinary(paths[name], mode="w", comm=ops.comm)
+        A.view(viewer)
+        viewer.destroy()
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths["K.mtx"], K, symmetry="symmetric", precision=17)  # lower triangle
+        scipy.io.mmwrite(paths["M.mtx"], M, precision=17)
+        np.save(paths["r.npy"], r)
+    MPI.COMM_WORLD.Barrier()
+    yield ops, K, M, paths
+    ops.destroy()
+
+
+@pytest.mark.parametrize("fmt", ["bin", "mtx"])
+def test_loaded_operators_equal_the_written_ones(beam_files, fmt):
+    ops, K, M, paths = beam_files
+    loaded = load_operators(paths[f"K.{fmt}"], paths[f"M.{fmt}"], influence=paths["r.npy"])
+    assert abs(to_scipy(loaded.K) - K).max() <= 1e-12 * abs(K).max()
+    assert abs(to_scipy(loaded.M) - M).max() <= 1e-12 * abs(M).max()
+    np.testing.assert_allclose(to_numpy(loaded.influence), to_numpy(ops.influence), rtol=0, atol=1e-15)
+    loaded.destroy()
+
+
+def test_loaded_operators_have_the_beams_frequencies(beam_files):
+    ops, _, _, paths = beam_files
+    loaded = load_operators(paths["K.mtx"], paths["M.bin"])
+    a = reference_modes(ops, count=5).omega
+    b = reference_modes(loaded, count=5).omega
+    assert np.allclose(a, b, rtol=1e-10)
+    loaded.destroy()
+
+
+def test_size_mismatch_is_an_error(shared_tmp_path, beam_files):
+    _, _, _, paths = beam_files
+    small = str(shared_tmp_path / "small.mtx")
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(small, scipy.sparse.identity(7, format="csr"))
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="mass matrix .* is 7 x 7; the stiffness is"):
+        load_operators(paths["K.bin"], small)
+
+
+def test_influence_vector_of_the_wrong_length_is_an_error(shared_tmp_path, beam_files):
+    _, _, _, paths = beam_files
+    short = str(shared_tmp_path / "short.txt")
+    if MPI.COMM_WORLD.rank == 0:
+        np.savetxt(short, np.ones(5))
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="influence vector .* has 5 entries"):
+        load_operators(paths["K.bin"], paths["M.bin"], influence=short)
+
+
+def test_non_symmetric_stiffness_is_an_error(shared_tmp_path, beam_files):
+    _, K, _, paths = beam_files
+    bad = str(shared_tmp_path / "Kbad.mtx")
+    if MPI.COMM_WORLD.rank == 0:
+        skew = K.tolil()
+        skew[0, 1] *= 1.01
+        scipy.io.mmwrite(bad, skew.tocsr(), precision=17)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="stiffness matrix .* is not symmetric"):
+        load_operators(bad, paths["M.bin"])
+
+
+@pytest.mark.parametrize("content,message", [("", "not a Matrix Market matrix"),
+                                             ("%%MatrixMarket matrix array real general\n2 2\n1\n0\n0\n1\n",
+                                              "only real coordinate"),
+                                             ("%%MatrixMarket matrix coordinate real general\n2 2 3\n1 1 1.0\n",
+                                              "declares 3 entries but holds 1"),
+                                             ("%%MatrixMarket matrix coordinate real general\n2 3 1\n1 1 1.0\n",
+                                              "not square")])
+def test_malformed_matrix_market_is_an_error(shared_tmp_path, content, message):
+    path = shared_tmp_path / "bad.mtx"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(content)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=message):
+        load_matrix(str(path))
+
+
+def test_missing_or_foreign_files_are_errors(shared_tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        load_matrix(str(shared_tmp_path / "nothing.bin"), what="stiffness")
+    junk = shared_tmp_path / "junk.bin"
+    if MPI.COMM_WORLD.rank == 0:
+        junk.write_bytes(b"not a petsc file at all")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="not a PETSc binary matrix"):
+        load_matrix(str(junk))
+    assert_all(True)
