@@ -1,0 +1,45 @@
+"""Damping descriptions: modal ratios give 2 zeta omega, Rayleigh projects to alpha I + beta K_r."""
+import numpy as np
+import pytest
+
+from dbf_hpc.damping import Damping
+from dbf_hpc.errors import InputError
+
+
+def test_modal_ratio_gives_two_zeta_omega_on_every_basis_vector():
+    omega = np.array([1.7, 6.8, 15.4])
+    np.testing.assert_allclose(Damping(zeta=0.02).modal_coefficients(omega), 2 * 0.02 * omega)
+    np.testing.assert_allclose(Damping(zeta=(0.01, 0.02, 0.03)).modal_coefficients(omega),
+                               2 * np.array([0.01, 0.02, 0.03]) * omega)
+
+
+def test_modal_damping_of_a_dbf_uses_its_hat_omega():
+    # Reduced stiffness with a coupled DBF block: diag gives omega_i^2 (hat-omega^2 for the DBF, Eq. 41).
+    Kr = np.array([[4.0, 0.0, 0.0], [0.0, 9.0, 1.0], [0.0, 1.0, 100.0]])
+    np.testing.assert_allclose(np.diag(Damping(zeta=0.05).reduced_matrix(Kr)), 2 * 0.05 * np.array([2, 3, 10]))
+
+
+def test_rayleigh_damping_projects_exactly_onto_an_m_orthonormal_basis():
+    Kr = np.array([[4.0, 0.5], [0.5, 9.0]])
+    d = Damping(rayleigh_alpha=0.3, rayleigh_beta=1e-3)
+    np.testing.assert_allclose(d.reduced_matrix(Kr), 0.3 * np.eye(2) + 1e-3 * Kr)
+    # each mode's ratio: zeta = alpha / (2 omega) + beta omega / 2
+    omega = np.array([2.0, 30.0])
+    np.testing.assert_allclose(d.modal_coefficients(omega) / (2 * omega), 0.3 / (2 * omega) + 1e-3 * omega / 2)
+
+
+def test_no_damping_is_zero():
+    assert Damping().kind == "none"
+    assert not Damping().reduced_matrix(np.diag([1.0, 4.0])).any()
+
+
+@pytest.mark.parametrize("kwargs,word", [(dict(zeta=-0.1), "zeta"), (dict(rayleigh_beta=-1.0), "rayleigh_beta"),
+                                         (dict(zeta=0.01, rayleigh_alpha=0.1), "not both")])
+def test_bad_damping_is_a_clear_error(kwargs, word):
+    with pytest.raises(InputError, match=word):
+        Damping(**kwargs)
+
+
+def test_per_vector_ratios_must_match_the_basis_size():
+    with pytest.raises(InputError, match="2 ratios for 3 basis vectors"):
+        Damping(zeta=(0.01, 0.02)).modal_coefficients(np.ones(3))
