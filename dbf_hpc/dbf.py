@@ -1,0 +1,225 @@
+"""One discontinuous basis function (DBF) per constraint: paper Section 2.2 (Eqs. 13-17) and, for the
+beam, Section 3.2 (Eqs. 34-39). Orthonormalization (Eqs. 18-20, 40-41) is in basis.py.
+
+For constraint j acting on w_j = g^T u (g: a unit vector at one DOF):
+
+1. The spring-perturbed problem (Eq. 13/34):  (K + k g g^T) phi = lambda M phi.
+   Its eigenvalues rise monotonically with k and interlace: lambda_m(k) runs from the m-th reference
+   eigenvalue lambda_m(0) (no spring) to mu_m, the m-th eigenvalue with w_j pinned (k -> infinity).
+   We follow the branch m of the lowest reference mode that moves at the constraint, i.e. whose
+   participation (g^T phi_m)^2 is not negligible, so a constraint at a node of the first mode still
+   gets a DBF (the paper's l = 0.25 is a node of mode 4; l = 0.5 of mode 2).
+
+2. The stiffness k_j ("auto"): the corner of the paper's Fig. 2. For small k,
+   lambda_m(k) ~ lambda_m(0) + k (g^T phi_m)^2 (first-order perturbation); for large k it tends to
+   mu_m. The two asymptotes meet at
+        k_auto = (mu_m - lambda_m(0)) / (g^T phi_m)^2,
+   the middle of the transition on a log-k axis (the Table 1 beam with l = 0.25 gives k_auto of a few
+   hundredths of a N/m, where the paper reads k ~ 0.1 N/m off its Fig. 2).
+
+3. The DBF source is the derivative d phi / dk at k_j (Eq. 17; the d(varpi) phi terms are dropped as
+   in the paper). Two ways, selectable:
+   - "central": (phi(k (1 + h)) - phi(k (1 - h))) / (2 h k), each phi M-normalized and sign-aligned;
+   - "analytic": with A = K + k g g^T and M-normalized phi, differentiating A phi = lambda M phi and
+     phi^T M phi = 1 gives d lambda/dk = (g^T phi)^2 and
+        (A - lambda M) phi' = -(g (g^T phi) - (g^T phi)^2 M phi),   phi^T M phi' = 0.
+     A - lambda M is singular along phi only and the right side is orthogonal to phi, so we solve it
+     with a direct factorization and project out the phi component (deflation), then check the
+     residual.
+
+All functions here are collective on the communicator of the operators they get (a group's copy
+of K and M when constraints run in parallel). Solver options prefix: `dbf_` (EPS: -dbf_eps_...,
+derivative solve: -dbf_ksp_..., -dbf_pc_...).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from petsc4py import PETSc
+
+from .errors import SolverError
+from .modes import solve_lowest, eigen_solver, normalize
+from .operators import Operators
+
+PREFIX = "dbf_"
+# A reference mode "moves at the constraint" if (g^T phi)^2 exceeds this fraction of the largest
+# (g^T phi_i)^2 over the reference modes.
+PARTICIPATION_TOL = 1e-6
+CENTRAL_STEP = 1e-3  # relative step h of the central difference in k
+EIGEN_TOL = 1e-12    # tighter than the reference modes: derivatives amplify eigenvector errors
+DERIVATIVE_RESIDUAL_TOL = 1e-6
+REFINEMENT_STEPS = 2
+
+
+@dataclass
+class DbfSource:
+    """What one constraint contributes before orthogonalization (on the group's communicator)."""
+
+    row: int
+    branch: int           # 1-based index m of the eigen-branch followed
+    stiffness: float      # k_j, N/m
+    eigenvalue: float     # lambda_m(k_j), rad^2/s^2
+    derivative: PETSc.Vec  # d phi / dk at k_j
+
+
+def branch_of(participation: np.ndarray) -> int:
+    """1-based index of the lowest reference mode that moves at the constraint, given
+    (g^T phi_i)^2 for the reference modes i = 1..N; 0 if none does."""
+    moving = np.flatnonzero(participation > PARTICIPATION_TOL * participation.max()) if participation.max() > 0 else []
+    return int(moving[0]) + 1 if len(moving) else 0
+
+
+def with_spring(K: PETSc.Mat, row: int, k: float) -> PETSc.Mat:
+    """K + k g g^T for g the unit vector at `row` (a new matrix). Collective."""
+    A = K.duplicate(copy=True)
+    lo, hi = A.getOwnershipRange()
+    if lo <= row < hi:
+        A.setValue(row, row, k, addv=PETSc.InsertMode.ADD_VALUES)
+    A.assemble()
+    return A
+
+
+def value_at(x: PETSc.Vec, row: int) -> float:
+    """x[row] on every rank. Collective."""
+    lo, hi = x.getOwnershipRange()
+    local = x.array_r[row - lo] if lo <= row < hi else 0.0
+    return x.getComm().tompi4py().allreduce(float(local))
+
+
+def spring_eigenpair(ops: Operators, row: int, k: float, branch: int, tol: float = EIGEN_TOL):
+    """(lambda_m, phi_m) of (K + k g g^T, M), phi M-normalized with the package's sign convention."""
+    A = with_spring(ops.K, row, k)
+    eps = eigen_solver(ops, A, branch, PREFIX, tol=tol)
+    values, vectors = solve_lowest(eps, branch, f"spring-perturbed modes (k = {k:.3g} N/m at row {row})")
+    eps.destroy()
+    A.destroy()
+    for v in vectors[:-1]:
+        v.destroy()
+    phi = vectors[-1]
+    normalize(phi, ops.M)
+    return values[-1], phi
+
+
+def pinned_eigenvalue(ops: Operators, row: int, branch: int) -> float:
+    """mu_m: the m-th eigenvalue with the constraint DOF fixed (the k -> infinity limit). Collective."""
+    lo, hi = ops.K.getOwnershipRange()
+    keep = np.arange(lo, hi, dtype=PETSc.IntType)
+    keep = keep[keep != row]
+    index = PETSc.IS().createGeneral(keep, comm=ops.comm)
+    pinned = Operators(comm=ops.comm, K=ops.K.createSubMatrix(index, index),
+                       M=ops.M.createSubMatrix(index, index),
+                       rigid_modes=ops.rigid_modes, eigen_scale=ops.eigen_scale)
+    eps = eigen_solver(pinned, pinned.K, branch, PREFIX, tol=EIGEN_TOL)
+    values, vectors = solve_lowest(eps, branch, f"pinned modes (row {row})")
+    for v in vectors:
+        v.destroy()
+    eps.destroy()
+    pinned.destroy()
+    index.destroy()
+    return float(values[-1])
+
+
+def auto_stiffness(ops: Operators, row: int, branch: int, reference_eigenvalue: float,
+                   participation: float) -> float:
+    """k_auto = (mu_m - lambda_m(0)) / (g^T phi_m)^2: where the small-k and large-k asymptotes of
+    lambda_m(k) meet (the corner of the paper's Fig. 2)."""
+    mu = pinned_eigenvalue(ops, row, branch)
+    return max(mu - reference_eigenvalue, 0.0) / participation
+
+
+def central_derivative(ops: Operators, row: int, k: float, branch: int, phi: PETSc.Vec) -> PETSc.Vec:
+    """d phi/dk by the paper's central difference in k, eigenvectors sign-aligned with phi."""
+    h = CENTRAL_STEP
+    Mphi = ops.M.createVecLeft()
+    ops.M.mult(phi, Mphi)
+    ends = []
+    for factor in (1 + h, 1 - h):
+        _, v = spring_eigenpair(ops, row, k * factor, branch)
+        if v.dot(Mphi) < 0:
+            v.scale(-1.0)
+        ends.append(v)
+    d = ends[0].copy()
+    d.axpy(-1.0, ends[1])
+    d.scale(1.0 / (2 * h * k))
+    for v in (*ends, Mphi):
+        v.destroy()
+    return d
+
+
+def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PETSc.Vec) -> PETSc.Vec:
+    """d phi/dk from the deflated derivative equation (module docstring, step 3)."""
+    A = with_spring(ops.K, row, k)
+    A.axpy(-lam, ops.M, structure=PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+    gphi = value_at(phi, row)
+    Mphi = ops.M.createVecLeft()
+    ops.M.mult(phi, Mphi)
+    rhs = Mphi.copy()
+    rhs.scale(gphi**2)
+    lo, hi = rhs.getOwnershipRange()
+    if lo <= row < hi:
+        rhs.setValue(row, -gphi, addv=PETSc.InsertMode.ADD_VALUES)
+    rhs.assemble()
+
+    ksp = PETSc.KSP().create(comm=ops.comm)
+    ksp.setOperators(A)
+    ksp.setType(PETSc.KSP.Type.PREONLY)
+    pc = ksp.getPC()
+    pc.setType(PETSc.PC.Type.LU)
+    pc.setFactorSolverType("mumps")
+    ksp.setOptionsPrefix(PREFIX)
+    ksp.setFromOptions()
+    d = A.createVecRight()
+    correction = d.duplicate()
+    residual = rhs.copy()
+    for _ in range(REFINEMENT_STEPS + 1):  # iterative refinement: A - lambda M is nearly singular
+        ksp.solve(residual, correction)
+        if ksp.getConvergedReason() < 0:
+            raise SolverError(f"DBF derivative solve failed at row {row} ({ksp.getConvergedReason()}); "
+                              f"try dbf_derivative = \"central\"")
+        correction.axpy(-correction.dot(Mphi), phi)  # deflate: phi^T M phi' = 0
+        d.axpy(1.0, correction)
+        A.mult(d, residual)
+        residual.aypx(-1.0, rhs)
+    relative = residual.norm() / rhs.norm()
+    correction.destroy()
+    for obj in (ksp, A, Mphi, rhs, residual):
+        obj.destroy()
+    if not relative < DERIVATIVE_RESIDUAL_TOL:
+        raise SolverError(f"DBF derivative at row {row} is inaccurate (relative residual {relative:.2e}); "
+                          f"try dbf_derivative = \"central\" or a tighter -dbf_eps_tol")
+    return d
+
+
+def dbf_source(ops: Operators, row: int, reference_eigenvalues: np.ndarray, participation: np.ndarray,
+               stiffness="auto", derivative: str = "analytic") -> DbfSource:
+    """The derivative d phi/dk that becomes constraint `row`'s DBF after Gram-Schmidt.
+
+    reference_eigenvalues  lambda_i of the reference modes
+    participation          (g^T phi_i)^2 of the reference modes at this constraint
+    """
+    branch = branch_of(participation)
+    if branch == 0:
+        raise SolverError(f"the constraint at row {row} does not move in any of the "
+                          f"{participation.size} reference modes; add modes or move the constraint")
+    if stiffness == "auto":
+        k = auto_stiffness(ops, row, branch, reference_eigenvalues[branch - 1], participation[branch - 1])
+    else:
+        k = float(stiffness)
+    lam, phi = spring_eigenpair(ops, row, k, branch)
+    if derivative == "central":
+        d = central_derivative(ops, row, k, branch, phi)
+    else:
+        d = analytic_derivative(ops, row, k, lam, phi)
+    phi.destroy()
+    return DbfSource(row=row, branch=branch, stiffness=k, eigenvalue=lam, derivative=d)
+
+
+def stiffness_sweep(ops: Operators, row: int, stiffnesses, branch: int = 1) -> np.ndarray:
+    """omega_m(k) (rad/s) of the spring-perturbed problem over a list of k (the paper's Fig. 2)."""
+    omegas = []
+    for k in stiffnesses:
+        lam, phi = spring_eigenpair(ops, row, float(k), branch, tol=1e-10)
+        phi.destroy()
+        omegas.append(np.sqrt(max(lam, 0.0)))
+    return np.array(omegas)

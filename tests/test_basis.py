@@ -1,0 +1,142 @@
+"""The reduced basis (basis.py): M-orthonormal, the DBF's shear jump (paper Fig. 3), the exact
+spring-supported beam through the reduced model, the same basis on any rank layout, breakdown."""
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from conftest import assert_all, to_numpy
+from dbf_hpc.basis import BasisSettings, build_basis, constraint_groups
+from dbf_hpc.errors import InputError, SolverError
+from dbf_hpc.structure import Beam, assemble_beam
+from exact import spring_supported_pinned_beam_omegas
+
+TABLE1 = dict(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0)
+LAYOUTS = {"paper": [0.25], "four": [0.2, 0.4, 0.6, 0.8], "nine": [0.1 * n for n in range(1, 10)]}
+
+
+def make(positions, elements=100, comm=None, **settings):
+    ops = assemble_beam(Beam(**TABLE1, elements=elements), comm=comm, points=positions)
+    rows = [ops.mesh.w_row(x) for x in positions]
+    return ops, build_basis(ops, rows, BasisSettings(**settings))
+
+
+def columns(basis):
+    """All basis vectors as rows of a numpy array, on every rank. Collective."""
+    out = []
+    for i in range(basis.size):
+        v = basis.vectors.getColumn(i)
+        out.append(to_numpy(v))
+        basis.vectors.restoreColumn(i, v)
+    return np.array(out)
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_basis_is_m_orthonormal_and_dbfs_decouple_from_modes_in_stiffness(layout):
+    ops, basis = make(LAYOUTS[layout])
+    G, Kr = basis.project(ops.M), basis.project(ops.K)
+    assert np.abs(G - np.eye(basis.size)).max() < 1e-10
+    N = basis.mode_count
+    assert np.abs(Kr[:N, N:]).max() < 1e-10 * np.abs(np.diag(Kr)).max()
+    np.testing.assert_allclose(np.diag(Kr)[:N], basis.omega**2, rtol=1e-9)  # -modes_eps_tol 1e-10
+    np.testing.assert_allclose(np.sqrt(np.diag(Kr)[N:]), basis.dbf_omega, rtol=1e-12)   # Eq. 41
+    basis.destroy()
+    ops.destroy()
+
+
+def third_derivative(ops, vector):
+    """w''' on each Hermite-cubic element (constant per element) from the nodal w, theta."""
+    mesh = ops.mesh
+    nodal = np.zeros(mesh.row.shape)
+    free = mesh.row >= 0
+    nodal[free] = vector[mesh.row[free]]
+    w, t, h = nodal[:, 0], nodal[:, 1], np.diff(mesh.x)
+    return (12 * (w[:-1] - w[1:]) + 6 * h * (t[:-1] + t[1:])) / h**3
+
+
+def test_dbf_shear_jumps_at_the_constraint_and_the_modes_do_not():
+    # Paper Fig. 3: the DBF is C1 (Hermite elements share w and theta at the node) but its third
+    # derivative, EI w''' (the shear), jumps at the constraint; the reference modes are smooth there.
+    # Elsewhere w''' of a cubic element changes by O(h w'''') between elements: 200 elements.
+    ops, basis = make([0.25], elements=200)
+    V = columns(basis)
+    node = ops.mesh.node_at(0.25)
+    for i, v in enumerate(V):
+        jumps = np.abs(np.diff(third_derivative(ops, v)))
+        at_constraint = jumps[node - 1]
+        elsewhere = np.delete(jumps, node - 1).max()
+        if i < basis.mode_count:
+            assert at_constraint < 1.5 * elsewhere, f"mode {i + 1} must not jump"
+        else:
+            assert at_constraint > 10 * elsewhere, "the DBF's shear must jump at the constraint"
+    basis.destroy()
+    ops.destroy()
+
+
+@pytest.mark.parametrize("k", [0.05, 1.0, 100.0])
+def test_reduced_linear_model_converges_to_the_exact_spring_supported_beam(k):
+    # The lowest eigenvalue of K_r + k B^T B (B: the basis at the constraint) approaches the exact
+    # frequency of the beam with a spring at l = 0.25, and the error falls as N grows.
+    beam = Beam(**TABLE1, elements=100)
+    exact = spring_supported_pinned_beam_omegas(beam.EI, beam.rhoA, 1.0, 0.25, k)[0]
+    errors, modes_only = [], []
+    for N in (2, 4, 6, 8):
+        ops, basis = make([0.25], modes=N)
+        Kr = basis.project(ops.K)
+        B = basis.rows(basis.constraint_rows)
+        lowest = np.sqrt(np.linalg.eigvalsh(Kr + k * B.T @ B)[0])
+        errors.append(lowest / exact - 1)
+        lowest_modes = np.sqrt(np.linalg.eigvalsh((Kr + k * B.T @ B)[:N, :N])[0])
+        modes_only.append(lowest_modes / exact - 1)
+        basis.destroy()
+        ops.destroy()
+    errors = np.array(errors)
+    assert np.all(errors > -1e-9), "a Galerkin projection bounds the frequency from above"
+    assert np.all(np.diff(errors) < 0), errors
+    assert errors[2] < 1e-3, errors                 # N = 6, the paper's choice
+    assert np.all(errors <= np.array(modes_only) + 1e-12), "the DBF never makes it worse"
+
+
+@pytest.mark.parallel
+@pytest.mark.parametrize("layout", ["paper", "four"])
+def test_same_basis_on_one_rank_and_on_two_ranks_in_one_or_two_groups(layout):
+    # 60 elements: the comparison is of the algorithm, not of the round-off of an ill-conditioned K
+    # (cond(K) grows like elements^4; at 100 elements the layouts differ by ~1e-10).
+    positions = LAYOUTS[layout]
+    ops, alone = make(positions, elements=60, comm=PETSc.COMM_SELF)
+    reference = columns(alone)
+    for groups in (1, 2):
+        ops2, basis = make(positions, elements=60, groups=groups)
+        V = columns(basis)
+        diff = np.linalg.norm(V - reference, axis=1) / np.linalg.norm(reference, axis=1)
+        assert_all(diff.max() < 1e-10, f"groups = {groups}: {diff.max():.2e}")
+        assert_all(np.allclose(basis.dbf_k, alone.dbf_k, rtol=1e-10))
+        basis.destroy()
+        ops2.destroy()
+    alone.destroy()
+    ops.destroy()
+
+
+def test_constraint_groups_balance_the_constraints():
+    assert constraint_groups(2, 1) == 1
+    assert constraint_groups(2, 9) == 2
+    assert constraint_groups(8, 3) == 3
+    assert constraint_groups(4, 9, requested=2) == 2
+    with pytest.raises(InputError, match="exceeds"):
+        constraint_groups(2, 9, requested=3)
+
+
+def test_two_constraints_on_one_dof_are_rejected_before_any_solve():
+    ops = assemble_beam(Beam(**TABLE1, elements=20), points=[0.25])
+    row = ops.mesh.w_row(0.25)
+    with pytest.raises(InputError, match=f"same DOF \\(row {row}\\)"):
+        build_basis(ops, [row, row])
+    ops.destroy()
+
+
+def test_more_basis_vectors_than_the_mesh_can_carry_is_a_breakdown_naming_the_constraint():
+    # 3 elements, 6 free DOFs: 5 modes + 2 DBFs cannot be independent.
+    ops = assemble_beam(Beam(**TABLE1, elements=3))
+    rows = [ops.mesh.w_row(x) for x in ops.mesh.x[1:3]]
+    with pytest.raises(SolverError, match="basis breakdown: the DBF of the constraint at .* numerically dependent"):
+        build_basis(ops, rows, BasisSettings(modes=5), labels=["x = 0.333 m", "x = 0.667 m"])
+    ops.destroy()
