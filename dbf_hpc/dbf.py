@@ -120,12 +120,10 @@ def pinned_eigenvalue(ops: Operators, row: int, branch: int) -> float:
     return float(values[-1])
 
 
-def auto_stiffness(ops: Operators, row: int, branch: int, reference_eigenvalue: float,
-                   participation: float) -> float:
+def auto_stiffness(pinned: float, reference_eigenvalue: float, participation: float) -> float:
     """k_auto = (mu_m - lambda_m(0)) / (g^T phi_m)^2: where the small-k and large-k asymptotes of
     lambda_m(k) meet (the corner of the paper's Fig. 2)."""
-    mu = pinned_eigenvalue(ops, row, branch)
-    return max(mu - reference_eigenvalue, 0.0) / participation
+    return max(pinned - reference_eigenvalue, 0.0) / participation
 
 
 def central_derivative(ops: Operators, row: int, k: float, branch: int, phi: PETSc.Vec) -> PETSc.Vec:
@@ -203,7 +201,8 @@ def dbf_source(ops: Operators, row: int, reference_eigenvalues: np.ndarray, part
         raise SolverError(f"the constraint at row {row} does not move in any of the "
                           f"{participation.size} reference modes; add modes or move the constraint")
     if stiffness == "auto":
-        k = auto_stiffness(ops, row, branch, reference_eigenvalues[branch - 1], participation[branch - 1])
+        k = auto_stiffness(pinned_eigenvalue(ops, row, branch), reference_eigenvalues[branch - 1],
+                           participation[branch - 1])
     else:
         k = float(stiffness)
     lam, phi = spring_eigenpair(ops, row, k, branch)

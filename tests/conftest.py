@@ -12,6 +12,7 @@ from petsc4py import PETSc
 @pytest.hookimpl(trylast=True)
 def pytest_configure(config):
     config.addinivalue_line("markers", "parallel: needs 2 MPI ranks; runs in the 2-rank pass")
+    config.addinivalue_line("markers", "launcher: starts its own mpirun jobs; runs in the serial pass")
     if MPI.COMM_WORLD.rank > 0:  # one report, from rank 0
         reporter = config.pluginmanager.getplugin("terminalreporter")
         if reporter is not None:
@@ -19,12 +20,14 @@ def pytest_configure(config):
 
 
 def pytest_collection_modifyitems(config, items):
-    if MPI.COMM_WORLD.size >= 2:
-        return
-    skip = pytest.mark.skip(reason="needs 2 MPI ranks (runs in the 2-rank pass)")
+    parallel = MPI.COMM_WORLD.size >= 2
+    skip_parallel = pytest.mark.skip(reason="needs 2 MPI ranks (runs in the 2-rank pass)")
+    skip_launcher = pytest.mark.skip(reason="starts mpirun itself (runs in the serial pass)")
     for item in items:
-        if "parallel" in item.keywords:
-            item.add_marker(skip)
+        if "parallel" in item.keywords and not parallel:
+            item.add_marker(skip_parallel)
+        if "launcher" in item.keywords and parallel:
+            item.add_marker(skip_launcher)
 
 
 @pytest.fixture

@@ -1,0 +1,286 @@
+"""The `dbf-hpc` command.
+
+    dbf-hpc modes SCENE.toml [--set section.key=value ...] [PETSc options]
+    dbf-hpc basis SCENE.toml [--no-cache] [--set ...] [PETSc options]
+    dbf-hpc stiffness SCENE.toml [--constraint J] [--k K1,K2,...] [-o SWEEP.csv] [--plot FIG.png]
+
+PETSc/SLEPc options (single dash, e.g. -modes_eps_tol 1e-12 -log_view) go after the scene; each
+solver reads its own prefix (modes_, dbf_, rom_, full_). Exit status: 0 on success, 1 on an error
+the user can act on (one line on stderr), 70 on an internal error.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import sys
+import time
+
+from . import __version__
+
+_PETSC_OPTION = re.compile(r"^-[A-Za-z]\w+")
+_NUMBER = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+
+
+def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(our arguments, PETSc options). A PETSc option is a single-dash word longer than one letter;
+    a token after it that is not an option (or is a number) is its value."""
+    ours, petsc = [], []
+    expecting_value = False
+    for token in argv:
+        if _PETSC_OPTION.match(token) and not _NUMBER.match(token):
+            petsc.append(token)
+            expecting_value = True
+        elif expecting_value and (not token.startswith("-") or _NUMBER.match(token)):
+            petsc.append(token)
+            expecting_value = False
+        else:
+            ours.append(token)
+            expecting_value = False
+    return ours, petsc
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dbf-hpc",
+        description="Discontinuous basis functions (Brake & Segalman 2011) for structures with many "
+                    "discrete nonlinear constraints, on PETSc/SLEPc. Run it under MPI: "
+                    "mpirun -n 2 dbf-hpc modes jobs/paper_beam.toml",
+        epilog="PETSc/SLEPc options go after the scene, e.g. -modes_eps_tol 1e-12 -log_view. "
+               "Solver prefixes: modes_ (reference modes), dbf_ (spring-perturbed modes and DBF "
+               "derivatives).")
+    parser.add_argument("--version", action="version", version=f"dbf-hpc {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    def command(name, func, help, description):
+        p = sub.add_parser(name, help=help, description=description)
+        p.add_argument("scene", help="scene file (TOML)")
+        p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                       help="override a scene value, e.g. --set basis.modes=10 (repeatable)")
+        p.set_defaults(func=func)
+        return p
+
+    command("modes", _modes, "the structure's reference modes: a modal summary",
+            "Assemble the scene's structure and print its reference modes (the [basis] modes count "
+            "or max_frequency_hz).")
+    basis = command("basis", _basis, "build (or reuse) the basis: modes and one DBF per constraint",
+                    "Compute the reference modes and one discontinuous basis function per constraint, "
+                    "in parallel over constraint groups, M-orthonormalize them, and cache the basis.")
+    basis.add_argument("--no-cache", action="store_true", help="neither read nor write the basis cache")
+    sweep = command("stiffness", _stiffness, "omega(k) of a constraint's spring-perturbed problem (Fig. 2)",
+                    "The first frequency of the structure with a linear spring of stiffness k at one "
+                    "constraint, over a range of k: the curve the DBF stiffness is chosen on (paper Fig. 2). "
+                    "Marks the auto stiffness.")
+    sweep.add_argument("--constraint", type=int, default=1, metavar="J", help="constraint number (from 1)")
+    sweep.add_argument("--k", default="1e-4:1e6:41", metavar="LIST",
+                       help="stiffnesses in N/m: a comma list, or START:STOP:COUNT (log-spaced); "
+                            "default 1e-4:1e6:41")
+    sweep.add_argument("-o", "--output", metavar="CSV", help="write k, omega, f to this CSV file")
+    sweep.add_argument("--plot", metavar="PNG", help="write the Fig. 2 plot to this PNG file")
+    return parser
+
+
+def _modes(args) -> int:
+    from petsc4py import PETSc
+
+    from .model import build_operators
+    from .modes import reference_modes
+    from .scene import load_scene
+
+    scene = load_scene(args.scene, args.set)
+    comm = PETSc.COMM_WORLD
+    start = time.perf_counter()
+    ops = build_operators(scene, comm)
+    assembled = time.perf_counter()
+    basis = scene["basis"]
+    modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+    solved = time.perf_counter()
+
+    say = PETSc.Sys.Print
+    what = (f"beam, {ops.mesh.elements} Hermite-cubic elements" if ops.mesh is not None
+            else f"matrices from {scene['structure']['stiffness']}")
+    say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s)")
+    say(f"structure: {what}, {ops.size} free DOFs, nonzeros K {int(ops.K.getInfo()['nz_used'])}")
+    say(f"reference modes: {modes.count}" + (f" below {basis['max_frequency_hz']:g} Hz"
+                                              if basis["max_frequency_hz"] else ""))
+    say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
+    for i, (f, w) in enumerate(zip(modes.frequency_hz, modes.omega)):
+        say(f"{i + 1:>6} {f:>14.8g} {w:>16.8g}")
+    say(f"time: assembly {assembled - start:.3f} s, eigensolve {solved - assembled:.3f} s")
+    modes.destroy()
+    ops.destroy()
+    return 0
+
+
+def _basis(args) -> int:
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    from .cache import obtain_basis
+    from .model import build_operators, constraint_rows, operators_fingerprint
+    from .modes import counters
+    from .scene import load_scene
+
+    scene = load_scene(args.scene, args.set)
+    comm = PETSc.COMM_WORLD
+    ops = build_operators(scene, comm)
+    rows = constraint_rows(scene, ops)
+    labels = [c.label for c in scene.constraints]
+    start, solves = time.perf_counter(), counters["eigen_solves"]
+    basis = obtain_basis(ops, rows, scene.basis_settings(), operators_fingerprint(scene, ops),
+                         None if args.no_cache else scene.cache_dir(), labels)
+    elapsed = time.perf_counter() - start
+    say = PETSc.Sys.Print
+    say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s), {ops.size} DOFs")
+    say(f"basis: {basis.mode_count} reference modes + {rows.size} DBFs, M-orthonormal "
+        f"({elapsed:.3f} s, {comm.tompi4py().allreduce(counters['eigen_solves'] - solves, op=MPI.MAX)} eigen-solves "
+        f"on the busiest rank, cache {basis.stats.get('cache')})")
+    say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
+    for i, w in enumerate(basis.omega):
+        say(f"{i + 1:>6} {w / (2 * 3.141592653589793):>14.8g} {w:>16.8g}")
+    if rows.size:
+        say(f"{'DBF':>6} {'constraint':>14} {'k_j [N/m]':>12} {'branch':>7} {'hat-omega [rad/s]':>18}")
+        for j in range(rows.size):
+            say(f"{j + 1:>6} {labels[j]:>14} {basis.dbf_k[j]:>12.5g} {basis.dbf_branch[j]:>7d} "
+                f"{basis.dbf_omega[j]:>18.8g}")
+    for key in ("time_modes", "time_dbf", "time_orthogonalization"):
+        if key in basis.stats:
+            say(f"time {key[5:]}: {basis.stats[key]:.3f} s")
+    basis.destroy()
+    ops.destroy()
+    return 0
+
+
+def parse_stiffnesses(text: str):
+    import numpy as np
+
+    from .errors import InputError
+
+    try:
+        if ":" in text:
+            start, stop, count = text.split(":")
+            values = np.logspace(np.log10(float(start)), np.log10(float(stop)), int(count))
+        else:
+            values = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        raise InputError(f"--k {text!r}: expected a comma list or START:STOP:COUNT") from None
+    if values.size == 0 or not np.all(values > 0):
+        raise InputError(f"--k {text!r}: stiffnesses must be positive")
+    return values
+
+
+def _stiffness(args) -> int:
+    import numpy as np
+    from petsc4py import PETSc
+
+    from .basis import participation
+    from .dbf import auto_stiffness, branch_of, pinned_eigenvalue, stiffness_sweep
+    from .errors import InputError
+    from .model import build_operators, constraint_rows
+    from .modes import reference_modes
+    from .scene import load_scene
+
+    scene = load_scene(args.scene, args.set)
+    if not 1 <= args.constraint <= len(scene.constraints):
+        raise InputError(f"--constraint {args.constraint}: the scene has {len(scene.constraints)} constraint(s)")
+    ks = parse_stiffnesses(args.k)
+    for path in (args.output, args.plot):
+        _check_writable(path)
+    ops = build_operators(scene, PETSc.COMM_WORLD)
+    row = int(constraint_rows(scene, ops)[args.constraint - 1])
+    basis = scene["basis"]
+    modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+    part = participation(modes, np.array([row]))[0]
+    branch = branch_of(part)
+    if branch == 0:
+        raise InputError(f"constraint {args.constraint} does not move in any reference mode")
+    mu = pinned_eigenvalue(ops, row, branch)
+    k_auto = auto_stiffness(mu, modes.omega[branch - 1] ** 2, part[branch - 1])
+    omega = stiffness_sweep(ops, row, ks, branch)
+    label = scene.constraints[args.constraint - 1].label
+    say = PETSc.Sys.Print
+    say(f"omega_{branch}(k) with a spring at {label}: from {modes.omega[branch - 1]:.8g} rad/s (no spring) "
+        f"to {np.sqrt(mu):.8g} rad/s (pinned); auto stiffness {k_auto:.6g} N/m")
+    say(f"{'k [N/m]':>14} {'omega [rad/s]':>16} {'f [Hz]':>14}")
+    for k, w in zip(ks, omega):
+        say(f"{k:>14.6g} {w:>16.10g} {w / (2 * np.pi):>14.8g}")
+    if PETSc.COMM_WORLD.getRank() == 0:
+        if args.output:
+            _write_atomically(args.output, lambda f: np.savetxt(
+                f, np.column_stack([ks, omega, omega / (2 * np.pi)]), delimiter=",",
+                header=f"k [N/m],omega [rad/s],f [Hz]   (spring at {label}; auto k = {k_auto:.6g} N/m)"))
+        if args.plot:
+            from .plots import plot_stiffness_sweep
+
+            plot_stiffness_sweep(args.plot, ks, omega, k_auto, label, modes.omega[branch - 1], np.sqrt(mu))
+    modes.destroy()
+    ops.destroy()
+    return 0
+
+
+def _check_writable(path) -> None:
+    """An output path must be in an existing, writable directory (checked before any work)."""
+    from .errors import InputError
+
+    if not path:
+        return
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(f"output {path!r}: directory {folder!r} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise InputError(f"output {path!r}: directory {folder!r} is not writable")
+
+
+def _write_atomically(path: str, write) -> None:
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "w") as f:
+        write(f)
+    os.replace(tmp, path)
+
+
+def _fail(message: str, comm) -> int:
+    """End the job after an error on this rank. If every rank reports the error (input checked
+    alike everywhere), rank 0 prints it once and all exit 1; if the other ranks do not arrive within
+    10 s (they are stuck in a collective call), this rank prints it and aborts the job."""
+    request = comm.Ibarrier()
+    deadline = time.monotonic() + 10.0
+    while not request.Test():
+        if time.monotonic() > deadline:
+            print(f"dbf-hpc: error (rank {comm.rank}): {message}", file=sys.stderr, flush=True)
+            comm.Abort(1)
+        time.sleep(0.005)
+    if comm.rank == 0:
+        print(f"dbf-hpc: error: {message}", file=sys.stderr, flush=True)
+    return 1
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ours, petsc_options = split_petsc_options(argv)
+    args = build_parser().parse_args(ours)
+
+    from . import _petsc
+
+    _petsc.init(petsc_options)
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    from .errors import DbfError
+
+    comm = MPI.COMM_WORLD
+    try:
+        return args.func(args)
+    except DbfError as e:
+        return _fail(str(e), comm)
+    except Exception as e:  # a bug or a PETSc failure: say it in one line and end every rank
+        if os.environ.get("DBF_HPC_DEBUG"):
+            raise
+        kind = "PETSc error" if isinstance(e, PETSc.Error) else f"internal error ({type(e).__name__})"
+        print(f"dbf-hpc: {kind} on rank {comm.rank}: {e}. Set DBF_HPC_DEBUG=1 for a traceback.",
+              file=sys.stderr, flush=True)
+        if comm.size > 1:
+            comm.Abort(70)
+        return 70
+
+
+if __name__ == "__main__":
+    sys.exit(main())

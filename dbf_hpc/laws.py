@@ -1,0 +1,518 @@
+"""Constraint laws N(z, v) of the discrete constraints, vectorized, with exact derivatives.
+
+Conventions (shared with the reduced model and the integrators):
+- z is the TOTAL displacement at a constraint (m), v its velocity (m/s).
+- N is the force ON the structure (N), restoring, with exactly the sign of Eq. 23:
+      N(z) = k_minus (-d_minus - z)   for z < -d_minus
+             0                        for -d_minus <= z <= d_plus
+             k_plus (d_plus - z)      for z > d_plus
+  The edges belong to the deadband: there N = 0, dN/dz = 0 and in_contact is False.
+- power:  N = k_minus (-d_minus - z)^p_minus below, -k_plus (z - d_plus)^p_plus above (k in N/m^p).
+  Eq. 42 is power with k_minus = 0.1, p_minus = 3, k_plus = 1e6, p_plus = 1, d_minus = d_plus = d_x.
+  deadband is power with p = 1 on both sides; hertz is power with p = 1.5 (by default).
+- linear: N = -k z.  cubic: N = -(k z + k3 z^3).  Both have no clearance and are always in contact.
+  A Law stores k in k_plus (k_minus is set equal to it).
+- table: piecewise-linear through (z_i, f_i), f the force on the structure; beyond the ends the end
+  segments are extended. dN/dz is the segment slope (at a breakpoint, the segment to the right, so
+  at a table's upper contact edge the slope is the contact one, not the deadband law's 0).
+- potential U: elastic N = -dU/dz. For the two-sided kinds, linear and cubic U >= 0 and U = 0 in the
+  deadband; for a table U(z) = -integral_0^z N, which is >= 0 only if the table is restoring.
+- Negative clearance is an interference fit (preload): for -d_minus > d_plus both sides push at once
+  on the overlap, N = k_minus (-d_minus - z)^p_minus - k_plus (z - d_plus)^p_plus, so the force at
+  z = 0 is the difference of the two preloads. The formula is the same for every clearance: each
+  side contributes only where it is compressed.
+- Contact damping, added to the elastic force only where in_contact: linear, -c v; Hunt-Crossley,
+  -alpha |N_el| v (alpha in s/m). For the two-sided kinds |N_el| is the sum of the magnitudes of the
+  two sides' forces (equal to |N_el| unless both sides push at once), so an interference fit still
+  dissipates at its balance point. Either is dissipative: F_d v <= 0.
+- A two-sided law may have k = 0 on one side: a one-sided stop.
+
+Use: ConstraintLaws(laws).force(z, v), .jacobian(z, v) -> (dN/dz, dN/dv) (diagonal, one entry per
+constraint), .force_and_jacobian(z, v) for both in one pass, .potential(z), .in_contact(z).
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+
+from .errors import InputError
+
+LAWS = ("deadband", "power", "linear", "cubic", "hertz", "table")
+CONTACT_DAMPING = ("none", "linear", "hunt_crossley")
+
+_TWO_SIDED = ("deadband", "power", "hertz")
+_DEFAULT_EXPONENT = {"hertz": 1.5}
+_NUMBER_FIELDS = ("clearance_minus", "clearance_plus", "k_minus", "k_plus", "k3", "c", "alpha")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _quoted(names) -> str:
+    return ", ".join(f'"{n}"' for n in names)
+
+
+@dataclass(frozen=True)
+class Law:
+    """One constraint's law (see the module docstring). Validated on construction.
+
+    exponent_minus/plus default to the kind's exponent (1; hertz 1.5); they may differ from 1 only
+    for power and hertz. linear and cubic take their k from k_plus (k_minus, if given, must equal
+    it). All-zero stiffness is a valid, force-free law; law_from_dict insists on a stiffness.
+    """
+
+    kind: str = "deadband"
+    clearance_minus: float = 0.0
+    clearance_plus: float = 0.0
+    k_minus: float = 0.0
+    k_plus: float = 0.0
+    exponent_minus: Optional[float] = None
+    exponent_plus: Optional[float] = None
+    k3: float = 0.0
+    table: tuple = ()
+    damping: str = "none"
+    c: float = 0.0
+    alpha: float = 0.0
+
+    def __post_init__(self):
+        def put(name, value):
+            object.__setattr__(self, name, value)
+
+        if self.kind not in LAWS:
+            raise InputError(f"law must be one of {_quoted(LAWS)}, got {self.kind!r}")
+        if self.damping not in CONTACT_DAMPING:
+            raise InputError(f"damping must be one of {_quoted(CONTACT_DAMPING)}, got {self.damping!r}")
+        for name in _NUMBER_FIELDS:
+            value = getattr(self, name)
+            if not (_is_number(value) and math.isfinite(value)):
+                raise InputError(f"{name} must be a finite number, got {value!r}")
+            put(name, float(value))
+        for name in ("k_minus", "k_plus", "k3", "c", "alpha"):
+            if getattr(self, name) < 0:
+                raise InputError(f"{name} must be a non-negative number, got {getattr(self, name)!r}")
+
+        default = _DEFAULT_EXPONENT.get(self.kind, 1.0)
+        for name in ("exponent_minus", "exponent_plus"):
+            value = getattr(self, name)
+            if value is None:
+                value = default
+            if not (_is_number(value) and math.isfinite(value) and value >= 1):
+                raise InputError(f"{name} must be a number >= 1, got {value!r}")
+            if value != 1 and self.kind not in ("power", "hertz"):
+                raise InputError(f"{name} does not apply to a {self.kind} law (it is 1); "
+                                 f"use law = \"power\"")
+            put(name, float(value))
+
+        kind = self.kind
+        if kind in ("linear", "cubic"):
+            if self.k_minus not in (0.0, self.k_plus):
+                raise InputError(f"k_minus = {self.k_minus:g} and k_plus = {self.k_plus:g} differ; "
+                                 f"a {kind} law has one k")
+            put("k_minus", self.k_plus)
+        for name in ("clearance_minus", "clearance_plus"):
+            if getattr(self, name) != 0 and kind not in _TWO_SIDED:
+                raise InputError(f"{name} does not apply to a {kind} law")
+        if self.k3 != 0 and kind != "cubic":
+            raise InputError(f"k3 does not apply to a {kind} law")
+        if kind == "table":
+            for name in ("k_minus", "k_plus"):
+                if getattr(self, name) != 0:
+                    raise InputError(f"{name} does not apply to a table law")
+            put("table", _check_table(self.table))
+        elif self.table is None or len(self.table) == 0:
+            put("table", ())
+        else:
+            raise InputError(f"table does not apply to a {kind} law")
+        if self.c != 0 and self.damping != "linear":
+            raise InputError("c applies only with damping = \"linear\"")
+        if self.alpha != 0 and self.damping != "hunt_crossley":
+            raise InputError("alpha applies only with damping = \"hunt_crossley\"")
+        if self.damping == "linear" and not self.c > 0:
+            raise InputError(f"c must be a positive number with damping = \"linear\", got {self.c!r}")
+        if self.damping == "hunt_crossley" and not self.alpha > 0:
+            raise InputError(f"alpha must be a positive number with damping = \"hunt_crossley\", "
+                             f"got {self.alpha!r}")
+
+
+def _check_table(table) -> tuple:
+    """((z0, f0), ...) as floats, >= 2 points, finite, strictly increasing z."""
+    if isinstance(table, (str, bytes)) or not isinstance(table, (list, tuple, np.ndarray)):
+        raise InputError(f"table must be a list of [z, force] pairs, got {table!r}")
+    points = []
+    for point in table:
+        if (isinstance(point, (str, bytes)) or not isinstance(point, (list, tuple, np.ndarray))
+                or len(point) != 2 or not all(_is_number(x) and math.isfinite(x) for x in point)):
+            raise InputError(f"table must be a list of [z, force] pairs of finite numbers, "
+                             f"got the point {point!r}")
+        points.append((float(point[0]), float(point[1])))
+    if len(points) < 2:
+        raise InputError(f"table must have at least 2 points, got {len(points)}")
+    for i in range(1, len(points)):
+        if not points[i][0] > points[i - 1][0]:
+            raise InputError(f"table z values must be strictly increasing: point {i + 1} has "
+                             f"z = {points[i][0]:g} after z = {points[i - 1][0]:g}")
+    return tuple(points)
+
+
+# Scene keys, and for each kind the keys it takes besides the damping keys.
+KEYS = ("law", "clearance", "clearance_minus", "clearance_plus", "k", "k_minus", "k_plus",
+        "exponent", "exponent_minus", "exponent_plus", "k3", "table", "damping", "c", "alpha")
+_SIDED = {"clearance": ("clearance_minus", "clearance_plus"), "k": ("k_minus", "k_plus"),
+          "exponent": ("exponent_minus", "exponent_plus")}
+_KIND_KEYS = {
+    "deadband": ("clearance", "clearance_minus", "clearance_plus", "k", "k_minus", "k_plus"),
+    "power": ("clearance", "clearance_minus", "clearance_plus", "k", "k_minus", "k_plus",
+              "exponent", "exponent_minus", "exponent_plus"),
+    "linear": ("k", "k_minus", "k_plus"),
+    "cubic": ("k", "k_minus", "k_plus", "k3"),
+    "table": ("table",),
+}
+_KIND_KEYS["hertz"] = _KIND_KEYS["power"]
+
+
+def law_from_dict(index: int, d: dict) -> Law:
+    """The Law of constraint `index` (as the user counts them) from its [[constraint]] table,
+    without its position key. Every error names the constraint and the key."""
+    where = f"constraint {index}"
+    for key in d:
+        if key not in KEYS:
+            raise InputError(f"{where}: unknown key {key!r} (known: {', '.join(KEYS)})")
+    for key, value in d.items():
+        if key in ("law", "damping"):
+            if not isinstance(value, str):
+                raise InputError(f"{where}: {key} must be a string, got {value!r}")
+        elif key == "table":
+            if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
+                raise InputError(f"{where}: table must be a list of [z, force] pairs, got {value!r}")
+        elif not _is_number(value):
+            raise InputError(f"{where}: {key} must be a number, got {value!r}")
+        elif not math.isfinite(value):
+            raise InputError(f"{where}: {key} must be a finite number, got {value!r}")
+
+    kind = d.get("law", "deadband")
+    if kind not in LAWS:
+        raise InputError(f"{where}: law must be one of {_quoted(LAWS)}, got {kind!r}")
+    damping = d.get("damping", "none")
+    if damping not in CONTACT_DAMPING:
+        raise InputError(f"{where}: damping must be one of {_quoted(CONTACT_DAMPING)}, got {damping!r}")
+    for both, sides in _SIDED.items():
+        given = [s for s in sides if s in d]
+        if both in d and given:
+            raise InputError(f"{where}: give either {both} or {'/'.join(sides)}, not both "
+                             f"({both} and {given[0]} are set)")
+    for key in d:
+        if key in ("law", "damping", "c", "alpha"):
+            continue
+        if key not in _KIND_KEYS[kind]:
+            takes = [k for k in LAWS if key in _KIND_KEYS[k]]
+            raise InputError(f"{where}: {key} does not apply to a {kind} law "
+                             f"(laws that take it: {', '.join(takes)})")
+    if "c" in d and damping != "linear":
+        raise InputError(f"{where}: c applies only with damping = \"linear\"")
+    if "alpha" in d and damping != "hunt_crossley":
+        raise InputError(f"{where}: alpha applies only with damping = \"hunt_crossley\"")
+
+    for key, value in d.items():
+        if key in ("k", "k_minus", "k_plus", "k3") and value < 0:
+            raise InputError(f"{where}: {key} must be a non-negative number, got {value!r}")
+        if key.startswith("exponent") and value < 1:
+            raise InputError(f"{where}: {key} must be a number >= 1, got {value!r}")
+        if key in ("c", "alpha") and not value > 0:
+            raise InputError(f"{where}: {key} must be a positive number, got {value!r}")
+    if damping == "linear" and "c" not in d:
+        raise InputError(f"{where}: damping = \"linear\" needs c (N s/m)")
+    if damping == "hunt_crossley" and "alpha" not in d:
+        raise InputError(f"{where}: damping = \"hunt_crossley\" needs alpha (s/m)")
+
+    fields = {"kind": kind, "damping": damping}
+    for both, sides in _SIDED.items():
+        for side in sides:
+            if both in d:
+                fields[side] = d[both]
+            elif side in d:
+                fields[side] = d[side]
+    for key in ("k3", "c", "alpha"):
+        if key in d:
+            fields[key] = d[key]
+    if "table" in d:
+        fields["table"] = d["table"]
+
+    stiffness = [key for key in ("k", "k_minus", "k_plus", "k3") if key in d]
+    if kind in _TWO_SIDED:
+        if not stiffness:
+            raise InputError(f"{where}: a {kind} law needs k (or k_minus and/or k_plus)")
+        if fields.get("k_minus", 0) == 0 and fields.get("k_plus", 0) == 0:
+            raise InputError(f"{where}: {stiffness[0]} must be a positive number, got 0 "
+                             f"(the constraint would never push)")
+    elif kind == "linear":
+        if not stiffness:
+            raise InputError(f"{where}: a linear law needs k")
+        if not fields.get("k_plus", fields.get("k_minus", 0)) > 0:
+            raise InputError(f"{where}: {stiffness[0]} must be a positive number, got 0")
+    elif kind == "cubic":
+        if not stiffness:
+            raise InputError(f"{where}: a cubic law needs k and/or k3")
+        if fields.get("k_plus", fields.get("k_minus", 0)) == 0 and fields.get("k3", 0) == 0:
+            raise InputError(f"{where}: {stiffness[0]} must be a positive number, got 0")
+    elif kind == "table" and "table" not in d:
+        raise InputError(f"{where}: a table law needs table = [[z, force], ...]")
+    if kind in ("linear", "cubic") and "k_minus" in fields and "k_plus" not in fields:
+        fields["k_plus"] = fields["k_minus"]  # a lone k_minus is the one k
+
+    try:
+        return Law(**fields)
+    except InputError as e:
+        raise InputError(f"{where}: {e}") from None
+
+
+class _Group:
+    """Constraints of one family; `at` selects them from the full arrays (a slice if contiguous)."""
+
+    def __init__(self, indices):
+        indices = np.asarray(indices, dtype=np.intp)
+        if np.array_equal(indices, np.arange(indices[0], indices[0] + indices.size)):
+            self.at = slice(int(indices[0]), int(indices[0]) + indices.size)
+        else:
+            self.at = indices
+
+
+class _TwoSided(_Group):
+    """deadband, power, hertz: N = k_m <-d_m - z>^p_m - k_p <z - d_p>^p_p, <x> = max(x, 0)."""
+
+    def __init__(self, indices, laws):
+        super().__init__(indices)
+        arr = lambda name: np.array([getattr(law, name) for law in laws], dtype=float)
+        self.edge_m = -arr("clearance_minus")
+        self.edge_p = arr("clearance_plus")
+        self.km, self.kp = arr("k_minus"), arr("k_plus")
+        self.pm, self.pp = arr("exponent_minus"), arr("exponent_plus")
+        self.acts_m, self.acts_p = self.km > 0, self.kp > 0
+        self.linear = bool(np.all(self.pm == 1) and np.all(self.pp == 1))  # skip the powers
+        self.pm1, self.pp1 = self.pm - 1.0, self.pp - 1.0
+        self.km_pm, self.kp_pp = self.km * self.pm, self.kp * self.pp
+        self.zero = np.zeros(len(laws))
+
+    def _compressions(self, z):
+        # in place against a stored zero array: the cheapest numpy form for small arrays
+        xm = self.edge_m - z
+        np.maximum(xm, self.zero, out=xm)
+        xp = z - self.edge_p
+        np.maximum(xp, self.zero, out=xp)
+        return xm, xp
+
+    def _sides(self, z):
+        """The two sides' force magnitudes and slopes, and where each side is compressed."""
+        xm, xp = self._compressions(z)
+        on_m, on_p = xm > self.zero, xp > self.zero
+        if self.linear:
+            return self.km * xm, self.kp * xp, self.km * on_m, self.kp * on_p, on_m, on_p
+        tm, tp = xm**self.pm1, xp**self.pp1  # one power per side; the mask drops 0**0 = 1 at p = 1
+        return (self.km * xm * tm, self.kp * xp * tp, self.km_pm * tm * on_m, self.kp_pp * tp * on_p,
+                on_m, on_p)
+
+    def elastic(self, z):
+        xm, xp = self._compressions(z)
+        if self.linear:
+            return self.km * xm - self.kp * xp
+        return self.km * xm * xm**self.pm1 - self.kp * xp * xp**self.pp1  # as in _sides, bit for bit
+
+    def stiffness(self, z):
+        """(N, dN/dz)."""
+        fm, fp, gm, gp, _, _ = self._sides(z)
+        return fm - fp, -(gm + gp)
+
+    def evaluate(self, z):
+        """(N, dN/dz, |N|, d|N|/dz, contact); |N| sums the two sides' magnitudes."""
+        fm, fp, gm, gp, on_m, on_p = self._sides(z)
+        contact = (on_m & self.acts_m) | (on_p & self.acts_p)
+        return fm - fp, -(gm + gp), fm + fp, gp - gm, contact
+
+    def potential(self, z):
+        xm, xp = self._compressions(z)
+        return (self.km * xm ** (self.pm + 1.0) / (self.pm + 1.0)
+                + self.kp * xp ** (self.pp + 1.0) / (self.pp + 1.0))
+
+    def in_contact(self, z):
+        return ((z < self.edge_m) & self.acts_m) | ((z > self.edge_p) & self.acts_p)
+
+
+class _Polynomial(_Group):
+    """linear and cubic: N = -(k z + k3 z^3), in contact everywhere."""
+
+    def __init__(self, indices, laws):
+        super().__init__(indices)
+        self.k = np.array([law.k_plus for law in laws], dtype=float)
+        self.k3 = np.array([law.k3 for law in laws], dtype=float)
+        self.cubic = bool(np.any(self.k3 != 0))
+
+    def evaluate(self, z):
+        if self.cubic:
+            z2 = z * z
+            stiff = self.k + self.k3 * z2
+            slope = self.k + 3.0 * self.k3 * z2
+        else:
+            stiff = slope = self.k
+        force = -stiff * z
+        return force, -slope, np.abs(force), np.sign(z) * slope, np.ones(z.shape, dtype=bool)
+
+    def elastic(self, z):
+        if self.cubic:
+            return -(self.k + self.k3 * (z * z)) * z
+        return -self.k * z
+
+    def stiffness(self, z):
+        if self.cubic:
+            z2 = z * z
+            return -(self.k + self.k3 * z2) * z, -(self.k + 3.0 * self.k3 * z2)
+        return -self.k * z, -self.k
+
+    def potential(self, z):
+        z2 = z * z
+        return 0.5 * self.k * z2 + 0.25 * self.k3 * z2 * z2
+
+    def in_contact(self, z):
+        return np.ones(z.shape, dtype=bool)
+
+
+class _Table(_Group):
+    """Piecewise-linear tables, padded to a common length so one call handles them all."""
+
+    def __init__(self, indices, laws):
+        super().__init__(indices)
+        width = max(len(law.table) for law in laws)
+        rows = len(laws)
+        self.z = np.full((rows, width), np.inf)  # +inf pads never count as "z_j <= z"
+        f = np.zeros((rows, width))
+        self.last = np.array([len(law.table) - 2 for law in laws], dtype=np.intp)  # last segment
+        for i, law in enumerate(laws):
+            points = np.array(law.table)
+            self.z[i, :len(points)] = points[:, 0]
+            f[i, :len(points)] = points[:, 1]
+        self.rows = np.arange(rows)
+        slope = np.zeros((rows, width))
+        start = np.zeros((rows, width))  # integral of N from 0 to z_j
+        for i, law in enumerate(laws):
+            m = len(law.table)
+            zi, fi = self.z[i, :m], f[i, :m]
+            slope[i, :m - 1] = np.diff(fi) / np.diff(zi)
+            slope[i, m - 1] = slope[i, m - 2]
+            start[i, 1:m] = np.cumsum(0.5 * (fi[1:] + fi[:-1]) * np.diff(zi))
+        self.f, self.slope, self.start = f, slope, start
+        segment = self._segment(np.zeros(rows))
+        start -= self._integral(np.zeros(rows), segment)[:, None]  # shift the origin to z = 0
+
+    def _segment(self, z):
+        count = np.count_nonzero(self.z <= z[:, None], axis=1)
+        return np.minimum(np.maximum(count - 1, 0), self.last)
+
+    def _integral(self, z, s):
+        dz = z - self.z[self.rows, s]
+        return (self.start[self.rows, s]
+                + dz * (self.f[self.rows, s] + 0.5 * self.slope[self.rows, s] * dz))
+
+    def evaluate(self, z):
+        force, slope = self.stiffness(z)
+        return force, slope, np.abs(force), np.sign(force) * slope, force != 0
+
+    def elastic(self, z):
+        return self.stiffness(z)[0]
+
+    def stiffness(self, z):
+        s = self._segment(z)
+        slope = self.slope[self.rows, s]
+        return self.f[self.rows, s] + slope * (z - self.z[self.rows, s]), slope
+
+    def potential(self, z):
+        return -self._integral(z, self._segment(z))
+
+    def in_contact(self, z):
+        return self.elastic(z) != 0
+
+
+class ConstraintLaws:
+    """The laws of all constraints, evaluated vectorized: one pass per family of kinds, with the
+    parameters gathered into arrays once here. Arrays in and out have shape (n,)."""
+
+    def __init__(self, laws: Sequence[Law]):
+        self.laws = tuple(laws)
+        for i, law in enumerate(self.laws):
+            if not isinstance(law, Law):
+                raise TypeError(f"constraint {i + 1}: expected a Law, got {type(law).__name__}")
+        self.n = len(self.laws)
+        families = {"two_sided": (_TwoSided, _TWO_SIDED), "polynomial": (_Polynomial, ("linear", "cubic")),
+                    "table": (_Table, ("table",))}
+        self._groups = []
+        for cls, kinds in families.values():
+            members = [i for i, law in enumerate(self.laws) if law.kind in kinds]
+            if members:
+                self._groups.append(cls(members, [self.laws[i] for i in members]))
+        self._single = len(self._groups) == 1 and isinstance(self._groups[0].at, slice) \
+            and self._groups[0].at == slice(0, self.n)  # no gather/scatter needed
+        self.c = np.array([law.c for law in self.laws], dtype=float)
+        self.alpha = np.array([law.alpha for law in self.laws], dtype=float)
+        self._damped = bool(np.any(self.c > 0) or np.any(self.alpha > 0))
+        self._hunt_crossley = bool(np.any(self.alpha > 0))
+        self._minus_c = -self.c
+
+    def _gather(self, z, method, parts=1, dtype=float):
+        """Call `method` of every group on its share of z; `parts` arrays, the last of `dtype`."""
+        if self._single:
+            return getattr(self._groups[0], method)(z)
+        out = [np.empty(self.n) for _ in range(parts - 1)] + [np.empty(self.n, dtype=dtype)]
+        for g in self._groups:
+            values = getattr(g, method)(z[g.at])
+            for target, part in zip(out, values if parts > 1 else (values,)):
+                target[g.at] = part
+        return out if parts > 1 else out[0]
+
+    def _z(self, z):
+        z = np.asarray(z, dtype=float)
+        if z.shape != (self.n,):
+            raise ValueError(f"expected {self.n} constraint displacements, got shape {z.shape}")
+        return z
+
+    def force_and_jacobian(self, z, v):
+        """(N, dN/dz, dN/dv) in one pass; the Jacobians are diagonal, one entry per constraint."""
+        z = self._z(z)
+        if not self._damped:
+            force, dz = self._gather(z, "stiffness", parts=2)
+            return force, dz, np.zeros(self.n)
+        force, dz, mag, dmag, contact = self._gather(z, "evaluate", parts=5, dtype=bool)
+        v = np.asarray(v, dtype=float)
+        dv = self._minus_c * contact
+        if self._hunt_crossley:
+            a = self.alpha * contact
+            dv -= a * mag
+            dz = dz - a * dmag * v
+        return force + dv * v, dz, dv  # the damping force is linear in v
+
+    def force(self, z, v=None) -> np.ndarray:
+        """N on the structure; v = None leaves out contact damping."""
+        z = self._z(z)
+        if v is None or not self._damped:
+            return self._gather(z, "elastic")
+        force, _, mag, _, contact = self._gather(z, "evaluate", parts=5, dtype=bool)
+        c = self._minus_c * contact
+        if self._hunt_crossley:
+            c -= self.alpha * contact * mag
+        return force + c * np.asarray(v, dtype=float)
+
+    def jacobian(self, z, v=None) -> tuple:
+        """(dN/dz, dN/dv), diagonal: one entry per constraint."""
+        if v is None:
+            v = np.zeros(self.n)
+        return self.force_and_jacobian(z, v)[1:]
+
+    def potential(self, z) -> np.ndarray:
+        """U (J) with elastic N = -dU/dz, U = 0 at z = 0 for tables, U >= 0 for the other kinds."""
+        return self._gather(self._z(z), "potential")
+
+    def in_contact(self, z) -> np.ndarray:
+        """Where the elastic force is nonzero: outside the deadband on a side with k > 0; always for
+        linear and cubic; where the tabulated force is nonzero for tables."""
+        return self._gather(self._z(z), "in_contact", dtype=bool)

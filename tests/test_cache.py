@@ -1,0 +1,90 @@
+"""Basis cache: a hit performs no eigen-solve, whatever determines the basis rebuilds it, and a stale
+or corrupt file is detected and never used (paper, conclusion 2)."""
+import glob
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from conftest import assert_all
+from dbf_hpc.cache import obtain_basis
+from dbf_hpc.model import build_operators, constraint_rows, operators_fingerprint
+from dbf_hpc.modes import counters
+from dbf_hpc.scene import validate
+
+STRUCTURE = {"kind": "beam", "length": 1.0, "E": 117e9, "I": 8.78e-16, "A": 2.9e-7, "rho": 11800.0,
+             "elements": 40}
+
+
+def scene(law="deadband", x=(0.25,), modes=6, **excitation):
+    constraints = [{"x": v, "law": law, "k": 1e6, **({"clearance": 2.5e-3} if law == "deadband" else {})}
+                   for v in x]
+    return validate({"structure": dict(STRUCTURE), "constraint": constraints, "basis": {"modes": modes},
+                     "excitation": excitation or {"kind": "none"}}, "cache-test.toml")
+
+
+def obtain(s, cache_dir):
+    """(basis, eigen-solves it took on the busiest rank)."""
+    ops = build_operators(s)
+    before = counters["eigen_solves"]
+    basis = obtain_basis(ops, constraint_rows(s, ops), s.basis_settings(), operators_fingerprint(s, ops),
+                         str(cache_dir))
+    solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
+    Kr = basis.project(ops.K)
+    basis.destroy()
+    ops.destroy()
+    return Kr, solves, basis.stats.get("cache")
+
+
+def test_a_cache_hit_performs_no_eigen_solve(shared_tmp_path):
+    first, solves, state = obtain(scene(), shared_tmp_path)
+    assert solves > 0 and state == "stored"
+    second, solves, state = obtain(scene(), shared_tmp_path)
+    assert solves == 0 and state == "hit"
+    assert np.allclose(first, second, rtol=1e-13, atol=0)
+
+
+def test_changing_the_law_or_the_excitation_reuses_the_basis(shared_tmp_path):
+    obtain(scene(), shared_tmp_path)
+    _, solves, state = obtain(scene(law="linear"), shared_tmp_path)
+    assert solves == 0 and state == "hit"
+    _, solves, state = obtain(scene(kind="base", amplitude=1e-3, frequency_hz=3.0), shared_tmp_path)
+    assert solves == 0 and state == "hit"
+
+
+@pytest.mark.parametrize("change", [dict(x=(0.3,)), dict(modes=5), dict(x=(0.25, 0.6))])
+def test_changing_what_determines_the_basis_rebuilds_it(shared_tmp_path, change):
+    obtain(scene(), shared_tmp_path)
+    _, solves, state = obtain(scene(**change), shared_tmp_path)
+    assert solves > 0 and state == "stored"
+
+
+def _cache_file(directory):
+    files = MPI.COMM_WORLD.bcast(sorted(glob.glob(str(directory / "basis-*.h5"))), root=0)
+    assert len(files) == 1
+    return files[0]
+
+
+def test_a_corrupt_basis_is_detected_and_rebuilt(shared_tmp_path):
+    reference, _, _ = obtain(scene(), shared_tmp_path)
+    path = _cache_file(shared_tmp_path)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(path, "r+") as f:
+            f["V"][5, 2] *= 1.001     # one flipped value: V^T M V is no longer I
+    MPI.COMM_WORLD.Barrier()
+    rebuilt, solves, state = obtain(scene(), shared_tmp_path)
+    assert solves > 0 and state == "stored"
+    assert np.allclose(rebuilt, reference, rtol=1e-10)
+
+
+def test_an_unreadable_cache_file_is_rebuilt(shared_tmp_path):
+    obtain(scene(), shared_tmp_path)
+    path = _cache_file(shared_tmp_path)
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "wb") as f:
+            f.write(b"\x89HDF\r\n truncated")
+    MPI.COMM_WORLD.Barrier()
+    _, solves, state = obtain(scene(), shared_tmp_path)
+    assert solves > 0 and state == "stored"
+    assert_all(True)

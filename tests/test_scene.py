@@ -1,0 +1,103 @@
+"""Scene files: the contract's sections and keys, defaults, overrides, and one clear error per mistake."""
+import os
+
+import pytest
+
+from dbf_hpc.errors import InputError
+from dbf_hpc.scene import load_scene, parse_override, validate
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAPER = os.path.join(ROOT, "jobs", "paper_beam.toml")
+BEAM = {"kind": "beam", "length": 1.0, "E": 117e9, "I": 8.78e-16, "A": 2.9e-7, "rho": 11800.0}
+
+
+def scene(**sections):
+    data = {"structure": dict(BEAM)}
+    data.update(sections)
+    return validate(data, "test.toml")
+
+
+def test_paper_scene_holds_table_1():
+    s = load_scene(PAPER)
+    beam = s.beam()
+    assert (beam.length, beam.E, beam.I, beam.A, beam.rho) == (1.0, 117e9, 8.78e-16, 2.9e-7, 11800.0)
+    assert (beam.left, beam.right) == ("pinned", "pinned")
+    (c,) = s.constraints
+    assert c.x == 0.25 and c.law.kind == "deadband"
+    assert c.law.clearance_minus == c.law.clearance_plus == 2.5e-3
+    assert c.law.k_minus == c.law.k_plus == 1e6
+    assert s["basis"]["modes"] == 6 and s["basis"]["dbf_stiffness"] == "auto"
+    assert s["excitation"]["amplitude"] == 5e-3 and s["excitation"]["frequency_hz"] == 1.0
+
+
+def test_overrides_change_values_with_toml_types():
+    s = load_scene(PAPER, ["basis.modes=3", "constraint.clearance=1e-3", "structure.left=clamped",
+                           "basis.dbf_stiffness=0.1"])
+    assert s["basis"]["modes"] == 3 and s["basis"]["dbf_stiffness"] == 0.1
+    assert s.constraints[0].law.clearance_plus == 1e-3
+    assert s.beam().left == "clamped"
+    assert parse_override("output.probes=[0.1, 0.2]") == ("output", "probes", [0.1, 0.2])
+
+
+def test_defaults_fill_every_section():
+    s = scene()
+    assert s["basis"]["modes"] == 6 and s["excitation"]["kind"] == "none" and s.constraints == ()
+    assert s.damping().kind == "none"
+
+
+@pytest.mark.parametrize("data,message", [
+    ({"struct": {}}, r"unknown section \[struct\]"),
+    ({"basis": {"mode": 3}}, r"unknown key 'mode' in \[basis\]"),
+    ({"basis": {"modes": "six"}}, "modes must be an integer"),
+    ({"basis": {"modes": 2.5}}, "modes must be an integer"),
+    ({"integrator": {"t_end": -1.0}}, "t_end must be positive"),
+    ({"integrator": {"dt": 0}}, "dt must be positive"),
+    ({"integrator": {"contact": "sometimes"}}, "contact must be"),
+    ({"basis": {"modes": 4, "max_frequency_hz": 10.0}}, "not both"),
+    ({"basis": {"dbf_stiffness": "soft"}}, "dbf_stiffness must be"),
+    ({"constraint": [{"x": 1.5, "law": "deadband", "k": 1e6}]}, "not on the beam"),
+    ({"constraint": [{"law": "deadband", "k": 1e6}]}, "x is required"),
+    ({"constraint": [{"x": 0.25, "law": "deadband", "k": 1e6}, {"x": 0.25, "law": "linear", "k": 1.0}]},
+     "constraints 1 and 2 are both at x = 0.25 m"),
+    ({"constraint": [{"x": 0.25, "law": "stick", "k": 1e6}]}, "constraint 1"),
+    ({"output": {"probes": [-0.1]}}, "not on the beam"),
+    ({"excitation": {"kind": "force", "frequency_hz": 1.0}}, "needs its position"),
+    ({"excitation": {"kind": "quake"}}, "kind must be"),
+    ({"damping": {"zeta": -0.01}}, "zeta"),
+])
+def test_bad_scenes_are_one_clear_error(data, message):
+    with pytest.raises(InputError, match=message):
+        scene(**data)
+
+
+@pytest.mark.parametrize("change,message", [({"E": -1.0}, "E must be positive"), ({"rho": None}, "rho is required"),
+                                            ({"left": "glued"}, "left must be one of"),
+                                            ({"kind": "shell"}, "kind must be")])
+def test_bad_structures_are_one_clear_error(change, message):
+    structure = {**BEAM, **change}
+    if change.get("rho", 0) is None:
+        del structure["rho"]
+    with pytest.raises(InputError, match=message):
+        validate({"structure": structure}, "test.toml")
+
+
+def test_matrices_structure_uses_dofs_and_needs_its_files():
+    with pytest.raises(InputError, match="stiffness .* is required"):
+        validate({"structure": {"kind": "matrices"}}, "t.toml")
+    s = validate({"structure": {"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx"},
+                  "constraint": [{"dof": 3, "law": "linear", "k": 10.0}]}, "/some/where/t.toml")
+    assert s.constraints[0].dof == 3 and s.resolve("K.mtx") == "/some/where/K.mtx"
+    with pytest.raises(InputError, match="use dof, not x"):
+        validate({"structure": {"kind": "matrices", "stiffness": "K", "mass": "M"},
+                  "constraint": [{"x": 0.3, "law": "linear", "k": 1.0}]}, "t.toml")
+
+
+def test_unreadable_or_malformed_files_are_errors(tmp_path):
+    with pytest.raises(InputError, match="cannot read scene"):
+        load_scene(str(tmp_path / "missing.toml"))
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[structure\nkind = beam")
+    with pytest.raises(InputError, match="not valid TOML"):
+        load_scene(str(bad))
+    with pytest.raises(InputError, match="expected section.key=value"):
+        load_scene(PAPER, ["modes=3"])
