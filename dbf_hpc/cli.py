@@ -1,5 +1,6 @@
 """The `dbf-hpc` command.
 
+    dbf-hpc run SCENE.toml [-o OUT.h5] [-q] [--set section.key=value ...] [PETSc options]
     dbf-hpc modes SCENE.toml [--set section.key=value ...] [PETSc options]
     dbf-hpc basis SCENE.toml [--no-cache] [--set ...] [PETSc options]
     dbf-hpc stiffness SCENE.toml [--constraint J] [--k K1,K2,...] [-o SWEEP.csv] [--plot FIG.png]
@@ -48,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "mpirun -n 2 dbf-hpc modes jobs/paper_beam.toml",
         epilog="PETSc/SLEPc options go after the scene, e.g. -modes_eps_tol 1e-12 -log_view. "
                "Solver prefixes: modes_ (reference modes), dbf_ (spring-perturbed modes and DBF "
-               "derivatives).")
+               "derivatives), rom_ (the reduced model's TS, e.g. -rom_ts_arkimex_type 4).")
     parser.add_argument("--version", action="version", version=f"dbf-hpc {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     def command(name, func, help, description):
@@ -59,6 +60,11 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=func)
         return p
 
+    run = command("run", _run, "run a scene: basis, reduced nonlinear dynamics, HDF5 output",
+                  "Build (or reuse) the basis of modes and DBFs, integrate the reduced nonlinear model "
+                  "with PETSc TS ARKIMEX, and write the HDF5 output.")
+    run.add_argument("-o", "--output", metavar="OUT.h5", help="output file (default: the scene's [output] file)")
+    run.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     command("modes", _modes, "the structure's reference modes: a modal summary",
             "Assemble the scene's structure and print its reference modes (the [basis] modes count "
             "or max_frequency_hz).")
@@ -77,6 +83,15 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("-o", "--output", metavar="CSV", help="write k, omega, f to this CSV file")
     sweep.add_argument("--plot", metavar="PNG", help="write the Fig. 2 plot to this PNG file")
     return parser
+
+
+def _run(args) -> int:
+    from .run import run
+    from .scene import load_scene
+
+    scene = load_scene(args.scene, args.set)
+    run(scene, args.output, progress=not args.quiet)
+    return 0
 
 
 def _modes(args) -> int:

@@ -51,7 +51,7 @@ SCHEMA = {
     },
     "damping": {"zeta": ((*NUMBER, list), 0.0), "rayleigh_alpha": (NUMBER, 0.0), "rayleigh_beta": (NUMBER, 0.0)},
     "integrator": {
-        "t_end": (NUMBER, 1.0), "dt": (NUMBER, 1e-4), "scheme": (str, "3"), "adaptive": (bool, True),
+        "t_end": (NUMBER, 1.0), "dt": (NUMBER, 1e-4), "scheme": ((str, int), "3"), "adaptive": (bool, True),
         "rtol": (NUMBER, 1e-6), "atol": (NUMBER, 1e-9), "contact": (str, "implicit"),
     },
     "initial": {"mode": (int, 1), "amplitude": (NUMBER, 0.0)},
@@ -277,6 +277,7 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
         raise InputError(f"{where}: groups must be 0 (automatic) or a positive count, got {b['groups']}")
 
     i, where = sections["integrator"], f"{path}: [integrator]"
+    i["scheme"] = str(i["scheme"]).lower()  # --set integrator.scheme=3 arrives as an integer
     for key in ("t_end", "dt", "rtol", "atol"):
         if not i[key] > 0:
             raise InputError(f"{where}: {key} must be positive, got {i[key]!r}")

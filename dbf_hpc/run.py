@@ -1,0 +1,222 @@
+"""One run, stage by stage: scene -> operators -> basis -> reduced model -> integration -> output.
+
+Collective on COMM_WORLD. The basis and the field reconstruction are distributed; the reduced
+model is small and dense, so rank 0 integrates it while the other ranks wait (without spinning) and
+then join the reconstruction of the snapshots.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+from slepc4py import SLEPc
+
+from .cache import obtain_basis
+from .errors import DbfError, InputError, SolverError
+from .integrate import IntegratorSettings, integrate
+from .laws import ConstraintLaws
+from .model import build_operators, constraint_rows, operators_fingerprint
+from .modes import counters
+from .output import OutputWriter
+from .reduced import Harmonic, build_reduced_model
+from .scene import Scene
+
+
+def integrator_settings(scene: Scene) -> IntegratorSettings:
+    i = scene["integrator"]
+    sample_dt = scene["output"]["sample_dt"] or i["t_end"] / 10000
+    return IntegratorSettings(t_end=float(i["t_end"]), dt=float(i["dt"]), scheme=i["scheme"],
+                              adaptive=i["adaptive"], rtol=float(i["rtol"]), atol=float(i["atol"]),
+                              contact=i["contact"], sample_dt=float(sample_dt))
+
+
+def probe_rows(scene: Scene, ops) -> np.ndarray:
+    rows = []
+    for p in scene["output"]["probes"]:
+        if ops.mesh is not None:
+            row = ops.mesh.w_row(p)
+            if row < 0:
+                raise InputError(f"probe at x = {p:g} m is on a support (a fixed DOF); move it")
+        else:
+            row = int(p)
+            if row >= ops.size:
+                raise InputError(f"probe dof {row} is outside the {ops.size} DOFs of the matrices")
+        rows.append(row)
+    return np.asarray(rows, dtype=np.int64)
+
+
+def output_path(scene: Scene, override: str | None) -> str:
+    path = override or scene["output"]["file"]
+    if not path:
+        raise InputError("no output file: give [output] file in the scene or -o OUT.h5")
+    path = path if override else scene.resolve(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(f"output {path!r}: directory {folder!r} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise InputError(f"output {path!r}: directory {folder!r} is not writable")
+    return path
+
+
+def _wait_for_rank0(world) -> None:
+    """Block until rank 0 arrives, sleeping instead of spinning (the integration may be long)."""
+    request = world.Ibarrier()
+    while not request.Test():
+        time.sleep(0.02)
+
+
+def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) -> dict:
+    """Run the scene and write its HDF5 output. Returns a summary (same on every rank)."""
+    comm = comm or PETSc.COMM_WORLD
+    world = comm.tompi4py()
+    say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else (lambda m: None)
+    path = output_path(scene, out)
+    settings = integrator_settings(scene)
+    timings = {}
+    t = time.perf_counter()
+
+    ops = build_operators(scene, comm)
+    rows = constraint_rows(scene, ops)
+    probes = probe_rows(scene, ops)
+    e = scene["excitation"]
+    force_row = None
+    if e["kind"] == "force":
+        force_row = ops.mesh.w_row(e["x"]) if ops.mesh is not None else int(e["dof"])
+        if force_row < 0 or force_row >= ops.size:
+            raise InputError("the force acts on a fixed DOF or outside the structure; move it")
+    timings["operators"] = time.perf_counter() - t
+    say(f"dbf-hpc: {scene.path}: {ops.size} DOFs, {rows.size} constraint(s), {world.size} rank(s)")
+
+    t, solves = time.perf_counter(), counters["eigen_solves"]
+    basis = obtain_basis(ops, rows, scene.basis_settings(), operators_fingerprint(scene, ops),
+                         scene.cache_dir(), [c.label for c in scene.constraints])
+    timings["basis"] = time.perf_counter() - t
+    say(f"basis: {basis.mode_count} modes + {rows.size} DBFs ({timings['basis']:.2f} s, cache "
+        f"{basis.stats.get('cache')})")
+
+    t = time.perf_counter()
+    laws = ConstraintLaws([c.law for c in scene.constraints])
+    support = Harmonic(e["amplitude"], e["frequency_hz"]) if e["kind"] == "base" else Harmonic()
+    force = Harmonic(e["amplitude"], e["frequency_hz"]) if e["kind"] == "force" else Harmonic()
+    init = scene["initial"]
+    model = build_reduced_model(basis, ops, laws, scene.damping(), support, force, force_row,
+                                init["mode"], init["amplitude"])
+    probe_B = basis.rows(probes)
+    probe_r = _influence_at(ops, probes) if support.amplitude else np.zeros(probes.size)
+    timings["reduce"] = time.perf_counter() - t
+
+    # Integration on rank 0; the others wait, then learn the outcome.
+    n_snap = scene["output"]["snapshots"]
+    snapshot_times = np.linspace(0.0, settings.t_end, n_snap) if n_snap else np.zeros(0)
+    sample_times = settings.sample_times
+    snap_index = np.unique(np.searchsorted(sample_times, snapshot_times - 1e-12 * settings.t_end))
+    writer, stats, failure, snap_q = None, {}, None, {}
+    if world.rank == 0:
+        t = time.perf_counter()
+        try:
+            writer = OutputWriter(path, rows.size, probes.size, model.size)
+            count = [0]
+
+            def record(ts, q, p):
+                z, v = model.constraint_state(ts, q, p)
+                writer.append(**{"time": ts, "constraints/displacement": z, "constraints/velocity": v,
+                                 "constraints/force": laws.force(z, v),
+                                 "probes/displacement": probe_B @ q + probe_r * support.value(ts),
+                                 "reduced/q": q, "reduced/qdot": p})
+                if count[0] in snap_index_set:
+                    snap_q[count[0]] = q
+                count[0] += 1
+
+            snap_index_set = set(int(i) for i in snap_index)
+            say(f"integrating to t = {settings.t_end:g} s with ARKIMEX {settings.scheme} "
+                f"(contact {settings.contact}, {'adaptive' if settings.adaptive else 'fixed'} step)")
+            stats = integrate(model, settings, record, progress=progress)
+        except DbfError as exc:
+            failure = str(exc)
+        except OSError as exc:
+            failure = f"cannot write {path}.partial: {exc.strerror or exc}"
+        timings["integration"] = time.perf_counter() - t
+        if failure and writer is not None:
+            writer.abort()
+    else:
+        _wait_for_rank0(world)
+    if world.rank == 0:
+        _wait_for_rank0(world)
+    failure = world.bcast(failure, root=0)
+    if failure:
+        basis.destroy()
+        ops.destroy()
+        raise SolverError(failure)
+
+    # Field snapshots: w = V q + r Omega, reconstructed in parallel from the distributed basis.
+    t = time.perf_counter()
+    snap_q = world.bcast(np.array([snap_q[i] for i in sorted(snap_q)]) if world.rank == 0 else None, root=0)
+    snap_t = sample_times[snap_index] if n_snap else np.zeros(0)
+    x, w = _snapshots(ops, basis, snap_q, snap_t, support, e["end"])
+    timings["snapshots"] = time.perf_counter() - t
+
+    summary = {}
+    if world.rank == 0:
+        timings["total"] = sum(timings.values())
+        stats.update(eigen_solves=counters["eigen_solves"] - solves, cache=basis.stats.get("cache", ""))
+        positions = np.array([c.x if c.x is not None else c.dof for c in scene.constraints], dtype=float)
+        writer.finish(
+            datasets={"constraints/position": positions,
+                      "probes/position": np.asarray(scene["output"]["probes"], dtype=float),
+                      "basis/omega": basis.omega, "basis/dbf_omega": basis.dbf_omega, "basis/dbf_k": basis.dbf_k,
+                      "reduced/K": model.K, "reduced/B": model.B, "reduced/D": model.D,
+                      "snapshots/time": snap_t, "snapshots/x": x, "snapshots/w": w},
+            attrs={"scene": scene.text, "scene_path": os.path.abspath(scene.path), "method": "rom",
+                   "petsc_version": ".".join(map(str, PETSc.Sys.getVersion())),
+                   "slepc_version": ".".join(map(str, SLEPc.Sys.getVersion())),
+                   "mpi_ranks": world.size, "solver_stats": json.dumps(stats), "wall_times": json.dumps(timings),
+                   "initial_state": "at rest in relative coordinates (u = 0, u_t = 0); absolute velocity "
+                                    "Omega'(0) r" if not init["amplitude"] else
+                                    f"displacement {init['amplitude']} m peak in reference mode {init['mode']}"})
+        summary = {"path": path, "stats": stats, "timings": timings}
+        say(f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} Newton "
+            f"failures) in {timings['integration']:.2f} s; wrote {path}")
+    basis.destroy()
+    ops.destroy()
+    return world.bcast(summary, root=0)
+
+
+def _influence_at(ops, rows) -> np.ndarray:
+    from .reduced import _values_at
+
+    return _values_at(ops.influence, rows)
+
+
+def _snapshots(ops, basis, q, times, support, moving_end: str):
+    """(x, w): total displacement at every node (beam) or DOF (matrices) at the snapshot times,
+    on rank 0. Collective."""
+    if ops.mesh is not None:
+        x = ops.mesh.x
+        w_rows = ops.mesh.row[:, 0]
+        moving = np.zeros(x.size)  # fixed w DOFs: the moving support follows Omega, the rest stay
+        moving[0 if moving_end == "left" else -1] = 1.0
+    else:
+        x = np.arange(ops.size, dtype=float)
+        w_rows = np.arange(ops.size)
+        moving = np.zeros(x.size)
+    y = ops.K.createVecRight()
+    scatter, full = PETSc.Scatter.toZero(y)
+    out = np.zeros((times.size, x.size)) if ops.comm.rank == 0 else None
+    for i, ti in enumerate(times):
+        basis.vectors.multVec(1.0, 0.0, y, q[i])
+        if support.amplitude and ops.influence is not None:
+            y.axpy(support.value(ti), ops.influence)
+        scatter.scatter(y, full, addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        if ops.comm.rank == 0:
+            values = full.getArray(readonly=True)
+            row_ok = w_rows >= 0
+            out[i, row_ok] = values[w_rows[row_ok]]
+            out[i, ~row_ok] = moving[~row_ok] * support.value(ti)
+    scatter.destroy()
+    full.destroy()
+    y.destroy()
+    return x, out
