@@ -1,0 +1,131 @@
+"""Reduced nonlinear dynamics (reduced.py, integrate.py, run.py, output.py) against exact answers:
+the closed-form linear response of the pinned beam, the paper's impacting beam, energy conservation."""
+import json
+import os
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from conftest import assert_all
+from dbf_hpc.errors import InputError
+from dbf_hpc.laws import ConstraintLaws
+from dbf_hpc.run import run
+from dbf_hpc.scene import load_scene
+from exact import pinned_beam_base_modal_amplitudes, pinned_beam_base_response
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAPER = os.path.join(ROOT, "jobs", "paper_beam.toml")
+EI, RHOA = 117e9 * 8.78e-16, 11800 * 2.9e-7
+
+
+def paper_run(tmp, *sets, name="out.h5", scene=PAPER):
+    s = load_scene(scene, ["basis.cache=off", *sets])
+    path = str(tmp / name)
+    summary = run(s, path, progress=False)
+    return s, h5py.File(path, "r") if MPI.COMM_WORLD.rank == 0 else None, summary
+
+
+def without_constraints(tmp):
+    text = open(PAPER).read()
+    text = text[:text.index("[[constraint]]")] + text[text.index("[basis]"):]
+    path = tmp / "no_constraint.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(text)
+    MPI.COMM_WORLD.Barrier()
+    return str(path)
+
+
+def test_modal_model_without_constraints_is_the_closed_form_truncated_to_n_modes(shared_tmp_path):
+    scene = without_constraints(shared_tmp_path)
+    _, f, _ = paper_run(shared_tmp_path, "basis.modes=6", "integrator.rtol=1e-8", "integrator.atol=1e-12",
+                        "output.sample_dt=1e-3", scene=scene)
+    if f is not None:
+        t, w = f["time"][:], f["probes/displacement"][:, 0]
+        exact = pinned_beam_base_response(EI, RHOA, 1.0, np.array([0.5]), t, 5e-3, 1.0, 6)[:, 0]
+        # rtol 1e-8 over 10 s: measured 2.7e-7 of the peak
+        assert np.abs(w - exact).max() < 2e-6 * np.abs(exact).max()
+        assert f["constraints/displacement"].shape == (t.size, 0)
+
+
+def test_unreached_constraint_gives_the_linear_response_within_the_truncation_error(shared_tmp_path):
+    errors = []
+    for N in (6, 10):
+        _, f, _ = paper_run(shared_tmp_path, f"basis.modes={N}", "constraint.clearance=1.0",
+                            "integrator.rtol=1e-8", "integrator.atol=1e-12", "output.sample_dt=1e-3",
+                            name=f"lin{N}.h5")
+        if f is not None:
+            t, z = f["time"][:], f["constraints/displacement"][:, 0]
+            assert not f["constraints/force"][:].any(), "the constraint is never reached"
+            exact = pinned_beam_base_response(EI, RHOA, 1.0, np.array([0.25]), t, 5e-3, 1.0, 200)[:, 0]
+            errors.append(np.abs(z - exact).max() / np.abs(exact).max())
+    if errors:
+        assert errors[0] < 1e-3, errors        # truncation error bound at the paper's N = 6
+        assert errors[1] < errors[0], errors   # and it shrinks as N grows
+
+
+def test_paper_beam_stays_at_the_clearance_and_its_mode_4_ignores_the_impacts(shared_tmp_path):
+    # Paper Sec. 3.3: max |w(l, t)| ~ d_x over 10 s. l = 0.25 is a node of mode 4, so the impacts
+    # cannot drive it: its coordinate is exactly the linear response to the base motion alone.
+    s, f, summary = paper_run(shared_tmp_path)
+    if f is not None:
+        t, z = f["time"][:], f["constraints/displacement"][:, 0]
+        assert abs(np.abs(z).max() / 2.5e-3 - 1) < 0.03
+        free = pinned_beam_base_response(EI, RHOA, 1.0, np.array([0.25]), t, 5e-3, 1.0, 50)[:, 0]
+        assert np.abs(free).max() > 5 * 2.5e-3, "without the stop the beam would swing far past it"
+        assert abs(f["reduced/B"][0, 3]) < 1e-8 * np.abs(f["reduced/B"][:]).max()
+        q4 = f["reduced/q"][:, 3]
+        linear = pinned_beam_base_modal_amplitudes(EI, RHOA, 1.0, t, 5e-3, 1.0, 4)[:, 3]
+        linear *= np.sign(q4 @ linear)
+        assert np.abs(q4 - linear).max() < 1e-3 * np.abs(linear).max()   # measured 3.9e-4 at rtol 1e-6
+        stats = json.loads(f.attrs["solver_stats"])
+        assert stats["steps"] > 0 and f.attrs["complete"]
+    assert summary["stats"]["steps"] > 0
+
+
+def test_free_vibration_with_elastic_contact_conserves_energy_over_many_impacts(shared_tmp_path):
+    s, f, _ = paper_run(shared_tmp_path, "excitation.kind=none", "initial.mode=2", "initial.amplitude=0.003",
+                        "constraint.k_minus=100.0", "constraint.k_plus=100.0", "integrator.t_end=2.0",
+                        "integrator.rtol=1e-8", "integrator.atol=1e-12")
+    if f is not None:
+        q, p, K, z = f["reduced/q"][:], f["reduced/qdot"][:], f["reduced/K"][:], f["constraints/displacement"][:]
+        laws = ConstraintLaws([c.law for c in s.constraints])
+        energy = (0.5 * np.sum(p * p, 1) + 0.5 * np.einsum("ti,ij,tj->t", q, K, q)
+                  + np.array([laws.potential(row).sum() for row in z]))
+        contact = f["constraints/force"][:, 0] != 0
+        impacts = np.count_nonzero(np.diff(contact.astype(int)) == 1)
+        assert impacts > 20
+        assert np.abs(energy / energy[0] - 1).max() < 5e-4   # measured 8e-5 over 10 s at rtol 1e-8
+
+
+def test_output_has_the_documented_layout(shared_tmp_path):
+    s, f, _ = paper_run(shared_tmp_path, "integrator.t_end=0.5", "output.sample_dt=0.01", "output.snapshots=5")
+    if f is not None:
+        nt = 51
+        expected = {"time": (nt,), "constraints/position": (1,), "constraints/displacement": (nt, 1),
+                    "constraints/velocity": (nt, 1), "constraints/force": (nt, 1), "probes/position": (1,),
+                    "probes/displacement": (nt, 1), "basis/omega": (6,), "basis/dbf_omega": (1,),
+                    "basis/dbf_k": (1,), "reduced/q": (nt, 7), "reduced/K": (7, 7), "reduced/B": (1, 7),
+                    "snapshots/time": (5,), "snapshots/x": (101,), "snapshots/w": (5, 101)}
+        for name, shape in expected.items():
+            assert f[name].shape == shape, name
+        np.testing.assert_allclose(f["time"][:], np.linspace(0, 0.5, nt), atol=1e-12)
+        assert f.attrs["complete"] and "Table 1" in f.attrs["scene"]
+        for key in ("petsc_version", "slepc_version", "dbf_hpc_version", "solver_stats", "wall_times"):
+            assert key in f.attrs
+        # the snapshots are the total displacement: the moving support follows Omega(t)
+        t5 = f["snapshots/time"][:]
+        np.testing.assert_allclose(f["snapshots/w"][:, 0], 5e-3 * np.sin(2 * np.pi * t5), atol=1e-12)
+        assert np.all(f["snapshots/w"][:, -1] == 0)
+
+
+def test_failed_run_leaves_no_output_and_never_clobbers(shared_tmp_path):
+    target = shared_tmp_path / "keep.h5"
+    if MPI.COMM_WORLD.rank == 0:
+        target.write_bytes(b"previous results")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError):
+        paper_run(shared_tmp_path, "integrator.scheme=ars443", name="keep.h5")
+    assert_all(target.read_bytes() == b"previous results")
+    assert_all(not os.path.exists(str(target) + ".partial"))
