@@ -65,6 +65,17 @@ def build_parser() -> argparse.ArgumentParser:
                   "with PETSc TS ARKIMEX, and write the HDF5 output.")
     run.add_argument("-o", "--output", metavar="OUT.h5", help="output file (default: the scene's [output] file)")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    info = sub.add_parser("info", help="summarize a run's HDF5 output",
+                          description="Print what a run computed: scene, basis, solver statistics, "
+                                      "and per constraint the extreme displacement and force.")
+    info.add_argument("output", metavar="OUT.h5")
+    info.set_defaults(func=_info)
+    plot = sub.add_parser("plot", help="the paper's figures for a run, as PNG files",
+                          description="Time histories, phase diagrams and forces at each constraint, "
+                                      "and beam snapshots (paper Figs. 4-13).")
+    plot.add_argument("output", metavar="OUT.h5")
+    plot.add_argument("-d", "--directory", default=".", help="where to write the PNGs (default: .)")
+    plot.set_defaults(func=_plot)
     command("modes", _modes, "the structure's reference modes: a modal summary",
             "Assemble the scene's structure and print its reference modes (the [basis] modes count "
             "or max_frequency_hz).")
@@ -91,6 +102,68 @@ def _run(args) -> int:
 
     scene = load_scene(args.scene, args.set)
     run(scene, args.output, progress=not args.quiet)
+    return 0
+
+
+def _open_output(path):
+    import h5py
+
+    from .errors import InputError
+
+    if not os.path.isfile(path):
+        partial = os.path.isfile(path + ".partial")
+        raise InputError(f"{path!r} does not exist" + (" (only an incomplete .partial file: the run did "
+                                                        "not finish)" if partial else ""))
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise InputError(f"{path!r} is not an HDF5 file") from None
+    if "time" not in f or not f.attrs.get("complete", False):
+        f.close()
+        raise InputError(f"{path!r} is not a complete dbf-hpc output")
+    return f
+
+
+def _info(args) -> int:
+    import json
+
+    import numpy as np
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.rank:
+        return 0
+    with _open_output(args.output) as f:
+        t = f["time"][:]
+        stats, walls = json.loads(f.attrs["solver_stats"]), json.loads(f.attrs["wall_times"])
+        print(f"{args.output}: method {f.attrs['method']}, scene {f.attrs.get('scene_path', '?')}")
+        print(f"  dbf-hpc {f.attrs['dbf_hpc_version']}, PETSc {f.attrs['petsc_version']}, "
+              f"SLEPc {f.attrs['slepc_version']}, {f.attrs['mpi_ranks']} rank(s)")
+        print(f"  basis: {f['basis/omega'].size} reference modes "
+              f"({f['basis/omega'][0] / (2 * np.pi):.4g} ... {f['basis/omega'][-1] / (2 * np.pi):.4g} Hz), "
+              f"{f['basis/dbf_omega'].size} DBFs")
+        print(f"  samples: {t.size} from {t[0]:g} to {t[-1]:g} s; snapshots: {f['snapshots/time'].size}")
+        print(f"  integrator: ARKIMEX {stats['scheme']}, contact {stats['contact']}, {stats['steps']} steps, "
+              f"{stats['rejected_steps']} rejected, {stats['snes_failures']} Newton failures")
+        print("  wall time: " + ", ".join(f"{k} {v:.3g} s" for k, v in walls.items()))
+        z, force = f["constraints/displacement"][:], f["constraints/force_peak"][:]
+        for j, x in enumerate(f["constraints/position"][:]):
+            print(f"  constraint {j + 1} at {x:g}: w in [{z[:, j].min():.6g}, {z[:, j].max():.6g}] m, "
+                  f"peak force {np.abs(force[:, j]).max():.6g} N")
+    return 0
+
+
+def _plot(args) -> int:
+    from mpi4py import MPI
+
+    from .errors import InputError
+    from .plots import plot_run
+
+    if not os.path.isdir(args.directory):
+        raise InputError(f"plot directory {args.directory!r} does not exist")
+    if MPI.COMM_WORLD.rank == 0:
+        _open_output(args.output).close()
+        for path in plot_run(args.output, args.directory):
+            print(f"wrote {path}")
     return 0
 
 
@@ -252,19 +325,27 @@ def _write_atomically(path: str, write) -> None:
     os.replace(tmp, path)
 
 
-def _fail(message: str, comm) -> int:
-    """End the job after an error on this rank. If every rank reports the error (input checked
-    alike everywhere), rank 0 prints it once and all exit 1; if the other ranks do not arrive within
-    10 s (they are stuck in a collective call), this rank prints it and aborts the job."""
+def _finish(comm, failure: str | None) -> int:
+    """The end of every run, on every rank: agree on the outcome, then exit alike.
+
+    All ranks meet in a non-blocking barrier. A rank that succeeded waits as long as it takes (rank 0
+    may still be writing). A rank that failed waits 10 s: if the others do not arrive, they are stuck
+    in a collective call this rank will never make, so it prints its error and aborts the job. When
+    all arrive, the first failing rank prints its one line and every rank exits 1.
+    """
     request = comm.Ibarrier()
     deadline = time.monotonic() + 10.0
     while not request.Test():
-        if time.monotonic() > deadline:
-            print(f"dbf-hpc: error (rank {comm.rank}): {message}", file=sys.stderr, flush=True)
+        if failure and time.monotonic() > deadline:
+            print(f"dbf-hpc: error (rank {comm.rank}): {failure}", file=sys.stderr, flush=True)
             comm.Abort(1)
         time.sleep(0.005)
-    if comm.rank == 0:
-        print(f"dbf-hpc: error: {message}", file=sys.stderr, flush=True)
+    failures = comm.allgather(failure)
+    first = next((i for i, f in enumerate(failures) if f), None)
+    if first is None:
+        return 0
+    if comm.rank == first:
+        print(f"dbf-hpc: error: {failure}", file=sys.stderr, flush=True)
     return 1
 
 
@@ -283,9 +364,10 @@ def main(argv=None) -> int:
 
     comm = MPI.COMM_WORLD
     try:
-        return args.func(args)
+        args.func(args)
+        failure = None
     except DbfError as e:
-        return _fail(str(e), comm)
+        failure = str(e)
     except Exception as e:  # a bug or a PETSc failure: say it in one line and end every rank
         if os.environ.get("DBF_HPC_DEBUG"):
             raise
@@ -295,6 +377,7 @@ def main(argv=None) -> int:
         if comm.size > 1:
             comm.Abort(70)
         return 70
+    return _finish(comm, failure)
 
 
 if __name__ == "__main__":

@@ -111,10 +111,13 @@ class ReducedProblem:
 
 
 class Sampler:
-    """TS monitor: hands the state at each sample time to `record(t, q, p)`; reports progress."""
+    """TS monitor: hands the state at each sample time to `record(t, q, p)` and, if given, every
+    step's state to `on_step(t, q, p)` (before the samples it completes); reports progress."""
 
-    def __init__(self, problem: ReducedProblem, times: np.ndarray, record, dense: bool, progress: bool):
+    def __init__(self, problem: ReducedProblem, times: np.ndarray, record, dense: bool, progress: bool,
+                 on_step=None):
         self.problem, self.times, self.record, self.dense = problem, times, record, dense
+        self.on_step = on_step
         self.next = 0
         self.progress = progress
         self.failure = None
@@ -130,6 +133,8 @@ class Sampler:
                             f"or rtol, or set contact = \"implicit\"")
             ts.setMaxTime(t)
             return
+        if self.on_step is not None:
+            self.on_step(t, a[: self.problem.r], a[self.problem.r:])
         tol = 1e-9 * max(self.times[-1], 1.0)
         while self.next < self.times.size and self.times[self.next] <= t + tol:
             ts_ = self.times[self.next]
@@ -155,9 +160,11 @@ class Sampler:
                   f"ETA {eta:.0f} s", flush=True)
 
 
-def integrate(model: ReducedModel, settings: IntegratorSettings, record, progress: bool = False) -> dict:
+def integrate(model: ReducedModel, settings: IntegratorSettings, record, progress: bool = False,
+              on_step=None) -> dict:
     """Integrate from t = 0 (at rest in relative coordinates unless model.q0) to t_end, calling
-    record(t, q, p) at every sample time. Returns solver statistics. Runs on COMM_SELF."""
+    record(t, q, p) at every sample time (and on_step(t, q, p) after every step). Returns solver
+    statistics. Runs on COMM_SELF."""
     r = model.size
     problem = ReducedProblem(model, settings.contact == "implicit")
     scheme = settings.scheme.lower()
@@ -204,7 +211,7 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
     times = settings.sample_times
     if not dense:
         ts.setTimeSpan(times)
-    sampler = Sampler(problem, times, record, dense, progress)
+    sampler = Sampler(problem, times, record, dense, progress, on_step)
     ts.setMonitor(sampler.monitor)
     ts.setOptionsPrefix(PREFIX)
     ts.setFromOptions()

@@ -19,8 +19,9 @@ BLOCK = 1024  # samples buffered between writes
 
 
 class OutputWriter:
-    """Rank 0's writer. Series: time, constraint displacement/velocity/force, probe displacement,
-    reduced q and q'. Fixed-size data (positions, basis, reduced operators, snapshots) at `finish`."""
+    """Rank 0's writer. Series: time, constraint displacement/velocity/force, the peak force since
+    the previous sample (impacts are often shorter than a sample), probe displacement, reduced q and
+    q'. Fixed-size data (positions, basis, reduced operators, snapshots) at `finish`."""
 
     def __init__(self, path: str, n_constraints: int, n_probes: int, r: int):
         self.path = path
@@ -28,7 +29,8 @@ class OutputWriter:
         self.file = h5py.File(self.partial, "w")
         self.file.attrs["complete"] = False
         shapes = {"time": (), "constraints/displacement": (n_constraints,), "constraints/velocity": (n_constraints,),
-                  "constraints/force": (n_constraints,), "probes/displacement": (n_probes,),
+                  "constraints/force": (n_constraints,), "constraints/force_peak": (n_constraints,),
+                  "probes/displacement": (n_probes,),
                   "reduced/q": (r,), "reduced/qdot": (r,)}
         # Zero-width series (no constraints, no probes) are written empty at the end: HDF5 cannot
         # chunk a zero-size dimension.

@@ -34,3 +34,79 @@ def plot_stiffness_sweep(path: str, ks, omega, k_auto: float, label: str, omega_
     fig.savefig(tmp)
     plt.close(fig)
     os.replace(tmp, path)
+
+
+def plot_run(path: str, folder: str) -> list:
+    """The paper's figures for one run's HDF5 output, as PNGs in `folder`; returns the files written.
+
+    Per constraint j: time history (Figs. 4, 7), phase diagram (Figs. 5, 8, 12), force (Fig. 10).
+    Beam snapshots with the constraints and their deadbands (Figs. 6, 9, 11, 13).
+    """
+    import h5py
+
+    plt = _pyplot()
+    written = []
+
+    def save(fig, name):
+        target = os.path.join(folder, name)
+        tmp = f"{target}.tmp-{os.getpid()}.png"
+        fig.tight_layout()
+        fig.savefig(tmp)
+        plt.close(fig)
+        os.replace(tmp, target)
+        written.append(target)
+
+    with h5py.File(path, "r") as f:
+        t = f["time"][:]
+        positions = f["constraints/position"][:]
+        z, v, force = (f[f"constraints/{n}"][:] for n in ("displacement", "velocity", "force_peak"))
+        d_minus = f["constraints/clearance_minus"][:] if "constraints/clearance_minus" in f else None
+        d_plus = f["constraints/clearance_plus"][:] if "constraints/clearance_plus" in f else None
+        for j, x in enumerate(positions):
+            where = f"x = {x:g} m" if float(x) != int(x) or x < 1 else f"constraint {j + 1}"
+            fig, ax = plt.subplots(figsize=(7, 3.6), dpi=120)
+            ax.plot(t, z[:, j] * 1e3, lw=0.8, color="C0")
+            if d_minus is not None:
+                for level in (-d_minus[j], d_plus[j]):
+                    ax.axhline(level * 1e3, color="C3", ls="--", lw=0.8)
+            ax.set_xlabel("time t [s]")
+            ax.set_ylabel(f"w({where.split(' = ')[-1] if 'x' in where else where}, t) [mm]")
+            ax.set_title(f"Displacement at the constraint ({where}); dashed: clearance")
+            ax.grid(alpha=0.3)
+            save(fig, f"time_history_{j + 1}.png")
+
+            fig, ax = plt.subplots(figsize=(5.2, 4.4), dpi=120)
+            ax.plot(z[:, j] * 1e3, v[:, j], lw=0.6, color="C0")
+            ax.set_xlabel("displacement w [mm]")
+            ax.set_ylabel("velocity dw/dt [m/s]")
+            ax.set_title(f"Phase diagram at {where}")
+            ax.grid(alpha=0.3)
+            save(fig, f"phase_{j + 1}.png")
+
+            fig, ax = plt.subplots(figsize=(7, 3.6), dpi=120)
+            ax.plot(t, force[:, j], lw=0.8, color="C2")
+            ax.set_xlabel("time t [s]")
+            ax.set_ylabel("constraint force N [N]")
+            ax.set_title(f"Constraint force at {where} (peak over each sample interval)")
+            ax.grid(alpha=0.3)
+            save(fig, f"force_{j + 1}.png")
+
+        if f["snapshots/w"].shape[0]:
+            xs, ws, ts = f["snapshots/x"][:], f["snapshots/w"][:], f["snapshots/time"][:]
+            fig, ax = plt.subplots(figsize=(7.5, 4.2), dpi=120)
+            colors = plt.cm.viridis(np.linspace(0, 1, ws.shape[0]))
+            for w, c in zip(ws, colors):
+                ax.plot(xs, w * 1e3, color=c, lw=0.7)
+            for j, x in enumerate(positions):
+                ax.axvline(x, color="k", lw=0.6, alpha=0.6)
+                if d_minus is not None:
+                    ax.plot([x, x], [-d_minus[j] * 1e3, d_plus[j] * 1e3], color="C3", lw=3, alpha=0.7)
+            ax.set_xlabel("position x [m]")
+            ax.set_ylabel("total displacement w [mm]")
+            ax.set_title(f"{ws.shape[0]} snapshots, t = {ts[0]:g} ... {ts[-1]:g} s "
+                         f"(vertical: constraints, red: deadband)")
+            ax.grid(alpha=0.3)
+            sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(ts[0], ts[-1]))
+            fig.colorbar(sm, ax=ax, label="t [s]")
+            save(fig, "snapshots.png")
+    return written

@@ -120,13 +120,23 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
         try:
             writer = OutputWriter(path, rows.size, probes.size, model.size)
             count = [0]
+            peak = np.zeros(rows.size)  # signed largest |N| at the steps since the previous sample
+
+            def on_step(ts, q, p):
+                force = laws.force(*model.constraint_state(ts, q, p))
+                larger = np.abs(force) > np.abs(peak)
+                peak[larger] = force[larger]
 
             def record(ts, q, p):
                 z, v = model.constraint_state(ts, q, p)
+                force = laws.force(z, v)
+                larger = np.abs(force) > np.abs(peak)
+                peak[larger] = force[larger]
                 writer.append(**{"time": ts, "constraints/displacement": z, "constraints/velocity": v,
-                                 "constraints/force": laws.force(z, v),
+                                 "constraints/force": force, "constraints/force_peak": peak.copy(),
                                  "probes/displacement": probe_B @ q + probe_r * support.value(ts),
                                  "reduced/q": q, "reduced/qdot": p})
+                peak[:] = 0.0
                 if count[0] in snap_index_set:
                     snap_q[count[0]] = q
                 count[0] += 1
@@ -134,7 +144,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
             snap_index_set = set(int(i) for i in snap_index)
             say(f"integrating to t = {settings.t_end:g} s with ARKIMEX {settings.scheme} "
                 f"(contact {settings.contact}, {'adaptive' if settings.adaptive else 'fixed'} step)")
-            stats = integrate(model, settings, record, progress=progress)
+            stats = integrate(model, settings, record, progress=progress, on_step=on_step if rows.size else None)
         except DbfError as exc:
             failure = str(exc)
         except OSError as exc:
@@ -166,6 +176,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
         positions = np.array([c.x if c.x is not None else c.dof for c in scene.constraints], dtype=float)
         writer.finish(
             datasets={"constraints/position": positions,
+                      "constraints/clearance_minus": [c.law.clearance_minus for c in scene.constraints],
+                      "constraints/clearance_plus": [c.law.clearance_plus for c in scene.constraints],
                       "probes/position": np.asarray(scene["output"]["probes"], dtype=float),
                       "basis/omega": basis.omega, "basis/dbf_omega": basis.dbf_omega, "basis/dbf_k": basis.dbf_k,
                       "reduced/K": model.K, "reduced/B": model.B, "reduced/D": model.D,

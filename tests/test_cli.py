@@ -69,3 +69,66 @@ def test_bad_input_is_one_line_and_a_non_zero_exit(args, message):
     lines = [line for line in out.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("dbf-hpc: error:") and message in lines[0], out.stderr
     assert "Traceback" not in out.stderr + out.stdout
+
+
+def test_readme_main_job_runs_the_paper_beam_on_two_ranks(tmp_path):
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "paper.h5"), "--set", f"basis.cache={tmp_path}")
+    assert out.returncode == 0, out.stderr
+    assert "done:" in out.stdout and (tmp_path / "paper.h5").exists()
+    info = dbf_hpc("info", str(tmp_path / "paper.h5"), ranks=1)
+    assert info.returncode == 0 and "constraint 1 at 0.25" in info.stdout
+    figures = tmp_path / "figs"
+    figures.mkdir()
+    plot = dbf_hpc("plot", str(tmp_path / "paper.h5"), "-d", str(figures), ranks=1)
+    assert plot.returncode == 0, plot.stderr
+    for name in ("time_history_1.png", "phase_1.png", "force_1.png", "snapshots.png"):
+        assert (figures / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_contact_jacobian_passes_petsc_jacobian_test(tmp_path):
+    # A smooth law with a dashpot, so that PETSc's finite differences are themselves accurate (across
+    # the kink of a deadband, or near the edge of a Hertz contact, they are not).
+    text = open(PAPER).read()
+    law = 'law = "cubic"\nk = 10.0\nk3 = 1e6\ndamping = "linear"\nc = 0.01\n\n'
+    text = text[:text.index("law =")] + law + text[text.index("[basis]"):]
+    scene = tmp_path / "cubic.toml"
+    scene.write_text(text)
+    out = dbf_hpc("run", str(scene), "-o", str(tmp_path / "j.h5"), "-q", "--set", "integrator.t_end=0.3",
+                  "--set", f"basis.cache={tmp_path}", "-rom_snes_test_jacobian", ranks=1, timeout=300)
+    assert out.returncode == 0, out.stderr
+    ratios = [float(v) for v in re.findall(r"\|\|J - Jfd\|\|_F/\|\|J\|\|_F = ([\d.e+-]+)", out.stdout)]
+    # finite differences of a stiff cubic carry ~1e-5 noise at worst; a wrong term gives 1e-2 or more
+    assert len(ratios) > 10
+    assert max(ratios) < 1e-4 and np.median(ratios) < 1e-5, (max(ratios), np.median(ratios))
+
+
+def test_same_results_on_one_and_two_ranks(tmp_path):
+    # Impacts amplify any difference (here the basis' round-off, 1e-10) exponentially (DESIGN.md):
+    # the runs must agree tightly until the first contact and statistically after it.
+    import h5py
+
+    paths = []
+    for ranks in (1, 2):
+        path = tmp_path / f"r{ranks}.h5"
+        out = dbf_hpc("run", PAPER, "-o", str(path), "-q", "--set", "integrator.t_end=1.0",
+                      "--set", "basis.cache=off", ranks=ranks)
+        assert out.returncode == 0, out.stderr
+        paths.append(path)
+    with h5py.File(paths[0]) as a, h5py.File(paths[1]) as b:
+        za, zb = a["constraints/displacement"][:, 0], b["constraints/displacement"][:, 0]
+        first_contact = np.argmax(np.abs(za) >= 2.5e-3)
+        assert first_contact > 100
+        assert np.abs(za - zb)[:first_contact].max() < 1e-8 * np.abs(za).max()
+        assert abs(np.abs(za).max() - np.abs(zb).max()) < 0.01 * 2.5e-3
+        assert np.allclose(a["snapshots/w"][:2], b["snapshots/w"][:2], rtol=0, atol=1e-8 * np.abs(za).max())
+
+
+@pytest.mark.parametrize("args,message", [
+    (("run", PAPER, "-o", "/nonexistent/dir/out.h5"), "does not exist"),
+    (("run", PAPER, "--set", "integrator.scheme=rk4"), "not an ARKIMEX type"),
+    (("info", "/nonexistent.h5"), "does not exist"),
+])
+def test_bad_run_input_is_one_line(args, message):
+    out = dbf_hpc(*args)
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert out.returncode != 0 and len(lines) == 1 and message in lines[0], out.stderr
