@@ -101,3 +101,17 @@ def test_unreadable_or_malformed_files_are_errors(tmp_path):
         load_scene(str(bad))
     with pytest.raises(InputError, match="expected section.key=value"):
         load_scene(PAPER, ["modes=3"])
+
+
+def test_constraint_or_probe_on_a_support_is_an_error():
+    from dbf_hpc.model import build_operators, constraint_rows
+    from dbf_hpc.run import probe_rows
+
+    s = scene(structure={**BEAM, "supports": [0.5]},
+              constraint=[{"x": 0.5, "law": "deadband", "k": 1e6, "clearance": 1e-3}], output={"probes": [0.5]})
+    ops = build_operators(s)
+    with pytest.raises(InputError, match="acts on a fixed DOF"):
+        constraint_rows(s, ops)
+    with pytest.raises(InputError, match="on a support"):
+        probe_rows(s, ops)
+    ops.destroy()
