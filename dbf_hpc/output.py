@@ -59,13 +59,22 @@ class OutputWriter:
         self.count += n
         self.file.flush()
 
-    def finish(self, datasets: dict, attrs: dict) -> None:
+    def series_data(self, name: str) -> np.ndarray:
+        """A series as written so far (rank 0 reads back what it streamed out)."""
+        self.flush()
+        if name in self.empty:
+            return np.zeros((self.count, 0))
+        return self.series[name][...]
+
+    def finish(self, datasets: dict, attrs: dict, dataset_attrs: dict | None = None) -> None:
         """Write the fixed-size data and the attributes, close, and rename into place."""
         self.flush()
         for name in self.empty:
             self.file.create_dataset(name, shape=(self.count, 0), dtype="f8")
         for name, value in datasets.items():
             self.file.create_dataset(name, data=np.asarray(value))
+        for name, extra in (dataset_attrs or {}).items():
+            self.file[name].attrs.update(extra)
         for key, value in attrs.items():
             self.file.attrs[key] = value if isinstance(value, (str, int, float, bool, np.number)) else json.dumps(value)
         self.file.attrs["dbf_hpc_version"] = __version__

@@ -24,6 +24,7 @@ from .modes import counters
 from .output import OutputWriter
 from .reduced import Harmonic, build_reduced_model
 from .scene import Scene
+from .stats import DESCRIPTIONS, UNITS, ImpactAccumulator
 
 
 def integrator_settings(scene: Scene) -> IntegratorSettings:
@@ -115,6 +116,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
     sample_times = settings.sample_times
     snap_index = np.unique(np.searchsorted(sample_times, snapshot_times - 1e-12 * settings.t_end))
     writer, stats, failure, snap_q = None, {}, None, {}
+    impacts = ImpactAccumulator(rows.size)  # statistics over the solver's steps, not the samples
     if world.rank == 0:
         t = time.perf_counter()
         try:
@@ -123,7 +125,9 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
             peak = np.zeros(rows.size)  # signed largest |N| at the steps since the previous sample
 
             def on_step(ts, q, p):
-                force = laws.force(*model.constraint_state(ts, q, p))
+                z, v = model.constraint_state(ts, q, p)
+                force = laws.force(z, v)
+                impacts.add(ts, z, v, force)
                 larger = np.abs(force) > np.abs(peak)
                 peak[larger] = force[larger]
 
@@ -144,7 +148,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
             snap_index_set = set(int(i) for i in snap_index)
             say(f"integrating to t = {settings.t_end:g} s with ARKIMEX {settings.scheme} "
                 f"(contact {settings.contact}, {'adaptive' if settings.adaptive else 'fixed'} step)")
-            stats = integrate(model, settings, record, progress=progress, on_step=on_step if rows.size else None)
+            stats = integrate(model, settings, record, progress=progress, on_step=on_step)
         except DbfError as exc:
             failure = str(exc)
         except OSError as exc:
@@ -174,6 +178,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
         timings["total"] = sum(timings.values())
         stats.update(eigen_solves=counters["eigen_solves"] - solves, cache=basis.stats.get("cache", ""))
         positions = np.array([c.x if c.x is not None else c.dof for c in scene.constraints], dtype=float)
+        constraint_stats = impacts.result()
+        probe_peak = np.abs(writer.series_data("probes/displacement")).max(axis=0, initial=0.0)
         writer.finish(
             datasets={"constraints/position": positions,
                       "constraints/clearance_minus": [c.law.clearance_minus for c in scene.constraints],
@@ -181,7 +187,10 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
                       "probes/position": np.asarray(scene["output"]["probes"], dtype=float),
                       "basis/omega": basis.omega, "basis/dbf_omega": basis.dbf_omega, "basis/dbf_k": basis.dbf_k,
                       "reduced/K": model.K, "reduced/B": model.B, "reduced/D": model.D,
-                      "snapshots/time": snap_t, "snapshots/x": x, "snapshots/w": w},
+                      "snapshots/time": snap_t, "snapshots/x": x, "snapshots/w": w, "probes/peak": probe_peak,
+                      **{f"constraints/stats/{k}": v for k, v in constraint_stats.items()}},
+            dataset_attrs={f"constraints/stats/{k}": {"unit": UNITS[k], "description": DESCRIPTIONS[k]}
+                           for k in constraint_stats},
             attrs={"scene": scene.text, "scene_path": os.path.abspath(scene.path), "method": "rom",
                    "petsc_version": ".".join(map(str, PETSc.Sys.getVersion())),
                    "slepc_version": ".".join(map(str, SLEPc.Sys.getVersion())),
@@ -189,7 +198,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
                    "initial_state": "at rest in relative coordinates (u = 0, u_t = 0); absolute velocity "
                                     "Omega'(0) r" if not init["amplitude"] else
                                     f"displacement {init['amplitude']} m peak in reference mode {init['mode']}"})
-        summary = {"path": path, "stats": stats, "timings": timings}
+        summary = {"path": path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
+                   "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
         say(f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} Newton "
             f"failures) in {timings['integration']:.2f} s; wrote {path}")
     basis.destroy()

@@ -1,0 +1,272 @@
+"""Impact statistics per constraint from the sampled time series of one run.
+
+These are the quantities tube-vibration engineers read first (code_aster's POST_DYNA_MODA_T reports
+the same family). Pure numpy; nothing here is collective.
+
+Inputs, all sampled at the same times: t (nt,) strictly increasing, s; z (nt, N_L) total displacement
+at each constraint, m; v (nt, N_L) velocity, m/s; force (nt, N_L) constraint force on the structure,
+N (0 when not in contact); in_contact (nt, N_L) bool, by default ``force != 0``.
+
+Sample weights. Sample i stands for the time between the midpoints to its neighbours:
+    b_0 = t_0,  b_i = (t_{i-1} + t_i) / 2  (0 < i < nt),  b_nt = t_{nt-1},
+    w_i = b_{i+1} - b_i = (t_{i+1} - t_{i-1}) / 2, with half intervals at the two ends,
+so sum(w) = T = t[-1] - t[0], and a time-weighted mean <x> = sum(w_i x_i) / T is the trapezoid rule.
+Uniform and non-uniform sampling are treated alike. Every time-weighted mean below uses these w_i.
+
+Definitions (each returned value has shape (N_L,)):
+- impacts: number of impacts, an impact being a maximal run of consecutive samples in contact. A run
+  already in contact at t[0], or still in contact at t[-1], counts (it is truncated by the record).
+- impact_rate = impacts / T.
+- contact_fraction = sum of w_i over the samples in contact / T.
+- impact duration of the run i0..i1 = sum_{i0<=i<=i1} w_i = b_{i1+1} - b_{i0}: from the midpoint
+  before its first contact sample to the midpoint after its last one. Each end is within half a
+  sample interval of the true crossing, so a duration is resolution-limited to about one sample
+  interval; a one-sample impact lasts one sample interval. impact_duration_mean and
+  impact_duration_max are the mean and max over the impacts of the constraint (0 if none).
+- force_peak = max_i |force_i|.
+- force_rms = sqrt(<force^2>) over the whole run.
+- force_rms_contact = sqrt(sum_contact w_i force_i^2 / sum_contact w_i), over the contact samples
+  only (0 if never in contact). With force 0 out of contact (the default in_contact),
+  force_rms^2 = contact_fraction * force_rms_contact^2, so force_rms_contact >= force_rms.
+- displacement_rms = sqrt(<z^2>): the RMS about zero (the rest position), NOT about the mean of z,
+  so a static offset counts.
+- displacement_peak = max_i |z_i|.
+- impact_power_mean = <|force v|>, W: the mean normal impact power over the whole run. A planar model
+  has no sliding, so this is NOT a wear work rate (Archard wear needs the tangential sliding power).
+
+A record of one sample (nt = 1) has no duration: impact_rate and the durations are 0, impacts and
+contact_fraction are 1 or 0 from that sample, and the "time-weighted means" are the sample's values.
+N_L = 0 gives empty arrays. Bad shapes or times raise ValueError: those are programming errors.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+STATISTICS = ("impacts", "impact_rate", "contact_fraction", "impact_duration_mean", "impact_duration_max",
+              "force_peak", "force_rms", "force_rms_contact", "displacement_rms", "displacement_peak",
+              "impact_power_mean")
+
+UNITS = {
+    "impacts": "1",
+    "impact_rate": "1/s",
+    "contact_fraction": "1",
+    "impact_duration_mean": "s",
+    "impact_duration_max": "s",
+    "force_peak": "N",
+    "force_rms": "N",
+    "force_rms_contact": "N",
+    "displacement_rms": "m",
+    "displacement_peak": "m",
+    "impact_power_mean": "W",
+}
+
+DESCRIPTIONS = {
+    "impacts": "number of impacts (maximal runs of consecutive contact samples; runs cut by the record count)",
+    "impact_rate": "impacts per second: impacts / (t_end - t_start)",
+    "contact_fraction": "fraction of the run time in contact (trapezoid sample weights)",
+    "impact_duration_mean": "mean impact duration, resolution about one sample interval (0 if no impact)",
+    "impact_duration_max": "longest impact duration, resolution about one sample interval (0 if no impact)",
+    "force_peak": "peak constraint force magnitude max |F|",
+    "force_rms": "RMS constraint force over the whole run (time-weighted)",
+    "force_rms_contact": "RMS constraint force over the time in contact only (0 if never in contact)",
+    "displacement_rms": "RMS displacement at the constraint about zero, not about its mean (time-weighted)",
+    "displacement_peak": "peak displacement magnitude max |z| at the constraint",
+    "impact_power_mean": "mean of |F v| over the run: normal impact power, NOT a wear work rate "
+                         "(a planar model has no sliding)",
+}
+
+assert set(UNITS) == set(STATISTICS) == set(DESCRIPTIONS)
+
+
+def _check(t, z, v, force, in_contact):
+    t = np.asarray(t, dtype=float)
+    if t.ndim != 1 or t.size == 0:
+        raise ValueError(f"t must be a non-empty 1-D array, got shape {t.shape}")
+    if t.size > 1 and not np.all(np.diff(t) > 0):
+        raise ValueError("t must be strictly increasing")
+    z = np.asarray(z, dtype=float)
+    if z.ndim != 2 or z.shape[0] != t.size:
+        raise ValueError(f"z must have shape (nt, N_L) = ({t.size}, N_L), got {z.shape}")
+    v = np.asarray(v, dtype=float)
+    force = np.asarray(force, dtype=float)
+    for name, a in (("v", v), ("force", force)):
+        if a.shape != z.shape:
+            raise ValueError(f"{name} must have the shape of z {z.shape}, got {a.shape}")
+    if in_contact is not None:
+        in_contact = np.asarray(in_contact)
+        if in_contact.shape != z.shape:
+            raise ValueError(f"in_contact must have the shape of z {z.shape}, got {in_contact.shape}")
+        in_contact = in_contact.astype(bool, copy=False)
+    return t, z, v, force, in_contact
+
+
+def _single_sample(z, v, force, contact) -> dict[str, np.ndarray]:
+    c = contact[0].astype(float)
+    f = np.abs(force[0])
+    return {
+        "impacts": contact[0].astype(np.int64),
+        "impact_rate": np.zeros_like(c),
+        "contact_fraction": c,
+        "impact_duration_mean": np.zeros_like(c),
+        "impact_duration_max": np.zeros_like(c),
+        "force_peak": f,
+        "force_rms": f.copy(),
+        "force_rms_contact": np.where(contact[0], f, 0.0),
+        "displacement_rms": np.abs(z[0]),
+        "displacement_peak": np.abs(z[0]),
+        "impact_power_mean": np.abs(force[0] * v[0]),
+    }
+
+
+# Rows per block of the single pass over the samples: about 2**18 values per block keeps the scratch
+# arrays in cache and the memory bounded whatever nt is.
+_BLOCK_VALUES = 2 ** 18
+
+
+def impact_statistics(t, z, v, force, in_contact=None) -> dict[str, np.ndarray]:
+    """The impact statistics of STATISTICS (definitions in the module docstring), each of shape (N_L,).
+
+    t (nt,) strictly increasing; z, v, force, in_contact (nt, N_L); in_contact defaults to force != 0.
+    impacts is an int64 array, the others float64.
+    """
+    t, z, v, force, given = _check(t, z, v, force, in_contact)
+    nt, nl = z.shape
+    if nt == 1:
+        return _single_sample(z, v, force, (force != 0) if given is None else given)
+
+    duration_total = t[-1] - t[0]
+    bounds = np.empty(nt + 1)
+    bounds[0], bounds[-1] = t[0], t[-1]
+    bounds[1:-1] = 0.5 * (t[:-1] + t[1:])
+    w = np.diff(bounds)
+
+    # One pass over blocks of rows: weighted sums, peaks, and the edges of the contact runs.
+    force_sq, force_sq_contact, power, z_sq = (np.zeros(nl) for _ in range(4))
+    force_peak, z_peak = np.zeros(nl), np.zeros(nl)
+    starts, ends = [], []          # (sample, constraint) of each run's first sample / first sample after
+    previous = np.zeros((1, nl), dtype=bool)   # contact before t[0]: none
+    rows = max(1, _BLOCK_VALUES // max(nl, 1))
+    for a in range(0, nt, rows):
+        b = min(a + rows, nt)
+        fb, wb = force[a:b], w[a:b]
+        cb = (fb != 0) if given is None else given[a:b]
+        before = np.concatenate((previous, cb[:-1]))
+        k, j = np.nonzero(cb > before)
+        starts.append((k + a, j))
+        k, j = np.nonzero(cb < before)
+        ends.append((k + a, j))
+        previous = cb[-1:]
+
+        scratch = np.abs(fb)
+        np.maximum(force_peak, scratch.max(axis=0), out=force_peak)
+        np.multiply(scratch, scratch, out=scratch)
+        force_sq += wb @ scratch
+        if given is not None:
+            np.multiply(scratch, cb, out=scratch)
+            force_sq_contact += wb @ scratch
+        np.multiply(fb, v[a:b], out=scratch)
+        np.abs(scratch, out=scratch)
+        power += wb @ scratch
+        np.abs(z[a:b], out=scratch)
+        np.maximum(z_peak, scratch.max(axis=0), out=z_peak)
+        np.multiply(scratch, scratch, out=scratch)
+        z_sq += wb @ scratch
+    if given is None:  # force is exactly 0 out of contact
+        force_sq_contact = force_sq
+    j = np.flatnonzero(previous[0])  # runs still in contact at t[-1] end with the record
+    ends.append((np.full(j.size, nt), j))
+
+    # Pair each run's start with its end: both sorted by constraint, then by time.
+    first, col = (np.concatenate(x) for x in zip(*starts))
+    end, end_col = (np.concatenate(x) for x in zip(*ends))
+    order = np.lexsort((first, col))
+    first, col = first[order], col[order]
+    end = end[np.lexsort((end, end_col))]
+    durations = bounds[end] - bounds[first]
+
+    impacts = np.bincount(col, minlength=nl).astype(np.int64)
+    contact_time = np.bincount(col, weights=durations, minlength=nl)
+    hit = impacts > 0
+    duration_mean = np.zeros(nl)
+    duration_mean[hit] = contact_time[hit] / impacts[hit]
+    duration_max = np.zeros(nl)
+    if durations.size:
+        offsets = np.concatenate(([0], np.cumsum(impacts)[:-1]))
+        duration_max[hit] = np.maximum.reduceat(durations, offsets[hit])
+    force_rms_contact = np.zeros(nl)
+    touched = contact_time > 0
+    force_rms_contact[touched] = np.sqrt(force_sq_contact[touched] / contact_time[touched])
+
+    return {
+        "impacts": impacts,
+        "impact_rate": impacts / duration_total,
+        "contact_fraction": contact_time / duration_total,
+        "impact_duration_mean": duration_mean,
+        "impact_duration_max": duration_max,
+        "force_peak": force_peak,
+        "force_rms": np.sqrt(force_sq / duration_total),
+        "force_rms_contact": force_rms_contact,
+        "displacement_rms": np.sqrt(z_sq / duration_total),
+        "displacement_peak": z_peak,
+        "impact_power_mean": power / duration_total,
+    }
+
+
+class ImpactAccumulator:
+    """The same statistics as `impact_statistics`, accumulated point by point (the solver's steps)
+    without storing the history: memory stays flat, and impacts shorter than an output sample are
+    resolved as finely as the steps resolve them. Each point carries the trapezoid weight of its
+    half intervals, exactly as in `impact_statistics`, so both agree on the same points."""
+
+    def __init__(self, n: int):
+        self.n = n
+        self.t0 = self.t_prev = None
+        zeros = lambda: np.zeros(n)  # noqa: E731
+        self.impacts, self.contact_time, self.run, self.duration_max = zeros(), zeros(), zeros(), zeros()
+        self.f2, self.z2, self.power = zeros(), zeros(), zeros()
+        self.force_peak, self.displacement_peak = zeros(), zeros()
+        self.prev = None  # (contact, F^2, z^2, |F v|) at the previous point
+
+    def add(self, t: float, z, v, force, in_contact=None) -> None:
+        z, v, force = (np.asarray(a, dtype=float) for a in (z, v, force))
+        contact = force != 0 if in_contact is None else np.asarray(in_contact, dtype=bool)
+        now = (contact.astype(float), force * force, z * z, np.abs(force * v))
+        np.maximum(self.force_peak, np.abs(force), out=self.force_peak)
+        np.maximum(self.displacement_peak, np.abs(z), out=self.displacement_peak)
+        if self.prev is None:
+            self.t0 = t
+            self.impacts += contact
+        else:
+            half = 0.5 * (t - self.t_prev)
+            c_prev = self.prev[0]
+            self.contact_time += half * (c_prev + now[0])
+            self.f2 += half * (self.prev[1] + now[1])
+            self.z2 += half * (self.prev[2] + now[2])
+            self.power += half * (self.prev[3] + now[3])
+            self.run += half * c_prev                     # the previous point's right half
+            ended = (c_prev > 0) & ~contact
+            np.maximum(self.duration_max, np.where(ended, self.run, 0.0), out=self.duration_max)
+            self.run[ended] = 0.0
+            self.impacts += contact & (c_prev == 0)
+            self.run += half * now[0]                     # this point's left half
+        self.t_prev = t
+        self.prev = now
+
+    def result(self) -> dict:
+        """The statistics so far (names as in STATISTICS, one value per constraint)."""
+        span = (self.t_prev - self.t0) if self.prev is not None else 0.0
+        duration_max = np.maximum(self.duration_max, self.run)
+        safe = lambda a, b: np.divide(a, b, out=np.zeros(self.n), where=b > 0)  # noqa: E731
+        return {
+            "impacts": self.impacts.copy(),
+            "impact_rate": self.impacts / span if span > 0 else np.zeros(self.n),
+            "contact_fraction": self.contact_time / span if span > 0 else np.zeros(self.n),
+            "impact_duration_mean": safe(self.contact_time, self.impacts),
+            "impact_duration_max": duration_max,
+            "force_peak": self.force_peak.copy(),
+            "force_rms": np.sqrt(self.f2 / span) if span > 0 else np.zeros(self.n),
+            "force_rms_contact": np.sqrt(safe(self.f2, self.contact_time)),
+            "displacement_rms": np.sqrt(self.z2 / span) if span > 0 else np.zeros(self.n),
+            "displacement_peak": self.displacement_peak.copy(),
+            "impact_power_mean": self.power / span if span > 0 else np.zeros(self.n),
+        }
