@@ -1,6 +1,8 @@
 """The `dbf-hpc` command.
 
     dbf-hpc run SCENE.toml [-o OUT.h5] [-q] [--set section.key=value ...] [PETSc options]
+    dbf-hpc sweep SWEEP.toml [-q]
+    dbf-hpc info OUT.h5 | dbf-hpc plot OUT.h5 [-d DIR]
     dbf-hpc modes SCENE.toml [--set section.key=value ...] [PETSc options]
     dbf-hpc basis SCENE.toml [--no-cache] [--set ...] [PETSc options]
     dbf-hpc stiffness SCENE.toml [--constraint J] [--k K1,K2,...] [-o SWEEP.csv] [--plot FIG.png]
@@ -65,6 +67,13 @@ def build_parser() -> argparse.ArgumentParser:
                   "with PETSc TS ARKIMEX, and write the HDF5 output.")
     run.add_argument("-o", "--output", metavar="OUT.h5", help="output file (default: the scene's [output] file)")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    sweep = sub.add_parser("sweep", help="a parameter study: many cases of one scene over the ranks",
+                           description="Expand a sweep file (a base scene and axes or listed cases), build "
+                                       "each distinct basis once, run the cases spread over the MPI ranks "
+                                       "and write a summary HDF5. Rerunning resumes a killed sweep.")
+    sweep.add_argument("sweep", metavar="SWEEP.toml")
+    sweep.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    sweep.set_defaults(func=_sweep)
     info = sub.add_parser("info", help="summarize a run's HDF5 output",
                           description="Print what a run computed: scene, basis, solver statistics, "
                                       "and per constraint the extreme displacement and force.")
@@ -161,9 +170,34 @@ def _plot(args) -> int:
     if not os.path.isdir(args.directory):
         raise InputError(f"plot directory {args.directory!r} does not exist")
     if MPI.COMM_WORLD.rank == 0:
-        _open_output(args.output).close()
-        for path in plot_run(args.output, args.directory):
+        import h5py
+
+        from .plots import plot_sweep
+
+        if _is_sweep_summary(args.output):
+            written = plot_sweep(args.output, args.directory)
+        else:
+            _open_output(args.output).close()
+            written = plot_run(args.output, args.directory)
+        for path in written:
             print(f"wrote {path}")
+    return 0
+
+
+def _is_sweep_summary(path: str) -> bool:
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return "cases" in f and bool(f.attrs.get("complete", False))
+    except OSError:
+        return False
+
+
+def _sweep(args) -> int:
+    from .sweep import run_sweep
+
+    run_sweep(args.sweep, progress=not args.quiet)
     return 0
 
 

@@ -110,3 +110,54 @@ def plot_run(path: str, folder: str) -> list:
             fig.colorbar(sm, ax=ax, label="t [s]")
             save(fig, "snapshots.png")
     return written
+
+
+def plot_sweep(path: str, folder: str) -> list:
+    """Statistics of a sweep summary against each numeric parameter that varies: the peak
+    displacement at each constraint and probe (a frequency response when the parameter is the
+    excitation frequency), impact rate, contact fraction and peak force."""
+    import json
+
+    import h5py
+
+    plt = _pyplot()
+    written = []
+    with h5py.File(path, "r") as f:
+        ok = np.array([s == b"ok" or s == "ok" for s in f["cases/status"][:]])
+        stats = {name: f[f"cases/stats/{name}"][:] for name in
+                 ("displacement_peak", "impact_rate", "contact_fraction", "force_peak")}
+        probe_peak = f["cases/probe_peak"][:]
+        for name in json.loads(f.attrs["sweep"])["parameters"]:
+            values = f[f"cases/parameters/{name}"][:]
+            if values.dtype.kind != "f" or np.unique(values[np.isfinite(values)]).size < 2:
+                continue
+            order = np.argsort(values)
+            x = values[order]
+            ok_sorted = ok[order] & np.isfinite(x)
+            fig, axes = plt.subplots(2, 2, figsize=(10, 7), dpi=110, sharex=True)
+            panels = [("displacement_peak", "peak |w| [mm]", 1e3), ("impact_rate", "impacts per second [1/s]", 1),
+                      ("contact_fraction", "fraction of time in contact", 1), ("force_peak", "peak force [N]", 1)]
+            for ax, (stat, label, scale) in zip(axes.ravel(), panels):
+                table = stats[stat][order] * scale
+                for j in range(table.shape[1]):
+                    ax.plot(x[ok_sorted], table[ok_sorted, j], "o-", ms=3, lw=1, label=f"constraint {j + 1}")
+                if stat == "displacement_peak":
+                    for p in range(probe_peak.shape[1]):
+                        ax.plot(x[ok_sorted], probe_peak[order][ok_sorted, p] * 1e3, "s--", ms=3, lw=1,
+                                label=f"probe {p + 1}")
+                ax.set_ylabel(label)
+                ax.grid(alpha=0.3)
+            for ax in axes[1]:
+                ax.set_xlabel(name)
+            handles, labels = axes[0, 0].get_legend_handles_labels()
+            if len(labels) <= 12:
+                axes[0, 0].legend(fontsize=7)
+            fig.suptitle(f"Sweep over {name} ({int(ok.sum())} of {ok.size} cases ran)")
+            fig.tight_layout()
+            target = os.path.join(folder, f"sweep_{name.replace('.', '_')}.png")
+            tmp = f"{target}.tmp-{os.getpid()}.png"
+            fig.savefig(tmp)
+            plt.close(fig)
+            os.replace(tmp, target)
+            written.append(target)
+    return written
