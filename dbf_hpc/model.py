@@ -24,6 +24,8 @@ def build_operators(scene: Scene, comm=None) -> Operators:
         points = [c.x for c in scene.constraints] + list(scene["output"]["probes"])
         if e["kind"] == "force":
             points.append(e["x"])
+        if e["kind"] == "random":
+            points.extend(e["span"])
         return assemble_beam(scene.beam(), comm, points=points,
                              base_end=e["end"] if e["kind"] == "base" else None)
     files = {key: scene.resolve(s[key]) if s[key] else None

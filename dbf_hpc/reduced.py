@@ -38,6 +38,25 @@ class Harmonic:
         return -self.amplitude * w * w * np.sin(w * t)
 
 
+class RandomProcess:
+    """Band-limited random history with a flat one-sided PSD S over [f_low, f_high] (spectral
+    representation, Shinozuka): sum_k sqrt(2 S df) cos(2 pi f_k t + phi_k), f_k at the centres of
+    `components` equal bins, phi_k uniform from `seed`. Its variance is exactly S (f_high - f_low);
+    it is smooth, so adaptive integrators handle it, and the same seed gives the same history."""
+
+    def __init__(self, psd: float, band, seed: int, components: int = 256):
+        f_low, f_high = band
+        df = (f_high - f_low) / components
+        self.frequency = f_low + (np.arange(components) + 0.5) * df
+        self.amplitude = np.full(components, np.sqrt(2 * psd * df))
+        self.phase = np.random.default_rng(seed).uniform(0, 2 * np.pi, components)
+        self.omega = 2 * np.pi * self.frequency
+
+    def value(self, t):
+        t = np.asarray(t, dtype=float)
+        return np.cos(np.multiply.outer(t, self.omega) + self.phase) @ self.amplitude
+
+
 @dataclass
 class ReducedModel:
     """Everything the integrator needs, as dense numpy arrays (r = basis size, N_L constraints)."""
@@ -49,7 +68,7 @@ class ReducedModel:
     base_load: np.ndarray      # V^T M r: f_r gets -base_load * Omega''(t)
     force_shape: np.ndarray    # V^T g_F: f_r gets force_shape * F(t)
     support: Harmonic          # Omega(t)
-    force: Harmonic            # F(t)
+    force: object              # F(t): Harmonic or RandomProcess (anything with value(t))
     laws: ConstraintLaws
     q0: np.ndarray             # initial coordinates (relative displacement)
 
@@ -80,9 +99,10 @@ def _plain_dot(basis: ReducedBasis, vec) -> np.ndarray:
 
 
 def build_reduced_model(basis: ReducedBasis, ops, laws: ConstraintLaws, damping: Damping,
-                        support: Harmonic, force: Harmonic, force_row: int | None,
+                        support: Harmonic, force, force_row: int | None = None, force_load=None,
                         initial_mode: int = 1, initial_amplitude: float = 0.0) -> ReducedModel:
-    """Project the operators onto the basis. Collective on the basis' communicator."""
+    """Project the operators onto the basis. The force F(t) acts at one DOF (force_row) or as a load
+    vector (force_load, a Vec: a distributed load). Collective on the basis' communicator."""
     K = basis.project(ops.K)
     K = 0.5 * (K + K.T)
     B = basis.rows(basis.constraint_rows)
@@ -92,7 +112,10 @@ def build_reduced_model(basis: ReducedBasis, ops, laws: ConstraintLaws, damping:
         base_load = _plain_dot(basis, ops.base_mass_load)
     else:
         r_c, base_load = np.zeros(basis.constraint_rows.size), np.zeros(r)
-    force_shape = np.zeros(r) if force_row is None else basis.rows([force_row])[0]
+    if force_load is not None:
+        force_shape = _plain_dot(basis, force_load)
+    else:
+        force_shape = np.zeros(r) if force_row is None else basis.rows([force_row])[0]
     if ops.C is not None:
         D = basis.project(ops.C)
         D = 0.5 * (D + D.T)

@@ -22,7 +22,8 @@ from .laws import ConstraintLaws
 from .model import build_operators, constraint_rows, operators_fingerprint
 from .modes import counters
 from .output import OutputWriter
-from .reduced import Harmonic, build_reduced_model
+from .reduced import Harmonic, RandomProcess, build_reduced_model
+from .structure import distributed_load
 from .scene import Scene
 from .stats import DESCRIPTIONS, UNITS, ImpactAccumulator
 
@@ -102,10 +103,15 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
     t = time.perf_counter()
     laws = ConstraintLaws([c.law for c in scene.constraints])
     support = Harmonic(e["amplitude"], e["frequency_hz"]) if e["kind"] == "base" else Harmonic()
-    force = Harmonic(e["amplitude"], e["frequency_hz"]) if e["kind"] == "force" else Harmonic()
+    force, force_load = Harmonic(e["amplitude"], e["frequency_hz"]) if e["kind"] == "force" else Harmonic(), None
+    if e["kind"] == "random":
+        force = RandomProcess(e["psd"], e["band"], e["seed"], e["components"])
+        force_load = distributed_load(ops, *e["span"])
     init = scene["initial"]
-    model = build_reduced_model(basis, ops, laws, scene.damping(), support, force, force_row,
+    model = build_reduced_model(basis, ops, laws, scene.damping(), support, force, force_row, force_load,
                                 init["mode"], init["amplitude"])
+    if force_load is not None:
+        force_load.destroy()
     probe_B = basis.rows(probes)
     probe_r = _influence_at(ops, probes) if support.amplitude else np.zeros(probes.size)
     timings["reduce"] = time.perf_counter() - t

@@ -5,8 +5,12 @@ Sections and keys (the contract; unknown sections or keys are errors naming them
     [structure]   kind = "beam" | "matrices"
                   beam:     length, elements, E, I, A, rho, left, right, supports = [x, ...]
                   matrices: stiffness, mass, damping (optional C), influence, base_mass_load (files)
-    [excitation]  kind = "none" | "base" | "force", amplitude (m or N), frequency_hz,
-                  end = "left" | "right" (base), x (force on a beam) or dof (force on matrices)
+    [excitation]  kind = "none" | "base" | "force" | "random", amplitude (m or N), frequency_hz,
+                  end = "left" | "right" (base), x (force on a beam) or dof (force on matrices);
+                  random: a distributed force per unit length on a beam, band-limited with a flat
+                  one-sided PSD psd ((N/m)^2/Hz) over band = [f_low, f_high] Hz, from seed (an
+                  integer: the same seed gives the same history), components (cosines), over
+                  span = [x0, x1] (default the whole beam), fully correlated along the span
     [[constraint]] x (beam) or dof (matrices), law, and the law's parameters (see laws.py)
     [basis]       modes (a count) or max_frequency_hz; dbf_stiffness = "auto" | a number (N/m);
                   dbf_derivative = "analytic" | "central"; groups (0: automatic);
@@ -44,6 +48,7 @@ SCHEMA = {
     "excitation": {
         "kind": (str, "none"), "amplitude": (NUMBER, 0.0), "frequency_hz": (NUMBER, 0.0),
         "end": (str, "left"), "x": (NUMBER, None), "dof": (int, None),
+        "psd": (NUMBER, 0.0), "band": (list, []), "seed": (int, 1), "components": (int, 256), "span": (list, []),
     },
     "basis": {
         "modes": (int, None), "max_frequency_hz": (NUMBER, None), "dbf_stiffness": ((str, *NUMBER), "auto"),
@@ -245,9 +250,23 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
         seen[key] = i
 
     e, where = sections["excitation"], f"{path}: [excitation]"
-    if e["kind"] not in ("none", "base", "force"):
-        raise InputError(f"{where}: kind must be \"none\", \"base\" or \"force\", got {e['kind']!r}")
-    if e["kind"] != "none":
+    if e["kind"] not in ("none", "base", "force", "random"):
+        raise InputError(f"{where}: kind must be \"none\", \"base\", \"force\" or \"random\", got {e['kind']!r}")
+    if e["kind"] == "random":
+        if not beam:
+            raise InputError(f"{where}: random forcing is distributed along a beam; not available for matrices")
+        band = e["band"]
+        if not (len(band) == 2 and all(isinstance(b, NUMBER) for b in band) and 0 <= band[0] < band[1]):
+            raise InputError(f"{where}: band must be [f_low, f_high] in Hz with 0 <= f_low < f_high, got {band!r}")
+        if not e["psd"] > 0:
+            raise InputError(f"{where}: psd must be positive ((N/m)^2/Hz), got {e['psd']!r}")
+        if e["components"] < 1:
+            raise InputError(f"{where}: components must be at least 1, got {e['components']}")
+        span = e["span"] or [0.0, s["length"]]
+        if not (len(span) == 2 and 0 <= span[0] < span[1] <= s["length"]):
+            raise InputError(f"{where}: span must be [x0, x1] within the beam, got {e['span']!r}")
+        e["span"] = [float(v) for v in span]
+    elif e["kind"] != "none":
         if not e["frequency_hz"] > 0:
             raise InputError(f"{where}: frequency_hz must be positive, got {e['frequency_hz']!r}")
         if e["end"] not in ("left", "right"):

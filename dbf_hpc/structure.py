@@ -252,3 +252,19 @@ def influence_vector(K, M, k_coupling, m_coupling):
     M.mult(r, load)
     load.axpy(1.0, m_coupling)
     return r, load
+
+
+def distributed_load(ops: Operators, x0: float, x1: float) -> PETSc.Vec:
+    """Consistent nodal loads of a unit uniform load per length (1 N/m) on [x0, x1] (nodes of the
+    mesh): (h/2, h^2/12, h/2, -h^2/12) per element. Collective."""
+    mesh = ops.mesh
+    load = ops.K.createVecLeft()
+    lo, hi = load.getOwnershipRange()
+    first, last = mesh.node_at(x0), mesh.node_at(x1)
+    elems = np.arange(first, last)
+    h = mesh.x[elems + 1] - mesh.x[elems]
+    values = np.column_stack([h / 2, h**2 / 12, h / 2, -h**2 / 12])
+    rows = mesh.row.ravel()[2 * elems[:, None] + np.arange(4)[None, :]]
+    mine = (rows >= lo) & (rows < hi)
+    load.array[:] = np.bincount(rows[mine] - lo, weights=values[mine], minlength=hi - lo)
+    return load
