@@ -171,7 +171,7 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
     comm = PETSc.COMM_SELF
     y = PETSc.Vec().createSeq(2 * r, comm=comm)
     y.getArray()[:r] = model.q0
-    y.getArray()[r:] = 0.0
+    y.getArray()[r:] = 0.0 if model.p0 is None else model.p0
     F, G = y.duplicate(), y.duplicate()
     J = PETSc.Mat().createDense((2 * r, 2 * r), comm=comm)
     J.setUp()

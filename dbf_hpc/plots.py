@@ -127,24 +127,33 @@ def plot_sweep(path: str, folder: str) -> list:
         stats = {name: f[f"cases/stats/{name}"][:] for name in
                  ("displacement_peak", "impact_rate", "contact_fraction", "force_peak")}
         probe_peak = f["cases/probe_peak"][:]
-        for name in json.loads(f.attrs["sweep"])["parameters"]:
+        parameters = json.loads(f.attrs["sweep"])["parameters"]
+        if "sweep_direction" in parameters:
+            direction = np.array([json.loads(v) for v in f["cases/parameters/sweep_direction"][:]])
+        else:
+            direction = np.full(ok.size, "")
+        for name in parameters:
             values = f[f"cases/parameters/{name}"][:]
             if values.dtype.kind != "f" or np.unique(values[np.isfinite(values)]).size < 2:
                 continue
-            order = np.argsort(values)
+            order = np.argsort(values, kind="stable")
             x = values[order]
-            ok_sorted = ok[order] & np.isfinite(x)
             fig, axes = plt.subplots(2, 2, figsize=(10, 7), dpi=110, sharex=True)
             panels = [("displacement_peak", "peak |w| [mm]", 1e3), ("impact_rate", "impacts per second [1/s]", 1),
                       ("contact_fraction", "fraction of time in contact", 1), ("force_peak", "peak force [N]", 1)]
             for ax, (stat, label, scale) in zip(axes.ravel(), panels):
                 table = stats[stat][order] * scale
-                for j in range(table.shape[1]):
-                    ax.plot(x[ok_sorted], table[ok_sorted, j], "o-", ms=3, lw=1, label=f"constraint {j + 1}")
-                if stat == "displacement_peak":
-                    for p in range(probe_peak.shape[1]):
-                        ax.plot(x[ok_sorted], probe_peak[order][ok_sorted, p] * 1e3, "s--", ms=3, lw=1,
-                                label=f"probe {p + 1}")
+                for d, style in (("", "o-"), ("up", "^-"), ("down", "v--")):
+                    sel = ok[order] & np.isfinite(x) & (direction[order] == d)
+                    if not sel.any():
+                        continue
+                    tag = f", {d}" if d else ""
+                    for j in range(table.shape[1]):
+                        ax.plot(x[sel], table[sel, j], style, ms=3, lw=1, label=f"constraint {j + 1}{tag}")
+                    if stat == "displacement_peak":
+                        for p in range(probe_peak.shape[1]):
+                            ax.plot(x[sel], probe_peak[order][sel, p] * 1e3, style, ms=3, lw=1, alpha=0.7,
+                                    label=f"probe {p + 1}{tag}")
                 ax.set_ylabel(label)
                 ax.grid(alpha=0.3)
             for ax in axes[1]:

@@ -71,6 +71,7 @@ class ReducedModel:
     force: object              # F(t): Harmonic or RandomProcess (anything with value(t))
     laws: ConstraintLaws
     q0: np.ndarray             # initial coordinates (relative displacement)
+    p0: np.ndarray = None      # initial velocities (default: at rest)
 
     @property
     def size(self) -> int:
@@ -127,7 +128,7 @@ def build_reduced_model(basis: ReducedBasis, ops, laws: ConstraintLaws, damping:
             raise InputError(f"[initial] mode = {initial_mode}: the basis has {basis.mode_count} reference modes")
         q0[initial_mode - 1] = initial_amplitude / _peak(basis, initial_mode - 1, ops)
     return ReducedModel(K=K, D=D, B=B, r_c=r_c, base_load=base_load, force_shape=force_shape,
-                        support=support, force=force, laws=laws, q0=q0)
+                        support=support, force=force, laws=laws, q0=q0, p0=np.zeros(r))
 
 
 def _values_at(vec, rows) -> np.ndarray:

@@ -71,8 +71,10 @@ def _wait_for_rank0(world) -> None:
         time.sleep(0.02)
 
 
-def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) -> dict:
-    """Run the scene and write its HDF5 output. Returns a summary (same on every rank)."""
+def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, initial_state=None) -> dict:
+    """Run the scene and write its HDF5 output. Returns a summary (same on every rank), with the
+    final reduced state. initial_state = (q, q') starts from a previous run's final state instead of
+    [initial] (continuation in a frequency sweep; the basis must be the same)."""
     comm = comm or PETSc.COMM_WORLD
     world = comm.tompi4py()
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else (lambda m: None)
@@ -112,6 +114,11 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
                                 init["mode"], init["amplitude"])
     if force_load is not None:
         force_load.destroy()
+    if initial_state is not None:
+        q_start, p_start = (np.asarray(a, dtype=float) for a in initial_state)
+        if q_start.shape != (model.size,) or p_start.shape != (model.size,):
+            raise InputError(f"the initial state has {q_start.size} coordinates; this basis has {model.size}")
+        model.q0, model.p0 = q_start, p_start
     probe_B = basis.rows(probes)
     probe_r = _influence_at(ops, probes) if support.amplitude else np.zeros(probes.size)
     timings["reduce"] = time.perf_counter() - t
@@ -123,6 +130,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
     snap_index = np.unique(np.searchsorted(sample_times, snapshot_times - 1e-12 * settings.t_end))
     writer, stats, failure, snap_q = None, {}, None, {}
     impacts = ImpactAccumulator(rows.size)  # statistics over the solver's steps, not the samples
+    final = [None, None]
     if world.rank == 0:
         t = time.perf_counter()
         try:
@@ -147,6 +155,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
                                  "probes/displacement": probe_B @ q + probe_r * support.value(ts),
                                  "reduced/q": q, "reduced/qdot": p})
                 peak[:] = 0.0
+                final[:] = [q, p]
                 if count[0] in snap_index_set:
                     snap_q[count[0]] = q
                 count[0] += 1
@@ -205,6 +214,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None) 
                                     "Omega'(0) r" if not init["amplitude"] else
                                     f"displacement {init['amplitude']} m peak in reference mode {init['mode']}"})
         summary = {"path": path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
+                   "final_state": [final[0].tolist(), final[1].tolist()],
                    "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
         say(f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} Newton "
             f"failures) in {timings['integration']:.2f} s; wrote {path}")

@@ -10,8 +10,14 @@ A sweep file (TOML):
     "constraint.clearance" = [1e-3, 2.5e-3]
     [[case]]                         # ... and/or listed cases (added after the grid)
     "constraint.law" = "linear"
+    continuation = "excitation.frequency_hz"   # optional: an axis swept up and down with continuation
+    directions = ["up", "down"]                # (default both)
 
-Each case is the base scene with its values set (as `--set section.key=value`).
+Each case is the base scene with its values set (as `--set section.key=value`). With continuation,
+the cases along that axis form chains, one per direction and per combination of the other axes:
+each case starts from the previous one's final state (a stepped-sine sweep, which reveals the
+hysteresis and jumps of an impacting structure; each step restarts the excitation at phase 0); the
+summary gets a `sweep_direction` column.
 
 How it runs (collective on COMM_WORLD):
 1. Every case's scene is validated before any work: a bad value stops the sweep at once.
@@ -40,7 +46,8 @@ from .model import build_operators, constraint_rows, operators_fingerprint
 from .scene import load_scene, parse_override
 from .stats import STATISTICS
 
-SWEEP_KEYS = {"scene", "output", "keep_outputs", "axes", "case"}
+SWEEP_KEYS = {"scene", "output", "keep_outputs", "axes", "case", "continuation", "directions"}
+DIRECTION = "sweep_direction"
 
 
 def load_sweep(path: str) -> dict:
@@ -68,15 +75,37 @@ def load_sweep(path: str) -> dict:
     for name, values in axes.items():
         if not isinstance(values, list) or not values:
             raise InputError(f"{path}: axis '{name}' must be a non-empty list of values")
-    names = list(axes)
-    cases = [dict(zip(names, combo)) for combo in itertools.product(*axes.values())] if axes else []
-    cases += [dict(c) for c in listed]
+    continuation = data.get("continuation")
+    directions = data.get("directions", ["up", "down"])
+    if continuation is not None and continuation not in axes:
+        raise InputError(f"{path}: continuation '{continuation}' is not one of the [axes]")
+    if not (isinstance(directions, list) and directions and set(directions) <= {"up", "down"}):
+        raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\"")
+    cases, chains = [], []
+    if axes and continuation:
+        others = [n for n in axes if n != continuation]
+        for combo in itertools.product(*(axes[n] for n in others)):
+            for direction in directions:
+                values = axes[continuation] if direction == "up" else axes[continuation][::-1]
+                chain = []
+                for value in values:
+                    chain.append(len(cases))
+                    cases.append({**dict(zip(others, combo)), continuation: value, DIRECTION: direction})
+                chains.append(chain)
+    elif axes:
+        names = list(axes)
+        for combo in itertools.product(*axes.values()):
+            chains.append([len(cases)])
+            cases.append(dict(zip(names, combo)))
+    for c in listed:
+        chains.append([len(cases)])
+        cases.append(dict(c))
     if not cases:
         raise InputError(f"{path}: no cases: give [axes] or [[case]] entries")
     parameters = list(dict.fromkeys(name for case in cases for name in case))
     overrides = []
     for i, case in enumerate(cases):
-        sets = [f"{name}={_toml_value(value)}" for name, value in case.items()]
+        sets = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
         for text in sets:
             parse_override(text)
         try:
@@ -85,7 +114,7 @@ def load_sweep(path: str) -> dict:
             raise InputError(f"{path}: case {i + 1} ({', '.join(sets)}): {e}") from None
         overrides.append(sets)
     return {"scene": scene, "output": output, "keep_outputs": bool(data.get("keep_outputs", False)),
-            "cases": overrides, "values": cases, "parameters": parameters}
+            "cases": overrides, "values": cases, "parameters": parameters, "chains": chains}
 
 
 def _toml_value(value) -> str:
@@ -153,29 +182,41 @@ def run_sweep(path: str, progress: bool = True) -> dict:
     _prepare_bases(sweep, cache_dir, pending)
     say(f"bases ready ({time.perf_counter() - t0:.1f} s)")
 
-    mine = pending[world.rank::world.size]
-    start = time.perf_counter()
-    for count, index in enumerate(mine):
-        sets = sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"]
-        case_out = os.path.join(folder, f"case-{index:05d}.h5")
-        record = {"index": index, "parameters": sweep["values"][index]}
-        t = time.perf_counter()
-        try:
-            scene = load_scene(sweep["scene"], sets)
-            summary = run(scene, case_out, progress=False, comm=PETSc.COMM_SELF)
-            record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
-                          solver=summary["stats"])
-        except DbfError as e:
-            record.update(status="failed", error=str(e))
-        record["wall_time"] = time.perf_counter() - t
-        if not sweep["keep_outputs"] and os.path.exists(case_out):
-            os.remove(case_out)
-        _write_json(_case_file(folder, index), record)
-        if progress and world.rank == 0:
-            finished = sum(os.path.exists(_case_file(folder, i)) for i in range(n))
-            elapsed = time.perf_counter() - start
-            eta = elapsed / (count + 1) * (len(mine) - count - 1)
-            print(f"  cases done: {finished}/{n}, ETA {eta:.0f} s", flush=True)
+    # Work units are chains (a single case unless continuation links them), dealt round-robin.
+    chains = [c for c in sweep["chains"] if any(i in pending for i in c)]
+    mine = chains[world.rank::world.size]
+    start, done_here, total_here = time.perf_counter(), 0, sum(len(c) for c in mine)
+    for chain in mine:
+        state = None
+        for index in chain:
+            if index not in pending:  # finished before a kill: continue from its final state
+                with open(_case_file(folder, index)) as f:
+                    state = json.load(f).get("final_state")
+                continue
+            sets = sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"]
+            case_out = os.path.join(folder, f"case-{index:05d}.h5")
+            record = {"index": index, "parameters": sweep["values"][index], "continued": state is not None}
+            t = time.perf_counter()
+            try:
+                scene = load_scene(sweep["scene"], sets)
+                summary = run(scene, case_out, progress=False, comm=PETSc.COMM_SELF,
+                              initial_state=state if len(chain) > 1 else None)
+                record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
+                              solver=summary["stats"], final_state=summary["final_state"])
+                state = summary["final_state"]
+            except DbfError as e:
+                record.update(status="failed", error=str(e))
+                state = None  # the chain goes on from rest
+            record["wall_time"] = time.perf_counter() - t
+            if not sweep["keep_outputs"] and os.path.exists(case_out):
+                os.remove(case_out)
+            _write_json(_case_file(folder, index), record)
+            done_here += 1
+            if progress and world.rank == 0:
+                finished = sum(os.path.exists(_case_file(folder, i)) for i in range(n))
+                elapsed = time.perf_counter() - start
+                eta = elapsed / done_here * (total_here - done_here)
+                print(f"  cases done: {finished}/{n}, ETA {eta:.0f} s", flush=True)
     world.Barrier()
     failed = 0
     if world.rank == 0:

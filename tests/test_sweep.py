@@ -79,3 +79,27 @@ def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
     path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [1e-3, -1]\n"basis.mode" = [3]\n')
     with pytest.raises(InputError, match="case 1 .*unknown key 'mode' in \\[basis\\]"):
         load_sweep(path)
+
+
+def test_continuation_sweeps_up_and_down_each_case_starting_from_the_last(shared_tmp_path):
+    path = write_sweep(shared_tmp_path, 'continuation = "excitation.frequency_hz"\n[axes]\n'
+                                        '"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.4]\n')
+    sweep = load_sweep(path)
+    assert sweep["chains"] == [[0, 1], [2, 3]]
+    assert [v["sweep_direction"] for v in sweep["values"]] == ["up", "up", "down", "down"]
+    assert [v["excitation.frequency_hz"] for v in sweep["values"]] == [0.9, 1.1, 1.1, 0.9]
+    result = run_sweep(path, progress=False)
+    folder = result["output"] + ".cases"
+    records = [json.load(open(os.path.join(folder, f"case-{i:05d}.json"))) for i in range(4)]
+    assert [r["continued"] for r in records] == [False, True, False, True]
+    assert all(r["status"] == "ok" for r in records)
+    # resuming inside a chain continues from the stored final state of its predecessor
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        os.remove(os.path.join(folder, "case-00001.json"))
+    MPI.COMM_WORLD.Barrier()
+    run_sweep(path, progress=False)
+    again = json.load(open(os.path.join(folder, "case-00001.json")))
+    assert again["continued"] and np.allclose(again["stats"]["impacts"], records[1]["stats"]["impacts"])
+    with h5py.File(result["output"]) as f:
+        assert [json.loads(v) for v in f["cases/parameters/sweep_direction"][:]] == ["up", "up", "down", "down"]
