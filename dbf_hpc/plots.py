@@ -113,9 +113,10 @@ def plot_run(path: str, folder: str) -> list:
 
 
 def plot_sweep(path: str, folder: str) -> list:
-    """Statistics of a sweep summary against each numeric parameter that varies: the peak
-    displacement at each constraint and probe (a frequency response when the parameter is the
-    excitation frequency), impact rate, contact fraction and peak force."""
+    """Statistics of a sweep summary against each numeric parameter that varies, one line per
+    combination of the other varying parameters (and sweep direction): the peak displacement at
+    each constraint and probe (a frequency response when the parameter is the excitation
+    frequency), impact rate, contact fraction and peak force."""
     import json
 
     import h5py
@@ -123,50 +124,60 @@ def plot_sweep(path: str, folder: str) -> list:
     plt = _pyplot()
     written = []
     with h5py.File(path, "r") as f:
-        ok = np.array([s == b"ok" or s == "ok" for s in f["cases/status"][:]])
+        ok = np.array([s in (b"ok", "ok") for s in f["cases/status"][:]])
         stats = {name: f[f"cases/stats/{name}"][:] for name in
                  ("displacement_peak", "impact_rate", "contact_fraction", "force_peak")}
         probe_peak = f["cases/probe_peak"][:]
-        parameters = json.loads(f.attrs["sweep"])["parameters"]
-        if "sweep_direction" in parameters:
-            direction = np.array([json.loads(v) for v in f["cases/parameters/sweep_direction"][:]])
-        else:
-            direction = np.full(ok.size, "")
-        for name in parameters:
-            values = f[f"cases/parameters/{name}"][:]
-            if values.dtype.kind != "f" or np.unique(values[np.isfinite(values)]).size < 2:
-                continue
-            order = np.argsort(values, kind="stable")
-            x = values[order]
-            fig, axes = plt.subplots(2, 2, figsize=(10, 7), dpi=110, sharex=True)
-            panels = [("displacement_peak", "peak |w| [mm]", 1e3), ("impact_rate", "impacts per second [1/s]", 1),
-                      ("contact_fraction", "fraction of time in contact", 1), ("force_peak", "peak force [N]", 1)]
-            for ax, (stat, label, scale) in zip(axes.ravel(), panels):
+        columns = {}
+        for name in json.loads(f.attrs["sweep"])["parameters"]:
+            raw = f[f"cases/parameters/{name}"][:]
+            columns[name] = raw if raw.dtype.kind == "f" else np.array([json.loads(v) for v in raw], dtype=object)
+    varying = [n for n, v in columns.items() if len({repr(x) for x in v}) > 1]
+    for name in varying:
+        x = columns[name]
+        if x.dtype.kind != "f":
+            continue
+        others = [n for n in varying if n != name]
+        keys = [tuple(columns[n][i] for n in others) for i in range(x.size)]
+        series = list(dict.fromkeys(keys))
+        fig, axes = plt.subplots(2, 2, figsize=(10, 7), dpi=110, sharex=True)
+        panels = [("displacement_peak", "peak |w| [mm]", 1e3), ("impact_rate", "impacts per second [1/s]", 1),
+                  ("contact_fraction", "fraction of time in contact", 1), ("force_peak", "peak force [N]", 1)]
+        for ax, (stat, label, scale) in zip(axes.ravel(), panels):
+            for k, key in enumerate(series):
+                sel = np.array([kk == key for kk in keys]) & ok & np.isfinite(x)
+                order = np.flatnonzero(sel)[np.argsort(x[sel], kind="stable")]
+                tag = ", ".join(f"{n.split('.')[-1]} {v}" for n, v in zip(others, key))
+                tag = f" ({tag})" if tag else ""
+                style = "v--" if "down" in key else "o-"
                 table = stats[stat][order] * scale
-                for d, style in (("", "o-"), ("up", "^-"), ("down", "v--")):
-                    sel = ok[order] & np.isfinite(x) & (direction[order] == d)
-                    if not sel.any():
-                        continue
-                    tag = f", {d}" if d else ""
+                if table.shape[1] > 4:  # many supports: their mean and the worst one, not a line each
+                    ax.plot(x[order], np.nanmean(table, axis=1), style, ms=3, lw=1, color=f"C{k % 10}",
+                            label=f"mean over constraints{tag}")
+                    ax.plot(x[order], np.nanmax(table, axis=1), style, ms=3, lw=1, color=f"C{k % 10}",
+                            alpha=0.5, label=f"max over constraints{tag}")
+                    columns_drawn = 1
+                else:
                     for j in range(table.shape[1]):
-                        ax.plot(x[sel], table[sel, j], style, ms=3, lw=1, label=f"constraint {j + 1}{tag}")
-                    if stat == "displacement_peak":
-                        for p in range(probe_peak.shape[1]):
-                            ax.plot(x[sel], probe_peak[order][sel, p] * 1e3, style, ms=3, lw=1, alpha=0.7,
-                                    label=f"probe {p + 1}{tag}")
-                ax.set_ylabel(label)
-                ax.grid(alpha=0.3)
-            for ax in axes[1]:
-                ax.set_xlabel(name)
-            handles, labels = axes[0, 0].get_legend_handles_labels()
-            if len(labels) <= 12:
-                axes[0, 0].legend(fontsize=7)
-            fig.suptitle(f"Sweep over {name} ({int(ok.sum())} of {ok.size} cases ran)")
-            fig.tight_layout()
-            target = os.path.join(folder, f"sweep_{name.replace('.', '_')}.png")
-            tmp = f"{target}.tmp-{os.getpid()}.png"
-            fig.savefig(tmp)
-            plt.close(fig)
-            os.replace(tmp, target)
-            written.append(target)
+                        ax.plot(x[order], table[:, j], style, ms=3, lw=1, color=f"C{(k + j) % 10}",
+                                label=f"constraint {j + 1}{tag}")
+                    columns_drawn = table.shape[1]
+                if stat == "displacement_peak":
+                    for p in range(probe_peak.shape[1]):
+                        ax.plot(x[order], probe_peak[order, p] * 1e3, style, ms=3, lw=1.5, alpha=0.6,
+                                color=f"C{(k + columns_drawn + p) % 10}", label=f"probe {p + 1}{tag}")
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+        for ax in axes[1]:
+            ax.set_xlabel(name)
+        if len(axes[0, 0].get_legend_handles_labels()[1]) <= 12:
+            axes[0, 0].legend(fontsize=7)
+        fig.suptitle(f"Sweep over {name} ({int(ok.sum())} of {ok.size} cases ran)")
+        fig.tight_layout()
+        target = os.path.join(folder, f"sweep_{name.replace('.', '_')}.png")
+        tmp = f"{target}.tmp-{os.getpid()}.png"
+        fig.savefig(tmp)
+        plt.close(fig)
+        os.replace(tmp, target)
+        written.append(target)
     return written
