@@ -71,15 +71,7 @@ class ReducedBasis:
     def rows(self, rows) -> np.ndarray:
         """V restricted to the given rows (len(rows) x size), on every rank: B = G^T V for the
         constraint rows. Collective."""
-        rows = np.asarray(rows, dtype=np.int64)
-        dense = self.vectors.getMat()
-        lo, hi = dense.getOwnershipRange()
-        local = dense.getDenseArray()
-        out = np.zeros((rows.size, self.size))
-        mine = (rows >= lo) & (rows < hi)
-        out[mine] = local[rows[mine] - lo, :]
-        self.vectors.restoreMat(dense)
-        return self.vectors.getComm().tompi4py().allreduce(out)
+        return bv_rows(self.vectors, rows)
 
     def project(self, A: PETSc.Mat) -> np.ndarray:
         """V^T A V as a dense array on every rank (K_r for A = K). Collective."""
@@ -102,16 +94,23 @@ def constraint_groups(world_size: int, n_constraints: int, requested: int = 0) -
     return max(1, min(world_size, n_constraints))
 
 
-def participation(modes: ModalBasis, rows: np.ndarray) -> np.ndarray:
-    """(g_j^T phi_i)^2 for every constraint j (rows) and reference mode i: (N_L, N). Collective."""
-    dense = modes.vectors.getMat()
+def bv_rows(bv: SLEPc.BV, rows) -> np.ndarray:
+    """The given rows of all columns of a distributed BV, (len(rows) x columns), on every rank.
+    Collective."""
+    rows = np.asarray(rows, dtype=np.int64)
+    dense = bv.getMat()
     lo, hi = dense.getOwnershipRange()
     local = dense.getDenseArray()
-    values = np.zeros((rows.size, modes.count))
+    out = np.zeros((rows.size, local.shape[1]))
     mine = (rows >= lo) & (rows < hi)
-    values[mine] = local[rows[mine] - lo, :]
-    modes.vectors.restoreMat(dense)
-    return modes.vectors.getComm().tompi4py().allreduce(values) ** 2
+    out[mine] = local[rows[mine] - lo, :]
+    bv.restoreMat(dense)
+    return bv.getComm().tompi4py().allreduce(out)
+
+
+def participation(modes: ModalBasis, rows: np.ndarray) -> np.ndarray:
+    """(g_j^T phi_i)^2 for every constraint j (rows) and reference mode i: (N_L, N). Collective."""
+    return bv_rows(modes.vectors, rows) ** 2
 
 
 def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: BasisSettings):

@@ -170,8 +170,6 @@ def _plot(args) -> int:
     if not os.path.isdir(args.directory):
         raise InputError(f"plot directory {args.directory!r} does not exist")
     if MPI.COMM_WORLD.rank == 0:
-        import h5py
-
         from .plots import plot_sweep
 
         if _is_sweep_summary(args.output):

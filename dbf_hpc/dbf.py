@@ -40,7 +40,7 @@ from petsc4py import PETSc
 
 from .errors import SolverError
 from .modes import solve_lowest, eigen_solver, normalize
-from .operators import Operators
+from .operators import Operators, direct_solver
 
 PREFIX = "dbf_"
 # A reference mode "moves at the constraint" if (g^T phi)^2 exceeds this fraction of the largest
@@ -159,12 +159,8 @@ def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PET
         rhs.setValue(row, -gphi, addv=PETSc.InsertMode.ADD_VALUES)
     rhs.assemble()
 
-    ksp = PETSc.KSP().create(comm=ops.comm)
+    ksp = direct_solver(PETSc.KSP().create(comm=ops.comm))  # A - lambda M is indefinite: LU
     ksp.setOperators(A)
-    ksp.setType(PETSc.KSP.Type.PREONLY)
-    pc = ksp.getPC()
-    pc.setType(PETSc.PC.Type.LU)
-    pc.setFactorSolverType("mumps")
     ksp.setOptionsPrefix(PREFIX)
     ksp.setFromOptions()
     d = A.createVecRight()

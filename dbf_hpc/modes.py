@@ -14,7 +14,7 @@ from petsc4py import PETSc
 from slepc4py import SLEPc
 
 from .errors import InputError, SolverError
-from .operators import Operators
+from .operators import Operators, direct_solver
 
 
 # Eigen-solves performed by this process (lets tests and reports see that a cached basis needed none).
@@ -54,11 +54,7 @@ def eigen_solver(ops: Operators, K: PETSc.Mat, nev: int, prefix: str, tol: float
     eps.setTolerances(tol, 1000)
     st = eps.getST()
     st.setType(SLEPc.ST.Type.SINVERT)
-    ksp = st.getKSP()
-    ksp.setType(PETSc.KSP.Type.PREONLY)
-    pc = ksp.getPC()
-    pc.setType(PETSc.PC.Type.CHOLESKY)
-    pc.setFactorSolverType("mumps")
+    direct_solver(st.getKSP(), PETSc.PC.Type.CHOLESKY)
     eps.setOptionsPrefix(prefix)
     eps.setFromOptions()
     return eps

@@ -72,3 +72,13 @@ def aij_from_owned_triplets(comm, n: int, rows, cols, values) -> PETSc.Mat:
                               comm=comm)
     A.assemble()
     return A
+
+
+def direct_solver(ksp: PETSc.KSP, factorization: str = "lu") -> PETSc.KSP:
+    """Configure a KSP as a direct solve by MUMPS (required in parallel): preonly + LU or Cholesky.
+    Set before setFromOptions, so the user's options still win."""
+    ksp.setType(PETSc.KSP.Type.PREONLY)
+    pc = ksp.getPC()
+    pc.setType(factorization)
+    pc.setFactorSolverType("mumps")
+    return ksp

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from mpi4py import MPI
 
 from .basis import ReducedBasis
 from .damping import Damping
@@ -151,6 +152,4 @@ def _peak(basis: ReducedBasis, column: int, ops) -> float:
         values = values[w_rows - lo]
     local = float(np.abs(values).max(initial=0.0))
     basis.vectors.restoreMat(dense)
-    from mpi4py import MPI
-
     return basis.vectors.getComm().tompi4py().allreduce(local, op=MPI.MAX)

@@ -11,7 +11,6 @@ import os
 import time
 
 import numpy as np
-from mpi4py import MPI
 from petsc4py import PETSc
 from slepc4py import SLEPc
 

@@ -17,7 +17,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .errors import InputError
-from .operators import Operators, aij_from_owned_triplets, owned_rows
+from .operators import Operators, aij_from_owned_triplets, direct_solver, owned_rows
 
 W, THETA = 0, 1
 BOUNDARIES = {"pinned": (W,), "clamped": (W, THETA), "free": (), "sliding": (THETA,)}
@@ -234,12 +234,8 @@ def influence_vector(K, M, k_coupling, m_coupling):
     beam, Eq. 26: r = 1 - x/L) this is exactly that motion; otherwise it is the standard pseudo-static
     shape. The load of the moving support is -(M_ff r_free + M_(free,support)) Omega''.
     """
-    ksp = PETSc.KSP().create(comm=K.getComm())
+    ksp = direct_solver(PETSc.KSP().create(comm=K.getComm()), PETSc.PC.Type.CHOLESKY)
     ksp.setOperators(K)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("cholesky")
-    pc.setFactorSolverType("mumps")
     r = K.createVecRight()
     rhs = k_coupling.copy()
     rhs.scale(-1.0)
