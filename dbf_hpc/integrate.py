@@ -190,8 +190,11 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
     ts.setExactFinalTime(PETSc.TS.ExactFinalTime.MATCHSTEP)
     ts.setTolerances(rtol=settings.rtol, atol=settings.atol)
     ts.setErrorIfStepFails(False)
-    ts.setMaxSNESFailures(-1)  # a failed Newton solve shrinks the step; failures are counted and reported
-    ts.setMaxStepRejections(-1)
+    # Adaptive: a failed Newton solve shrinks the step (down to the floor set below, where the run
+    # stops with an error); failures are counted and reported. Fixed step: retrying the same step
+    # would loop for ever, so the first failure ends the run with an error.
+    ts.setMaxSNESFailures(-1 if settings.adaptive else 1)
+    ts.setMaxStepRejections(50)  # consecutive, within one step: bounds the retries of a hopeless step
     # petsc4py 3.18 exposes neither TSAdapt nor SNESLineSearch: those defaults go through the
     # options database, only where the user has not set them, and are removed after use.
     # Full Newton steps: a backtracking line search stalls on the kinks of piecewise laws
@@ -238,8 +241,9 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
     if sampler.failure:
         raise SolverError(sampler.failure)
     if reason < 0 or sampler.next < times.size:
+        advice = ("set contact = \"implicit\" or reduce [integrator] dt" if settings.contact == "explicit"
+                  else "reduce [integrator] dt or rtol, or try another scheme")
         raise SolverError(f"the time integration stopped at t = {stats['final_time']:.6g} s of {settings.t_end:g} s "
                           f"(TS reason {reason}, {stats['snes_failures']} Newton failures, "
-                          f"{stats['rejected_steps']} rejected steps); reduce [integrator] dt, loosen rtol "
-                          f"or try another scheme")
+                          f"{stats['rejected_steps']} rejected steps): {advice}")
     return stats

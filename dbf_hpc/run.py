@@ -170,6 +170,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         timings["integration"] = time.perf_counter() - t
         if failure and writer is not None:
             writer.abort()
+            failure += f" (the samples up to the failure are in {writer.partial})"
     else:
         _wait_for_rank0(world)
     if world.rank == 0:

@@ -132,3 +132,19 @@ def test_bad_run_input_is_one_line(args, message):
     out = dbf_hpc(*args)
     lines = [line for line in out.stderr.splitlines() if line.strip()]
     assert out.returncode != 0 and len(lines) == 1 and message in lines[0], out.stderr
+
+
+def test_a_failed_integration_on_rank_0_ends_the_job_with_advice_and_no_output(tmp_path):
+    # The reduced model integrates on rank 0 alone: its failure must reach rank 1, end the job
+    # with one line, and leave no file that looks complete. Explicit contact, a step far too long.
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "x.h5"), "-q", "--set", "integrator.contact=explicit",
+                  "--set", "integrator.adaptive=false", "--set", "integrator.dt=1e-3", "--set", "integrator.t_end=2",
+                  "--set", "basis.cache=off", timeout=60)
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert out.returncode == 1 and len(lines) == 1, out.stderr
+    assert "time integration stopped" in lines[0] and 'contact = "implicit"' in lines[0]
+    assert not (tmp_path / "x.h5").exists()
+    import h5py
+
+    with h5py.File(tmp_path / "x.h5.partial") as f:
+        assert not f.attrs["complete"]
