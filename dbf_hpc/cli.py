@@ -1,6 +1,6 @@
 """The `dbf-hpc` command.
 
-    dbf-hpc run SCENE.toml [-o OUT.h5] [-q] [--set section.key=value ...] [PETSc options]
+    dbf-hpc run SCENE.toml [-o OUT.h5] [-q] [--resume] [--set section.key=value ...] [PETSc options]
     dbf-hpc sweep SWEEP.toml [-q]
     dbf-hpc info OUT.h5 | dbf-hpc plot OUT.h5 [-d DIR]
     dbf-hpc modes SCENE.toml [--set section.key=value ...] [PETSc options]
@@ -67,6 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
                   "with PETSc TS ARKIMEX, and write the HDF5 output.")
     run.add_argument("-o", "--output", metavar="OUT.h5", help="output file (default: the scene's [output] file)")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    run.add_argument("--resume", action="store_true",
+                     help="continue a killed run from its last checkpoint (OUT.h5.checkpoint)")
     sweep = sub.add_parser("sweep", help="a parameter study: many cases of one scene over the ranks",
                            description="Expand a sweep file (a base scene and axes or listed cases), build "
                                        "each distinct basis once, run the cases spread over the MPI ranks "
@@ -110,7 +112,7 @@ def _run(args) -> int:
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.set)
-    run(scene, args.output, progress=not args.quiet)
+    run(scene, args.output, progress=not args.quiet, resume=args.resume)
     return 0
 
 

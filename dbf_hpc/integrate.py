@@ -111,14 +111,16 @@ class ReducedProblem:
 
 
 class Sampler:
-    """TS monitor: hands the state at each sample time to `record(t, q, p)` and, if given, every
-    step's state to `on_step(t, q, p)` (before the samples it completes); reports progress."""
+    """TS monitor: hands the state at each sample time to `record(t, q, p)` and then every step's
+    end state to `on_step(ts, t, q, p)`, which may return a message to stop the run (an interrupt);
+    reports progress."""
 
     def __init__(self, problem: ReducedProblem, times: np.ndarray, record, dense: bool, progress: bool,
-                 on_step=None):
+                 on_step=None, first_sample: int = 0, resumed: bool = False):
         self.problem, self.times, self.record, self.dense = problem, times, record, dense
         self.on_step = on_step
-        self.next = 0
+        self.next = first_sample
+        self.skip_step = resumed  # a resumed run's first call is the checkpointed step: seen already
         self.progress = progress
         self.failure = None
         self.start = self.last_report = time.perf_counter()
@@ -133,8 +135,6 @@ class Sampler:
                             f"or rtol, or set contact = \"implicit\"")
             ts.setMaxTime(t)
             return
-        if self.on_step is not None:
-            self.on_step(t, a[: self.problem.r], a[self.problem.r:])
         tol = 1e-9 * max(self.times[-1], 1.0)
         while self.next < self.times.size and self.times[self.next] <= t + tol:
             ts_ = self.times[self.next]
@@ -150,6 +150,12 @@ class Sampler:
             r = self.problem.r
             self.record(ts_, state[:r].copy(), state[r:].copy())
             self.next += 1
+        if self.on_step is not None and not self.skip_step:
+            stop = self.on_step(ts, t, a[: self.problem.r], a[self.problem.r:])
+            if stop:
+                self.failure = stop
+                ts.setMaxTime(t)
+        self.skip_step = False
         now = time.perf_counter()
         if self.progress and now - self.last_report > 5.0 and t > 0:
             self.last_report = now
@@ -161,17 +167,22 @@ class Sampler:
 
 
 def integrate(model: ReducedModel, settings: IntegratorSettings, record, progress: bool = False,
-              on_step=None) -> dict:
-    """Integrate from t = 0 (at rest in relative coordinates unless model.q0) to t_end, calling
-    record(t, q, p) at every sample time (and on_step(t, q, p) after every step). Returns solver
+              on_step=None, resume: dict | None = None) -> dict:
+    """Integrate from t = 0 (at rest in relative coordinates unless model.q0/p0) to t_end, calling
+    record(t, q, p) at every sample time and on_step(ts, t, q, p) after every step. `resume` (from a
+    checkpoint taken at the end of a step: t, dt, steps, next_sample, q, p and the failure counts
+    so far) continues exactly where that step ended: same steps, same answer. Returns solver
     statistics. Runs on COMM_SELF."""
     r = model.size
     problem = ReducedProblem(model, settings.contact == "implicit")
     scheme = settings.scheme.lower()
     comm = PETSc.COMM_SELF
     y = PETSc.Vec().createSeq(2 * r, comm=comm)
-    y.getArray()[:r] = model.q0
-    y.getArray()[r:] = 0.0 if model.p0 is None else model.p0
+    if resume:
+        y.getArray()[:r], y.getArray()[r:] = resume["q"], resume["p"]
+    else:
+        y.getArray()[:r] = model.q0
+        y.getArray()[r:] = 0.0 if model.p0 is None else model.p0
     F, G = y.duplicate(), y.duplicate()
     J = PETSc.Mat().createDense((2 * r, 2 * r), comm=comm)
     J.setUp()
@@ -183,8 +194,10 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
     ts.setIFunction(problem.ifunction, F)
     ts.setIJacobian(problem.ijacobian, J, J)
     ts.setRHSFunction(problem.rhsfunction, G)
-    ts.setTime(0.0)
-    ts.setTimeStep(settings.dt)
+    ts.setTime(resume["t"] if resume else 0.0)
+    ts.setTimeStep(resume["dt"] if resume else settings.dt)
+    if resume:
+        ts.setStepNumber(resume["steps"])
     ts.setMaxTime(settings.t_end)
     ts.setMaxSteps(10**9)
     ts.setExactFinalTime(PETSc.TS.ExactFinalTime.MATCHSTEP)
@@ -212,9 +225,10 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
     ksp.getPC().setType(PETSc.PC.Type.LU)
     dense = scheme not in NO_DENSE_OUTPUT
     times = settings.sample_times
-    if not dense:
-        ts.setTimeSpan(times)
-    sampler = Sampler(problem, times, record, dense, progress, on_step)
+    first = resume["next_sample"] if resume else 0
+    if not dense:  # the span starts at the initial time
+        ts.setTimeSpan(np.concatenate([[resume["t"]], times[first:]]) if resume else times)
+    sampler = Sampler(problem, times, record, dense, progress, on_step, first, resumed=bool(resume))
     ts.setMonitor(sampler.monitor)
     ts.setOptionsPrefix(PREFIX)
     ts.setFromOptions()
@@ -229,8 +243,10 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
             raise SolverError(f"the time integration failed at t = {ts.getTime():.6g} s: PETSc error {e.ierr}; "
                               f"reduce [integrator] dt or rtol") from None
     wall = time.perf_counter() - start
-    stats = {"steps": ts.getStepNumber(), "rejected_steps": ts.getStepRejections(),
-             "snes_failures": ts.getSNESFailures(), "time_integration": wall,
+    before = resume or {}
+    stats = {"steps": ts.getStepNumber(), "rejected_steps": ts.getStepRejections() + before.get("rejected", 0),
+             "snes_failures": ts.getSNESFailures() + before.get("snes_failures", 0),
+             "time_integration": wall + before.get("wall", 0.0),
              "scheme": ts.getARKIMEXType(), "final_time": ts.getTime(),
              "adaptive": settings.adaptive, "contact": settings.contact}
     reason = ts.getConvergedReason()

@@ -59,6 +59,33 @@ class OutputWriter:
         self.count += n
         self.file.flush()
 
+    @classmethod
+    def reopen(cls, path: str, samples: int) -> "OutputWriter":
+        """Continue a .partial file from a checkpoint: keep its first `samples` samples."""
+        self = cls.__new__(cls)
+        self.path, self.partial = path, f"{path}.partial"
+        self.file = h5py.File(self.partial, "r+")
+        if self.file.attrs.get("complete", True):
+            raise KeyError("not an incomplete dbf-hpc output")
+        self.series, self.empty = {}, []
+        for name in ("time", "constraints/displacement", "constraints/velocity", "constraints/force",
+                     "constraints/force_peak", "probes/displacement", "reduced/q", "reduced/qdot"):
+            if name not in self.file:  # zero-width series are only written at the end
+                self.empty.append(name)
+                continue
+            dataset = self.file[name]
+            if dataset.shape[0] < samples:
+                raise KeyError(f"{name} holds {dataset.shape[0]} samples, the checkpoint {samples}")
+            dataset.resize(samples, axis=0)
+            self.series[name] = dataset
+        self.buffer = {name: [] for name in self.series}
+        self.count = samples
+        return self
+
+    def close(self) -> None:
+        self.flush()
+        self.file.close()
+
     def series_data(self, name: str) -> np.ndarray:
         """A series as written so far (rank 0 reads back what it streamed out)."""
         self.flush()

@@ -6,8 +6,12 @@ then join the reconstruction of the snapshots.
 """
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import os
+import pickle
+import signal
 import time
 
 import numpy as np
@@ -70,10 +74,13 @@ def _wait_for_rank0(world) -> None:
         time.sleep(0.02)
 
 
-def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, initial_state=None) -> dict:
+def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, initial_state=None,
+        resume: bool = False) -> dict:
     """Run the scene and write its HDF5 output. Returns a summary (same on every rank), with the
     final reduced state. initial_state = (q, q') starts from a previous run's final state instead of
-    [initial] (continuation in a frequency sweep; the basis must be the same)."""
+    [initial] (continuation in a frequency sweep; the basis must be the same). With resume, a run
+    that was killed continues from its last checkpoint (OUT.h5.checkpoint) and ends as an
+    uninterrupted run would."""
     comm = comm or PETSc.COMM_WORLD
     world = comm.tompi4py()
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else (lambda m: None)
@@ -127,52 +134,32 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     snapshot_times = np.linspace(0.0, settings.t_end, n_snap) if n_snap else np.zeros(0)
     sample_times = settings.sample_times
     snap_index = np.unique(np.searchsorted(sample_times, snapshot_times - 1e-12 * settings.t_end))
-    writer, stats, failure, snap_q = None, {}, None, {}
-    impacts = ImpactAccumulator(rows.size)  # statistics over the solver's steps, not the samples
-    final = [None, None]
+    recorder, stats, failure = None, {}, None
     if world.rank == 0:
         t = time.perf_counter()
         try:
-            writer = OutputWriter(path, rows.size, probes.size, model.size)
-            count = [0]
-            peak = np.zeros(rows.size)  # signed largest |N| at the steps since the previous sample
-
-            def on_step(ts, q, p):
-                z, v = model.constraint_state(ts, q, p)
-                force = laws.force(z, v)
-                impacts.add(ts, z, v, force)
-                larger = np.abs(force) > np.abs(peak)
-                peak[larger] = force[larger]
-
-            def record(ts, q, p):
-                z, v = model.constraint_state(ts, q, p)
-                force = laws.force(z, v)
-                larger = np.abs(force) > np.abs(peak)
-                peak[larger] = force[larger]
-                writer.append(**{"time": ts, "constraints/displacement": z, "constraints/velocity": v,
-                                 "constraints/force": force, "constraints/force_peak": peak.copy(),
-                                 "probes/displacement": probe_B @ q + probe_r * support.value(ts),
-                                 "reduced/q": q, "reduced/qdot": p})
-                peak[:] = 0.0
-                final[:] = [q, p]
-                if count[0] in snap_index_set:
-                    snap_q[count[0]] = q
-                count[0] += 1
-
-            snap_index_set = set(int(i) for i in snap_index)
+            checkpoint_dt = scene["output"]["checkpoint_dt"] or settings.t_end / 10
+            recorder = Recorder(path, model, laws, probe_B, probe_r, snap_index, checkpoint_dt,
+                                _scene_identity(scene), resume)
+            start = recorder.start
+            if resume:
+                say(f"resuming from the checkpoint at t = {start['t']:.6g} s" if start else
+                    "no usable checkpoint: starting from t = 0")
             say(f"integrating to t = {settings.t_end:g} s with ARKIMEX {settings.scheme} "
                 f"(contact {settings.contact}, {'adaptive' if settings.adaptive else 'fixed'} step)")
-            stats = integrate(model, settings, record, progress=progress, on_step=on_step)
+            with _interrupt_on_sigterm(recorder):
+                stats = integrate(model, settings, recorder.record, progress=progress,
+                                  on_step=recorder.on_step, resume=start)
         except DbfError as exc:
             failure = str(exc)
         except OSError as exc:
             failure = f"cannot write {path}.partial: {exc.strerror or exc}"
         timings["integration"] = time.perf_counter() - t
-        if failure and writer is not None:
-            writer.abort()
-            failure += f" (the samples up to the failure are in {writer.partial})"
+        if failure and recorder is not None:
+            failure += recorder.abort()
     else:
-        _wait_for_rank0(world)
+        with _interrupt_on_sigterm(None):
+            _wait_for_rank0(world)
     if world.rank == 0:
         _wait_for_rank0(world)
     failure = world.bcast(failure, root=0)
@@ -183,7 +170,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
 
     # Field snapshots: w = V q + r Omega, reconstructed in parallel from the distributed basis.
     t = time.perf_counter()
-    snap_q = world.bcast(np.array([snap_q[i] for i in sorted(snap_q)]) if world.rank == 0 else None, root=0)
+    snap_q = world.bcast(recorder.snapshot_coordinates() if world.rank == 0 else None, root=0)
     snap_t = sample_times[snap_index] if n_snap else np.zeros(0)
     x, w = _snapshots(ops, basis, snap_q, snap_t, support, e["end"])
     timings["snapshots"] = time.perf_counter() - t
@@ -193,7 +180,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         timings["total"] = sum(timings.values())
         stats.update(eigen_solves=counters["eigen_solves"] - solves, cache=basis.stats.get("cache", ""))
         positions = np.array([c.x if c.x is not None else c.dof for c in scene.constraints], dtype=float)
-        constraint_stats = impacts.result()
+        writer = recorder.writer
+        constraint_stats = recorder.impacts.result()
         probe_peak = np.abs(writer.series_data("probes/displacement")).max(axis=0, initial=0.0)
         writer.finish(
             datasets={"constraints/position": positions,
@@ -214,13 +202,146 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
                                     "Omega'(0) r" if not init["amplitude"] else
                                     f"displacement {init['amplitude']} m peak in reference mode {init['mode']}"})
         summary = {"path": path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
-                   "final_state": [final[0].tolist(), final[1].tolist()],
+                   "final_state": [recorder.final[0].tolist(), recorder.final[1].tolist()],
                    "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
+        recorder.remove_checkpoint()
         say(f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} Newton "
             f"failures) in {timings['integration']:.2f} s; wrote {path}")
     basis.destroy()
     ops.destroy()
     return world.bcast(summary, root=0)
+
+
+class Recorder:
+    """Rank 0's side of a run: turns each sample into output rows, accumulates the impact
+    statistics over the steps, keeps the snapshot coordinates, and writes checkpoints.
+
+    A checkpoint (OUT.h5.checkpoint, written atomically) is taken at the end of a step: the state,
+    the next step size, the counters, the statistics so far and how many samples the .partial file
+    holds. Resuming truncates the .partial file to that many samples and restarts the same step
+    sequence, so nothing is lost or written twice."""
+
+    def __init__(self, path, model, laws, probe_B, probe_r, snap_index, checkpoint_dt: float, identity: str,
+                 resume: bool = False):
+        self.path, self.model, self.laws = path, model, laws
+        self.probe_B, self.probe_r = probe_B, probe_r
+        n = model.B.shape[0]
+        self.impacts = ImpactAccumulator(n)   # statistics over the solver's steps, not the samples
+        self.peak = np.zeros(n)               # signed largest |N| at the steps since the previous sample
+        self.snap_index = set(int(i) for i in snap_index)
+        self.snap_q = {}
+        self.final = [model.q0, model.p0]
+        self.checkpoint_path = f"{path}.checkpoint"
+        self.checkpoint_dt, self.next_checkpoint = checkpoint_dt, checkpoint_dt
+        self.identity = identity
+        self.interrupted = False
+        self.base = {}  # counters carried over from before a resume
+        self.start = self._resume() if resume else None
+        if self.start is None:
+            self.writer = OutputWriter(path, n, probe_B.shape[0], model.size)
+
+    def record(self, t, q, p):
+        m = self.model
+        z, v = m.constraint_state(t, q, p)
+        force = self.laws.force(z, v)
+        larger = np.abs(force) > np.abs(self.peak)
+        self.peak[larger] = force[larger]
+        if self.writer.count + len(self.writer.buffer["time"]) in self.snap_index:
+            self.snap_q[self.writer.count + len(self.writer.buffer["time"])] = q
+        self.writer.append(**{"time": t, "constraints/displacement": z, "constraints/velocity": v,
+                              "constraints/force": force, "constraints/force_peak": self.peak.copy(),
+                              "probes/displacement": self.probe_B @ q + self.probe_r * m.support.value(t),
+                              "reduced/q": q, "reduced/qdot": p})
+        self.peak[:] = 0.0
+        self.final = [q, p]
+
+    def on_step(self, ts, t, q, p):
+        z, v = self.model.constraint_state(t, q, p)
+        force = self.laws.force(z, v)
+        self.impacts.add(t, z, v, force)
+        larger = np.abs(force) > np.abs(self.peak)
+        self.peak[larger] = force[larger]
+        if self.interrupted or t >= self.next_checkpoint:
+            self.checkpoint(ts, t, q, p)
+            self.next_checkpoint = t + self.checkpoint_dt
+        if self.interrupted:
+            return (f"stopped by a termination signal at t = {t:.6g} s; the run is checkpointed: "
+                    f"rerun with --resume to continue")
+        return None
+
+    def checkpoint(self, ts, t, q, p) -> None:
+        self.writer.flush()
+        state = {"identity": self.identity, "t": t, "dt": ts.getTimeStep(), "steps": ts.getStepNumber(),
+                 "q": q.copy(), "p": p.copy(), "samples": self.writer.count,
+                 "rejected": self.base.get("rejected", 0) + ts.getStepRejections(),
+                 "snes_failures": self.base.get("snes_failures", 0) + ts.getSNESFailures(),
+                 "impacts": self.impacts, "peak": self.peak, "snap_q": self.snap_q, "final": self.final}
+        tmp = f"{self.checkpoint_path}.tmp"
+        with open(tmp, "wb") as f:
+            pickle.dump(state, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.checkpoint_path)
+
+    def _resume(self) -> dict | None:
+        """The integrator's starting point from the checkpoint, or None to start afresh."""
+        try:
+            with open(self.checkpoint_path, "rb") as f:
+                state = pickle.load(f)
+        except (OSError, pickle.UnpicklingError, EOFError):
+            return None
+        if state.get("identity") != self.identity:
+            raise InputError(f"{self.checkpoint_path} was written by a different scene; remove it or rerun "
+                             f"without --resume")
+        try:
+            self.writer = OutputWriter.reopen(self.path, state["samples"])
+        except (OSError, KeyError) as e:
+            raise InputError(f"{self.path}.partial cannot be resumed ({e}); rerun without --resume") from None
+        self.impacts, self.peak, self.snap_q, self.final = (state["impacts"], state["peak"], state["snap_q"],
+                                                            state["final"])
+        self.next_checkpoint = state["t"] + self.checkpoint_dt
+        self.base = {"rejected": state["rejected"], "snes_failures": state["snes_failures"]}
+        return {"t": state["t"], "dt": state["dt"], "steps": state["steps"], "q": state["q"], "p": state["p"],
+                "next_sample": state["samples"], **self.base}
+
+    def snapshot_coordinates(self) -> np.ndarray:
+        return np.array([self.snap_q[i] for i in sorted(self.snap_q)])
+
+    def abort(self) -> str:
+        """Close after a failure; a note on what is left behind."""
+        self.writer.abort()
+        if os.path.exists(self.checkpoint_path):
+            return f" (samples so far in {self.writer.partial}; checkpoint in {self.checkpoint_path})"
+        return f" (the samples up to the failure are in {self.writer.partial})"
+
+    def remove_checkpoint(self) -> None:
+        if os.path.exists(self.checkpoint_path):
+            os.remove(self.checkpoint_path)
+
+
+@contextlib.contextmanager
+def _interrupt_on_sigterm(recorder):
+    """While integrating, SIGTERM (a batch system's time limit) asks rank 0 to checkpoint at the end
+    of the current step and stop; the other ranks ignore it and wait for rank 0's word."""
+    def handler(signum, frame):
+        if recorder is not None:
+            recorder.interrupted = True
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _scene_identity(scene: Scene) -> str:
+    """What a checkpoint must match: every validated value of the scene."""
+    content = json.dumps([scene.sections, [repr(c) for c in scene.constraints]], sort_keys=True, default=str)
+    return hashlib.sha256(content.encode()).hexdigest()
 
 
 def _influence_at(ops, rows) -> np.ndarray:

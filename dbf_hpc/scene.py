@@ -18,7 +18,8 @@ Sections and keys (the contract; unknown sections or keys are errors naming them
     [damping]     zeta (one ratio or a list), or rayleigh_alpha, rayleigh_beta
     [integrator]  t_end, dt, scheme, adaptive, rtol, atol, contact = "implicit" | "explicit"
     [initial]     mode, amplitude (an initial displacement in a reference mode, m)
-    [output]      file, sample_dt, probes = [x, ...], snapshots (count)
+    [output]      file, sample_dt, probes = [x, ...], snapshots (count), checkpoint_dt (simulated
+                  seconds between checkpoints; default t_end / 10)
 
 Relative paths in the scene (matrix files, output) are relative to the scene file's folder.
 """
@@ -62,6 +63,7 @@ SCHEMA = {
     "initial": {"mode": (int, 1), "amplitude": (NUMBER, 0.0)},
     "output": {
         "file": (str, None), "sample_dt": (NUMBER, None), "probes": (list, []), "snapshots": (int, 0),
+        "checkpoint_dt": (NUMBER, None),
     },
 }
 CONSTRAINT_POSITION = {"x": NUMBER, "dof": int}
@@ -308,6 +310,8 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
         check_position(f"{where} probes", x)
     if o["sample_dt"] is not None and not o["sample_dt"] > 0:
         raise InputError(f"{where}: sample_dt must be positive, got {o['sample_dt']!r}")
+    if o["checkpoint_dt"] is not None and not o["checkpoint_dt"] > 0:
+        raise InputError(f"{where}: checkpoint_dt must be positive, got {o['checkpoint_dt']!r}")
     if o["snapshots"] < 0:
         raise InputError(f"{where}: snapshots must be a count >= 0, got {o['snapshots']}")
     if sections["initial"]["mode"] < 1:

@@ -148,3 +148,84 @@ def test_a_failed_integration_on_rank_0_ends_the_job_with_advice_and_no_output(t
 
     with h5py.File(tmp_path / "x.h5.partial") as f:
         assert not f.attrs["complete"]
+
+
+def _start(*args):
+    cmd = ["mpirun", "-n", "2", sys.executable, "-m", "dbf_hpc.cli", *args]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            env=dict(os.environ), start_new_session=True)
+
+
+def _kill_group(process, sig):
+    """Signal mpirun and each of its ranks, as a batch system does (OpenMPI puts the ranks in process
+    groups of their own), and wait until every one has exited: a rank still dying holds the HDF5
+    file's lock."""
+    import time
+
+    ranks = subprocess.run(["pgrep", "-P", str(process.pid)], capture_output=True, text=True).stdout.split()
+    for pid in [*map(int, ranks), process.pid]:
+        try:
+            os.kill(pid, sig)
+        except ProcessLookupError:
+            pass
+    process.communicate(timeout=60)
+    for pid in map(int, ranks):
+        for _ in range(600):
+            if not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z":
+                break
+            time.sleep(0.05)
+        else:
+            raise AssertionError(f"rank process {pid} did not exit")
+
+
+def _wait_for(path, process, timeout=60):
+    import time
+
+    deadline = time.monotonic() + timeout
+    while not os.path.exists(path):
+        assert process.poll() is None, "the run ended before its first checkpoint"
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("how", ["SIGKILL", "SIGTERM"])
+def test_a_killed_run_resumes_from_its_checkpoint_to_the_uninterrupted_result(tmp_path, how):
+    import signal
+    import time
+
+    import h5py
+
+    common = ("-q", "--set", "integrator.t_end=5", "--set", "output.checkpoint_dt=0.25",
+              "--set", f"basis.cache={tmp_path}")
+    reference = dbf_hpc("run", PAPER, "-o", str(tmp_path / "ref.h5"), *common)
+    assert reference.returncode == 0, reference.stderr
+    target = tmp_path / "run.h5"
+    process = _start("run", PAPER, "-o", str(target), *common)
+    _wait_for(str(target) + ".checkpoint", process)
+    time.sleep(0.3)
+    # SIGKILL: no chance to clean up, the last checkpoint is all there is. SIGTERM (a batch system's
+    # time limit, sent to mpirun and the ranks alike): rank 0 checkpoints at the end of its step.
+    _kill_group(process, signal.SIGKILL if how == "SIGKILL" else signal.SIGTERM)
+    assert process.returncode != 0
+    assert not target.exists() and os.path.exists(str(target) + ".partial")
+    resumed = dbf_hpc("run", PAPER, "-o", str(target), "--resume", *common)
+    assert resumed.returncode == 0, resumed.stderr
+    assert not os.path.exists(str(target) + ".checkpoint")
+    with h5py.File(tmp_path / "ref.h5") as a, h5py.File(target) as b:
+        assert a["time"].shape == b["time"].shape, "no sample lost or written twice"
+        for name in ("time", "constraints/displacement", "constraints/force_peak", "reduced/q", "snapshots/w",
+                     "constraints/stats/impacts", "constraints/stats/force_rms"):
+            np.testing.assert_allclose(b[name][:], a[name][:], rtol=1e-12, atol=1e-15, err_msg=name)
+
+
+def test_resuming_with_a_different_scene_is_refused(tmp_path):
+    import signal
+
+    common = ("-q", "--set", "integrator.t_end=3", "--set", "output.checkpoint_dt=0.25",
+              "--set", f"basis.cache={tmp_path}")
+    target = tmp_path / "run.h5"
+    process = _start("run", PAPER, "-o", str(target), *common)
+    _wait_for(str(target) + ".checkpoint", process)
+    _kill_group(process, signal.SIGKILL)
+    out = dbf_hpc("run", PAPER, "-o", str(target), "--resume", *common, "--set", "constraint.clearance=1e-3")
+    assert out.returncode == 1 and "written by a different scene" in out.stderr
