@@ -20,7 +20,7 @@ import numpy as np
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
-from .dbf import dbf_source
+from .dbf import STIFFNESS_RANGE, dbf_source
 from .errors import InputError, SolverError
 from .modes import ModalBasis, normalize, reference_modes
 from .operators import Operators
@@ -57,6 +57,7 @@ class ReducedBasis:
     dbf_k: np.ndarray            # k_j used for each DBF, N/m
     dbf_branch: np.ndarray       # eigen-branch m followed for each DBF (1 = first mode)
     constraint_rows: np.ndarray
+    dbf_k_auto: np.ndarray       # the transition stiffness of each constraint (N/m)
     settings: BasisSettings
     stats: dict = field(default_factory=dict)
 
@@ -79,6 +80,21 @@ class ReducedBasis:
         values = projected.getDenseArray().copy()
         projected.destroy()
         return values
+
+    def warnings(self, labels=None) -> list:
+        """One line per DBF whose stiffness lies far outside the transition of Fig. 2."""
+        labels = labels or [f"row {r}" for r in self.constraint_rows]
+        out = []
+        for j, (k, k_auto) in enumerate(zip(self.dbf_k, self.dbf_k_auto)):
+            ratio = k / k_auto if k_auto > 0 else 1.0
+            if ratio > STIFFNESS_RANGE or ratio < 1 / STIFFNESS_RANGE:
+                state = ("practically pinned there: the DBF derives from the pinned mode"
+                         if ratio > 1 else "practically unperturbed: the DBF derives from the free mode")
+                out.append(f"DBF stiffness {k:.3g} N/m at {labels[j]} is {ratio:.0e} x the transition "
+                           f"({k_auto:.3g} N/m) of Fig. 2, where the method takes k; the perturbed mode is "
+                           f"{state}, not from the transition. Check the result against "
+                           f"dbf_stiffness = \"auto\"")
+        return out
 
     def destroy(self) -> None:
         self.vectors.destroy()
@@ -133,7 +149,7 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
     gathered = PETSc.Mat().createDense(size=((ops.K.getLocalSize()[0], n), (PETSc.DECIDE, rows.size)),
                                        comm=ops.comm)
     gathered.setUp()
-    k = np.zeros(rows.size)
+    k, k_auto = np.zeros(rows.size), np.zeros(rows.size)
     branch = np.zeros(rows.size, dtype=np.int64)
     is_leader = (group.rank if group is not None else world.rank) == 0
     for j in range(color, rows.size, n_groups):
@@ -142,7 +158,7 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
         gathered.setValues(np.arange(lo, hi, dtype=PETSc.IntType), [j],
                            src.derivative.array_r.reshape(-1, 1))
         if is_leader:
-            k[j], branch[j] = src.stiffness, src.branch
+            k[j], k_auto[j], branch[j] = src.stiffness, src.transition, src.branch
         src.derivative.destroy()
     gathered.assemble()
     if group is not None:
@@ -150,7 +166,7 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
         if hasattr(PETSc, "garbage_cleanup"):  # PETSc >= 3.18
             PETSc.garbage_cleanup(group_ops.comm)
         group.Free()
-    return gathered, world.allreduce(k), world.allreduce(branch)
+    return gathered, world.allreduce(k), world.allreduce(k_auto), world.allreduce(branch)
 
 
 def orthonormalize(V: SLEPc.BV, first: int, rows: np.ndarray, labels=None) -> None:
@@ -212,9 +228,9 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
         modes.vectors.copyVec(i, template)
         V.insertVec(i, template)
     omega = modes.omega.copy()
-    k = branch = np.zeros(0)
+    k = k_auto = branch = np.zeros(0)
     if NL:
-        gathered, k, branch = _dbf_sources(ops, rows, modes, settings)
+        gathered, k, k_auto, branch = _dbf_sources(ops, rows, modes, settings)
         for j in range(NL):
             gathered.getColumnVector(j, template)
             V.insertVec(N + j, template)
@@ -224,7 +240,7 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     t2 = time.perf_counter()
     orthonormalize(V, N, rows, labels)
     basis = ReducedBasis(vectors=V, omega=omega, dbf_omega=np.zeros(NL), dbf_k=k, dbf_branch=branch,
-                         constraint_rows=rows, settings=settings)
+                         constraint_rows=rows, dbf_k_auto=k_auto, settings=settings)
     Kr = basis.project(ops.K)
     basis.dbf_omega = np.sqrt(np.clip(np.diag(Kr)[N:], 0.0, None))
     basis.stats = {"time_modes": t1 - t0, "time_dbf": t2 - t1, "time_orthogonalization": time.perf_counter() - t2}

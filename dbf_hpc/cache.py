@@ -27,7 +27,7 @@ from .basis import BasisSettings, ReducedBasis, build_basis
 from .operators import Operators
 
 # Bump when the construction changes what a basis is.
-ALGORITHM = "dbf-basis-1"
+ALGORITHM = "dbf-basis-2"
 VERIFY_TOL = 1e-8
 
 
@@ -78,7 +78,8 @@ def save(basis: ReducedBasis, path: str, key: str, comm) -> None:
     if f is not None:
         V = f.create_dataset("V", shape=(n, basis.size), dtype="f8")
         for name, value in (("omega", basis.omega), ("dbf_omega", basis.dbf_omega), ("dbf_k", basis.dbf_k),
-                            ("dbf_branch", basis.dbf_branch), ("constraint_rows", basis.constraint_rows)):
+                            ("dbf_k_auto", basis.dbf_k_auto), ("dbf_branch", basis.dbf_branch),
+                            ("constraint_rows", basis.constraint_rows)):
             f.create_dataset(name, data=np.asarray(value))
         f.attrs["key"] = key
         f.attrs["settings"] = json.dumps(basis.settings.key())
@@ -106,7 +107,7 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings) -> Reduce
                 problem = "was made for other operators or settings"
             else:
                 arrays = {name: f[name][...] for name in
-                          ("omega", "dbf_omega", "dbf_k", "dbf_branch", "constraint_rows")}
+                          ("omega", "dbf_omega", "dbf_k", "dbf_k_auto", "dbf_branch", "constraint_rows")}
                 if f["V"].shape != (ops.size, arrays["omega"].size + arrays["constraint_rows"].size):
                     problem = "has the wrong shape"
                 else:
@@ -130,7 +131,8 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings) -> Reduce
     template.destroy()
     basis = ReducedBasis(vectors=V, omega=arrays["omega"], dbf_omega=arrays["dbf_omega"],
                          dbf_k=arrays["dbf_k"], dbf_branch=arrays["dbf_branch"],
-                         constraint_rows=arrays["constraint_rows"], settings=settings,
+                         constraint_rows=arrays["constraint_rows"], dbf_k_auto=arrays["dbf_k_auto"],
+                         settings=settings,
                          stats={"cache": "hit", "cache_file": path})
     G, Kr = basis.project(ops.M), basis.project(ops.K)
     N = basis.mode_count

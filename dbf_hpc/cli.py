@@ -264,6 +264,8 @@ def _basis(args) -> int:
         for j in range(rows.size):
             say(f"{j + 1:>6} {labels[j]:>14} {basis.dbf_k[j]:>12.5g} {basis.dbf_branch[j]:>7d} "
                 f"{basis.dbf_omega[j]:>18.8g}")
+    for warning in basis.warnings(labels):
+        say(f"dbf-hpc: warning: {warning}")
     for key in ("time_modes", "time_dbf", "time_orthogonalization"):
         if key in basis.stats:
             say(f"time {key[5:]}: {basis.stats[key]:.3f} s")

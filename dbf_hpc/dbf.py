@@ -46,6 +46,8 @@ PREFIX = "dbf_"
 # A reference mode "moves at the constraint" if (g^T phi)^2 exceeds this fraction of the largest
 # (g^T phi_i)^2 over the reference modes.
 PARTICIPATION_TOL = 1e-6
+# A given k_j more than this factor away from the transition is outside Fig. 2's useful range.
+STIFFNESS_RANGE = 1e2
 CENTRAL_STEP = 1e-3  # relative step h of the central difference in k
 EIGEN_TOL = 1e-12    # tighter than the reference modes: derivatives amplify eigenvector errors
 DERIVATIVE_BACKWARD_TOL = 1e-10  # a backward-stable solve gives ~1e-16
@@ -59,6 +61,7 @@ class DbfSource:
     row: int
     branch: int           # 1-based index m of the eigen-branch followed
     stiffness: float      # k_j, N/m
+    transition: float     # k_auto, the corner of Fig. 2 (N/m), to judge a given k_j against
     eigenvalue: float     # lambda_m(k_j), rad^2/s^2
     derivative: PETSc.Vec  # d phi / dk at k_j
 
@@ -198,18 +201,16 @@ def dbf_source(ops: Operators, row: int, reference_eigenvalues: np.ndarray, part
     if branch == 0:
         raise SolverError(f"the constraint at row {row} does not move in any of the "
                           f"{participation.size} reference modes; add modes or move the constraint")
-    if stiffness == "auto":
-        k = auto_stiffness(pinned_eigenvalue(ops, row, branch), reference_eigenvalues[branch - 1],
-                           participation[branch - 1])
-    else:
-        k = float(stiffness)
+    k_auto = auto_stiffness(pinned_eigenvalue(ops, row, branch), reference_eigenvalues[branch - 1],
+                            participation[branch - 1])
+    k = k_auto if stiffness == "auto" else float(stiffness)
     lam, phi = spring_eigenpair(ops, row, k, branch)
     if derivative == "central":
         d = central_derivative(ops, row, k, branch, phi)
     else:
         d = analytic_derivative(ops, row, k, lam, phi)
     phi.destroy()
-    return DbfSource(row=row, branch=branch, stiffness=k, eigenvalue=lam, derivative=d)
+    return DbfSource(row=row, branch=branch, stiffness=k, transition=k_auto, eigenvalue=lam, derivative=d)
 
 
 def stiffness_sweep(ops: Operators, row: int, stiffnesses, branch: int = 1) -> np.ndarray:

@@ -107,6 +107,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     timings["basis"] = time.perf_counter() - t
     say(f"basis: {basis.mode_count} modes + {rows.size} DBFs ({timings['basis']:.2f} s, cache "
         f"{basis.stats.get('cache')})")
+    for warning in basis.warnings([c.label for c in scene.constraints]):
+        PETSc.Sys.Print(f"dbf-hpc: warning: {warning}", comm=comm)
 
     t = time.perf_counter()
     laws = ConstraintLaws([c.law for c in scene.constraints])

@@ -1,0 +1,123 @@
+"""Stability at the extremes: stiff and soft contact, zero clearance against the exact linear
+solution, DBF stiffness far from the transition, many constraints on one beam."""
+import json
+import os
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from dbf_hpc.basis import BasisSettings, build_basis
+from dbf_hpc.cache import obtain_basis
+from dbf_hpc.laws import ConstraintLaws
+from dbf_hpc.model import build_operators, constraint_rows, operators_fingerprint
+from dbf_hpc.reduced import Harmonic, build_reduced_model
+from dbf_hpc.run import run
+from dbf_hpc.scene import load_scene
+from dbf_hpc.structure import Beam, assemble_beam
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAPER = os.path.join(ROOT, "jobs", "paper_beam.toml")
+
+
+def paper(tmp, name, *sets):
+    scene = load_scene(PAPER, [f"basis.cache={tmp / 'cache'}", *sets])
+    summary = run(scene, str(tmp / name), progress=False)
+    return scene, summary, (h5py.File(tmp / name, "r") if MPI.COMM_WORLD.rank == 0 else None)
+
+
+def test_contact_stiffness_from_1e2_to_1e10_stays_finite_and_penetration_falls_as_one_over_sqrt_k(shared_tmp_path):
+    # An elastic impact stores the approach energy in the stop: k delta^2 / 2 ~ m v^2 / 2, so the
+    # penetration delta falls like k^(-1/2) at a given impact speed.
+    penetration = []
+    for k in (1e2, 1e4, 1e6, 1e8, 1e10):
+        _, summary, f = paper(shared_tmp_path, f"k{k:g}.h5", "integrator.t_end=1.0",
+                              f"constraint.k_minus={k}", f"constraint.k_plus={k}")
+        if f is not None:
+            assert np.all(np.isfinite(f["reduced/q"][:]))
+            stats = json.loads(f.attrs["solver_stats"])
+            assert stats["steps"] > 0 and "rejected_steps" in stats and "snes_failures" in stats
+            penetration.append(f["constraints/stats/displacement_peak"][0] - 2.5e-3)
+    if penetration:
+        p = np.array(penetration)
+        assert np.all(p > 0) and np.all(np.diff(p) < 0), p
+        scaled = p * np.sqrt([1e2, 1e4, 1e6, 1e8, 1e10])
+        assert scaled.max() < 2 * scaled.min(), scaled
+
+
+def test_zero_clearance_is_a_linear_spring_matching_the_exact_modal_solution(shared_tmp_path):
+    # With no clearance the deadband is a linear spring k: the reduced model is linear and its
+    # exact solution from rest is a sum over the eigenpairs of K_r + k B^T B. Samples on the steps.
+    k = 50.0
+    scene = load_scene(PAPER, ["constraint.clearance=0.0", f"constraint.k_minus={k}", f"constraint.k_plus={k}",
+                               "integrator.t_end=1.0", "integrator.scheme=4", "integrator.adaptive=false", "integrator.dt=1e-4",
+                               "integrator.atol=1e-13",
+                               f"basis.cache={shared_tmp_path / 'cache'}"])
+    run(scene, str(shared_tmp_path / "linear.h5"), progress=False)
+    ops = build_operators(scene)
+    rows = constraint_rows(scene, ops)
+    basis = obtain_basis(ops, rows, scene.basis_settings(), operators_fingerprint(scene, ops),
+                         scene.cache_dir())
+    support = Harmonic(5e-3, 1.0)
+    model = build_reduced_model(basis, ops, ConstraintLaws([c.law for c in scene.constraints]),
+                                scene.damping(), support, Harmonic())
+    basis.destroy()
+    ops.destroy()
+    if MPI.COMM_WORLD.rank:
+        return
+    # q'' + (K + k B^T B) q = -base_load Omega'' - k B^T r_c Omega, Omega = a sin(w t)
+    A = model.K + k * model.B.T @ model.B
+    lam, U = np.linalg.eigh(A)
+    w = 2 * np.pi
+    a = 5e-3
+    # both loads are proportional to sin(w t): f = F sin(w t)
+    F = -model.base_load * (-a * w * w) - k * model.B.T @ model.r_c * a
+    Fm = U.T @ F
+    with h5py.File(shared_tmp_path / "linear.h5") as f:
+        t, z = f["time"][:], f["constraints/displacement"][:, 0]
+    om = np.sqrt(lam)
+    eta = Fm / (lam - w * w) * (np.sin(w * t)[:, None] - (w / om) * np.sin(np.outer(t, om)))
+    q = eta @ U.T
+    exact = q @ model.B[0] + model.r_c[0] * a * np.sin(w * t)
+    # fixed steps on the samples (measured 8.5e-7): ARKIMEX dense output is only second order, and
+    # interpolated samples of an adaptive run at rtol 1e-8 carry ~2e-5 here
+    assert np.abs(z - exact).max() < 5e-6 * np.abs(exact).max()
+
+
+@pytest.mark.parametrize("factor", [1e-4, 1e4])
+def test_dbf_stiffness_far_from_the_transition_warns_and_still_conserves_energy(shared_tmp_path, factor):
+    ops = assemble_beam(Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=100), points=[0.25])
+    auto = build_basis(ops, [ops.mesh.w_row(0.25)])
+    k = factor * auto.dbf_k[0]
+    auto.destroy()
+    ops.destroy()
+    scene, _, f = paper(shared_tmp_path, f"dbfk{factor:g}.h5", f"basis.dbf_stiffness={k}", "excitation.kind=none",
+                        "initial.mode=2", "initial.amplitude=0.003", "constraint.k_minus=100.0",
+                        "constraint.k_plus=100.0", "integrator.t_end=1.0", "integrator.rtol=1e-8",
+                        "integrator.atol=1e-12")
+    ops = build_operators(scene)
+    basis = obtain_basis(ops, constraint_rows(scene, ops), scene.basis_settings(),
+                         operators_fingerprint(scene, ops), scene.cache_dir())
+    warnings = basis.warnings()
+    basis.destroy()
+    ops.destroy()
+    assert len(warnings) == 1 and "x the transition" in warnings[0] and "auto" in warnings[0]
+    if f is not None:
+        q, p, K, z = f["reduced/q"][:], f["reduced/qdot"][:], f["reduced/K"][:], f["constraints/displacement"][:]
+        laws = ConstraintLaws([c.law for c in scene.constraints])
+        energy = (0.5 * np.sum(p * p, 1) + 0.5 * np.einsum("ti,ij,tj->t", q, K, q)
+                  + np.array([laws.potential(row).sum() for row in z]))
+        assert np.abs(energy / energy[0] - 1).max() < 5e-4
+
+
+def test_a_hundred_and_twenty_constraints_on_one_beam_give_a_well_conditioned_basis():
+    ops = assemble_beam(Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=480),
+                        points=list(np.arange(1, 121) / 121))
+    rows = [ops.mesh.w_row(x) for x in np.arange(1, 121) / 121]
+    basis = build_basis(ops, rows, BasisSettings(modes=10))
+    G = basis.project(ops.M)
+    assert basis.size == 130 and np.abs(G - np.eye(130)).max() < 1e-10
+    assert np.all(np.isfinite(basis.dbf_omega)) and not basis.warnings()
+    basis.destroy()
+    ops.destroy()
