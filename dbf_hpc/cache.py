@@ -24,6 +24,7 @@ from slepc4py import SLEPc
 
 from . import __version__
 from .basis import BasisSettings, ReducedBasis, build_basis
+from .modes import FACTOR_DEFAULTS
 from .operators import Operators
 
 # Bump when the construction changes what a basis is.
@@ -32,9 +33,12 @@ VERIFY_TOL = 1e-8
 
 
 def solver_options() -> dict:
-    """The PETSc options that can change a basis (the modes_ and dbf_ solvers)."""
+    """The PETSc options that can change a basis (the modes_ and dbf_ solvers), less the defaults
+    the eigensolvers set themselves."""
     options = PETSc.Options().getAll()
-    return {k: v for k, v in sorted(options.items()) if k.startswith(("modes_", "dbf_"))}
+    ours = {f"{prefix}{name}": value for prefix in ("modes_", "dbf_") for name, value in FACTOR_DEFAULTS.items()}
+    return {k: v for k, v in sorted(options.items())
+            if k.startswith(("modes_", "dbf_")) and ours.get(k) != str(v)}
 
 
 def basis_key(fingerprint: dict, rows, settings: BasisSettings) -> str:

@@ -17,6 +17,10 @@ from .errors import InputError, SolverError
 from .operators import Operators, direct_solver
 
 
+# Options the eigensolvers set as defaults (so that MUMPS reports the inertia); they do not change
+# the eigenpairs.
+FACTOR_DEFAULTS = {"st_mat_mumps_icntl_13": "1", "st_mat_mumps_icntl_24": "1"}
+
 # Eigen-solves performed by this process (lets tests and reports see that a cached basis needed none).
 counters = {"eigen_solves": 0}
 
@@ -56,14 +60,35 @@ def eigen_solver(ops: Operators, K: PETSc.Mat, nev: int, prefix: str, tol: float
     st.setType(SLEPc.ST.Type.SINVERT)
     direct_solver(st.getKSP(), PETSc.PC.Type.CHOLESKY)
     eps.setOptionsPrefix(prefix)
+    # MUMPS counts the negative pivots of K - sigma M (its inertia, for the check in
+    # reference_modes) only with these set. They are read when the factorization is made, so they
+    # stay in the options database; set only where the user has not chosen.
+    options = PETSc.Options(prefix)
+    for name, value in FACTOR_DEFAULTS.items():
+        if not options.hasName(name):
+            options.setValue(name, value)
     eps.setFromOptions()
     return eps
+
+
+def eigenvalues_below_shift(eps: SLEPc.EPS) -> int | None:
+    """How many eigenvalues of (K, M) lie below the EPS target, from the inertia of the factorized
+    K - sigma M (Sylvester's law); None if the factorization cannot tell. Collective."""
+    try:
+        negative, _, _ = eps.getST().getKSP().getPC().getFactorMatrix().getInertia()
+    except PETSc.Error:
+        return None
+    return int(negative)
 
 
 def solve_lowest(eps: SLEPc.EPS, nev: int, what: str) -> tuple[np.ndarray, list]:
     """Solve and return the nev converged eigenpairs sorted by eigenvalue. Collective."""
     eps.setDimensions(nev)
-    eps.solve()
+    try:
+        eps.solve()
+    except PETSc.Error as e:
+        raise SolverError(f"{what}: the eigensolver failed (PETSc error {e.ierr}); check that M is positive "
+                          f"definite and K symmetric positive semi-definite") from None
     counters["eigen_solves"] += 1
     nconv = eps.getConverged()
     if nconv < nev:
@@ -87,8 +112,12 @@ def normalize(x: PETSc.Vec, M: PETSc.Mat) -> None:
     so that runs on any number of ranks give the same vectors. Collective."""
     Mx = M.createVecLeft()
     M.mult(x, Mx)
-    norm = np.sqrt(x.dot(Mx))
+    mass = x.dot(Mx)
     Mx.destroy()
+    if not mass > 0:
+        raise InputError(f"the mass matrix is not positive definite (x^T M x = {mass:.3g} for an eigenvector); "
+                         f"check M")
+    norm = np.sqrt(mass)
     lo, hi = x.getOwnershipRange()
     n = x.getSize()
     ramp = 1.0 + (np.arange(lo, hi) + 0.5) / n
@@ -130,7 +159,11 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
         for v in vectors[below:]:
             v.destroy()
         values, vectors = values[:below], vectors[:below]
+    negative = eigenvalues_below_shift(eps)
     eps.destroy()
+    if negative:
+        raise InputError(f"the stiffness matrix is not positive semi-definite ({negative} eigenvalue(s) below "
+                         f"zero); check K and its boundary conditions")
 
     bv = SLEPc.BV().create(comm=ops.comm)
     bv.setSizesFromVec(vectors[0], len(vectors))
@@ -140,5 +173,9 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
         bv.insertVec(j, x)
         x.destroy()
     bv.setMatrix(ops.M, False)
+    # Rigid-body modes are zero to round-off; a clearly negative eigenvalue is an indefinite K.
+    if values[0] < -1e-8 * max(abs(values[-1]), ops.eigen_scale):
+        raise InputError(f"the stiffness matrix is not positive semi-definite (eigenvalue {values[0]:.3g}); "
+                         f"check K and its boundary conditions")
     omega = np.sqrt(np.clip(values, 0.0, None))
     return ModalBasis(omega=omega, vectors=bv)

@@ -8,7 +8,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
-from dbf_hpc.errors import InputError
+from dbf_hpc.errors import DbfError, InputError
 from dbf_hpc.matrices import load_matrix, load_operators
 from dbf_hpc.modes import reference_modes
 from dbf_hpc.structure import Beam, assemble_beam
@@ -126,3 +126,19 @@ def test_missing_or_foreign_files_are_errors(shared_tmp_path):
     with pytest.raises(InputError, match="not a PETSc binary matrix"):
         load_matrix(str(junk))
     assert_all(True)
+
+
+@pytest.mark.parametrize("which,message", [("K", "stiffness matrix is not positive semi-definite"),
+                                           ("M", "check that M is positive definite")])
+def test_indefinite_operators_are_an_error(shared_tmp_path, beam_files, which, message):
+    _, K, M, paths = beam_files
+    bad = str(shared_tmp_path / f"{which}bad.mtx")
+    if MPI.COMM_WORLD.rank == 0:
+        A = (K if which == "K" else M).tolil()
+        A[5, 5] = -abs(A[5, 5]) * 10      # one negative diagonal entry: symmetric but indefinite
+        scipy.io.mmwrite(bad, A.tocsr(), precision=17)
+    MPI.COMM_WORLD.Barrier()
+    loaded = load_operators(bad if which == "K" else paths["K.bin"], bad if which == "M" else paths["M.bin"])
+    with pytest.raises(DbfError, match=message):
+        reference_modes(loaded, count=4)
+    loaded.destroy()
