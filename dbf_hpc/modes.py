@@ -87,6 +87,10 @@ def solve_lowest(eps: SLEPc.EPS, nev: int, what: str) -> tuple[np.ndarray, list]
     try:
         eps.solve()
     except PETSc.Error as e:
+        try:  # a failed solve can leave the EPS half torn down; free it now, not at exit
+            eps.destroy()
+        except PETSc.Error:
+            pass
         raise SolverError(f"{what}: the eigensolver failed (PETSc error {e.ierr}); check that M is positive "
                           f"definite and K symmetric positive semi-definite") from None
     counters["eigen_solves"] += 1
