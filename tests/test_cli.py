@@ -271,3 +271,12 @@ def test_a_million_steps_keep_memory_flat_and_the_free_energy_bounded(tmp_path):
         energy = 0.5 * np.sum(p * p, 1) + 0.5 * np.einsum("ti,ij,tj->t", q, K, q) + potential
         assert np.all(np.isfinite(energy))
         assert energy.max() <= energy[0] * (1 + 1e-3)     # L-stable ARKIMEX: energy may only decay
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write anywhere: the permission check cannot fail")
+def test_an_output_directory_without_write_permission_is_one_line(tmp_path):
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o555)
+    out = dbf_hpc("run", PAPER, "-o", str(locked / "x.h5"))
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert out.returncode == 1 and len(lines) == 1 and "is not writable" in lines[0]

@@ -121,3 +121,13 @@ def test_a_hundred_and_twenty_constraints_on_one_beam_give_a_well_conditioned_ba
     assert np.all(np.isfinite(basis.dbf_omega)) and not basis.warnings()
     basis.destroy()
     ops.destroy()
+
+
+def test_constraints_on_adjacent_nodes_of_a_coarse_mesh_give_an_orthonormal_basis_or_a_clear_error():
+    ops = assemble_beam(Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=10))
+    rows = [ops.mesh.w_row(x) for x in ops.mesh.x[4:6]]   # nodes at 0.4 and 0.5 m, one element apart
+    basis = build_basis(ops, rows)
+    assert np.abs(basis.project(ops.M) - np.eye(basis.size)).max() < 1e-10
+    assert np.all(basis.dbf_omega > basis.omega[-1])
+    basis.destroy()
+    ops.destroy()
