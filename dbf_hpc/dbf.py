@@ -40,7 +40,7 @@ from petsc4py import PETSc
 
 from .errors import SolverError
 from .modes import solve_lowest, eigen_solver, normalize
-from .operators import Operators, direct_solver
+from .operators import Operators, direct_solver, values_at
 
 PREFIX = "dbf_"
 # A reference mode "moves at the constraint" if (g^T phi)^2 exceeds this fraction of the largest
@@ -85,9 +85,7 @@ def with_spring(K: PETSc.Mat, row: int, k: float) -> PETSc.Mat:
 
 def value_at(x: PETSc.Vec, row: int) -> float:
     """x[row] on every rank. Collective."""
-    lo, hi = x.getOwnershipRange()
-    local = x.array_r[row - lo] if lo <= row < hi else 0.0
-    return x.getComm().tompi4py().allreduce(float(local))
+    return float(values_at(x, [row])[0])
 
 
 def spring_eigenpair(ops: Operators, row: int, k: float, branch: int, tol: float = EIGEN_TOL):

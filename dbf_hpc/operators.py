@@ -82,3 +82,13 @@ def direct_solver(ksp: PETSc.KSP, factorization: str = "lu") -> PETSc.KSP:
     pc.setType(factorization)
     pc.setFactorSolverType("mumps")
     return ksp
+
+
+def values_at(vec: PETSc.Vec, rows) -> np.ndarray:
+    """vec[rows] on every rank. Collective."""
+    lo, hi = vec.getOwnershipRange()
+    rows = np.asarray(rows, dtype=np.int64)
+    out = np.zeros(rows.size)
+    mine = (rows >= lo) & (rows < hi)
+    out[mine] = vec.getArray(readonly=True)[rows[mine] - lo]
+    return vec.getComm().tompi4py().allreduce(out)

@@ -18,6 +18,7 @@ from .basis import ReducedBasis
 from .damping import Damping
 from .errors import InputError
 from .laws import ConstraintLaws
+from .operators import values_at
 
 
 @dataclass(frozen=True)
@@ -110,7 +111,7 @@ def build_reduced_model(basis: ReducedBasis, ops, laws: ConstraintLaws, damping:
     B = basis.rows(basis.constraint_rows)
     r = basis.size
     if ops.influence is not None and support.amplitude != 0.0:
-        r_c = _values_at(ops.influence, basis.constraint_rows)
+        r_c = values_at(ops.influence, basis.constraint_rows)
         base_load = _plain_dot(basis, ops.base_mass_load)
     else:
         r_c, base_load = np.zeros(basis.constraint_rows.size), np.zeros(r)
@@ -130,15 +131,6 @@ def build_reduced_model(basis: ReducedBasis, ops, laws: ConstraintLaws, damping:
         q0[initial_mode - 1] = initial_amplitude / _peak(basis, initial_mode - 1, ops)
     return ReducedModel(K=K, D=D, B=B, r_c=r_c, base_load=base_load, force_shape=force_shape,
                         support=support, force=force, laws=laws, q0=q0, p0=np.zeros(r))
-
-
-def _values_at(vec, rows) -> np.ndarray:
-    lo, hi = vec.getOwnershipRange()
-    rows = np.asarray(rows, dtype=np.int64)
-    out = np.zeros(rows.size)
-    mine = (rows >= lo) & (rows < hi)
-    out[mine] = vec.getArray(readonly=True)[rows[mine] - lo]
-    return vec.getComm().tompi4py().allreduce(out)
 
 
 def _peak(basis: ReducedBasis, column: int, ops) -> float:

@@ -24,6 +24,7 @@ from .integrate import IntegratorSettings, integrate
 from .laws import ConstraintLaws
 from .model import build_operators, constraint_rows, operators_fingerprint
 from .modes import counters
+from .operators import values_at
 from .output import OutputWriter
 from .reduced import Harmonic, RandomProcess, build_reduced_model
 from .structure import distributed_load
@@ -128,7 +129,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
             raise InputError(f"the initial state has {q_start.size} coordinates; this basis has {model.size}")
         model.q0, model.p0 = q_start, p_start
     probe_B = basis.rows(probes)
-    probe_r = _influence_at(ops, probes) if support.amplitude else np.zeros(probes.size)
+    probe_r = values_at(ops.influence, probes) if support.amplitude else np.zeros(probes.size)
     timings["reduce"] = time.perf_counter() - t
 
     # Integration on rank 0; the others wait, then learn the outcome.
@@ -344,12 +345,6 @@ def _scene_identity(scene: Scene) -> str:
     """What a checkpoint must match: every validated value of the scene."""
     content = json.dumps([scene.sections, [repr(c) for c in scene.constraints]], sort_keys=True, default=str)
     return hashlib.sha256(content.encode()).hexdigest()
-
-
-def _influence_at(ops, rows) -> np.ndarray:
-    from .reduced import _values_at
-
-    return _values_at(ops.influence, rows)
 
 
 def _snapshots(ops, basis, q, times, support, moving_end: str):
