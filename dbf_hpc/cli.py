@@ -301,6 +301,7 @@ def _stiffness(args) -> int:
     from .errors import InputError
     from .model import build_operators, constraint_rows
     from .modes import reference_modes
+    from .output import check_output_path
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.set)
@@ -308,7 +309,8 @@ def _stiffness(args) -> int:
         raise InputError(f"--constraint {args.constraint}: the scene has {len(scene.constraints)} constraint(s)")
     ks = parse_stiffnesses(args.k)
     for path in (args.output, args.plot):
-        _check_writable(path)
+        if path:
+            check_output_path(path)
     ops = build_operators(scene, PETSc.COMM_WORLD)
     row = int(constraint_rows(scene, ops)[args.constraint - 1])
     basis = scene["basis"]
@@ -339,19 +341,6 @@ def _stiffness(args) -> int:
     modes.destroy()
     ops.destroy()
     return 0
-
-
-def _check_writable(path) -> None:
-    """An output path must be in an existing, writable directory (checked before any work)."""
-    from .errors import InputError
-
-    if not path:
-        return
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise InputError(f"output {path!r}: directory {folder!r} does not exist")
-    if not os.access(folder, os.W_OK):
-        raise InputError(f"output {path!r}: directory {folder!r} is not writable")
 
 
 def _write_atomically(path: str, write) -> None:

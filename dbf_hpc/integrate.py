@@ -124,6 +124,7 @@ class Sampler:
         self.progress = progress
         self.failure = None
         self.start = self.last_report = time.perf_counter()
+        self.first_step = self.first_time = None
         self.work = None
 
     def monitor(self, ts, step, t, y):
@@ -157,11 +158,13 @@ class Sampler:
                 ts.setMaxTime(t)
         self.skip_step = False
         now = time.perf_counter()
-        if self.progress and now - self.last_report > 5.0 and t > 0:
+        if self.first_step is None:  # a resumed run starts at its checkpoint, not at 0
+            self.first_step, self.first_time = step, t
+        if self.progress and now - self.last_report > 5.0 and t > self.first_time:
             self.last_report = now
             t_end = self.times[-1]
-            rate = step / (now - self.start)
-            eta = (now - self.start) * (t_end - t) / t
+            rate = (step - self.first_step) / (now - self.start)
+            eta = (now - self.start) * (t_end - t) / (t - self.first_time)
             print(f"  t = {t:.4g} s of {t_end:g} s ({100 * t / t_end:.0f} %), {rate:.0f} steps/s, "
                   f"ETA {eta:.0f} s", flush=True)
 

@@ -14,8 +14,20 @@ import h5py
 import numpy as np
 
 from . import __version__
+from .errors import InputError
 
 BLOCK = 1024  # samples buffered between writes
+
+
+def check_output_path(path: str) -> str:
+    """An output path must lie in an existing, writable directory: checked before any work, so bad
+    input never leaves a file behind."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(f"output {path!r}: directory {folder!r} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise InputError(f"output {path!r}: directory {folder!r} is not writable")
+    return path
 
 
 class OutputWriter:

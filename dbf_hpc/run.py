@@ -25,7 +25,7 @@ from .laws import ConstraintLaws
 from .model import build_operators, constraint_rows, operators_fingerprint
 from .modes import counters
 from .operators import values_at
-from .output import OutputWriter
+from .output import OutputWriter, check_output_path
 from .reduced import Harmonic, RandomProcess, build_reduced_model
 from .structure import distributed_load
 from .scene import Scene
@@ -59,13 +59,7 @@ def output_path(scene: Scene, override: str | None) -> str:
     path = override or scene["output"]["file"]
     if not path:
         raise InputError("no output file: give [output] file in the scene or -o OUT.h5")
-    path = path if override else scene.resolve(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise InputError(f"output {path!r}: directory {folder!r} does not exist")
-    if not os.access(folder, os.W_OK):
-        raise InputError(f"output {path!r}: directory {folder!r} is not writable")
-    return path
+    return check_output_path(path if override else scene.resolve(path))
 
 
 def _wait_for_rank0(world) -> None:
@@ -243,12 +237,15 @@ class Recorder:
         if self.start is None:
             self.writer = OutputWriter(path, n, probe_B.shape[0], model.size)
 
+    def _track_peak(self, force) -> None:
+        larger = np.abs(force) > np.abs(self.peak)
+        self.peak[larger] = force[larger]
+
     def record(self, t, q, p):
         m = self.model
         z, v = m.constraint_state(t, q, p)
         force = self.laws.force(z, v)
-        larger = np.abs(force) > np.abs(self.peak)
-        self.peak[larger] = force[larger]
+        self._track_peak(force)
         if self.writer.count + len(self.writer.buffer["time"]) in self.snap_index:
             self.snap_q[self.writer.count + len(self.writer.buffer["time"])] = q
         self.writer.append(**{"time": t, "constraints/displacement": z, "constraints/velocity": v,
@@ -262,8 +259,7 @@ class Recorder:
         z, v = self.model.constraint_state(t, q, p)
         force = self.laws.force(z, v)
         self.impacts.add(t, z, v, force)
-        larger = np.abs(force) > np.abs(self.peak)
-        self.peak[larger] = force[larger]
+        self._track_peak(force)
         if self.interrupted or t >= self.next_checkpoint:
             self.checkpoint(ts, t, q, p)
             self.next_checkpoint = t + self.checkpoint_dt

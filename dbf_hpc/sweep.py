@@ -40,7 +40,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from .cache import obtain_basis
+from .cache import basis_key, obtain_basis
 from .errors import DbfError, InputError
 from .model import build_operators, constraint_rows, operators_fingerprint
 from .scene import load_scene, parse_override
@@ -146,7 +146,7 @@ def _prepare_bases(sweep: dict, cache_dir: str, pending: list) -> None:
         ops = build_operators(scene, PETSc.COMM_WORLD)
         rows = constraint_rows(scene, ops)
         fingerprint = operators_fingerprint(scene, ops)
-        key = json.dumps([fingerprint, rows.tolist(), scene.basis_settings().key()], sort_keys=True, default=str)
+        key = basis_key(fingerprint, rows, scene.basis_settings())
         if key not in done:
             basis = obtain_basis(ops, rows, scene.basis_settings(), fingerprint, cache_dir,
                                  [c.label for c in scene.constraints])
