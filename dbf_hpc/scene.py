@@ -12,8 +12,10 @@ Sections and keys (the contract; unknown sections or keys are errors naming them
                   integer: the same seed gives the same history), components (cosines), over
                   span = [x0, x1] (default the whole beam), fully correlated along the span
     [[constraint]] x (beam) or dof (matrices), law, and the law's parameters (see laws.py)
-    [basis]       modes (a count) or max_frequency_hz; dbf_stiffness = "auto" | a number (N/m);
-                  dbf_derivative = "analytic" | "central"; groups (0: automatic);
+    [basis]       modes (a count) or max_frequency_hz; enrichment = "dbf" (the method, default) |
+                  "static" (static attachment modes K^-1 g_j instead of DBFs) | "none" (modes
+                  only), the last two as comparators; dbf_stiffness = "auto" | a number (N/m);
+                  dbf_derivative = "analytic" | "central" (both for "dbf" only); groups (0: automatic);
                   cache = a directory for cached bases (default ~/.cache/dbf_hpc) or "off"
     [damping]     zeta (one ratio or a list), or rayleigh_alpha, rayleigh_beta
     [integrator]  t_end, dt, scheme, adaptive, rtol, atol, contact = "implicit" | "explicit"
@@ -54,6 +56,7 @@ SCHEMA = {
     "basis": {
         "modes": (int, None), "max_frequency_hz": (NUMBER, None), "dbf_stiffness": ((str, *NUMBER), "auto"),
         "dbf_derivative": (str, "analytic"), "groups": (int, 0), "cache": (str, "~/.cache/dbf_hpc"),
+        "enrichment": (str, "dbf"),
     },
     "damping": {"zeta": ((*NUMBER, list), 0.0), "rayleigh_alpha": (NUMBER, 0.0), "rayleigh_beta": (NUMBER, 0.0)},
     "integrator": {
@@ -116,7 +119,7 @@ class Scene:
         b = self["basis"]
         return BasisSettings(modes=b["modes"], max_frequency_hz=b["max_frequency_hz"],
                              dbf_stiffness=b["dbf_stiffness"], dbf_derivative=b["dbf_derivative"],
-                             groups=b["groups"])
+                             groups=b["groups"], enrichment=b["enrichment"])
 
     def cache_dir(self):
         """The basis cache directory, or None when the scene turns caching off."""
@@ -296,6 +299,11 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
         raise InputError(f"{where}: dbf_derivative must be \"analytic\" or \"central\", got {b['dbf_derivative']!r}")
     if b["groups"] < 0:
         raise InputError(f"{where}: groups must be 0 (automatic) or a positive count, got {b['groups']}")
+    from .basis import ENRICHMENTS  # imported here, as in Scene.basis_settings
+
+    if b["enrichment"] not in ENRICHMENTS:
+        accepted = ", ".join(f'"{e}"' for e in ENRICHMENTS)
+        raise InputError(f"{where}: enrichment must be one of {accepted}, got {b['enrichment']!r}")
 
     i, where = sections["integrator"], f"{path}: [integrator]"
     i["scheme"] = str(i["scheme"]).lower()  # --set integrator.scheme=3 arrives as an integer

@@ -42,6 +42,7 @@ def test_overrides_change_values_with_toml_types():
 def test_defaults_fill_every_section():
     s = scene()
     assert s["basis"]["modes"] == 6 and s["excitation"]["kind"] == "none" and s.constraints == ()
+    assert s["basis"]["enrichment"] == "dbf" and s.basis_settings().enrichment == "dbf"
     assert s.damping().kind == "none"
 
 
@@ -55,6 +56,7 @@ def test_defaults_fill_every_section():
     ({"integrator": {"contact": "sometimes"}}, "contact must be"),
     ({"basis": {"modes": 4, "max_frequency_hz": 10.0}}, "not both"),
     ({"basis": {"dbf_stiffness": "soft"}}, "dbf_stiffness must be"),
+    ({"basis": {"enrichment": "modal"}}, r'\[basis\]: enrichment must be one of "dbf", "static", "none", got \'modal\''),
     ({"constraint": [{"x": 1.5, "law": "deadband", "k": 1e6}]}, "not on the beam"),
     ({"constraint": [{"law": "deadband", "k": 1e6}]}, "x is required"),
     ({"constraint": [{"x": 0.25, "law": "deadband", "k": 1e6}, {"x": 0.25, "law": "linear", "k": 1.0}]},
