@@ -3,10 +3,13 @@ by every run that changes only the law, the excitation, damping or the integrato
 conclusion 2).
 
 A cache file `basis-<key>.h5` holds V (n x r), the frequencies, k_j, the constraint rows, the
-settings and the full key. It is written under a temporary name and renamed when complete, so a
-crash never leaves a file that looks usable. On load, the key must match and the basis must still be
-what it claims: V^T M V = I and diag(V^T K V) = omega^2 on the operators at hand. Anything else
-(stale, corrupt, unreadable) is reported and rebuilt, never used.
+settings and the full key; r is the number of columns actually present (the modes and one column
+per constraint, or the modes alone for enrichment = "none"). It is written under a temporary name
+and renamed when complete, so a crash never leaves a file that looks usable. On load, the key must
+match and the basis must still be what it claims: V^T M V = I, and diag(V^T K V) = omega^2 for the
+modes and hat-omega^2 for the other columns, on the operators at hand. Anything else (stale,
+corrupt, unreadable) is reported and rebuilt, never used. The key holds the kind of enrichment and
+only the settings and solver options that kind uses.
 
 All functions are collective on ops.comm.
 """
@@ -23,28 +26,34 @@ from petsc4py import PETSc
 from slepc4py import SLEPc
 
 from . import __version__
-from .basis import BasisSettings, ReducedBasis, build_basis
+from .basis import STATIC_PREFIX, BasisSettings, ReducedBasis, build_basis
 from .modes import FACTOR_DEFAULTS
 from .operators import Operators
 
 # Bump when the construction changes what a basis is.
-ALGORITHM = "dbf-basis-2"
+ALGORITHM = "dbf-basis-3"  # 3: enrichment kinds ("dbf", "static", "none"), column count not modes + constraints
 VERIFY_TOL = 1e-8
 
 
-def solver_options() -> dict:
-    """The PETSc options that can change a basis (the modes_ and dbf_ solvers), less the defaults
-    the eigensolvers set themselves."""
+# The options prefixes of the solvers each kind of basis uses.
+SOLVER_PREFIXES = {"dbf": ("modes_", "dbf_"), "static": ("modes_", STATIC_PREFIX), "none": ("modes_",)}
+
+
+def solver_options(prefixes=("modes_", "dbf_")) -> dict:
+    """The PETSc options under `prefixes` that can change a basis (those of the solvers it uses),
+    less the defaults the eigensolvers set themselves."""
+    prefixes = tuple(prefixes)
     options = PETSc.Options().getAll()
     ours = {f"{prefix}{name}": value for prefix in ("modes_", "dbf_") for name, value in FACTOR_DEFAULTS.items()}
     return {k: v for k, v in sorted(options.items())
-            if k.startswith(("modes_", "dbf_")) and ours.get(k) != str(v)}
+            if k.startswith(prefixes) and ours.get(k) != str(v)}
 
 
 def basis_key(fingerprint: dict, rows, settings: BasisSettings) -> str:
-    """sha256 of everything that determines the basis."""
+    """sha256 of everything that determines the basis (the options only of the solvers its kind uses)."""
     content = {"algorithm": ALGORITHM, "operators": fingerprint, "rows": [int(r) for r in rows],
-               "settings": settings.key(), "options": solver_options()}
+               "settings": settings.key(),
+               "options": solver_options(SOLVER_PREFIXES.get(settings.enrichment, ("modes_", "dbf_")))}
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -112,7 +121,9 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings) -> Reduce
             else:
                 arrays = {name: f[name][...] for name in
                           ("omega", "dbf_omega", "dbf_k", "dbf_k_auto", "dbf_branch", "constraint_rows")}
-                if f["V"].shape != (ops.size, arrays["omega"].size + arrays["constraint_rows"].size):
+                enriched = 0 if settings.enrichment == "none" else arrays["constraint_rows"].size
+                if (arrays["dbf_omega"].size != enriched
+                        or f["V"].shape != (ops.size, arrays["omega"].size + enriched)):
                     problem = "has the wrong shape"
                 else:
                     block = f["V"][lo:hi, :]
@@ -141,7 +152,8 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings) -> Reduce
     G, Kr = basis.project(ops.M), basis.project(ops.K)
     N = basis.mode_count
     ok = (np.all(np.isfinite(G)) and np.abs(G - np.eye(r)).max() < VERIFY_TOL
-          and np.allclose(np.diag(Kr)[:N], basis.omega**2, rtol=VERIFY_TOL * 100))
+          and np.allclose(np.diag(Kr)[:N], basis.omega**2, rtol=VERIFY_TOL * 100)
+          and np.allclose(np.diag(Kr)[N:], basis.dbf_omega**2, rtol=VERIFY_TOL * 100))
     if not ok:
         _say(ops.comm, f"basis cache {path} does not match the operators (corrupt or stale); rebuilding it")
         basis.destroy()

@@ -1,5 +1,6 @@
 """Basis cache: a hit performs no eigen-solve, whatever determines the basis rebuilds it, and a stale
-or corrupt file is detected and never used (paper, conclusion 2)."""
+or corrupt file is detected and never used (paper, conclusion 2). Each kind of enrichment (DBFs,
+static modes, modes alone) is cached apart and round-trips with its own column count."""
 import glob
 
 import h5py
@@ -17,10 +18,11 @@ STRUCTURE = {"kind": "beam", "length": 1.0, "E": 117e9, "I": 8.78e-16, "A": 2.9e
              "elements": 40}
 
 
-def scene(law="deadband", x=(0.25,), modes=6, **excitation):
+def scene(law="deadband", x=(0.25,), modes=6, basis=None, **excitation):
     constraints = [{"x": v, "law": law, "k": 1e6, **({"clearance": 2.5e-3} if law == "deadband" else {})}
                    for v in x]
-    return validate({"structure": dict(STRUCTURE), "constraint": constraints, "basis": {"modes": modes},
+    return validate({"structure": dict(STRUCTURE), "constraint": constraints,
+                     "basis": {"modes": modes, **(basis or {})},
                      "excitation": excitation or {"kind": "none"}}, "cache-test.toml")
 
 
@@ -88,3 +90,54 @@ def test_an_unreadable_cache_file_is_rebuilt(shared_tmp_path):
     _, solves, state = obtain(scene(), shared_tmp_path)
     assert solves > 0 and state == "stored"
     assert_all(True)
+
+
+def summary(s, cache_dir):
+    """What a basis from the cache holds: (size, K_r, B, dbf_omega, dbf_k, eigen-solves, cache state)."""
+    ops = build_operators(s)
+    before = counters["eigen_solves"]
+    basis = obtain_basis(ops, constraint_rows(s, ops), s.basis_settings(), operators_fingerprint(s, ops),
+                         str(cache_dir))
+    solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
+    out = (basis.size, basis.project(ops.K), basis.rows(basis.constraint_rows), basis.dbf_omega.copy(),
+           basis.dbf_k.copy(), solves, basis.stats.get("cache"))
+    basis.destroy()
+    ops.destroy()
+    return out
+
+
+@pytest.mark.parametrize("enrichment,columns", [("dbf", 8), ("static", 8), ("none", 6)])
+def test_every_enrichment_round_trips_through_the_cache_with_its_column_count(shared_tmp_path, enrichment,
+                                                                              columns):
+    # Two constraints: 6 modes + 2 columns, or the 6 modes alone; the loaded basis passes the checks
+    # of cache.load (V^T M V = I, the modes' and the enrichment columns' frequencies) and is the one stored.
+    s = scene(x=(0.25, 0.6), basis={"enrichment": enrichment})
+    size, Kr, B, dbf_omega, dbf_k, solves, state = summary(s, shared_tmp_path)
+    assert size == columns and state == "stored" and solves > 0
+    assert B.shape == (2, columns) and dbf_omega.size == columns - 6 and dbf_k.size == columns - 6
+    size2, Kr2, B2, dbf_omega2, dbf_k2, solves, state = summary(s, shared_tmp_path)
+    assert size2 == columns and state == "hit" and solves == 0
+    assert np.array_equal(Kr, Kr2) and np.array_equal(B, B2)
+    assert np.array_equal(dbf_omega, dbf_omega2) and np.array_equal(dbf_k, dbf_k2)
+
+
+def test_the_kinds_of_enrichment_are_cached_apart(shared_tmp_path):
+    sizes = {}
+    for enrichment in ("dbf", "static", "none"):
+        size, _, _, _, _, solves, state = summary(scene(basis={"enrichment": enrichment}), shared_tmp_path)
+        assert state == "stored" and solves > 0, f"{enrichment} must not reuse another kind's basis"
+        sizes[enrichment] = size
+    assert sizes == {"dbf": 7, "static": 7, "none": 6}
+    files = MPI.COMM_WORLD.bcast(sorted(glob.glob(str(shared_tmp_path / "basis-*.h5"))), root=0)
+    assert len(files) == 3
+
+
+@pytest.mark.parametrize("enrichment", ["static", "none"])
+def test_dbf_settings_do_not_split_the_cache_of_the_other_kinds(shared_tmp_path, enrichment):
+    # The DBF stiffness and derivative do not enter a static or modal basis: equal bases, one entry.
+    summary(scene(basis={"enrichment": enrichment}), shared_tmp_path)
+    *_, solves, state = summary(scene(basis={"enrichment": enrichment, "dbf_stiffness": 0.1,
+                                             "dbf_derivative": "central"}), shared_tmp_path)
+    assert solves == 0 and state == "hit"
+    *_, solves, state = summary(scene(basis={"dbf_stiffness": 0.1}), shared_tmp_path)
+    assert solves > 0 and state == "stored", "for DBFs the stiffness does matter"
