@@ -253,22 +253,30 @@ def _basis(args) -> int:
     elapsed = time.perf_counter() - start
     say = PETSc.Sys.Print
     say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s), {ops.size} DOFs")
-    say(f"basis: {basis.mode_count} reference modes + {rows.size} DBFs, M-orthonormal "
+    columns = {"dbf": "DBFs", "static": "static modes"}.get(basis.enrichment)
+    enriched = f" + {basis.enrichment_count} {columns}" if columns else " (no enrichment)"
+    say(f"basis: {basis.mode_count} reference modes{enriched}, M-orthonormal "
         f"({elapsed:.3f} s, {comm.tompi4py().allreduce(counters['eigen_solves'] - solves, op=MPI.MAX)} eigen-solves "
         f"on the busiest rank, cache {basis.stats.get('cache')})")
     say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
     for i, w in enumerate(basis.omega):
         say(f"{i + 1:>6} {w / (2 * 3.141592653589793):>14.8g} {w:>16.8g}")
-    if rows.size:
+    if basis.enrichment == "static" and rows.size:
+        say(f"{'static':>6} {'constraint':>14} {'hat-omega [rad/s]':>18}")
+        for j in range(rows.size):
+            say(f"{j + 1:>6} {labels[j]:>14} {basis.dbf_omega[j]:>18.8g}")
+    elif basis.enrichment == "dbf" and rows.size:
         say(f"{'DBF':>6} {'constraint':>14} {'k_j [N/m]':>12} {'branch':>7} {'hat-omega [rad/s]':>18}")
         for j in range(rows.size):
             say(f"{j + 1:>6} {labels[j]:>14} {basis.dbf_k[j]:>12.5g} {basis.dbf_branch[j]:>7d} "
                 f"{basis.dbf_omega[j]:>18.8g}")
     for warning in basis.warnings(labels):
         say(f"dbf-hpc: warning: {warning}")
-    for key in ("time_modes", "time_dbf", "time_orthogonalization"):
-        if key in basis.stats:
-            say(f"time {key[5:]}: {basis.stats[key]:.3f} s")
+    timed = {"time_modes": "modes", "time_dbf": {"dbf": "dbf", "static": "static modes"}.get(basis.enrichment),
+             "time_orthogonalization": "orthogonalization"}
+    for key, name in timed.items():
+        if key in basis.stats and name:
+            say(f"time {name}: {basis.stats[key]:.3f} s")
     basis.destroy()
     ops.destroy()
     return 0
