@@ -1,6 +1,6 @@
 """The `dbf-hpc` command.
 
-    dbf-hpc run SCENE.toml [-o OUT.h5] [-q] [--resume] [--set section.key=value ...] [PETSc options]
+    dbf-hpc run SCENE.toml [-o OUT.h5] [-q] [--resume] [--method rom|full] [--set section.key=value ...] [PETSc options]
     dbf-hpc sweep SWEEP.toml [-q]
     dbf-hpc info OUT.h5 | dbf-hpc plot OUT.h5 [-d DIR]
     dbf-hpc modes SCENE.toml [--set section.key=value ...] [PETSc options]
@@ -69,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     run.add_argument("--resume", action="store_true",
                      help="continue a killed run from its last checkpoint (OUT.h5.checkpoint)")
+    run.add_argument("--method", choices=("rom", "full"), default="rom",
+                     help="rom: the reduced model (default); full: the full-order reference, the whole "
+                          "finite-element model with PETSc TS generalized-alpha (options prefix full_)")
     sweep = sub.add_parser("sweep", help="a parameter study: many cases of one scene over the ranks",
                            description="Expand a sweep file (a base scene and axes or listed cases), build "
                                        "each distinct basis once, run the cases spread over the MPI ranks "
@@ -112,7 +115,7 @@ def _run(args) -> int:
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.set)
-    run(scene, args.output, progress=not args.quiet, resume=args.resume)
+    run(scene, args.output, progress=not args.quiet, resume=args.resume, method=args.method)
     return 0
 
 
@@ -149,11 +152,17 @@ def _info(args) -> int:
         print(f"{args.output}: method {f.attrs['method']}, scene {f.attrs.get('scene_path', '?')}")
         print(f"  dbf-hpc {f.attrs['dbf_hpc_version']}, PETSc {f.attrs['petsc_version']}, "
               f"SLEPc {f.attrs['slepc_version']}, {f.attrs['mpi_ranks']} rank(s)")
-        print(f"  basis: {f['basis/omega'].size} reference modes "
-              f"({f['basis/omega'][0] / (2 * np.pi):.4g} ... {f['basis/omega'][-1] / (2 * np.pi):.4g} Hz), "
-              f"{f['basis/dbf_omega'].size} DBFs")
+        if "basis" in f:
+            kind = f.attrs.get("basis_enrichment", "dbf")
+            extra = {"dbf": "DBFs", "static": "static modes", "none": "enrichment columns"}[kind]
+            print(f"  basis: {f['basis/omega'].size} reference modes "
+                  f"({f['basis/omega'][0] / (2 * np.pi):.4g} ... {f['basis/omega'][-1] / (2 * np.pi):.4g} Hz), "
+                  f"{f['basis/dbf_omega'].size} {extra}")
+        else:
+            print(f"  full-order model: {stats.get('dofs', '?')} DOFs")
         print(f"  samples: {t.size} from {t[0]:g} to {t[-1]:g} s; snapshots: {f['snapshots/time'].size}")
-        print(f"  integrator: ARKIMEX {stats['scheme']}, contact {stats['contact']}, {stats['steps']} steps, "
+        scheme = "generalized-alpha" if stats["scheme"] == "alpha2" else f"ARKIMEX {stats['scheme']}"
+        print(f"  integrator: {scheme}, contact {stats['contact']}, {stats['steps']} steps, "
               f"{stats['rejected_steps']} rejected, {stats['snes_failures']} Newton failures")
         print("  wall time: " + ", ".join(f"{k} {v:.3g} s" for k, v in walls.items()))
         z, force = f["constraints/displacement"][:], f["constraints/force_peak"][:]
