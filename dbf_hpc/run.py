@@ -289,11 +289,15 @@ def _run_full(scene: Scene, path: str, ops, rows, probes, laws: ConstraintLaws, 
         stats = integrate_full(problem, full_settings, u0, observer)
         timings["integration"] = time.perf_counter() - t
     except (DbfError, OSError) as exc:
-        message = str(exc) if isinstance(exc, DbfError) else f"cannot write {path}.partial: {exc.strerror or exc}"
+        left = ""
         if world.rank == 0 and "recorder" in locals() and recorder is not None:
             recorder.writer.abort()
-            message += f" (the samples up to the failure are in {recorder.writer.partial})"
-        raise SolverError(message) from None
+            left = f" (the samples up to the failure are in {recorder.writer.partial})"
+        if isinstance(exc, OSError):
+            raise SolverError(f"cannot write {path}.partial: {exc.strerror or exc}{left}") from None
+        if left:
+            raise type(exc)(f"{exc}{left}") from None
+        raise
     finally:
         for obj in (problem, observer, u0, force_load):
             if obj is not None:
