@@ -273,10 +273,16 @@ class Observer:
                 if field is not u:
                     field.destroy()
             if self.world.rank == 0:
-                self.record(ts_, x, xd)
+                self._on_rank0(self.record, ts_, x, xd)
             self.next += 1
         if self.world.rank == 0 and self.on_step is not None:
-            self.on_step(t, values, rates)
+            self._on_rank0(self.on_step, t, values, rates)
+        # Rank 0 writes the output: a failure there (a full disk) must stop every rank at this step.
+        failure = self.world.bcast(self.failure, root=0)
+        if failure:
+            self.failure = failure
+            ts.setMaxTime(t)
+            return
         self.prev = (t, values, rates)
         if self.snapshot_samples:
             if self.prev_u is None:
@@ -290,6 +296,14 @@ class Observer:
             PETSc.Sys.Print(f"  t = {t:.4g} s of {t_end:g} s ({100 * t / t_end:.0f} %), "
                             f"{step / (now - self.start):.0f} steps/s, "
                             f"ETA {(now - self.start) * (t_end - t) / t:.0f} s", comm=self.problem.ops.comm)
+
+    def _on_rank0(self, callback, *args) -> None:
+        if self.failure:
+            return
+        try:
+            callback(*args)
+        except OSError as exc:
+            self.failure = f"cannot write the output: {exc.strerror or exc}"
 
     def destroy(self) -> None:
         for obj in (self.prev_u, self.prev_v, self.scatter, self.full):

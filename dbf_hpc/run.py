@@ -252,7 +252,7 @@ def _run_full(scene: Scene, path: str, ops, rows, probes, laws: ConstraintLaws, 
     support, force, force_row, force_load = excitation_
     world = ops.comm.tompi4py()
     n_dofs = ops.size
-    problem = observer = u0 = None
+    problem = observer = u0 = recorder = None
     try:
         problem = FullProblem(ops, rows, laws, scene.damping(), support, force, force_row, force_load)
         init = scene["initial"]
@@ -266,7 +266,15 @@ def _run_full(scene: Scene, path: str, ops, rows, probes, laws: ConstraintLaws, 
         r_observed = values_at(ops.influence, observed) if moving else np.zeros(observed.size)
         r_field = _on_rank0(ops.influence) if moving and snapshot_times.size else None
         nc = rows.size
-        recorder = SampleRecorder(path, laws, probes.size) if world.rank == 0 else None
+        opened = None
+        if world.rank == 0:
+            try:
+                recorder = SampleRecorder(path, laws, probes.size)
+            except OSError as exc:
+                opened = f"cannot write {path}.partial: {exc.strerror or exc}"
+        opened = world.bcast(opened, root=0)  # every rank stops if rank 0 cannot write
+        if opened:
+            raise SolverError(opened)
         snaps = {}
 
         def record(t, x, xd):
@@ -290,7 +298,7 @@ def _run_full(scene: Scene, path: str, ops, rows, probes, laws: ConstraintLaws, 
         timings["integration"] = time.perf_counter() - t
     except (DbfError, OSError) as exc:
         left = ""
-        if world.rank == 0 and "recorder" in locals() and recorder is not None:
+        if recorder is not None:
             recorder.writer.abort()
             left = f" (the samples up to the failure are in {recorder.writer.partial})"
         if isinstance(exc, OSError):

@@ -127,11 +127,23 @@ def test_same_results_on_one_and_two_ranks(tmp_path):
     (("run", PAPER, "-o", "/nonexistent/dir/out.h5"), "does not exist"),
     (("run", PAPER, "--set", "integrator.scheme=rk4"), "not an ARKIMEX type"),
     (("info", "/nonexistent.h5"), "does not exist"),
+    (("run", PAPER, "--method", "full", "--set", "damping.zeta=0.02"), "modal damping"),
+    (("run", PAPER, "--method", "full", "--resume"), "no checkpoints"),
 ])
 def test_bad_run_input_is_one_line(args, message):
     out = dbf_hpc(*args)
     lines = [line for line in out.stderr.splitlines() if line.strip()]
     assert out.returncode != 0 and len(lines) == 1 and message in lines[0], out.stderr
+
+
+def test_full_order_run_on_two_ranks_writes_the_common_layout(tmp_path):
+    out = tmp_path / "full.h5"
+    run = dbf_hpc("run", PAPER, "--method", "full", "-o", str(out), "--set", "integrator.t_end=0.01",
+                  "--set", "integrator.dt=1e-4", "-full_ts_alpha_radius", "1")
+    assert run.returncode == 0, run.stderr
+    assert "generalized-alpha" in run.stdout and "100 steps" in run.stdout
+    info = dbf_hpc("info", str(out))
+    assert info.returncode == 0 and "method full" in info.stdout and "full-order model: 200 DOFs" in info.stdout
 
 
 def test_a_failed_integration_on_rank_0_ends_the_job_with_advice_and_no_output(tmp_path):
