@@ -347,7 +347,8 @@ def integrate_full(problem: FullProblem, settings: FullSettings, u0: PETSc.Vec, 
     adaptive = options.getString("ts_adapt_type") != "none"
     # Adaptive: a failed Newton solve shrinks the step. Fixed: the first failure ends the run.
     ts.setMaxSNESFailures(-1 if adaptive else 1)
-    ts.setStepLimits(settings.dt * 1e-8 if adaptive else settings.dt, max(settings.dt, settings.sample_dt * 10))
+    if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples)
+        ts.setStepLimits(settings.dt * 1e-8, max(settings.dt, settings.sample_dt * 10))
     snes = ts.getSNES()
     snes.setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
     direct_solver(snes.getKSP(), "lu")

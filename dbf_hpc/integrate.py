@@ -220,7 +220,8 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
     defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic"}
     for name in ours:
         options.setValue(name, defaults[name])
-    ts.setStepLimits(settings.dt * 1e-8 if settings.adaptive else settings.dt, settings.sample_dt * 10)
+    if settings.adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples)
+        ts.setStepLimits(settings.dt * 1e-8, max(settings.dt, settings.sample_dt * 10))
     snes = ts.getSNES()
     snes.setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
     ksp = snes.getKSP()

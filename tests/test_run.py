@@ -129,3 +129,12 @@ def test_failed_run_leaves_no_output_and_never_clobbers(shared_tmp_path):
         paper_run(shared_tmp_path, "integrator.scheme=ars443", name="keep.h5")
     assert_all(target.read_bytes() == b"previous results")
     assert_all(not os.path.exists(str(target) + ".partial"))
+
+
+def test_a_fixed_step_longer_than_the_sample_interval_runs(shared_tmp_path):
+    # 0.01 s sampled every 1 us with a fixed 0.1 ms step: 100 steps, samples from the dense output.
+    _, f, summary = paper_run(shared_tmp_path, "integrator.adaptive=false", "integrator.t_end=0.01",
+                              "integrator.dt=1e-4", name="long_step.h5")
+    assert summary["stats"]["steps"] == 100
+    if f is not None:
+        assert f["time"].size == 10001
