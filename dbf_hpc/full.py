@@ -39,7 +39,7 @@ from .damping import Damping
 from .errors import InputError, SolverError
 from .laws import ConstraintLaws
 from .modes import reference_modes
-from .operators import Operators, direct_solver, values_at
+from .operators import Operators, direct_solver, options_defaults, values_at
 from .reduced import Harmonic
 
 PREFIX = "full_"
@@ -337,14 +337,9 @@ def integrate_full(problem: FullProblem, settings: FullSettings, u0: PETSc.Vec, 
     # Fixed steps by default: the generalized-alpha error estimate counts the velocities of the
     # mesh modes that every impact sets ringing, and its adaptive steps collapse to ~1e-8 s after
     # the first impact (measured on the paper's beam). -full_ts_adapt_type basic turns it on.
-    # As in integrate.py, defaults go through the options database only where the user set nothing.
-    options = PETSc.Options(PREFIX)
     defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic",
                 "ts_alpha_radius": "0.9"}
-    ours = [name for name in defaults if not options.hasName(name)]
-    for name in ours:
-        options.setValue(name, defaults[name])
-    adaptive = options.getString("ts_adapt_type") != "none"
+    adaptive = PETSc.Options(PREFIX).getString("ts_adapt_type", defaults["ts_adapt_type"]) != "none"
     # Adaptive: a failed Newton solve shrinks the step. Fixed: the first failure ends the run.
     ts.setMaxSNESFailures(-1 if adaptive else 1)
     if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples)
@@ -353,10 +348,9 @@ def integrate_full(problem: FullProblem, settings: FullSettings, u0: PETSc.Vec, 
     snes.setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
     direct_solver(snes.getKSP(), "lu")
     ts.setMonitor(observer.monitor)
-    ts.setOptionsPrefix(PREFIX)
-    ts.setFromOptions()
-    for name in ours:
-        options.delValue(name)
+    with options_defaults(PREFIX, defaults):
+        ts.setOptionsPrefix(PREFIX)
+        ts.setFromOptions()
     ts.setSolution2(u, v)
 
     start = time.perf_counter()

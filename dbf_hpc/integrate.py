@@ -24,6 +24,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .errors import InputError, SolverError
+from .operators import options_defaults
 from .reduced import ReducedModel
 
 ARKIMEX_TYPES = ("1bee", "a2", "l2", "ars122", "2c", "2d", "2e", "prssp2", "3", "bpr3", "ars443", "4", "5")
@@ -212,14 +213,10 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
     ts.setMaxSNESFailures(-1 if settings.adaptive else 1)
     ts.setMaxStepRejections(50)  # consecutive, within one step: bounds the retries of a hopeless step
     # petsc4py 3.18 exposes neither TSAdapt nor SNESLineSearch: those defaults go through the
-    # options database, only where the user has not set them, and are removed after use.
+    # options database (operators.options_defaults: only where the user has not set them).
     # Full Newton steps: a backtracking line search stalls on the kinks of piecewise laws
     # (measured on the paper's beam: 90 Newton failures in 3 s with bt, 16 with basic).
-    options = PETSc.Options(PREFIX)
-    ours = [name for name in ("ts_adapt_type", "snes_linesearch_type") if not options.hasName(name)]
     defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic"}
-    for name in ours:
-        options.setValue(name, defaults[name])
     if settings.adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples)
         ts.setStepLimits(settings.dt * 1e-8, max(settings.dt, settings.sample_dt * 10))
     snes = ts.getSNES()
@@ -234,10 +231,9 @@ def integrate(model: ReducedModel, settings: IntegratorSettings, record, progres
         ts.setTimeSpan(np.concatenate([[resume["t"]], times[first:]]) if resume else times)
     sampler = Sampler(problem, times, record, dense, progress, on_step, first, resumed=bool(resume))
     ts.setMonitor(sampler.monitor)
-    ts.setOptionsPrefix(PREFIX)
-    ts.setFromOptions()
-    for name in ours:
-        options.delValue(name)
+    with options_defaults(PREFIX, defaults):
+        ts.setOptionsPrefix(PREFIX)
+        ts.setFromOptions()
 
     start = time.perf_counter()
     try:

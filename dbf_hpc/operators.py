@@ -6,6 +6,7 @@ constraints act on, and, for base excitation, the support-motion influence vecto
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from typing import Optional
 
@@ -82,6 +83,23 @@ def direct_solver(ksp: PETSc.KSP, factorization: str = "lu") -> PETSc.KSP:
     pc.setType(factorization)
     pc.setFactorSolverType("mumps")
     return ksp
+
+
+@contextlib.contextmanager
+def options_defaults(prefix: str, defaults: dict):
+    """Put the code's `defaults` (option name -> value) under `prefix` into the options database
+    where the user has not set them, for the setFromOptions calls inside the block, and take them
+    out after: the user's options always win, and ours never leak into another solver. Yields the
+    prefixed options, to read the effective values."""
+    options = PETSc.Options(prefix)
+    ours = [name for name in defaults if not options.hasName(name)]
+    for name in ours:
+        options.setValue(name, defaults[name])
+    try:
+        yield options
+    finally:
+        for name in ours:
+            options.delValue(name)
 
 
 def values_at(vec: PETSc.Vec, rows) -> np.ndarray:

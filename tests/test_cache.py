@@ -26,17 +26,25 @@ def scene(law="deadband", x=(0.25,), modes=6, basis=None, **excitation):
                      "excitation": excitation or {"kind": "none"}}, "cache-test.toml")
 
 
-def obtain(s, cache_dir):
-    """(basis, eigen-solves it took on the busiest rank)."""
+def summary(s, cache_dir):
+    """What a basis from the cache holds: (size, K_r, B, dbf_omega, dbf_k, eigen-solves on the busiest
+    rank, cache state)."""
     ops = build_operators(s)
     before = counters["eigen_solves"]
     basis = obtain_basis(ops, constraint_rows(s, ops), s.basis_settings(), operators_fingerprint(s, ops),
                          str(cache_dir))
     solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
-    Kr = basis.project(ops.K)
+    out = (basis.size, basis.project(ops.K), basis.rows(basis.constraint_rows), basis.dbf_omega.copy(),
+           basis.dbf_k.copy(), solves, basis.stats.get("cache"))
     basis.destroy()
     ops.destroy()
-    return Kr, solves, basis.stats.get("cache")
+    return out
+
+
+def obtain(s, cache_dir):
+    """(K_r, eigen-solves it took on the busiest rank, cache state)."""
+    _, Kr, _, _, _, solves, state = summary(s, cache_dir)
+    return Kr, solves, state
 
 
 def test_a_cache_hit_performs_no_eigen_solve(shared_tmp_path):
@@ -91,19 +99,6 @@ def test_an_unreadable_cache_file_is_rebuilt(shared_tmp_path):
     assert solves > 0 and state == "stored"
     assert_all(True)
 
-
-def summary(s, cache_dir):
-    """What a basis from the cache holds: (size, K_r, B, dbf_omega, dbf_k, eigen-solves, cache state)."""
-    ops = build_operators(s)
-    before = counters["eigen_solves"]
-    basis = obtain_basis(ops, constraint_rows(s, ops), s.basis_settings(), operators_fingerprint(s, ops),
-                         str(cache_dir))
-    solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
-    out = (basis.size, basis.project(ops.K), basis.rows(basis.constraint_rows), basis.dbf_omega.copy(),
-           basis.dbf_k.copy(), solves, basis.stats.get("cache"))
-    basis.destroy()
-    ops.destroy()
-    return out
 
 
 @pytest.mark.parametrize("enrichment,columns", [("dbf", 8), ("static", 8), ("none", 6)])
