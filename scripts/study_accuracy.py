@@ -314,10 +314,15 @@ def report(out: str) -> None:
         return (f"{r['kind']}, N = {r['modes']} (size {r['basis_size']}), ARKIMEX {r['scheme']}, rtol {r['rtol']:g}, "
                 f"contact {r['contact']}")
 
-    def same_at(r, rtol):
+    def twin(r, rtol):
+        """The same setting at another tolerance, or None."""
         match = [x for x in table if x["rtol"] == rtol and x["status"] == "ok" and
                  all(x[k] == r[k] for k in ("constraints", "kind", "modes", "scheme", "contact"))]
-        return f"{match[0]['err_w']:.2%}" if match else "-"
+        return match[0] if match else None
+
+    def same_at(r, rtol):
+        match = twin(r, rtol)
+        return f"{match['err_w']:.2%}" if match else "-"
 
     lines = ["# Accuracy and cost of the reduced model against the full-order truth", "",
              "Truths (full-order, generalized-alpha, on all ranks):", "",
@@ -329,7 +334,8 @@ def report(out: str) -> None:
                      f"{t['truths_err_force']:.1%} | {t['wall_time']:.1f} s | {t['steps']} |")
     lines += ["", "Cheapest reduced settings (wall time of the integration on one rank over the truth's span; the "
               "basis is built once). The last column is the same setting at the tightest tolerance: where it is "
-              "larger, the cheap case's error was partly cancelled by its own time-stepping error.",
+              "larger, the cheap case's error was partly cancelled by its own time-stepping error, and a "
+              "second row gives the cheapest setting whose error holds at the tightest tolerance too.",
               "", "| constraints | target | setting | error in w | peak force | RMS mid-span | impacts | "
               "wall time | steps | basis build | speed-up vs truth | with the basis build | "
               f"same at rtol {tightest:g} |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -342,11 +348,17 @@ def report(out: str) -> None:
                              f"(best {min(r['err_w'] for r in ok):.2%}) | | | | | | | | | | |" if ok else
                              f"| {label} | {target:.1%} | no case ran | | | | | | | | | | |")
                 continue
-            r = min(within, key=lambda r: r["wall_time"])
-            lines.append(f"| {label} | {target:.1%} | {setting(r)} | {r['err_w']:.2%} | {r['err_force']:.0%} | "
-                         f"{r['err_rms']:.2%} | {r['err_impacts']:.0%} | {r['wall_time']:.3f} s | {r['steps']} | "
-                         f"{r['basis_time']:.2f} s | {truth['wall_time'] / r['wall_time']:.0f}x | "
-                         f"{truth['wall_time'] / (r['wall_time'] + r['basis_time']):.0f}x | {same_at(r, tightest)} |")
+            cheapest = min(within, key=lambda r: r["wall_time"])
+            # The cheapest whose error holds when its time steps are converged (its twin at the
+            # tightest tolerance is within the target too): no luck from cancelling errors.
+            holding = [r for r in within if (twin(r, tightest) or {"err_w": math.inf})["err_w"] <= target]
+            picks = [cheapest] + ([min(holding, key=lambda r: r["wall_time"])] if holding else [])
+            for r in (picks if len(picks) == 1 or picks[0] is not picks[1] else picks[:1]):
+                lines.append(f"| {label} | {target:.1%} | {setting(r)} | {r['err_w']:.2%} | {r['err_force']:.0%} | "
+                             f"{r['err_rms']:.2%} | {r['err_impacts']:.0%} | {r['wall_time']:.3f} s | {r['steps']} | "
+                             f"{r['basis_time']:.2f} s | {truth['wall_time'] / r['wall_time']:.0f}x | "
+                             f"{truth['wall_time'] / (r['wall_time'] + r['basis_time']):.0f}x | "
+                             f"{same_at(r, tightest)} |")
     kinds = list(dict.fromkeys(r["kind"] for r in table))
     lines += ["", f"Basis kinds at the same size (N + N_L columns), ARKIMEX 3, rtol {middle:g}, implicit contact: "
               "error in w / error in peak force:", "",
@@ -370,8 +382,7 @@ def report(out: str) -> None:
     with open(os.path.join(out, "accuracy.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     plot(out, table, truths)
-    print(f"wrote {out}/accuracy.csv, accuracy.md, truth.csv, pareto.png ({len(table)} cases, "
-          f"{len(failed)} failed)", flush=True)
+    print(f"wrote {out}/accuracy.md and pareto.png ({len(table)} cases, {len(failed)} failed)", flush=True)
 
 
 def pareto(rows: list) -> list:
