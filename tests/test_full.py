@@ -112,3 +112,71 @@ def test_rayleigh_damping_decays_the_full_model_at_the_exact_rate(shared_tmp_pat
         wd = omega * np.sqrt(1 - zeta**2)
         exact = 1e-3 * np.exp(-zeta * omega * t) * (np.cos(wd * t) + zeta / np.sqrt(1 - zeta**2) * np.sin(wd * t))
         assert np.abs(w - exact).max() < 2e-4 * 1e-3  # measured 8.0e-5 of 1 mm
+
+
+def test_matrix_files_with_a_damping_matrix_give_the_beam_with_rayleigh_damping(shared_tmp_path):
+    # The same structure two ways: the Table 1 beam with C = beta K (Rayleigh), and its K, M and
+    # C = beta K written to Matrix Market files (by scipy, an independent writer) with the force
+    # and the constraint named by DOF. The full-order runs must agree to round-off, contact included.
+    import scipy.io
+
+    from dbf_hpc.model import build_operators, constraint_rows
+    from test_matrices import to_scipy
+
+    beta = 1e-4
+    common = """[excitation]
+kind = "force"
+amplitude = 0.05
+frequency_hz = 3.0
+{force}
+[damping]
+{damping}
+[[constraint]]
+{where}
+law = "deadband"
+clearance = 2e-4
+k = 1e6
+[integrator]
+t_end = 0.05
+dt = 2e-5
+[output]
+probes = [{probe}]
+sample_dt = 1e-4
+"""
+    beam = """[structure]
+kind = "beam"
+length = 1.0
+elements = 30
+E = 117e9
+I = 8.78e-16
+A = 2.9e-7
+rho = 11800.0
+""" + common.format(force="x = 0.5", damping=f"rayleigh_beta = {beta}", where="x = 0.25", probe="0.5")
+    path = shared_tmp_path / "beam.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(beam)
+    MPI.COMM_WORLD.Barrier()
+    s = load_scene(str(path), ["basis.cache=off"])
+    ops = build_operators(s)
+    K, M = to_scipy(ops.K), to_scipy(ops.M)
+    force_row, constraint_row = ops.mesh.w_row(0.5), int(constraint_rows(s, ops)[0])
+    ops.destroy()
+    matrices = """[structure]
+kind = "matrices"
+stiffness = "K.mtx"
+mass = "M.mtx"
+damping = "C.mtx"
+""" + common.format(force=f"dof = {force_row}", damping="", where=f"dof = {constraint_row}", probe=force_row)
+    if MPI.COMM_WORLD.rank == 0:
+        for name, A in (("K", K), ("M", M), ("C", beta * K)):
+            scipy.io.mmwrite(str(shared_tmp_path / f"{name}.mtx"), A, precision=17)
+        (shared_tmp_path / "matrices.toml").write_text(matrices)
+    MPI.COMM_WORLD.Barrier()
+    f_beam, _ = full_run(shared_tmp_path, name="beam_rayleigh.h5", scene=str(path))
+    f_files, _ = full_run(shared_tmp_path, name="files_c.h5", scene=str(shared_tmp_path / "matrices.toml"))
+    if f_beam is not None:
+        z_beam, z_files = f_beam["constraints/displacement"][:, 0], f_files["constraints/displacement"][:, 0]
+        assert np.abs(z_beam).max() > 2e-4, "the constraint is reached"
+        assert np.abs(z_files - z_beam).max() < 1e-8 * np.abs(z_beam).max()
+        w_beam, w_files = f_beam["probes/displacement"][:, 0], f_files["probes/displacement"][:, 0]
+        assert np.abs(w_files - w_beam).max() < 1e-8 * np.abs(w_beam).max()
