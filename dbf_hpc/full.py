@@ -37,6 +37,7 @@ from petsc4py import PETSc
 
 from .damping import Damping
 from .errors import InputError, SolverError
+from .integrate import sample_times
 from .laws import ConstraintLaws
 from .modes import reference_modes
 from .operators import Operators, direct_solver, options_defaults, values_at
@@ -57,9 +58,7 @@ class FullSettings:
 
     @property
     def sample_times(self) -> np.ndarray:
-        count = int(math.floor(self.t_end / self.sample_dt * (1 + 1e-12))) + 1
-        times = np.arange(count) * self.sample_dt
-        return times if math.isclose(times[-1], self.t_end) else np.append(times, self.t_end)
+        return sample_times(self.t_end, self.sample_dt)
 
 
 def damping_matrix(ops: Operators, damping: Damping) -> PETSc.Mat | None:

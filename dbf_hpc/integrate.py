@@ -53,9 +53,14 @@ class IntegratorSettings:
 
     @property
     def sample_times(self) -> np.ndarray:
-        count = int(math.floor(self.t_end / self.sample_dt * (1 + 1e-12))) + 1
-        times = np.arange(count) * self.sample_dt
-        return times if math.isclose(times[-1], self.t_end) else np.append(times, self.t_end)
+        return sample_times(self.t_end, self.sample_dt)
+
+
+def sample_times(t_end: float, sample_dt: float) -> np.ndarray:
+    """0, sample_dt, 2 sample_dt, ... and t_end itself."""
+    count = int(math.floor(t_end / sample_dt * (1 + 1e-12))) + 1
+    times = np.arange(count) * sample_dt
+    return times if math.isclose(times[-1], t_end) else np.append(times, t_end)
 
 
 class ReducedProblem:
