@@ -50,9 +50,8 @@ SAME = PETSc.Mat.Structure.SAME_NONZERO_PATTERN
 @dataclass(frozen=True)
 class FullSettings:
     t_end: float
-    dt: float                  # the step (or the first step, adaptive)
-    adaptive: bool = False
-    rtol: float = 1e-6
+    dt: float                  # the step (the first step with -full_ts_adapt_type basic)
+    rtol: float = 1e-6         # rtol, atol: used only with -full_ts_adapt_type basic
     atol: float = 1e-9
     sample_dt: float = 1e-3
 
@@ -336,8 +335,7 @@ def integrate_full(problem: FullProblem, settings: FullSettings, u0: PETSc.Vec, 
     # Fixed steps by default: the generalized-alpha error estimate counts the velocities of the
     # mesh modes that every impact sets ringing, and its adaptive steps collapse to ~1e-8 s after
     # the first impact (measured on the paper's beam). -full_ts_adapt_type basic turns it on.
-    defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic",
-                "ts_alpha_radius": "0.9"}
+    defaults = {"ts_adapt_type": "none", "snes_linesearch_type": "basic", "ts_alpha_radius": "0.9"}
     adaptive = PETSc.Options(PREFIX).getString("ts_adapt_type", defaults["ts_adapt_type"]) != "none"
     # Adaptive: a failed Newton solve shrinks the step. Fixed: the first failure ends the run.
     ts.setMaxSNESFailures(-1 if adaptive else 1)
