@@ -1,4 +1,10 @@
-"""PETSc/SLEPc start-up for the command line: hand PETSc exactly the options meant for it."""
+"""PETSc/SLEPc start-up: hand PETSc exactly the options meant for it.
+
+The command line calls init(options) before importing any module that imports petsc4py.PETSc.
+Python users need not call anything: the first use of the package's API (dbf_hpc/__init__.py)
+calls init() with no options, so PETSc reads only PETSC_OPTIONS. Either way the Debian paths
+are set when the environment has none, so that slepc4py imports without an activated venv.
+"""
 import os
 import sys
 
@@ -13,6 +19,8 @@ def init(options=()) -> None:
     for key, value in _DEBIAN.items():
         if key not in os.environ and os.path.isdir(value):
             os.environ[key] = value
+    if "slepc4py.SLEPc" in sys.modules or "petsc4py.PETSc" in sys.modules:
+        return  # already initialized (options can no longer change)
     import slepc4py
 
     slepc4py.init([sys.argv[0] or "dbf-hpc", *options])

@@ -78,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
                                        "and write a summary HDF5. Rerunning resumes a killed sweep.")
     sweep.add_argument("sweep", metavar="SWEEP.toml")
     sweep.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    sweep.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                       help="override a value of the base scene for every case (repeatable)")
     sweep.set_defaults(func=_sweep)
     info = sub.add_parser("info", help="summarize a run's HDF5 output",
                           description="Print what a run computed: scene, basis, solver statistics, "
@@ -141,6 +143,8 @@ def _open_output(path):
 def _info(args) -> int:
     import json
 
+    from . import layout
+
     import numpy as np
     from mpi4py import MPI
 
@@ -157,7 +161,7 @@ def _info(args) -> int:
             extra = {"dbf": "DBFs", "static": "static modes", "none": "enrichment columns"}[kind]
             print(f"  basis: {f['basis/omega'].size} reference modes "
                   f"({f['basis/omega'][0] / (2 * np.pi):.4g} ... {f['basis/omega'][-1] / (2 * np.pi):.4g} Hz), "
-                  f"{f['basis/dbf_omega'].size} {extra}")
+                  f"{layout.read(f, layout.BASIS_ENRICHMENT_OMEGA).size} {extra}")
         else:
             print(f"  full-order model: {stats.get('dofs', '?')} DOFs")
         print(f"  samples: {t.size} from {t[0]:g} to {t[-1]:g} s; snapshots: {f['snapshots/time'].size}")
@@ -206,39 +210,37 @@ def _is_sweep_summary(path: str) -> bool:
 def _sweep(args) -> int:
     from .sweep import run_sweep
 
-    run_sweep(args.sweep, progress=not args.quiet)
+    run_sweep(args.sweep, progress=not args.quiet, overrides=args.set)
     return 0
 
 
 def _modes(args) -> int:
     from petsc4py import PETSc
 
-    from .model import build_operators
     from .modes import reference_modes
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.set)
     comm = PETSc.COMM_WORLD
     start = time.perf_counter()
-    ops = build_operators(scene, comm)
-    assembled = time.perf_counter()
     basis = scene["basis"]
-    modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
-    solved = time.perf_counter()
-
-    say = PETSc.Sys.Print
-    what = (f"beam, {ops.mesh.elements} Hermite-cubic elements" if ops.mesh is not None
-            else f"matrices from {scene['structure']['stiffness']}")
-    say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s)")
-    say(f"structure: {what}, {ops.size} free DOFs, nonzeros K {int(ops.K.getInfo()['nz_used'])}")
-    say(f"reference modes: {modes.count}" + (f" below {basis['max_frequency_hz']:g} Hz"
-                                              if basis["max_frequency_hz"] else ""))
-    say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
-    for i, (f, w) in enumerate(zip(modes.frequency_hz, modes.omega)):
-        say(f"{i + 1:>6} {f:>14.8g} {w:>16.8g}")
-    say(f"time: assembly {assembled - start:.3f} s, eigensolve {solved - assembled:.3f} s")
-    modes.destroy()
-    ops.destroy()
+    with scene.full_order_model(comm) as fom:
+        ops = fom.operators
+        assembled = time.perf_counter()
+        modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+        solved = time.perf_counter()
+        say = PETSc.Sys.Print
+        what = (f"beam, {ops.mesh.elements} Hermite-cubic elements" if ops.mesh is not None
+                else f"matrices from {scene['structure']['stiffness']}")
+        say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s)")
+        say(f"structure: {what}, {ops.size} free DOFs, nonzeros K {int(ops.K.getInfo()['nz_used'])}")
+        say(f"reference modes: {modes.count}" + (f" below {basis['max_frequency_hz']:g} Hz"
+                                                  if basis["max_frequency_hz"] else ""))
+        say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
+        for i, (f, w) in enumerate(zip(modes.frequency_hz, modes.omega)):
+            say(f"{i + 1:>6} {f:>14.8g} {w:>16.8g}")
+        say(f"time: assembly {assembled - start:.3f} s, eigensolve {solved - assembled:.3f} s")
+        modes.destroy()
     return 0
 
 
@@ -246,49 +248,50 @@ def _basis(args) -> int:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from .cache import obtain_basis
-    from .model import build_operators, constraint_rows, operators_fingerprint
     from .modes import counters
+    from .reductor import Reductor
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.set)
     comm = PETSc.COMM_WORLD
-    ops = build_operators(scene, comm)
-    rows = constraint_rows(scene, ops)
-    labels = [c.label for c in scene.constraints]
-    start, solves = time.perf_counter(), counters["eigen_solves"]
-    basis = obtain_basis(ops, rows, scene.basis_settings(), operators_fingerprint(scene, ops),
-                         None if args.no_cache else scene.cache_dir(), labels)
-    elapsed = time.perf_counter() - start
     say = PETSc.Sys.Print
-    say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s), {ops.size} DOFs")
-    columns = {"dbf": "DBFs", "static": "static modes"}.get(basis.enrichment)
-    enriched = f" + {basis.enrichment_count} {columns}" if columns else " (no enrichment)"
-    say(f"basis: {basis.mode_count} reference modes{enriched}, M-orthonormal "
-        f"({elapsed:.3f} s, {comm.tompi4py().allreduce(counters['eigen_solves'] - solves, op=MPI.MAX)} eigen-solves "
-        f"on the busiest rank, cache {basis.stats.get('cache')})")
+    with scene.full_order_model(comm) as fom, \
+            Reductor(fom, scene.basis_settings(), None if args.no_cache else scene.cache_dir()) as reductor:
+        labels = list(fom.constraints.labels)
+        start, solves = time.perf_counter(), counters["eigen_solves"]
+        basis = reductor.basis()
+        elapsed = time.perf_counter() - start
+        strategy = basis.settings.strategy
+        say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s), {fom.size} DOFs")
+        enriched = (f" + {basis.enrichment_count} {strategy.column_name}s" if strategy.column_name
+                    else " (no enrichment)")
+        say(f"basis: {basis.mode_count} reference modes{enriched}, M-orthonormal "
+            f"({elapsed:.3f} s, {comm.tompi4py().allreduce(counters['eigen_solves'] - solves, op=MPI.MAX)} "
+            f"eigen-solves on the busiest rank, cache {basis.stats.get('cache')})")
+        _print_basis(say, basis, labels)
+    return 0
+
+
+def _print_basis(say, basis, labels) -> None:
     say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
     for i, w in enumerate(basis.omega):
         say(f"{i + 1:>6} {w / (2 * 3.141592653589793):>14.8g} {w:>16.8g}")
-    if basis.enrichment == "static" and rows.size:
+    if basis.enrichment == "static" and basis.enrichment_count:
         say(f"{'static':>6} {'constraint':>14} {'hat-omega [rad/s]':>18}")
-        for j in range(rows.size):
-            say(f"{j + 1:>6} {labels[j]:>14} {basis.dbf_omega[j]:>18.8g}")
-    elif basis.enrichment == "dbf" and rows.size:
+        for j in range(basis.enrichment_count):
+            say(f"{j + 1:>6} {labels[j]:>14} {basis.enrichment_omega[j]:>18.8g}")
+    elif basis.enrichment == "dbf" and basis.enrichment_count:
         say(f"{'DBF':>6} {'constraint':>14} {'k_j [N/m]':>12} {'branch':>7} {'hat-omega [rad/s]':>18}")
-        for j in range(rows.size):
+        for j in range(basis.enrichment_count):
             say(f"{j + 1:>6} {labels[j]:>14} {basis.dbf_k[j]:>12.5g} {basis.dbf_branch[j]:>7d} "
-                f"{basis.dbf_omega[j]:>18.8g}")
+                f"{basis.enrichment_omega[j]:>18.8g}")
     for warning in basis.warnings(labels):
         say(f"dbf-hpc: warning: {warning}")
-    timed = {"time_modes": "modes", "time_dbf": {"dbf": "dbf", "static": "static modes"}.get(basis.enrichment),
-             "time_orthogonalization": "orthogonalization"}
-    for key, name in timed.items():
-        if key in basis.stats and name:
-            say(f"time {name}: {basis.stats[key]:.3f} s")
-    basis.destroy()
-    ops.destroy()
-    return 0
+    name = basis.settings.strategy.column_name
+    for key, what in (("time_modes", "modes"), ("time_enrichment", f"{name}s" if name else None),
+                      ("time_orthogonalization", "orthogonalization")):
+        if key in basis.stats and what:
+            say(f"time {what}: {basis.stats[key]:.3f} s")
 
 
 def parse_stiffnesses(text: str):
@@ -313,10 +316,8 @@ def _stiffness(args) -> int:
     import numpy as np
     from petsc4py import PETSc
 
-    from .basis import participation
-    from .dbf import auto_stiffness, branch_of, pinned_eigenvalue, stiffness_sweep
+    from .dbf import auto_stiffness, branch_of, participation, pinned_eigenvalue, stiffness_sweep
     from .errors import InputError
-    from .model import build_operators, constraint_rows
     from .modes import reference_modes
     from .output import check_output_path
     from .scene import load_scene
@@ -328,20 +329,23 @@ def _stiffness(args) -> int:
     for path in (args.output, args.plot):
         if path:
             check_output_path(path)
-    ops = build_operators(scene, PETSc.COMM_WORLD)
-    row = int(constraint_rows(scene, ops)[args.constraint - 1])
     basis = scene["basis"]
-    modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
-    part = participation(modes, np.array([row]))[0]
-    branch = branch_of(part)
-    if branch == 0:
-        raise InputError(f"constraint {args.constraint} does not move in any reference mode")
-    mu = pinned_eigenvalue(ops, row, branch)
-    k_auto = auto_stiffness(mu, modes.omega[branch - 1] ** 2, part[branch - 1])
-    omega = stiffness_sweep(ops, row, ks, branch)
+    with scene.full_order_model(PETSc.COMM_WORLD) as fom:
+        ops = fom.operators
+        row = int(fom.constraints.flat_rows[args.constraint - 1])
+        modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+        part = participation(modes, np.array([row]))[0]
+        omega_free = modes.omega
+        modes.destroy()
+        branch = branch_of(part)
+        if branch == 0:
+            raise InputError(f"constraint {args.constraint} does not move in any reference mode")
+        mu = pinned_eigenvalue(ops, row, branch)
+        k_auto = auto_stiffness(mu, omega_free[branch - 1] ** 2, part[branch - 1])
+        omega = stiffness_sweep(ops, row, ks, branch)
     label = scene.constraints[args.constraint - 1].label
     say = PETSc.Sys.Print
-    say(f"omega_{branch}(k) with a spring at {label}: from {modes.omega[branch - 1]:.8g} rad/s (no spring) "
+    say(f"omega_{branch}(k) with a spring at {label}: from {omega_free[branch - 1]:.8g} rad/s (no spring) "
         f"to {np.sqrt(mu):.8g} rad/s (pinned); auto stiffness {k_auto:.6g} N/m")
     say(f"{'k [N/m]':>14} {'omega [rad/s]':>16} {'f [Hz]':>14}")
     for k, w in zip(ks, omega):
@@ -354,9 +358,7 @@ def _stiffness(args) -> int:
         if args.plot:
             from .plots import plot_stiffness_sweep
 
-            plot_stiffness_sweep(args.plot, ks, omega, k_auto, label, modes.omega[branch - 1], np.sqrt(mu))
-    modes.destroy()
-    ops.destroy()
+            plot_stiffness_sweep(args.plot, ks, omega, k_auto, label, omega_free[branch - 1], np.sqrt(mu))
     return 0
 
 

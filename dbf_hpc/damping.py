@@ -55,9 +55,11 @@ class Damping:
             return self.rayleigh_alpha + self.rayleigh_beta * omega**2
         return 2.0 * self.ratios(omega.size) * omega
 
-    def reduced_matrix(self, reduced_stiffness: np.ndarray) -> np.ndarray:
-        """D_r for a basis with V^T M V = I and V^T K V = reduced_stiffness."""
+    def reduced_matrix(self, reduced_stiffness: np.ndarray, reduced_mass: np.ndarray | None = None) -> np.ndarray:
+        """C_r for a basis with V^T K V = reduced_stiffness and V^T M V = reduced_mass (I when not
+        given; modal ratios assume it)."""
         Kr = np.asarray(reduced_stiffness, dtype=float)
         if self.kind == "rayleigh":
-            return self.rayleigh_alpha * np.eye(Kr.shape[0]) + self.rayleigh_beta * Kr
+            Mr = np.eye(Kr.shape[0]) if reduced_mass is None else np.asarray(reduced_mass, dtype=float)
+            return self.rayleigh_alpha * Mr + self.rayleigh_beta * Kr
         return np.diag(self.modal_coefficients(np.sqrt(np.clip(np.diag(Kr), 0.0, None))))

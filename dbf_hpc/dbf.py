@@ -39,8 +39,9 @@ import numpy as np
 from petsc4py import PETSc
 
 from .errors import SolverError
-from .modes import solve_lowest, eigen_solver, normalize
-from .operators import Operators, direct_solver, values_at
+from .modes import ModalBasis, bv_rows, lowest_eigenpair, normalize
+from .operators import Operators
+from .petsctools import destroy, direct_solver, values_at
 
 PREFIX = "dbf_"
 # A reference mode "moves at the constraint" if (g^T phi)^2 exceeds this fraction of the largest
@@ -91,15 +92,13 @@ def value_at(x: PETSc.Vec, row: int) -> float:
 def spring_eigenpair(ops: Operators, row: int, k: float, branch: int, tol: float = EIGEN_TOL):
     """(lambda_m, phi_m) of (K + k g g^T, M), phi M-normalized with the package's sign convention."""
     A = with_spring(ops.K, row, k)
-    eps = eigen_solver(ops, A, branch, PREFIX, tol=tol)
-    values, vectors = solve_lowest(eps, branch, f"spring-perturbed modes (k = {k:.3g} N/m at row {row})")
-    eps.destroy()
-    A.destroy()
-    for v in vectors[:-1]:
-        v.destroy()
-    phi = vectors[-1]
+    try:
+        lam, phi = lowest_eigenpair(ops, A, branch, PREFIX, f"spring-perturbed modes (k = {k:.3g} N/m at row {row})",
+                                    tol)
+    finally:
+        A.destroy()
     normalize(phi, ops.M)
-    return values[-1], phi
+    return lam, phi
 
 
 def pinned_eigenvalue(ops: Operators, row: int, branch: int) -> float:
@@ -111,14 +110,18 @@ def pinned_eigenvalue(ops: Operators, row: int, branch: int) -> float:
     pinned = Operators(comm=ops.comm, K=ops.K.createSubMatrix(index, index),
                        M=ops.M.createSubMatrix(index, index),
                        rigid_modes=ops.rigid_modes, eigen_scale=ops.eigen_scale)
-    eps = eigen_solver(pinned, pinned.K, branch, PREFIX, tol=EIGEN_TOL)
-    values, vectors = solve_lowest(eps, branch, f"pinned modes (row {row})")
-    for v in vectors:
-        v.destroy()
-    eps.destroy()
-    pinned.destroy()
-    index.destroy()
-    return float(values[-1])
+    try:
+        mu, phi = lowest_eigenpair(pinned, pinned.K, branch, PREFIX, f"pinned modes (row {row})", EIGEN_TOL)
+        phi.destroy()
+    finally:
+        pinned.destroy()
+        index.destroy()
+    return mu
+
+
+def participation(modes: ModalBasis, rows: np.ndarray) -> np.ndarray:
+    """(g_j^T phi_i)^2 for every constraint j (rows) and reference mode i: (N_L, N). Collective."""
+    return bv_rows(modes.vectors, rows) ** 2
 
 
 def auto_stiffness(pinned: float, reference_eigenvalue: float, participation: float) -> float:
@@ -133,16 +136,17 @@ def central_derivative(ops: Operators, row: int, k: float, branch: int, phi: PET
     Mphi = ops.M.createVecLeft()
     ops.M.mult(phi, Mphi)
     ends = []
-    for factor in (1 + h, 1 - h):
-        _, v = spring_eigenpair(ops, row, k * factor, branch)
-        if v.dot(Mphi) < 0:
-            v.scale(-1.0)
-        ends.append(v)
-    d = ends[0].copy()
-    d.axpy(-1.0, ends[1])
-    d.scale(1.0 / (2 * h * k))
-    for v in (*ends, Mphi):
-        v.destroy()
+    try:
+        for factor in (1 + h, 1 - h):
+            _, v = spring_eigenpair(ops, row, k * factor, branch)
+            ends.append(v)
+            if v.dot(Mphi) < 0:
+                v.scale(-1.0)
+        d = ends[0].copy()
+        d.axpy(-1.0, ends[1])
+        d.scale(1.0 / (2 * h * k))
+    finally:
+        destroy(Mphi, *ends)
     return d
 
 
@@ -165,26 +169,28 @@ def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PET
     ksp.setOptionsPrefix(PREFIX)
     ksp.setFromOptions()
     d = A.createVecRight()
-    correction = d.duplicate()
-    residual = rhs.copy()
-    for _ in range(REFINEMENT_STEPS + 1):  # iterative refinement: A - lambda M is nearly singular
-        ksp.solve(residual, correction)
-        if ksp.getConvergedReason() < 0:
-            raise SolverError(f"DBF derivative solve failed at row {row} ({ksp.getConvergedReason()}); "
-                              f"try dbf_derivative = \"central\"")
-        correction.axpy(-correction.dot(Mphi), phi)  # deflate: phi^T M phi' = 0
-        d.axpy(1.0, correction)
-        A.mult(d, residual)
-        residual.aypx(-1.0, rhs)
-    # Normwise backward error: ||r|| / (||A|| ||d|| + ||rhs||). A relative residual ||r|| / ||rhs||
-    # would grow with cond(A) ~ elements^4 and reject exact-to-round-off answers on fine meshes.
-    backward = residual.norm() / (A.norm(PETSc.NormType.FROBENIUS) * d.norm() + rhs.norm())
-    correction.destroy()
-    for obj in (ksp, A, Mphi, rhs, residual):
-        obj.destroy()
-    if not backward < DERIVATIVE_BACKWARD_TOL:
-        raise SolverError(f"DBF derivative at row {row} is inaccurate (backward error {backward:.2e}); "
-                          f"try dbf_derivative = \"central\" or a tighter -dbf_eps_tol")
+    correction, residual = d.duplicate(), rhs.copy()
+    try:
+        for _ in range(REFINEMENT_STEPS + 1):  # iterative refinement: A - lambda M is nearly singular
+            ksp.solve(residual, correction)
+            if ksp.getConvergedReason() < 0:
+                raise SolverError(f"DBF derivative solve failed at row {row} ({ksp.getConvergedReason()}); "
+                                  f"try dbf_derivative = \"central\"")
+            correction.axpy(-correction.dot(Mphi), phi)  # deflate: phi^T M phi' = 0
+            d.axpy(1.0, correction)
+            A.mult(d, residual)
+            residual.aypx(-1.0, rhs)
+        # Normwise backward error: ||r|| / (||A|| ||d|| + ||rhs||). A relative residual ||r|| / ||rhs||
+        # would grow with cond(A) ~ elements^4 and reject exact-to-round-off answers on fine meshes.
+        backward = residual.norm() / (A.norm(PETSc.NormType.FROBENIUS) * d.norm() + rhs.norm())
+        if not backward < DERIVATIVE_BACKWARD_TOL:
+            raise SolverError(f"DBF derivative at row {row} is inaccurate (backward error {backward:.2e}); "
+                              f"try dbf_derivative = \"central\" or a tighter -dbf_eps_tol")
+    except Exception:
+        d.destroy()
+        raise
+    finally:
+        destroy(correction, ksp, A, Mphi, rhs, residual)
     return d
 
 
@@ -203,11 +209,13 @@ def dbf_source(ops: Operators, row: int, reference_eigenvalues: np.ndarray, part
                             participation[branch - 1])
     k = k_auto if stiffness == "auto" else float(stiffness)
     lam, phi = spring_eigenpair(ops, row, k, branch)
-    if derivative == "central":
-        d = central_derivative(ops, row, k, branch, phi)
-    else:
-        d = analytic_derivative(ops, row, k, lam, phi)
-    phi.destroy()
+    try:
+        if derivative == "central":
+            d = central_derivative(ops, row, k, branch, phi)
+        else:
+            d = analytic_derivative(ops, row, k, lam, phi)
+    finally:
+        phi.destroy()
     return DbfSource(row=row, branch=branch, stiffness=k, transition=k_auto, eigenvalue=lam, derivative=d)
 
 

@@ -15,3 +15,7 @@ class InputError(DbfError):
 
 class SolverError(DbfError):
     """A numerical failure: non-convergence, breakdown, a diverged step."""
+
+
+class Interrupted(SolverError):
+    """A run stopped by a termination signal after writing its checkpoint: rerun to continue."""

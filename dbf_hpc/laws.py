@@ -175,10 +175,40 @@ _KIND_KEYS = {
 _KIND_KEYS["hertz"] = _KIND_KEYS["power"]
 
 
-def law_from_dict(index: int, d: dict) -> Law:
+def law(kind: str = "deadband", **keys) -> Law:
+    """A Law from the keys of a scene's [[constraint]] table, e.g. law("deadband", clearance=2.5e-3,
+    k=1e6) or law("hertz", clearance=1e-4, k=3e9, damping="hunt_crossley", alpha=0.2)."""
+    return law_from_dict(None, {"law": kind, **keys})
+
+
+def law_from_dict(index: int | None, d: dict) -> Law:
     """The Law of constraint `index` (as the user counts them) from its [[constraint]] table,
     without its position key. Every error names the constraint and the key."""
-    where = f"constraint {index}"
+    where = f"constraint {index}" if index is not None else "law"
+    _check_values(where, d)
+    kind, damping = d.get("law", "deadband"), d.get("damping", "none")
+    _check_keys(where, d, kind, damping)
+    fields = {"kind": kind, "damping": damping}
+    for both, sides in _SIDED.items():
+        for side in sides:
+            if both in d:
+                fields[side] = d[both]
+            elif side in d:
+                fields[side] = d[side]
+    for key in ("k3", "c", "alpha", "table"):
+        if key in d:
+            fields[key] = d[key]
+    _check_stiffness(where, d, kind, fields)
+    if kind in ("linear", "cubic") and "k_minus" in fields and "k_plus" not in fields:
+        fields["k_plus"] = fields["k_minus"]  # a lone k_minus is the one k
+    try:
+        return Law(**fields)
+    except InputError as e:
+        raise InputError(f"{where}: {e}") from None
+
+
+def _check_values(where: str, d: dict) -> None:
+    """Known keys, each of the right type and range."""
     for key in d:
         if key not in KEYS:
             raise InputError(f"{where}: unknown key {key!r} (known: {', '.join(KEYS)})")
@@ -193,11 +223,18 @@ def law_from_dict(index: int, d: dict) -> Law:
             raise InputError(f"{where}: {key} must be a number, got {value!r}")
         elif not math.isfinite(value):
             raise InputError(f"{where}: {key} must be a finite number, got {value!r}")
+        elif key in ("k", "k_minus", "k_plus", "k3") and value < 0:
+            raise InputError(f"{where}: {key} must be a non-negative number, got {value!r}")
+        elif key.startswith("exponent") and value < 1:
+            raise InputError(f"{where}: {key} must be a number >= 1, got {value!r}")
+        elif key in ("c", "alpha") and not value > 0:
+            raise InputError(f"{where}: {key} must be a positive number, got {value!r}")
 
-    kind = d.get("law", "deadband")
+
+def _check_keys(where: str, d: dict, kind: str, damping: str) -> None:
+    """The law and damping kinds exist, and every key applies to them."""
     if kind not in LAWS:
         raise InputError(f"{where}: law must be one of {_quoted(LAWS)}, got {kind!r}")
-    damping = d.get("damping", "none")
     if damping not in CONTACT_DAMPING:
         raise InputError(f"{where}: damping must be one of {_quoted(CONTACT_DAMPING)}, got {damping!r}")
     for both, sides in _SIDED.items():
@@ -206,9 +243,7 @@ def law_from_dict(index: int, d: dict) -> Law:
             raise InputError(f"{where}: give either {both} or {'/'.join(sides)}, not both "
                              f"({both} and {given[0]} are set)")
     for key in d:
-        if key in ("law", "damping", "c", "alpha"):
-            continue
-        if key not in _KIND_KEYS[kind]:
+        if key not in ("law", "damping", "c", "alpha") and key not in _KIND_KEYS[kind]:
             takes = [k for k in LAWS if key in _KIND_KEYS[k]]
             raise InputError(f"{where}: {key} does not apply to a {kind} law "
                              f"(laws that take it: {', '.join(takes)})")
@@ -216,32 +251,14 @@ def law_from_dict(index: int, d: dict) -> Law:
         raise InputError(f"{where}: c applies only with damping = \"linear\"")
     if "alpha" in d and damping != "hunt_crossley":
         raise InputError(f"{where}: alpha applies only with damping = \"hunt_crossley\"")
-
-    for key, value in d.items():
-        if key in ("k", "k_minus", "k_plus", "k3") and value < 0:
-            raise InputError(f"{where}: {key} must be a non-negative number, got {value!r}")
-        if key.startswith("exponent") and value < 1:
-            raise InputError(f"{where}: {key} must be a number >= 1, got {value!r}")
-        if key in ("c", "alpha") and not value > 0:
-            raise InputError(f"{where}: {key} must be a positive number, got {value!r}")
     if damping == "linear" and "c" not in d:
         raise InputError(f"{where}: damping = \"linear\" needs c (N s/m)")
     if damping == "hunt_crossley" and "alpha" not in d:
         raise InputError(f"{where}: damping = \"hunt_crossley\" needs alpha (s/m)")
 
-    fields = {"kind": kind, "damping": damping}
-    for both, sides in _SIDED.items():
-        for side in sides:
-            if both in d:
-                fields[side] = d[both]
-            elif side in d:
-                fields[side] = d[side]
-    for key in ("k3", "c", "alpha"):
-        if key in d:
-            fields[key] = d[key]
-    if "table" in d:
-        fields["table"] = d["table"]
 
+def _check_stiffness(where: str, d: dict, kind: str, fields: dict) -> None:
+    """A law that can push: the stiffness its kind needs is given and not all zero."""
     stiffness = [key for key in ("k", "k_minus", "k_plus", "k3") if key in d]
     if kind in _TWO_SIDED:
         if not stiffness:
@@ -261,13 +278,6 @@ def law_from_dict(index: int, d: dict) -> Law:
             raise InputError(f"{where}: {stiffness[0]} must be a positive number, got 0")
     elif kind == "table" and "table" not in d:
         raise InputError(f"{where}: a table law needs table = [[z, force], ...]")
-    if kind in ("linear", "cubic") and "k_minus" in fields and "k_plus" not in fields:
-        fields["k_plus"] = fields["k_minus"]  # a lone k_minus is the one k
-
-    try:
-        return Law(**fields)
-    except InputError as e:
-        raise InputError(f"{where}: {e}") from None
 
 
 class _Group:

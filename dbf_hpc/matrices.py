@@ -11,13 +11,17 @@ every rank (text is not seekable by row), which is fine for the sizes such files
 """
 from __future__ import annotations
 
+import hashlib
 import os
+from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 from petsc4py import PETSc
 
 from .errors import InputError
-from .operators import Operators, aij_from_owned_triplets, owned_rows
+from .operators import Operators
+from .petsctools import aij_from_owned_triplets, owned_rows
 
 # ||A - A^T||_F / ||A||_F above this is not a symmetric operator.
 SYMMETRY_TOL = 1e-10
@@ -77,21 +81,30 @@ def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
     try:
         A.load(viewer)
     except PETSc.Error:
+        A.destroy()
         raise InputError(f"{what} file {path!r} is not a PETSc binary matrix") from None
     finally:
         viewer.destroy()
     m, n = A.getSize()
     if m != n:
+        A.destroy()
         raise InputError(f"{what} file {path!r} is {m} x {n}, not square")
     return A
 
 
-def load_vector(path: str, template: PETSc.Vec, what: str = "vector") -> PETSc.Vec:
+def load_vector(path: str, template: PETSc.Vec, what: str = "vector", owned: bool = False) -> PETSc.Vec:
     """A Vec laid out like `template` from .npy, .txt, .mtx (array or coordinate) or PETSc binary.
-    Collective."""
+    Collective. With owned, the template is destroyed (also when loading fails)."""
+    try:
+        return _load_vector(path, template, what)
+    finally:
+        if owned:
+            template.destroy()
+
+
+def _load_vector(path: str, template: PETSc.Vec, what: str) -> PETSc.Vec:
     _readable(path, what)
     n = template.getSize()
-    vec = template.duplicate()
     if path.endswith((".npy", ".txt", ".mtx")):
         try:
             if path.endswith(".npy"):
@@ -105,6 +118,7 @@ def load_vector(path: str, template: PETSc.Vec, what: str = "vector") -> PETSc.V
         values = np.asarray(values, dtype=float).ravel()
         if values.size != n:
             raise InputError(f"{what} file {path!r} has {values.size} entries; the matrices have {n} rows")
+        vec = template.duplicate()
         start, end = vec.getOwnershipRange()
         vec.array[:] = values[start:end]
         return vec
@@ -115,14 +129,17 @@ def load_vector(path: str, template: PETSc.Vec, what: str = "vector") -> PETSc.V
         raise InputError(f"{what} file {path!r} is not a PETSc binary vector") from None
     finally:
         viewer.destroy()
-    if loaded.getSize() != n:
-        raise InputError(f"{what} file {path!r} has {loaded.getSize()} entries; the matrices have {n} rows")
-    # Reload into the matrices' layout (a loaded Vec takes PETSc's default split, which may differ).
-    scatter = PETSc.Scatter().create(loaded, None, vec, None)
-    scatter.scatter(loaded, vec, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
-    scatter.destroy()
-    loaded.destroy()
-    return vec
+    try:
+        if loaded.getSize() != n:
+            raise InputError(f"{what} file {path!r} has {loaded.getSize()} entries; the matrices have {n} rows")
+        # Reload into the matrices' layout (a loaded Vec takes PETSc's default split, which may differ).
+        vec = template.duplicate()
+        scatter = PETSc.Scatter().create(loaded, None, vec, None)
+        scatter.scatter(loaded, vec, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+        scatter.destroy()
+        return vec
+    finally:
+        loaded.destroy()
 
 
 def _read_matrix_market_vector(path: str, what: str) -> np.ndarray:
@@ -153,38 +170,71 @@ def asymmetry(A: PETSc.Mat) -> float:
     return value
 
 
-def load_operators(stiffness: str, mass: str, damping: str | None = None, influence: str | None = None,
-                   base_mass_load: str | None = None, comm=None) -> Operators:
+@dataclass(frozen=True)
+class MatrixFiles:
+    """A structure given as matrix files over its free DOFs (paths as the files system sees them).
+
+    stiffness, mass   K and M (required)
+    damping           C (optional)
+    influence         r over the free DOFs, for base excitation
+    base_mass_load    M_(free, all) r_all including the coupling to the prescribed support DOFs; when
+                      not given, M r is used, which neglects that coupling (docs/design.md)
+    """
+
+    stiffness: str
+    mass: str
+    damping: Optional[str] = None
+    influence: Optional[str] = None
+    base_mass_load: Optional[str] = None
+
+    def fingerprint(self, comm) -> dict:
+        """What identifies the operators for the basis cache: the bytes of K and M. Collective."""
+        return {key: file_digest(getattr(self, key), comm) for key in ("stiffness", "mass")}
+
+
+def file_digest(path: str, comm) -> str:
+    """sha256 of a file's bytes, read on rank 0 only. Collective."""
+    digest = None
+    if comm.rank == 0:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        digest = h.hexdigest()
+    return comm.tompi4py().bcast(digest, root=0)
+
+
+def load_operators(files: MatrixFiles, comm=None) -> Operators:
     """Operators of an external FE model. Collective on comm (default COMM_WORLD).
 
-    influence       r over the free DOFs for base excitation (needed for a base excitation)
-    base_mass_load  M_(free, all) r_all including the coupling to the prescribed support DOFs; when
-                    not given, M r is used, which neglects that coupling (DESIGN.md)
-    Sizes must agree and K, M (and C) must be symmetric.
+    Sizes must agree and K, M (and C) must be symmetric; anything else is an InputError, and what
+    was loaded before it is freed.
     """
     comm = comm or PETSc.COMM_WORLD
-    K = load_matrix(stiffness, comm, "stiffness")
-    M = load_matrix(mass, comm, "mass")
-    C = load_matrix(damping, comm, "damping") if damping else None
-    n = K.getSize()[0]
-    for name, A, path in (("mass", M, mass), ("damping", C, damping)):
-        if A is not None and A.getSize()[0] != n:
-            raise InputError(f"{name} matrix {path!r} is {A.getSize()[0]} x {A.getSize()[0]}; "
-                             f"the stiffness is {n} x {n}")
-    for name, A, path in (("stiffness", K, stiffness), ("mass", M, mass), ("damping", C, damping)):
-        if A is not None and asymmetry(A) > SYMMETRY_TOL:
-            raise InputError(f"{name} matrix {path!r} is not symmetric "
-                             f"(||A - A^T|| / ||A|| = {asymmetry(A):.3g})")
-    if base_mass_load and not influence:
+    if files.base_mass_load and not files.influence:
         raise InputError("a base mass load needs the influence vector as well")
-    ops = Operators(comm=comm, K=K, M=M, C=C)
-    if influence:
-        template = K.createVecRight()
-        ops.influence = load_vector(influence, template, "influence vector")
-        if base_mass_load:
-            ops.base_mass_load = load_vector(base_mass_load, template, "base mass load")
-        else:
-            ops.base_mass_load = template.duplicate()
-            M.mult(ops.influence, ops.base_mass_load)
-        template.destroy()
+    ops = Operators(comm=comm, K=load_matrix(files.stiffness, comm, "stiffness"), M=None)
+    try:
+        ops.M = load_matrix(files.mass, comm, "mass")
+        ops.C = load_matrix(files.damping, comm, "damping") if files.damping else None
+        n = ops.K.getSize()[0]
+        for name, A, path in (("mass", ops.M, files.mass), ("damping", ops.C, files.damping)):
+            if A is not None and A.getSize()[0] != n:
+                raise InputError(f"{name} matrix {path!r} is {A.getSize()[0]} x {A.getSize()[0]}; "
+                                 f"the stiffness is {n} x {n}")
+        for name, A, path in (("stiffness", ops.K, files.stiffness), ("mass", ops.M, files.mass),
+                              ("damping", ops.C, files.damping)):
+            skew = asymmetry(A) if A is not None else 0.0
+            if skew > SYMMETRY_TOL:
+                raise InputError(f"{name} matrix {path!r} is not symmetric (||A - A^T|| / ||A|| = {skew:.3g})")
+        if files.influence:
+            ops.influence = load_vector(files.influence, ops.K.createVecRight(), "influence vector", owned=True)
+            if files.base_mass_load:
+                ops.base_mass_load = load_vector(files.base_mass_load, ops.influence, "base mass load")
+            else:
+                ops.base_mass_load = ops.influence.duplicate()
+                ops.M.mult(ops.influence, ops.base_mass_load)
+    except Exception:
+        ops.destroy()
+        raise
     return ops

@@ -1,9 +1,24 @@
 """Reference modes: K phi = lambda M phi with SLEPc (paper Section 2.1, Eqs. 28-31).
 
 Generalized Hermitian EPS, shift-and-invert about a target just below the spectrum, factorized by
-MUMPS (Cholesky). Options prefix `modes_`: every EPS/ST/KSP/PC setting can be changed from the
-command line (-modes_eps_tol, -modes_st_pc_factor_mat_solver_type, ...); the code's defaults are
-set before setFromOptions, so the user's options win.
+MUMPS (Cholesky). Options prefix `modes_` (and `dbf_` for the spring-perturbed problems of dbf.py):
+every EPS/ST/KSP/PC setting can be changed from the command line (-modes_eps_tol,
+-modes_st_pc_factor_mat_solver_type, ...). The code's defaults are set before setFromOptions, so
+the user's options win; those read at factorization time (MUMPS's inertia switches) are in the
+options database only while the solver is set up and solves.
+
+Every result is checked before it is returned (`accuracy`, `trust_check`): a beam mesh or a matrix
+model too ill-conditioned for double precision is refused with one line instead of being answered
+with wrong frequencies. Rounding perturbs the entries of K by a relative u = eps / 2 (in K itself, in
+its factorization, in every product with it), which moves the eigenvalue of an M-normalized x by up
+to about u |x|^T |K| |x|. Relative to lambda this is the `estimate` (u times the eigenvalue's
+condition number). For a smooth mode of a beam of n Hermite elements it is ~ 48 u (n / beta_1 L)^4:
+it grows like n^4, and scaling the DOFs (e.g. rotations by the element length) does not change it,
+as it is invariant under diagonal scaling; the errors measured with such a scaling were no smaller.
+Each returned eigenpair must have estimate <= TRUST_TOL and relative residual
+||K x - lambda M x|| / (lambda ||M x||) <= sqrt(TRUST_TOL): the residual catches a solve that is
+wrong for another reason (an inexact shift-and-invert); its floor is the rounding in K x, about the
+estimate, and for a Hermitian pencil the eigenvalue error goes like the residual squared over the gap.
 """
 from __future__ import annotations
 
@@ -13,13 +28,24 @@ import numpy as np
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
-from .errors import InputError, SolverError
-from .operators import Operators, direct_solver
-
+from .errors import DbfError, InputError, SolverError
+from .operators import Operators
+from .petsctools import destroy, direct_solver, options_defaults
 
 # Options the eigensolvers set as defaults (so that MUMPS reports the inertia); they do not change
 # the eigenpairs.
 FACTOR_DEFAULTS = {"st_mat_mumps_icntl_13": "1", "st_mat_mumps_icntl_24": "1"}
+
+# Relative accuracy in lambda of what reference_modes returns (option -<prefix>trust_tol): the
+# largest estimate accepted. Measured on Hermite beams of 100 to 4000 elements (pinned-pinned,
+# clamped-free, free-free, the clamped-pinned 10 m steam generator tube) the error of lambda was at
+# most 0.47 times the estimate wherever rounding outweighed the discretization error, so accepted
+# eigenvalues are right to ~5e-6 (frequencies to ~2.5e-6).
+# The limit is ~650 elements for the pinned-pinned paper beam, ~390 clamped-free, ~980 free-free,
+# ~810 for the tube; 1e-6 would refuse the paper beam beyond ~370 elements (tests use 480).
+TRUST_TOL = 1e-5
+# Elements of the coarse mesh on which _element_limit measures the estimate.
+COARSE_ELEMENTS = 100
 
 # Eigen-solves performed by this process (lets tests and reports see that a cached basis needed none).
 counters = {"eigen_solves": 0}
@@ -44,71 +70,88 @@ class ModalBasis:
         self.vectors.destroy()
 
 
-def eigen_solver(ops: Operators, K: PETSc.Mat, nev: int, prefix: str, tol: float = 1e-10) -> SLEPc.EPS:
-    """An EPS for the lowest `nev` eigenpairs of (K, ops.M), configured and with the user's options
-    applied. Collective on K's communicator. K may differ from ops.K (spring-perturbed problems)."""
-    eps = SLEPc.EPS().create(comm=K.getComm())
-    eps.setOperators(K, ops.M)
-    eps.setProblemType(SLEPc.EPS.ProblemType.GHEP)
-    eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
-    # Shift just below the spectrum: 0 for a supported structure (K is SPD), below 0 when rigid-body
-    # modes make K singular.
-    eps.setTarget(-1e-3 * ops.eigen_scale if ops.rigid_modes else 0.0)
-    eps.setDimensions(nev)
-    eps.setTolerances(tol, 1000)
-    st = eps.getST()
-    st.setType(SLEPc.ST.Type.SINVERT)
-    direct_solver(st.getKSP(), PETSc.PC.Type.CHOLESKY)
-    eps.setOptionsPrefix(prefix)
-    # MUMPS counts the negative pivots of K - sigma M (its inertia, for the check in
-    # reference_modes) only with these set. They are read when the factorization is made, so they
-    # stay in the options database; set only where the user has not chosen.
-    options = PETSc.Options(prefix)
-    for name, value in FACTOR_DEFAULTS.items():
-        if not options.hasName(name):
-            options.setValue(name, value)
-    eps.setFromOptions()
-    return eps
+class LowestModes:
+    """An EPS for the lowest eigenpairs of (K, ops.M), configured, with the user's options under
+    `prefix`. K may differ from ops.K (spring-perturbed and pinned problems). Owns the EPS: use it
+    in a `with` block. Collective on K's communicator."""
 
+    def __init__(self, ops: Operators, K: PETSc.Mat, prefix: str, tol: float = 1e-10):
+        self.prefix = prefix
+        eps = self.eps = SLEPc.EPS().create(comm=K.getComm())
+        eps.setOperators(K, ops.M)
+        eps.setProblemType(SLEPc.EPS.ProblemType.GHEP)
+        eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
+        # Shift below the spectrum: 0 for a supported structure (K is SPD), -eigen_scale when rigid-body
+        # modes make K singular. Rounding in factoring K - sigma M moves the rigid modes' eigenvalue
+        # -sigma by ~48 u (elements)^4 eigen_scale (beam), so the shift must be far enough from 0: at
+        # -1e-3 eigen_scale a free-free beam lost its rigid modes (and returned wrong frequencies) beyond
+        # ~800 elements, at -eigen_scale it keeps them past 4000, beyond what trust_check accepts. The
+        # lowest elastic eigenvalue of a beam with rigid modes is >= 31 eigen_scale (sliding-free).
+        eps.setTarget(-ops.eigen_scale if ops.rigid_modes else 0.0)
+        eps.setTolerances(tol, 1000)
+        st = eps.getST()
+        st.setType(SLEPc.ST.Type.SINVERT)
+        direct_solver(st.getKSP(), PETSc.PC.Type.CHOLESKY)
+        eps.setOptionsPrefix(prefix)
+        with options_defaults(prefix, FACTOR_DEFAULTS):
+            eps.setFromOptions()
 
-def eigenvalues_below_shift(eps: SLEPc.EPS) -> int | None:
-    """How many eigenvalues of (K, M) lie below the EPS target, from the inertia of the factorized
-    K - sigma M (Sylvester's law); None if the factorization cannot tell. Collective."""
-    try:
-        negative, _, _ = eps.getST().getKSP().getPC().getFactorMatrix().getInertia()
-    except PETSc.Error:
-        return None
-    return int(negative)
+    def solve(self, nev: int, what: str) -> tuple[np.ndarray, list]:
+        """The nev lowest converged eigenpairs, sorted by eigenvalue (new Vecs, the caller's).
+        Collective."""
+        eps = self.eps
+        options = PETSc.Options(self.prefix)  # keep the user's -eps_ncv, -eps_mpd (setDimensions resets them)
+        eps.setDimensions(nev, options.getInt("eps_ncv", PETSc.DEFAULT), options.getInt("eps_mpd", PETSc.DEFAULT))
+        try:
+            # MUMPS reads its inertia switches when it factors: the defaults stay for the solve.
+            with options_defaults(self.prefix, FACTOR_DEFAULTS):
+                eps.solve()
+        except PETSc.Error as e:
+            raise SolverError(f"{what}: the eigensolver failed (PETSc error {e.ierr}); check that M is positive "
+                              f"definite and K symmetric positive semi-definite") from None
+        counters["eigen_solves"] += 1
+        nconv = eps.getConverged()
+        if nconv < nev:
+            raise SolverError(f"{what}: only {nconv} of {nev} eigenpairs converged; raise "
+                              f"-{self.prefix}eps_max_it or loosen -{self.prefix}eps_tol")
+        K, _ = eps.getOperators()
+        values, vectors = [], []
+        for i in range(nconv):
+            x = K.createVecRight()
+            values.append(complex(eps.getEigenpair(i, x)).real)
+            vectors.append(x)
+        order = np.argsort(values)[:nev]
+        destroy(*(vectors[i] for i in set(range(nconv)) - set(order)))
+        return np.asarray(values)[order], [vectors[i] for i in order]
 
-
-def solve_lowest(eps: SLEPc.EPS, nev: int, what: str) -> tuple[np.ndarray, list]:
-    """Solve and return the nev converged eigenpairs sorted by eigenvalue. Collective."""
-    eps.setDimensions(nev)
-    try:
-        eps.solve()
-    except PETSc.Error as e:
-        try:  # a failed solve can leave the EPS half torn down; free it now, not at exit
-            eps.destroy()
+    def below_shift(self) -> int | None:
+        """How many eigenvalues of (K, M) lie below the target, from the inertia of the factorized
+        K - sigma M (Sylvester's law); None if the factorization cannot tell. Collective."""
+        try:
+            negative, _, _ = self.eps.getST().getKSP().getPC().getFactorMatrix().getInertia()
         except PETSc.Error:
+            return None
+        return int(negative)
+
+    def destroy(self) -> None:
+        try:
+            self.eps.destroy()
+        except PETSc.Error:  # a failed solve can leave the EPS half torn down
             pass
-        raise SolverError(f"{what}: the eigensolver failed (PETSc error {e.ierr}); check that M is positive "
-                          f"definite and K symmetric positive semi-definite") from None
-    counters["eigen_solves"] += 1
-    nconv = eps.getConverged()
-    if nconv < nev:
-        raise SolverError(f"{what}: only {nconv} of {nev} eigenpairs converged; raise "
-                          f"-{eps.getOptionsPrefix()}eps_max_it or loosen -{eps.getOptionsPrefix()}eps_tol")
-    K, _ = eps.getOperators()
-    values, vectors = [], []
-    for i in range(nconv):
-        x = K.createVecRight()
-        values.append(complex(eps.getEigenpair(i, x)).real)
-        vectors.append(x)
-    order = np.argsort(values)[:nev]
-    keep = [vectors[i] for i in order]
-    for i in set(range(nconv)) - set(order):
-        vectors[i].destroy()
-    return np.asarray(values)[order], keep
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.destroy()
+
+
+def lowest_eigenpair(ops: Operators, K: PETSc.Mat, m: int, prefix: str, what: str, tol: float):
+    """(lambda_m, phi_m): the m-th lowest eigenpair of (K, ops.M), phi not normalized. Collective."""
+    with LowestModes(ops, K, prefix, tol) as solver:
+        values, vectors = solver.solve(m, what)
+    destroy(*vectors[:-1])
+    return float(values[-1]), vectors[-1]
 
 
 def normalize(x: PETSc.Vec, M: PETSc.Mat) -> None:
@@ -129,57 +172,192 @@ def normalize(x: PETSc.Vec, M: PETSc.Mat) -> None:
     x.scale((1.0 if sign_dot >= 0 else -1.0) / norm)
 
 
+def bv_rows(bv: SLEPc.BV, rows) -> np.ndarray:
+    """The given rows of all columns of a distributed BV, (len(rows) x columns), on every rank.
+    Collective."""
+    rows = np.asarray(rows, dtype=np.int64)
+    dense = bv.getMat()
+    lo, hi = dense.getOwnershipRange()
+    local = dense.getDenseArray()
+    out = np.zeros((rows.size, local.shape[1]))
+    mine = (rows >= lo) & (rows < hi)
+    out[mine] = local[rows[mine] - lo, :]
+    bv.restoreMat(dense)
+    return bv.getComm().tompi4py().allreduce(out)
+
+
+def _solve_reference(ops: Operators, count, max_frequency_hz, prefix: str):
+    """(eigenvalues, vectors, eigenvalues below the shift) of the reference problem."""
+    n = ops.size
+    with LowestModes(ops, ops.K, prefix) as solver:
+        if count is not None:
+            values, vectors = solver.solve(count, "reference modes")
+            return values, vectors, solver.below_shift()
+        lam_max = (2 * np.pi * max_frequency_hz) ** 2
+        nev = min(8, n)
+        while True:
+            values, vectors = solver.solve(nev, "reference modes")
+            if values[-1] > lam_max or nev == n:
+                break
+            destroy(*vectors)
+            nev = min(2 * nev, n)
+        below = int(np.count_nonzero(values <= lam_max))
+        if below == 0:
+            destroy(*vectors)
+            raise InputError(f"no mode below max_frequency_hz = {max_frequency_hz} Hz "
+                             f"(the lowest is {np.sqrt(max(values[0], 0)) / (2 * np.pi):.6g} Hz)")
+        destroy(*vectors[below:])
+        return values[:below], vectors[:below], solver.below_shift()
+
+
+def _absolute(A: PETSc.Mat) -> PETSc.Mat:
+    """|A| entry by entry, with A's layout. Collective."""
+    indptr, cols, vals = A.getValuesCSR()
+    B = PETSc.Mat().createAIJ(size=A.getSizes(), csr=(indptr, cols, np.abs(vals)), comm=A.getComm())
+    B.assemble()
+    return B
+
+
+def accuracy(ops: Operators, values, vectors) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(estimate, residual, scale) of each M-normalized eigenpair (lambda_j, x_j) of (ops.K, ops.M):
+    estimate = u |x|^T |K| |x| / scale and residual = ||K x - lambda M x|| / (scale ||M x||) (module
+    docstring), relative to scale = |lambda_j|, or for a rigid-body mode (lambda ~ 0) the lowest
+    elastic eigenvalue among `values` (else eigen_scale). Collective; every rank gets rank 0's numbers."""
+    values = np.asarray(values, dtype=float)
+    elastic = values[ops.rigid_modes:]
+    reference = elastic[0] if elastic.size and elastic[0] > 0 else ops.eigen_scale
+    scale = np.abs(values)
+    scale[:ops.rigid_modes] = np.maximum(scale[:ops.rigid_modes], reference)
+    absK = _absolute(ops.K)
+    t, Kx, Mx = ops.K.createVecLeft(), ops.K.createVecLeft(), ops.K.createVecLeft()
+    estimate, residual = np.full(values.size, np.inf), np.full(values.size, np.inf)
+    for j, (lam, x) in enumerate(zip(values, vectors)):
+        x.copy(t)
+        t.abs()
+        absK.mult(t, Kx)
+        quadratic = t.dot(Kx)                       # |x|^T |K| |x|
+        ops.K.mult(x, Kx)
+        ops.M.mult(x, Mx)
+        Kx.axpy(-lam, Mx)
+        r, m = Kx.norm(), Mx.norm()
+        if scale[j] > 0:
+            estimate[j] = 0.5 * np.finfo(float).eps * quadratic / scale[j]
+            if m > 0:
+                residual[j] = r / (scale[j] * m)
+    destroy(absK, t, Kx, Mx)
+    # Reductions may round differently on different ranks: take rank 0's numbers, so that every rank
+    # decides alike.
+    estimate, residual = ops.comm.tompi4py().bcast((estimate, residual), root=0)
+    return estimate, residual, scale
+
+
+def trust_check(ops: Operators, values, estimate, residual, prefix: str = "modes_") -> None:
+    """Refuse eigenpairs that cannot be trusted to TRUST_TOL (module docstring), given accuracy()'s
+    estimate and residual: an InputError naming the largest trustworthy mesh (beams) or the
+    ill-conditioning (matrices), or a SolverError for a residual the round-off does not explain.
+    Every rank takes the same path (the numbers are the same on every rank)."""
+    tol = PETSc.Options(prefix).getReal("trust_tol", TRUST_TOL)
+    j = int(np.argmax(estimate))
+    if estimate[j] > tol:
+        f = np.sqrt(max(values[j], 0.0)) / (2 * np.pi)
+        cause = (f"rounding may change the eigenvalue of mode {j + 1} ({f:.6g} Hz) by up to {estimate[j]:.1e} "
+                 f"relative (condition number {estimate[j] / (0.5 * np.finfo(float).eps):.1e}), more than the "
+                 f"{tol:g} allowed")
+        if ops.mesh is not None:
+            elements = ops.mesh.beam.elements
+            limit = _element_limit(ops, j + 1, estimate[j], tol, prefix)
+            raise InputError(f"reference modes: the beam mesh is too fine for double precision: {cause}; "
+                             f"use at most ~{limit} elements, not {elements} (or raise -{prefix}trust_tol)")
+        raise InputError(f"reference modes: K is too ill-conditioned for double precision: {cause}; use a "
+                         f"coarser model (or raise -{prefix}trust_tol)")
+    j = int(np.argmax(residual))
+    if residual[j] > np.sqrt(tol):
+        raise SolverError(f"reference modes: eigenpair {j + 1} has relative residual {residual[j]:.1e} "
+                          f"> {np.sqrt(tol):.1e}: the eigensolver's answer is not an eigenpair of (K, M); "
+                          f"check the -{prefix}st_ solver options (an exact factorization is needed)")
+
+
+def _element_limit(ops: Operators, count: int, estimate: float, tol: float, prefix: str) -> int:
+    """The largest element count of ops' beam whose lowest `count` eigenvalues pass TRUST_TOL, with
+    10 % to spare: the estimate grows like elements^4. On a mesh too fine the eigenvalue itself is
+    wrong (too high), so measure the estimate on a coarse mesh of the same beam (same solver options).
+    Collective."""
+    import dataclasses
+
+    from .structure import assemble_beam
+
+    elements = ops.mesh.beam.elements
+    if elements > COARSE_ELEMENTS:
+        coarse = assemble_beam(dataclasses.replace(ops.mesh.beam, elements=COARSE_ELEMENTS), comm=ops.comm)
+        count = min(count, coarse.size)
+        vectors = []
+        try:
+            with LowestModes(coarse, coarse.K, prefix) as solver:
+                values, vectors = solver.solve(count, "reference modes of a coarse mesh")
+            for x in vectors:
+                normalize(x, coarse.M)
+            estimate = float(np.max(accuracy(coarse, values, vectors)[0]))
+            elements = COARSE_ELEMENTS
+        except DbfError:
+            pass    # keep the fine mesh's (optimistic) estimate
+        finally:
+            destroy(*vectors)
+            coarse.destroy()
+    return _two_digits_down(0.9 * elements * (tol / estimate) ** 0.25)
+
+
+def _two_digits_down(x: float) -> int:
+    """x rounded down to two significant digits (at least 1)."""
+    if x < 1:
+        return 1
+    step = 10 ** max(int(np.floor(np.log10(x))) - 1, 0)
+    return int(x // step * step)
+
+
+def _check_definite(ops: Operators, values, negative, estimate, scale) -> None:
+    """An InputError for an indefinite K: negative pivots, or a clearly negative eigenvalue (rigid-body
+    modes are zero to round-off, up to estimate * scale)."""
+    if negative:
+        raise InputError(f"the stiffness matrix is not positive semi-definite ({negative} eigenvalue(s) "
+                         f"below zero); check K and its boundary conditions")
+    if values[0] < -(1e-8 * max(abs(values[-1]), ops.eigen_scale) + estimate[0] * scale[0]):
+        raise InputError(f"the stiffness matrix is not positive semi-definite (eigenvalue {values[0]:.3g}); "
+                         f"check K and its boundary conditions")
+
+
 def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: float | None = None,
                     prefix: str = "modes_") -> ModalBasis:
     """The lowest reference modes: `count` of them, or every mode below `max_frequency_hz`.
 
-    Collective on ops.comm. Raises SolverError if the solver converges fewer pairs than needed.
+    Collective on ops.comm. Raises SolverError if the solver converges fewer pairs than needed,
+    refuses pairs that cannot be trusted to TRUST_TOL (trust_check), and an indefinite K.
     """
     if (count is None) == (max_frequency_hz is None):
         raise InputError("give the number of modes or a maximum frequency, not both")
     n = ops.size
-    if count is not None:
-        if count < 1 or count > n:
-            raise InputError(f"number of modes must be between 1 and {n} (the free DOFs), got {count}")
-        eps = eigen_solver(ops, ops.K, count, prefix)
-        values, vectors = solve_lowest(eps, count, "reference modes")
-    else:
-        if not max_frequency_hz > 0:
-            raise InputError(f"max_frequency_hz must be positive, got {max_frequency_hz}")
-        lam_max = (2 * np.pi * max_frequency_hz) ** 2
-        nev = min(8, n)
-        eps = eigen_solver(ops, ops.K, nev, prefix)
-        while True:
-            values, vectors = solve_lowest(eps, nev, "reference modes")
-            if values[-1] > lam_max or nev == n:
-                break
-            for v in vectors:
-                v.destroy()
-            nev = min(2 * nev, n)
-        below = int(np.count_nonzero(values <= lam_max))
-        if below == 0:
-            raise InputError(f"no mode below max_frequency_hz = {max_frequency_hz} Hz "
-                             f"(the lowest is {np.sqrt(max(values[0], 0)) / (2 * np.pi):.6g} Hz)")
-        for v in vectors[below:]:
-            v.destroy()
-        values, vectors = values[:below], vectors[:below]
-    negative = eigenvalues_below_shift(eps)
-    eps.destroy()
-    if negative:
-        raise InputError(f"the stiffness matrix is not positive semi-definite ({negative} eigenvalue(s) below "
-                         f"zero); check K and its boundary conditions")
-
-    bv = SLEPc.BV().create(comm=ops.comm)
-    bv.setSizesFromVec(vectors[0], len(vectors))
-    bv.setType(SLEPc.BV.Type.SVEC)
-    for j, x in enumerate(vectors):
-        normalize(x, ops.M)
-        bv.insertVec(j, x)
-        x.destroy()
+    if count is not None and not 1 <= count <= n:
+        raise InputError(f"number of modes must be between 1 and {n} (the free DOFs), got {count}")
+    if max_frequency_hz is not None and not max_frequency_hz > 0:
+        raise InputError(f"max_frequency_hz must be positive, got {max_frequency_hz}")
+    values, vectors, negative = _solve_reference(ops, count, max_frequency_hz, prefix)
+    bv = None
+    try:
+        for x in vectors:
+            normalize(x, ops.M)
+        estimate, residual, scale = accuracy(ops, values, vectors)
+        # First whether double precision can answer at all: rounding in a K too ill-conditioned also
+        # shows as negative pivots or eigenvalues.
+        trust_check(ops, values, estimate, residual, prefix)
+        _check_definite(ops, values, negative, estimate, scale)
+        bv = SLEPc.BV().create(comm=ops.comm)
+        bv.setSizesFromVec(vectors[0], len(vectors))
+        bv.setType(SLEPc.BV.Type.SVEC)
+        for j, x in enumerate(vectors):
+            bv.insertVec(j, x)
+    except Exception:
+        destroy(bv)
+        raise
+    finally:
+        destroy(*vectors)
     bv.setMatrix(ops.M, False)
-    # Rigid-body modes are zero to round-off; a clearly negative eigenvalue is an indefinite K.
-    if values[0] < -1e-8 * max(abs(values[-1]), ops.eigen_scale):
-        raise InputError(f"the stiffness matrix is not positive semi-definite (eigenvalue {values[0]:.3g}); "
-                         f"check K and its boundary conditions")
-    omega = np.sqrt(np.clip(values, 0.0, None))
-    return ModalBasis(omega=omega, vectors=bv)
+    return ModalBasis(omega=np.sqrt(np.clip(values, 0.0, None)), vectors=bv)

@@ -1,19 +1,21 @@
-"""HDF5 output of a run (one file; the layout is a contract, see README "Outputs").
+"""Where a run's samples go: an HDF5 file (the layout of layout.py is a contract, see README
+"Outputs") or memory (the Python API).
 
-The file is written by rank 0 under a temporary name `OUT.h5.partial` while the run goes, samples
-streamed in blocks (memory stays flat however long the run), and renamed to OUT.h5 only when it is
-complete: a crash leaves a `.partial` file, never one that looks finished, and never touches an
-existing OUT.h5.
+The HDF5 file is written by rank 0 under a temporary name `OUT.h5.partial` while the run goes,
+samples streamed in blocks (memory stays flat however long the run), and renamed to OUT.h5 only
+when it is complete: a crash leaves a `.partial` file, never one that looks finished, and never
+touches an existing OUT.h5 (a successful rerun replaces it).
 """
 from __future__ import annotations
 
 import json
 import os
+import socket
 
 import h5py
 import numpy as np
 
-from . import __version__
+from . import __version__, layout
 from .errors import InputError
 
 BLOCK = 1024  # samples buffered between writes
@@ -30,37 +32,123 @@ def check_output_path(path: str) -> str:
     return path
 
 
-class OutputWriter:
-    """Rank 0's writer. Series: time, constraint displacement/velocity/force, the peak force since
-    the previous sample (impacts are often shorter than a sample), probe displacement, reduced q and
-    q'. Fixed-size data (positions, basis, reduced operators, snapshots) at `finish`."""
+def series_shapes(constraint_shape: tuple, n_probes: int, r: int) -> dict:
+    """The shape of one sample of each series (constraint_shape: (N_L,) or (N_L, d))."""
+    shapes = {layout.TIME: (), layout.PROBE_DISPLACEMENT: (n_probes,), layout.REDUCED_Q: (r,),
+              layout.REDUCED_QDOT: (r,)}
+    for name in (layout.CONSTRAINT_DISPLACEMENT, layout.CONSTRAINT_VELOCITY, layout.CONSTRAINT_FORCE,
+                 layout.CONSTRAINT_FORCE_PEAK):
+        shapes[name] = tuple(constraint_shape)
+    return shapes
 
-    def __init__(self, path: str, n_constraints: int, n_probes: int, r: int):
+
+class OutputLock:
+    """An exclusive claim on an output: `PATH.lock`, created atomically (O_CREAT | O_EXCL works on
+    NFS and Lustre, where HDF5's own file locking is often switched off), holding the host and pid
+    of the job. A second job on the same output is refused; a lock whose job is gone (same host, no
+    such process) is taken over. Rank 0 only."""
+
+    def __init__(self, path: str, what: str = "output"):
+        self.path, self.lock, self.what = path, f"{path}.lock", what
+        self.held = False
+
+    def acquire(self) -> None:
+        owner = f"{socket.gethostname()} {os.getpid()}\n"
+        for _ in range(2):
+            try:
+                fd = os.open(self.lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                if self._stale():
+                    os.remove(self.lock)
+                    continue
+                raise InputError(f"{self.what} {self.path!r} is being written by another job ({self._holder()}); "
+                                 f"wait for it, or remove {self.lock} if that job is gone") from None
+            except OSError as e:
+                raise InputError(f"{self.what} {self.path!r}: cannot create {self.lock}: {e.strerror or e}") from None
+            with os.fdopen(fd, "w") as f:
+                f.write(owner)
+            self.held = True
+            return
+        raise InputError(f"{self.what} {self.path!r}: cannot take the lock {self.lock}; remove it if no job runs")
+
+    def _holder(self) -> str:
+        try:
+            with open(self.lock) as f:
+                host, pid = f.read().split()
+            return f"pid {pid} on {host}"
+        except (OSError, ValueError):
+            return "unknown job"
+
+    def _stale(self) -> bool:
+        try:
+            with open(self.lock) as f:
+                host, pid = f.read().split()
+            if host != socket.gethostname():
+                return False
+            os.kill(int(pid), 0)
+            return False
+        except ProcessLookupError:
+            return True
+        except (OSError, ValueError):
+            return False
+
+    def release(self) -> None:
+        if self.held and os.path.exists(self.lock):
+            os.remove(self.lock)
+        self.held = False
+
+
+class MemoryWriter:
+    """Samples kept in memory, for runs from Python (OutputWriter's interface without a file)."""
+
+    def __init__(self, constraint_shape: tuple, n_probes: int, r: int):
+        self.shapes = series_shapes(constraint_shape, n_probes, r)
+        self.buffer = {name: [] for name in self.shapes}
+        self.count = 0
+
+    def append(self, **values) -> None:
+        for name, buffer in self.buffer.items():
+            buffer.append(np.asarray(values[name], dtype=float).reshape(self.shapes[name]))
+        self.count += 1
+
+    def flush(self) -> None:
+        pass
+
+    def series_data(self, name: str) -> np.ndarray:
+        return np.array(self.buffer[name], dtype=float).reshape((self.count, *self.shapes[name]))
+
+
+class OutputWriter:
+    """Rank 0's writer of one run's HDF5 output: the series of layout.SERIES streamed, the
+    fixed-size data and the attributes at `finish`."""
+
+    def __init__(self, path: str, constraint_shape: tuple, n_probes: int, r: int):
         self.path = path
         self.partial = f"{path}.partial"
         self.file = h5py.File(self.partial, "w")
         self.file.attrs["complete"] = False
-        shapes = {"time": (), "constraints/displacement": (n_constraints,), "constraints/velocity": (n_constraints,),
-                  "constraints/force": (n_constraints,), "constraints/force_peak": (n_constraints,),
-                  "probes/displacement": (n_probes,),
-                  "reduced/q": (r,), "reduced/qdot": (r,)}
+        shapes = series_shapes(constraint_shape, n_probes, r)
         # Zero-width series (no constraints, no probes) are written empty at the end: HDF5 cannot
         # chunk a zero-size dimension.
-        self.empty = [name for name, shape in shapes.items() if shape and shape[0] == 0]
-        self.series = {name: self.file.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape),
-                                                      chunks=(BLOCK, *shape), dtype="f8")
-                       for name, shape in shapes.items() if name not in self.empty}
+        self.empty = [name for name, shape in shapes.items() if 0 in shape]
+        self.series = {}
+        for name in layout.SERIES:
+            if name not in self.empty:
+                shape = shapes[name]
+                self.series[name] = self.file.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape),
+                                                             chunks=(BLOCK, *shape), dtype="f8")
+        self.shapes = shapes
         self.buffer = {name: [] for name in self.series}
         self.count = 0
 
     def append(self, **values) -> None:
         for name, buffer in self.buffer.items():
             buffer.append(values[name])
-        if len(self.buffer["time"]) >= BLOCK:
+        if len(self.buffer[layout.TIME]) >= BLOCK:
             self.flush()
 
     def flush(self) -> None:
-        n = len(self.buffer["time"])
+        n = len(self.buffer[layout.TIME])
         if not n:
             return
         for name, dataset in self.series.items():
@@ -77,26 +165,25 @@ class OutputWriter:
         self = cls.__new__(cls)
         self.path, self.partial = path, f"{path}.partial"
         self.file = h5py.File(self.partial, "r+")
-        if self.file.attrs.get("complete", True):
-            raise KeyError("not an incomplete dbf-hpc output")
-        self.series, self.empty = {}, []
-        for name in ("time", "constraints/displacement", "constraints/velocity", "constraints/force",
-                     "constraints/force_peak", "probes/displacement", "reduced/q", "reduced/qdot"):
-            if name not in self.file:  # zero-width series are only written at the end
-                self.empty.append(name)
-                continue
-            dataset = self.file[name]
-            if dataset.shape[0] < samples:
-                raise KeyError(f"{name} holds {dataset.shape[0]} samples, the checkpoint {samples}")
-            dataset.resize(samples, axis=0)
-            self.series[name] = dataset
+        try:
+            if self.file.attrs.get("complete", True):
+                raise KeyError("not an incomplete dbf-hpc output")
+            self.series, self.empty = {}, []
+            for name in layout.SERIES:
+                if name not in self.file:  # zero-width series are only written at the end
+                    self.empty.append(name)
+                    continue
+                dataset = self.file[name]
+                if dataset.shape[0] < samples:
+                    raise KeyError(f"{name} holds {dataset.shape[0]} samples, the checkpoint {samples}")
+                dataset.resize(samples, axis=0)
+                self.series[name] = dataset
+        except Exception:
+            self.file.close()
+            raise
         self.buffer = {name: [] for name in self.series}
         self.count = samples
         return self
-
-    def close(self) -> None:
-        self.flush()
-        self.file.close()
 
     def series_data(self, name: str) -> np.ndarray:
         """A series as written so far (rank 0 reads back what it streamed out)."""
@@ -106,12 +193,16 @@ class OutputWriter:
         return self.series[name][...]
 
     def finish(self, datasets: dict, attrs: dict, dataset_attrs: dict | None = None) -> None:
-        """Write the fixed-size data and the attributes, close, and rename into place."""
+        """Write the fixed-size data and the attributes (every dataset with its unit and meaning),
+        close, and rename into place."""
         self.flush()
         for name in self.empty:
             self.file.create_dataset(name, shape=(self.count, 0), dtype="f8")
         for name, value in datasets.items():
             self.file.create_dataset(name, data=np.asarray(value))
+        for name, (unit, meaning) in layout.DATASETS.items():
+            if name in self.file:
+                self.file[name].attrs.update({"unit": unit, "description": meaning})
         for name, extra in (dataset_attrs or {}).items():
             self.file[name].attrs.update(extra)
         for key, value in attrs.items():

@@ -1,88 +1,46 @@
-"""Scene files: what to simulate, in TOML with SI units, validated once here.
+"""Scene files: what to simulate, in TOML with SI units, validated once here and translated into
+the descriptions the core takes (structure, constraints, excitation, damping, basis and integrator
+settings, initial state, output). Nothing below this module reads a scene.
 
-Sections and keys (the contract; unknown sections or keys are errors naming them):
-
-    [structure]   kind = "beam" | "matrices"
-                  beam:     length, elements, E, I, A, rho, left, right, supports = [x, ...]
-                  matrices: stiffness, mass, damping (optional C), influence, base_mass_load (files)
-    [excitation]  kind = "none" | "base" | "force" | "random", amplitude (m or N), frequency_hz,
-                  end = "left" | "right" (base), x (force on a beam) or dof (force on matrices);
-                  random: a distributed force per unit length on a beam, band-limited with a flat
-                  one-sided PSD psd ((N/m)^2/Hz) over band = [f_low, f_high] Hz, from seed (an
-                  integer: the same seed gives the same history), components (cosines), over
-                  span = [x0, x1] (default the whole beam), fully correlated along the span
-    [[constraint]] x (beam) or dof (matrices), law, and the law's parameters (see laws.py)
-    [basis]       modes (a count) or max_frequency_hz; enrichment = "dbf" (the method, default) |
-                  "static" (static attachment modes K^-1 g_j instead of DBFs) | "none" (modes
-                  only), the last two as comparators; dbf_stiffness = "auto" | a number (N/m);
-                  dbf_derivative = "analytic" | "central" (both for "dbf" only); groups (0: automatic);
-                  cache = a directory for cached bases (default ~/.cache/dbf_hpc) or "off"
-    [damping]     zeta (one ratio or a list), or rayleigh_alpha, rayleigh_beta
-    [integrator]  t_end, dt, scheme, adaptive, rtol, atol, contact = "implicit" | "explicit"
-    [initial]     mode, amplitude (an initial displacement in a reference mode, m)
-    [output]      file, sample_dt, probes = [x, ...], snapshots (count), checkpoint_dt (simulated
-                  seconds between checkpoints; default t_end / 10)
-
-Relative paths in the scene (matrix files, output) are relative to the scene file's folder.
+The sections and keys are the contract of schema.py (rendered as docs/scene.md); an unknown
+section or key is an error that lists the valid ones. Relative paths in a scene (matrix files,
+output) are relative to the scene file's folder.
 """
 from __future__ import annotations
 
+import math
 import os
 import tomllib
 from dataclasses import dataclass, field
 from typing import Optional
 
+from .basis import ENRICHMENTS, BasisSettings
+from .constraints import Constraint
 from .damping import Damping
 from .errors import InputError
-from .laws import Law, law_from_dict
+from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce
+from .fom import FullOrderModel, InitialState
+from .laws import law_from_dict
+from .matrices import MatrixFiles
+from .schema import NUMBER, SECTIONS, valid_keys
 from .structure import BOUNDARIES, Beam
+from .timestepping import IntegratorSettings
 
-NUMBER = (int, float)
-
-# section -> key -> (accepted types, default; REQUIRED if it must be given)
-REQUIRED = object()
-SCHEMA = {
-    "structure": {
-        "kind": (str, "beam"), "length": (NUMBER, None), "elements": (int, 100), "E": (NUMBER, None),
-        "I": (NUMBER, None), "A": (NUMBER, None), "rho": (NUMBER, None), "left": (str, "pinned"),
-        "right": (str, "pinned"), "supports": (list, []), "stiffness": (str, None), "mass": (str, None),
-        "damping": (str, None), "influence": (str, None), "base_mass_load": (str, None),
-    },
-    "excitation": {
-        "kind": (str, "none"), "amplitude": (NUMBER, 0.0), "frequency_hz": (NUMBER, 0.0),
-        "end": (str, "left"), "x": (NUMBER, None), "dof": (int, None),
-        "psd": (NUMBER, 0.0), "band": (list, []), "seed": (int, 1), "components": (int, 256), "span": (list, []),
-    },
-    "basis": {
-        "modes": (int, None), "max_frequency_hz": (NUMBER, None), "dbf_stiffness": ((str, *NUMBER), "auto"),
-        "dbf_derivative": (str, "analytic"), "groups": (int, 0), "cache": (str, "~/.cache/dbf_hpc"),
-        "enrichment": (str, "dbf"),
-    },
-    "damping": {"zeta": ((*NUMBER, list), 0.0), "rayleigh_alpha": (NUMBER, 0.0), "rayleigh_beta": (NUMBER, 0.0)},
-    "integrator": {
-        "t_end": (NUMBER, 1.0), "dt": (NUMBER, 1e-4), "scheme": ((str, int), "3"), "adaptive": (bool, True),
-        "rtol": (NUMBER, 1e-6), "atol": (NUMBER, 1e-9), "contact": (str, "implicit"),
-    },
-    "initial": {"mode": (int, 1), "amplitude": (NUMBER, 0.0)},
-    "output": {
-        "file": (str, None), "sample_dt": (NUMBER, None), "probes": (list, []), "snapshots": (int, 0),
-        "checkpoint_dt": (NUMBER, None),
-    },
-}
-CONSTRAINT_POSITION = {"x": NUMBER, "dof": int}
+SCHEMA = {section: {name: (key.types, key.default) for name, key in keys.items()}
+          for section, (_, keys) in SECTIONS.items()}
 
 
 @dataclass(frozen=True)
-class Constraint:
-    """One discrete constraint: where it acts (x on a beam, dof of an external model) and its law."""
+class OutputSettings:
+    """[output]: the file (resolved against the scene's folder), the sample interval (s), the
+    probes (x in m on a beam, DOFs of a matrix model), the snapshot count and the simulated time
+    between checkpoints (s)."""
 
-    x: Optional[float]
-    dof: Optional[int]
-    law: Law
-
-    @property
-    def label(self) -> str:
-        return f"x = {self.x:g} m" if self.x is not None else f"dof {self.dof}"
+    file: Optional[str]
+    sample_dt: float
+    probes: tuple
+    snapshots: int
+    checkpoint_dt: float
 
 
 @dataclass(frozen=True)
@@ -107,19 +65,57 @@ class Scene:
                     rho=float(s["rho"]), elements=s["elements"], left=s["left"], right=s["right"],
                     supports=tuple(float(x) for x in s["supports"]))
 
+    def structure(self):
+        """The structure: a Beam, or the MatrixFiles with paths resolved against the scene's folder."""
+        if self.is_beam:
+            return self.beam()
+        s = self["structure"]
+        return MatrixFiles(**{key: self.resolve(s[key]) if s[key] else None
+                              for key in ("stiffness", "mass", "damping", "influence", "base_mass_load")})
+
+    def excitation(self):
+        """The excitation description (excitation.py)."""
+        e = self["excitation"]
+        if e["kind"] == "base":
+            return BaseMotion(float(e["amplitude"]), float(e["frequency_hz"]), e["end"])
+        if e["kind"] == "force":
+            return PointForce(float(e["amplitude"]), float(e["frequency_hz"]), x=e["x"], dof=e["dof"])
+        if e["kind"] == "random":
+            return RandomForce(float(e["psd"]), tuple(e["band"]), e["seed"], e["components"], tuple(e["span"]))
+        return NoExcitation()
+
     def damping(self) -> Damping:
         d = self["damping"]
         zeta = tuple(d["zeta"]) if isinstance(d["zeta"], list) else float(d["zeta"])
         return Damping(zeta=zeta, rayleigh_alpha=float(d["rayleigh_alpha"]),
                        rayleigh_beta=float(d["rayleigh_beta"]))
 
-    def basis_settings(self):
-        from .basis import BasisSettings
+    def initial(self) -> InitialState:
+        return InitialState(mode=self["initial"]["mode"], amplitude=float(self["initial"]["amplitude"]))
 
+    def basis_settings(self):
         b = self["basis"]
         return BasisSettings(modes=b["modes"], max_frequency_hz=b["max_frequency_hz"],
                              dbf_stiffness=b["dbf_stiffness"], dbf_derivative=b["dbf_derivative"],
                              groups=b["groups"], enrichment=b["enrichment"])
+
+    def integrator_settings(self) -> IntegratorSettings:
+        i = self["integrator"]
+        return IntegratorSettings(t_end=float(i["t_end"]), dt=float(i["dt"]), scheme=i["scheme"],
+                                  adaptive=i["adaptive"], rtol=float(i["rtol"]), atol=float(i["atol"]),
+                                  contact=i["contact"], sample_dt=float(self.output().sample_dt))
+
+    def output(self) -> OutputSettings:
+        o, t_end = self["output"], float(self["integrator"]["t_end"])
+        return OutputSettings(file=self.resolve(o["file"]) if o["file"] else None,
+                              sample_dt=float(o["sample_dt"] or t_end / 10000), probes=tuple(o["probes"]),
+                              snapshots=o["snapshots"], checkpoint_dt=float(o["checkpoint_dt"] or t_end / 10))
+
+    def full_order_model(self, comm=None) -> FullOrderModel:
+        """The full-order model this scene describes, assembled on comm (default COMM_WORLD).
+        Collective."""
+        return FullOrderModel.build(self.structure(), self.constraints, self.excitation(), self.damping(),
+                                    self.output().probes, self.initial(), comm)
 
     def cache_dir(self):
         """The basis cache directory, or None when the scene turns caching off."""
@@ -159,11 +155,23 @@ def load_scene(path: str, overrides=()) -> Scene:
     for item in overrides:
         section, key, value = parse_override(item)
         if section == "constraint":
-            for c in data.get("constraint", []):
-                c[key] = value
+            _override_constraints(data.get("constraint", []), key, value, item)
         else:
             data.setdefault(section, {})[key] = value
     return validate(data, path, text)
+
+
+def _override_constraints(constraints, key: str, value, item: str) -> None:
+    """constraint.key sets every constraint; constraint.N.key the N-th (from 1)."""
+    index, dot, rest = key.partition(".")
+    if not dot:
+        for c in constraints:
+            c[key] = value
+        return
+    if not index.isdigit() or not 1 <= int(index) <= len(constraints):
+        raise InputError(f"--set {item!r}: constraint.N.key needs N from 1 to {len(constraints)} (the scene's "
+                         f"constraints), or constraint.key for all of them")
+    constraints[int(index) - 1][rest] = value
 
 
 def _check_type(where: str, key: str, value, types) -> None:
@@ -172,6 +180,9 @@ def _check_type(where: str, key: str, value, types) -> None:
         raise InputError(f"{where}: {key} must be {_type_name(types)}, got {value!r}")
     if not isinstance(value, types):
         raise InputError(f"{where}: {key} must be {_type_name(types)}, got {value!r}")
+    numbers = value if isinstance(value, list) else [value]
+    if any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
+        raise InputError(f"{where}: {key} must be finite, got {value!r}")
 
 
 def _type_name(types) -> str:
@@ -181,11 +192,11 @@ def _type_name(types) -> str:
     return " or ".join(names[t] for t in types)
 
 
-def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
-    """Check every section and key of a parsed scene; fill in defaults."""
+def _sections(data: dict, path: str) -> dict:
+    """Every section with its keys type-checked and defaults filled in."""
     for name in data:
         if name not in SCHEMA and name != "constraint":
-            raise InputError(f"{path}: unknown section [{name}]")
+            raise InputError(f"{path}: unknown section [{name}] (sections: {', '.join(SCHEMA)}, [[constraint]])")
     sections = {}
     for name, keys in SCHEMA.items():
         given = data.get(name, {})
@@ -193,12 +204,13 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
             raise InputError(f"{path}: [{name}] must be a table")
         for key, value in given.items():
             if key not in keys:
-                raise InputError(f"{path}: unknown key '{key}' in [{name}]")
+                raise InputError(f"{path}: unknown key '{key}' in [{name}] (valid keys: {valid_keys(name)})")
             _check_type(f"{path}: [{name}]", key, value, keys[key][0])
         sections[name] = {key: given.get(key, default) for key, (_, default) in keys.items()}
+    return sections
 
-    where = f"{path}: [structure]"
-    s = sections["structure"]
+
+def _check_structure(s: dict, where: str) -> None:
     if s["kind"] == "beam":
         for key in ("length", "E", "I", "A", "rho"):
             if s[key] is None:
@@ -216,49 +228,55 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
                 raise InputError(f"{where}: {key} (a matrix file) is required for kind = \"matrices\"")
     else:
         raise InputError(f"{where}: kind must be \"beam\" or \"matrices\", got {s['kind']!r}")
-    beam = s["kind"] == "beam"
-    position_key = "x" if beam else "dof"
 
-    def check_position(where, value):
-        if beam:
-            if not (isinstance(value, NUMBER) and not isinstance(value, bool) and 0 <= value <= s["length"]):
-                raise InputError(f"{where}: x = {value!r} is not on the beam [0, {s['length']}] m")
+
+class _Positions:
+    """Checks positions on the structure: x on a beam, a DOF of a matrix model."""
+
+    def __init__(self, structure: dict):
+        self.beam = structure["kind"] == "beam"
+        self.length = structure["length"]
+        self.key = "x" if self.beam else "dof"
+
+    def check(self, where: str, value) -> None:
+        if self.beam:
+            if not (isinstance(value, NUMBER) and not isinstance(value, bool) and 0 <= value <= self.length):
+                raise InputError(f"{where}: x = {value!r} is not on the beam [0, {self.length}] m")
         elif not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
             raise InputError(f"{where}: dof must be a non-negative integer, got {value!r}")
 
-    for x in s["supports"]:
-        check_position(f"{where} supports", x)
 
-    constraints = []
-    raw_constraints = data.get("constraint", [])
-    if not isinstance(raw_constraints, list):
+def _constraints(raw, path: str, at: _Positions, kind: str) -> tuple:
+    if not isinstance(raw, list):
         raise InputError(f"{path}: constraints are written [[constraint]] (an array of tables)")
-    for i, c in enumerate(raw_constraints):
-        cwhere = f"{path}: [[constraint]] {i + 1}"
+    constraints = []
+    for i, c in enumerate(raw):
+        where = f"{path}: [[constraint]] {i + 1}"
         if not isinstance(c, dict):
-            raise InputError(f"{cwhere} must be a table")
-        other = "dof" if beam else "x"
+            raise InputError(f"{where} must be a table")
+        other = "dof" if at.beam else "x"
         if other in c:
-            raise InputError(f"{cwhere}: use {position_key}, not {other}, on a {s['kind']} structure")
-        if position_key not in c:
-            raise InputError(f"{cwhere}: {position_key} is required")
-        check_position(cwhere, c[position_key])
-        law = law_from_dict(i + 1, {k: v for k, v in c.items() if k != position_key})
-        constraints.append(Constraint(x=float(c["x"]) if beam else None,
-                                      dof=None if beam else c["dof"], law=law))
+            raise InputError(f"{where}: use {at.key}, not {other}, on a {kind} structure")
+        if at.key not in c:
+            raise InputError(f"{where}: {at.key} is required")
+        at.check(where, c[at.key])
+        law = law_from_dict(i + 1, {k: v for k, v in c.items() if k != at.key})
+        constraints.append(Constraint(law=law, x=float(c["x"]) if at.beam else None, dof=None if at.beam else c["dof"]))
     seen = {}
     for i, c in enumerate(constraints):
-        key = round(c.x / s["length"], 9) if beam else c.dof
+        key = round(c.x / at.length, 9) if at.beam else c.dof
         if key in seen:
             raise InputError(f"{path}: constraints {seen[key] + 1} and {i + 1} are both at {c.label}; "
                              f"remove one or merge their laws")
         seen[key] = i
+    return tuple(constraints)
 
-    e, where = sections["excitation"], f"{path}: [excitation]"
+
+def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
     if e["kind"] not in ("none", "base", "force", "random"):
         raise InputError(f"{where}: kind must be \"none\", \"base\", \"force\" or \"random\", got {e['kind']!r}")
     if e["kind"] == "random":
-        if not beam:
+        if not at.beam:
             raise InputError(f"{where}: random forcing is distributed along a beam; not available for matrices")
         band = e["band"]
         if not (len(band) == 2 and all(isinstance(b, NUMBER) for b in band) and 0 <= band[0] < band[1]):
@@ -268,7 +286,7 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
         if e["components"] < 1:
             raise InputError(f"{where}: components must be at least 1, got {e['components']}")
         span = e["span"] or [0.0, s["length"]]
-        if not (len(span) == 2 and 0 <= span[0] < span[1] <= s["length"]):
+        if not (len(span) == 2 and all(isinstance(v, NUMBER) for v in span) and 0 <= span[0] < span[1] <= s["length"]):
             raise InputError(f"{where}: span must be [x0, x1] within the beam, got {e['span']!r}")
         e["span"] = [float(v) for v in span]
     elif e["kind"] != "none":
@@ -277,13 +295,14 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
         if e["end"] not in ("left", "right"):
             raise InputError(f"{where}: end must be \"left\" or \"right\", got {e['end']!r}")
         if e["kind"] == "force":
-            if e[position_key] is None:
-                raise InputError(f"{where}: a force needs its position ({position_key})")
-            check_position(where, e[position_key])
-        if e["kind"] == "base" and not beam and s["influence"] is None:
+            if e[at.key] is None:
+                raise InputError(f"{where}: a force needs its position ({at.key})")
+            at.check(where, e[at.key])
+        if e["kind"] == "base" and not at.beam and s["influence"] is None:
             raise InputError(f"{where}: base excitation of a matrices structure needs [structure] influence")
 
-    b, where = sections["basis"], f"{path}: [basis]"
+
+def _check_basis(b: dict, where: str) -> None:
     if b["modes"] is not None and b["max_frequency_hz"] is not None:
         raise InputError(f"{where}: give modes or max_frequency_hz, not both")
     if b["modes"] is None and b["max_frequency_hz"] is None:
@@ -299,12 +318,12 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
         raise InputError(f"{where}: dbf_derivative must be \"analytic\" or \"central\", got {b['dbf_derivative']!r}")
     if b["groups"] < 0:
         raise InputError(f"{where}: groups must be 0 (automatic) or a positive count, got {b['groups']}")
-    from .basis import ENRICHMENTS  # imported here, as in Scene.basis_settings
-
     if b["enrichment"] not in ENRICHMENTS:
         accepted = ", ".join(f'"{e}"' for e in ENRICHMENTS)
         raise InputError(f"{where}: enrichment must be one of {accepted}, got {b['enrichment']!r}")
 
+
+def _check_integrator_and_output(sections: dict, path: str, at: _Positions) -> None:
     i, where = sections["integrator"], f"{path}: [integrator]"
     i["scheme"] = str(i["scheme"]).lower()  # --set integrator.scheme=3 arrives as an integer
     for key in ("t_end", "dt", "rtol", "atol"):
@@ -312,21 +331,32 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
             raise InputError(f"{where}: {key} must be positive, got {i[key]!r}")
     if i["contact"] not in ("implicit", "explicit"):
         raise InputError(f"{where}: contact must be \"implicit\" or \"explicit\", got {i['contact']!r}")
-
     o, where = sections["output"], f"{path}: [output]"
     for x in o["probes"]:
-        check_position(f"{where} probes", x)
-    if o["sample_dt"] is not None and not o["sample_dt"] > 0:
-        raise InputError(f"{where}: sample_dt must be positive, got {o['sample_dt']!r}")
-    if o["checkpoint_dt"] is not None and not o["checkpoint_dt"] > 0:
-        raise InputError(f"{where}: checkpoint_dt must be positive, got {o['checkpoint_dt']!r}")
+        at.check(f"{where} probes", x)
+    for key in ("sample_dt", "checkpoint_dt"):
+        if o[key] is not None and not o[key] > 0:
+            raise InputError(f"{where}: {key} must be positive, got {o[key]!r}")
     if o["snapshots"] < 0:
         raise InputError(f"{where}: snapshots must be a count >= 0, got {o['snapshots']}")
     if sections["initial"]["mode"] < 1:
         raise InputError(f"{path}: [initial] mode counts from 1, got {sections['initial']['mode']}")
 
-    scene = Scene(path=path, text=text, sections=sections, constraints=tuple(constraints))
+
+def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
+    """Check every section and key of a parsed scene; fill in defaults."""
+    sections = _sections(data, path)
+    s = sections["structure"]
+    _check_structure(s, f"{path}: [structure]")
+    at = _Positions(s)
+    for x in s["supports"]:
+        at.check(f"{path}: [structure] supports", x)
+    constraints = _constraints(data.get("constraint", []), path, at, s["kind"])
+    _check_excitation(sections["excitation"], s, f"{path}: [excitation]", at)
+    _check_basis(sections["basis"], f"{path}: [basis]")
+    _check_integrator_and_output(sections, path, at)
+    scene = Scene(path=path, text=text, sections=sections, constraints=constraints)
     scene.damping()  # validates the damping section
-    if beam:
+    if at.beam:
         scene.beam()
     return scene

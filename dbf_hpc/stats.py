@@ -123,26 +123,12 @@ def _single_sample(z, v, force, contact) -> dict[str, np.ndarray]:
 _BLOCK_VALUES = 2 ** 18
 
 
-def impact_statistics(t, z, v, force, in_contact=None) -> dict[str, np.ndarray]:
-    """The impact statistics of STATISTICS (definitions in the module docstring), each of shape (N_L,).
-
-    t (nt,) strictly increasing; z, v, force, in_contact (nt, N_L); in_contact defaults to force != 0.
-    impacts is an int64 array, the others float64.
-    """
-    t, z, v, force, given = _check(t, z, v, force, in_contact)
+def _weighted_sums(w, z, v, force, given):
+    """One pass over blocks of rows: the weighted sums and peaks, and the contact runs as
+    (sums, first sample, constraint, first sample after) with the runs sorted by constraint, then
+    time."""
     nt, nl = z.shape
-    if nt == 1:
-        return _single_sample(z, v, force, (force != 0) if given is None else given)
-
-    duration_total = t[-1] - t[0]
-    bounds = np.empty(nt + 1)
-    bounds[0], bounds[-1] = t[0], t[-1]
-    bounds[1:-1] = 0.5 * (t[:-1] + t[1:])
-    w = np.diff(bounds)
-
-    # One pass over blocks of rows: weighted sums, peaks, and the edges of the contact runs.
-    force_sq, force_sq_contact, power, z_sq = (np.zeros(nl) for _ in range(4))
-    force_peak, z_peak = np.zeros(nl), np.zeros(nl)
+    sums = {name: np.zeros(nl) for name in ("force_sq", "force_sq_contact", "power", "z_sq", "force_peak", "z_peak")}
     starts, ends = [], []          # (sample, constraint) of each run's first sample / first sample after
     previous = np.zeros((1, nl), dtype=bool)   # contact before t[0]: none
     rows = max(1, _BLOCK_VALUES // max(nl, 1))
@@ -158,21 +144,21 @@ def impact_statistics(t, z, v, force, in_contact=None) -> dict[str, np.ndarray]:
         previous = cb[-1:]
 
         scratch = np.abs(fb)
-        np.maximum(force_peak, scratch.max(axis=0), out=force_peak)
+        np.maximum(sums["force_peak"], scratch.max(axis=0), out=sums["force_peak"])
         np.multiply(scratch, scratch, out=scratch)
-        force_sq += wb @ scratch
+        sums["force_sq"] += wb @ scratch
         if given is not None:
             np.multiply(scratch, cb, out=scratch)
-            force_sq_contact += wb @ scratch
+            sums["force_sq_contact"] += wb @ scratch
         np.multiply(fb, v[a:b], out=scratch)
         np.abs(scratch, out=scratch)
-        power += wb @ scratch
+        sums["power"] += wb @ scratch
         np.abs(z[a:b], out=scratch)
-        np.maximum(z_peak, scratch.max(axis=0), out=z_peak)
+        np.maximum(sums["z_peak"], scratch.max(axis=0), out=sums["z_peak"])
         np.multiply(scratch, scratch, out=scratch)
-        z_sq += wb @ scratch
+        sums["z_sq"] += wb @ scratch
     if given is None:  # force is exactly 0 out of contact
-        force_sq_contact = force_sq
+        sums["force_sq_contact"] = sums["force_sq"]
     j = np.flatnonzero(previous[0])  # runs still in contact at t[-1] end with the record
     ends.append((np.full(j.size, nt), j))
 
@@ -180,8 +166,25 @@ def impact_statistics(t, z, v, force, in_contact=None) -> dict[str, np.ndarray]:
     first, col = (np.concatenate(x) for x in zip(*starts))
     end, end_col = (np.concatenate(x) for x in zip(*ends))
     order = np.lexsort((first, col))
-    first, col = first[order], col[order]
-    end = end[np.lexsort((end, end_col))]
+    return sums, first[order], col[order], end[np.lexsort((end, end_col))]
+
+
+def impact_statistics(t, z, v, force, in_contact=None) -> dict[str, np.ndarray]:
+    """The impact statistics of STATISTICS (definitions in the module docstring), each of shape (N_L,).
+
+    t (nt,) strictly increasing; z, v, force, in_contact (nt, N_L); in_contact defaults to force != 0.
+    impacts is an int64 array, the others float64.
+    """
+    t, z, v, force, given = _check(t, z, v, force, in_contact)
+    nt, nl = z.shape
+    if nt == 1:
+        return _single_sample(z, v, force, (force != 0) if given is None else given)
+
+    duration_total = t[-1] - t[0]
+    bounds = np.empty(nt + 1)
+    bounds[0], bounds[-1] = t[0], t[-1]
+    bounds[1:-1] = 0.5 * (t[:-1] + t[1:])
+    sums, first, col, end = _weighted_sums(np.diff(bounds), z, v, force, given)
     durations = bounds[end] - bounds[first]
 
     impacts = np.bincount(col, minlength=nl).astype(np.int64)
@@ -195,7 +198,8 @@ def impact_statistics(t, z, v, force, in_contact=None) -> dict[str, np.ndarray]:
         duration_max[hit] = np.maximum.reduceat(durations, offsets[hit])
     force_rms_contact = np.zeros(nl)
     touched = contact_time > 0
-    force_rms_contact[touched] = np.sqrt(force_sq_contact[touched] / contact_time[touched])
+    force_rms_contact[touched] = np.sqrt(sums["force_sq_contact"][touched] / contact_time[touched])
+    force_sq, z_sq, power, force_peak, z_peak = (sums[k] for k in ("force_sq", "z_sq", "power", "force_peak", "z_peak"))
 
     return {
         "impacts": impacts,
@@ -251,6 +255,28 @@ class ImpactAccumulator:
             self.run += half * now[0]                     # this point's left half
         self.t_prev = t
         self.prev = now
+
+    _ARRAYS = ("impacts", "contact_time", "run", "duration_max", "f2", "z2", "power", "force_peak",
+               "displacement_peak")
+
+    def state(self) -> dict:
+        """Everything the accumulator holds, as numpy arrays (for a checkpoint)."""
+        out = {name: getattr(self, name).copy() for name in self._ARRAYS}
+        started = self.prev is not None
+        out["times"] = np.array([self.t0, self.t_prev] if started else [np.nan, np.nan])
+        out["prev"] = np.array(self.prev) if started else np.zeros((4, self.n))
+        out["started"] = np.array(started)
+        return out
+
+    @classmethod
+    def from_state(cls, state: dict) -> "ImpactAccumulator":
+        self = cls(np.asarray(state["impacts"]).size)
+        for name in self._ARRAYS:
+            setattr(self, name, np.array(state[name], dtype=float))
+        if bool(state["started"]):
+            self.t0, self.t_prev = (float(v) for v in state["times"])
+            self.prev = tuple(np.array(row, dtype=float) for row in state["prev"])
+        return self
 
     def result(self) -> dict:
         """The statistics so far (names as in STATISTICS, one value per constraint)."""

@@ -17,7 +17,8 @@ import numpy as np
 from petsc4py import PETSc
 
 from .errors import InputError
-from .operators import Operators, aij_from_owned_triplets, direct_solver, owned_rows
+from .operators import FieldMap, Operators
+from .petsctools import aij_from_owned_triplets, destroy, direct_solver, owned_rows
 
 W, THETA = 0, 1
 BOUNDARIES = {"pinned": (W,), "clamped": (W, THETA), "free": (), "sliding": (THETA,)}
@@ -102,6 +103,13 @@ class BeamMesh:
         if abs(self.x[i] - x) > POINT_TOL * self.beam.length:
             raise InputError(f"x = {x} m is not a node of the beam mesh")
         return i
+
+    def field_map(self, moving_end: str | None = None) -> FieldMap:
+        """w at every node; the fixed w of the `moving_end` support follows the support motion."""
+        moving = np.zeros(self.x.size)
+        if moving_end is not None:
+            moving[0 if moving_end == "left" else -1] = 1.0
+        return FieldMap(positions=self.x, rows=self.row[:, W].copy(), moving=moving)
 
     def w_row(self, x: float) -> int:
         """Row of the displacement DOF at x, or -1 if w is fixed there."""
@@ -201,28 +209,31 @@ def assemble_beam(beam: Beam, comm=None, points=(), base_end: str | None = None)
     def mass(h):
         return element_matrices(h, beam.EI, beam.rhoA)[1]
 
-    ops = Operators(comm=comm, K=None, M=None, mesh=mesh, rigid_modes=mesh.rigid_modes(),
-                    eigen_scale=beam.eigen_scale)
     if base_end is None:
-        ops.K = _assemble(comm, mesh, stiffness)
-        ops.M = _assemble(comm, mesh, mass)
-        return ops
+        return Operators(comm=comm, K=_assemble(comm, mesh, stiffness), M=_assemble(comm, mesh, mass), mesh=mesh,
+                         rigid_modes=mesh.rigid_modes(), eigen_scale=beam.eigen_scale, field=mesh.field_map())
     if base_end not in ("left", "right"):
         raise InputError(f"base excitation end must be 'left' or 'right', got {base_end!r}")
     node = 0 if base_end == "left" else mesh.elements
     if not mesh.fixed[node, W]:
         raise InputError(f"base excitation at the {base_end} end needs a transverse support there "
                          f"(pinned or clamped), but it is {getattr(beam, base_end)}")
-    if ops.rigid_modes:
+    if mesh.rigid_modes():
         raise InputError("base excitation needs a structure without rigid-body modes; "
                          "add supports or use boundary conditions that restrain it")
     support = np.zeros(mesh.fixed.size)
     support[2 * node + W] = 1.0
-    ops.K, k_coupling = _assemble(comm, mesh, stiffness, support)
-    ops.M, m_coupling = _assemble(comm, mesh, mass, support)
-    ops.influence, ops.base_mass_load = influence_vector(ops.K, ops.M, k_coupling, m_coupling)
-    k_coupling.destroy()
-    m_coupling.destroy()
+    K, k_coupling = _assemble(comm, mesh, stiffness, support)
+    M, m_coupling = _assemble(comm, mesh, mass, support)
+    ops = Operators(comm=comm, K=K, M=M, mesh=mesh, rigid_modes=0, eigen_scale=beam.eigen_scale,
+                    field=mesh.field_map(base_end))
+    try:
+        ops.influence, ops.base_mass_load = influence_vector(K, M, k_coupling, m_coupling)
+    except Exception:
+        ops.destroy()
+        raise
+    finally:
+        destroy(k_coupling, m_coupling)
     return ops
 
 
@@ -239,11 +250,13 @@ def influence_vector(K, M, k_coupling, m_coupling):
     r = K.createVecRight()
     rhs = k_coupling.copy()
     rhs.scale(-1.0)
-    ksp.solve(rhs, r)
-    if ksp.getConvergedReason() < 0:
-        raise InputError("the influence vector solve failed: the stiffness matrix is singular")
-    ksp.destroy()
-    rhs.destroy()
+    try:
+        ksp.solve(rhs, r)
+        if ksp.getConvergedReason() < 0:
+            r.destroy()
+            raise InputError("the influence vector solve failed: the stiffness matrix is singular")
+    finally:
+        destroy(ksp, rhs)
     load = M.createVecLeft()
     M.mult(r, load)
     load.axpy(1.0, m_coupling)

@@ -15,24 +15,30 @@ A sweep file (TOML):
 
 Each case is the base scene with its values set (as `--set section.key=value`). With continuation,
 the cases along that axis form chains, one per direction and per combination of the other axes:
-each case starts from the previous one's final state (a stepped-sine sweep, which reveals the
-hysteresis and jumps of an impacting structure; each step restarts the excitation at phase 0); the
-summary gets a `sweep_direction` column.
+each case starts from the previous one's final physical state (a stepped sine: the excitation
+continues its phase, and the total displacement and velocity are continuous); the summary gets a
+`sweep_direction` column.
 
 How it runs (collective on COMM_WORLD):
 1. Every case's scene is validated before any work: a bad value stops the sweep at once.
-2. The distinct bases (cases that differ only in law, excitation, damping or integrator share one)
-   are built once, in parallel over all ranks, into the basis cache.
-3. The cases are dealt round-robin to the ranks; each rank runs its cases alone (COMM_SELF),
-   reading the basis from the cache. A failed case is recorded with its error; the others go on.
-4. Each finished case leaves a small result file next to the summary (`OUT.cases/case-NNNNN.json`,
-   written atomically), so a killed sweep rerun skips what is done. Rank 0 then writes the summary.
+2. Each distinct reduced model (cases that differ only in law, excitation history or integrator
+   share one) is built once on all ranks; the ranks keep only its small arrays. A model that
+   cannot be built fails its cases, recorded with the error; the others go on.
+3. The cases (chains) are dealt round-robin to the ranks; each rank integrates its cases alone.
+4. Each finished case leaves a small result file (`OUT.cases/case-NNNNN.json`, written atomically)
+   with the identity of the case (its validated scene and the bytes of the files it reads): a
+   rerun skips the cases that are done and still the same, and reruns the others. SIGTERM stops
+   every rank at its next step (a running case is checkpointed); rerun the same command to go on.
+5. Rank 0 writes the summary. The summary is locked while a sweep runs: a second sweep on the
+   same output is refused.
 """
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import os
+import signal
 import time
 import tomllib
 
@@ -40,47 +46,50 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from .cache import basis_key, obtain_basis
-from .errors import DbfError, InputError
-from .model import build_operators, constraint_rows, operators_fingerprint
+from .checkpoint import Checkpoint
+from .errors import DbfError, InputError, Interrupted
+from .excitation import Harmonic, time_functions
+from .laws import ConstraintLaws
+from .matrices import file_digest
+from .output import OutputLock
+from .reductor import Reductor
+from .run import run_case
 from .scene import load_scene, parse_override
 from .stats import STATISTICS
 
 SWEEP_KEYS = {"scene", "output", "keep_outputs", "axes", "case", "continuation", "directions"}
 DIRECTION = "sweep_direction"
+# What a reduced model depends on: everything but the laws, the excitation history and the integrator.
+MODEL_KEYS = {"structure": None, "basis": None, "damping": None, "initial": None,
+              "excitation": ("kind", "end", "x", "dof", "span"), "output": ("probes",)}
 
 
-def load_sweep(path: str) -> dict:
-    """Read a sweep file: {'scene', 'output', 'keep_outputs', 'cases': [[override, ...], ...],
-    'parameters': [name, ...]}. All case scenes are validated here."""
+def _typed(path: str, data: dict, key: str, kind, default):
+    value = data.get(key, default)
+    if not isinstance(value, kind) or isinstance(value, bool) != (kind is bool):
+        raise InputError(f"{path}: {key} must be {'true or false' if kind is bool else 'a ' + kind.__name__}, "
+                         f"got {value!r}")
+    return value
+
+
+def _read(path: str) -> dict:
     try:
         with open(path, "rb") as f:
             data = tomllib.load(f)
     except OSError as e:
         raise InputError(f"cannot read sweep {path!r}: {e.strerror}") from None
-    except tomllib.TOMLDecodeError as e:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: not valid TOML: {e}") from None
     for key in data:
         if key not in SWEEP_KEYS:
             raise InputError(f"{path}: unknown key '{key}' (sweep files have {', '.join(sorted(SWEEP_KEYS))})")
-    folder = os.path.dirname(os.path.abspath(path))
     if "scene" not in data:
         raise InputError(f"{path}: scene (the base scene file) is required")
-    scene = os.path.join(folder, data["scene"])
-    output = os.path.join(folder, data.get("output", os.path.splitext(os.path.basename(path))[0] + ".h5"))
-    axes = data.get("axes", {})
-    listed = data.get("case", [])
-    if not isinstance(axes, dict) or not isinstance(listed, list):
-        raise InputError(f"{path}: [axes] is a table of lists and [[case]] an array of tables")
-    for name, values in axes.items():
-        if not isinstance(values, list) or not values:
-            raise InputError(f"{path}: axis '{name}' must be a non-empty list of values")
-    continuation = data.get("continuation")
-    directions = data.get("directions", ["up", "down"])
-    if continuation is not None and continuation not in axes:
-        raise InputError(f"{path}: continuation '{continuation}' is not one of the [axes]")
-    if not (isinstance(directions, list) and directions and set(directions) <= {"up", "down"}):
-        raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\"")
+    return data
+
+
+def _expand(path: str, axes: dict, listed: list, continuation, directions) -> tuple:
+    """(cases as {name: value}, chains as lists of case indices)."""
     cases, chains = [], []
     if axes and continuation:
         others = [n for n in axes if n != continuation]
@@ -93,28 +102,57 @@ def load_sweep(path: str) -> dict:
                     cases.append({**dict(zip(others, combo)), continuation: value, DIRECTION: direction})
                 chains.append(chain)
     elif axes:
-        names = list(axes)
         for combo in itertools.product(*axes.values()):
             chains.append([len(cases)])
-            cases.append(dict(zip(names, combo)))
+            cases.append(dict(zip(axes, combo)))
     for c in listed:
+        if not isinstance(c, dict):
+            raise InputError(f"{path}: each [[case]] is a table of section.key = value")
         chains.append([len(cases)])
         cases.append(dict(c))
     if not cases:
         raise InputError(f"{path}: no cases: give [axes] or [[case]] entries")
+    return cases, chains
+
+
+def load_sweep(path: str, overrides=()) -> dict:
+    """Read a sweep file: {'scene', 'output', 'keep_outputs', 'cases': [[override, ...], ...],
+    'values', 'parameters', 'chains'}. `overrides` ('section.key=value', --set) apply to every case
+    before its own values. All case scenes are validated here."""
+    data = _read(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    scene = os.path.join(folder, _typed(path, data, "scene", str, None))
+    output = os.path.join(folder, _typed(path, data, "output", str,
+                                         os.path.splitext(os.path.basename(path))[0] + ".h5"))
+    keep = _typed(path, data, "keep_outputs", bool, False)
+    axes, listed = data.get("axes", {}), data.get("case", [])
+    if not isinstance(axes, dict) or not isinstance(listed, list):
+        raise InputError(f"{path}: [axes] is a table of lists and [[case]] an array of tables")
+    for name, values in axes.items():
+        if "." not in name:
+            raise InputError(f"{path}: axis '{name}' must be a scene value written section.key")
+        if not isinstance(values, list) or not values:
+            raise InputError(f"{path}: axis '{name}' must be a non-empty list of values")
+    continuation = data.get("continuation")
+    directions = data.get("directions", ["up", "down"])
+    if continuation is not None and continuation not in axes:
+        raise InputError(f"{path}: continuation '{continuation}' is not one of the [axes]")
+    if not (isinstance(directions, list) and directions and set(directions) <= {"up", "down"}):
+        raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\"")
+    cases, chains = _expand(path, axes, listed, continuation, directions)
     parameters = list(dict.fromkeys(name for case in cases for name in case))
-    overrides = []
+    sets = []
     for i, case in enumerate(cases):
-        sets = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
-        for text in sets:
+        own = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
+        for text in own:
             parse_override(text)
         try:
-            load_scene(scene, sets)
+            load_scene(scene, [*overrides, *own])
         except InputError as e:
-            raise InputError(f"{path}: case {i + 1} ({', '.join(sets)}): {e}") from None
-        overrides.append(sets)
-    return {"scene": scene, "output": output, "keep_outputs": bool(data.get("keep_outputs", False)),
-            "cases": overrides, "values": cases, "parameters": parameters, "chains": chains}
+            raise InputError(f"{path}: case {i + 1} ({', '.join(own)}): {e}") from None
+        sets.append([*overrides, *own])
+    return {"scene": scene, "output": output, "keep_outputs": keep, "cases": sets, "values": cases,
+            "parameters": parameters, "chains": chains}
 
 
 def _toml_value(value) -> str:
@@ -138,90 +176,224 @@ def _write_json(path: str, content: dict) -> None:
     os.replace(tmp, path)
 
 
-def _prepare_bases(sweep: dict, cache_dir: str, pending: list) -> None:
-    """Build every distinct basis the pending cases need, once, on COMM_WORLD (into the cache)."""
-    done = set()
+def _read_json(path: str) -> dict | None:
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return None
+
+
+def _scene_files(scene) -> list:
+    if scene.is_beam:
+        return []
+    s = scene["structure"]
+    return [scene.resolve(s[k]) for k in ("stiffness", "mass", "damping", "influence", "base_mass_load") if s[k]]
+
+
+def _identities(sweep: dict) -> list:
+    """Per case, the sha256 of what its result depends on: the validated scene and the bytes of every
+    file it reads (hashed once, on rank 0). Collective."""
+    scenes = [load_scene(sweep["scene"], sets) for sets in sweep["cases"]]
+    files = sorted({path for scene in scenes for path in _scene_files(scene)})
+    digests = {path: file_digest(path, PETSc.COMM_WORLD) for path in files}
+    out = []
+    for scene in scenes:
+        content = [scene.sections, [repr(c) for c in scene.constraints],
+                   {path: digests[path] for path in _scene_files(scene)}]
+        out.append(hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest())
+    return out
+
+
+def _model_key(scene) -> str:
+    parts = {section: (scene[section] if keys is None else {k: scene[section][k] for k in keys})
+             for section, keys in MODEL_KEYS.items()}
+    parts["constraints"] = [(c.x, c.dof) for c in scene.constraints]
+    parts["field"] = scene.output().snapshots > 0
+    return json.dumps(parts, sort_keys=True, default=str)
+
+
+def _prepare_models(sweep: dict, pending: list, cache_dir: str, say) -> dict:
+    """Each distinct reduced model of the pending cases, built once on COMM_WORLD (model key ->
+    (model, field positions) or the error that stopped it). Collective."""
+    models = {}
     for index in pending:
         scene = load_scene(sweep["scene"], sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"])
-        ops = build_operators(scene, PETSc.COMM_WORLD)
-        rows = constraint_rows(scene, ops)
-        fingerprint = operators_fingerprint(scene, ops)
-        key = basis_key(fingerprint, rows, scene.basis_settings())
-        if key not in done:
-            basis = obtain_basis(ops, rows, scene.basis_settings(), fingerprint, cache_dir,
-                                 [c.label for c in scene.constraints])
-            basis.destroy()
-            done.add(key)
-        ops.destroy()
+        key = _model_key(scene)
+        if key in models:
+            continue
+        try:
+            with scene.full_order_model(PETSc.COMM_WORLD) as fom, \
+                    Reductor(fom, scene.basis_settings(), cache_dir) as reductor:
+                models[key] = (reductor.reduce(field=scene.output().snapshots > 0),
+                               fom.operators.field_map().positions)
+        except DbfError as e:
+            models[key] = str(e)
+    say(f"reduced models ready: {len(models)}")
+    return models
 
 
-def run_sweep(path: str, progress: bool = True) -> dict:
+def _continued(model, scene, previous: dict | None):
+    """The case's reduced model with its laws and excitation history, started from the previous
+    case's final state when it continues a chain (the stepped sine keeps its phase, and the total
+    displacement and velocity stay continuous: the jump of r Omega is taken up by q)."""
+    support, force = time_functions(scene.excitation())
+    laws = ConstraintLaws([c.law for c in scene.constraints])
+    if previous is None:
+        return model.with_case(constraints=model.constraints.with_laws(laws), support=support, force=force)
+    phase = previous["final_phase"]
+    if support.amplitude:
+        support = Harmonic(support.amplitude, support.frequency_hz, phase)
+    elif isinstance(force, Harmonic) and force.amplitude:
+        force = Harmonic(force.amplitude, force.frequency_hz, phase)
+    q, p = (np.asarray(a, dtype=float) for a in previous["final_state"])
+    old_value, old_rate = previous["final_support"]
+    q = q + model.r_q * (old_value - support.value(0.0))
+    p = p + model.r_q * (old_rate - support.rate(0.0))
+    return model.with_case(constraints=model.constraints.with_laws(laws), support=support, force=force, q0=q, p0=p)
+
+
+def _final_excitation(model, t_end: float) -> dict:
+    history = model.support if model.support.amplitude else model.force
+    phase = (2 * np.pi * history.frequency_hz * t_end + history.phase) if isinstance(history, Harmonic) else 0.0
+    return {"final_time": t_end, "final_phase": float(np.mod(phase, 2 * np.pi)),
+            "final_support": [float(model.support.value(t_end)), float(model.support.rate(t_end))]}
+
+
+class _Stop:
+    """SIGTERM during a sweep: no new case starts (a running case checkpoints and stops itself)."""
+
+    def __init__(self):
+        self.requested = False
+
+    def __enter__(self):
+        try:
+            self.previous = signal.signal(signal.SIGTERM, self._handle)
+        except ValueError:  # not the main thread
+            self.previous = None
+        return self
+
+    def _handle(self, signum, frame):
+        self.requested = True
+
+    def __exit__(self, *exc):
+        if self.previous is not None:
+            signal.signal(signal.SIGTERM, self.previous)
+
+
+def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dict:
+    """One case on this rank: its record (status ok or failed), or Interrupted."""
+    record = {"index": index, "identity": identity, "parameters": sweep["values"][index],
+              "continued": previous is not None}
+    t = time.perf_counter()
+    case_out = os.path.join(folder, f"case-{index:05d}.h5")
+    try:
+        scene = load_scene(sweep["scene"], sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"])
+        built = models[_model_key(scene)]
+        if isinstance(built, str):
+            raise DbfError(built)
+        model, positions = built
+        model = _continued(model, scene, previous)
+        _drop_stale_checkpoint(case_out, {"case": identity})
+        summary = run_case(scene, model, case_out, resume=True, ident={"case": identity}, field_positions=positions)
+        record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
+                      solver=summary["stats"], final_state=summary["final_state"],
+                      **_final_excitation(model, scene.integrator_settings().t_end))
+    except Interrupted:
+        raise
+    except DbfError as e:
+        record.update(status="failed", error=str(e))
+    record["wall_time"] = time.perf_counter() - t
+    if not sweep["keep_outputs"]:
+        for leftover in (case_out, f"{case_out}.partial", f"{case_out}.checkpoint"):
+            if os.path.exists(leftover):
+                os.remove(leftover)
+    return record
+
+
+def _drop_stale_checkpoint(case_out: str, ident: dict) -> None:
+    """A case's checkpoint from an earlier, different version of the case is removed, not resumed."""
+    try:
+        Checkpoint(f"{case_out}.checkpoint", ident).read()
+    except InputError:
+        for leftover in (f"{case_out}.partial", f"{case_out}.checkpoint"):
+            if os.path.exists(leftover):
+                os.remove(leftover)
+
+
+def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, stop, say) -> int:
+    """This rank's chains; returns how many cases it ran. Stops at SIGTERM (Interrupted)."""
+    done = 0
+    for chain in mine:
+        previous = None
+        for index in chain:
+            if index not in pending:  # finished before: continue from its final state
+                previous = _read_json(_case_file(folder, index))
+                previous = previous if previous and previous.get("status") == "ok" else None
+                continue
+            if stop.requested:
+                raise Interrupted("stopped by a termination signal")
+            record = _run_one(sweep, index, folder, cache_dir, models, identities[index],
+                              previous if len(chain) > 1 else None)
+            _write_json(_case_file(folder, index), record)
+            previous = record if record["status"] == "ok" else None
+            done += 1
+            say(f"  case {index + 1}: {record['status']}")
+    return done
+
+
+def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     """Run (or resume) a sweep. Collective on COMM_WORLD. Returns {'output', 'cases', 'failed'}."""
-    from .run import run
-
     world = MPI.COMM_WORLD
-    sweep = load_sweep(path)
-    output = sweep["output"]
-    folder = output + ".cases"
-    if world.rank == 0:
-        if not os.path.isdir(os.path.dirname(os.path.abspath(output))):
-            folder = None
-        else:
-            os.makedirs(folder, exist_ok=True)
-    folder = world.bcast(folder, root=0)
-    if folder is None:
-        raise InputError(f"sweep output {output!r}: its directory does not exist")
-    n = len(sweep["cases"])
-    pending = [i for i in range(n) if not os.path.exists(_case_file(folder, i))]
+    sweep = load_sweep(path, overrides)
+    output, folder = sweep["output"], sweep["output"] + ".cases"
     say = (lambda m: PETSc.Sys.Print(m)) if progress else (lambda m: None)
+    lock = OutputLock(output, "sweep summary")
+    problem = None
+    if world.rank == 0:
+        try:
+            if not os.path.isdir(os.path.dirname(os.path.abspath(output))):
+                raise InputError(f"sweep output {output!r}: its directory does not exist")
+            lock.acquire()
+            os.makedirs(folder, exist_ok=True)
+        except (InputError, OSError) as e:
+            problem = str(e)
+    problem = world.bcast(problem, root=0)
+    if problem:
+        raise InputError(problem)
+    try:
+        return _sweep(sweep, folder, output, world, say, progress)
+    finally:
+        if world.rank == 0:
+            lock.release()
+
+
+def _sweep(sweep, folder, output, world, say, progress) -> dict:
+    n = len(sweep["cases"])
+    identities = _identities(sweep)
+    pending = [i for i in range(n) if (_read_json(_case_file(folder, i)) or {}).get("identity") != identities[i]]
     say(f"dbf-hpc sweep: {n} cases, {n - len(pending)} already done, {len(pending)} to run on {world.size} rank(s)")
-
-    base = load_scene(sweep["scene"])
+    base = load_scene(sweep["scene"], sweep["cases"][0])
     cache_dir = base.cache_dir() or os.path.join(folder, "basis-cache")
-    t0 = time.perf_counter()
-    _prepare_bases(sweep, cache_dir, pending)
-    say(f"bases ready ({time.perf_counter() - t0:.1f} s)")
-
-    # Work units are chains (a single case unless continuation links them), dealt round-robin.
+    models = _prepare_models(sweep, pending, cache_dir, say)
     chains = [c for c in sweep["chains"] if any(i in pending for i in c)]
     mine = chains[world.rank::world.size]
-    start, done_here, total_here = time.perf_counter(), 0, sum(len(c) for c in mine)
-    for chain in mine:
-        state = None
-        for index in chain:
-            if index not in pending:  # finished before a kill: continue from its final state
-                with open(_case_file(folder, index)) as f:
-                    state = json.load(f).get("final_state")
-                continue
-            sets = sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"]
-            case_out = os.path.join(folder, f"case-{index:05d}.h5")
-            record = {"index": index, "parameters": sweep["values"][index], "continued": state is not None}
-            t = time.perf_counter()
-            try:
-                scene = load_scene(sweep["scene"], sets)
-                summary = run(scene, case_out, progress=False, comm=PETSc.COMM_SELF,
-                              initial_state=state if len(chain) > 1 else None)
-                record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
-                              solver=summary["stats"], final_state=summary["final_state"])
-                state = summary["final_state"]
-            except DbfError as e:
-                record.update(status="failed", error=str(e))
-                state = None  # the chain goes on from rest
-            record["wall_time"] = time.perf_counter() - t
-            if not sweep["keep_outputs"] and os.path.exists(case_out):
-                os.remove(case_out)
-            _write_json(_case_file(folder, index), record)
-            done_here += 1
-            if progress and world.rank == 0:
-                finished = sum(os.path.exists(_case_file(folder, i)) for i in range(n))
-                elapsed = time.perf_counter() - start
-                eta = elapsed / done_here * (total_here - done_here)
-                print(f"  cases done: {finished}/{n}, ETA {eta:.0f} s", flush=True)
-    world.Barrier()
+    stopped = None
+    with _Stop() as stop:
+        try:
+            _run_chains(sweep, mine, set(pending), folder, cache_dir, models, identities, stop, say)
+        except Interrupted:
+            stopped = True
+    stopped = world.allreduce(bool(stopped), op=MPI.LOR)
+    if stopped:
+        done = sum(1 for i in range(n) if (_read_json(_case_file(folder, i)) or {}).get("identity") == identities[i])
+        raise Interrupted(f"sweep stopped by a termination signal with {done} of {n} cases done; rerun the same "
+                          f"command to continue (finished cases are kept, a running one resumes from its checkpoint)")
     failed = 0
     if world.rank == 0:
         failed = _write_summary(sweep, folder, output)
-        print(f"dbf-hpc sweep: wrote {output} ({n} cases, {failed} failed)", flush=True) if progress else None
+        if progress:
+            print(f"dbf-hpc sweep: wrote {output} ({n} cases, {failed} failed)", flush=True)
     return world.bcast({"output": output, "cases": n, "failed": failed}, root=0)
 
 
@@ -229,10 +401,7 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
     """The summary HDF5, a row per case: parameters, status, statistics per constraint."""
     import h5py
 
-    records = []
-    for i in range(len(sweep["cases"])):
-        with open(_case_file(folder, i)) as f:
-            records.append(json.load(f))
+    records = [_read_json(_case_file(folder, i)) for i in range(len(sweep["cases"]))]
     n = len(records)
     width = max((len(r.get("stats", {}).get("impacts", [])) for r in records), default=0)
     probes = max((len(r.get("probe_peak", [])) for r in records), default=0)

@@ -8,7 +8,7 @@
    (dbf-hpc run --method full) runs at two resolutions, the second with half the element size and
    half the step, on all ranks. The trusted horizon T_h is where the two agree: the first time their
    constraint displacements differ by more than HORIZON_TOL of the peak ends it. The finer one is
-   the truth, compared only on [0, T_h]: the impacting beam is chaotic (DESIGN.md).
+   the truth, compared only on [0, T_h]: the impacting beam is chaotic (docs/design.md).
 2. Bases. Every distinct basis of the grid is built once on all ranks (timed, from scratch).
 3. Cases. The reduced model over the grid (modes N, basis kind, tolerance, ARKIMEX type, contact
    implicit/explicit, scene), each case on one rank (COMM_SELF), the cases dealt to the ranks,
@@ -156,9 +156,8 @@ def main(argv=None) -> int:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from dbf_hpc.cache import obtain_basis
     from dbf_hpc.errors import DbfError
-    from dbf_hpc.model import build_operators, constraint_rows, operators_fingerprint
+    from dbf_hpc.reductor import Reductor
     from dbf_hpc.run import run
     from dbf_hpc.scene import load_scene
 
@@ -212,23 +211,17 @@ def main(argv=None) -> int:
     basis_time, k_auto = {}, {}
     for label, info in truths.items():
         scene = load_scene(info["path"], common)
-        ops = build_operators(scene, PETSc.COMM_WORLD)
-        rows = constraint_rows(scene, ops)
-        fingerprint = operators_fingerprint(scene, ops)
-        labels = [c.label for c in scene.constraints]
-        for kind, modes in itertools.product(grid["kinds"], grid["modes"]):
-            if kind.startswith("dbf k x") and label not in k_auto:
-                probe = obtain_basis(ops, rows, load_scene(info["path"], common).basis_settings(), fingerprint,
-                                     cache, labels)
-                k_auto[label] = float(np.exp(np.mean(np.log(probe.dbf_k_auto))))
-                probe.destroy()
-            sets = basis_sets(kind, modes, rows.size, k_auto.get(label, 0.0))
-            settings = load_scene(info["path"], common + sets).basis_settings()
-            t = time.perf_counter()
-            basis = obtain_basis(ops, rows, settings, fingerprint, cache, labels)
-            basis.destroy()
-            basis_time[label, kind, modes] = world.allreduce(time.perf_counter() - t, op=MPI.MAX)
-        ops.destroy()
+        with scene.full_order_model(PETSc.COMM_WORLD) as fom:
+            n_constraints = fom.constraints.count
+            for kind, modes in itertools.product(grid["kinds"], grid["modes"]):
+                if kind.startswith("dbf k x") and label not in k_auto:
+                    with Reductor(fom, scene.basis_settings(), cache) as probe:
+                        k_auto[label] = float(np.exp(np.mean(np.log(probe.basis().dbf_k_auto))))
+                sets = basis_sets(kind, modes, n_constraints, k_auto.get(label, 0.0))
+                t = time.perf_counter()
+                with Reductor(fom, load_scene(info["path"], common + sets).basis_settings(), cache) as reductor:
+                    reductor.basis()
+                basis_time[label, kind, modes] = world.allreduce(time.perf_counter() - t, op=MPI.MAX)
     log(f"bases ready: {len(basis_time)}")
 
     # 3. The cases, each on one rank; the costliest first, dealt in turn.

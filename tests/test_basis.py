@@ -6,7 +6,8 @@ import pytest
 from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
-from dbf_hpc.basis import BasisSettings, build_basis, constraint_groups, static_modes
+from dbf_hpc.basis import BasisSettings, build_basis
+from dbf_hpc.enrichment import constraint_groups, static_modes
 from dbf_hpc.errors import InputError, SolverError
 from dbf_hpc.modes import counters
 from dbf_hpc.structure import Beam, assemble_beam
@@ -40,7 +41,7 @@ def test_basis_is_m_orthonormal_and_dbfs_decouple_from_modes_in_stiffness(layout
     N = basis.mode_count
     assert np.abs(Kr[:N, N:]).max() < 1e-10 * np.abs(np.diag(Kr)).max()
     np.testing.assert_allclose(np.diag(Kr)[:N], basis.omega**2, rtol=1e-9)  # -modes_eps_tol 1e-10
-    np.testing.assert_allclose(np.sqrt(np.diag(Kr)[N:]), basis.dbf_omega, rtol=1e-12)   # Eq. 41
+    np.testing.assert_allclose(np.sqrt(np.diag(Kr)[N:]), basis.enrichment_omega, rtol=1e-12)   # Eq. 41
     basis.destroy()
     ops.destroy()
 
@@ -194,8 +195,8 @@ def test_static_basis_is_m_orthonormal_and_static_modes_decouple_from_modes_in_s
     scale = np.abs(np.diag(Kr)).max()
     assert np.abs(Kr[:N, :N] - np.diag(basis.omega**2)).max() < 1e-9 * basis.omega[-1] ** 2
     assert np.abs(Kr[:N, N:]).max() < 1e-10 * scale
-    np.testing.assert_allclose(np.sqrt(np.diag(Kr)[N:]), basis.dbf_omega, rtol=1e-12)
-    assert np.all(basis.dbf_omega > basis.omega[-1]), "what survives is above the modes"
+    np.testing.assert_allclose(np.sqrt(np.diag(Kr)[N:]), basis.enrichment_omega, rtol=1e-12)
+    assert np.all(basis.enrichment_omega > basis.omega[-1]), "what survives is above the modes"
     assert np.all(basis.dbf_k == 0) and np.all(basis.dbf_k_auto == 0) and basis.warnings() == []
     basis.destroy()
     ops.destroy()
@@ -226,7 +227,7 @@ def test_dbf_and_static_mode_span_nearly_the_same_space_beyond_the_modes():
         overlap = m_overlap(ops, static, dbf, 6)
         assert overlap > 0.99999, f"k = {k}: {overlap}"
         if k == "auto":
-            assert abs(dbf.dbf_omega[0] / static.dbf_omega[0] - 1) < 1e-2, "nearly the same hat-omega"
+            assert abs(dbf.enrichment_omega[0] / static.enrichment_omega[0] - 1) < 1e-2, "nearly the same hat-omega"
         dbf.destroy()
     static.destroy()
     ops.destroy()
@@ -246,7 +247,7 @@ def test_no_enrichment_is_the_modes_alone_with_the_constraint_rows_kept():
     np.testing.assert_allclose(B, with_dbf.rows(with_dbf.constraint_rows)[:, :N], rtol=0, atol=1e-12 * np.abs(B).max())
     G = basis.project(ops.M)
     assert np.abs(G - np.eye(N)).max() < 1e-10
-    for empty in (basis.dbf_omega, basis.dbf_k, basis.dbf_k_auto, basis.dbf_branch):
+    for empty in (basis.enrichment_omega, basis.dbf_k, basis.dbf_k_auto, basis.dbf_branch):
         assert empty.size == 0
     assert basis.warnings() == []
     basis.destroy()

@@ -9,9 +9,8 @@ import pytest
 from mpi4py import MPI
 
 from conftest import assert_all
-from dbf_hpc.cache import obtain_basis
-from dbf_hpc.model import build_operators, constraint_rows, operators_fingerprint
 from dbf_hpc.modes import counters
+from dbf_hpc.reductor import Reductor
 from dbf_hpc.scene import validate
 
 STRUCTURE = {"kind": "beam", "length": 1.0, "E": 117e9, "I": 8.78e-16, "A": 2.9e-7, "rho": 11800.0,
@@ -29,16 +28,12 @@ def scene(law="deadband", x=(0.25,), modes=6, basis=None, **excitation):
 def summary(s, cache_dir):
     """What a basis from the cache holds: (size, K_r, B, dbf_omega, dbf_k, eigen-solves on the busiest
     rank, cache state)."""
-    ops = build_operators(s)
-    before = counters["eigen_solves"]
-    basis = obtain_basis(ops, constraint_rows(s, ops), s.basis_settings(), operators_fingerprint(s, ops),
-                         str(cache_dir))
-    solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
-    out = (basis.size, basis.project(ops.K), basis.rows(basis.constraint_rows), basis.dbf_omega.copy(),
-           basis.dbf_k.copy(), solves, basis.stats.get("cache"))
-    basis.destroy()
-    ops.destroy()
-    return out
+    with s.full_order_model() as fom, Reductor(fom, s.basis_settings(), str(cache_dir)) as reductor:
+        before = counters["eigen_solves"]
+        basis = reductor.basis()
+        solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
+        return (basis.size, basis.project(fom.operators.K), basis.rows(basis.constraint_rows),
+                basis.enrichment_omega.copy(), basis.dbf_k.copy(), solves, basis.stats.get("cache"))
 
 
 def obtain(s, cache_dir):

@@ -103,7 +103,7 @@ def test_contact_jacobian_passes_petsc_jacobian_test(tmp_path):
 
 
 def test_same_results_on_one_and_two_ranks(tmp_path):
-    # Impacts amplify any difference (here the basis' round-off, 1e-10) exponentially (DESIGN.md):
+    # Impacts amplify any difference (here the basis' round-off, 1e-10) exponentially (docs/design.md):
     # the runs must agree tightly until the first contact and statistically after it.
     import h5py
 

@@ -8,10 +8,9 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
-from dbf_hpc.basis import participation
-from dbf_hpc.dbf import (analytic_derivative, branch_of, central_derivative, dbf_source, pinned_eigenvalue,
+from dbf_hpc.dbf import (analytic_derivative, branch_of, central_derivative, dbf_source, participation, pinned_eigenvalue,
                          spring_eigenpair, stiffness_sweep, value_at)
-from dbf_hpc.matrices import load_operators
+from dbf_hpc.matrices import MatrixFiles, load_operators
 from dbf_hpc.modes import reference_modes
 from dbf_hpc.structure import Beam, assemble_beam
 from exact import pinned_beam_with_intermediate_pin_omegas, spring_supported_pinned_beam_omegas
@@ -109,7 +108,7 @@ def test_constraint_at_a_node_of_the_first_mode_follows_the_first_branch_that_mo
         scipy.io.mmwrite(paths[0], scipy.sparse.block_diag([blocks[0][0], blocks[1][0]]).tocsr(), precision=17)
         scipy.io.mmwrite(paths[1], scipy.sparse.block_diag([blocks[0][1], blocks[1][1]]).tocsr(), precision=17)
     MPI.COMM_WORLD.Barrier()
-    ops = load_operators(*paths)
+    ops = load_operators(MatrixFiles(*paths))
     row = blocks[0][3] + blocks[1][2]
     modes = reference_modes(ops, count=4)
     part = participation(modes, np.array([row]))[0]

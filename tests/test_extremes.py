@@ -9,10 +9,8 @@ import pytest
 from mpi4py import MPI
 
 from dbf_hpc.basis import BasisSettings, build_basis
-from dbf_hpc.cache import obtain_basis
 from dbf_hpc.laws import ConstraintLaws
-from dbf_hpc.model import build_operators, constraint_rows, operators_fingerprint
-from dbf_hpc.reduced import Harmonic, build_reduced_model
+from dbf_hpc.reductor import Reductor
 from dbf_hpc.run import run
 from dbf_hpc.scene import load_scene
 from dbf_hpc.structure import Beam, assemble_beam
@@ -55,15 +53,8 @@ def test_zero_clearance_is_a_linear_spring_matching_the_exact_modal_solution(sha
                                "integrator.atol=1e-13",
                                f"basis.cache={shared_tmp_path / 'cache'}"])
     run(scene, str(shared_tmp_path / "linear.h5"), progress=False)
-    ops = build_operators(scene)
-    rows = constraint_rows(scene, ops)
-    basis = obtain_basis(ops, rows, scene.basis_settings(), operators_fingerprint(scene, ops),
-                         scene.cache_dir())
-    support = Harmonic(5e-3, 1.0)
-    model = build_reduced_model(basis, ops, ConstraintLaws([c.law for c in scene.constraints]),
-                                scene.damping(), support, Harmonic())
-    basis.destroy()
-    ops.destroy()
+    with scene.full_order_model() as fom, Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
+        model = reductor.reduce()
     if MPI.COMM_WORLD.rank:
         return
     # q'' + (K + k B^T B) q = -base_load Omega'' - k B^T r_c Omega, Omega = a sin(w t)
@@ -96,12 +87,8 @@ def test_dbf_stiffness_far_from_the_transition_warns_and_still_conserves_energy(
                         "initial.mode=2", "initial.amplitude=0.003", "constraint.k_minus=100.0",
                         "constraint.k_plus=100.0", "integrator.t_end=1.0", "integrator.rtol=1e-8",
                         "integrator.atol=1e-12")
-    ops = build_operators(scene)
-    basis = obtain_basis(ops, constraint_rows(scene, ops), scene.basis_settings(),
-                         operators_fingerprint(scene, ops), scene.cache_dir())
-    warnings = basis.warnings()
-    basis.destroy()
-    ops.destroy()
+    with scene.full_order_model() as fom, Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
+        warnings = reductor.basis().warnings()
     assert len(warnings) == 1 and "x the transition" in warnings[0] and "auto" in warnings[0]
     if f is not None:
         q, p, K, z = f["reduced/q"][:], f["reduced/qdot"][:], f["reduced/K"][:], f["constraints/displacement"][:]
@@ -118,7 +105,7 @@ def test_a_hundred_and_twenty_constraints_on_one_beam_give_a_well_conditioned_ba
     basis = build_basis(ops, rows, BasisSettings(modes=10))
     G = basis.project(ops.M)
     assert basis.size == 130 and np.abs(G - np.eye(130)).max() < 1e-10
-    assert np.all(np.isfinite(basis.dbf_omega)) and not basis.warnings()
+    assert np.all(np.isfinite(basis.enrichment_omega)) and not basis.warnings()
     basis.destroy()
     ops.destroy()
 
@@ -128,6 +115,6 @@ def test_constraints_on_adjacent_nodes_of_a_coarse_mesh_give_an_orthonormal_basi
     rows = [ops.mesh.w_row(x) for x in ops.mesh.x[4:6]]   # nodes at 0.4 and 0.5 m, one element apart
     basis = build_basis(ops, rows)
     assert np.abs(basis.project(ops.M) - np.eye(basis.size)).max() < 1e-10
-    assert np.all(basis.dbf_omega > basis.omega[-1])
+    assert np.all(basis.enrichment_omega > basis.omega[-1])
     basis.destroy()
     ops.destroy()

@@ -121,7 +121,6 @@ def test_matrix_files_with_a_damping_matrix_give_the_beam_with_rayleigh_damping(
     # (measured: identical, over 28 impacts).
     import scipy.io
 
-    from dbf_hpc.model import build_operators, constraint_rows
     from test_matrices import to_scipy
 
     beta = 1e-4
@@ -158,10 +157,9 @@ rho = 11800.0
         path.write_text(beam)
     MPI.COMM_WORLD.Barrier()
     s = load_scene(str(path), ["basis.cache=off"])
-    ops = build_operators(s)
-    K, M = to_scipy(ops.K), to_scipy(ops.M)
-    force_row, constraint_row = ops.mesh.w_row(0.5), int(constraint_rows(s, ops)[0])
-    ops.destroy()
+    with s.full_order_model() as fom:
+        K, M = to_scipy(fom.operators.K), to_scipy(fom.operators.M)
+        force_row, constraint_row = fom.operators.mesh.w_row(0.5), int(fom.constraints.flat_rows[0])
     matrices = """[structure]
 kind = "matrices"
 stiffness = "K.mtx"

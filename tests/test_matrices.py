@@ -9,7 +9,7 @@ from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
 from dbf_hpc.errors import DbfError, InputError
-from dbf_hpc.matrices import load_matrix, load_operators
+from dbf_hpc.matrices import MatrixFiles, load_matrix, load_operators
 from dbf_hpc.modes import reference_modes
 from dbf_hpc.structure import Beam, assemble_beam
 
@@ -52,7 +52,7 @@ def beam_files(shared_tmp_path):
 @pytest.mark.parametrize("fmt", ["bin", "mtx"])
 def test_loaded_operators_equal_the_written_ones(beam_files, fmt):
     ops, K, M, paths = beam_files
-    loaded = load_operators(paths[f"K.{fmt}"], paths[f"M.{fmt}"], influence=paths["r.npy"])
+    loaded = load_operators(MatrixFiles(paths[f"K.{fmt}"], paths[f"M.{fmt}"], influence=paths["r.npy"]))
     assert abs(to_scipy(loaded.K) - K).max() <= 1e-12 * abs(K).max()
     assert abs(to_scipy(loaded.M) - M).max() <= 1e-12 * abs(M).max()
     np.testing.assert_allclose(to_numpy(loaded.influence), to_numpy(ops.influence), rtol=0, atol=1e-15)
@@ -61,7 +61,7 @@ def test_loaded_operators_equal_the_written_ones(beam_files, fmt):
 
 def test_loaded_operators_have_the_beams_frequencies(beam_files):
     ops, _, _, paths = beam_files
-    loaded = load_operators(paths["K.mtx"], paths["M.bin"])
+    loaded = load_operators(MatrixFiles(paths["K.mtx"], paths["M.bin"]))
     a = reference_modes(ops, count=5).omega
     b = reference_modes(loaded, count=5).omega
     assert np.allclose(a, b, rtol=1e-10)
@@ -75,7 +75,7 @@ def test_size_mismatch_is_an_error(shared_tmp_path, beam_files):
         scipy.io.mmwrite(small, scipy.sparse.identity(7, format="csr"))
     MPI.COMM_WORLD.Barrier()
     with pytest.raises(InputError, match="mass matrix .* is 7 x 7; the stiffness is"):
-        load_operators(paths["K.bin"], small)
+        load_operators(MatrixFiles(paths["K.bin"], small))
 
 
 def test_influence_vector_of_the_wrong_length_is_an_error(shared_tmp_path, beam_files):
@@ -85,7 +85,7 @@ def test_influence_vector_of_the_wrong_length_is_an_error(shared_tmp_path, beam_
         np.savetxt(short, np.ones(5))
     MPI.COMM_WORLD.Barrier()
     with pytest.raises(InputError, match="influence vector .* has 5 entries"):
-        load_operators(paths["K.bin"], paths["M.bin"], influence=short)
+        load_operators(MatrixFiles(paths["K.bin"], paths["M.bin"], influence=short))
 
 
 def test_non_symmetric_stiffness_is_an_error(shared_tmp_path, beam_files):
@@ -97,7 +97,7 @@ def test_non_symmetric_stiffness_is_an_error(shared_tmp_path, beam_files):
         scipy.io.mmwrite(bad, skew.tocsr(), precision=17)
     MPI.COMM_WORLD.Barrier()
     with pytest.raises(InputError, match="stiffness matrix .* is not symmetric"):
-        load_operators(bad, paths["M.bin"])
+        load_operators(MatrixFiles(bad, paths["M.bin"]))
 
 
 @pytest.mark.parametrize("content,message", [("", "not a Matrix Market matrix"),
@@ -138,7 +138,7 @@ def test_indefinite_operators_are_an_error(shared_tmp_path, beam_files, which, m
         A[5, 5] = -abs(A[5, 5]) * 10      # one negative diagonal entry: symmetric but indefinite
         scipy.io.mmwrite(bad, A.tocsr(), precision=17)
     MPI.COMM_WORLD.Barrier()
-    loaded = load_operators(bad if which == "K" else paths["K.bin"], bad if which == "M" else paths["M.bin"])
+    loaded = load_operators(MatrixFiles(bad if which == "K" else paths["K.bin"], bad if which == "M" else paths["M.bin"]))
     with pytest.raises(DbfError, match=message):
         reference_modes(loaded, count=4)
     loaded.destroy()

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from dbf_hpc.modes import reference_modes
-from dbf_hpc.reduced import Harmonic, RandomProcess
+from dbf_hpc.excitation import Harmonic, RandomProcess
 from dbf_hpc.structure import Beam, assemble_beam, distributed_load
 
 BEAM = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=80)

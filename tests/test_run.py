@@ -105,7 +105,7 @@ def test_output_has_the_documented_layout(shared_tmp_path):
         nt = 51
         expected = {"time": (nt,), "constraints/position": (1,), "constraints/displacement": (nt, 1),
                     "constraints/velocity": (nt, 1), "constraints/force": (nt, 1), "probes/position": (1,),
-                    "probes/displacement": (nt, 1), "basis/omega": (6,), "basis/dbf_omega": (1,),
+                    "probes/displacement": (nt, 1), "basis/omega": (6,), "basis/enrichment_omega": (1,),
                     "basis/dbf_k": (1,), "reduced/q": (nt, 7), "reduced/K": (7, 7), "reduced/B": (1, 7),
                     "snapshots/time": (5,), "snapshots/x": (101,), "snapshots/w": (5, 101)}
         for name, shape in expected.items():

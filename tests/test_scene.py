@@ -106,14 +106,42 @@ def test_unreadable_or_malformed_files_are_errors(tmp_path):
 
 
 def test_constraint_or_probe_on_a_support_is_an_error():
-    from dbf_hpc.model import build_operators, constraint_rows
-    from dbf_hpc.run import probe_rows
-
-    s = scene(structure={**BEAM, "supports": [0.5]},
-              constraint=[{"x": 0.5, "law": "deadband", "k": 1e6, "clearance": 1e-3}], output={"probes": [0.5]})
-    ops = build_operators(s)
+    on_support = {**BEAM, "supports": [0.5]}
+    s = scene(structure=on_support, constraint=[{"x": 0.5, "law": "deadband", "k": 1e6, "clearance": 1e-3}])
     with pytest.raises(InputError, match="acts on a fixed DOF"):
-        constraint_rows(s, ops)
+        s.full_order_model()
+    s = scene(structure=on_support, output={"probes": [0.5]})
     with pytest.raises(InputError, match="on a support"):
-        probe_rows(s, ops)
-    ops.destroy()
+        s.full_order_model()
+
+
+def test_the_scene_reference_in_docs_is_generated_from_the_schema_and_up_to_date():
+    from dbf_hpc.laws import KEYS
+    from dbf_hpc.schema import CONSTRAINT, SECTIONS, reference
+    from dbf_hpc.scene import SCHEMA
+
+    with open(os.path.join(ROOT, "docs", "scene.md")) as f:
+        assert f.read() == reference(), "regenerate it: python -m dbf_hpc.schema > docs/scene.md"
+    assert set(SCHEMA) == set(SECTIONS)
+    documented = set(CONSTRAINT[1]) | {f"{k}_{side}" for k in ("clearance", "k", "exponent") for side in ("minus", "plus")}
+    assert set(KEYS) <= documented, "every law key is documented"
+
+
+def test_an_unknown_key_lists_the_valid_keys_of_its_section():
+    with pytest.raises(InputError, match=r"unknown key 'K' in \[structure\] \(valid keys: kind, length, .*stiffness, mass"):
+        scene(structure={**BEAM, "K": "K.mtx"})
+
+
+def test_set_can_target_one_constraint_by_its_number():
+    s = load_scene(os.path.join(ROOT, "jobs", "paper_beam_4.toml"), ["constraint.2.clearance=1e-3"])
+    assert [c.law.clearance_plus for c in s.constraints][:3] == [s.constraints[0].law.clearance_plus, 1e-3,
+                                                                 s.constraints[2].law.clearance_plus]
+    assert s.constraints[0].law.clearance_plus != 1e-3
+    with pytest.raises(InputError, match="constraint.N.key needs N from 1 to 4"):
+        load_scene(os.path.join(ROOT, "jobs", "paper_beam_4.toml"), ["constraint.5.clearance=1e-3"])
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_a_number_that_is_not_finite_is_refused(value):
+    with pytest.raises(InputError, match="must be finite"):
+        load_scene(PAPER, [f"excitation.amplitude={value}"])

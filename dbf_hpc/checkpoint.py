@@ -1,0 +1,94 @@
+"""Checkpoints: a run's state at the end of a step, so that a killed run continues to the result an
+uninterrupted run gives (`dbf-hpc run --resume`).
+
+A checkpoint is an HDF5 file (OUT.h5.checkpoint): data, never code. It holds
+- the state (arrays and scalars: t, dt, step count, the integrator's state, the recorder's
+  statistics, how many samples the .partial output holds);
+- the identity of the run it belongs to, part by part (the scene, the structure's operators and
+  files, the PETSc options, the rank count, the method); a resume that differs in any part is
+  refused, naming the part;
+- a sha256 checksum over every dataset and the identity: a flipped bit is refused, never resumed.
+It is written under a temporary name, fsynced and renamed, so a kill never leaves half of one.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+
+import h5py
+import numpy as np
+
+from .errors import InputError
+
+FORMAT = "dbf-hpc-checkpoint-1"
+
+
+def identity(**parts) -> dict:
+    """The identity of a run from its parts (any JSON-able values), each part hashed alone so that a
+    mismatch can be named."""
+    return {name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()
+            for name, value in parts.items()}
+
+
+def _checksum(datasets: dict, ident: dict) -> str:
+    h = hashlib.sha256(json.dumps(ident, sort_keys=True).encode())
+    for name in sorted(datasets):
+        value = np.ascontiguousarray(datasets[name])
+        h.update(f"{name}|{value.dtype.str}|{value.shape}|".encode())
+        h.update(value.tobytes())
+    return h.hexdigest()
+
+
+class Checkpoint:
+    """The checkpoint file of one output, for a run of the given identity (rank 0 only)."""
+
+    def __init__(self, path: str, ident: dict):
+        self.path, self.identity = path, ident
+
+    def write(self, state: dict) -> None:
+        """Store `state` (name -> array or scalar) atomically."""
+        datasets = {name: np.asarray(value) for name, value in state.items()}
+        tmp = f"{self.path}.tmp"
+        with h5py.File(tmp, "w") as f:
+            for name, value in datasets.items():
+                f.create_dataset(name, data=value)
+            f.attrs["format"] = FORMAT
+            f.attrs["identity"] = json.dumps(self.identity, sort_keys=True)
+            f.attrs["checksum"] = _checksum(datasets, self.identity)
+        with open(tmp, "rb") as handle:
+            os.fsync(handle.fileno())
+        os.replace(tmp, self.path)
+
+    def read(self) -> dict | None:
+        """The stored state, or None if there is no checkpoint. An InputError, naming the cause,
+        for one that belongs to another run or is corrupt."""
+        if not os.path.exists(self.path):
+            return None
+        try:
+            with h5py.File(self.path, "r") as f:
+                if f.attrs.get("format") != FORMAT:
+                    raise InputError(f"{self.path} is not a dbf-hpc checkpoint of this version; remove it or rerun "
+                                     f"without --resume")
+                stored = json.loads(f.attrs["identity"])
+                state = {}
+                f.visititems(lambda name, obj: state.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset)
+                             else None)
+                checksum = f.attrs["checksum"]
+        except (OSError, KeyError, ValueError) as e:
+            raise InputError(f"{self.path} cannot be read ({type(e).__name__}); remove it or rerun without "
+                             f"--resume") from None
+        different = [part for part in sorted(set(stored) | set(self.identity))
+                     if stored.get(part) != self.identity.get(part)]
+        if different:
+            raise InputError(f"{self.path} was written by a different scene or setup ({', '.join(different)} "
+                             f"differ); remove it or rerun without --resume")
+        if _checksum(state, stored) != checksum:
+            raise InputError(f"{self.path} is corrupt (its checksum does not match its data); remove it to start "
+                             f"again from t = 0")
+        return state
+
+    def remove(self) -> None:
+        for path in (self.path, f"{self.path}.tmp"):
+            if os.path.exists(path):
+                os.remove(path)

@@ -1,0 +1,118 @@
+"""The discrete constraints of a structure: where each acts, in how many directions, and its law.
+
+Constraint j acts on d displacement components of the structure, w_(j,a) = u[rows[j, a]],
+a = 1..d (d = 1 for a beam against a stop or a DOF of a matrix model; d = 2 for a tube moving in
+two transverse directions, which is not built yet). G, the n x (N_L d) matrix of unit vectors at
+those rows, is never formed: every operator that needs it works on the rows.
+
+Vectors at the constraints are flat, constraint-major, of length N_L d: entry j d + a is
+direction a of constraint j (for d = 1 simply one entry per constraint). The law of constraint j
+maps its total displacement and velocity (d values each) to the force on the structure (d values)
+and its derivatives, d x d blocks, (N_L, d, d) for all of them. A law may carry state that changes
+only when a step is accepted (friction's stick point): `commit` is called once per accepted step.
+
+Nothing here is collective.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .laws import ConstraintLaws, Law
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """One discrete constraint as a user describes it: where it acts (x in m on a beam, or the DOF
+    `dof` of a matrix model) and its law."""
+
+    law: Law
+    x: Optional[float] = None
+    dof: Optional[int] = None
+
+    @property
+    def label(self) -> str:
+        return f"x = {self.x:g} m" if self.x is not None else f"dof {self.dof}"
+
+    @property
+    def position(self) -> float:
+        return float(self.x if self.x is not None else self.dof)
+
+
+@dataclass(frozen=True)
+class ConstraintSet:
+    """N_L constraints of dimension d.
+
+    rows       (N_L, d) global DOF rows each constraint acts on
+    laws       their laws (d = 1: one scalar law per constraint, laws.py)
+    labels     how a user names each constraint in messages ("x = 0.25 m", "dof 17")
+    positions  (N_L,) x (m) on a beam, the first DOF for matrix models (written to the output)
+    """
+
+    rows: np.ndarray
+    laws: ConstraintLaws
+    labels: tuple
+    positions: np.ndarray
+
+    def __post_init__(self):
+        rows = np.asarray(self.rows, dtype=np.int64)
+        rows = rows.reshape(len(self.labels), -1 if rows.size else 1)
+        object.__setattr__(self, "rows", rows)
+        if rows.shape[1] != 1 and rows.shape[0]:
+            raise NotImplementedError("constraints of dimension d > 1 come with two-direction supports")
+        if self.laws.n != rows.shape[0]:
+            raise ValueError(f"{self.laws.n} laws for {rows.shape[0]} constraints")
+
+    @classmethod
+    def empty(cls) -> "ConstraintSet":
+        return cls(rows=np.zeros((0, 1), dtype=np.int64), laws=ConstraintLaws([]), labels=(),
+                   positions=np.zeros(0))
+
+    @property
+    def count(self) -> int:
+        """N_L."""
+        return self.rows.shape[0]
+
+    @property
+    def dimension(self) -> int:
+        """d: displacement components per constraint."""
+        return self.rows.shape[1]
+
+    @property
+    def flat_rows(self) -> np.ndarray:
+        """(N_L d,) the rows of G's columns, constraint-major."""
+        return self.rows.ravel()
+
+    def force(self, z, v=None) -> np.ndarray:
+        """(N_L d,) force on the structure at total displacement z and velocity v (flat)."""
+        return self.laws.force(z, v)
+
+    def force_and_jacobian(self, z, v):
+        """(force (N_L d,), dN/dz (N_L, d, d), dN/dv (N_L, d, d)) in one pass."""
+        force, dz, dv = self.laws.force_and_jacobian(z, v)
+        return force, dz[:, None, None], dv[:, None, None]
+
+    def diagonal_jacobian(self, z, v):
+        """(force, dN/dz, dN/dv) with the d = 1 Jacobians as flat (N_L,) diagonals: the integrators'
+        fast path (every law here acts on one component, so the blocks are 1 x 1)."""
+        return self.laws.force_and_jacobian(z, v)
+
+    def commit(self, z, v) -> None:
+        """Accept a step: laws with state (friction) take it here. The laws of laws.py have none."""
+
+    def in_contact(self, z) -> np.ndarray:
+        return self.laws.in_contact(z)
+
+    @property
+    def clearance_minus(self) -> np.ndarray:
+        return np.array([law.clearance_minus for law in self.laws.laws], dtype=float)
+
+    @property
+    def clearance_plus(self) -> np.ndarray:
+        return np.array([law.clearance_plus for law in self.laws.laws], dtype=float)
+
+    def with_laws(self, laws: ConstraintLaws) -> "ConstraintSet":
+        """The same constraints with other laws (a new law never needs a new basis)."""
+        return ConstraintSet(rows=self.rows, laws=laws, labels=self.labels, positions=self.positions)

@@ -1,0 +1,247 @@
+"""Enrichment strategies: the columns added to the reference modes, one per constraint direction.
+
+Each strategy computes its raw columns before Gram-Schmidt (basis.py orthonormalizes them against
+the modes), and owns what belongs to it: its options prefix, the fields that enter the basis cache
+key, the name of its columns, and its warnings.
+
+- DbfEnrichment ("dbf", the method; paper Sec. 2.2, Eqs. 13-17): the derivative d phi/dk of the
+  spring-perturbed mode (dbf.py), in parallel over constraints: COMM_WORLD is split into groups,
+  each group gets its own copy of K and M and takes every groups-th constraint; the derivatives are
+  gathered into one distributed matrix. Options prefix `dbf_`.
+- StaticEnrichment ("static"): the static attachment mode K^-1 g_j (the static correction of
+  industrial codes, e.g. code_aster's static modes): one Cholesky factorization of K (MUMPS,
+  options prefix `static_`) and one solve per constraint. K must be regular.
+- NoEnrichment ("none"): the reference modes alone (plain modal truncation).
+"static" and "none" are comparators for accuracy studies, with everything else the same.
+
+`columns` is collective on ops.comm.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from petsc4py import PETSc
+
+from .dbf import STIFFNESS_RANGE, dbf_source, participation
+from .errors import InputError, SolverError
+from .modes import ModalBasis
+from .operators import Operators
+from .petsctools import destroy, direct_solver, unit_vector
+
+STATIC_BACKWARD_TOL = 1e-10  # normwise backward error of K psi = g (a backward-stable solve gives ~1e-16)
+
+
+@dataclass(frozen=True)
+class EnrichmentColumns:
+    """Raw enrichment columns (an n x N_L dense Mat on ops.comm, or None) and, for DBFs, the
+    stiffness k_j used, the transition k_auto and the eigen-branch of each (zero otherwise)."""
+
+    matrix: PETSc.Mat | None
+    k: np.ndarray
+    k_auto: np.ndarray
+    branch: np.ndarray
+
+
+class Enrichment:
+    """The interface (module docstring). Subclasses are frozen dataclasses of their parameters."""
+
+    kind = ""
+    column_name = ""        # what one column is called in messages and tables
+    prefix = None           # options prefix of its solvers, None without solvers
+
+    @property
+    def solver_prefixes(self) -> tuple:
+        """The options prefixes of every solver a basis of this kind uses (they enter its cache key)."""
+        return ("modes_",) + ((self.prefix,) if self.prefix else ())
+
+    def key(self) -> dict:
+        """The parameters that change the columns (for the basis cache key)."""
+        return {"enrichment": self.kind}
+
+    def count(self, n_constraints: int) -> int:
+        return n_constraints
+
+    def check(self, ops: Operators) -> None:
+        """An InputError if this kind cannot be built on ops (before any eigen-solve)."""
+
+    def columns(self, ops: Operators, rows: np.ndarray, modes: ModalBasis) -> EnrichmentColumns:
+        raise NotImplementedError
+
+    def warnings(self, k: np.ndarray, k_auto: np.ndarray, labels) -> list:
+        return []
+
+
+def _empty(count: int) -> tuple:
+    return np.zeros(count), np.zeros(count), np.zeros(count, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class NoEnrichment(Enrichment):
+    kind = "none"
+
+    def count(self, n_constraints: int) -> int:
+        return 0
+
+    def columns(self, ops, rows, modes) -> EnrichmentColumns:
+        return EnrichmentColumns(None, *_empty(0))
+
+
+@dataclass(frozen=True)
+class StaticEnrichment(Enrichment):
+    kind = "static"
+    column_name = "static mode"
+    prefix = "static_"   # -static_ksp_..., -static_pc_...
+
+    def check(self, ops: Operators) -> None:
+        if ops.rigid_modes:
+            raise InputError(f"static attachment modes need a structure without rigid-body motion; this one has "
+                             f"{ops.rigid_modes} rigid-body mode(s) (K is singular): add supports or use "
+                             f"[basis] enrichment = \"dbf\"")
+
+    def columns(self, ops, rows, modes=None) -> EnrichmentColumns:
+        return EnrichmentColumns(static_modes(ops, rows, self.prefix), *_empty(len(rows)))
+
+
+@dataclass(frozen=True)
+class DbfEnrichment(Enrichment):
+    """stiffness: "auto" (the corner of Fig. 2) or k_j in N/m for every constraint; derivative:
+    "analytic" or "central"; groups: constraint groups side by side (0: one per rank, at most one
+    per constraint). Groups do not enter the key: the basis is the same to round-off."""
+
+    stiffness: object = "auto"
+    derivative: str = "analytic"
+    groups: int = 0
+    kind = "dbf"
+    column_name = "DBF"
+    prefix = "dbf_"
+
+    def key(self) -> dict:
+        return {"enrichment": self.kind, "dbf_stiffness": self.stiffness, "dbf_derivative": self.derivative}
+
+    def columns(self, ops, rows, modes) -> EnrichmentColumns:
+        return EnrichmentColumns(*_dbf_sources(ops, rows, modes, self))
+
+    def warnings(self, k, k_auto, labels) -> list:
+        """One line per DBF whose stiffness lies far outside the transition of Fig. 2."""
+        out = []
+        for j, (kj, kj_auto) in enumerate(zip(k, k_auto)):
+            ratio = kj / kj_auto if kj_auto > 0 else 1.0
+            if ratio > STIFFNESS_RANGE or ratio < 1 / STIFFNESS_RANGE:
+                state = ("practically pinned there: the DBF derives from the pinned mode"
+                         if ratio > 1 else "practically unperturbed: the DBF derives from the free mode")
+                out.append(f"DBF stiffness {kj:.3g} N/m at {labels[j]} is {ratio:.0e} x the transition "
+                           f"({kj_auto:.3g} N/m) of Fig. 2, where the method takes k; the perturbed mode is "
+                           f"{state}, not from the transition. Check the result against "
+                           f"dbf_stiffness = \"auto\"")
+        return out
+
+
+STRATEGIES = {"dbf": DbfEnrichment, "static": StaticEnrichment, "none": NoEnrichment}
+
+
+def constraint_groups(world_size: int, n_constraints: int, requested: int = 0) -> int:
+    """How many groups solve constraints side by side: as requested, else one group per rank up to
+    one per constraint (each group's share differs by at most one constraint)."""
+    if requested:
+        if requested > world_size:
+            raise InputError(f"basis groups = {requested} exceeds the {world_size} MPI ranks")
+        return requested
+    return max(1, min(world_size, n_constraints))
+
+
+def _dense_columns(ops: Operators, count: int) -> PETSc.Mat:
+    gathered = PETSc.Mat().createDense(size=((ops.K.getLocalSize()[0], ops.size), (PETSc.DECIDE, count)),
+                                       comm=ops.comm)
+    gathered.setUp()
+    return gathered
+
+
+def _group_operators(ops: Operators, n_groups: int):
+    """(mpi4py group communicator or None, the group's copy of the operators). Collective."""
+    world = ops.comm.tompi4py()
+    if n_groups == 1:
+        return None, ops
+    color = world.rank * n_groups // world.size
+    group = world.Split(color, world.rank)
+    sub = PETSc.Comm(group)
+    return group, Operators(comm=sub, K=ops.K.getRedundantMatrix(n_groups, sub),
+                            M=ops.M.getRedundantMatrix(n_groups, sub),
+                            rigid_modes=ops.rigid_modes, eigen_scale=ops.eigen_scale)
+
+
+def _free_group(group, group_ops: Operators) -> None:
+    if group is None:
+        return
+    group_ops.destroy()
+    if hasattr(PETSc, "garbage_cleanup"):  # PETSc >= 3.18
+        PETSc.garbage_cleanup(group_ops.comm)
+    group.Free()
+
+
+def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: DbfEnrichment):
+    """Derivatives of all constraints, computed by groups, gathered into an n x N_L dense Mat on
+    ops.comm; also k_j, k_auto and the branch of each. Collective."""
+    world = ops.comm.tompi4py()
+    n_groups = constraint_groups(world.size, rows.size, settings.groups)
+    color = world.rank * n_groups // world.size
+    group, group_ops = _group_operators(ops, n_groups)
+    lam, part = modes.omega**2, participation(modes, rows)
+    gathered = _dense_columns(ops, rows.size)
+    k, k_auto, branch = _empty(rows.size)
+    is_leader = (group.rank if group is not None else world.rank) == 0
+    try:
+        for j in range(color, rows.size, n_groups):
+            src = dbf_source(group_ops, int(rows[j]), lam, part[j], settings.stiffness, settings.derivative)
+            lo, hi = src.derivative.getOwnershipRange()
+            gathered.setValues(np.arange(lo, hi, dtype=PETSc.IntType), [j], src.derivative.array_r.reshape(-1, 1))
+            if is_leader:
+                k[j], k_auto[j], branch[j] = src.stiffness, src.transition, src.branch
+            src.derivative.destroy()
+        gathered.assemble()
+    except Exception:
+        gathered.destroy()
+        raise
+    finally:
+        _free_group(group, group_ops)
+    return gathered, world.allreduce(k), world.allreduce(k_auto), world.allreduce(branch)
+
+
+def static_modes(ops: Operators, rows: np.ndarray, prefix: str = "static_") -> PETSc.Mat:
+    """The static attachment modes psi_j = K^-1 g_j of all constraints (the deflection under a unit
+    load at row j), as the columns of an n x N_L dense Mat on ops.comm: one Cholesky factorization
+    of K (MUMPS), one solve per constraint. K must be regular. Collective."""
+    StaticEnrichment().check(ops)
+    ksp = direct_solver(PETSc.KSP().create(comm=ops.comm), PETSc.PC.Type.CHOLESKY)
+    ksp.setOperators(ops.K)
+    ksp.setOptionsPrefix(prefix)
+    ksp.setFromOptions()
+    gathered = _dense_columns(ops, len(rows))
+    K_norm = ops.K.norm(PETSc.NormType.FROBENIUS)
+    psi, residual = ops.K.createVecRight(), ops.K.createVecLeft()
+    lo, hi = psi.getOwnershipRange()
+    try:
+        for j, row in enumerate(rows):
+            g = unit_vector(residual, int(row))
+            try:
+                ksp.solve(g, psi)
+                solved = ksp.getConvergedReason() >= 0
+            except PETSc.Error:
+                solved = False
+            if solved:  # normwise backward error, as for the DBF derivative (||g|| = 1)
+                ops.K.mult(psi, residual)
+                residual.axpy(-1.0, g)
+                solved = residual.norm() / (K_norm * psi.norm() + 1.0) < STATIC_BACKWARD_TOL
+            g.destroy()
+            if not solved:
+                raise SolverError(f"the static mode of the constraint at row {row} failed (K psi = g not solved: "
+                                  f"K is singular or nearly so); support the structure or use [basis] "
+                                  f"enrichment = \"dbf\"")
+            gathered.setValues(np.arange(lo, hi, dtype=PETSc.IntType), [j], psi.array_r.reshape(-1, 1))
+        gathered.assemble()
+    except Exception:
+        gathered.destroy()
+        raise
+    finally:
+        destroy(ksp, psi, residual)
+    return gathered

@@ -1,0 +1,235 @@
+"""The full-order model: the whole discretized structure with its constraints and loads.
+
+    M u'' + C u' + K u = -(M r) Omega''(t) + g_F F(t) + G N(G^T u + r_c Omega(t), G^T u' + r_c Omega'(t))
+
+u: displacement over the free DOFs relative to the support motion (paper Eqs. 26-27); r: the
+influence vector of a unit support motion, r_c = G^T r; G: the unit vectors at the constraint DOFs
+(constraints.py); g_F F(t): a point force or a distributed load; C: a damping matrix or Rayleigh
+alpha M + beta K. The laws act on the TOTAL displacement and velocity at the constraints.
+
+A FullOrderModel owns its PETSc objects (the operators, the load vector, a Rayleigh C) and frees
+them in `destroy` (or at the end of a `with` block). It evaluates the residual and the linear part
+of the Jacobian for the full-order integrator (full.py), and is what a reductor (reductor.py)
+projects. Everything here is collective on the model's communicator unless it says otherwise.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+from petsc4py import PETSc
+
+from .constraints import ConstraintSet
+from .damping import Damping
+from .errors import InputError
+from .excitation import NoExcitation, time_functions
+from .laws import ConstraintLaws
+from .matrices import MatrixFiles, load_operators
+from .operators import Operators
+from .petsctools import destroy, values_at
+from .structure import Beam, assemble_beam, distributed_load
+
+
+@dataclass(frozen=True)
+class InitialState:
+    """The state at t = 0: at rest in relative coordinates, or displaced by `amplitude` (m, peak over
+    the displacement DOFs) in reference mode `mode` (counted from 1)."""
+
+    mode: int = 1
+    amplitude: float = 0.0
+
+
+class FullOrderModel:
+    """A structure, its constraints, excitation, damping, probes and initial state (module docstring).
+
+    operators    the distributed K, M (C) with the influence vector and field map
+    constraints  ConstraintSet (rows, laws, labels)
+    excitation   the description (excitation.py); support and force are its time functions
+    force_row    the DOF of a point force, or None; force_load the Vec of a distributed one, or None
+    probe_rows   DOF rows of the probes (w at a beam point, or a DOF); probe_positions as given
+    fingerprint  what identifies the operators (for the basis cache)
+    """
+
+    def __init__(self, operators: Operators, constraints: ConstraintSet, excitation, damping: Damping,
+                 probe_rows, probe_positions, initial: InitialState, fingerprint: dict,
+                 force_row: int | None = None, force_load: PETSc.Vec | None = None):
+        self.operators, self.constraints, self.excitation = operators, constraints, excitation
+        self.damping, self.initial, self.fingerprint = damping, initial, fingerprint
+        self.probe_rows = np.asarray(probe_rows, dtype=np.int64)
+        self.probe_positions = np.asarray(probe_positions, dtype=float)
+        self.force_row, self.force_load = force_row, force_load
+        self.support, self.force = time_functions(excitation)
+        self._C = None
+
+    # -- construction -------------------------------------------------------------------------
+    @classmethod
+    def build(cls, structure, constraints=(), excitation=NoExcitation(), damping: Damping = Damping(),
+              probes=(), initial: InitialState = InitialState(), comm=None) -> "FullOrderModel":
+        """Assemble or load the operators of `structure` (a Beam or MatrixFiles) and place the
+        constraints (Constraint descriptions), loads and probes on them. Collective on comm
+        (default COMM_WORLD). Bad placements are InputErrors, and nothing is leaked."""
+        comm = comm or PETSc.COMM_WORLD
+        constraints = tuple(constraints)
+        if isinstance(structure, Beam):
+            ops = _beam_operators(structure, constraints, excitation, probes, comm)
+            fingerprint = {"beam": dataclasses.asdict(structure),
+                           "nodes": hashlib.sha256(ops.mesh.x.tobytes()).hexdigest()}
+        elif isinstance(structure, MatrixFiles):
+            ops = load_operators(structure, comm)
+            fingerprint = None
+        else:
+            raise InputError(f"a structure is a Beam or MatrixFiles, got {type(structure).__name__}")
+        force_load = None
+        try:
+            if fingerprint is None:
+                fingerprint = structure.fingerprint(comm)
+            rows = [_row(ops, c.x, c.dof, f"constraint at {c.label}") for c in constraints]
+            _distinct(rows, constraints)
+            constraint_set = ConstraintSet(rows=np.asarray(rows, dtype=np.int64).reshape(-1, 1),
+                                           laws=ConstraintLaws([c.law for c in constraints]),
+                                           labels=tuple(c.label for c in constraints),
+                                           positions=np.array([c.position for c in constraints], dtype=float))
+            probe_rows = [_row(ops, p if ops.mesh is not None else None, None if ops.mesh is not None else int(p),
+                               f"probe at {'x = ' if ops.mesh is not None else 'dof '}{p:g}") for p in probes]
+            force_row = None
+            if excitation.kind == "force":
+                force_row = _row(ops, excitation.x, excitation.dof, "the force")
+            elif excitation.kind == "random":
+                force_load = distributed_load(ops, *excitation.span)
+            if excitation.kind == "base" and ops.influence is None:
+                raise InputError("base excitation of a matrices structure needs [structure] influence")
+            return cls(ops, constraint_set, excitation, damping, probe_rows, list(probes), initial, fingerprint,
+                       force_row, force_load)
+        except Exception:
+            destroy(force_load)
+            ops.destroy()
+            raise
+
+    # -- what the integrators and the reductor read -------------------------------------------
+    @property
+    def comm(self):
+        return self.operators.comm
+
+    @property
+    def size(self) -> int:
+        return self.operators.size
+
+    @property
+    def moving_support(self) -> bool:
+        """Whether the support moves (and so r Omega(t) enters the loads and the laws)."""
+        return self.operators.influence is not None and self.support.amplitude != 0.0
+
+    def influence_at(self, rows) -> np.ndarray:
+        """r at the given rows (zeros without support motion), on every rank."""
+        rows = np.asarray(rows, dtype=np.int64)
+        return values_at(self.operators.influence, rows) if self.moving_support else np.zeros(rows.size)
+
+    def field_support(self) -> np.ndarray:
+        """(F,) the support motion's share of the field a user sees: r at the free points, the moving
+        support's 1 at its fixed point; zeros without support motion. The total field is
+        field_map().take(u) + field_support() Omega(t). On every rank."""
+        field = self.operators.field_map()
+        if not self.moving_support:
+            return np.zeros(field.rows.size)
+        support = field.moving.copy()
+        support[field.free] = self.influence_at(field.rows[field.free])
+        return support
+
+    def damping_matrix(self) -> PETSc.Mat | None:
+        """C: the given matrix, or Rayleigh alpha M + beta K (built once, owned here). Modal damping
+        has no sparse full-order form: an InputError."""
+        ops = self.operators
+        if ops.C is not None:
+            return ops.C
+        if self.damping.kind == "modal":
+            raise InputError("--method full: modal damping ([damping] zeta) has no sparse full-order counterpart; "
+                             "give Rayleigh coefficients ([damping] rayleigh_alpha, rayleigh_beta) or a damping matrix")
+        if self.damping.kind == "none":
+            return None
+        if self._C is None:
+            self._C = ops.M.duplicate(copy=True)
+            self._C.scale(self.damping.rayleigh_alpha)
+            self._C.axpy(self.damping.rayleigh_beta, ops.K, PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+        return self._C
+
+    def add_loads(self, t: float, F: PETSc.Vec, scale: float = 1.0) -> None:
+        """F += scale * (external load at t): -(M r) Omega''(t) + g_F F(t). Not collective."""
+        ops = self.operators
+        if self.moving_support:
+            F.axpy(-scale * self.support.acceleration(t), ops.base_mass_load)
+        if self.force_load is not None:
+            F.axpy(scale * float(self.force.value(t)), self.force_load)
+        if self.force_row is not None:
+            lo, hi = F.getOwnershipRange()
+            if lo <= self.force_row < hi:
+                F.getArray()[self.force_row - lo] += scale * float(self.force.value(t))
+
+    def initial_displacement(self) -> PETSc.Vec:
+        """u(0): zero, or `initial.amplitude` m peak (over the field's DOFs) in reference mode
+        `initial.mode`."""
+        from .modes import reference_modes
+
+        u = self.operators.K.createVecRight()
+        u.zeroEntries()
+        if not self.initial.amplitude:
+            return u
+        modes = reference_modes(self.operators, count=self.initial.mode)
+        modes.vectors.copyVec(self.initial.mode - 1, u)
+        modes.destroy()
+        u.scale(self.initial.amplitude / field_peak(self.operators, u))
+        return u
+
+    def destroy(self) -> None:
+        destroy(self._C, self.force_load)
+        self.operators.destroy()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.destroy()
+
+
+def field_peak(ops: Operators, u: PETSc.Vec) -> float:
+    """max |u| over the DOFs of the field a user sees (w at the nodes of a beam, all DOFs of a
+    matrix model). Collective."""
+    from mpi4py import MPI
+
+    lo, hi = u.getOwnershipRange()
+    rows = ops.field_map().rows
+    rows = rows[(rows >= lo) & (rows < hi)]
+    local = float(np.abs(u.getArray(readonly=True)[rows - lo]).max(initial=0.0))
+    return ops.comm.tompi4py().allreduce(local, op=MPI.MAX)
+
+
+def _beam_operators(beam: Beam, constraints, excitation, probes, comm) -> Operators:
+    points = [c.x for c in constraints] + list(probes)
+    if excitation.kind == "force":
+        points.append(excitation.x)
+    elif excitation.kind == "random":
+        points.extend(excitation.span)
+    return assemble_beam(beam, comm, points=points, base_end=excitation.end if excitation.kind == "base" else None)
+
+
+def _row(ops: Operators, x, dof, what: str) -> int:
+    """The row of w at x (a beam) or of `dof` (a matrix model); an InputError on a fixed DOF or
+    outside the structure."""
+    if ops.mesh is not None:
+        row = ops.mesh.w_row(x)
+        if row < 0:
+            raise InputError(f"{what} acts on a fixed DOF: it is on a support; move it or remove it")
+        return row
+    if not 0 <= dof < ops.size:
+        raise InputError(f"{what} is outside the {ops.size} DOFs of the matrices")
+    return int(dof)
+
+
+def _distinct(rows, constraints) -> None:
+    seen = {}
+    for i, row in enumerate(rows):
+        if row in seen:
+            raise InputError(f"constraints {seen[row] + 1} and {i + 1} act on the same DOF "
+                             f"({constraints[seen[row]].label} and {constraints[i].label}); remove one or merge their laws")
+        seen[row] = i

@@ -1,0 +1,74 @@
+"""The output layout: every dataset name of a run's HDF5 file, with its unit and meaning, in one place
+(README "Outputs" and docs/outputs.md describe the same contract).
+
+Series (one row per sample) are streamed while a run goes; the rest is written when it ends.
+Shapes: nt samples, N_L constraints, P probes, r basis vectors, F field points, S snapshots.
+"""
+from __future__ import annotations
+
+TIME = "time"
+CONSTRAINT_POSITION = "constraints/position"
+CONSTRAINT_CLEARANCE_MINUS = "constraints/clearance_minus"
+CONSTRAINT_CLEARANCE_PLUS = "constraints/clearance_plus"
+CONSTRAINT_DISPLACEMENT = "constraints/displacement"
+CONSTRAINT_VELOCITY = "constraints/velocity"
+CONSTRAINT_FORCE = "constraints/force"
+CONSTRAINT_FORCE_PEAK = "constraints/force_peak"
+CONSTRAINT_STATS = "constraints/stats"
+PROBE_POSITION = "probes/position"
+PROBE_DISPLACEMENT = "probes/displacement"
+PROBE_PEAK = "probes/peak"
+BASIS_OMEGA = "basis/omega"
+BASIS_ENRICHMENT_OMEGA = "basis/enrichment_omega"
+BASIS_DBF_K = "basis/dbf_k"
+REDUCED_Q = "reduced/q"
+REDUCED_QDOT = "reduced/qdot"
+REDUCED_M = "reduced/M"
+REDUCED_K = "reduced/K"
+REDUCED_D = "reduced/D"
+REDUCED_B = "reduced/B"
+SNAPSHOT_TIME = "snapshots/time"
+SNAPSHOT_X = "snapshots/x"
+SNAPSHOT_W = "snapshots/w"
+
+# Streamed per sample, in this order.
+SERIES = (TIME, CONSTRAINT_DISPLACEMENT, CONSTRAINT_VELOCITY, CONSTRAINT_FORCE, CONSTRAINT_FORCE_PEAK,
+          PROBE_DISPLACEMENT, REDUCED_Q, REDUCED_QDOT)
+
+# name -> (unit, meaning)
+DATASETS = {
+    TIME: ("s", "sample times (nt)"),
+    CONSTRAINT_POSITION: ("m or 1", "x of each constraint on a beam, or its DOF (N_L)"),
+    CONSTRAINT_CLEARANCE_MINUS: ("m", "clearance below each constraint (N_L)"),
+    CONSTRAINT_CLEARANCE_PLUS: ("m", "clearance above each constraint (N_L)"),
+    CONSTRAINT_DISPLACEMENT: ("m", "total displacement at the constraints (nt x N_L)"),
+    CONSTRAINT_VELOCITY: ("m/s", "total velocity at the constraints (nt x N_L)"),
+    CONSTRAINT_FORCE: ("N", "constraint force on the structure at the samples (nt x N_L)"),
+    CONSTRAINT_FORCE_PEAK: ("N", "largest-magnitude constraint force at the solver's steps since the "
+                                 "previous sample (nt x N_L)"),
+    PROBE_POSITION: ("m or 1", "x of each probe on a beam, or its DOF (P)"),
+    PROBE_DISPLACEMENT: ("m", "total displacement at the probes (nt x P)"),
+    PROBE_PEAK: ("m", "max |displacement| at each probe over the samples (P)"),
+    BASIS_OMEGA: ("rad/s", "reference frequencies (N)"),
+    BASIS_ENRICHMENT_OMEGA: ("rad/s", "hat-omega_j of each enrichment column, Eq. 41 (N_L, or 0)"),
+    BASIS_DBF_K: ("N/m", "DBF stiffness k_j of each constraint, 0 for other enrichment (N_L, or 0)"),
+    REDUCED_Q: ("1", "reduced coordinates q (nt x r; width 0 for a full-order run)"),
+    REDUCED_QDOT: ("1/s", "reduced velocities q' (nt x r; width 0 for a full-order run)"),
+    REDUCED_M: ("1", "reduced mass V^T M V (r x r; I to round-off)"),
+    REDUCED_K: ("1/s^2", "reduced stiffness V^T K V (r x r)"),
+    REDUCED_D: ("1/s", "reduced damping C_r (r x r)"),
+    REDUCED_B: ("m", "the basis at the constraint DOFs, B = G^T V (N_L x r)"),
+    SNAPSHOT_TIME: ("s", "snapshot times (S)"),
+    SNAPSHOT_X: ("m or 1", "field points: node x on a beam, or DOF index (F)"),
+    SNAPSHOT_W: ("m", "total displacement at the field points (S x F)"),
+}
+
+# Earlier names still read (outputs of dbf_hpc before the enrichment strategies).
+LEGACY = {BASIS_ENRICHMENT_OMEGA: "basis/dbf_omega"}
+
+
+def read(f, name: str):
+    """A dataset of an open output by its current name, or by the name an older version wrote."""
+    if name in f:
+        return f[name]
+    return f[LEGACY[name]] if name in LEGACY and LEGACY[name] in f else f[name]

@@ -1,0 +1,103 @@
+"""Small PETSc helpers shared by the whole package: layouts, assembly from triplets, direct solvers,
+scoped option defaults, reading rows of distributed vectors, and freeing what a caller owns.
+
+Conventions (after petsc4py's demos and Firedrake's petsctools): every solver gets its own options
+prefix; the code's defaults are put into the options database only where the user has not set
+them and only for as long as the solver reads them (`options_defaults`); whoever creates a PETSc
+object destroys it, also on error paths (`destroy`).
+"""
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+from petsc4py import PETSc
+
+
+def owned_rows(n: int, comm) -> tuple[int, int]:
+    """The rows [start, end) this rank owns in PETSc's default layout of n rows. Collective."""
+    n_local, _ = PETSc.Sys.splitOwnership(n, comm=comm)
+    start = comm.tompi4py().exscan(n_local) or 0
+    return start, start + n_local
+
+
+def aij_from_owned_triplets(comm, n: int, rows, cols, values) -> PETSc.Mat:
+    """An assembled n x n AIJ matrix from (row, col, value) triplets of this rank's own rows
+    (duplicates are summed). Collective; no values move between ranks."""
+    start, end = owned_rows(n, comm)
+    rows = np.asarray(rows, dtype=np.int64)
+    key, inverse = np.unique((rows - start) * n + np.asarray(cols, dtype=np.int64), return_inverse=True)
+    summed = np.bincount(inverse, weights=np.asarray(values, dtype=float), minlength=key.size)
+    local_row, col = np.divmod(key, n)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(local_row, minlength=end - start))])
+    A = PETSc.Mat().createAIJ(size=((end - start, n), (end - start, n)),
+                              csr=(indptr.astype(PETSc.IntType), col.astype(PETSc.IntType), summed),
+                              comm=comm)
+    A.assemble()
+    return A
+
+
+def direct_solver(ksp: PETSc.KSP, factorization: str = "lu") -> PETSc.KSP:
+    """Configure a KSP as a direct solve by MUMPS (required in parallel): preonly + LU or Cholesky.
+    Set before setFromOptions, so the user's options still win."""
+    ksp.setType(PETSc.KSP.Type.PREONLY)
+    pc = ksp.getPC()
+    pc.setType(factorization)
+    pc.setFactorSolverType("mumps")
+    return ksp
+
+
+@contextlib.contextmanager
+def options_defaults(prefix: str, defaults: dict):
+    """Put the code's `defaults` (option name -> value) under `prefix` into the options database
+    where the user has not set them, for the calls inside the block (setFromOptions, and a solve
+    when an option is read at factorization time), and take them out after: the user's options
+    always win, and ours never leak into another solver or outlive this one. Yields the prefixed
+    options, to read the effective values."""
+    options = PETSc.Options(prefix)
+    ours = [name for name in defaults if not options.hasName(name)]
+    for name in ours:
+        options.setValue(name, defaults[name])
+    try:
+        yield options
+    finally:
+        for name in ours:
+            options.delValue(name)
+
+
+def values_at(vec: PETSc.Vec, rows) -> np.ndarray:
+    """vec[rows] on every rank. Collective."""
+    lo, hi = vec.getOwnershipRange()
+    rows = np.asarray(rows, dtype=np.int64)
+    out = np.zeros(rows.size)
+    mine = (rows >= lo) & (rows < hi)
+    out[mine] = vec.getArray(readonly=True)[rows[mine] - lo]
+    return vec.getComm().tompi4py().allreduce(out)
+
+
+def on_rank0(vec: PETSc.Vec) -> np.ndarray | None:
+    """The whole of a distributed Vec on rank 0 (None elsewhere). Collective."""
+    scatter, full = PETSc.Scatter.toZero(vec)
+    try:
+        scatter.scatter(vec, full, addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        return full.getArray(readonly=True).copy() if vec.getComm().rank == 0 else None
+    finally:
+        destroy(scatter, full)
+
+
+def unit_vector(template: PETSc.Vec, row: int) -> PETSc.Vec:
+    """The unit vector at global `row`, laid out like `template`. Collective."""
+    g = template.duplicate()
+    g.set(0.0)
+    lo, hi = g.getOwnershipRange()
+    if lo <= row < hi:
+        g.setValue(int(row), 1.0)
+    g.assemble()
+    return g
+
+
+def destroy(*objects) -> None:
+    """Destroy the given PETSc objects (None is skipped). Collective on each object's communicator."""
+    for obj in objects:
+        if obj is not None:
+            obj.destroy()

@@ -1,0 +1,133 @@
+"""What a run records, whichever model computed it: samples, the peak force between samples, and
+the impact statistics over the solver's steps; and what a run returns to a Python caller.
+
+Both integrators hand their samples (total displacement and velocity at the constraints, probe
+displacement, reduced coordinates if any) and their steps to a SampleRecorder, which writes rows
+to a writer (output.py: an HDF5 file, or memory). Nothing here is collective: the recorder lives
+on the rank that writes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import layout
+from .constraints import ConstraintSet
+from .rom import ReducedModel
+from .stats import ImpactAccumulator
+
+
+class SampleRecorder:
+    """Each sample becomes a row of the output; the impact statistics accumulate over the solver's
+    steps, and the peak force over the steps since the previous sample goes with each sample
+    (impacts are often shorter than a sample)."""
+
+    def __init__(self, writer, constraints: ConstraintSet):
+        self.writer, self.constraints = writer, constraints
+        n = constraints.count * constraints.dimension
+        self.impacts = ImpactAccumulator(n)
+        self.peak = np.zeros(n)  # signed largest |N| at the steps since the previous sample
+
+    def _track_peak(self, force) -> None:
+        larger = np.abs(force) > np.abs(self.peak)
+        self.peak[larger] = force[larger]
+
+    def sample(self, t, z, v, probe, q=(), p=()) -> None:
+        force = self.constraints.force(z, v)
+        self._track_peak(force)
+        self.writer.append(**{layout.TIME: t, layout.CONSTRAINT_DISPLACEMENT: z, layout.CONSTRAINT_VELOCITY: v,
+                              layout.CONSTRAINT_FORCE: force, layout.CONSTRAINT_FORCE_PEAK: self.peak.copy(),
+                              layout.PROBE_DISPLACEMENT: probe, layout.REDUCED_Q: q, layout.REDUCED_QDOT: p})
+        self.peak[:] = 0.0
+
+    def step(self, t, z, v) -> None:
+        force = self.constraints.force(z, v)
+        self.impacts.add(t, z, v, force)
+        self._track_peak(force)
+
+    def state(self) -> dict:
+        """The recorder's part of a checkpoint (arrays)."""
+        return {"peak": self.peak.copy(), **{f"impacts/{k}": v for k, v in self.impacts.state().items()}}
+
+    def restore(self, state: dict) -> None:
+        self.peak = np.array(state["peak"], dtype=float)
+        self.impacts = ImpactAccumulator.from_state({k[len("impacts/"):]: v for k, v in state.items()
+                                                     if k.startswith("impacts/")})
+
+
+class ReducedRecorder(SampleRecorder):
+    """A reduced run's samples from q: the values at the constraints and probes, the coordinates at
+    the snapshot samples (for the field, rom.ReducedField), and the final state."""
+
+    def __init__(self, writer, model: ReducedModel, snapshot_samples=()):
+        super().__init__(writer, model.constraints)
+        self.model = model
+        self.snapshot_samples = set(int(i) for i in snapshot_samples)
+        self.snapshot_q = {}
+        self.index = 0
+        self.final = (model.q0.copy(), model.p0.copy())
+
+    def record(self, t, q, p) -> None:
+        m = self.model
+        if self.index in self.snapshot_samples:
+            self.snapshot_q[self.index] = q.copy()
+        self.index += 1
+        z, v = m.constraint_state(t, q, p)
+        self.sample(t, z, v, m.probes(t, q), q, p)
+        self.final = (q, p)
+
+    def on_step(self, t, q, p) -> None:
+        self.step(t, *self.model.constraint_state(t, q, p))
+
+    def snapshots(self, times: np.ndarray):
+        """(snapshot times, w at the field points) from the coordinates kept at the snapshot samples."""
+        indices = sorted(self.snapshot_q)
+        field = self.model.field
+        if field is None or not indices:
+            return np.zeros(0), np.zeros((0, 0 if field is None else field.positions.size))
+        t = times[indices]
+        w = np.array([field.at(self.snapshot_q[i], self.model.support.value(ti)) for i, ti in zip(indices, t)])
+        return t, w
+
+    def state(self) -> dict:
+        out = super().state()
+        out.update(final_q=self.final[0], final_p=self.final[1], index=np.array(self.index),
+                   snapshot_index=np.array(sorted(self.snapshot_q), dtype=np.int64),
+                   snapshot_q=np.array([self.snapshot_q[i] for i in sorted(self.snapshot_q)]).reshape(
+                       -1, self.model.size))
+        return out
+
+    def restore(self, state: dict) -> None:
+        super().restore(state)
+        self.final = (np.array(state["final_q"]), np.array(state["final_p"]))
+        self.index = int(state["index"])
+        self.snapshot_q = {int(i): np.array(q) for i, q in zip(state["snapshot_index"], state["snapshot_q"])}
+
+
+@dataclass
+class Result:
+    """A run's results as numpy arrays (the Python API; a file-backed run has the same in HDF5).
+    Constraint arrays are nt x N_L; q and qdot are nt x r (width 0 for a full-order run)."""
+
+    time: np.ndarray
+    displacement: np.ndarray          # total w at the constraints, m
+    velocity: np.ndarray              # m/s
+    force: np.ndarray                 # N on the structure at the samples
+    force_peak: np.ndarray            # N, the largest |N| at the steps since the previous sample
+    probes: np.ndarray                # total w at the probes, m
+    q: np.ndarray
+    qdot: np.ndarray
+    statistics: dict                  # impact statistics per constraint (stats.STATISTICS)
+    solver: dict = field(default_factory=dict)   # steps, rejections, Newton failures, wall time
+    snapshot_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    snapshot_w: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))   # S x F, at the field points
+
+    @classmethod
+    def from_recorder(cls, recorder: SampleRecorder, solver: dict) -> "Result":
+        data = {name: recorder.writer.series_data(name) for name in layout.SERIES}
+        return cls(time=data[layout.TIME], displacement=data[layout.CONSTRAINT_DISPLACEMENT],
+                   velocity=data[layout.CONSTRAINT_VELOCITY], force=data[layout.CONSTRAINT_FORCE],
+                   force_peak=data[layout.CONSTRAINT_FORCE_PEAK], probes=data[layout.PROBE_DISPLACEMENT],
+                   q=data[layout.REDUCED_Q], qdot=data[layout.REDUCED_QDOT],
+                   statistics=recorder.impacts.result(), solver=dict(solver))

@@ -1,0 +1,98 @@
+"""The reductor: a full-order model and basis settings -> a basis -> a reduced model.
+
+    with Reductor(fom, BasisSettings(modes=6), cache_dir) as reductor:
+        rom = reductor.reduce(field=True)
+
+The basis comes from the cache when a valid one exists (cache.py), else it is built (basis.py) and
+stored. reduce() projects the operators and loads onto it (Eqs. 21, 27, 32; rom.py). Collective
+on the full-order model's communicator; the reduced model it returns is the same on every rank.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .basis import BasisSettings, ReducedBasis
+from .cache import obtain_basis
+from .errors import InputError
+from .fom import FullOrderModel
+from .rom import ReducedField, ReducedModel
+
+
+class Reductor:
+    """Owns the basis it obtains (destroyed with the reductor)."""
+
+    def __init__(self, fom: FullOrderModel, settings: BasisSettings = BasisSettings(), cache_dir: str | None = None):
+        self.fom, self.settings, self.cache_dir = fom, settings, cache_dir
+        self._basis = None
+
+    def basis(self) -> ReducedBasis:
+        """The basis (obtained once). Collective."""
+        if self._basis is None:
+            fom = self.fom
+            self._basis = obtain_basis(fom.operators, fom.constraints.flat_rows, self.settings, fom.fingerprint,
+                                       self.cache_dir, list(fom.constraints.labels))
+        return self._basis
+
+    def reduce(self, field: bool = False) -> ReducedModel:
+        """Project the full-order model onto the basis. With field, also the basis at the field
+        points, for snapshots. Collective."""
+        fom, basis = self.fom, self.basis()
+        ops = fom.operators
+        K, M = basis.project(ops.K), basis.project(ops.M)
+        C = basis.project(ops.C) if ops.C is not None else fom.damping.reduced_matrix(K, M)
+        G = basis.project(ops.G) if ops.G is not None else None
+        rows = fom.constraints.flat_rows
+        base_load = basis.dot(ops.base_mass_load) if fom.moving_support else np.zeros(basis.size)
+        if fom.force_load is not None:
+            force_shape = basis.dot(fom.force_load)
+        elif fom.force_row is not None:
+            force_shape = basis.rows([fom.force_row])[0]
+        else:
+            force_shape = np.zeros(basis.size)
+        q0 = self._initial_coordinates()
+        r_q = np.zeros(basis.size)
+        if fom.moving_support:
+            Mr = ops.M.createVecLeft()
+            ops.M.mult(ops.influence, Mr)
+            r_q = basis.dot(Mr)
+            Mr.destroy()
+        info = {"omega": basis.omega, "enrichment_omega": basis.enrichment_omega, "dbf_k": basis.dbf_k,
+                "enrichment": basis.enrichment}
+        return ReducedModel(M=M, C=C, K=K, G=G, B=basis.rows(rows), r_c=fom.influence_at(rows), base_load=base_load,
+                            force_shape=force_shape, constraints=fom.constraints, support=fom.support,
+                            force=fom.force, q0=q0, p0=np.zeros(basis.size), probe_B=basis.rows(fom.probe_rows),
+                            probe_r=fom.influence_at(fom.probe_rows), basis_info=info, r_q=r_q,
+                            field=self._field() if field else None)
+
+    def _initial_coordinates(self) -> np.ndarray:
+        """q(0): zero, or the initial amplitude (m, peak over the field) in a reference mode."""
+        basis, initial = self.basis(), self.fom.initial
+        q0 = np.zeros(basis.size)
+        if initial.amplitude:
+            if not 1 <= initial.mode <= basis.mode_count:
+                raise InputError(f"[initial] mode = {initial.mode}: the basis has {basis.mode_count} reference modes")
+            column = self._field_values()[:, initial.mode - 1]
+            q0[initial.mode - 1] = initial.amplitude / np.abs(column).max()
+        return q0
+
+    def _field_values(self) -> np.ndarray:
+        """V at the field points (0 at fixed DOFs), on every rank."""
+        field = self.fom.operators.field_map()
+        V = np.zeros((field.rows.size, self.basis().size))
+        V[field.free] = self.basis().rows(field.rows[field.free])
+        return V
+
+    def _field(self) -> ReducedField:
+        return ReducedField(positions=self.fom.operators.field_map().positions, V=self._field_values(),
+                            support=self.fom.field_support())
+
+    def destroy(self) -> None:
+        if self._basis is not None:
+            self._basis.destroy()
+            self._basis = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.destroy()

@@ -1,0 +1,102 @@
+"""The reduced model (docs/design.md; paper Eqs. 21, 27, 32):
+
+    M_r q'' + (C_r + G_r) q' + K_r q = f_r(t) + B^T N(z, v),   z = B q + r_c Omega(t),  v = B q' + r_c Omega'(t)
+
+q: coordinates on V = [modes, enrichment columns] (V^T M V = I, so M_r is I to round-off);
+K_r = V^T K V, C_r = V^T C V (or modal / Rayleigh damping, damping.py), G_r = V^T G V (gyroscopic,
+not used yet; None); B = G^T V (the basis at the constraint DOFs); r_c: the support-motion influence
+at the constraints, so the law acts on the TOTAL displacement and velocity;
+f_r(t) = -V^T (M r) Omega''(t) + V^T g_F F(t). None of the matrices is symmetrized: what the
+projection gives is what is integrated.
+
+A ReducedModel is small and holds numpy arrays only, the same on every rank: it can be handed to
+any rank (a sweep's cases run side by side) and integrated there (rom_integrator.py). Its field
+part (V at the points a snapshot shows) is present only when snapshots are asked for.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .constraints import ConstraintSet
+from .excitation import Harmonic
+
+
+@dataclass(frozen=True)
+class ReducedField:
+    """What reconstructs the field a snapshot shows from q: w = V_f q + s Omega(t)."""
+
+    positions: np.ndarray   # (F,) x (m) of a beam's nodes, or DOF indices
+    V: np.ndarray           # (F, r) the basis at the field points (0 at fixed DOFs)
+    support: np.ndarray     # (F,) the influence r (and the moving support's 1) at the field points
+
+    def at(self, q: np.ndarray, omega: float) -> np.ndarray:
+        return self.V @ q + self.support * omega
+
+
+@dataclass(frozen=True)
+class ReducedModel:
+    """Everything the integrator and the output need, as dense numpy arrays (r = basis size,
+    N_L d constraint components, P probes). See the module docstring for the equations.
+
+    basis_info   what the output records about the basis: omega, enrichment_omega, dbf_k (arrays)
+                 and enrichment (its kind)
+    r_q          V^T M r: the influence vector in basis coordinates (zeros without support motion),
+                 to keep the total state continuous when the support motion jumps (sweep.py)
+    """
+
+    M: np.ndarray
+    C: np.ndarray
+    K: np.ndarray
+    B: np.ndarray
+    r_c: np.ndarray
+    base_load: np.ndarray
+    force_shape: np.ndarray
+    constraints: ConstraintSet
+    support: Harmonic
+    force: object
+    q0: np.ndarray
+    p0: np.ndarray
+    probe_B: np.ndarray
+    probe_r: np.ndarray
+    basis_info: dict
+    r_q: Optional[np.ndarray] = None
+    G: Optional[np.ndarray] = None
+    field: Optional[ReducedField] = None
+
+    @property
+    def size(self) -> int:
+        return self.K.shape[0]
+
+    @property
+    def damping(self) -> np.ndarray:
+        """C_r + G_r: everything that multiplies q'."""
+        return self.C if self.G is None else self.C + self.G
+
+    def external_force(self, t: float) -> np.ndarray:
+        """f_r(t)."""
+        return self.force_shape * self.force.value(t) - self.base_load * self.support.acceleration(t)
+
+    def constraint_state(self, t: float, q: np.ndarray, p: np.ndarray):
+        """Total displacement and velocity at the constraints (flat, N_L d)."""
+        return self.B @ q + self.r_c * self.support.value(t), self.B @ p + self.r_c * self.support.rate(t)
+
+    def probes(self, t: float, q: np.ndarray) -> np.ndarray:
+        """Total displacement at the probes."""
+        return self.probe_B @ q + self.probe_r * self.support.value(t)
+
+    def energy(self, q: np.ndarray, p: np.ndarray) -> float:
+        """Kinetic plus strain energy of the linear part, (p^T M p + q^T K q) / 2, J (relative
+        coordinates; the laws' potential is ConstraintSet's)."""
+        return 0.5 * (p @ self.M @ p + q @ self.K @ q)
+
+    def with_case(self, constraints: ConstraintSet | None = None, support: Harmonic | None = None, force=None,
+                  q0=None, p0=None) -> "ReducedModel":
+        """The same reduced operators with another law, excitation history or initial state (what
+        the cases of a sweep change; none of it needs a new basis)."""
+        changes = {name: value for name, value in (("constraints", constraints), ("support", support),
+                                                   ("force", force), ("q0", q0), ("p0", p0)) if value is not None}
+        return dataclasses.replace(self, **changes)

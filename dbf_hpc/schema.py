@@ -1,0 +1,159 @@
+"""The scene file's contract: every section and key, its type, default, unit and meaning.
+
+scene.py validates against it; `reference()` renders it as docs/scene.md (a test checks that the
+file is up to date, so the reference cannot drift from the code); unknown-key errors list the
+valid keys from it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+NUMBER = (int, float)
+
+
+@dataclass(frozen=True)
+class Key:
+    types: tuple
+    default: object = None
+    unit: str = ""
+    doc: str = ""
+
+
+SECTIONS = {
+    "structure": ("The linear structure: a beam built here, or matrices of any FE model.", {
+        "kind": Key((str,), "beam", "", '"beam" (Euler-Bernoulli, Hermite-cubic elements) or "matrices" (K, M '
+                                        'from files)'),
+        "length": Key(NUMBER, None, "m", "beam: length (required)"),
+        "elements": Key((int,), 100, "", "beam: target number of elements (a node is added at every constraint, "
+                                         "probe, force and support)"),
+        "E": Key(NUMBER, None, "Pa", "beam: Young's modulus (required)"),
+        "I": Key(NUMBER, None, "m^4", "beam: second moment of area (required)"),
+        "A": Key(NUMBER, None, "m^2", "beam: cross-section area (required)"),
+        "rho": Key(NUMBER, None, "kg/m^3", "beam: density (required)"),
+        "left": Key((str,), "pinned", "", 'beam: left end, "pinned", "clamped", "free" or "sliding" (slope fixed)'),
+        "right": Key((str,), "pinned", "", "beam: right end, as left"),
+        "supports": Key((list,), [], "m", "beam: x of intermediate rigid supports (multi-span tubes)"),
+        "stiffness": Key((str,), None, "", "matrices: K over the free DOFs, Matrix Market (.mtx) or PETSc binary "
+                                           "(required)"),
+        "mass": Key((str,), None, "", "matrices: M, as stiffness (required)"),
+        "damping": Key((str,), None, "", "matrices: a damping matrix C (optional)"),
+        "influence": Key((str,), None, "", "matrices: r, the displacement under a unit support motion (.npy, .txt, "
+                                           ".mtx or PETSc binary; needed for base excitation)"),
+        "base_mass_load": Key((str,), None, "", "matrices: M_(free, all) r_all with the coupling to the moving "
+                                                "support (default M r)"),
+    }),
+    "excitation": ("What drives the structure.", {
+        "kind": Key((str,), "none", "", '"none" (free vibration), "base" (support motion), "force" (a point '
+                                        'force) or "random" (turbulence forcing along a beam)'),
+        "amplitude": Key(NUMBER, 0.0, "m or N", "base: support displacement amplitude; force: force amplitude"),
+        "frequency_hz": Key(NUMBER, 0.0, "Hz", "base, force: frequency of the sine"),
+        "end": Key((str,), "left", "", 'base: the moving support of a beam, "left" or "right"'),
+        "x": Key(NUMBER, None, "m", "force on a beam: where it acts"),
+        "dof": Key((int,), None, "", "force on matrices: the DOF it acts on (counted from 0)"),
+        "psd": Key(NUMBER, 0.0, "(N/m)^2/Hz", "random: one-sided PSD of the force per unit length"),
+        "band": Key((list,), [], "Hz", "random: [f_low, f_high] of the flat PSD"),
+        "seed": Key((int,), 1, "", "random: the same seed gives the same history"),
+        "components": Key((int,), 256, "", "random: cosines of the spectral representation"),
+        "span": Key((list,), [], "m", "random: [x0, x1] loaded (default the whole beam), fully correlated"),
+    }),
+    "basis": ("Reference modes and one enrichment column per constraint.", {
+        "modes": Key((int,), None, "", "number of reference modes (6 if neither this nor max_frequency_hz)"),
+        "max_frequency_hz": Key(NUMBER, None, "Hz", "every mode below this frequency instead of a count"),
+        "enrichment": Key((str,), "dbf", "", '"dbf" (the method), "static" (static attachment modes K^-1 g) or '
+                                             '"none" (modes alone); the last two are comparators'),
+        "dbf_stiffness": Key((str, *NUMBER), "auto", "N/m", 'k_j of the spring-perturbed problem: "auto" (the '
+                                                             'corner of the paper\'s Fig. 2) or a number'),
+        "dbf_derivative": Key((str,), "analytic", "", '"analytic" (deflated derivative solve) or "central" (the '
+                                                      'paper\'s central difference)'),
+        "groups": Key((int,), 0, "", "constraint groups solved side by side (0: one per rank, at most one per "
+                                     "constraint)"),
+        "cache": Key((str,), "~/.cache/dbf_hpc", "", 'directory of cached bases, or "off"'),
+    }),
+    "damping": ("Linear damping of the structure (none by default, as in the paper).", {
+        "zeta": Key((*NUMBER, list), 0.0, "1", "modal damping ratio, one for all or one per basis vector"),
+        "rayleigh_alpha": Key(NUMBER, 0.0, "1/s", "C = alpha M + beta K"),
+        "rayleigh_beta": Key(NUMBER, 0.0, "s", "C = alpha M + beta K"),
+    }),
+    "integrator": ("Time integration (PETSc TS; options prefixes rom_ and full_ override these).", {
+        "t_end": Key(NUMBER, 1.0, "s", "end of the run"),
+        "dt": Key(NUMBER, 1e-4, "s", "the fixed step, or the first step of an adaptive run"),
+        "scheme": Key((str, int), "3", "", "the reduced model's ARKIMEX type: 1bee, a2, l2, ars122, 2c, 2d, 2e, "
+                                           "prssp2, 3, bpr3, ars443, 4, 5"),
+        "adaptive": Key((bool,), True, "", "adaptive steps (error control by rtol, atol) or the fixed step dt"),
+        "rtol": Key(NUMBER, 1e-6, "1", "relative tolerance of the adaptive steps"),
+        "atol": Key(NUMBER, 1e-9, "", "absolute tolerance of the adaptive steps (units of q and q')"),
+        "contact": Key((str,), "implicit", "", '"implicit" (with its exact Jacobian) or "explicit" (the paper\'s '
+                                               'IMEX split)'),
+    }),
+    "initial": ("The state at t = 0 (at rest in relative coordinates by default).", {
+        "mode": Key((int,), 1, "", "reference mode of the initial displacement, counted from 1"),
+        "amplitude": Key(NUMBER, 0.0, "m", "peak initial displacement in that mode"),
+    }),
+    "output": ("What a run writes.", {
+        "file": Key((str,), None, "", "the HDF5 output, relative to the scene's folder (or -o)"),
+        "sample_dt": Key(NUMBER, None, "s", "interval of the samples (default t_end / 10000)"),
+        "probes": Key((list,), [], "m", "x of the probes on a beam (DOFs for matrices): total displacement there"),
+        "snapshots": Key((int,), 0, "", "field snapshots at evenly spaced times"),
+        "checkpoint_dt": Key(NUMBER, None, "s", "simulated time between checkpoints (default t_end / 10)"),
+    }),
+}
+
+CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", {
+    "x": Key(NUMBER, None, "m", "beam: position (required on a beam)"),
+    "dof": Key((int,), None, "", "matrices: the DOF it acts on, counted from 0 (required for matrices)"),
+    "law": Key((str,), "deadband", "", '"deadband" (Eq. 23), "power" (Eq. 42), "hertz", "linear", "cubic" or '
+                                       '"table"'),
+    "clearance": Key(NUMBER, None, "m", "deadband, power, hertz: gap on both sides (or clearance_minus, "
+                                        "clearance_plus); negative is an interference fit"),
+    "k": Key(NUMBER, None, "N/m^p", "stiffness on both sides (or k_minus, k_plus); linear, cubic: the spring"),
+    "exponent": Key(NUMBER, None, "", "power: exponent p on both sides (or exponent_minus, exponent_plus); "
+                                      "hertz: 1.5"),
+    "k3": Key(NUMBER, None, "N/m^3", "cubic: N = -(k z + k3 z^3)"),
+    "table": Key((list,), None, "m, N", "table: [[z, force], ...], piecewise linear"),
+    "damping": Key((str,), "none", "", 'contact damping: "none", "linear" (-c v) or "hunt_crossley" '
+                                       '(-alpha |N| v)'),
+    "c": Key(NUMBER, None, "N s/m", "linear contact damping"),
+    "alpha": Key(NUMBER, None, "s/m", "Hunt-Crossley contact damping"),
+})
+
+
+def valid_keys(section: str) -> str:
+    keys = CONSTRAINT[1] if section == "constraint" else SECTIONS[section][1]
+    return ", ".join(keys)
+
+
+def _table(keys: dict) -> list:
+    lines = ["| key | type | default | unit | meaning |", "|---|---|---|---|---|"]
+    names = {int: "integer", float: "number", str: "string", list: "list", bool: "boolean"}
+    for name, key in keys.items():
+        types = key.types if not set(key.types) >= {int, float} else tuple(t for t in key.types if t is not int)
+        default = "" if key.default is None else f"`{key.default!r}`".replace("'", '"')
+        lines.append(f"| `{name}` | {' or '.join(names[t] for t in types)} | {default} | {key.unit} | {key.doc} |")
+    return lines
+
+
+def reference() -> str:
+    """docs/scene.md: the scene reference, generated from this module."""
+    lines = ["# Scene files: the reference", "",
+             "Generated from `dbf_hpc/schema.py` (`python -m dbf_hpc.schema > docs/scene.md`); a test checks "
+             "that this file is up to date. A scene is TOML with SI units. Relative paths are taken relative to "
+             "the scene file's folder. DOFs count from 0. Any value can be overridden on the command line with "
+             "`--set section.key=value` (TOML syntax; `--set constraint.key=value` sets every constraint, "
+             "`--set constraint.2.key=value` the second one).", ""]
+    for section, (doc, keys) in SECTIONS.items():
+        lines += [f"## [{section}]", "", doc, "", *_table(keys), ""]
+    lines += ["## [[constraint]]", "", CONSTRAINT[0] + " Keys with a side (`clearance`, `k`, `exponent`) also "
+              "exist as `_minus` and `_plus` versions for the two sides.", "", *_table(CONSTRAINT[1]), ""]
+    lines += ["## Example: the paper's beam (jobs/paper_beam.toml)", "", "```toml",
+              *open(_example()).read().strip().splitlines(), "```", ""]
+    return "\n".join(lines)
+
+
+def _example() -> str:
+    import os
+
+    return os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "jobs", "paper_beam.toml")
+
+
+if __name__ == "__main__":
+    print(reference(), end="")

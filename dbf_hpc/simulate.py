@@ -1,0 +1,63 @@
+"""Runs from Python, results in memory (the scene front end, run.py, streams to HDF5 instead).
+
+    result = simulate_reduced(rom, IntegratorSettings(t_end=0.5, sample_dt=1e-3))
+    result.displacement[:, j]      # total w at constraint j, m
+
+simulate_reduced integrates on the calling rank alone (the reduced model is the same on every
+rank); simulate_full is collective on the full-order model's communicator and returns the same
+Result on every rank. Keep these for runs whose samples fit in memory.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .fom import FullOrderModel
+from .fom_integrator import integrate_full
+from .output import MemoryWriter
+from .recorder import ReducedRecorder, Result, SampleRecorder
+from .rom import ReducedModel
+from .rom_integrator import integrate_reduced
+from .timestepping import IntegratorSettings
+
+
+def _snapshot_samples(count: int, times: np.ndarray) -> np.ndarray:
+    if not count:
+        return np.zeros(0, dtype=np.int64)
+    return np.unique(np.searchsorted(times, np.linspace(0.0, times[-1], count) - 1e-12 * times[-1]))
+
+
+def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
+    """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
+    `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Not collective."""
+    writer = MemoryWriter((model.constraints.count,), model.probe_B.shape[0], model.size)
+    recorder = ReducedRecorder(writer, model, _snapshot_samples(snapshots, settings.sample_times))
+    stats = integrate_reduced(model, settings, recorder.record, lambda ts, t, q, p: recorder.on_step(t, q, p), say)
+    result = Result.from_recorder(recorder, stats)
+    result.snapshot_time, result.snapshot_w = recorder.snapshots(settings.sample_times)
+    return result
+
+
+def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -> Result:
+    """Integrate the full-order model (fom_integrator.py) and return the same Result as
+    simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""
+    world = fom.comm.tompi4py()
+    rows = fom.constraints.flat_rows
+    observed = np.concatenate([rows, fom.probe_rows])
+    r = fom.influence_at(observed)
+    n = rows.size
+    recorder = SampleRecorder(MemoryWriter((fom.constraints.count,), fom.probe_rows.size, 0), fom.constraints)
+    support = fom.support
+
+    def total(t, x, xd):
+        return x + r * support.value(t), xd + r * support.rate(t)
+
+    def record(t, x, xd):
+        z, v = total(t, x, xd)
+        recorder.sample(t, z[:n], v[:n], z[n:])
+
+    def on_step(t, x, xd):
+        z, v = total(t, x, xd)
+        recorder.step(t, z[:n], v[:n])
+
+    stats = integrate_full(fom, settings, observed, record, on_step, say=say)
+    return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)

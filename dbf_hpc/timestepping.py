@@ -1,0 +1,163 @@
+"""One time-stepping layer for both integrators (rom_integrator.py, full.py): the settings, the TS
+configuration with the code's scoped defaults, the failure policy, sampling at fixed times,
+progress lines, and what a run reports when it cannot reach t_end.
+
+Failure policy. Adaptive steps: a failed Newton solve shrinks the step (down to a floor where the
+run stops with an error); failures are counted and reported. Fixed steps: retrying the same step
+would loop for ever, so the first failure ends the run with an error. At most 50 rejections in a
+row within one step. A state that is not finite ends the run at once.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from petsc4py import PETSc
+
+from .errors import InputError, SolverError
+from .petsctools import options_defaults
+
+ARKIMEX_TYPES = ("1bee", "a2", "l2", "ars122", "2c", "2d", "2e", "prssp2", "3", "bpr3", "ars443", "4", "5")
+NO_DENSE_OUTPUT = ("prssp2", "bpr3", "ars443")  # also without an embedded error estimate
+
+
+@dataclass(frozen=True)
+class IntegratorSettings:
+    """t_end (s); dt: the fixed step, or the first step of an adaptive run (s); scheme: the
+    ARKIMEX type of the reduced model; rtol, atol: the adaptive error control; contact: the
+    contact force on the "implicit" or "explicit" side of the reduced model's IMEX split;
+    sample_dt: the output interval (s)."""
+
+    t_end: float
+    dt: float = 1e-4
+    scheme: str = "3"
+    adaptive: bool = True
+    rtol: float = 1e-6
+    atol: float = 1e-9
+    contact: str = "implicit"
+    sample_dt: float = 1e-3
+
+    def __post_init__(self):
+        object.__setattr__(self, "scheme", str(self.scheme).lower())
+        if self.scheme not in ARKIMEX_TYPES:
+            raise InputError(f"[integrator] scheme {self.scheme!r} is not an ARKIMEX type; "
+                             f"choose one of {', '.join(ARKIMEX_TYPES)}")
+        if self.adaptive and self.scheme in NO_DENSE_OUTPUT:
+            raise InputError(f"[integrator] scheme {self.scheme} has no embedded error estimate: "
+                             f"set adaptive = false (fixed step dt) or choose an adaptive scheme")
+
+    @property
+    def sample_times(self) -> np.ndarray:
+        return sample_times(self.t_end, self.sample_dt)
+
+
+def sample_times(t_end: float, sample_dt: float) -> np.ndarray:
+    """0, sample_dt, 2 sample_dt, ... and t_end itself."""
+    count = int(math.floor(t_end / sample_dt * (1 + 1e-12))) + 1
+    times = np.arange(count) * sample_dt
+    return times if math.isclose(times[-1], t_end) else np.append(times, t_end)
+
+
+def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults: dict, adaptive: bool,
+              start: dict | None = None) -> None:
+    """What every integrator's TS gets: time span, first step, tolerances, the failure policy, the
+    Newton tolerances, then the code's defaults (scoped to `prefix`, only where the user set
+    nothing) and the user's options. `start` (t, dt, steps) continues a checkpointed run."""
+    ts.setTime(start["t"] if start else 0.0)
+    ts.setTimeStep(start["dt"] if start else settings.dt)
+    if start:
+        ts.setStepNumber(start["steps"])
+    ts.setMaxTime(settings.t_end)
+    ts.setMaxSteps(10**9)
+    ts.setExactFinalTime(PETSc.TS.ExactFinalTime.MATCHSTEP)
+    ts.setTolerances(rtol=settings.rtol, atol=settings.atol)
+    ts.setErrorIfStepFails(False)
+    ts.setMaxSNESFailures(-1 if adaptive else 1)
+    ts.setMaxStepRejections(50)  # consecutive, within one step: bounds the retries of a hopeless step
+    if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples)
+        ts.setStepLimits(settings.dt * 1e-8, max(settings.dt, settings.sample_dt * 10))
+    ts.getSNES().setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
+    with options_defaults(prefix, defaults):
+        ts.setOptionsPrefix(prefix)
+        ts.setFromOptions()
+
+
+class StepMonitor:
+    """The part of a TS monitor both integrators share: which sample times the step that just ended
+    has passed, a stop request with its message, non-finite states, and progress lines every 5 s.
+
+    times         all sample times of the run
+    first_sample  the index of the first sample still to take (a resumed run has taken some)
+    resumed       a resumed run's first monitor call is the checkpointed step itself: not a new step
+    say           where progress lines go (None: no progress)
+    """
+
+    def __init__(self, times: np.ndarray, first_sample: int = 0, resumed: bool = False, say=None):
+        self.times, self.next = times, first_sample
+        self.resumed_step = resumed
+        self.failure = None
+        self.say = say
+        self.start = self.last_report = time.perf_counter()
+        self.first_step = self.first_time = None
+        self.tol = 1e-9 * max(times[-1], 1.0)
+
+    def samples_due(self, t: float):
+        """(index, sample time, whether it is the step's own time) of every sample up to t."""
+        while self.next < self.times.size and self.times[self.next] <= t + self.tol:
+            sample = self.times[self.next]
+            yield self.next, sample, abs(sample - t) <= self.tol
+            self.next += 1
+
+    def new_step(self) -> bool:
+        """False once, for the checkpointed step a resumed run starts from."""
+        if self.resumed_step:
+            self.resumed_step = False
+            return False
+        return True
+
+    def stop(self, ts: PETSc.TS, t: float, message: str) -> None:
+        """End the run after this step with `message` as its error."""
+        self.failure = message
+        ts.setMaxTime(t)
+
+    def check_finite(self, ts: PETSc.TS, step: int, t: float, norm: float, advice: str) -> bool:
+        if math.isfinite(norm):
+            return True
+        self.stop(ts, t, f"the state is not finite at t = {t:.6g} s (step {step}); {advice}")
+        return False
+
+    def report(self, step: int, t: float) -> None:
+        now = time.perf_counter()
+        if self.first_step is None:  # a resumed run starts at its checkpoint, not at 0
+            self.first_step, self.first_time = step, t
+        if self.say is None or now - self.last_report <= 5.0 or t <= self.first_time:
+            return
+        self.last_report = now
+        t_end = self.times[-1]
+        rate = (step - self.first_step) / (now - self.start)
+        eta = (now - self.start) * (t_end - t) / (t - self.first_time)
+        self.say(f"  t = {t:.4g} s of {t_end:g} s ({100 * t / t_end:.0f} %), {rate:.0f} steps/s, ETA {eta:.0f} s")
+
+
+def solve(ts: PETSc.TS, y: PETSc.Vec, monitor: StepMonitor, what: str, advice: str) -> float:
+    """ts.solve(y), a PETSc error turned into a SolverError that says what to change. Returns the
+    wall time. A failure the monitor recorded is left for `check_outcome`."""
+    start = time.perf_counter()
+    try:
+        ts.solve(y)
+    except PETSc.Error as e:
+        if monitor.failure is None:
+            raise SolverError(f"the {what} failed at t = {ts.getTime():.6g} s: PETSc error {e.ierr}; {advice}") from None
+    return time.perf_counter() - start
+
+
+def check_outcome(monitor: StepMonitor, reason: int, stats: dict, t_end: float, what: str, advice: str) -> None:
+    """A SolverError if the run stopped (the monitor's message) or did not reach t_end."""
+    if monitor.failure:
+        raise SolverError(monitor.failure)
+    if reason < 0 or monitor.next < monitor.times.size:
+        raise SolverError(f"the {what} stopped at t = {stats['final_time']:.6g} s of {t_end:g} s "
+                          f"(TS reason {reason}, {stats['snes_failures']} Newton failures, "
+                          f"{stats['rejected_steps']} rejected steps): {advice}")

@@ -1,0 +1,51 @@
+"""The reductor (reductor.py): what it projects onto the basis is what the reduced model holds, and
+the reduced model is small numpy arrays, the same on every rank."""
+import numpy as np
+
+from conftest import assert_all
+from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, Damping, FullOrderModel, InitialState,
+                     Reductor, law)
+from dbf_hpc.laws import ConstraintLaws
+
+BEAM = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=40)
+STOP = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
+
+
+def test_reduced_operators_are_the_projections_and_the_mass_is_the_identity():
+    damping = Damping(rayleigh_alpha=0.3, rayleigh_beta=2e-5)
+    with FullOrderModel.build(BEAM, [STOP], BaseMotion(5e-3, 1.0), damping, probes=[0.5]) as fom, \
+            Reductor(fom, BasisSettings(modes=6)) as reductor:
+        rom = reductor.reduce(field=True)
+        basis = reductor.basis()
+        K = basis.project(fom.operators.K)
+        B = basis.rows(fom.constraints.flat_rows)
+        probe = basis.rows(fom.probe_rows)
+    assert rom.size == 7
+    assert np.abs(rom.M - np.eye(7)).max() < 1e-12                    # V^T M V = I (Eq. 40)
+    np.testing.assert_array_equal(rom.K, K)                            # not symmetrized
+    np.testing.assert_allclose(rom.C, 0.3 * rom.M + 2e-5 * rom.K, rtol=1e-14)   # Rayleigh projects exactly
+    np.testing.assert_array_equal(rom.B, B)
+    np.testing.assert_array_equal(rom.probe_B, probe)
+    # the moving support: r = 1 - x/L on a pinned beam moved at its left end (Eq. 26)
+    np.testing.assert_allclose(rom.r_c, [0.75], rtol=1e-8)
+    np.testing.assert_allclose(rom.probe_r, [0.5], rtol=1e-8)
+    assert rom.field.positions.size == 41 and rom.field.support[0] == 1.0 and rom.field.support[-1] == 0.0
+    np.testing.assert_allclose(rom.field.support, 1 - rom.field.positions, atol=1e-8)
+
+
+def test_a_case_changes_the_law_and_the_excitation_but_not_the_operators():
+    with FullOrderModel.build(BEAM, [STOP], BaseMotion(5e-3, 1.0)) as fom, \
+            Reductor(fom, BasisSettings(modes=4)) as reductor:
+        rom = reductor.reduce()
+    spring = rom.constraints.with_laws(ConstraintLaws([law("linear", k=10.0)]))
+    case = rom.with_case(constraints=spring)
+    assert case.K is rom.K and case.B is rom.B
+    assert case.constraints.laws.laws[0].kind == "linear" and rom.constraints.laws.laws[0].kind == "deadband"
+
+
+def test_an_initial_mode_shape_starts_at_the_requested_peak_displacement():
+    with FullOrderModel.build(BEAM, [STOP], initial=InitialState(mode=2, amplitude=1e-3)) as fom, \
+            Reductor(fom, BasisSettings(modes=4)) as reductor:
+        rom = reductor.reduce(field=True)
+    w = rom.field.at(rom.q0, 0.0)
+    assert_all(abs(np.abs(w).max() - 1e-3) < 1e-15 and np.count_nonzero(rom.q0) == 1)

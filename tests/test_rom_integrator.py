@@ -1,0 +1,72 @@
+"""The reduced integrator (rom_integrator.py) on reduced models built by hand: exact solutions of
+small linear systems, a non-identity reduced mass, implicit and explicit contact, failures that
+say what to change."""
+import numpy as np
+import pytest
+
+from dbf_hpc.constraints import ConstraintSet
+from dbf_hpc.errors import SolverError
+from dbf_hpc.excitation import Harmonic
+from dbf_hpc.laws import ConstraintLaws, law
+from dbf_hpc.rom import ReducedModel
+from dbf_hpc.rom_integrator import integrate_reduced
+from dbf_hpc.timestepping import IntegratorSettings
+
+
+def oscillator(mass=1.0, stiffness=4.0, damping=0.0, spring=0.0, b=1.0, q0=1e-3):
+    """One coordinate: mass q'' + damping q' + stiffness q = -spring b (b q), a linear-spring
+    constraint acting on z = b q."""
+    laws = ConstraintLaws([law("linear", k=spring)] if spring else [law("deadband", clearance=1.0, k=1.0)])
+    constraints = ConstraintSet(rows=[[0]], laws=laws, labels=("c",), positions=np.zeros(1))
+    return ReducedModel(M=np.array([[mass]]), C=np.array([[damping]]), K=np.array([[stiffness]]),
+                        B=np.array([[b]]), r_c=np.zeros(1), base_load=np.zeros(1), force_shape=np.zeros(1),
+                        constraints=constraints, support=Harmonic(), force=Harmonic(), q0=np.array([q0]),
+                        p0=np.zeros(1), probe_B=np.zeros((0, 1)), probe_r=np.zeros(0),
+                        basis_info={"omega": np.zeros(1), "enrichment_omega": np.zeros(0), "dbf_k": np.zeros(0),
+                                    "enrichment": "none"})
+
+
+def run(model, **settings):
+    samples = []
+    stats = integrate_reduced(model, IntegratorSettings(**settings), lambda t, q, p: samples.append((t, q[0], p[0])))
+    return np.array(samples), stats
+
+
+@pytest.mark.parametrize("mass", [1.0, 2.5])
+def test_free_vibration_runs_at_the_frequency_of_stiffness_plus_spring_over_the_reduced_mass(mass):
+    # q'' M + (K + k b^2) q = 0 from q(0) = q0: q0 cos(omega t), omega^2 = (K + k b^2) / M. The
+    # integrator must use M_r itself, not assume V^T M V = I.
+    model = oscillator(mass=mass, stiffness=4.0, spring=5.0, b=0.5)
+    s, _ = run(model, t_end=2.0, scheme="4", adaptive=False, dt=1e-4, sample_dt=1e-2)
+    omega = np.sqrt((4.0 + 5.0 * 0.25) / mass)
+    np.testing.assert_allclose(s[:, 1], 1e-3 * np.cos(omega * s[:, 0]), atol=1e-9)
+
+
+def test_damping_decays_at_the_exact_rate():
+    # q'' + c q' + w^2 q = 0, under-damped: q0 e^(-c t / 2) (cos wd t + (c / 2 wd) sin wd t).
+    model = oscillator(stiffness=100.0, damping=1.0)
+    s, _ = run(model, t_end=3.0, rtol=1e-9, atol=1e-14, sample_dt=1e-2)
+    wd = np.sqrt(100.0 - 0.25)
+    t = s[:, 0]
+    exact = 1e-3 * np.exp(-0.5 * t) * (np.cos(wd * t) + 0.5 / wd * np.sin(wd * t))
+    assert np.abs(s[:, 1] - exact).max() < 1e-7 * 1e-3 * 100
+
+
+def test_explicit_contact_converges_to_the_implicit_answer():
+    model = oscillator(stiffness=4.0, spring=20.0)
+    implicit, _ = run(model, t_end=1.0, scheme="4", adaptive=False, dt=1e-4, sample_dt=1e-2)
+    explicit, _ = run(model, t_end=1.0, scheme="4", adaptive=False, dt=1e-4, sample_dt=1e-2, contact="explicit")
+    assert np.abs(implicit[:, 1] - explicit[:, 1]).max() < 1e-8
+
+
+def test_a_step_too_long_for_explicit_contact_is_an_error_saying_to_make_it_implicit():
+    model = oscillator(stiffness=1.0, spring=1e8)
+    with pytest.raises(SolverError, match='set contact = "implicit"'):
+        run(model, t_end=1.0, adaptive=False, dt=1e-2, sample_dt=1e-2, contact="explicit")
+
+
+def test_a_stop_requested_after_a_step_ends_the_run_with_that_message():
+    model = oscillator()
+    with pytest.raises(SolverError, match="asked to stop"):
+        integrate_reduced(model, IntegratorSettings(t_end=1.0, sample_dt=1e-2), lambda t, q, p: None,
+                          on_step=lambda ts, t, q, p: "asked to stop" if t > 0.1 else None)
