@@ -27,7 +27,7 @@ from .errors import InputError
 from .excitation import NoExcitation, time_functions
 from .laws import ConstraintLaws
 from .matrices import MatrixFiles, load_operators
-from .operators import Operators
+from .operators import Operators, PointValues
 from .petsctools import destroy, values_at
 from .structure import Beam, assemble_beam, distributed_load
 
@@ -48,17 +48,17 @@ class FullOrderModel:
     constraints  ConstraintSet (rows, laws, labels)
     excitation   the description (excitation.py); support and force are its time functions
     force_row    the DOF of a point force, or None; force_load the Vec of a distributed one, or None
-    probe_rows   DOF rows of the probes (w at a beam point, or a DOF); probe_positions as given
+    probes       the displacement at the probes (PointValues: a DOF of a matrix model, or a beam's
+                 Hermite interpolation between nodes: a probe never adds a node)
     fingerprint  what identifies the operators (for the basis cache)
     """
 
     def __init__(self, operators: Operators, constraints: ConstraintSet, excitation, damping: Damping,
-                 probe_rows, probe_positions, initial: InitialState, fingerprint: dict,
+                 probes: PointValues, initial: InitialState, fingerprint: dict,
                  force_row: int | None = None, force_load: PETSc.Vec | None = None):
         self.operators, self.constraints, self.excitation = operators, constraints, excitation
         self.damping, self.initial, self.fingerprint = damping, initial, fingerprint
-        self.probe_rows = np.asarray(probe_rows, dtype=np.int64)
-        self.probe_positions = np.asarray(probe_positions, dtype=float)
+        self.probes = probes
         self.force_row, self.force_load = force_row, force_load
         self.support, self.force = time_functions(excitation)
         self._C = None
@@ -73,7 +73,7 @@ class FullOrderModel:
         comm = comm or PETSc.COMM_WORLD
         constraints = tuple(constraints)
         if isinstance(structure, Beam):
-            ops = _beam_operators(structure, constraints, excitation, probes, comm)
+            ops = _beam_operators(structure, constraints, excitation, comm)
             fingerprint = {"beam": dataclasses.asdict(structure),
                            "nodes": hashlib.sha256(ops.mesh.x.tobytes()).hexdigest()}
         elif isinstance(structure, MatrixFiles):
@@ -91,8 +91,7 @@ class FullOrderModel:
                                            laws=ConstraintLaws([c.law for c in constraints]),
                                            labels=tuple(c.label for c in constraints),
                                            positions=np.array([c.position for c in constraints], dtype=float))
-            probe_rows = [_row(ops, p if ops.mesh is not None else None, None if ops.mesh is not None else int(p),
-                               f"probe at {'x = ' if ops.mesh is not None else 'dof '}{p:g}") for p in probes]
+            probes = _probes(ops, probes, excitation)
             force_row = None
             if excitation.kind == "force":
                 force_row = _row(ops, excitation.x, excitation.dof, "the force")
@@ -100,8 +99,7 @@ class FullOrderModel:
                 force_load = distributed_load(ops, *excitation.span)
             if excitation.kind == "base" and ops.influence is None:
                 raise InputError("base excitation of a matrices structure needs [structure] influence")
-            return cls(ops, constraint_set, excitation, damping, probe_rows, list(probes), initial, fingerprint,
-                       force_row, force_load)
+            return cls(ops, constraint_set, excitation, damping, probes, initial, fingerprint, force_row, force_load)
         except Exception:
             destroy(force_load)
             ops.destroy()
@@ -126,16 +124,18 @@ class FullOrderModel:
         rows = np.asarray(rows, dtype=np.int64)
         return values_at(self.operators.influence, rows) if self.moving_support else np.zeros(rows.size)
 
-    def field_support(self) -> np.ndarray:
-        """(F,) the support motion's share of the field a user sees: r at the free points, the moving
-        support's 1 at its fixed point; zeros without support motion. The total field is
-        field_map().take(u) + field_support() Omega(t). On every rank."""
-        field = self.operators.field_map()
+    def support_share(self, points: PointValues) -> np.ndarray:
+        """(P,) the support motion's share of the displacement at `points`: r combined as the
+        points combine u, plus the moving support's fixed DOF; zeros without support motion. The
+        total is points.take(u) + support_share(points) Omega(t). On every rank."""
         if not self.moving_support:
-            return np.zeros(field.rows.size)
-        support = field.moving.copy()
-        support[field.free] = self.influence_at(field.rows[field.free])
-        return support
+            return np.zeros(points.count)
+        needed = points.needed_rows
+        return points.combine(self.influence_at(needed), needed) + points.moving
+
+    def field_support(self) -> np.ndarray:
+        """support_share of the field a user sees (the nodes of a beam, every DOF of a matrix model)."""
+        return self.support_share(self.operators.field_map())
 
     def damping_matrix(self) -> PETSc.Mat | None:
         """C: the given matrix, or Rayleigh alpha M + beta K (built once, owned here). Modal damping
@@ -192,6 +192,28 @@ class FullOrderModel:
         self.destroy()
 
 
+class Observation:
+    """What a recorder needs from a full-order state: the DOF rows to gather (the constraints', then
+    those the probes combine), and from their values and rates the total displacement and velocity
+    at the constraints and the total displacement at the probes. Not collective once built."""
+
+    def __init__(self, fom: FullOrderModel):
+        constraint_rows = fom.constraints.flat_rows
+        self.probes, self.needed = fom.probes, fom.probes.needed_rows
+        self.rows = np.concatenate([constraint_rows, self.needed]).astype(np.int64)
+        self.nc = constraint_rows.size
+        self.r_c = fom.influence_at(constraint_rows)
+        self.probe_share = fom.support_share(fom.probes)
+        self.support = fom.support
+
+    def totals(self, t: float, values: np.ndarray, rates: np.ndarray):
+        """(z, v, probe displacement) from u and u' at self.rows."""
+        omega, rate, nc = self.support.value(t), self.support.rate(t), self.nc
+        z, v = values[:nc] + self.r_c * omega, rates[:nc] + self.r_c * rate
+        probe = self.probes.combine(values[nc:], self.needed) if self.needed.size else np.zeros(self.probes.count)
+        return z, v, probe + self.probe_share * omega
+
+
 def field_peak(ops: Operators, u: PETSc.Vec) -> float:
     """max |u| over the DOFs of the field a user sees (w at the nodes of a beam, all DOFs of a
     matrix model). Collective."""
@@ -204,8 +226,18 @@ def field_peak(ops: Operators, u: PETSc.Vec) -> float:
     return ops.comm.tompi4py().allreduce(local, op=MPI.MAX)
 
 
-def _beam_operators(beam: Beam, constraints, excitation, probes, comm) -> Operators:
-    points = [c.x for c in constraints] + list(probes)
+def _probes(ops: Operators, probes, excitation) -> PointValues:
+    """The probes' PointValues: interpolated on a beam (no node added), a DOF of a matrix model."""
+    if ops.mesh is not None:
+        return ops.mesh.point_values(probes, excitation.end if excitation.kind == "base" else None)
+    for p in probes:
+        if not 0 <= int(p) < ops.size:
+            raise InputError(f"probe dof {int(p)} is outside the {ops.size} DOFs of the matrices")
+    return PointValues.at_rows(np.asarray(probes, dtype=float), np.asarray(probes, dtype=np.int64))
+
+
+def _beam_operators(beam: Beam, constraints, excitation, comm) -> Operators:
+    points = [c.x for c in constraints]
     if excitation.kind == "force":
         points.append(excitation.x)
     elif excitation.kind == "random":

@@ -17,28 +17,53 @@ from .petsctools import destroy
 
 
 @dataclass(frozen=True)
-class FieldMap:
-    """Where the reported field lives and which DOF carries it.
+class PointValues:
+    """The displacement at points of the structure as a combination of DOF values:
 
-    positions  (F,) the field's abscissae: node x (m) on a beam, the DOF index for matrix models
-    rows       (F,) global DOF row of each field point, -1 where the DOF is fixed (a support)
-    moving     (F,) the support-motion share of each fixed point (1 at the moving end, else 0)
-    The total field is u[rows] + r[rows] Omega(t) at free points and moving * Omega(t) at fixed ones.
+        w_p = sum_k weights[p, k] u_total[rows[p, k]] + moving[p] Omega(t)
+
+    positions  (P,) the points' abscissae: x (m) on a beam, the DOF index for matrix models
+    rows       (P, m) global DOF rows (-1: a fixed DOF or no entry; it contributes nothing)
+    weights    (P, m) the weights (1 for a node's w; a beam element's Hermite shape functions
+               between nodes, so that asking for a value never adds a node to the model)
+    moving     (P,) the share of the support motion carried by fixed DOFs (the moving end's w)
+    The field of a snapshot is the PointValues of every node; probes are PointValues too.
     """
 
     positions: np.ndarray
     rows: np.ndarray
+    weights: np.ndarray
     moving: np.ndarray
 
+    @classmethod
+    def at_rows(cls, positions, rows, moving=None) -> "PointValues":
+        """One DOF per point, weight 1 (a node's w, or a DOF of a matrix model)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1, 1)
+        return cls(positions=np.asarray(positions, dtype=float), rows=rows, weights=np.ones(rows.shape),
+                   moving=np.zeros(rows.shape[0]) if moving is None else np.asarray(moving, dtype=float))
+
     @property
-    def free(self) -> np.ndarray:
-        return self.rows >= 0
+    def count(self) -> int:
+        return self.rows.shape[0]
+
+    @property
+    def needed_rows(self) -> np.ndarray:
+        """The distinct DOF rows the values depend on (sorted)."""
+        return np.unique(self.rows[self.rows >= 0])
+
+    def combine(self, values_at: np.ndarray, needed: np.ndarray) -> np.ndarray:
+        """The weighted sums from the values at the rows `needed` (values_at[i] belongs to
+        needed[i]; the trailing axes, e.g. basis columns, are kept); the support part not included."""
+        values_at = np.asarray(values_at)
+        index = np.searchsorted(needed, np.maximum(self.rows, 0))
+        picked = values_at[index]                                  # (P, m, ...)
+        mask = (self.weights * (self.rows >= 0)).reshape(self.rows.shape + (1,) * (values_at.ndim - 1))
+        return (picked * mask).sum(axis=1)
 
     def take(self, values: np.ndarray) -> np.ndarray:
-        """values[rows] at the free points, 0 at the fixed ones (values: over all DOFs)."""
-        out = np.zeros(self.rows.size)
-        out[self.free] = np.asarray(values)[self.rows[self.free]]
-        return out
+        """The weighted sums from all DOF values (the support part not included)."""
+        needed = self.needed_rows
+        return self.combine(np.asarray(values)[needed], needed) if needed.size else np.zeros(self.count)
 
 
 @dataclass
@@ -54,7 +79,7 @@ class Operators:
     rigid_modes      number of zero-energy modes of (K, M); > 0 only for an unsupported structure.
     eigen_scale      a typical eigenvalue of (K, M), rad^2/s^2 (sets default solver shifts).
     mesh             the beam mesh for beam models (positions of nodes, DOF rows), else None.
-    field            what snapshots show (FieldMap); every DOF when not set.
+    field            what snapshots show (PointValues of the nodes); every DOF when not set.
     """
 
     comm: PETSc.Comm
@@ -67,7 +92,7 @@ class Operators:
     rigid_modes: int = 0
     eigen_scale: float = 1.0
     mesh: Optional[object] = None
-    field: Optional[FieldMap] = None
+    field: Optional[PointValues] = None
 
     @property
     def size(self) -> int:
@@ -77,11 +102,11 @@ class Operators:
     def ownership_range(self) -> tuple[int, int]:
         return self.K.getOwnershipRange()
 
-    def field_map(self) -> FieldMap:
+    def field_map(self) -> PointValues:
         if self.field is not None:
             return self.field
         n = self.size
-        return FieldMap(positions=np.arange(n, dtype=float), rows=np.arange(n, dtype=np.int64), moving=np.zeros(n))
+        return PointValues.at_rows(np.arange(n, dtype=float), np.arange(n))
 
     def destroy(self) -> None:
         """Free the PETSc objects (collective on comm)."""

@@ -60,8 +60,8 @@ class Reductor:
                 "enrichment": basis.enrichment}
         return ReducedModel(M=M, C=C, K=K, G=G, B=basis.rows(rows), r_c=fom.influence_at(rows), base_load=base_load,
                             force_shape=force_shape, constraints=fom.constraints, support=fom.support,
-                            force=fom.force, q0=q0, p0=np.zeros(basis.size), probe_B=basis.rows(fom.probe_rows),
-                            probe_r=fom.influence_at(fom.probe_rows), basis_info=info, r_q=r_q,
+                            force=fom.force, q0=q0, p0=np.zeros(basis.size), probe_B=self._basis_at(fom.probes),
+                            probe_r=fom.support_share(fom.probes), basis_info=info, r_q=r_q,
                             field=self._field() if field else None)
 
     def _initial_coordinates(self) -> np.ndarray:
@@ -71,20 +71,20 @@ class Reductor:
         if initial.amplitude:
             if not 1 <= initial.mode <= basis.mode_count:
                 raise InputError(f"[initial] mode = {initial.mode}: the basis has {basis.mode_count} reference modes")
-            column = self._field_values()[:, initial.mode - 1]
+            column = self._basis_at(self.fom.operators.field_map())[:, initial.mode - 1]
             q0[initial.mode - 1] = initial.amplitude / np.abs(column).max()
         return q0
 
-    def _field_values(self) -> np.ndarray:
-        """V at the field points (0 at fixed DOFs), on every rank."""
-        field = self.fom.operators.field_map()
-        V = np.zeros((field.rows.size, self.basis().size))
-        V[field.free] = self.basis().rows(field.rows[field.free])
-        return V
+    def _basis_at(self, points) -> np.ndarray:
+        """(P, r) the basis at PointValues (combined as the points combine DOF values)."""
+        needed = points.needed_rows
+        if not needed.size:
+            return np.zeros((points.count, self.basis().size))
+        return points.combine(self.basis().rows(needed), needed)
 
     def _field(self) -> ReducedField:
-        return ReducedField(positions=self.fom.operators.field_map().positions, V=self._field_values(),
-                            support=self.fom.field_support())
+        field = self.fom.operators.field_map()
+        return ReducedField(positions=field.positions, V=self._basis_at(field), support=self.fom.field_support())
 
     def destroy(self) -> None:
         if self._basis is not None:

@@ -21,6 +21,7 @@ from slepc4py import SLEPc
 from . import layout
 from .checkpoint import Checkpoint, identity
 from .errors import DbfError, InputError, Interrupted, SolverError
+from .fom import Observation
 from .fom_integrator import integrate_full
 from .modes import counters
 from .output import OutputWriter, check_output_path
@@ -309,16 +310,14 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say) -> dic
     writes the same layout as a reduced run (no basis/ or reduced/ groups)."""
     world = fom.comm.tompi4py()
     fom.damping_matrix()  # modal damping is an error: before any file is opened
-    constraints, rows = fom.constraints, fom.constraints.flat_rows
-    observed = np.concatenate([rows, fom.probe_rows])
-    r_observed = fom.influence_at(observed)
-    nc, support, field = rows.size, fom.support, fom.operators.field_map()
+    constraints, observation = fom.constraints, Observation(fom)
+    support, field = fom.support, fom.operators.field_map()
     snap_index = _snapshot_samples(scene.output().snapshots, settings.sample_times)
     field_support = fom.field_support()
     recorder, opened, snaps = None, None, {}
     if world.rank == 0:
         try:
-            recorder = SampleRecorder(OutputWriter(path, (constraints.count,), fom.probe_rows.size, 0), constraints)
+            recorder = SampleRecorder(OutputWriter(path, (constraints.count,), fom.probes.count, 0), constraints)
         except OSError as exc:
             opened = f"cannot write {path}.partial: {exc.strerror or exc}"
     opened = world.bcast(opened, root=0)  # every rank stops if rank 0 cannot write
@@ -326,11 +325,10 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say) -> dic
         raise SolverError(opened)
 
     def record(t, x, xd):
-        total, rate = x + r_observed * support.value(t), xd + r_observed * support.rate(t)
-        recorder.sample(t, total[:nc], rate[:nc], total[nc:])
+        recorder.sample(t, *observation.totals(t, x, xd))
 
     def on_step(t, x, xd):
-        recorder.step(t, x[:nc] + r_observed[:nc] * support.value(t), xd[:nc] + r_observed[:nc] * support.rate(t))
+        recorder.step(t, *observation.totals(t, x, xd)[:2])
 
     def snapshot(i, values):
         if values is not None:
@@ -340,7 +338,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say) -> dic
               f"contact implicit, step {settings.dt:g} s)")
     t = time.perf_counter()
     try:
-        stats = integrate_full(fom, settings, observed, record, on_step, snap_index, snapshot, say)
+        stats = integrate_full(fom, settings, observation.rows, record, on_step, snap_index, snapshot, say)
     except DbfError as exc:
         raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, None)) from None
     timings["integration"] = time.perf_counter() - t

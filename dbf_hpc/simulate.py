@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fom import FullOrderModel
+from .fom import FullOrderModel, Observation
 from .fom_integrator import integrate_full
 from .output import MemoryWriter
 from .recorder import ReducedRecorder, Result, SampleRecorder
@@ -41,23 +41,14 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     """Integrate the full-order model (fom_integrator.py) and return the same Result as
     simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""
     world = fom.comm.tompi4py()
-    rows = fom.constraints.flat_rows
-    observed = np.concatenate([rows, fom.probe_rows])
-    r = fom.influence_at(observed)
-    n = rows.size
-    recorder = SampleRecorder(MemoryWriter((fom.constraints.count,), fom.probe_rows.size, 0), fom.constraints)
-    support = fom.support
-
-    def total(t, x, xd):
-        return x + r * support.value(t), xd + r * support.rate(t)
+    observation = Observation(fom)
+    recorder = SampleRecorder(MemoryWriter((fom.constraints.count,), fom.probes.count, 0), fom.constraints)
 
     def record(t, x, xd):
-        z, v = total(t, x, xd)
-        recorder.sample(t, z[:n], v[:n], z[n:])
+        recorder.sample(t, *observation.totals(t, x, xd))
 
     def on_step(t, x, xd):
-        z, v = total(t, x, xd)
-        recorder.step(t, z[:n], v[:n])
+        recorder.step(t, *observation.totals(t, x, xd)[:2])
 
-    stats = integrate_full(fom, settings, observed, record, on_step, say=say)
+    stats = integrate_full(fom, settings, observation.rows, record, on_step, say=say)
     return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)

@@ -17,7 +17,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .errors import InputError
-from .operators import FieldMap, Operators
+from .operators import Operators, PointValues
 from .petsctools import aij_from_owned_triplets, destroy, direct_solver, owned_rows
 
 W, THETA = 0, 1
@@ -104,12 +104,39 @@ class BeamMesh:
             raise InputError(f"x = {x} m is not a node of the beam mesh")
         return i
 
-    def field_map(self, moving_end: str | None = None) -> FieldMap:
-        """w at every node; the fixed w of the `moving_end` support follows the support motion."""
+    def _moving(self, moving_end: str | None) -> np.ndarray:
         moving = np.zeros(self.x.size)
         if moving_end is not None:
             moving[0 if moving_end == "left" else -1] = 1.0
-        return FieldMap(positions=self.x, rows=self.row[:, W].copy(), moving=moving)
+        return moving
+
+    def field_map(self, moving_end: str | None = None) -> PointValues:
+        """w at every node; the fixed w of the `moving_end` support follows the support motion."""
+        return PointValues.at_rows(self.x, self.row[:, W], self._moving(moving_end))
+
+    def point_values(self, xs, moving_end: str | None = None) -> PointValues:
+        """w at arbitrary points from the Hermite shape functions of the element holding each (a
+        node's own w at a node): asking for a value never changes the mesh. A point on a fixed w
+        (a support) is an InputError."""
+        xs = np.asarray(xs, dtype=float).reshape(-1)
+        moving_nodes = self._moving(moving_end)
+        rows, weights, moving = np.full((xs.size, 4), -1, np.int64), np.zeros((xs.size, 4)), np.zeros(xs.size)
+        for p, x in enumerate(xs):
+            e = int(np.clip(np.searchsorted(self.x, x, side="right") - 1, 0, self.elements - 1))
+            h = self.x[e + 1] - self.x[e]
+            s = (x - self.x[e]) / h
+            if min(abs(s), abs(1 - s)) * h <= POINT_TOL * self.beam.length:
+                node = e if abs(s) < abs(1 - s) else e + 1
+                if self.fixed[node, W]:
+                    raise InputError(f"probe at x = {x:g} m is on a support (a fixed DOF); move it")
+                e, s = (node, 0.0) if node < self.elements else (node - 1, 1.0)
+            shape = (1 - 3 * s**2 + 2 * s**3, h * (s - 2 * s**2 + s**3), 3 * s**2 - 2 * s**3, h * (s**3 - s**2))
+            dofs = [(e, W), (e, THETA), (e + 1, W), (e + 1, THETA)]
+            for k, ((node, dof), weight) in enumerate(zip(dofs, shape)):
+                rows[p, k], weights[p, k] = self.row[node, dof], weight
+                if dof == W and self.fixed[node, W]:
+                    moving[p] += weight * moving_nodes[node]
+        return PointValues(positions=xs, rows=rows, weights=weights, moving=moving)
 
     def w_row(self, x: float) -> int:
         """Row of the displacement DOF at x, or -1 if w is fixed there."""
@@ -127,7 +154,9 @@ class BeamMesh:
 
 def _mesh_nodes(length: float, elements: int, points) -> np.ndarray:
     """Nodes over [0, length]: at least `elements` elements (one more per extra point at most),
-    near-uniform, a node at every point."""
+    near-uniform, a node at every point. Points that coincide to POINT_TOL are one point; points
+    (or a point and an end) closer than half an element would make an element too short to trust:
+    an InputError that says so."""
     for p in points:
         if not 0 <= p <= length:
             raise InputError(f"x = {p} m is outside the beam [0, {length}] m")
@@ -135,6 +164,17 @@ def _mesh_nodes(length: float, elements: int, points) -> np.ndarray:
     keep = np.concatenate([[True], np.diff(breaks) > POINT_TOL * length])
     breaks = breaks[keep]
     breaks[-1] = length
+    half = 0.5 * length / elements
+    gaps = np.diff(breaks)
+    if gaps.size and gaps.min() < half:
+        i = int(np.argmin(gaps))
+        a, b = breaks[i], breaks[i + 1]
+        what = (f"x = {b:g} m is {b - a:.3g} m from the left end" if i == 0 else
+                f"x = {a:g} m is {b - a:.3g} m from the right end" if i == gaps.size - 1 else
+                f"x = {a:g} m and x = {b:g} m are {b - a:.3g} m apart")
+        raise InputError(f"{what}, less than half an element ({half:.3g} m at {elements} elements): "
+                         f"make them one point, move them apart, or use at least "
+                         f"{int(np.ceil(0.5 * length / (b - a)))} elements")
     pieces = [breaks[:1]]
     for a, b in zip(breaks[:-1], breaks[1:]):
         n = max(1, int(np.ceil(elements * (b - a) / length - 1e-9)))

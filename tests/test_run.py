@@ -138,3 +138,17 @@ def test_a_fixed_step_longer_than_the_sample_interval_runs(shared_tmp_path):
     assert summary["stats"]["steps"] == 100
     if f is not None:
         assert f["time"].size == 10001
+
+
+def test_a_probe_never_changes_the_model_even_a_micrometre_from_a_stop(shared_tmp_path):
+    # Red team: a probe 1 um from the stop used to build a 1 um element and change w at the stop by
+    # 93 %. A request for output must not change what is computed.
+    _, f, _ = paper_run(shared_tmp_path, "integrator.t_end=0.3", "output.probes=[0.5]", name="one.h5")
+    _, g, _ = paper_run(shared_tmp_path, "integrator.t_end=0.3", "output.probes=[0.5, 0.250001]", name="two.h5")
+    if f is not None:
+        np.testing.assert_array_equal(f["constraints/displacement"][:], g["constraints/displacement"][:])
+        # the same probe, to round-off (a 2-row matrix-vector product sums in another order)
+        np.testing.assert_allclose(f["probes/displacement"][:, 0], g["probes/displacement"][:, 0], rtol=0,
+                                   atol=1e-14 * np.abs(f["probes/displacement"][:]).max())
+        near = g["probes/displacement"][:, 1]
+        assert np.abs(near - g["constraints/displacement"][:, 0]).max() < 1e-3 * 2.5e-3, "w is continuous"
