@@ -328,7 +328,7 @@ def _stiffness(args) -> int:
     ks = parse_stiffnesses(args.k)
     for path in (args.output, args.plot):
         if path:
-            check_output_path(path)
+            check_output_path(path, scene.inputs(), replaceable=False)
     basis = scene["basis"]
     with scene.full_order_model(PETSc.COMM_WORLD) as fom:
         ops = fom.operators

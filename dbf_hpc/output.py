@@ -21,15 +21,35 @@ from .errors import InputError
 BLOCK = 1024  # samples buffered between writes
 
 
-def check_output_path(path: str) -> str:
-    """An output path must lie in an existing, writable directory: checked before any work, so bad
-    input never leaves a file behind."""
+def check_output_path(path: str, inputs=(), replaceable=None) -> str:
+    """Refuse, before any work, an output that cannot or must not be written: a directory, a file in
+    a missing or read-only directory, one of the run's inputs ((what, path) pairs), or an existing
+    file that `replaceable(path)` (default: is_dbf_output) does not accept: a successful run
+    replaces only its own kind of file. replaceable=False accepts any existing file (CSV, PNG)."""
     folder = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        raise InputError(f"output {path!r} is a directory: give a file name, e.g. {os.path.join(path, 'out.h5')!r}")
     if not os.path.isdir(folder):
         raise InputError(f"output {path!r}: directory {folder!r} does not exist")
     if not os.access(folder, os.W_OK):
         raise InputError(f"output {path!r}: directory {folder!r} is not writable")
+    if not os.path.exists(path):
+        return path
+    for what, source in inputs:
+        if source and os.path.exists(source) and os.path.samefile(path, source):
+            raise InputError(f"output {path!r} is the {what} this run reads: choose another output name")
+    if replaceable is not False and not (replaceable or is_dbf_output)(path):
+        raise InputError(f"output {path!r} exists and is not a dbf-hpc output: remove it or choose another name")
     return path
+
+
+def is_dbf_output(path: str) -> bool:
+    """Whether `path` is an HDF5 file dbf-hpc wrote (a run's output or a sweep summary)."""
+    try:
+        with h5py.File(path, "r") as f:
+            return "dbf_hpc_version" in f.attrs or "sweep" in f.attrs
+    except (OSError, ValueError):
+        return False
 
 
 def series_shapes(constraint_shape: tuple, n_probes: int, r: int) -> dict:

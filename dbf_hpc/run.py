@@ -24,7 +24,7 @@ from .errors import DbfError, InputError, Interrupted, SolverError
 from .fom import Observation
 from .fom_integrator import integrate_full
 from .modes import counters
-from .output import OutputWriter, check_output_path
+from .output import OutputLock, OutputWriter, check_output_path
 from .recorder import ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
@@ -37,7 +37,27 @@ def output_path(scene: Scene, override: str | None) -> str:
     path = override or scene.output().file
     if not path:
         raise InputError("no output file: give [output] file in the scene or -o OUT.h5")
-    return check_output_path(path)
+    return check_output_path(path, scene.inputs())
+
+
+@contextlib.contextmanager
+def claimed(path: str, comm):
+    """Rank 0 holds the output's lock (output.OutputLock) for the block; every rank learns at once
+    whether it could. Collective."""
+    lock, problem = OutputLock(path), None
+    if comm.getRank() == 0:
+        try:
+            lock.acquire()
+        except InputError as e:
+            problem = str(e)
+    problem = comm.tompi4py().bcast(problem, root=0)
+    if problem:
+        raise InputError(problem)
+    try:
+        yield
+    finally:
+        if comm.getRank() == 0:
+            lock.release()
 
 
 def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, initial_state=None,
@@ -56,6 +76,11 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else None
     path = output_path(scene, out)
     settings = scene.integrator_settings()
+    with claimed(path, comm):
+        return _run(scene, path, settings, say, comm, initial_state, resume, method)
+
+
+def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str) -> dict:
     timings, t = {}, time.perf_counter()
     with scene.full_order_model(comm) as fom:
         timings["operators"] = time.perf_counter() - t

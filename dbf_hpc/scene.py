@@ -117,6 +117,15 @@ class Scene:
         return FullOrderModel.build(self.structure(), self.constraints, self.excitation(), self.damping(),
                                     self.output().probes, self.initial(), comm)
 
+    def inputs(self) -> list:
+        """(what, path) of every file this scene reads: the scene itself and its matrix files."""
+        files = [("scene", os.path.abspath(self.path))]
+        if not self.is_beam:
+            s = self["structure"]
+            files += [(f"{key} file", self.resolve(s[key])) for key in
+                      ("stiffness", "mass", "damping", "influence", "base_mass_load") if s[key]]
+        return files
+
     def cache_dir(self):
         """The basis cache directory, or None when the scene turns caching off."""
         cache = self["basis"]["cache"]

@@ -51,7 +51,7 @@ from .errors import DbfError, InputError, Interrupted
 from .excitation import Harmonic, time_functions
 from .laws import ConstraintLaws
 from .matrices import file_digest
-from .output import OutputLock
+from .output import OutputLock, check_output_path
 from .reductor import Reductor
 from .run import run_case
 from .scene import load_scene, parse_override
@@ -352,8 +352,7 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     problem = None
     if world.rank == 0:
         try:
-            if not os.path.isdir(os.path.dirname(os.path.abspath(output))):
-                raise InputError(f"sweep output {output!r}: its directory does not exist")
+            check_output_path(output, [("sweep file", os.path.abspath(path)), ("base scene", sweep["scene"])])
             lock.acquire()
             os.makedirs(folder, exist_ok=True)
         except (InputError, OSError) as e:

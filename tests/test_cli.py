@@ -292,3 +292,23 @@ def test_an_output_directory_without_write_permission_is_one_line(tmp_path):
     out = dbf_hpc("run", PAPER, "-o", str(locked / "x.h5"))
     lines = [line for line in out.stderr.splitlines() if line.strip()]
     assert out.returncode == 1 and len(lines) == 1 and "is not writable" in lines[0]
+
+
+def test_two_jobs_on_one_output_without_hdf5_file_locking_leave_the_first_intact(tmp_path, monkeypatch):
+    # Red team: with HDF5_USE_FILE_LOCKING=FALSE (usual on Lustre and NFS) two runs on one output
+    # corrupted it (complete = true with samples zeroed). The second job is refused instead.
+    import h5py
+
+    monkeypatch.setenv("HDF5_USE_FILE_LOCKING", "FALSE")
+    target = tmp_path / "shared.h5"
+    common = ("-q", "--set", "integrator.t_end=2", "--set", f"basis.cache={tmp_path}")
+    first = _start("run", PAPER, "-o", str(target), *common)
+    _wait_for(str(target) + ".partial", first)
+    second = dbf_hpc("run", PAPER, "-o", str(target), *common)
+    lines = [line for line in second.stderr.splitlines() if line.strip()]
+    assert second.returncode == 1 and len(lines) == 1 and "being written by another job" in lines[0], second.stderr
+    first.communicate(timeout=600)
+    assert first.returncode == 0
+    with h5py.File(target) as f:
+        assert f.attrs["complete"] and f["time"].shape == (10001,)
+        assert abs(abs(f["constraints/displacement"][:, 0]).max() / 2.5e-3 - 1) < 0.03

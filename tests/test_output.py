@@ -1,0 +1,79 @@
+"""Outputs (output.py, run.py): what is refused before any work, and the lock that keeps two jobs off
+one output where HDF5's own file locking is switched off (Lustre, NFS)."""
+import os
+import socket
+
+import pytest
+from mpi4py import MPI
+
+from conftest import assert_all
+from dbf_hpc.errors import InputError
+from dbf_hpc.output import OutputLock, check_output_path
+from dbf_hpc.run import run
+from dbf_hpc.scene import load_scene
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAPER = os.path.join(ROOT, "jobs", "paper_beam.toml")
+SHORT = ["basis.cache=off", "integrator.t_end=0.01"]
+
+
+def test_an_output_onto_the_scene_itself_is_refused_and_the_scene_survives(shared_tmp_path):
+    scene_path = shared_tmp_path / "scene.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        scene_path.write_text(open(PAPER).read())
+    MPI.COMM_WORLD.Barrier()
+    before = scene_path.read_bytes()
+    with pytest.raises(InputError, match="is the scene this run reads"):
+        run(load_scene(str(scene_path), SHORT), str(scene_path), progress=False)
+    assert_all(scene_path.read_bytes() == before)
+
+
+def test_a_directory_as_output_is_refused_before_any_work(shared_tmp_path):
+    with pytest.raises(InputError, match="is a directory: give a file name"):
+        run(load_scene(PAPER, SHORT), str(shared_tmp_path), progress=False)
+    assert_all(not list(shared_tmp_path.glob("*.partial")))
+
+
+def test_an_existing_file_that_is_not_a_dbf_output_is_not_replaced(shared_tmp_path):
+    target = shared_tmp_path / "notes.h5"
+    if MPI.COMM_WORLD.rank == 0:
+        target.write_text("my notes")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="exists and is not a dbf-hpc output"):
+        check_output_path(str(target))
+    run(load_scene(PAPER, SHORT), str(shared_tmp_path / "ok.h5"), progress=False)
+    run(load_scene(PAPER, SHORT), str(shared_tmp_path / "ok.h5"), progress=False)   # a rerun replaces its own
+    assert_all(target.read_text() == "my notes")
+
+
+def test_a_second_job_on_an_output_being_written_is_refused_naming_the_first(shared_tmp_path, monkeypatch):
+    monkeypatch.setenv("HDF5_USE_FILE_LOCKING", "FALSE")
+    target = str(shared_tmp_path / "busy.h5")
+    lock = OutputLock(target)
+    if MPI.COMM_WORLD.rank == 0:
+        lock.acquire()                         # the first job (this process: alive)
+    MPI.COMM_WORLD.Barrier()
+    try:
+        with pytest.raises(InputError, match=f"being written by another job \\(pid {os.getpid() if MPI.COMM_WORLD.rank == 0 else ''}"):
+            run(load_scene(PAPER, SHORT), target, progress=False)
+    finally:
+        if MPI.COMM_WORLD.rank == 0:
+            lock.release()
+    MPI.COMM_WORLD.Barrier()
+    run(load_scene(PAPER, SHORT), target, progress=False)
+    assert_all(os.path.exists(target) and not os.path.exists(target + ".lock"))
+
+
+def test_a_lock_left_by_a_dead_job_on_this_host_is_taken_over(tmp_path):
+    target = str(tmp_path / "old.h5")
+    dead = 2**22 + 12345                       # above the default pid_max: no such process
+    with open(target + ".lock", "w") as f:
+        f.write(f"{socket.gethostname()} {dead}\n")
+    lock = OutputLock(target)
+    lock.acquire()
+    assert open(target + ".lock").read().split()[1] == str(os.getpid())
+    lock.release()
+    with open(target + ".lock", "w") as f:
+        f.write(f"another-host {dead}\n")      # another host's job cannot be checked: refused
+    with pytest.raises(InputError, match="pid .* on another-host"):
+        OutputLock(target).acquire()
