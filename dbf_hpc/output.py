@@ -100,16 +100,22 @@ class OutputLock:
             return "unknown job"
 
     def _stale(self) -> bool:
+        """The lock's job is gone: it ran on this host and its process no longer exists (or is a
+        zombie, which a killed job's rank can stay as where nothing reaps it)."""
         try:
             with open(self.lock) as f:
                 host, pid = f.read().split()
             if host != socket.gethostname():
                 return False
             os.kill(int(pid), 0)
-            return False
         except ProcessLookupError:
             return True
         except (OSError, ValueError):
+            return False
+        try:
+            with open(f"/proc/{int(pid)}/stat") as f:
+                return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+        except (OSError, IndexError):
             return False
 
     def release(self) -> None:

@@ -158,7 +158,7 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
             summary = run_case(scene, model, path, say=say, resume=resume, ident=ident, extra_stats=basis_stats,
                                ranks=world.size, field_positions=field_positions, timings=timings)
         except DbfError as exc:
-            failure = str(exc)
+            failure = (type(exc).__name__, str(exc))
     else:
         with _interrupt_on_sigterm(None):
             wait_for_rank0(world)
@@ -166,7 +166,8 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
         wait_for_rank0(world)
     failure = world.bcast(failure, root=0)
     if failure:
-        raise SolverError(failure)
+        kinds = {kind.__name__: kind for kind in (InputError, SolverError, Interrupted)}
+        raise kinds.get(failure[0], DbfError)(failure[1])
     return world.bcast(summary, root=0)
 
 

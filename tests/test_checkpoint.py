@@ -1,0 +1,144 @@
+"""Checkpoints (checkpoint.py, run.py): a resume continues only the run that wrote the checkpoint,
+from data that is what was written. Corrupt, crafted or foreign checkpoints are refused in one line
+naming the cause; nothing read from disk is trusted unchecked."""
+import os
+import shutil
+import signal
+import threading
+import time
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from conftest import assert_all
+from dbf_hpc.errors import InputError, SolverError
+from dbf_hpc.run import run
+from dbf_hpc.scene import load_scene
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAPER = os.path.join(ROOT, "jobs", "paper_beam.toml")
+
+
+def interrupted_run(scene, out):
+    """Run until the first checkpoint exists, then SIGTERM rank 0 (a batch system's time limit):
+    the run checkpoints and stops. Returns the checkpoint's path."""
+    checkpoint = out + ".checkpoint"
+
+    def terminate():
+        while not os.path.exists(checkpoint):
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    if MPI.COMM_WORLD.rank == 0:
+        threading.Thread(target=terminate, daemon=True).start()
+    with pytest.raises(SolverError, match="stopped by a termination signal"):
+        run(scene, out, progress=False)
+    return checkpoint
+
+
+@pytest.fixture
+def stopped(shared_tmp_path):
+    """A paper-beam run stopped at a checkpoint; its scene overrides and output path."""
+    sets = ["integrator.t_end=2.0", "output.checkpoint_dt=0.05", f"basis.cache={shared_tmp_path / 'cache'}"]
+    out = str(shared_tmp_path / "run.h5")
+    checkpoint = interrupted_run(load_scene(PAPER, sets), out)
+    if MPI.COMM_WORLD.rank == 0:
+        shutil.copy(checkpoint, checkpoint + ".good")
+    MPI.COMM_WORLD.Barrier()
+    return sets, out, checkpoint
+
+
+def resume(sets, out):
+    return run(load_scene(PAPER, sets), out, progress=False, resume=True)
+
+
+def test_a_flipped_bit_in_the_state_is_refused_not_resumed(stopped):
+    sets, out, checkpoint = stopped
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(checkpoint, "r+") as f:
+            q = f["q"][...]
+            q.view(np.uint64)[0] ^= np.uint64(1 << 20)     # one bit of the mantissa
+            f["q"][...] = q
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="is corrupt .* checksum"):
+        resume(sets, out)
+
+
+def test_a_crafted_file_in_place_of_the_checkpoint_is_refused(stopped):
+    sets, out, checkpoint = stopped
+    if MPI.COMM_WORLD.rank == 0:
+        with open(checkpoint, "wb") as f:                  # e.g. a pickle that would run code
+            f.write(b"\x80\x04\x95cos\nsystem\n(S'echo owned'\ntR.")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="cannot be read"):
+        resume(sets, out)
+
+
+def test_a_changed_scene_or_changed_petsc_options_are_refused_naming_what_differs(stopped):
+    sets, out, _ = stopped
+    with pytest.raises(InputError, match="written by a different scene or setup \\(.*scene"):
+        resume(sets + ["constraint.clearance=2.4e-3"], out)
+    options = PETSc.Options()
+    options.setValue("rom_snes_rtol", "1e-12")
+    try:
+        with pytest.raises(InputError, match="options differ"):
+            resume(sets, out)
+    finally:
+        options.delValue("rom_snes_rtol")
+
+
+def test_the_untouched_checkpoint_resumes_to_the_end(stopped):
+    sets, out, checkpoint = stopped
+    summary = resume(sets, out)
+    assert summary["stats"]["final_time"] == pytest.approx(2.0)
+    assert_all(not os.path.exists(checkpoint) and os.path.exists(out))
+    with h5py.File(out) as f:
+        assert_all(f["time"].shape == (10001,) and bool(f.attrs["complete"]))
+
+
+def test_a_changed_matrix_file_is_refused_even_with_the_same_scene(shared_tmp_path):
+    import scipy.io
+
+    from dbf_hpc import Beam, Constraint, FullOrderModel, law
+    from test_matrices import to_scipy
+
+    with FullOrderModel.build(Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=30),
+                              [Constraint(law("deadband", clearance=2e-4, k=1e6), x=0.25)]) as fom:
+        K, M = to_scipy(fom.operators.K), to_scipy(fom.operators.M)
+        row, force = int(fom.constraints.flat_rows[0]), int(fom.operators.mesh.row[20, 0])
+    text = f"""[structure]
+kind = "matrices"
+stiffness = "K.mtx"
+mass = "M.mtx"
+[excitation]
+kind = "force"
+amplitude = 0.05
+frequency_hz = 3.0
+dof = {force}
+[[constraint]]
+dof = {row}
+law = "deadband"
+clearance = 2e-4
+k = 1e6
+[integrator]
+t_end = 2.0
+[output]
+checkpoint_dt = 0.05
+"""
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(str(shared_tmp_path / "K.mtx"), K, precision=17)
+        scipy.io.mmwrite(str(shared_tmp_path / "M.mtx"), M, precision=17)
+        (shared_tmp_path / "m.toml").write_text(text)
+    MPI.COMM_WORLD.Barrier()
+    scene = str(shared_tmp_path / "m.toml")
+    sets = [f"basis.cache={shared_tmp_path / 'cache'}"]
+    out = str(shared_tmp_path / "m.h5")
+    interrupted_run(load_scene(scene, sets), out)
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(str(shared_tmp_path / "K.mtx"), K * (1 + 1e-9), precision=17)   # same scene, new K
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="structure differ"):
+        run(load_scene(scene, sets), out, progress=False, resume=True)
