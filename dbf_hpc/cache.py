@@ -27,6 +27,8 @@ from slepc4py import SLEPc
 
 from . import __version__
 from .basis import BasisSettings, ReducedBasis, build_basis
+from .errors import WRITE_ERRORS, InputError, park, write_failure
+from .output import check_free_space
 from .operators import Operators
 
 # Bump when the construction changes what a basis is (an older file then has another key).
@@ -52,8 +54,6 @@ def _say(comm, message: str) -> None:
     PETSc.Sys.Print(f"dbf-hpc: {message}", comm=comm)
 
 
-def _reason(exc: OSError) -> str:
-    return exc.strerror or str(exc) or type(exc).__name__
 
 
 def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
@@ -67,9 +67,10 @@ def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
     basis.vectors.restoreMat(dense)
     n = basis.vectors.getSizes()[0][1]
     tmp = f"{path}.tmp-{os.getpid()}"
-    error, f = None, None
+    error, f, V = None, None, None
     if world.rank == 0:
         try:
+            check_free_space(path, 8.0 * n * basis.size, "basis cache")
             f = h5py.File(tmp, "w")
             V = f.create_dataset("V", shape=(n, basis.size), dtype="f8")
             for name in ARRAYS:
@@ -77,8 +78,10 @@ def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
             f.attrs["key"] = key
             f.attrs["settings"] = json.dumps(basis.settings.key(), default=str)
             f.attrs["dbf_hpc_version"] = __version__
-        except OSError as e:
-            error = _reason(e)
+        except InputError:
+            error = "not enough free space on its file system"
+        except WRITE_ERRORS as e:
+            error = write_failure(e)
     for rank in range(world.size):
         start, block = (lo, local) if rank == 0 else (world.recv(source=rank) if world.rank == 0 else (None, None))
         if world.rank == rank and rank > 0:
@@ -86,14 +89,14 @@ def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
         if world.rank == 0 and error is None:
             try:
                 V[start:start + block.shape[0], :] = block
-            except OSError as e:
-                error = _reason(e)
+            except WRITE_ERRORS as e:
+                error = write_failure(e)
     if world.rank == 0:
-        error = _close_and_rename(f, tmp, path, error)
+        error = _close_and_rename(f, V, tmp, path, error)
     return world.bcast(error, root=0)
 
 
-def _close_and_rename(f, tmp: str, path: str, error: str | None) -> str | None:
+def _close_and_rename(f, V, tmp: str, path: str, error: str | None) -> str | None:
     """Rank 0: finish the temporary file and move it into place, or remove it."""
     try:
         if f is not None:
@@ -102,8 +105,9 @@ def _close_and_rename(f, tmp: str, path: str, error: str | None) -> str | None:
             with open(tmp, "rb") as handle:
                 os.fsync(handle.fileno())
             os.replace(tmp, path)
-    except OSError as e:
-        error = _reason(e)
+    except WRITE_ERRORS as e:
+        error = write_failure(e)
+        park(f, V)
     if error is not None and os.path.exists(tmp):
         os.remove(tmp)
     return error
@@ -172,11 +176,14 @@ def _prepare_directory(cache_dir: str, comm) -> str | None:
     error = None
     if comm.rank == 0:
         try:
-            os.makedirs(cache_dir, exist_ok=True)
-            if not os.access(cache_dir, os.W_OK):
-                error = "not writable"
+            if os.path.exists(cache_dir) and not os.path.isdir(cache_dir):
+                error = "it is a file, not a directory"
+            else:
+                os.makedirs(cache_dir, exist_ok=True)
+                if not os.access(cache_dir, os.W_OK):
+                    error = "not writable"
         except OSError as e:
-            error = _reason(e)
+            error = write_failure(e)
     return comm.tompi4py().bcast(error, root=0)
 
 

@@ -421,7 +421,22 @@ def main(argv=None) -> int:
         if comm.size > 1:
             comm.Abort(70)
         return 70
-    return _finish(comm, failure)
+    code = _finish(comm, failure)
+    from .errors import PARKED
+
+    if comm.allreduce(len(PARKED), op=MPI.SUM):
+        _exit_without_teardown(comm, code)
+    return code
+
+
+def _exit_without_teardown(comm, code: int) -> None:
+    """After a failed HDF5 write (errors.park), leave without freeing h5py's objects, which would
+    crash in HDF5 1.10. MPI_Finalize is skipped too: the MPI build of HDF5 closes its files then
+    (and crashed there, measured). Every rank meets in a barrier, then exits with the code."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    comm.Barrier()
+    os._exit(code)
 
 
 if __name__ == "__main__":

@@ -19,3 +19,25 @@ class SolverError(DbfError):
 
 class Interrupted(SolverError):
     """A run stopped by a termination signal after writing its checkpoint: rerun to continue."""
+
+
+# What writing a file can raise: the OS's errors, and h5py's RuntimeError when HDF5 cannot flush (a
+# full disk shows as "errno = 28, error message = 'No space left on device'" inside it).
+WRITE_ERRORS = (OSError, RuntimeError)
+
+
+def write_failure(exc: Exception) -> str:
+    """One line saying why a write failed."""
+    text = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+    return "No space left on device" if "errno = 28" in text or "No space left" in text else text.splitlines()[0]
+
+
+# HDF5 1.10 (Debian 12) crashes when an h5py object whose file failed to flush is freed (measured:
+# a full disk, then any close or garbage collection segfaults). Objects of a failed write are kept
+# here instead, and the command exits without tearing h5py down (cli.main).
+PARKED = []
+
+
+def park(*objects) -> None:
+    """Keep the h5py objects of a failed write alive for the rest of the process."""
+    PARKED.extend(objects)

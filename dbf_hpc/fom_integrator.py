@@ -23,6 +23,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from .errors import WRITE_ERRORS, write_failure
 from .fom import FullOrderModel
 from .laws import ConstraintLaws
 from .petsctools import destroy, direct_solver
@@ -219,8 +220,8 @@ class Observer:
             return
         try:
             callback(*args)
-        except OSError as exc:
-            self.steps.failure = f"cannot write the output: {exc.strerror or exc}"
+        except WRITE_ERRORS as exc:
+            self.steps.failure = f"cannot write the output: {write_failure(exc)}"
 
     def destroy(self) -> None:
         destroy(self.prev_u, self.prev_v, self.scatter, self.full)

@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 
 from . import __version__, layout
-from .errors import InputError
+from .errors import WRITE_ERRORS, InputError, park
 
 BLOCK = 1024  # samples buffered between writes
 
@@ -41,6 +41,29 @@ def check_output_path(path: str, inputs=(), replaceable=None) -> str:
     if replaceable is not False and not (replaceable or is_dbf_output)(path):
         raise InputError(f"output {path!r} exists and is not a dbf-hpc output: remove it or choose another name")
     return path
+
+
+def free_bytes(folder: str) -> int:
+    stat = os.statvfs(folder)
+    return stat.f_bavail * stat.f_frsize
+
+
+def check_free_space(path: str, needed: float, what: str = "output") -> None:
+    """An InputError before writing `needed` bytes to `path` if its file system has not that much
+    free (with 10 % and 1 MiB to spare): a disk that fills while HDF5 writes cannot be recovered from
+    cleanly."""
+    folder = os.path.dirname(os.path.abspath(path))
+    free = free_bytes(folder)
+    if free < 1.1 * needed + 2**20:
+        raise InputError(f"{what} {path!r} needs about {needed / 2**20:.3g} MiB and {folder!r} has "
+                         f"{free / 2**20:.3g} MiB free: free some space, write elsewhere, or sample less often "
+                         f"([output] sample_dt)")
+
+
+def output_bytes(samples: int, constraint_values: int, probes: int, r: int, snapshots: int, field: int) -> float:
+    """The size of a run's output: its series, snapshots and fixed data (8 bytes a value)."""
+    per_sample = 1 + 4 * constraint_values + probes + 2 * r
+    return 8.0 * (samples * per_sample + snapshots * field + r * r * 3 + 64 * constraint_values) + 64 * 2**10
 
 
 def is_dbf_output(path: str) -> bool:
@@ -85,8 +108,12 @@ class OutputLock:
                                  f"wait for it, or remove {self.lock} if that job is gone") from None
             except OSError as e:
                 raise InputError(f"{self.what} {self.path!r}: cannot create {self.lock}: {e.strerror or e}") from None
-            with os.fdopen(fd, "w") as f:
-                f.write(owner)
+            try:
+                with os.fdopen(fd, "w") as f:
+                    f.write(owner)
+            except OSError as e:
+                os.remove(self.lock)
+                raise InputError(f"{self.what} {self.path!r}: cannot write {self.lock}: {e.strerror or e}") from None
             self.held = True
             return
         raise InputError(f"{self.what} {self.path!r}: cannot take the lock {self.lock}; remove it if no job runs")
@@ -239,9 +266,11 @@ class OutputWriter:
         os.replace(self.partial, self.path)
 
     def abort(self) -> None:
-        """Close after a failure, leaving only the .partial file (it says complete = False)."""
+        """Close after a failure, leaving only the .partial file (it says complete = False). If the
+        file cannot be closed (a full disk), its objects are parked (errors.park)."""
         try:
             self.flush()
             self.file.close()
-        except Exception:  # the run already failed; keep its error, not this one
-            pass
+        except WRITE_ERRORS:  # the run already failed; keep its error, not this one
+            park(self, self.file, self.series)
+            self.series, self.buffer = {}, {}

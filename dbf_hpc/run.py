@@ -20,11 +20,11 @@ from slepc4py import SLEPc
 
 from . import layout
 from .checkpoint import Checkpoint, identity
-from .errors import DbfError, InputError, Interrupted, SolverError
+from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, write_failure
 from .fom import Observation
 from .fom_integrator import integrate_full
 from .modes import counters
-from .output import OutputLock, OutputWriter, check_output_path
+from .output import OutputLock, OutputWriter, check_free_space, check_output_path, output_bytes
 from .recorder import ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
@@ -186,6 +186,11 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         if resume:
             _say(say, f"resuming from the checkpoint at t = {float(state['t']):.6g} s" if state else
                  "no usable checkpoint: starting from t = 0")
+        field = model.field.positions.size if model.field is not None else 0
+        needed = output_bytes(settings.sample_times.size - (int(state["samples"]) if state else 0),
+                              model.constraints.count * model.constraints.dimension, model.probe_B.shape[0],
+                              model.size, output.snapshots, field)
+        check_free_space(path, needed + 8.0 * (2 * model.size + 64))   # the output and its checkpoint
         writer = (_reopen(path, int(state["samples"])) if state else
                   OutputWriter(path, (model.constraints.count,), model.probe_B.shape[0], model.size))
         recorder = ReducedRecorder(writer, model, _snapshot_samples(output.snapshots, settings.sample_times))
@@ -198,8 +203,8 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         with _interrupt_on_sigterm(stepper):
             stats = integrate_reduced(model, settings, recorder.record, stepper.on_step, say, stepper.start)
         timings["integration"] = time.perf_counter() - t
-    except OSError as exc:
-        raise SolverError(_left_behind(f"cannot write {path}.partial: {getattr(exc, 'strerror', None) or exc}",
+    except WRITE_ERRORS as exc:
+        raise SolverError(_left_behind(f"cannot write {path}.partial or its checkpoint: {write_failure(exc)}",
                                        writer, checkpoint)) from None
     except DbfError as exc:
         kind = Interrupted if stepper is not None and stepper.interrupted else type(exc)
@@ -343,12 +348,16 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say) -> dic
     recorder, opened, snaps = None, None, {}
     if world.rank == 0:
         try:
+            check_free_space(path, output_bytes(settings.sample_times.size, constraints.count, fom.probes.count, 0,
+                                                scene.output().snapshots, field.count))
             recorder = SampleRecorder(OutputWriter(path, (constraints.count,), fom.probes.count, 0), constraints)
-        except OSError as exc:
-            opened = f"cannot write {path}.partial: {exc.strerror or exc}"
+        except InputError as exc:
+            opened = str(exc)
+        except WRITE_ERRORS as exc:
+            opened = f"cannot write {path}.partial: {write_failure(exc)}"
     opened = world.bcast(opened, root=0)  # every rank stops if rank 0 cannot write
     if opened:
-        raise SolverError(opened)
+        raise InputError(opened)
 
     def record(t, x, xd):
         recorder.sample(t, *observation.totals(t, x, xd))

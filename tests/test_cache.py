@@ -2,6 +2,7 @@
 or corrupt file is detected and never used (paper, conclusion 2). Each kind of enrichment (DBFs,
 static modes, modes alone) is cached apart and round-trips with its own column count."""
 import glob
+import os
 
 import h5py
 import numpy as np
@@ -131,3 +132,33 @@ def test_dbf_settings_do_not_split_the_cache_of_the_other_kinds(shared_tmp_path,
     assert solves == 0 and state == "hit"
     *_, solves, state = summary(scene(basis={"dbf_stiffness": 0.1}), shared_tmp_path)
     assert solves > 0 and state == "stored", "for DBFs the stiffness does matter"
+
+
+def test_stored_constraint_rows_that_differ_from_the_scene_are_detected_and_rebuilt(shared_tmp_path):
+    # Red team: one flipped bit in the stored rows moved the contact to the next node while the output
+    # said x = 0.25. Everything a cached basis carries is checked against what the scene asks for.
+    reference, _, _ = obtain(scene(), shared_tmp_path)
+    path = _cache_file(shared_tmp_path)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(path, "r+") as f:
+            f["constraint_rows"][0] += 2          # the next node's w
+    MPI.COMM_WORLD.Barrier()
+    rebuilt, solves, state = obtain(scene(), shared_tmp_path)
+    assert solves > 0 and state == "stored"
+    assert np.allclose(rebuilt, reference, rtol=1e-10)
+
+
+@pytest.mark.parametrize("blocker", ["file", "read-only"])
+def test_a_cache_directory_that_cannot_be_made_is_a_warning_on_every_rank_not_a_hang(shared_tmp_path, blocker):
+    cache = shared_tmp_path / "cache"
+    if MPI.COMM_WORLD.rank == 0:
+        if blocker == "file":
+            cache.write_text("in the way")
+        else:
+            cache.mkdir(mode=0o555)
+    MPI.COMM_WORLD.Barrier()
+    target = cache / "sub" if blocker == "read-only" else cache
+    if blocker == "read-only" and os.geteuid() == 0:
+        pytest.skip("root may write anywhere")
+    _, solves, state = obtain(scene(), target)
+    assert solves > 0 and state == "unwritable"
