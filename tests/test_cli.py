@@ -326,3 +326,43 @@ def test_resuming_on_another_number_of_ranks_is_refused(tmp_path):
     _kill_group(process, signal.SIGKILL)
     out = dbf_hpc("run", PAPER, "-o", str(target), "--resume", *common, ranks=1)
     assert out.returncode == 1 and "ranks differ" in out.stderr, out.stderr
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MiB file system of its own (tmpfs), or a skip where this machine cannot mount one."""
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mount)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    yield mount
+    subprocess.run(["umount", str(mount)], capture_output=True)
+
+
+def test_a_disk_too_small_or_filling_up_is_one_line_never_a_crash(small_disk):
+    # Red team: a full disk gave tracebacks, then a segfault (exit 139) and a stray temp file.
+    import time
+
+    too_big = dbf_hpc("run", PAPER, "-o", str(small_disk / "big.h5"), "--set", "basis.cache=off",
+                      "--set", "output.sample_dt=1e-5")
+    assert too_big.returncode == 1 and "needs about" in too_big.stderr and "MiB free" in too_big.stderr
+    (small_disk / "filler").write_bytes(b"\0" * (2 * 2**20))
+    cache = dbf_hpc("basis", PAPER, "--set", "structure.elements=400", "--set", "basis.modes=60",
+                    "--set", f"basis.cache={small_disk / 'cache'}")
+    assert cache.returncode == 0 and "cannot write the basis cache" in cache.stdout, cache.stdout + cache.stderr
+    (small_disk / "filler").unlink()
+    run = _start("run", PAPER, "-o", str(small_disk / "out.h5"), "-q", "--set", "basis.cache=off",
+                 "--set", "integrator.t_end=3")
+    _wait_for(str(small_disk / "out.h5.partial"), run)
+    time.sleep(1)
+    with open(small_disk / "filler", "wb") as f:      # another job fills the disk
+        try:
+            while True:
+                f.write(b"\0" * 65536)
+        except OSError:
+            pass
+    _, stderr = run.communicate(timeout=300)
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert run.returncode == 1 and len(lines) == 1 and "No space left on device" in lines[0], stderr
+    assert not [p for p in os.listdir(small_disk) if ".tmp" in p]
