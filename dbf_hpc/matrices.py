@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import warnings
 from dataclasses import dataclass
 from typing import Optional
 
@@ -32,6 +33,15 @@ def _readable(path: str, what: str) -> None:
         raise InputError(f"{what} file {path!r} does not exist")
     if not os.access(path, os.R_OK):
         raise InputError(f"{what} file {path!r} is not readable")
+    if os.path.getsize(path) == 0 and not path.endswith(".mtx"):   # (an empty .mtx has no header: said so)
+        raise InputError(f"{what} file {path!r} is empty")
+
+
+def _check_finite(what: str, path: str, A) -> None:
+    """An InputError for a matrix or vector with NaN or Inf entries. Collective."""
+    norm = A.norm(PETSc.NormType.FROBENIUS) if isinstance(A, PETSc.Mat) else A.norm()
+    if not np.isfinite(norm):
+        raise InputError(f"{what} file {path!r} has NaN or Inf entries")
 
 
 def _read_matrix_market(path: str, what: str):
@@ -49,15 +59,30 @@ def _read_matrix_market(path: str, what: str):
             line = f.readline()
         try:
             nrows, ncols, nnz = (int(v) for v in line.split())
-            data = np.loadtxt(f, ndmin=2) if nnz else np.zeros((0, 3))
+            _check_index_range(path, what, max(nrows, ncols), nnz)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                data = np.loadtxt(f, ndmin=2) if nnz else np.zeros((0, 3))
         except ValueError as e:
             raise InputError(f"{what} file {path!r} is malformed: {e}") from None
     if data.shape != (nnz, 3):
         raise InputError(f"{what} file {path!r} declares {nnz} entries but holds {data.shape[0]}")
+    if np.any(data[:, :2] != np.floor(data[:, :2])):
+        raise InputError(f"{what} file {path!r} has an index that is not an integer")
     rows, cols, values = data[:, 0].astype(np.int64) - 1, data[:, 1].astype(np.int64) - 1, data[:, 2]
     if nnz and (rows.min() < 0 or cols.min() < 0 or rows.max() >= nrows or cols.max() >= ncols):
         raise InputError(f"{what} file {path!r} has an entry outside its {nrows} x {ncols} size")
     return (nrows, ncols), rows, cols, values, symmetry == "symmetric"
+
+
+def _check_index_range(path: str, what: str, size: int, nnz: int) -> None:
+    """Sizes this PETSc can index (PetscInt) and that the file can hold."""
+    limit = np.iinfo(PETSc.IntType).max
+    if size < 0 or nnz < 0:
+        raise InputError(f"{what} file {path!r} declares a negative size")
+    if size > limit or nnz > limit:
+        raise InputError(f"{what} file {path!r} declares {max(size, nnz)} rows or entries, more than this PETSc's "
+                         f"{np.dtype(PETSc.IntType).itemsize * 8}-bit indices can address ({limit})")
 
 
 def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
@@ -113,9 +138,14 @@ def _load_vector(path: str, template: PETSc.Vec, what: str) -> PETSc.Vec:
                 values = np.loadtxt(path, ndmin=1)
             else:
                 values = _read_matrix_market_vector(path, what)
-        except (ValueError, OSError) as e:
+        except (ValueError, OSError, EOFError) as e:
             raise InputError(f"{what} file {path!r} is malformed: {e}") from None
-        values = np.asarray(values, dtype=float).ravel()
+        values = np.asarray(values)
+        if not np.issubdtype(values.dtype, np.number) or np.iscomplexobj(values):
+            raise InputError(f"{what} file {path!r} must hold real numbers, got {values.dtype}")
+        values = values.astype(float).ravel()
+        if not np.all(np.isfinite(values)):
+            raise InputError(f"{what} file {path!r} has NaN or Inf entries")
         if values.size != n:
             raise InputError(f"{what} file {path!r} has {values.size} entries; the matrices have {n} rows")
         vec = template.duplicate()
@@ -132,6 +162,7 @@ def _load_vector(path: str, template: PETSc.Vec, what: str) -> PETSc.Vec:
     try:
         if loaded.getSize() != n:
             raise InputError(f"{what} file {path!r} has {loaded.getSize()} entries; the matrices have {n} rows")
+        _check_finite(what, path, loaded)
         # Reload into the matrices' layout (a loaded Vec takes PETSc's default split, which may differ).
         vec = template.duplicate()
         scatter = PETSc.Scatter().create(loaded, None, vec, None)
@@ -146,12 +177,17 @@ def _read_matrix_market_vector(path: str, what: str) -> np.ndarray:
     with open(path, encoding="ascii", errors="replace") as f:
         header = f.readline().lower().split()
     if len(header) >= 3 and header[2] == "array":
-        with open(path, encoding="ascii") as f:
-            lines = [ln for ln in f if not ln.startswith("%")]
-        rows, cols = (int(v) for v in lines[0].split())
+        try:
+            with open(path, encoding="ascii") as f:
+                lines = [ln for ln in f if ln.strip() and not ln.startswith("%")]
+            rows, cols = (int(v) for v in lines[0].split())
+            _check_index_range(path, what, rows, 0)
+            values = np.array([float(v) for v in lines[1:]])
+        except (IndexError, ValueError, UnicodeDecodeError) as e:
+            raise InputError(f"{what} file {path!r} is malformed ({type(e).__name__})") from None
         if cols != 1:
             raise InputError(f"{what} file {path!r} is a {rows} x {cols} array, not a vector")
-        return np.array([float(v) for v in lines[1:]])
+        return values
     shape, rows, cols, values, _ = _read_matrix_market(path, what)
     if shape[1] != 1:
         raise InputError(f"{what} file {path!r} is {shape[0]} x {shape[1]}, not a vector")
@@ -224,6 +260,8 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
                                  f"the stiffness is {n} x {n}")
         for name, A, path in (("stiffness", ops.K, files.stiffness), ("mass", ops.M, files.mass),
                               ("damping", ops.C, files.damping)):
+            if A is not None:
+                _check_finite(name, path, A)
             skew = asymmetry(A) if A is not None else 0.0
             if skew > SYMMETRY_TOL:
                 raise InputError(f"{name} matrix {path!r} is not symmetric (||A - A^T|| / ||A|| = {skew:.3g})")

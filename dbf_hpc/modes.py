@@ -268,6 +268,10 @@ def trust_check(ops: Operators, values, estimate, residual, prefix: str = "modes
             limit = _element_limit(ops, j + 1, estimate[j], tol, prefix)
             raise InputError(f"reference modes: the beam mesh is too fine for double precision: {cause}; "
                              f"use at most ~{limit} elements, not {elements} (or raise -{prefix}trust_tol)")
+        if estimate[j] > 1:   # the eigenvalue is zero within its own rounding
+            raise InputError(f"reference modes: K is singular: eigenvalue {j + 1} ({values[j]:.3g}) is zero within "
+                             f"rounding, so the structure has rigid-body modes (it is not fully supported) or a "
+                             f"mechanism; apply the supports to K and M (remove the fixed DOFs)")
         raise InputError(f"reference modes: K is too ill-conditioned for double precision: {cause}; use a "
                          f"coarser model (or raise -{prefix}trust_tol)")
     j = int(np.argmax(residual))

@@ -193,6 +193,7 @@ class OutputWriter:
         self.shapes = shapes
         self.buffer = {name: [] for name in self.series}
         self.count = 0
+        self.parked = False
 
     def append(self, **values) -> None:
         for name, buffer in self.buffer.items():
@@ -236,6 +237,7 @@ class OutputWriter:
             raise
         self.buffer = {name: [] for name in self.series}
         self.count = samples
+        self.parked = False
         return self
 
     def series_data(self, name: str) -> np.ndarray:
@@ -273,4 +275,4 @@ class OutputWriter:
             self.file.close()
         except WRITE_ERRORS:  # the run already failed; keep its error, not this one
             park(self, self.file, self.series)
-            self.series, self.buffer = {}, {}
+            self.series, self.buffer, self.parked = {}, {}, True

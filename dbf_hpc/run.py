@@ -31,6 +31,7 @@ from .rom import ReducedModel
 from .rom_integrator import integrate_reduced
 from .scene import Scene
 from .stats import DESCRIPTIONS, UNITS
+from .timestepping import check_work
 
 
 def output_path(scene: Scene, override: str | None) -> str:
@@ -76,6 +77,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else None
     path = output_path(scene, out)
     settings = scene.integrator_settings()
+    check_work(settings, scene.fastest_forcing_hz(), adaptive=settings.adaptive and method == "rom")
     with claimed(path, comm):
         return _run(scene, path, settings, say, comm, initial_state, resume, method)
 
@@ -229,10 +231,16 @@ def _reopen(path: str, samples: int) -> OutputWriter:
 
 
 def _left_behind(message: str, writer, checkpoint: Checkpoint | None) -> str:
-    """Close the output after a failure; the message says what is left behind."""
+    """Close the output after a failure; the message says what is left behind. A run that failed
+    before its second sample leaves nothing (its one sample is the initial state)."""
     if writer is None:
         return message
+    samples = writer.count + len(writer.buffer.get(layout.TIME, ()))
     writer.abort()
+    if samples <= 1 and not (checkpoint is not None and os.path.exists(checkpoint.path)):
+        if os.path.exists(writer.partial) and not writer.parked:
+            os.remove(writer.partial)
+        return message
     if checkpoint is not None and os.path.exists(checkpoint.path):
         return f"{message} (samples so far in {writer.partial}; checkpoint in {checkpoint.path})"
     return f"{message} (the samples up to the failure are in {writer.partial})"

@@ -105,6 +105,11 @@ class Scene:
                                   adaptive=i["adaptive"], rtol=float(i["rtol"]), atol=float(i["atol"]),
                                   contact=i["contact"], sample_dt=float(self.output().sample_dt))
 
+    def fastest_forcing_hz(self) -> float:
+        """The highest frequency the excitation contains (0 for free vibration)."""
+        e = self["excitation"]
+        return float(e["band"][1]) if e["kind"] == "random" else float(e["frequency_hz"]) if e["kind"] != "none" else 0.0
+
     def output(self) -> OutputSettings:
         o, t_end = self["output"], float(self["integrator"]["t_end"])
         return OutputSettings(file=self.resolve(o["file"]) if o["file"] else None,

@@ -21,6 +21,12 @@ from .petsctools import options_defaults
 
 ARKIMEX_TYPES = ("1bee", "a2", "l2", "ars122", "2c", "2d", "2e", "prssp2", "3", "bpr3", "ars443", "4", "5")
 NO_DENSE_OUTPUT = ("prssp2", "bpr3", "ars443")  # also without an embedded error estimate
+RTOL_FLOOR = 1e-14          # a relative error control tighter than this is below double precision's reach
+# A run that must take more steps than this is refused before it starts (at ~20 us a step, 1e10 steps
+# are more than two days); STEPS_PER_PERIOD steps resolve one period of the fastest forcing.
+MAX_STEPS = 1e10
+STEPS_PER_PERIOD = 20
+MAX_SAMPLES = 1e9           # 8 GB a series
 
 
 @dataclass(frozen=True)
@@ -41,6 +47,9 @@ class IntegratorSettings:
 
     def __post_init__(self):
         object.__setattr__(self, "scheme", str(self.scheme).lower())
+        if not RTOL_FLOOR <= self.rtol < 1:
+            raise InputError(f"[integrator] rtol = {self.rtol:g} cannot be met in double precision: give a value "
+                             f"from {RTOL_FLOOR:g} to 1")
         if self.scheme not in ARKIMEX_TYPES:
             raise InputError(f"[integrator] scheme {self.scheme!r} is not an ARKIMEX type; "
                              f"choose one of {', '.join(ARKIMEX_TYPES)}")
@@ -51,6 +60,23 @@ class IntegratorSettings:
     @property
     def sample_times(self) -> np.ndarray:
         return sample_times(self.t_end, self.sample_dt)
+
+
+def check_work(settings: IntegratorSettings, fastest_hz: float, adaptive: bool) -> None:
+    """An InputError, before any work, for a run that cannot finish in reasonable time: a fixed step
+    takes t_end / dt steps; an adaptive one at least STEPS_PER_PERIOD per period of the fastest
+    forcing. Either must stay below MAX_STEPS."""
+    steps = settings.t_end / settings.dt if not adaptive else settings.t_end * fastest_hz * STEPS_PER_PERIOD
+    if steps > MAX_STEPS:
+        cause = (f"a fixed step of {settings.dt:g} s" if not adaptive else
+                 f"{STEPS_PER_PERIOD} steps per period of the {fastest_hz:g} Hz forcing")
+        raise InputError(f"the run would take at least {steps:.2g} steps ({cause} over t_end = {settings.t_end:g} s), "
+                         f"more than the {MAX_STEPS:g} a run may take: shorten t_end, lengthen dt, or check the "
+                         f"excitation frequency")
+    samples = settings.t_end / settings.sample_dt
+    if samples > MAX_SAMPLES:
+        raise InputError(f"[output] sample_dt = {settings.sample_dt:g} s gives {samples:.2g} samples over t_end = "
+                         f"{settings.t_end:g} s, more than {MAX_SAMPLES:g}: sample less often")
 
 
 def sample_times(t_end: float, sample_dt: float) -> np.ndarray:
@@ -158,6 +184,9 @@ def check_outcome(monitor: StepMonitor, reason: int, stats: dict, t_end: float, 
     if monitor.failure:
         raise SolverError(monitor.failure)
     if reason < 0 or monitor.next < monitor.times.size:
+        if stats["final_time"] == monitor.times[0]:
+            advice += ("; it failed in its first step, which points to the input: check the excitation's amplitude "
+                       "and the units of the model (K, M, the laws' stiffness)")
         raise SolverError(f"the {what} stopped at t = {stats['final_time']:.6g} s of {t_end:g} s "
                           f"(TS reason {reason}, {stats['snes_failures']} Newton failures, "
                           f"{stats['rejected_steps']} rejected steps): {advice}")

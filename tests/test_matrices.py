@@ -142,3 +142,58 @@ def test_indefinite_operators_are_an_error(shared_tmp_path, beam_files, which, m
     with pytest.raises(DbfError, match=message):
         reference_modes(loaded, count=4)
     loaded.destroy()
+
+
+@pytest.mark.parametrize("name,content,message", [
+    ("r.txt", "", "is empty"),
+    ("r.npy", b"", "is empty"),
+    ("r.npy", "complex", "must hold real numbers"),
+    ("r.npy", "nan", "NaN or Inf"),
+    ("r.mtx", "%%MatrixMarket matrix array real general\n", "malformed"),
+])
+def test_a_bad_influence_vector_is_one_line_naming_the_file(shared_tmp_path, beam_files, name, content, message):
+    # Red team: an empty file was an IndexError, a complex .npy lost its imaginary part, and a NaN
+    # surfaced only at integration as "reduce dt or rtol".
+    _, K, _, paths = beam_files
+    path = shared_tmp_path / name
+    if MPI.COMM_WORLD.rank == 0:
+        if content in ("complex", "nan"):
+            n = K.shape[0]
+            values = np.ones(n) * (1 + 1j) if content == "complex" else np.full(n, np.nan)
+            np.save(str(path), values)
+        elif isinstance(content, bytes):
+            path.write_bytes(content)
+        else:
+            path.write_text(content)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=message):
+        load_operators(MatrixFiles(paths["K.bin"], paths["M.bin"], influence=str(path)))
+
+
+@pytest.mark.parametrize("content,message", [
+    ("%%MatrixMarket matrix coordinate real general\n3000000000 3000000000 1\n1 1 1.0\n", "32-bit indices"),
+    ("%%MatrixMarket matrix coordinate real general\n2 2 1\n1.5 1 1.0\n", "index that is not an integer"),
+    ("%%MatrixMarket matrix coordinate real general\n2 2 2\n1 1 nan\n2 2 1.0\n", "NaN or Inf"),
+])
+def test_matrix_market_beyond_petsc_or_with_bad_entries_is_refused(shared_tmp_path, content, message):
+    path = shared_tmp_path / "bad.mtx"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(content)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=message):
+        load_operators(MatrixFiles(str(path), str(path)))
+
+
+def test_a_free_floating_matrix_model_is_said_to_have_rigid_body_modes(shared_tmp_path):
+    # Red team: K of a free-free beam given as matrices was called "not positive semi-definite".
+    ops = assemble_beam(Beam(**TABLE1, elements=20, left="free", right="free"))
+    K, M = to_scipy(ops.K), to_scipy(ops.M)
+    ops.destroy()
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(str(shared_tmp_path / "K.mtx"), K, precision=17)
+        scipy.io.mmwrite(str(shared_tmp_path / "M.mtx"), M, precision=17)
+    MPI.COMM_WORLD.Barrier()
+    loaded = load_operators(MatrixFiles(str(shared_tmp_path / "K.mtx"), str(shared_tmp_path / "M.mtx")))
+    with pytest.raises(InputError, match="K is singular: .* rigid-body modes"):
+        reference_modes(loaded, count=4)
+    loaded.destroy()
