@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import signal
 import sys
 import time
 
@@ -393,6 +394,15 @@ def _finish(comm, failure: str | None) -> int:
     return 1
 
 
+def _terminated(signum, frame):
+    """SIGTERM outside an integration (a batch system's time limit during the basis, say): stop with
+    one line instead of dying silently."""
+    from .errors import Interrupted
+
+    raise Interrupted("stopped by a termination signal before the integration began; nothing was written: rerun "
+                      "to start again (the basis cache keeps what was finished)")
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, petsc_options = split_petsc_options(argv)
@@ -407,6 +417,7 @@ def main(argv=None) -> int:
     from .errors import DbfError
 
     comm = MPI.COMM_WORLD
+    signal.signal(signal.SIGTERM, _terminated)   # integrations and sweeps install their own while they run
     try:
         args.func(args)
         failure = None
