@@ -211,3 +211,44 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
     else:
         basis.stats.update(cache="stored", cache_file=path)
     return basis
+
+
+DEFAULT_DIR = "~/.cache/dbf_hpc"
+
+
+def entries(cache_dir: str) -> list:
+    """The bases cached in `cache_dir`: path, size (bytes), modified (time), and what each holds
+    (settings, dbf-hpc version, shape), or the problem reading it. Not collective."""
+    out = []
+    if not os.path.isdir(cache_dir):
+        return out
+    for name in sorted(os.listdir(cache_dir)):
+        if not name.startswith("basis-"):
+            continue
+        path = os.path.join(cache_dir, name)
+        entry = {"path": path, "size": os.path.getsize(path), "modified": os.path.getmtime(path)}
+        if ".tmp-" in name:
+            entry["problem"] = "a temporary file left by a killed job"
+        else:
+            try:
+                with h5py.File(path, "r") as f:
+                    entry.update(settings=f.attrs.get("settings", ""), version=f.attrs.get("dbf_hpc_version", "?"),
+                                 shape=f["V"].shape)
+            except (OSError, KeyError):
+                entry["problem"] = "unreadable"
+        out.append(entry)
+    return out
+
+
+def clear(cache_dir: str, older_than_days: float | None = None) -> tuple[int, int]:
+    """Remove cached bases (those not used for older_than_days, if given) and stray temporary files:
+    (files removed, bytes freed). Not collective."""
+    import time
+
+    removed = freed = 0
+    for entry in entries(cache_dir):
+        age_days = (time.time() - entry["modified"]) / 86400
+        if older_than_days is None or age_days > older_than_days or "problem" in entry:
+            os.remove(entry["path"])
+            removed, freed = removed + 1, freed + entry["size"]
+    return removed, freed

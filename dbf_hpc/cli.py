@@ -91,7 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
                           description="Time histories, phase diagrams and forces at each constraint, "
                                       "and beam snapshots (paper Figs. 4-13).")
     plot.add_argument("output", metavar="OUT.h5")
-    plot.add_argument("-d", "--directory", default=".", help="where to write the PNGs (default: .)")
+    plot.add_argument("-d", "--directory", default=".", help="where to write the PNGs (made if missing; default: .)")
+    plot.add_argument("--window", metavar="T0:T1", help="time window of the time histories and phase diagrams, "
+                                                        "in s (either end may be left out, e.g. 9:)")
     plot.set_defaults(func=_plot)
     command("modes", _modes, "the structure's reference modes: a modal summary",
             "Assemble the scene's structure and print its reference modes (the [basis] modes count "
@@ -110,7 +112,36 @@ def build_parser() -> argparse.ArgumentParser:
                             "default 1e-4:1e6:41")
     sweep.add_argument("-o", "--output", metavar="CSV", help="write k, omega, f to this CSV file")
     sweep.add_argument("--plot", metavar="PNG", help="write the Fig. 2 plot to this PNG file")
+    cache = sub.add_parser("cache", help="list or clear the basis cache",
+                           description="List the cached bases (what each holds, its size and age) or remove them.")
+    cache.add_argument("action", choices=("list", "clear"))
+    cache.add_argument("--dir", default=None, help="the cache directory (default ~/.cache/dbf_hpc, as scenes use)")
+    cache.add_argument("--older-than", type=float, metavar="DAYS", help="clear only bases unused for this many days")
+    cache.set_defaults(func=_cache)
     return parser
+
+
+def _cache(args) -> int:
+    import datetime
+
+    from mpi4py import MPI
+
+    from . import cache
+
+    folder = os.path.expanduser(args.dir or cache.DEFAULT_DIR)
+    if MPI.COMM_WORLD.rank:
+        return 0
+    if args.action == "clear":
+        removed, freed = cache.clear(folder, args.older_than)
+        print(f"{folder}: removed {removed} file(s), {freed / 2**20:.3g} MiB")
+        return 0
+    found = cache.entries(folder)
+    print(f"{folder}: {len(found)} file(s), {sum(e['size'] for e in found) / 2**20:.3g} MiB")
+    for e in found:
+        when = datetime.datetime.fromtimestamp(e["modified"]).strftime("%Y-%m-%d %H:%M")
+        what = e.get("problem") or f"V {e['shape'][0]} x {e['shape'][1]}, dbf-hpc {e['version']}, {e['settings']}"
+        print(f"  {os.path.basename(e['path'])}  {e['size'] / 2**20:8.3g} MiB  {when}  {what}")
+    return 0
 
 
 def _run(args) -> int:
@@ -122,58 +153,14 @@ def _run(args) -> int:
     return 0
 
 
-def _open_output(path):
-    import h5py
-
-    from .errors import InputError
-
-    if not os.path.isfile(path):
-        partial = os.path.isfile(path + ".partial")
-        raise InputError(f"{path!r} does not exist" + (" (only an incomplete .partial file: the run did "
-                                                        "not finish)" if partial else ""))
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise InputError(f"{path!r} is not an HDF5 file") from None
-    if "time" not in f or not f.attrs.get("complete", False):
-        f.close()
-        raise InputError(f"{path!r} is not a complete dbf-hpc output")
-    return f
-
-
 def _info(args) -> int:
-    import json
-
-    from . import layout
-
-    import numpy as np
     from mpi4py import MPI
 
-    if MPI.COMM_WORLD.rank:
-        return 0
-    with _open_output(args.output) as f:
-        t = f["time"][:]
-        stats, walls = json.loads(f.attrs["solver_stats"]), json.loads(f.attrs["wall_times"])
-        print(f"{args.output}: method {f.attrs['method']}, scene {f.attrs.get('scene_path', '?')}")
-        print(f"  dbf-hpc {f.attrs['dbf_hpc_version']}, PETSc {f.attrs['petsc_version']}, "
-              f"SLEPc {f.attrs['slepc_version']}, {f.attrs['mpi_ranks']} rank(s)")
-        if "basis" in f:
-            kind = f.attrs.get("basis_enrichment", "dbf")
-            extra = {"dbf": "DBFs", "static": "static modes", "none": "enrichment columns"}[kind]
-            print(f"  basis: {f['basis/omega'].size} reference modes "
-                  f"({f['basis/omega'][0] / (2 * np.pi):.4g} ... {f['basis/omega'][-1] / (2 * np.pi):.4g} Hz), "
-                  f"{layout.read(f, layout.BASIS_ENRICHMENT_OMEGA).size} {extra}")
-        else:
-            print(f"  full-order model: {stats.get('dofs', '?')} DOFs")
-        print(f"  samples: {t.size} from {t[0]:g} to {t[-1]:g} s; snapshots: {f['snapshots/time'].size}")
-        scheme = "generalized-alpha" if stats["scheme"] == "alpha2" else f"ARKIMEX {stats['scheme']}"
-        print(f"  integrator: {scheme}, contact {stats['contact']}, {stats['steps']} steps, "
-              f"{stats['rejected_steps']} rejected, {stats['snes_failures']} Newton failures")
-        print("  wall time: " + ", ".join(f"{k} {v:.3g} s" for k, v in walls.items()))
-        z, force = f["constraints/displacement"][:], f["constraints/force_peak"][:]
-        for j, x in enumerate(f["constraints/position"][:]):
-            print(f"  constraint {j + 1} at {x:g}: w in [{z[:, j].min():.6g}, {z[:, j].max():.6g}] m, "
-                  f"peak force {np.abs(force[:, j]).max():.6g} N")
+    from .report import describe
+
+    lines = describe(args.output)    # every rank checks, so that a bad file is an error on all
+    if MPI.COMM_WORLD.rank == 0:
+        print("\n".join(lines))
     return 0
 
 
@@ -181,31 +168,29 @@ def _plot(args) -> int:
     from mpi4py import MPI
 
     from .errors import InputError
-    from .plots import plot_run
+    from .plots import parse_window, plot_run, plot_sweep
+    from .report import open_output
 
-    if not os.path.isdir(args.directory):
-        raise InputError(f"plot directory {args.directory!r} does not exist")
+    f, complete = open_output(args.output)
+    sweep = "cases" in f
+    f.close()
+    if not (complete or sweep):
+        raise InputError(f"{args.output!r}: the run did not finish (only its .partial file exists); "
+                         f"rerun it, with --resume if it was checkpointed")
+    problem = None
     if MPI.COMM_WORLD.rank == 0:
-        from .plots import plot_sweep
-
-        if _is_sweep_summary(args.output):
-            written = plot_sweep(args.output, args.directory)
-        else:
-            _open_output(args.output).close()
-            written = plot_run(args.output, args.directory)
+        try:
+            os.makedirs(args.directory, exist_ok=True)
+        except OSError as e:
+            problem = f"plot directory {args.directory!r} cannot be made: {e.strerror or e}"
+    problem = MPI.COMM_WORLD.bcast(problem, root=0)
+    if problem:
+        raise InputError(problem)
+    if MPI.COMM_WORLD.rank == 0:
+        written = (plot_sweep if sweep else plot_run)(args.output, args.directory, window=parse_window(args.window))
         for path in written:
             print(f"wrote {path}")
     return 0
-
-
-def _is_sweep_summary(path: str) -> bool:
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as f:
-            return "cases" in f and bool(f.attrs.get("complete", False))
-    except OSError:
-        return False
 
 
 def _sweep(args) -> int:
@@ -356,10 +341,12 @@ def _stiffness(args) -> int:
             _write_atomically(args.output, lambda f: np.savetxt(
                 f, np.column_stack([ks, omega, omega / (2 * np.pi)]), delimiter=",",
                 header=f"k [N/m],omega [rad/s],f [Hz]   (spring at {label}; auto k = {k_auto:.6g} N/m)"))
+            print(f"wrote {args.output}")
         if args.plot:
             from .plots import plot_stiffness_sweep
 
             plot_stiffness_sweep(args.plot, ks, omega, k_auto, label, omega_free[branch - 1], np.sqrt(mu))
+            print(f"wrote {args.plot}")
     return 0
 
 
@@ -394,6 +381,17 @@ def _finish(comm, failure: str | None) -> int:
     return 1
 
 
+def _warn_unused(petsc_options, comm) -> None:
+    """One warning per PETSc option no solver read (collective)."""
+    from .petsctools import unused_options
+
+    from petsc4py import PETSc
+
+    for name in unused_options([t for t in petsc_options if t.startswith("-") and not _NUMBER.match(t)], comm):
+        PETSc.Sys.Print(f"dbf-hpc: warning: PETSc option {name} was not used: a misspelling, or a solver this command "
+                    f"does not run (prefixes: modes_, dbf_, static_, rom_, full_)", comm=comm)
+
+
 def _terminated(signum, frame):
     """SIGTERM outside an integration (a batch system's time limit during the basis, say): stop with
     one line instead of dying silently."""
@@ -421,6 +419,7 @@ def main(argv=None) -> int:
     try:
         args.func(args)
         failure = None
+        _warn_unused(petsc_options, PETSc.COMM_WORLD)
     except DbfError as e:
         failure = str(e)
     except Exception as e:  # a bug or a PETSc failure: say it in one line and end every rank

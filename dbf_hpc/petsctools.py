@@ -101,3 +101,38 @@ def destroy(*objects) -> None:
     for obj in objects:
         if obj is not None:
             obj.destroy()
+
+
+def _petsc_library():
+    """The loaded libpetsc, through ctypes (petsc4py 3.18 does not expose PetscOptionsUsed), or None."""
+    import ctypes
+
+    try:
+        with open("/proc/self/maps") as maps:
+            path = next(line.split()[-1] for line in maps if "libpetsc" in line and ".so" in line.split()[-1])
+        lib = ctypes.CDLL(path)
+        lib.PetscOptionsUsed.argtypes = [ctypes.c_void_p, ctypes.c_char_p, ctypes.POINTER(ctypes.c_int)]
+        return lib
+    except (OSError, StopIteration, AttributeError):
+        return None
+
+
+def unused_options(names, comm) -> list:
+    """The options among `names` (as given, e.g. '-rom_ts_arkimex_typ') that no solver on any rank
+    read: a misspelling, or a solver this command does not run. Collective; [] where PETSc cannot
+    tell."""
+    import ctypes
+
+    from mpi4py import MPI
+
+    lib = _petsc_library()
+    names = [n for n in names if n.startswith("-") and len(n) > 1]
+    used = []
+    for name in names:
+        flag = ctypes.c_int(1)
+        if lib is not None and lib.PetscOptionsUsed(None, name.lstrip("-").encode(), ctypes.byref(flag)) != 0:
+            flag.value = 1
+        used.append(bool(flag.value))
+    anywhere = np.zeros(len(names), dtype=np.int32)
+    comm.tompi4py().Allreduce(np.array(used, dtype=np.int32), anywhere, op=MPI.MAX)
+    return [name for name, u in zip(names, anywhere) if not u]

@@ -1,9 +1,14 @@
-"""Figures (PNG, matplotlib with the Agg backend). Called on one rank."""
+"""Figures (PNG, matplotlib with the Agg backend) of a run, a sweep, and the stiffness sweep of Fig. 2.
+Called on one rank; each figure is written under a temporary name and renamed when complete."""
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
+
+from . import layout
+from .schema import CONSTRAINT, SECTIONS
 
 
 def _pyplot():
@@ -13,6 +18,17 @@ def _pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def _save(fig, target: str, written: list, layout_done: bool = False) -> None:
+    plt = _pyplot()
+    tmp = f"{target}.tmp-{os.getpid()}.png"
+    if not layout_done:
+        fig.tight_layout()
+    fig.savefig(tmp)
+    plt.close(fig)
+    os.replace(tmp, target)
+    written.append(target)
 
 
 def plot_stiffness_sweep(path: str, ks, omega, k_auto: float, label: str, omega_free: float,
@@ -29,155 +45,219 @@ def plot_stiffness_sweep(path: str, ks, omega, k_auto: float, label: str, omega_
     ax.set_title(f"Spring at {label}: the frequency between its two limits")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
-    fig.tight_layout()
-    tmp = f"{path}.tmp-{os.getpid()}.png"
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
+    _save(fig, path, [])
 
 
-def plot_run(path: str, folder: str) -> list:
-    """The paper's figures for one run's HDF5 output, as PNGs in `folder`; returns the files written.
+def parse_window(text: str | None):
+    """'T0:T1' (s, either end may be empty) -> (t0, t1) or None."""
+    if not text:
+        return None
+    start, _, end = text.partition(":")
+    return (float(start) if start else -np.inf, float(end) if end else np.inf)
 
-    Per constraint j: time history (Figs. 4, 7), phase diagram (Figs. 5, 8, 12), force (Fig. 10).
-    Beam snapshots with the constraints and their deadbands (Figs. 6, 9, 11, 13).
+
+def _panels(count: int, width: float = 8.0, height: float = 2.2):
+    """A figure with `count` stacked panels (two columns beyond eight)."""
+    plt = _pyplot()
+    columns = 1 if count <= 8 else 2
+    rows = int(np.ceil(count / columns))
+    fig, axes = plt.subplots(rows, columns, figsize=(width * columns ** 0.5, 1.0 + height * rows), dpi=110,
+                             squeeze=False, sharex=True)
+    for ax in axes.ravel()[count:]:
+        ax.set_visible(False)
+    return fig, axes.ravel()[:count]
+
+
+def _where(x: float) -> str:
+    return f"x = {x:g} m"
+
+
+def plot_run(path: str, folder: str, window=None) -> list:
+    """The paper's figures for one run's output, as PNGs in `folder`; returns the files written.
+
+    time_histories.png: w at each constraint with its clearance (Figs. 4, 7); phase.png: phase
+    diagrams (Figs. 5, 8, 12); forces.png: the peak force per sample interval (Fig. 10); probes.png:
+    w at each probe; snapshots.png: the field at the snapshot times with the constraints and their
+    deadbands (Figs. 6, 9, 11, 13). `window` (t0, t1) limits the time histories and phase diagrams.
     """
     import h5py
 
-    plt = _pyplot()
     written = []
-
-    def save(fig, name):
-        target = os.path.join(folder, name)
-        tmp = f"{target}.tmp-{os.getpid()}.png"
-        fig.tight_layout()
-        fig.savefig(tmp)
-        plt.close(fig)
-        os.replace(tmp, target)
-        written.append(target)
-
     with h5py.File(path, "r") as f:
-        t = f["time"][:]
-        positions = f["constraints/position"][:]
-        z, v, force = (f[f"constraints/{n}"][:] for n in ("displacement", "velocity", "force_peak"))
-        d_minus = f["constraints/clearance_minus"][:] if "constraints/clearance_minus" in f else None
-        d_plus = f["constraints/clearance_plus"][:] if "constraints/clearance_plus" in f else None
-        for j, x in enumerate(positions):
-            where = f"x = {x:g} m" if float(x) != int(x) or x < 1 else f"constraint {j + 1}"
-            fig, ax = plt.subplots(figsize=(7, 3.6), dpi=120)
-            ax.plot(t, z[:, j] * 1e3, lw=0.8, color="C0")
-            if d_minus is not None:
-                for level in (-d_minus[j], d_plus[j]):
-                    ax.axhline(level * 1e3, color="C3", ls="--", lw=0.8)
-            ax.set_xlabel("time t [s]")
-            ax.set_ylabel(f"w({where.split(' = ')[-1] if 'x' in where else where}, t) [mm]")
-            ax.set_title(f"Displacement at the constraint ({where}); dashed: clearance")
-            ax.grid(alpha=0.3)
-            save(fig, f"time_history_{j + 1}.png")
-
-            fig, ax = plt.subplots(figsize=(5.2, 4.4), dpi=120)
-            ax.plot(z[:, j] * 1e3, v[:, j], lw=0.6, color="C0")
-            ax.set_xlabel("displacement w [mm]")
-            ax.set_ylabel("velocity dw/dt [m/s]")
-            ax.set_title(f"Phase diagram at {where}")
-            ax.grid(alpha=0.3)
-            save(fig, f"phase_{j + 1}.png")
-
-            fig, ax = plt.subplots(figsize=(7, 3.6), dpi=120)
-            ax.plot(t, force[:, j], lw=0.8, color="C2")
-            ax.set_xlabel("time t [s]")
-            ax.set_ylabel("constraint force N [N]")
-            ax.set_title(f"Constraint force at {where} (peak over each sample interval)")
-            ax.grid(alpha=0.3)
-            save(fig, f"force_{j + 1}.png")
-
-        if f["snapshots/w"].shape[0]:
-            xs, ws, ts = f["snapshots/x"][:], f["snapshots/w"][:], f["snapshots/time"][:]
-            fig, ax = plt.subplots(figsize=(7.5, 4.2), dpi=120)
-            colors = plt.cm.viridis(np.linspace(0, 1, ws.shape[0]))
-            for w, c in zip(ws, colors):
-                ax.plot(xs, w * 1e3, color=c, lw=0.7)
-            for j, x in enumerate(positions):
-                ax.axvline(x, color="k", lw=0.6, alpha=0.6)
-                if d_minus is not None:
-                    ax.plot([x, x], [-d_minus[j] * 1e3, d_plus[j] * 1e3], color="C3", lw=3, alpha=0.7)
-            ax.set_xlabel("position x [m]")
-            ax.set_ylabel("total displacement w [mm]")
-            ax.set_title(f"{ws.shape[0]} snapshots, t = {ts[0]:g} ... {ts[-1]:g} s "
-                         f"(vertical: constraints, red: deadband)")
-            ax.grid(alpha=0.3)
-            sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(ts[0], ts[-1]))
-            fig.colorbar(sm, ax=ax, label="t [s]")
-            save(fig, "snapshots.png")
+        t = f[layout.TIME][:]
+        keep = (t >= window[0]) & (t <= window[1]) if window else np.ones(t.size, dtype=bool)
+        positions = f[layout.CONSTRAINT_POSITION][:]
+        series = {name: f[name][:][keep] for name in (layout.CONSTRAINT_DISPLACEMENT, layout.CONSTRAINT_VELOCITY,
+                                                       layout.CONSTRAINT_FORCE_PEAK, layout.PROBE_DISPLACEMENT)}
+        gaps = (f[layout.CONSTRAINT_CLEARANCE_MINUS][:], f[layout.CONSTRAINT_CLEARANCE_PLUS][:])
+        span = f"t = {t[keep][0]:g} ... {t[keep][-1]:g} s" if keep.any() else "no samples"
+        if positions.size:
+            _constraint_figures(folder, t[keep], positions, series, gaps, span, written)
+        probes = f[layout.PROBE_POSITION][:] if layout.PROBE_POSITION in f else np.zeros(0)
+        if probes.size:
+            fig, axes = _panels(probes.size)
+            for p, ax in enumerate(axes):
+                ax.plot(t[keep], series[layout.PROBE_DISPLACEMENT][:, p] * 1e3, lw=0.8, color="C4")
+                ax.set_ylabel(f"w({probes[p]:g}) [mm]")
+                ax.grid(alpha=0.3)
+            axes[-1].set_xlabel("time t [s]")
+            fig.suptitle(f"Displacement at the probes ({span})")
+            _save(fig, os.path.join(folder, "probes.png"), written)
+        if f[layout.SNAPSHOT_W].shape[0]:
+            _snapshot_figure(folder, f, positions, gaps, written)
     return written
 
 
-def plot_sweep(path: str, folder: str) -> list:
-    """Statistics of a sweep summary against each numeric parameter that varies, one line per
-    combination of the other varying parameters (and sweep direction): the peak displacement at
-    each constraint and probe (a frequency response when the parameter is the excitation
-    frequency), impact rate, contact fraction and peak force."""
-    import json
+def _constraint_figures(folder, t, positions, series, gaps, span, written) -> None:
+    z, v = series[layout.CONSTRAINT_DISPLACEMENT], series[layout.CONSTRAINT_VELOCITY]
+    force = series[layout.CONSTRAINT_FORCE_PEAK]
+    fig, axes = _panels(positions.size)
+    for j, ax in enumerate(axes):
+        ax.plot(t, z[:, j] * 1e3, lw=0.8, color="C0")
+        for level in (-gaps[0][j], gaps[1][j]):
+            ax.axhline(level * 1e3, color="C3", ls="--", lw=0.8)
+        ax.set_ylabel(f"w [mm]\n{_where(positions[j])}")
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time t [s]")
+    fig.suptitle(f"Displacement at the constraints (dashed: clearance; {span})")
+    _save(fig, os.path.join(folder, "time_histories.png"), written)
 
+    plt = _pyplot()
+    columns = min(positions.size, 3)
+    rows = int(np.ceil(positions.size / columns))
+    fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.6 * rows), dpi=110, squeeze=False)
+    for ax in axes.ravel()[positions.size:]:
+        ax.set_visible(False)
+    for j, ax in enumerate(axes.ravel()[:positions.size]):
+        ax.plot(z[:, j] * 1e3, v[:, j], lw=0.6, color="C0")
+        ax.set_xlabel("w [mm]")
+        ax.set_ylabel("dw/dt [m/s]")
+        ax.set_title(_where(positions[j]), fontsize=9)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"Phase diagrams at the constraints ({span})")
+    _save(fig, os.path.join(folder, "phase.png"), written)
+
+    fig, axes = _panels(positions.size)
+    for j, ax in enumerate(axes):
+        ax.plot(t, force[:, j], lw=0.8, color="C2")
+        ax.set_ylabel(f"N [N]\n{_where(positions[j])}")
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time t [s]")
+    fig.suptitle(f"Constraint force, the peak over each sample interval ({span})")
+    _save(fig, os.path.join(folder, "forces.png"), written)
+
+
+def _snapshot_figure(folder, f, positions, gaps, written) -> None:
+    plt = _pyplot()
+    xs, ws, ts = f[layout.SNAPSHOT_X][:], f[layout.SNAPSHOT_W][:], f[layout.SNAPSHOT_TIME][:]
+    beam = f.attrs.get("field_kind", "beam") == "beam"
+    fig, ax = plt.subplots(figsize=(7.5, 4.2), dpi=120)
+    colors = plt.cm.viridis(np.linspace(0, 1, ws.shape[0]))
+    for w, c in zip(ws, colors):
+        ax.plot(xs, w * 1e3, color=c, lw=0.7)
+    for j, x in enumerate(positions):
+        ax.axvline(x, color="k", lw=0.6, alpha=0.6)
+        ax.plot([x, x], [-gaps[0][j] * 1e3, gaps[1][j] * 1e3], color="C3", lw=3, alpha=0.7)
+    ax.set_xlabel("position x [m]" if beam else "DOF")
+    ax.set_ylabel("total displacement w [mm]" if beam else "total displacement [mm or mrad]")
+    ax.set_title(f"{ws.shape[0]} snapshots, t = {ts[0]:g} ... {ts[-1]:g} s (vertical: constraints, red: deadband)")
+    ax.grid(alpha=0.3)
+    sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(ts[0], ts[-1]))
+    fig.colorbar(sm, ax=ax, label="t [s]")
+    _save(fig, os.path.join(folder, "snapshots.png"), written)
+
+
+def unit_of(name: str) -> str:
+    """The unit of a sweep parameter 'section.key' (or 'constraint.N.key'), from the schema."""
+    section, _, key = name.partition(".")
+    key = key.rpartition(".")[2]
+    keys = CONSTRAINT[1] if section == "constraint" else SECTIONS.get(section, ("", {}))[1]
+    base = key.replace("_minus", "").replace("_plus", "")
+    entry = keys.get(key) or keys.get(base)
+    return entry.unit if entry is not None and entry.unit not in ("", "1") else ""
+
+
+def _read_sweep(f) -> dict:
+    ok = np.array([s in (b"ok", "ok") for s in f["cases/status"][:]])
+    columns = {}
+    for name in json.loads(f.attrs["sweep"])["parameters"]:
+        raw = f[f"cases/parameters/{name}"][:]
+        columns[name] = raw if raw.dtype.kind == "f" else np.array([json.loads(v) for v in raw], dtype=object)
+    stats = {name: f[f"cases/stats/{name}"][:] for name in
+             ("displacement_peak", "impact_rate", "contact_fraction", "force_peak")}
+    return {"ok": ok, "columns": columns, "stats": stats, "probe_peak": f["cases/probe_peak"][:]}
+
+
+PANELS = (("displacement_peak", "peak |w| [mm]", 1e3), ("impact_rate", "impacts per second [1/s]", 1),
+          ("contact_fraction", "fraction of time in contact", 1), ("force_peak", "peak force [N]", 1))
+
+
+def plot_sweep(path: str, folder: str, window=None) -> list:
+    """Statistics of a sweep summary against each numeric parameter that varies, one line per
+    combination of the other varying parameters (and sweep direction), each line its own colour:
+    peak displacement at each constraint and probe (a frequency response when the parameter is the
+    excitation frequency), impact rate, contact fraction and peak force. Failed cases are marked
+    with a red cross on the axis. (`window` is for runs; a sweep has no time axis.)"""
     import h5py
 
-    plt = _pyplot()
-    written = []
     with h5py.File(path, "r") as f:
-        ok = np.array([s in (b"ok", "ok") for s in f["cases/status"][:]])
-        stats = {name: f[f"cases/stats/{name}"][:] for name in
-                 ("displacement_peak", "impact_rate", "contact_fraction", "force_peak")}
-        probe_peak = f["cases/probe_peak"][:]
-        columns = {}
-        for name in json.loads(f.attrs["sweep"])["parameters"]:
-            raw = f[f"cases/parameters/{name}"][:]
-            columns[name] = raw if raw.dtype.kind == "f" else np.array([json.loads(v) for v in raw], dtype=object)
-    varying = [n for n, v in columns.items() if len({repr(x) for x in v}) > 1]
+        data = _read_sweep(f)
+    columns, written = data["columns"], []
+    present = lambda v: [x for x in v if x is not None and not (isinstance(x, float) and np.isnan(x))]  # noqa: E731
+    varying = [n for n, v in columns.items() if len({repr(x) for x in present(v)}) > 1]
     for name in varying:
-        x = columns[name]
-        if x.dtype.kind != "f":
-            continue
-        others = [n for n in varying if n != name]
-        keys = [tuple(columns[n][i] for n in others) for i in range(x.size)]
-        series = list(dict.fromkeys(keys))
-        fig, axes = plt.subplots(2, 2, figsize=(10, 7), dpi=110, sharex=True)
-        panels = [("displacement_peak", "peak |w| [mm]", 1e3), ("impact_rate", "impacts per second [1/s]", 1),
-                  ("contact_fraction", "fraction of time in contact", 1), ("force_peak", "peak force [N]", 1)]
-        for ax, (stat, label, scale) in zip(axes.ravel(), panels):
-            for k, key in enumerate(series):
-                sel = np.array([kk == key for kk in keys]) & ok & np.isfinite(x)
-                order = np.flatnonzero(sel)[np.argsort(x[sel], kind="stable")]
-                tag = ", ".join(f"{n.split('.')[-1]} {v}" for n, v in zip(others, key))
-                tag = f" ({tag})" if tag else ""
-                style = "v--" if "down" in key else "o-"
-                table = stats[stat][order] * scale
-                if table.shape[1] > 4:  # many supports: their mean and the worst one, not a line each
-                    ax.plot(x[order], np.nanmean(table, axis=1), style, ms=3, lw=1, color=f"C{k % 10}",
-                            label=f"mean over constraints{tag}")
-                    ax.plot(x[order], np.nanmax(table, axis=1), style, ms=3, lw=1, color=f"C{k % 10}",
-                            alpha=0.5, label=f"max over constraints{tag}")
-                    columns_drawn = 1
-                else:
-                    for j in range(table.shape[1]):
-                        ax.plot(x[order], table[:, j], style, ms=3, lw=1, color=f"C{(k + j) % 10}",
-                                label=f"constraint {j + 1}{tag}")
-                    columns_drawn = table.shape[1]
-                if stat == "displacement_peak":
-                    for p in range(probe_peak.shape[1]):
-                        ax.plot(x[order], probe_peak[order, p] * 1e3, style, ms=3, lw=1.5, alpha=0.6,
-                                color=f"C{(k + columns_drawn + p) % 10}", label=f"probe {p + 1}{tag}")
-            ax.set_ylabel(label)
-            ax.grid(alpha=0.3)
-        for ax in axes[1]:
-            ax.set_xlabel(name)
-        if len(axes[0, 0].get_legend_handles_labels()[1]) <= 12:
-            axes[0, 0].legend(fontsize=7)
-        fig.suptitle(f"Sweep over {name} ({int(ok.sum())} of {ok.size} cases ran)")
-        fig.tight_layout()
-        target = os.path.join(folder, f"sweep_{name.replace('.', '_')}.png")
-        tmp = f"{target}.tmp-{os.getpid()}.png"
-        fig.savefig(tmp)
-        plt.close(fig)
-        os.replace(tmp, target)
-        written.append(target)
+        if columns[name].dtype.kind == "f":
+            _sweep_figure(folder, name, [n for n in varying if n != name], data, written)
     return written
+
+
+def _sweep_figure(folder, name, others, data, written) -> None:
+    plt = _pyplot()
+    columns, ok = data["columns"], data["ok"]
+    x = columns[name]
+    keys = [tuple(columns[n][i] for n in others) for i in range(x.size)]
+    series = list(dict.fromkeys(keys))
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), dpi=110, sharex=True)
+    colour = iter(plt.cm.tab20(np.linspace(0, 1, 20)))
+    colours = {}
+    for ax, (stat, label, scale) in zip(axes.ravel(), PANELS):
+        for key in series:
+            _sweep_lines(ax, stat, scale, key, keys, x, others, data, colours, colour)
+        failed = x[~ok & np.isfinite(x)]
+        if failed.size:
+            ax.plot(failed, np.zeros(failed.size), "x", color="red", ms=8, mew=2, label="failed case", clip_on=False)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    unit = unit_of(name)
+    for ax in axes[1]:
+        ax.set_xlabel(f"{name} [{unit}]" if unit else name)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    unique = dict(zip(labels, handles))
+    rows = int(np.ceil(len(unique) / 4))
+    fig.legend(unique.values(), unique.keys(), loc="lower center", ncol=min(4, len(unique)), fontsize=7)
+    fig.suptitle(f"Sweep over {name}: {int(ok.sum())} of {ok.size} cases ran"
+                 + (f", {int((~ok).sum())} failed (red crosses)" if (~ok).any() else ""))
+    fig.tight_layout(rect=(0, 0.035 * rows + 0.01, 1, 1))
+    _save(fig, os.path.join(folder, f"sweep_{name.replace('.', '_')}.png"), written, layout_done=True)
+
+
+def _sweep_lines(ax, stat, scale, key, keys, x, others, data, colours, colour) -> None:
+    """One combination of the other parameters: a line per constraint (or the mean and the worst of
+    many), and the probes on the displacement panel; each line keeps its colour across panels."""
+    sel = np.array([k == key for k in keys]) & data["ok"] & np.isfinite(x)
+    if not sel.any():
+        return
+    order = np.flatnonzero(sel)[np.argsort(x[sel], kind="stable")]
+    tag = ", ".join(f"{n.split('.')[-1]} {v}" for n, v in zip(others, key))
+    tag = f" ({tag})" if tag else ""
+    style = "v--" if "down" in key else "o-"
+    table = data["stats"][stat][order] * scale
+    lines = ([("mean over constraints", np.nanmean(table, axis=1)), ("worst constraint", np.nanmax(table, axis=1))]
+             if table.shape[1] > 4 else [(f"constraint {j + 1}", table[:, j]) for j in range(table.shape[1])])
+    if stat == "displacement_peak":
+        lines += [(f"probe {p + 1}", data["probe_peak"][order, p] * 1e3) for p in range(data["probe_peak"].shape[1])]
+    for label, values in lines:
+        full = f"{label}{tag}"
+        if full not in colours:
+            colours[full] = next(colour, "k")
+        ax.plot(x[order], values, style, ms=3, lw=1, color=colours[full], label=full)

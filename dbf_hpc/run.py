@@ -79,7 +79,10 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     settings = scene.integrator_settings()
     check_work(settings, scene.fastest_forcing_hz(), adaptive=settings.adaptive and method == "rom")
     with claimed(path, comm):
-        return _run(scene, path, settings, say, comm, initial_state, resume, method)
+        summary = _run(scene, path, settings, say, comm, initial_state, resume, method)
+    if say is not None:
+        _warn_idle(summary, scene.constraints, comm)
+    return summary
 
 
 def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str) -> dict:
@@ -95,7 +98,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         with Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
             basis = reductor.basis()
             timings["basis"] = time.perf_counter() - t
-            _say_basis(say, basis, timings["basis"], list(fom.constraints.labels), comm)
+            _say_basis(say, basis, timings["basis"], list(fom.constraints.labels), comm, scene.fastest_forcing_hz())
             t = time.perf_counter()
             model = reductor.reduce(field=scene.output().snapshots > 0)
             basis_key = {"fingerprint": fom.fingerprint, "basis": basis.settings.key(),
@@ -114,12 +117,38 @@ def _say(say, message: str) -> None:
         say(message)
 
 
-def _say_basis(say, basis, seconds: float, labels, comm) -> None:
+# A lowest frequency below this is more likely a unit mistake (E in GPa given as Pa) than a structure.
+SUSPICIOUS_HZ = 1e-3
+
+
+def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> None:
     strategy = basis.settings.strategy
     extra = f"+ {basis.enrichment_count} {strategy.column_name}s" if strategy.column_name else "(no enrichment)"
-    _say(say, f"basis: {basis.mode_count} modes {extra} ({seconds:.2f} s, cache {basis.stats.get('cache')})")
-    for warning in basis.warnings(labels):
+    f = basis.omega / (2 * np.pi)
+    _say(say, f"basis: {basis.mode_count} modes ({f[0]:.4g} ... {f[-1]:.4g} Hz) {extra} ({seconds:.2f} s, "
+              f"cache {basis.stats.get('cache')})")
+    warnings = basis.warnings(labels)
+    elastic = f[f > 1e-9 * f[-1]] if f[-1] > 0 else f
+    if elastic.size and elastic[0] < SUSPICIOUS_HZ:
+        warnings.append(f"the lowest elastic frequency is {elastic[0]:.3g} Hz: check the structure's units (SI: E in "
+                        f"Pa, lengths in m, rho in kg/m^3; matrices in N/m and kg)")
+    if forcing_hz > f[-1]:
+        warnings.append(f"the excitation ({forcing_hz:g} Hz) lies above the highest reference mode ({f[-1]:.4g} Hz): "
+                        f"the basis cannot follow it; add modes (basis.modes or basis.max_frequency_hz)")
+    for warning in warnings:
         PETSc.Sys.Print(f"dbf-hpc: warning: {warning}", comm=comm)
+
+
+def _warn_idle(summary: dict, constraints, comm) -> None:
+    """A warning for each constraint that never touched its stop: often a clearance in the wrong unit."""
+    stats = summary.get("constraint_stats", {})
+    for j, constraint in enumerate(constraints):
+        law = constraint.law
+        if law.kind in ("deadband", "power", "hertz") and stats and stats["impacts"][j] == 0:
+            gap = min(law.clearance_minus, law.clearance_plus)
+            PETSc.Sys.Print(f"dbf-hpc: warning: constraint {j + 1} at {constraint.label} never reached its stop "
+                            f"(max |w| {stats['displacement_peak'][j]:.3g} m, clearance {gap:.3g} m): check the "
+                            f"clearance's unit (m)", comm=comm)
 
 
 def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
@@ -204,7 +233,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         t = time.perf_counter()
         with _interrupt_on_sigterm(stepper):
             stats = integrate_reduced(model, settings, recorder.record, stepper.on_step, say, stepper.start)
-        timings["integration"] = time.perf_counter() - t
+        timings["integration"] = stats["time_integration"]   # a resumed run's whole, not this part
     except WRITE_ERRORS as exc:
         raise SolverError(_left_behind(f"cannot write {path}.partial or its checkpoint: {write_failure(exc)}",
                                        writer, checkpoint)) from None

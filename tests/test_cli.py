@@ -77,11 +77,10 @@ def test_readme_main_job_runs_the_paper_beam_on_two_ranks(tmp_path):
     assert "done:" in out.stdout and (tmp_path / "paper.h5").exists()
     info = dbf_hpc("info", str(tmp_path / "paper.h5"), ranks=1)
     assert info.returncode == 0 and "constraint 1 at 0.25" in info.stdout
-    figures = tmp_path / "figs"
-    figures.mkdir()
+    figures = tmp_path / "figs"     # made by plot (README's own command runs on a fresh clone)
     plot = dbf_hpc("plot", str(tmp_path / "paper.h5"), "-d", str(figures), ranks=1)
     assert plot.returncode == 0, plot.stderr
-    for name in ("time_history_1.png", "phase_1.png", "force_1.png", "snapshots.png"):
+    for name in ("time_histories.png", "phase.png", "forces.png", "probes.png", "snapshots.png"):
         assert (figures / name).read_bytes()[:4] == b"\x89PNG"
 
 
@@ -366,3 +365,32 @@ def test_a_disk_too_small_or_filling_up_is_one_line_never_a_crash(small_disk):
     lines = [line for line in stderr.splitlines() if line.strip()]
     assert run.returncode == 1 and len(lines) == 1 and "No space left on device" in lines[0], stderr
     assert not [p for p in os.listdir(small_disk) if ".tmp" in p]
+
+
+def test_info_reads_statistics_a_sweep_summary_and_a_partial_run(tmp_path):
+    import signal
+
+    out = tmp_path / "s.h5"
+    run = dbf_hpc("run", PAPER, "-o", str(out), "-q", "--set", "integrator.t_end=1", "--set", f"basis.cache={tmp_path}")
+    assert run.returncode == 0, run.stderr
+    info = dbf_hpc("info", str(out), ranks=1)
+    assert re.search(r"constraint 1 at 0.25: .* \d+ impacts, [\d.]+/s, in contact", info.stdout), info.stdout
+    process = _start("run", PAPER, "-o", str(tmp_path / "p.h5"), "-q", "--set", "integrator.t_end=5",
+                     "--set", "output.checkpoint_dt=0.25", "--set", f"basis.cache={tmp_path}")
+    _wait_for(str(tmp_path / "p.h5.checkpoint"), process)
+    _kill_group(process, signal.SIGKILL)
+    partial = dbf_hpc("info", str(tmp_path / "p.h5"), ranks=1)
+    assert partial.returncode == 0 and "INCOMPLETE" in partial.stdout and "--resume" in partial.stdout
+    plot = dbf_hpc("plot", str(tmp_path / "p.h5"), "-d", str(tmp_path / "figs"), ranks=1)
+    assert plot.returncode == 1 and "did not finish" in plot.stderr
+
+
+def test_unused_petsc_options_and_suspicious_units_draw_warnings(tmp_path):
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "w.h5"), "--set", "integrator.t_end=0.2", "--set",
+                  "basis.cache=off", "--set", "structure.E=117", "--set", "constraint.clearance=2.5",
+                  "-rom_ts_arkimex_typ", "4", "-ts_arkimex_type", "4")
+    assert out.returncode == 0, out.stderr
+    for expected in ("PETSc option -rom_ts_arkimex_typ was not used", "PETSc option -ts_arkimex_type was not used",
+                     "the lowest elastic frequency is 8.61e-06 Hz", "never reached its stop",
+                     "basis: 6 modes (8.606e-06 ... "):
+        assert expected in out.stdout, (expected, out.stdout)

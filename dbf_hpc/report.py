@@ -1,0 +1,133 @@
+"""What `dbf-hpc info` prints: a run's output (complete, or the .partial file of a run that did not
+finish), or a sweep summary. Plain text lines from the HDF5 files; nothing here is collective."""
+from __future__ import annotations
+
+import json
+import os
+
+import h5py
+import numpy as np
+
+from . import layout
+from .errors import InputError
+
+# The impact statistics a tube-vibration engineer reads first, with how to print them.
+HEADLINE = (("impacts", "{:.0f} impacts"), ("impact_rate", "{:.3g}/s"), ("contact_fraction", "in contact {:.2%}"),
+            ("force_rms", "force RMS {:.3g} N"), ("impact_power_mean", "impact power {:.3g} W"))
+
+
+def open_output(path: str):
+    """(open h5py file, complete?) of a run's output, or of its .partial file when only that exists."""
+    if os.path.isfile(path):
+        target = path
+    elif os.path.isfile(path + ".partial"):
+        target = path + ".partial"
+    else:
+        raise InputError(f"{path!r} does not exist")
+    try:
+        f = h5py.File(target, "r")
+    except OSError:
+        raise InputError(f"{target!r} is not an HDF5 file") from None
+    if layout.TIME not in f and "cases" not in f:
+        f.close()
+        raise InputError(f"{target!r} is not a dbf-hpc output")
+    return f, bool(f.attrs.get("complete", False)) and target == path
+
+
+def describe(path: str) -> list:
+    """The lines `info` prints for a run's output or a sweep summary."""
+    f, complete = open_output(path)
+    with f:
+        if "cases" in f:
+            return _sweep_lines(path, f)
+        return _run_lines(path, f) if complete else _partial_lines(path, f)
+
+
+def _run_lines(path: str, f) -> list:
+    stats, walls = json.loads(f.attrs["solver_stats"]), json.loads(f.attrs["wall_times"])
+    t = f[layout.TIME][:]
+    lines = [f"{path}: method {f.attrs['method']}, scene {f.attrs.get('scene_path', '?')}",
+             f"  dbf-hpc {f.attrs['dbf_hpc_version']}, PETSc {f.attrs['petsc_version']}, "
+             f"SLEPc {f.attrs['slepc_version']}, {f.attrs['mpi_ranks']} rank(s)"]
+    if "basis" in f:
+        kind = f.attrs.get("basis_enrichment", "dbf")
+        extra = {"dbf": "DBFs", "static": "static modes", "none": "enrichment columns"}[kind]
+        omega = f[layout.BASIS_OMEGA][:] / (2 * np.pi)
+        lines.append(f"  basis: {omega.size} reference modes ({omega[0]:.4g} ... {omega[-1]:.4g} Hz), "
+                     f"{layout.read(f, layout.BASIS_ENRICHMENT_OMEGA).size} {extra}")
+    else:
+        lines.append(f"  full-order model: {stats.get('dofs', '?')} DOFs")
+    lines.append(f"  samples: {t.size} from {t[0]:g} to {t[-1]:g} s; snapshots: {f[layout.SNAPSHOT_TIME].size}")
+    scheme = "generalized-alpha" if stats["scheme"] == "alpha2" else f"ARKIMEX {stats['scheme']}"
+    lines.append(f"  integrator: {scheme}, contact {stats['contact']}, {stats['steps']} steps, "
+                 f"{stats['rejected_steps']} rejected, {stats['snes_failures']} Newton failures")
+    lines.append("  wall time: " + ", ".join(f"{k} {v:.3g} s" for k, v in walls.items()))
+    return lines + _constraint_lines(f) + _probe_lines(f)
+
+
+def _constraint_lines(f, partial: bool = False) -> list:
+    z, force = f[layout.CONSTRAINT_DISPLACEMENT][:], f[layout.CONSTRAINT_FORCE_PEAK][:]
+    positions = f[layout.CONSTRAINT_POSITION][:] if layout.CONSTRAINT_POSITION in f else np.arange(z.shape[1])
+    stats = f.get(layout.CONSTRAINT_STATS)
+    lines = []
+    for j, x in enumerate(positions):
+        line = (f"  constraint {j + 1} at {x:g}: w in [{z[:, j].min():.6g}, {z[:, j].max():.6g}] m, "
+                f"peak force {np.abs(force[:, j]).max():.6g} N")
+        if stats is not None and not partial:
+            line += "; " + ", ".join(fmt.format(stats[name][j]) for name, fmt in HEADLINE if name in stats)
+        lines.append(line)
+    return lines
+
+
+def _probe_lines(f) -> list:
+    if layout.PROBE_DISPLACEMENT not in f or not f[layout.PROBE_DISPLACEMENT].shape[1]:
+        return []
+    w = f[layout.PROBE_DISPLACEMENT][:]
+    positions = f[layout.PROBE_POSITION][:] if layout.PROBE_POSITION in f else np.arange(w.shape[1])
+    return [f"  probe at {x:g}: peak |w| {np.abs(w[:, p]).max():.6g} m" for p, x in enumerate(positions)]
+
+
+def _partial_lines(path: str, f) -> list:
+    t = f[layout.TIME][:] if layout.TIME in f else np.zeros(0)
+    lines = [f"{path}.partial: INCOMPLETE: the run did not finish ({t.size} samples"
+             + (f" up to t = {t[-1]:g} s)" if t.size else ")"),
+             "  a checkpoint exists: rerun with --resume to continue" if os.path.exists(path + ".checkpoint")
+             else "  no checkpoint: a rerun starts from t = 0"]
+    if t.size and layout.CONSTRAINT_DISPLACEMENT in f:
+        lines += _constraint_lines(f, partial=True)
+    return lines
+
+
+def _sweep_lines(path: str, f) -> list:
+    meta = json.loads(f.attrs["sweep"])
+    status = [s.decode() if isinstance(s, bytes) else s for s in f["cases/status"][:]]
+    errors = [e.decode() if isinstance(e, bytes) else e for e in f["cases/error"][:]]
+    names = meta["parameters"]
+    lines = [f"{path}: sweep of {meta['scene']}, {len(status)} cases ({status.count('ok')} ok, "
+             f"{len(status) - status.count('ok')} failed)", f"  parameters: {', '.join(names)}"]
+    peak = f["cases/stats/displacement_peak"][:]
+    impacts = f["cases/stats/impacts"][:]
+    force = f["cases/stats/force_peak"][:]
+    columns = {name: f[f"cases/parameters/{name}"][:] for name in names}
+    for i, state in enumerate(status):
+        values = ", ".join(f"{name.split('.')[-1]} {_value(columns[name][i])}" for name in names
+                           if not _missing(columns[name][i]))
+        if state == "ok":
+            lines.append(f"  case {i + 1} ({values}): max |w| {np.nanmax(peak[i]):.4g} m, "
+                         f"{np.nansum(impacts[i]):.0f} impacts, peak force {np.nanmax(force[i]):.4g} N")
+        else:
+            lines.append(f"  case {i + 1} ({values}): FAILED: {errors[i]}")
+    return lines
+
+
+def _missing(v) -> bool:
+    """A listed case that leaves the base scene's value: NaN (numbers) or null (others)."""
+    if isinstance(v, bytes):
+        return json.loads(v.decode()) is None
+    return v is None or (isinstance(v, (float, np.floating)) and np.isnan(v))
+
+
+def _value(v) -> str:
+    if isinstance(v, bytes):
+        return json.loads(v.decode())
+    return f"{v:g}" if isinstance(v, (float, np.floating)) else str(v)
