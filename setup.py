@@ -13,7 +13,7 @@ setup(
     long_description_content_type="text/markdown",
     license="BSD-2-Clause",
     packages=find_packages(include=["dbf_hpc", "dbf_hpc.*"]),
-    python_requires=">=3.9",
+    python_requires=">=3.11",   # tomllib
     install_requires=["numpy", "mpi4py", "h5py"],
     extras_require={"plot": ["matplotlib"], "test": ["pytest"]},
     entry_points={"console_scripts": ["dbf-hpc = dbf_hpc.cli:main"]},
