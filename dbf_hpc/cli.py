@@ -102,6 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "Compute the reference modes and one discontinuous basis function per constraint, "
                     "in parallel over constraint groups, M-orthonormalize them, and cache the basis.")
     basis.add_argument("--no-cache", action="store_true", help="neither read nor write the basis cache")
+    basis.add_argument("--xdmf", metavar="SHAPES.xdmf", help="also write the basis vectors (modes, then the "
+                       "enrichment columns) as shapes ParaView opens: SHAPES.xdmf beside SHAPES.h5")
     sweep = command("stiffness", _stiffness, "omega(k) of a constraint's spring-perturbed problem (Fig. 2)",
                     "The first frequency of the structure with a linear spring of stiffness k at one "
                     "constraint, over a range of k: the curve the DBF stiffness is chosen on (paper Fig. 2). "
@@ -255,7 +257,37 @@ def _basis(args) -> int:
             f"({elapsed:.3f} s, {comm.tompi4py().allreduce(counters['eigen_solves'] - solves, op=MPI.MAX)} "
             f"eigen-solves on the busiest rank, cache {basis.stats.get('cache')})")
         _print_basis(say, basis, labels)
+        if args.xdmf:
+            _write_shapes(args.xdmf, scene, fom, reductor, basis)
     return 0
+
+
+def _write_shapes(path: str, scene, fom, reductor, basis) -> None:
+    """The basis vectors at the field points as an XDMF time series (step i: basis vector i + 1) and
+    its HDF5 file. Collective (rank 0 writes)."""
+    import h5py
+    import numpy as np
+    from petsc4py import PETSc
+
+    from . import xdmf
+    from .output import check_output_path
+
+    h5 = os.path.splitext(path)[0] + ".h5"
+    for target in (path, h5):
+        check_output_path(target, scene.inputs())
+    values = reductor.field_values()
+    if PETSc.COMM_WORLD.getRank() == 0:
+        geometry = fom.operators.field_map().geometry()
+        tmp = f"{h5}.tmp-{os.getpid()}"
+        with h5py.File(tmp, "w") as f:
+            for name, data in {**xdmf.geometry_datasets(geometry, "shapes"),
+                               **xdmf.node_vectors(geometry, values.T, "shapes", "shape")}.items():
+                f.create_dataset(name, data=data)
+            f["shapes/omega"] = np.concatenate([basis.omega, basis.enrichment_omega])
+            f.attrs["dbf_hpc_version"] = __version__
+        os.replace(tmp, h5)
+        xdmf.write(path, h5, "shapes", geometry[0], geometry[1].shape[0], np.arange(1, values.shape[1] + 1), "shape")
+        print(f"wrote {path} and {h5} ({values.shape[1]} shapes)")
 
 
 def _print_basis(say, basis, labels) -> None:

@@ -61,6 +61,12 @@ DATASETS = {
     SNAPSHOT_TIME: ("s", "snapshot times (S)"),
     SNAPSHOT_X: ("m or 1", "field points: node x on a beam, or DOF index (F)"),
     SNAPSHOT_W: ("m", "total displacement at the field points (S x F)"),
+    "snapshots/displacement": ("m", "the snapshots as displacement vectors at the nodes, one dataset (nodes x 3) "
+                                    "a snapshot, for the XDMF file beside the output"),
+    "snapshots/points": ("m", "node coordinates (nodes x 3): x along a beam; DOF i at (i, 0, 0) without a node map"),
+    "snapshots/node": ("1", "the node of each field point (F)"),
+    "snapshots/polyline": ("1", "a beam's elements as node pairs, for the XDMF file"),
+    "snapshots/component": ("1", "the direction of each field point: 0 = x, 1 = y, 2 = z (F)"),
 }
 
 # Earlier names still read (outputs of dbf_hpc before the enrichment strategies).

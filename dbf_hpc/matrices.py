@@ -21,7 +21,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .errors import InputError
-from .operators import Operators
+from .operators import Operators, PointValues
 from .petsctools import aij_from_owned_triplets, owned_rows
 
 # ||A - A^T||_F / ||A||_F above this is not a symmetric operator.
@@ -215,6 +215,10 @@ class MatrixFiles:
     influence         r over the free DOFs, for base excitation
     base_mass_load    M_(free, all) r_all including the coupling to the prescribed support DOFs; when
                       not given, M r is used, which neglects that coupling (docs/design.md)
+    nodes, dofs       optional node map: the nodes' coordinates (a text file, one node a row, 1 to 3
+                      columns, m) and for each free DOF its node and direction (a text file, one DOF a
+                      row: node index from 0, then x, y, z, rx, ry or rz); outputs and plots then show
+                      displacement vectors at the nodes
     """
 
     stiffness: str
@@ -222,10 +226,46 @@ class MatrixFiles:
     damping: Optional[str] = None
     influence: Optional[str] = None
     base_mass_load: Optional[str] = None
+    nodes: Optional[str] = None
+    dofs: Optional[str] = None
 
     def fingerprint(self, comm) -> dict:
         """What identifies the operators for the basis cache: the bytes of K and M. Collective."""
         return {key: file_digest(getattr(self, key), comm) for key in ("stiffness", "mass")}
+
+
+COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
+
+
+def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
+    """(coordinates (nodes x 3), node of each DOF (n,), direction of each DOF (n,), 0..5 as
+    COMPONENTS) from the two text files of MatrixFiles. Not collective (every rank reads)."""
+    for path, what in ((nodes, "nodes"), (dofs, "dofs")):
+        _readable(path, what)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            xyz = np.loadtxt(nodes, ndmin=2, dtype=float)
+            table = np.loadtxt(dofs, ndmin=2, dtype=str)
+    except ValueError as e:
+        raise InputError(f"node map: {e}") from None
+    if not 1 <= xyz.shape[1] <= 3 or not np.all(np.isfinite(xyz)):
+        raise InputError(f"nodes file {nodes!r} must hold 1 to 3 finite coordinates a row (m)")
+    if table.shape != (n, 2):
+        raise InputError(f"dofs file {dofs!r} must have one row 'node direction' for each of the {n} DOFs, "
+                         f"got {table.shape[0]} rows of {table.shape[1] if table.ndim == 2 else 0}")
+    try:
+        node = table[:, 0].astype(np.int64)
+    except ValueError:
+        raise InputError(f"dofs file {dofs!r}: the first column must be node indices (from 0)") from None
+    names = np.char.lower(table[:, 1])
+    bad = [d for d in set(names) if d not in COMPONENTS]
+    if bad or node.min(initial=0) < 0 or node.max(initial=0) >= xyz.shape[0]:
+        raise InputError(f"dofs file {dofs!r}: nodes must be 0 to {xyz.shape[0] - 1} and directions one of "
+                         f"{', '.join(COMPONENTS)}" + (f" (got {bad[0]!r})" if bad else ""))
+    coordinates = np.zeros((xyz.shape[0], 3))
+    coordinates[:, :xyz.shape[1]] = xyz
+    return coordinates, node, np.array([COMPONENTS.index(d) for d in names])
 
 
 def file_digest(path: str, comm) -> str:
@@ -265,6 +305,13 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
             skew = asymmetry(A) if A is not None else 0.0
             if skew > SYMMETRY_TOL:
                 raise InputError(f"{name} matrix {path!r} is not symmetric (||A - A^T|| / ||A|| = {skew:.3g})")
+        if bool(files.nodes) != bool(files.dofs):
+            raise InputError("a node map needs both [structure] nodes and dofs")
+        if files.nodes:
+            coordinates, node, component = load_node_map(files.nodes, files.dofs, n)
+            moves = np.flatnonzero(component < 3)          # translations: what a displacement field shows
+            ops.field = PointValues.at_rows(moves, moves, kind="nodes", node=node[moves], component=component[moves],
+                                            coordinates=coordinates)
         if files.influence:
             ops.influence = load_vector(files.influence, ops.K.createVecRight(), "influence vector", owned=True)
             if files.base_mass_load:

@@ -34,13 +34,29 @@ class PointValues:
     rows: np.ndarray
     weights: np.ndarray
     moving: np.ndarray
+    kind: str = "dofs"
+    node: Optional[np.ndarray] = None
+    component: Optional[np.ndarray] = None
+    coordinates: Optional[np.ndarray] = None
 
     @classmethod
-    def at_rows(cls, positions, rows, moving=None) -> "PointValues":
-        """One DOF per point, weight 1 (a node's w, or a DOF of a matrix model)."""
+    def at_rows(cls, positions, rows, moving=None, **where) -> "PointValues":
+        """One DOF per point, weight 1 (a node's w, or a DOF of a matrix model). `where` (kind, node,
+        component, coordinates) says where the points are in space (for the field's output)."""
         rows = np.asarray(rows, dtype=np.int64).reshape(-1, 1)
         return cls(positions=np.asarray(positions, dtype=float), rows=rows, weights=np.ones(rows.shape),
-                   moving=np.zeros(rows.shape[0]) if moving is None else np.asarray(moving, dtype=float))
+                   moving=np.zeros(rows.shape[0]) if moving is None else np.asarray(moving, dtype=float), **where)
+
+    def geometry(self) -> tuple:
+        """(kind, node coordinates (nodes x 3), node of each point, component of each point: 0 = x,
+        1 = y, 2 = z): what a field output needs to place the values in space. A beam is along x with
+        w along y; a matrix model without a node map puts DOF i at (i, 0, 0), its value along x."""
+        n = self.count
+        if self.node is not None:
+            return self.kind, self.coordinates, self.node, self.component
+        xyz = np.zeros((n, 3))
+        xyz[:, 0] = self.positions
+        return self.kind, xyz, np.arange(n), np.full(n, 1 if self.kind == "beam" else 0)
 
     @property
     def count(self) -> int:

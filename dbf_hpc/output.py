@@ -256,7 +256,7 @@ class OutputWriter:
         for name, value in datasets.items():
             self.file.create_dataset(name, data=np.asarray(value))
         for name, (unit, meaning) in layout.DATASETS.items():
-            if name in self.file:
+            if name in self.file:      # a dataset, or a group of datasets (the snapshots' vectors)
                 self.file[name].attrs.update({"unit": unit, "description": meaning})
         for name, extra in (dataset_attrs or {}).items():
             self.file[name].attrs.update(extra)

@@ -150,17 +150,25 @@ def _constraint_figures(folder, t, positions, series, gaps, span, written) -> No
 def _snapshot_figure(folder, f, positions, gaps, written) -> None:
     plt = _pyplot()
     xs, ws, ts = f[layout.SNAPSHOT_X][:], f[layout.SNAPSHOT_W][:], f[layout.SNAPSHOT_TIME][:]
-    beam = f.attrs.get("field_kind", "beam") == "beam"
+    kind = f.attrs.get("field_kind", "beam")
+    beam = kind == "beam"
+    if kind == "nodes":      # a model with a node map: |u| at each node along x (ParaView shows it in 3-D)
+        xs = f["snapshots/points"][:, 0]
+        ws = np.array([np.linalg.norm(f[f"snapshots/displacement/{i:06d}"][:], axis=1) for i in range(ts.size)])
+        order = np.argsort(xs, kind="stable")
+        xs, ws = xs[order], ws[:, order]
     fig, ax = plt.subplots(figsize=(7.5, 4.2), dpi=120)
     colors = plt.cm.viridis(np.linspace(0, 1, ws.shape[0]))
     for w, c in zip(ws, colors):
-        ax.plot(xs, w * 1e3, color=c, lw=0.7)
-    for j, x in enumerate(positions):
+        ax.plot(xs, w * 1e3, ".-" if kind == "nodes" else "-", ms=2, color=c, lw=0.7)
+    for j, x in enumerate(positions if beam else ()):
         ax.axvline(x, color="k", lw=0.6, alpha=0.6)
         ax.plot([x, x], [-gaps[0][j] * 1e3, gaps[1][j] * 1e3], color="C3", lw=3, alpha=0.7)
-    ax.set_xlabel("position x [m]" if beam else "DOF")
-    ax.set_ylabel("total displacement w [mm]" if beam else "total displacement [mm or mrad]")
-    ax.set_title(f"{ws.shape[0]} snapshots, t = {ts[0]:g} ... {ts[-1]:g} s (vertical: constraints, red: deadband)")
+    ax.set_xlabel("DOF" if kind == "dofs" else "position x [m]")
+    ax.set_ylabel({"beam": "total displacement w [mm]", "nodes": "|u| at the nodes [mm]"}.get(
+        kind, "total displacement [mm or mrad]"))
+    ax.set_title(f"{ws.shape[0]} snapshots, t = {ts[0]:g} ... {ts[-1]:g} s"
+                 + (" (vertical: constraints, red: deadband)" if beam else ""))
     ax.grid(alpha=0.3)
     sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(ts[0], ts[-1]))
     fig.colorbar(sm, ax=ax, label="t [s]")

@@ -62,7 +62,7 @@ class Reductor:
                             force_shape=force_shape, constraints=fom.constraints, support=fom.support,
                             force=fom.force, q0=q0, p0=np.zeros(basis.size), probe_B=self._basis_at(fom.probes),
                             probe_r=fom.support_share(fom.probes), basis_info=info, r_q=r_q,
-                            field=self._field() if field else None)
+                            field=self._field() if field else None, field_points=ops.field_map())
 
     def _initial_coordinates(self) -> np.ndarray:
         """q(0): zero, or the initial amplitude (m, peak over the field) in a reference mode."""
@@ -81,6 +81,10 @@ class Reductor:
         if not needed.size:
             return np.zeros((points.count, self.basis().size))
         return points.combine(self.basis().rows(needed), needed)
+
+    def field_values(self) -> np.ndarray:
+        """(F, r) the basis vectors at the field points (mode shapes for a plot or ParaView). Collective."""
+        return self._basis_at(self.fom.operators.field_map())
 
     def _field(self) -> ReducedField:
         field = self.fom.operators.field_map()

@@ -46,6 +46,8 @@ class ReducedModel:
                  and enrichment (its kind)
     r_q          V^T M r: the influence vector in basis coordinates (zeros without support motion),
                  to keep the total state continuous when the support motion jumps (sweep.py)
+    field        what reconstructs snapshots (ReducedField, only when asked for), field_points where
+                 the field's values are (operators.PointValues, for the output's geometry)
     """
 
     M: np.ndarray
@@ -66,6 +68,7 @@ class ReducedModel:
     r_q: Optional[np.ndarray] = None
     G: Optional[np.ndarray] = None
     field: Optional[ReducedField] = None
+    field_points: Optional[object] = None
 
     @property
     def size(self) -> int:

@@ -18,7 +18,8 @@ import numpy as np
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
-from . import layout
+from . import layout, xdmf
+from .xdmf import geometry_datasets, node_vectors
 from .checkpoint import Checkpoint, identity
 from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, write_failure
 from .fom import Observation
@@ -89,7 +90,6 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
     timings, t = {}, time.perf_counter()
     with scene.full_order_model(comm) as fom:
         timings["operators"] = time.perf_counter() - t
-        field_positions = fom.operators.field_map().positions
         _say(say, f"dbf-hpc: {scene.path}: {fom.size} DOFs, {fom.constraints.count} constraint(s), "
                   f"{comm.getSize()} rank(s)")
         if method == "full":
@@ -109,7 +109,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         model = _continue_from(model, initial_state)
     ident = run_identity(scene, basis_key, comm.getSize(), "rom")
     return _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident,
-                        {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state}, field_positions)
+                        {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state})
 
 
 def _say(say, message: str) -> None:
@@ -179,15 +179,14 @@ def _snapshot_samples(count: int, sample_times: np.ndarray) -> np.ndarray:
     return np.unique(np.searchsorted(sample_times, np.linspace(0.0, t_end, count) - 1e-12 * t_end))
 
 
-def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident, basis_stats,
-                 field_positions) -> dict:
+def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident, basis_stats) -> dict:
     """Rank 0 integrates and writes; the others wait and learn the outcome."""
     world = comm.tompi4py()
     summary, failure = {}, None
     if world.rank == 0:
         try:
             summary = run_case(scene, model, path, say=say, resume=resume, ident=ident, extra_stats=basis_stats,
-                               ranks=world.size, field_positions=field_positions, timings=timings)
+                               ranks=world.size, timings=timings)
         except DbfError as exc:
             failure = (type(exc).__name__, str(exc))
     else:
@@ -203,7 +202,7 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
 
 
 def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: bool = False, ident=None,
-             extra_stats=None, ranks: int = 1, field_positions=(), timings=None) -> dict:
+             extra_stats=None, ranks: int = 1, timings=None) -> dict:
     """Integrate a reduced model on this rank alone and write the run's output to `path` (rank 0 of
     a run, or any rank of a sweep). Checkpoints every [output] checkpoint_dt; SIGTERM checkpoints
     and stops (errors.Interrupted); with resume, continues from a valid checkpoint. Returns the
@@ -244,7 +243,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     t = time.perf_counter()
     snap_t, snap_w = recorder.snapshots(settings.sample_times)
     timings["snapshots"] = time.perf_counter() - t
-    summary = finish(scene, recorder, stats, timings, ranks, "rom", field_positions, snap_t, snap_w, model)
+    summary = finish(scene, recorder, stats, timings, ranks, "rom", model.field_points, snap_t, snap_w, model)
     summary["final_state"] = [recorder.final[0].tolist(), recorder.final[1].tolist()]
     checkpoint.remove()
     _say(say, f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} Newton "
@@ -334,23 +333,27 @@ def _interrupt_on_sigterm(stepper):
 
 
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
-           field_positions, snap_t, snap_w, model: ReducedModel | None = None) -> dict:
-    """Rank 0: write the fixed-size data and the attributes, rename the file into place, and return
-    the run's summary."""
+           field, snap_t, snap_w, model: ReducedModel | None = None) -> dict:
+    """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
+    snapshots, an XDMF file beside it for ParaView), and return the run's summary. `field` is the
+    PointValues the snapshots are taken at."""
     timings["total"] = sum(timings.values())
     constraints, output, init = recorder.constraints, scene.output(), scene.initial()
-    snap_w = np.asarray(snap_w, dtype=float).reshape(np.size(snap_t), np.size(field_positions))
+    snap_w = np.asarray(snap_w, dtype=float).reshape(np.size(snap_t), field.count)
     writer = recorder.writer
     constraint_stats = recorder.impacts.result()
     probe_peak = np.abs(writer.series_data(layout.PROBE_DISPLACEMENT)).max(axis=0, initial=0.0)
+    geometry = field.geometry()
     datasets = {layout.CONSTRAINT_POSITION: constraints.positions,
                 layout.CONSTRAINT_CLEARANCE_MINUS: constraints.clearance_minus,
                 layout.CONSTRAINT_CLEARANCE_PLUS: constraints.clearance_plus,
                 layout.PROBE_POSITION: np.asarray(output.probes, dtype=float),
-                layout.SNAPSHOT_TIME: snap_t, layout.SNAPSHOT_X: field_positions, layout.SNAPSHOT_W: snap_w,
-                layout.PROBE_PEAK: probe_peak,
+                layout.SNAPSHOT_TIME: snap_t, layout.SNAPSHOT_X: field.positions, layout.SNAPSHOT_W: snap_w,
+                layout.PROBE_PEAK: probe_peak, **geometry_datasets(geometry, "snapshots"),
                 **{f"{layout.CONSTRAINT_STATS}/{k}": v for k, v in constraint_stats.items()}}
-    attrs = {}
+    if snap_t.size:
+        datasets.update(node_vectors(geometry, snap_w, "snapshots"))
+    attrs = {"field_kind": geometry[0]}
     if model is not None:
         info = model.basis_info
         datasets.update({layout.BASIS_OMEGA: info["omega"], layout.BASIS_ENRICHMENT_OMEGA: info["enrichment_omega"],
@@ -369,6 +372,9 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                                 "Omega'(0) r" if not init.amplitude else
                                 f"displacement {init.amplitude} m peak in reference mode {init.mode}",
                **attrs})
+    if snap_t.size:
+        xdmf.write(os.path.splitext(writer.path)[0] + ".xdmf", writer.path, "snapshots", geometry[0],
+                   geometry[1].shape[0], snap_t)
     return {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
             "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
 
@@ -418,7 +424,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say) -> dic
     if world.rank == 0:
         snap_t = settings.sample_times[sorted(snaps)] if snaps else np.zeros(0)
         snap_w = np.array([snaps[i] for i in sorted(snaps)]).reshape(snap_t.size, field.positions.size)
-        summary = finish(scene, recorder, stats, timings, world.size, "full", field.positions, snap_t, snap_w)
+        summary = finish(scene, recorder, stats, timings, world.size, "full", field, snap_t, snap_w)
         summary_path = summary["path"]
         _say(say, f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} "
                   f"Newton failures, {stats['factorizations']} factorizations) in {timings['integration']:.2f} s; "

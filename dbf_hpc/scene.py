@@ -71,7 +71,8 @@ class Scene:
             return self.beam()
         s = self["structure"]
         return MatrixFiles(**{key: self.resolve(s[key]) if s[key] else None
-                              for key in ("stiffness", "mass", "damping", "influence", "base_mass_load")})
+                              for key in ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes",
+                                          "dofs")})
 
     def excitation(self):
         """The excitation description (excitation.py)."""
@@ -128,7 +129,7 @@ class Scene:
         if not self.is_beam:
             s = self["structure"]
             files += [(f"{key} file", self.resolve(s[key])) for key in
-                      ("stiffness", "mass", "damping", "influence", "base_mass_load") if s[key]]
+                      ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes", "dofs") if s[key]]
         return files
 
     def cache_dir(self):

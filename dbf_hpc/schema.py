@@ -41,6 +41,10 @@ SECTIONS = {
                                            ".mtx or PETSc binary; needed for base excitation)"),
         "base_mass_load": Key((str,), None, "", "matrices: M_(free, all) r_all with the coupling to the moving "
                                                 "support (default M r)"),
+        "nodes": Key((str,), None, "m", "matrices: node coordinates, a text file with one node a row (1 to 3 "
+                                       "columns); with dofs, outputs show displacement vectors at the nodes"),
+        "dofs": Key((str,), None, "", "matrices: for each free DOF (one a row, in K's order) its node (from 0) "
+                                      "and direction: x, y, z, rx, ry or rz"),
     }),
     "excitation": ("What drives the structure.", {
         "kind": Key((str,), "none", "", '"none" (free vibration), "base" (support motion), "force" (a point '

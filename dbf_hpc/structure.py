@@ -112,7 +112,7 @@ class BeamMesh:
 
     def field_map(self, moving_end: str | None = None) -> PointValues:
         """w at every node; the fixed w of the `moving_end` support follows the support motion."""
-        return PointValues.at_rows(self.x, self.row[:, W], self._moving(moving_end))
+        return PointValues.at_rows(self.x, self.row[:, W], self._moving(moving_end), kind="beam")
 
     def point_values(self, xs, moving_end: str | None = None) -> PointValues:
         """w at arbitrary points from the Hermite shape functions of the element holding each (a

@@ -185,10 +185,7 @@ def _read_json(path: str) -> dict | None:
 
 
 def _scene_files(scene) -> list:
-    if scene.is_beam:
-        return []
-    s = scene["structure"]
-    return [scene.resolve(s[k]) for k in ("stiffness", "mass", "damping", "influence", "base_mass_load") if s[k]]
+    return [path for what, path in scene.inputs() if what != "scene"]
 
 
 def _identities(sweep: dict) -> list:
@@ -225,8 +222,7 @@ def _prepare_models(sweep: dict, pending: list, cache_dir: str, say) -> dict:
         try:
             with scene.full_order_model(PETSc.COMM_WORLD) as fom, \
                     Reductor(fom, scene.basis_settings(), cache_dir) as reductor:
-                models[key] = (reductor.reduce(field=scene.output().snapshots > 0),
-                               fom.operators.field_map().positions)
+                models[key] = reductor.reduce(field=scene.output().snapshots > 0)
         except DbfError as e:
             models[key] = str(e)
     say(f"reduced models ready: {len(models)}")
@@ -292,10 +288,9 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
         built = models[_model_key(scene)]
         if isinstance(built, str):
             raise DbfError(built)
-        model, positions = built
-        model = _continued(model, scene, previous)
+        model = _continued(built, scene, previous)
         _drop_stale_checkpoint(case_out, {"case": identity})
-        summary = run_case(scene, model, case_out, resume=True, ident={"case": identity}, field_positions=positions)
+        summary = run_case(scene, model, case_out, resume=True, ident={"case": identity})
         record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
                       solver=summary["stats"], final_state=summary["final_state"],
                       **_final_excitation(model, scene.integrator_settings().t_end))

@@ -1,0 +1,61 @@
+"""Fields for ParaView: XDMF files that describe, in a few lines of XML, displacement fields stored in
+HDF5 (a run's snapshots, or a basis's mode shapes), as a time series of vectors at the nodes: a
+polyline along x for a beam (w along y), points for a matrix model (at its nodes with a node map,
+else DOF i at (i, 0, 0)). Open the .xdmf in ParaView ("Xdmf3 Reader") and warp by the vector.
+Nothing here is collective."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+
+def node_vectors(geometry: tuple, values: np.ndarray, prefix: str, name: str = "displacement") -> dict:
+    """The datasets `{prefix}/{name}/NNNNNN` (nodes x 3), one per row of values at the field points
+    (one dataset a step: readers such as meshio take no hyperslabs)."""
+    _, coordinates, node, component = geometry
+    out = {}
+    for i, row in enumerate(np.atleast_2d(values)):
+        vectors = np.zeros((coordinates.shape[0], 3))
+        vectors[node, component] = row
+        out[f"{prefix}/{name}/{i:06d}"] = vectors
+    return out
+
+
+def geometry_datasets(geometry: tuple, prefix: str) -> dict:
+    """The datasets that place a field in space: the nodes' coordinates and each value's node and
+    direction (written into the HDF5 file the XDMF points at)."""
+    kind, coordinates, node, component = geometry
+    out = {f"{prefix}/points": coordinates, f"{prefix}/node": node, f"{prefix}/component": component}
+    if kind == "beam" and coordinates.shape[0] > 1:
+        out[f"{prefix}/polyline"] = np.column_stack([np.arange(coordinates.shape[0] - 1),
+                                                     np.arange(1, coordinates.shape[0])])
+    return out
+
+
+def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, name: str = "displacement") -> None:
+    """Write the XDMF `path` for `{prefix}/{name}/NNNNNN` (nodes x 3 each) and `{prefix}/points` in
+    `h5_file` (referred to by its name: keep the two side by side). `steps` label the time series
+    (times in s, or mode numbers)."""
+    h5 = os.path.basename(h5_file)
+    topology = (f'<Topology TopologyType="Polyline" NodesPerElement="2" NumberOfElements="{nodes - 1}">'
+                f'<DataItem Format="HDF" Dimensions="{nodes - 1} 2" NumberType="Int" Precision="8">'
+                f'{h5}:/{prefix}/polyline</DataItem></Topology>'
+                if kind == "beam" and nodes > 1 else
+                f'<Topology TopologyType="Polyvertex" NumberOfElements="{nodes}" NodesPerElement="1"/>')
+    grids = []
+    for i, step in enumerate(steps):
+        grids.append(
+            f'<Grid Name="{name} {i}" GridType="Uniform"><Time Value="{float(step):.12g}"/>{topology}'
+            f'<Geometry GeometryType="XYZ"><DataItem Format="HDF" Dimensions="{nodes} 3" NumberType="Float" '
+            f'Precision="8">{h5}:/{prefix}/points</DataItem></Geometry>'
+            f'<Attribute Name="{name}" AttributeType="Vector" Center="Node">'
+            f'<DataItem Format="HDF" Dimensions="{nodes} 3" NumberType="Float" Precision="8">'
+            f'{h5}:/{prefix}/{name}/{i:06d}</DataItem></Attribute></Grid>')
+    text = ('<?xml version="1.0" ?>\n<Xdmf Version="3.0"><Domain>'
+            f'<Grid Name="{name}" GridType="Collection" CollectionType="Temporal">\n'
+            + "\n".join(grids) + "\n</Grid></Domain></Xdmf>\n")
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
