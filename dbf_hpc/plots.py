@@ -8,7 +8,7 @@ import os
 import numpy as np
 
 from . import layout
-from .schema import CONSTRAINT, SECTIONS
+from .schema import unit_of
 
 
 def _pyplot():
@@ -173,16 +173,6 @@ def _snapshot_figure(folder, f, positions, gaps, written) -> None:
     sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(ts[0], ts[-1]))
     fig.colorbar(sm, ax=ax, label="t [s]")
     _save(fig, os.path.join(folder, "snapshots.png"), written)
-
-
-def unit_of(name: str) -> str:
-    """The unit of a sweep parameter 'section.key' (or 'constraint.N.key'), from the schema."""
-    section, _, key = name.partition(".")
-    key = key.rpartition(".")[2]
-    keys = CONSTRAINT[1] if section == "constraint" else SECTIONS.get(section, ("", {}))[1]
-    base = key.replace("_minus", "").replace("_plus", "")
-    entry = keys.get(key) or keys.get(base)
-    return entry.unit if entry is not None and entry.unit not in ("", "1") else ""
 
 
 def _read_sweep(f) -> dict:

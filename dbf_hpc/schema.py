@@ -121,6 +121,15 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
 })
 
 
+def unit_of(name: str) -> str:
+    """The unit of a scene value 'section.key' (or 'constraint.N.key'), '' where it has none."""
+    section, _, key = name.partition(".")
+    key = key.rpartition(".")[2]
+    keys = CONSTRAINT[1] if section == "constraint" else SECTIONS.get(section, ("", {}))[1]
+    entry = keys.get(key) or keys.get(key.replace("_minus", "").replace("_plus", ""))
+    return entry.unit if entry is not None and entry.unit not in ("", "1") else ""
+
+
 def valid_keys(section: str) -> str:
     keys = CONSTRAINT[1] if section == "constraint" else SECTIONS[section][1]
     return ", ".join(keys)

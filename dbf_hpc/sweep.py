@@ -55,7 +55,9 @@ from .output import OutputLock, check_output_path
 from .reductor import Reductor
 from .run import run_case
 from .scene import load_scene, parse_override
-from .stats import STATISTICS
+from . import __version__
+from .schema import unit_of
+from .stats import DESCRIPTIONS, STATISTICS, UNITS
 
 SWEEP_KEYS = {"scene", "output", "keep_outputs", "axes", "case", "continuation", "directions"}
 DIRECTION = "sweep_direction"
@@ -391,6 +393,19 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     return world.bcast({"output": output, "cases": n, "failed": failed}, root=0)
 
 
+def _units(f, parameters) -> None:
+    """Every dataset of a summary with its unit and meaning."""
+    for name in parameters:
+        f[f"cases/parameters/{name}"].attrs.update(unit=unit_of(name) or "1", description=f"the case's {name} "
+                                                   "(NaN or null: the base scene's value)")
+    for name in STATISTICS:
+        f[f"cases/stats/{name}"].attrs.update(unit=UNITS[name], description=DESCRIPTIONS[name] + " (case x constraint)")
+    f["cases/probe_peak"].attrs.update(unit="m", description="max |w| at each probe (case x probe)")
+    f["cases/wall_time"].attrs.update(unit="s", description="wall time of the case")
+    for name in ("status", "error"):
+        f[f"cases/{name}"].attrs.update(unit="", description=f"the case's {name}")
+
+
 def _write_summary(sweep: dict, folder: str, output: str) -> int:
     """The summary HDF5, a row per case: parameters, status, statistics per constraint."""
     import h5py
@@ -423,6 +438,8 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
         for i, r in enumerate(records):
             peaks[i, :len(r.get("probe_peak", []))] = r.get("probe_peak", [])
         f.create_dataset("cases/probe_peak", data=peaks)
+        _units(f, sweep["parameters"])
+        f.attrs["dbf_hpc_version"] = __version__
         f.attrs["complete"] = True
     os.replace(tmp, output)
     return sum(r["status"] != "ok" for r in records)

@@ -77,3 +77,16 @@ def test_a_lock_left_by_a_dead_job_on_this_host_is_taken_over(tmp_path):
         f.write(f"another-host {dead}\n")      # another host's job cannot be checked: refused
     with pytest.raises(InputError, match="pid .* on another-host"):
         OutputLock(target).acquire()
+
+
+def test_every_dataset_of_a_run_carries_its_unit(shared_tmp_path):
+    import h5py
+
+    run(load_scene(PAPER, SHORT + ["output.snapshots=3", "output.probes=[0.5]"]), str(shared_tmp_path / "u.h5"),
+        progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        missing = []
+        with h5py.File(shared_tmp_path / "u.h5") as f:
+            f.visititems(lambda name, obj: missing.append(name) if isinstance(obj, h5py.Dataset) and "unit" not in
+                         obj.attrs and "unit" not in obj.parent.attrs else None)
+        assert not missing, missing

@@ -213,3 +213,15 @@ def test_a_stepped_sine_keeps_the_structure_where_it_was_when_the_frequency_step
     # r_c = 0.75 at x = 0.25 (Eq. 26); uncorrected, v would jump by r_c times the support's jump
     support_jump = 0.75 * 1e-3 * 2 * np.pi * abs(1.3 - 0.9) * abs(np.cos(2 * np.pi * 0.9 * 0.37))
     assert abs(v1 - v0) < 0.2 * support_jump, (v1 - v0, support_jump)   # measured 0.11 of it (7 vectors)
+
+
+def test_every_dataset_of_a_summary_carries_its_unit(shared_tmp_path):
+    path = write_sweep(shared_tmp_path, SMALL)
+    result = run_sweep(path, progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        missing = []
+        with h5py.File(result["output"]) as f:
+            f.visititems(lambda name, obj: missing.append(name)
+                         if isinstance(obj, h5py.Dataset) and "unit" not in obj.attrs else None)
+            assert f["cases/parameters/excitation.frequency_hz"].attrs["unit"] == "Hz"
+        assert not missing, missing
