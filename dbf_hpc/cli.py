@@ -1,16 +1,16 @@
-"""The `dbf-hpc` command.
+"""The `dbf-hpc` command: a thin front end of run.py, sweep.py, report.py, plots.py and cache.py.
 
     dbf-hpc run SCENE.toml [-o OUT.h5] [-q] [--resume] [--method rom|full] [--set section.key=value ...] [PETSc options]
-    dbf-hpc sweep SWEEP.toml [-q]
-    dbf-hpc info OUT.h5 | dbf-hpc plot OUT.h5 [-d DIR]
+    dbf-hpc sweep SWEEP.toml [-q] [--set ...]
+    dbf-hpc info OUT.h5 | dbf-hpc plot OUT.h5 [-d DIR] [--window T0:T1]
     dbf-hpc modes SCENE.toml [--set section.key=value ...] [PETSc options]
-    dbf-hpc basis SCENE.toml [--no-cache] [--set ...] [PETSc options]
+    dbf-hpc basis SCENE.toml [--no-cache] [--xdmf SHAPES.xdmf] [--set ...] [PETSc options]
     dbf-hpc stiffness SCENE.toml [--constraint J] [--k K1,K2,...] [-o SWEEP.csv] [--plot FIG.png]
+    dbf-hpc cache list|clear [--dir DIR] [--older-than DAYS]
 
 PETSc/SLEPc options (single dash, e.g. -modes_eps_tol 1e-12 -log_view) go after the scene; each
-solver reads its own prefix (modes_, dbf_, rom_, full_). Exit status: 0 on success, 1 on an error
-the user can act on (one line on stderr), 70 on an internal error.
-"""
+solver reads its own prefix (modes_, dbf_, static_, rom_, full_). Exit status: 0 on success, 1 on an
+error the user can act on (one line on stderr), 70 on an internal error."""
 from __future__ import annotations
 
 import argparse
@@ -51,8 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "discrete nonlinear constraints, on PETSc/SLEPc. Run it under MPI: "
                     "mpirun -n 2 dbf-hpc modes jobs/paper_beam.toml",
         epilog="PETSc/SLEPc options go after the scene, e.g. -modes_eps_tol 1e-12 -log_view. "
-               "Solver prefixes: modes_ (reference modes), dbf_ (spring-perturbed modes and DBF "
-               "derivatives), rom_ (the reduced model's TS, e.g. -rom_ts_arkimex_type 4).")
+               "Solver prefixes: modes_ (reference modes; -modes_trust_tol), dbf_ (spring-perturbed modes "
+               "and DBF derivatives), static_ (static modes), rom_ (the reduced model's TS and SNES, e.g. "
+               "-rom_ts_arkimex_type 4), full_ (the full-order reference). The scene format: docs/scene.md.")
     parser.add_argument("--version", action="version", version=f"dbf-hpc {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     def command(name, func, help, description):

@@ -48,7 +48,7 @@ DATASETS = {
                                  "previous sample (nt x N_L)"),
     PROBE_POSITION: ("m or 1", "x of each probe on a beam, or its DOF (P)"),
     PROBE_DISPLACEMENT: ("m", "total displacement at the probes (nt x P)"),
-    PROBE_PEAK: ("m", "max |displacement| at each probe over the samples (P)"),
+    PROBE_PEAK: ("m", "the largest absolute displacement at each probe over the samples (P)"),
     BASIS_OMEGA: ("rad/s", "reference frequencies (N)"),
     BASIS_ENRICHMENT_OMEGA: ("rad/s", "hat-omega_j of each enrichment column, Eq. 41 (N_L, or 0)"),
     BASIS_DBF_K: ("N/m", "DBF stiffness k_j of each constraint, 0 for other enrichment (N_L, or 0)"),
@@ -78,3 +78,34 @@ def read(f, name: str):
     if name in f:
         return f[name]
     return f[LEGACY[name]] if name in LEGACY and LEGACY[name] in f else f[name]
+
+
+def reference() -> str:
+    """docs/outputs.md: every dataset of a run's output and of a sweep summary, with its unit
+    (`python -m dbf_hpc.layout > docs/outputs.md`; a test checks the file is up to date)."""
+    from .stats import DESCRIPTIONS, STATISTICS, UNITS
+
+    lines = ["# Outputs: the reference", "",
+             "Generated from `dbf_hpc/layout.py` (`python -m dbf_hpc.layout > docs/outputs.md`). One HDF5 file a "
+             "run, written as `OUT.h5.partial` while the run goes and renamed to `OUT.h5` when complete (a crash "
+             "leaves the `.partial`, never a file that looks finished; a successful rerun replaces the output). "
+             "Every dataset carries `unit` and `description` attributes. Shapes: nt samples, N_L constraints, "
+             "P probes, r basis vectors, F field points, S snapshots.", "",
+             "| dataset | unit | meaning |", "|---|---|---|"]
+    lines += [f"| `{name}` | {unit} | {meaning} |" for name, (unit, meaning) in DATASETS.items()]
+    lines += [f"| `{CONSTRAINT_STATS}/{name}` | {UNITS[name]} | {DESCRIPTIONS[name]} (N_L) |" for name in STATISTICS]
+    lines += ["", "Root attributes: `scene` (the scene's text), `scene_path`, `method` (`rom` or `full`), "
+              "`basis_enrichment`, `field_kind` (`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
+              "`slepc_version`, `mpi_ranks`, `solver_stats` and `wall_times` (JSON), `initial_state`, and "
+              "`complete = true` once the run finished.", "",
+             "With snapshots, `OUT.xdmf` beside the output describes `snapshots/points` and "
+             "`snapshots/displacement/NNNNNN` as a time series that ParaView (Xdmf3 reader) and meshio open.", "",
+             "A sweep summary (`dbf-hpc sweep`) holds a row per case: `cases/parameters/<section.key>` (NaN or "
+             "null where a listed case leaves the base scene's value), `cases/status`, `cases/error`, "
+             "`cases/wall_time` (s), `cases/stats/<statistic>` (case x constraint, units as above) and "
+             "`cases/probe_peak` (m, case x probe).", ""]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(reference(), end="")

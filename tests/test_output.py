@@ -90,3 +90,10 @@ def test_every_dataset_of_a_run_carries_its_unit(shared_tmp_path):
             f.visititems(lambda name, obj: missing.append(name) if isinstance(obj, h5py.Dataset) and "unit" not in
                          obj.attrs and "unit" not in obj.parent.attrs else None)
         assert not missing, missing
+
+
+def test_the_output_reference_in_docs_is_generated_from_the_layout_and_up_to_date():
+    from dbf_hpc.layout import reference
+
+    with open(os.path.join(ROOT, "docs", "outputs.md")) as f:
+        assert f.read() == reference(), "regenerate it: python -m dbf_hpc.layout > docs/outputs.md"
