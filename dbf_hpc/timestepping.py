@@ -21,6 +21,10 @@ from .petsctools import options_defaults
 
 ARKIMEX_TYPES = ("1bee", "a2", "l2", "ars122", "2c", "2d", "2e", "prssp2", "3", "bpr3", "ars443", "4", "5")
 NO_DENSE_OUTPUT = ("prssp2", "bpr3", "ars443")  # also without an embedded error estimate
+CALLBACKS = ("auto", "c", "python")
+# The step controller's defaults for the reduced model (scoped to -rom_, the user's options win):
+# measured in docs/design.md "Rejected steps".
+ADAPT_DEFAULTS = {"ts_adapt_safety": "0.7", "ts_adapt_clip": "0.1,1.5"}
 
 
 @dataclass(frozen=True)
@@ -28,7 +32,8 @@ class IntegratorSettings:
     """t_end (s); dt: the fixed step, or the first step of an adaptive run (s); scheme: the
     ARKIMEX type of the reduced model; rtol, atol: the adaptive error control; contact: the
     contact force on the "implicit" or "explicit" side of the reduced model's IMEX split;
-    sample_dt: the output interval (s)."""
+    sample_dt: the output interval (s); callbacks: the reduced model's TS callbacks, "c" (the compiled
+    fast path), "python" (the reference) or "auto" (C when built)."""
 
     t_end: float
     dt: float = 1e-4
@@ -38,9 +43,12 @@ class IntegratorSettings:
     atol: float = 1e-9
     contact: str = "implicit"
     sample_dt: float = 1e-3
+    callbacks: str = "auto"
 
     def __post_init__(self):
         object.__setattr__(self, "scheme", str(self.scheme).lower())
+        if self.callbacks not in CALLBACKS:
+            raise InputError(f"[integrator] callbacks {self.callbacks!r}: choose one of {', '.join(CALLBACKS)}")
         if self.scheme not in ARKIMEX_TYPES:
             raise InputError(f"[integrator] scheme {self.scheme!r} is not an ARKIMEX type; "
                              f"choose one of {', '.join(ARKIMEX_TYPES)}")
