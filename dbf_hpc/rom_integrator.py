@@ -275,6 +275,9 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
                  "adaptive": settings.adaptive, "contact": settings.contact,
                  "callbacks": "python" if fast is None else "c",
                  "newton": "petsc" if fast is None or not c_newton else "c"}
+        stats["newton_iterations"] = ts.getSNESIterations()
+        if fast is not None:
+            stats["c_counters"] = fast.counters
         reason = ts.getConvergedReason()
     finally:
         destroy(ts, y, F, G, J, work, monitor.work if monitor is not None else None)

@@ -29,13 +29,17 @@ cdef extern from "rom_core.h":
         PetscReal *D
         PetscReal *B
         PetscReal *Bt
+        PetscReal *KT
+        PetscReal *DT
+        PetscReal *Ks
+        PetscReal *Ds
+        int sym_ok
         PetscReal *rc
         PetscReal *base_load
         PetscReal *force_shape
         PetscReal *probe_B
         PetscReal *probe_r
         int d_zero
-        PetscInt m_diag
         PetscReal sup_a, sup_w, sup_ph, force_a, force_w, force_ph
         PetscInt nrand
         PetscReal *rand_amp
@@ -66,12 +70,14 @@ cdef extern from "rom_core.h":
         PetscReal *Nv
         PetscReal *BtN
         PetscReal *tmp
+        PetscReal *tmp2
         PetscReal *W
         PetscReal *NzJ
         PetscReal *NvJ
         signed char *sides
         PetscReal fact_shift
         PetscReal *L
+        PetscReal *U
         PetscReal *AinvBt
         PetscReal *Cap
         PetscReal *Mcap
@@ -116,6 +122,7 @@ cdef extern from "rom_core.h":
 LAW_CODE = {"deadband": 0, "power": 0, "hertz": 0, "linear": 1, "cubic": 1, "table": 2}
 ACCUMULATED = ("impacts", "contact_time", "run", "duration_max", "f2", "z2", "power", "force_peak",
                "displacement_peak")
+SYMMETRY_TOL = 1e-10   # relative asymmetry of K, D up to which the symmetric part is factored (Cholesky)
 USER_ERROR = 83   # PETSC_ERR_USER: a Python exception in the monitor, re-raised after TSSolve
 
 
@@ -184,6 +191,13 @@ cdef class Problem:
         c.r, c.nl = r, nl
         K, D = np.asarray(operators.K, float), np.asarray(operators.D, float)
         c.K, c.D = self.dptr(K), self.dptr(D)
+        c.KT, c.DT = self.dptr(K.T), self.dptr(D.T)
+        # K and D (M_r^-1 applied) are symmetric to round-off for a symmetric structure: the Cholesky of
+        # the symmetric part, within SYMMETRY_TOL of the exact one, is then the factorization used
+        scale = max(np.abs(K).max(initial=0.0), np.abs(D).max(initial=0.0), 1e-300)
+        c.sym_ok = int(np.abs(K - K.T).max(initial=0.0) <= SYMMETRY_TOL * scale
+                       and np.abs(D - D.T).max(initial=0.0) <= SYMMETRY_TOL * scale)
+        c.Ks, c.Ds = self.dptr(0.5 * (K + K.T)), self.dptr(0.5 * (D + D.T))
         B = np.asarray(model.B, float).reshape(nl, r)
         Bt = np.ascontiguousarray(np.asarray(operators.Bt, float).reshape(r, nl).T)
         c.B = self.dptr(B)
@@ -193,12 +207,6 @@ cdef class Problem:
         c.nprobe = model.probe_B.shape[0]
         c.probe_B, c.probe_r = self.dptr(model.probe_B), self.dptr(model.probe_r)
         c.d_zero = int(not np.any(D))
-        # arrowhead: the largest m with K[:m, :m] and D[:m, :m] exactly diagonal (exact zeros only)
-        offd = (K - np.diag(np.diag(K)) != 0) | (D - np.diag(np.diag(D)) != 0)
-        m = 0
-        while m < r and not offd[m, :m + 1].any() and not offd[:m + 1, m].any():
-            m += 1
-        c.m_diag = m
         two_pi = 2 * np.pi
         s = model.support
         c.sup_a, c.sup_w, c.sup_ph = s.amplitude, two_pi * s.frequency_hz, s.phase
@@ -246,9 +254,9 @@ cdef class Problem:
         n = max(nl, 1)
         c.z, c.v, c.N = self.dptr(np.zeros(n)), self.dptr(np.zeros(n)), self.dptr(np.zeros(n))
         c.Nz, c.Nv, c.tmp = self.dptr(np.zeros(n)), self.dptr(np.zeros(n)), self.dptr(np.zeros(n))
-        c.BtN = self.dptr(np.zeros(r))
+        c.BtN, c.tmp2 = self.dptr(np.zeros(r)), self.dptr(np.zeros(r))
         c.W, c.NzJ, c.NvJ = self.dptr(np.zeros(n)), self.dptr(np.zeros(n)), self.dptr(np.zeros(n))
-        c.L, c.AinvBt = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * n))
+        c.L, c.U, c.AinvBt = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * n))
         c.Cap, c.Mcap = self.dptr(np.zeros(n * n)), self.dptr(np.zeros(n * n))
         c.piv, c.lpiv, c.act = self.iptr(np.zeros(n)), self.iptr(np.zeros(r)), self.iptr(np.zeros(n))
         ids = np.full(n * n + n, -1, dtype=np.int_)
@@ -296,9 +304,9 @@ cdef class Problem:
         def __get__(self):
             return self.c.next_sample
 
-    property m_diag:
+    property cholesky:
         def __get__(self):
-            return self.c.m_diag
+            return bool(self.c.sym_ok)
 
     @property
     def counters(self):

@@ -97,19 +97,14 @@ static inline void constraint_state(const RomCtx *c, PetscReal t, const PetscRea
   }
 }
 
-/* row i of a row-major r x r matrix times x, skipping the exact zeros of an arrowhead matrix (rows and
-   columns < m diagonal in the leading block) */
-static inline PetscReal rowdot(const PetscReal *a, PetscInt r, PetscInt m, PetscInt i, const PetscReal *x)
+/* y += A x with A given by its transpose AT (row-major), i.e. column by column: the inner loop is an
+   axpy over contiguous memory, which the compiler vectorizes without reordering any sum */
+static inline void matvec_add(const PetscReal *AT, PetscInt r, const PetscReal *x, PetscReal *y)
 {
-  const PetscReal *ai = a + i * r;
-  PetscReal s = 0.0;
-  if (i < m) {
-    s = ai[i] * x[i];
-    for (PetscInt j = m; j < r; j++) s += ai[j] * x[j];
-    return s;
+  for (PetscInt j = 0; j < r; j++) {
+    const PetscReal *col = AT + j * r, xj = x[j];
+    for (PetscInt i = 0; i < r; i++) y[i] += col[i] * xj;
   }
-  for (PetscInt j = 0; j < r; j++) s += ai[j] * x[j];
-  return s;
 }
 
 /* out += sign * Bt^T N */
@@ -135,12 +130,9 @@ PetscErrorCode RomIFunction(TS ts, PetscReal t, Vec U, Vec Udot, Vec F, void *ct
   PetscCall(VecGetArrayWrite(F, &f));
   const PetscReal *q = u, *p = u + r, *qd = ud, *pd = ud + r;
   PetscReal *fq = f, *fp = f + r;
-  for (PetscInt i = 0; i < r; i++) fq[i] = qd[i] - p[i];
-  for (PetscInt i = 0; i < r; i++) {
-    PetscReal s = pd[i];
-    if (!c->d_zero) s += rowdot(c->D, r, c->m_diag, i, p);
-    fp[i] = s + rowdot(c->K, r, c->m_diag, i, q);
-  }
+  for (PetscInt i = 0; i < r; i++) { fq[i] = qd[i] - p[i]; fp[i] = pd[i]; }
+  if (!c->d_zero) matvec_add(c->DT, r, p, fp);
+  matvec_add(c->KT, r, q, fp);
   if (c->implicit_contact) {
     constraint_state(c, t, q, p, c->z, c->v);
     RomLaws(c, c->z, c->v, c->N, NULL, NULL, 0);
@@ -239,36 +231,39 @@ PetscErrorCode RomIJacobianDense(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal 
 }
 
 /* ---------------------------------------------------------------- the exact structured solve */
-/* Cholesky A = L L^T in place (lower, row-major); the leading m rows are diagonal (arrowhead). */
-static int cholesky(PetscReal *a, PetscInt n, PetscInt m)
+/* Cholesky A = L L^T (right-looking; a holds the lower triangle of A, row-major, and gets L), U = L^T
+   row-major; col: work of n. Every inner loop runs over contiguous memory (vectorized axpys). */
+static int cholesky(PetscReal *a, PetscReal *U, PetscReal *col, PetscInt n)
 {
   for (PetscInt j = 0; j < n; j++) {
-    PetscReal d = a[j * n + j];
-    if (j >= m) for (PetscInt k = 0; k < j; k++) d -= a[j * n + k] * a[j * n + k];
+    const PetscReal d = a[j * n + j];
     if (!(d > 0)) return 1;
-    d = sqrt(d); a[j * n + j] = d;
-    const PetscReal inv = 1.0 / d;
-    for (PetscInt i = (j + 1 > m ? j + 1 : m); i < n; i++) {
-      PetscReal s = a[i * n + j];
-      const PetscReal *ai = a + i * n, *aj = a + j * n;
-      if (j >= m) for (PetscInt k = 0; k < j; k++) s -= ai[k] * aj[k];
-      a[i * n + j] = s * inv;
+    const PetscReal ljj = sqrt(d), inv = 1.0 / ljj;
+    a[j * n + j] = ljj; U[j * n + j] = ljj;
+    for (PetscInt i = j + 1; i < n; i++) { const PetscReal l = a[i * n + j] * inv; a[i * n + j] = l; U[j * n + i] = l; }
+    for (PetscInt i = j + 1; i < n; i++) col[i] = U[j * n + i];
+    for (PetscInt i = j + 1; i < n; i++) {   /* trailing update of row i, columns j+1..i */
+      const PetscReal lij = col[i];
+      PetscReal *ai = a + i * n;
+      for (PetscInt k = j + 1; k <= i; k++) ai[k] -= lij * col[k];
     }
   }
   return 0;
 }
-static void chol_solve(const PetscReal *L, PetscInt n, PetscInt m, PetscReal *x)
+/* L L^T x = b in place: forward by columns of L (rows of U), backward by columns of U (rows of L) */
+static void chol_solve(const PetscReal *L, const PetscReal *U, PetscInt n, PetscReal *x)
 {
-  for (PetscInt i = 0; i < n; i++) {
-    PetscReal s = x[i];
-    const PetscReal *li = L + i * n;
-    if (i >= m) for (PetscInt k = 0; k < i; k++) s -= li[k] * x[k];
-    x[i] = s / li[i];
+  for (PetscInt k = 0; k < n; k++) {
+    const PetscReal *uk = U + k * n;
+    const PetscReal xk = x[k] / uk[k];
+    x[k] = xk;
+    for (PetscInt i = k + 1; i < n; i++) x[i] -= uk[i] * xk;
   }
-  for (PetscInt i = n - 1; i >= 0; i--) {
-    PetscReal s = x[i];
-    for (PetscInt k = (i + 1 > m ? i + 1 : m); k < n; k++) s -= L[k * n + i] * x[k];
-    x[i] = s / L[i * n + i];
+  for (PetscInt k = n - 1; k >= 0; k--) {
+    const PetscReal *lk = L + k * n;
+    const PetscReal xk = x[k] / lk[k];
+    x[k] = xk;
+    for (PetscInt i = 0; i < k; i++) x[i] -= lk[i] * xk;
   }
 }
 static int lu(PetscReal *a, PetscInt n, PetscInt *piv)
@@ -297,25 +292,25 @@ static void lu_solve(const PetscReal *a, PetscInt n, const PetscInt *piv, PetscR
 }
 static inline void solveA(const RomCtx *c, PetscReal *x)
 {
-  if (c->chol_ok) chol_solve(c->L, c->r, c->m_diag, x);
+  if (c->chol_ok) chol_solve(c->L, c->U, c->r, x);
   else lu_solve(c->L, c->r, c->lpiv, x);
 }
 
-/* A(shift) = shift^2 I + shift D + K: Cholesky (SPD for symmetric K, D), LU with pivoting otherwise */
+/* A(shift) = shift^2 I + shift D + K: Cholesky of its symmetric part when K and D are symmetric to
+   round-off (sym_ok; Newton's residual, which uses K and D themselves, removes the difference), LU with
+   partial pivoting otherwise or when the Cholesky fails */
 static PetscErrorCode factor(RomCtx *c, PetscReal shift)
 {
-  const PetscInt r = c->r, m = c->m_diag;
+  const PetscInt r = c->r;
   PetscFunctionBeginUser;
   c->n_fact++;
   c->fact_id++;   /* invalidates the cached columns A^-1 Bt_l and capacitance entries */
-  for (PetscInt i = 0; i < r; i++)
-    for (PetscInt j = (i < m ? i : 0); j <= i; j++) c->L[i * r + j] = c->K[i * r + j] + shift * c->D[i * r + j] + (i == j ? shift * shift : 0.0);
-  c->chol_ok = 1;
-  /* Cholesky reads the lower triangle: only for exactly symmetric K and D */
-  for (PetscInt i = 0; i < r && c->chol_ok; i++)
-    for (PetscInt j = 0; j < i; j++)
-      if (c->K[i * r + j] != c->K[j * r + i] || c->D[i * r + j] != c->D[j * r + i]) { c->chol_ok = 0; break; }
-  if (c->chol_ok && cholesky(c->L, r, m)) c->chol_ok = 0;
+  c->chol_ok = c->sym_ok;
+  if (c->chol_ok) {
+    for (PetscInt i = 0; i < r; i++)
+      for (PetscInt j = 0; j <= i; j++) c->L[i * r + j] = c->Ks[i * r + j] + shift * c->Ds[i * r + j] + (i == j ? shift * shift : 0.0);
+    if (cholesky(c->L, c->U, c->tmp2, r)) c->chol_ok = 0;
+  }
   if (!c->chol_ok) {
     for (PetscInt i = 0; i < r; i++)
       for (PetscInt j = 0; j < r; j++) c->L[i * r + j] = c->K[i * r + j] + shift * c->D[i * r + j] + (i == j ? shift * shift : 0.0);
@@ -388,11 +383,8 @@ PetscErrorCode RomApplyInverse(RomCtx *c, Vec X, Vec Y)
   PetscCall(VecGetArrayWrite(Y, &y));
   const PetscReal *a = x, *b = x + r;
   PetscReal *dq = y, *dp = y + r, *tmp = c->tmp;
-  for (PetscInt i = 0; i < r; i++) {
-    PetscReal v = b[i] + s * a[i];
-    if (!c->d_zero) v += rowdot(c->D, r, c->m_diag, i, a);
-    dq[i] = v;
-  }
+  for (PetscInt i = 0; i < r; i++) dq[i] = b[i] + s * a[i];
+  if (!c->d_zero) matvec_add(c->DT, r, a, dq);
   if (c->implicit_contact && c->damped) { /* - Bt^T Nv B a */
     for (PetscInt l = 0; l < nl; l++) if (c->NvJ[l] != 0.0) {
       const PetscReal *bl = c->B + l * r, *btl = c->Bt + l * r;

@@ -16,10 +16,11 @@ enum { LAW_TWO_SIDED = 0, LAW_POLY = 1, LAW_TABLE = 2 };
 typedef struct {
   PetscInt r, nl, nprobe;
   PetscReal *K, *D, *B, *Bt;              /* r*r, r*r, nl*r, nl*r */
+  PetscReal *KT, *DT;                     /* K^T, D^T row-major (column access for the matrix-vector products) */
+  PetscReal *Ks, *Ds; int sym_ok;         /* symmetric parts of K, D; sym_ok: K, D symmetric to round-off (Cholesky) */
   PetscReal *rc, *base_load, *force_shape; /* nl, r, r */
   PetscReal *probe_B, *probe_r;            /* nprobe*r, nprobe */
   int d_zero;                              /* D == 0 exactly */
-  PetscInt m_diag;                         /* leading m_diag rows/cols of K and D exactly diagonal (arrowhead) */
   /* excitation: Omega = sup_a sin(sup_w t + sup_ph); F = force_a sin(force_w t + force_ph), or the random sum */
   PetscReal sup_a, sup_w, sup_ph, force_a, force_w, force_ph;
   PetscInt nrand; PetscReal *rand_amp, *rand_omega, *rand_phase;
@@ -29,11 +30,11 @@ typedef struct {
   PetscReal *em, *ep, *km, *kp, *pm1, *pp1, *km_pm, *kp_pp, *k3, *c, *alpha;
   PetscInt *tab_off, *tab_n; PetscReal *tab_z, *tab_f, *tab_slope;
   /* work */
-  PetscReal *z, *v, *N, *Nz, *Nv, *BtN, *tmp;
+  PetscReal *z, *v, *N, *Nz, *Nv, *BtN, *tmp, *tmp2;
   /* linearization at the last IJacobian: W = Nz + shift Nv, Nv, Nz, the side of each constraint */
   PetscReal shift, lin_t, *W, *NzJ, *NvJ; signed char *sides;
   /* the exact structured solve: A(shift) = shift^2 I + shift D + K factored once per shift */
-  PetscReal fact_shift, *L, *AinvBt, *Cap, *Mcap; PetscInt *piv, *lpiv, *act, nact; int chol_ok;
+  PetscReal fact_shift, *L, *U, *AinvBt, *Cap, *Mcap; PetscInt *piv, *lpiv, *act, nact; int chol_ok;
   long fact_id, *col_id, *cap_id;
   int linear_shortcut;
   Vec snes_dy;
