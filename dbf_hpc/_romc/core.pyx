@@ -356,6 +356,8 @@ cdef class Problem:
         self.error = self.stop_message = self.nonfinite = None
         if recorder is not None:
             self.bind_recorder()
+        else:   # the samples' peak column, unused
+            c.peak = self.dptr(np.zeros(max(nl, 1)))
         CHK(TSMonitorSet(ts.ts, _monitor, <void *>self, NULL))
 
     cdef bind_recorder(self):
