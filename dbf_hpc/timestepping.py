@@ -24,7 +24,7 @@ NO_DENSE_OUTPUT = ("prssp2", "bpr3", "ars443")  # also without an embedded error
 CALLBACKS = ("auto", "c", "python")
 # The step controller's defaults for the reduced model (scoped to -rom_, the user's options win):
 # measured in docs/design.md "Rejected steps".
-ADAPT_DEFAULTS = {"ts_adapt_safety": "0.7", "ts_adapt_clip": "0.1,1.5"}
+ADAPT_DEFAULTS = {"ts_adapt_safety": "0.8", "ts_adapt_clip": "0.1,1.5"}
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ cdef extern from "rom_core.h":
         PetscReal *D
         PetscReal *B
         PetscReal *Bt
+        PetscReal *BT
         PetscReal *KT
         PetscReal *DT
         PetscReal *Ks
@@ -200,7 +201,7 @@ cdef class Problem:
         c.Ks, c.Ds = self.dptr(0.5 * (K + K.T)), self.dptr(0.5 * (D + D.T))
         B = np.asarray(model.B, float).reshape(nl, r)
         Bt = np.ascontiguousarray(np.asarray(operators.Bt, float).reshape(r, nl).T)
-        c.B = self.dptr(B)
+        c.B, c.BT = self.dptr(B), self.dptr(B.T)
         c.Bt = c.B if np.array_equal(B, Bt) else self.dptr(Bt)
         c.rc = self.dptr(model.r_c)
         c.base_load, c.force_shape = self.dptr(operators.base_load), self.dptr(operators.force_shape)

@@ -84,17 +84,18 @@ void RomLaws(RomCtx *c, const PetscReal *z, const PetscReal *v, PetscReal *N, Pe
   }
 }
 
-/* z = B q + r_c Omega, v = B p + r_c Omega' */
+/* z = B q + r_c Omega, v = B p + r_c Omega' (by columns of B: BT is B^T row-major, vectorized over
+   the constraints) */
 static inline void constraint_state(const RomCtx *c, PetscReal t, const PetscReal *q, const PetscReal *p, PetscReal *z, PetscReal *v)
 {
-  const PetscInt r = c->r;
+  const PetscInt r = c->r, nl = c->nl;
   const PetscReal om = omega_(c, t), omd = omega_rate(c, t);
-  for (PetscInt j = 0; j < c->nl; j++) {
-    const PetscReal *b = c->B + j * r;
-    PetscReal sz = 0.0, sv = 0.0;
-    for (PetscInt i = 0; i < r; i++) { sz += b[i] * q[i]; sv += b[i] * p[i]; }
-    z[j] = sz + c->rc[j] * om; v[j] = sv + c->rc[j] * omd;
+  for (PetscInt j = 0; j < nl; j++) { z[j] = 0.0; v[j] = 0.0; }
+  for (PetscInt i = 0; i < r; i++) {
+    const PetscReal *b = c->BT + i * nl, qi = q[i], pi = p[i];
+    for (PetscInt j = 0; j < nl; j++) { z[j] += b[j] * qi; v[j] += b[j] * pi; }
   }
+  for (PetscInt j = 0; j < nl; j++) { z[j] += c->rc[j] * om; v[j] += c->rc[j] * omd; }
 }
 
 /* y += A x with A given by its transpose AT (row-major), i.e. column by column: the inner loop is an

@@ -15,7 +15,7 @@ enum { LAW_TWO_SIDED = 0, LAW_POLY = 1, LAW_TABLE = 2 };
 
 typedef struct {
   PetscInt r, nl, nprobe;
-  PetscReal *K, *D, *B, *Bt;              /* r*r, r*r, nl*r, nl*r */
+  PetscReal *K, *D, *B, *Bt, *BT;         /* r*r, r*r, nl*r, nl*r, r*nl (B^T row-major) */
   PetscReal *KT, *DT;                     /* K^T, D^T row-major (column access for the matrix-vector products) */
   PetscReal *Ks, *Ds; int sym_ok;         /* symmetric parts of K, D; sym_ok: K, D symmetric to round-off (Cholesky) */
   PetscReal *rc, *base_load, *force_shape; /* nl, r, r */
