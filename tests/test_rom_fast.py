@@ -226,3 +226,47 @@ def test_a_non_identity_reduced_mass_is_integrated_alike_by_both_callbacks(mass)
                           lambda t, q, p: samples.append(q[0]))
         out[cb] = np.array(samples)
     np.testing.assert_allclose(out["c"], out["python"], rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("callbacks", ["c", "python"])
+def test_a_run_stopped_at_a_checkpoint_resumes_to_the_uninterrupted_result_bit_for_bit(shared_tmp_path, callbacks,
+                                                                                       monkeypatch):
+    # Both callbacks: the C monitor keeps the impact statistics and the peak force in the recorder's
+    # arrays, and a checkpoint must hold all of it.
+    import h5py
+    from mpi4py import MPI
+
+    from dbf_hpc import run as run_module
+    from dbf_hpc.errors import DbfError
+    from dbf_hpc.scene import load_scene
+
+    if callbacks == "c" and _romc.core is None:
+        pytest.skip(_romc.why)
+    sets = ["basis.cache=off", "integrator.t_end=0.6", "output.checkpoint_dt=0.2", "output.snapshots=5",
+            f"integrator.callbacks={callbacks}"]
+    reference, target = str(shared_tmp_path / f"ref-{callbacks}.h5"), str(shared_tmp_path / f"cut-{callbacks}.h5")
+    run_module.run(load_scene(PAPER, sets), reference, progress=False)
+    original = run_module.Checkpointing.on_step
+
+    def stop_at_the_second_checkpoint(self, ts, t, q, p):
+        if t >= 0.4:
+            self.interrupted = True   # as SIGTERM does
+        return original(self, ts, t, q, p)
+
+    monkeypatch.setattr(run_module.Checkpointing, "on_step", stop_at_the_second_checkpoint)
+    with pytest.raises(DbfError, match="checkpointed"):
+        run_module.run(load_scene(PAPER, sets), target, progress=False)
+    monkeypatch.setattr(run_module.Checkpointing, "on_step", original)
+    run_module.run(load_scene(PAPER, sets), target, progress=False, resume=True)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(reference) as a, h5py.File(target) as b:
+            assert json_stats(a)["callbacks"] == callbacks
+            for name in ("time", "constraints/displacement", "constraints/force_peak", "reduced/q", "snapshots/w",
+                         *[f"constraints/stats/{k}" for k in a["constraints/stats"]]):
+                assert np.array_equal(a[name][:], b[name][:]), name
+
+
+def json_stats(f):
+    import json
+
+    return json.loads(f.attrs["solver_stats"])
