@@ -32,9 +32,15 @@ cdef extern from "rom_core.h":
         PetscReal *BT
         PetscReal *KT
         PetscReal *DT
-        PetscReal *Ks
+        PetscReal *Mo
+        PetscReal *Do
+        PetscReal *Ko
+        PetscReal *MoT
+        PetscReal *DoT
+        PetscReal *Ms
         PetscReal *Ds
-        int sym_ok
+        PetscReal *Ks
+        int sym_ok, m_identity
         PetscReal *rc
         PetscReal *base_load
         PetscReal *force_shape
@@ -79,7 +85,7 @@ cdef extern from "rom_core.h":
         PetscReal fact_shift
         PetscReal *L
         PetscReal *U
-        PetscReal *AinvBt
+        PetscReal *AinvB
         PetscReal *Cap
         PetscReal *Mcap
         PetscInt *piv
@@ -193,12 +199,15 @@ cdef class Problem:
         K, D = np.asarray(operators.K, float), np.asarray(operators.D, float)
         c.K, c.D = self.dptr(K), self.dptr(D)
         c.KT, c.DT = self.dptr(K.T), self.dptr(D.T)
-        # K and D (M_r^-1 applied) are symmetric to round-off for a symmetric structure: the Cholesky of
-        # the symmetric part, within SYMMETRY_TOL of the exact one, is then the factorization used
-        scale = max(np.abs(K).max(initial=0.0), np.abs(D).max(initial=0.0), 1e-300)
-        c.sym_ok = int(np.abs(K - K.T).max(initial=0.0) <= SYMMETRY_TOL * scale
-                       and np.abs(D - D.T).max(initial=0.0) <= SYMMETRY_TOL * scale)
-        c.Ks, c.Ds = self.dptr(0.5 * (K + K.T)), self.dptr(0.5 * (D + D.T))
+        # the stage solve factors A(s) = s^2 M + s D + K of the model's own matrices, symmetric to the
+        # projection's round-off for a symmetric structure: then the Cholesky of their symmetric part,
+        # within SYMMETRY_TOL of the exact one (Newton's residual removes the difference)
+        Mo, Do, Ko = (np.asarray(a, float) for a in (model.M, model.damping, model.K))
+        c.Mo, c.Do, c.Ko, c.MoT, c.DoT = self.dptr(Mo), self.dptr(Do), self.dptr(Ko), self.dptr(Mo.T), self.dptr(Do.T)
+        c.Ms, c.Ds, c.Ks = self.dptr(0.5 * (Mo + Mo.T)), self.dptr(0.5 * (Do + Do.T)), self.dptr(0.5 * (Ko + Ko.T))
+        asym = lambda A: np.abs(A - A.T).max(initial=0.0) <= SYMMETRY_TOL * max(np.abs(A).max(initial=0.0), 1e-300)
+        c.sym_ok = int(asym(Mo) and asym(Do) and asym(Ko))
+        c.m_identity = int(np.array_equal(Mo, np.eye(r)))
         B = np.asarray(model.B, float).reshape(nl, r)
         Bt = np.ascontiguousarray(np.asarray(operators.Bt, float).reshape(r, nl).T)
         c.B, c.BT = self.dptr(B), self.dptr(B.T)
@@ -257,7 +266,7 @@ cdef class Problem:
         c.Nz, c.Nv, c.tmp = self.dptr(np.zeros(n)), self.dptr(np.zeros(n)), self.dptr(np.zeros(n))
         c.BtN, c.tmp2 = self.dptr(np.zeros(r)), self.dptr(np.zeros(r))
         c.W, c.NzJ, c.NvJ = self.dptr(np.zeros(n)), self.dptr(np.zeros(n)), self.dptr(np.zeros(n))
-        c.L, c.U, c.AinvBt = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * n))
+        c.L, c.U, c.AinvB = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * n))
         c.Cap, c.Mcap = self.dptr(np.zeros(n * n)), self.dptr(np.zeros(n * n))
         c.piv, c.lpiv, c.act = self.iptr(np.zeros(n)), self.iptr(np.zeros(r)), self.iptr(np.zeros(n))
         ids = np.full(n * n + n, -1, dtype=np.int_)

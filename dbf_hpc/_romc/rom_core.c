@@ -297,42 +297,43 @@ static inline void solveA(const RomCtx *c, PetscReal *x)
   else lu_solve(c->L, c->r, c->lpiv, x);
 }
 
-/* A(shift) = shift^2 I + shift D + K: Cholesky of its symmetric part when K and D are symmetric to
-   round-off (sym_ok; Newton's residual, which uses K and D themselves, removes the difference), LU with
-   partial pivoting otherwise or when the Cholesky fails */
+/* A(shift) = shift^2 M + shift D + K with the model's own (symmetric) M_r, D, K: Cholesky of its
+   symmetric part when they are symmetric to round-off (sym_ok; Newton's residual removes the
+   difference), LU with partial pivoting otherwise or when the Cholesky fails */
 static PetscErrorCode factor(RomCtx *c, PetscReal shift)
 {
   const PetscInt r = c->r;
+  const PetscReal s2 = shift * shift;
   PetscFunctionBeginUser;
   c->n_fact++;
-  c->fact_id++;   /* invalidates the cached columns A^-1 Bt_l and capacitance entries */
+  c->fact_id++;   /* invalidates the cached columns A^-1 B_l^T and capacitance entries */
   c->chol_ok = c->sym_ok;
   if (c->chol_ok) {
     for (PetscInt i = 0; i < r; i++)
-      for (PetscInt j = 0; j <= i; j++) c->L[i * r + j] = c->Ks[i * r + j] + shift * c->Ds[i * r + j] + (i == j ? shift * shift : 0.0);
+      for (PetscInt j = 0; j <= i; j++) c->L[i * r + j] = c->Ks[i * r + j] + shift * c->Ds[i * r + j] + s2 * c->Ms[i * r + j];
     if (cholesky(c->L, c->U, c->tmp2, r)) c->chol_ok = 0;
   }
   if (!c->chol_ok) {
     for (PetscInt i = 0; i < r; i++)
-      for (PetscInt j = 0; j < r; j++) c->L[i * r + j] = c->K[i * r + j] + shift * c->D[i * r + j] + (i == j ? shift * shift : 0.0);
-    if (lu(c->L, r, c->lpiv)) { c->fact_shift = -1; SETERRQ(PETSC_COMM_SELF, PETSC_ERR_MAT_LU_ZRPVT, "singular shift^2 I + shift D + K"); }
+      for (PetscInt j = 0; j < r; j++) c->L[i * r + j] = c->Ko[i * r + j] + shift * c->Do[i * r + j] + s2 * c->Mo[i * r + j];
+    if (lu(c->L, r, c->lpiv)) { c->fact_shift = -1; SETERRQ(PETSC_COMM_SELF, PETSC_ERR_MAT_LU_ZRPVT, "singular shift^2 M + shift D + K"); }
   }
   c->fact_shift = shift;
   PetscFunctionReturn(0);
 }
 
-/* column l of A^-1 Bt^T, once per factorization, only for the constraints that are active */
+/* column l of A^-1 B^T, once per factorization, only for the constraints that are active */
 static inline const PetscReal *ainvbt(RomCtx *c, PetscInt l)
 {
-  PetscReal *x = c->AinvBt + l * c->r;
+  PetscReal *x = c->AinvB + l * c->r;
   if (c->col_id[l] != c->fact_id) {
-    for (PetscInt i = 0; i < c->r; i++) x[i] = c->Bt[l * c->r + i];
+    for (PetscInt i = 0; i < c->r; i++) x[i] = c->B[l * c->r + i];
     solveA(c, x);
     c->col_id[l] = c->fact_id;
   }
   return x;
 }
-/* B_l A^-1 Bt_m^T */
+/* B_l A^-1 B_m^T */
 static inline PetscReal cap(RomCtx *c, PetscInt l, PetscInt m)
 {
   const PetscInt nl = c->nl;
@@ -346,7 +347,7 @@ static inline PetscReal cap(RomCtx *c, PetscInt l, PetscInt m)
 }
 
 /* The Jacobian as a MatShell (MatMult = RomMatMult); the linearization goes to the exact solve:
-   A(shift) factored when the shift changes, and the capacitance I - W_a B_a A^-1 Bt_a^T of the active
+   A(shift) factored when the shift changes, and the capacitance I - W_a B_a A^-1 B_a^T of the active
    constraints a = {l : W_l != 0} (N_a x N_a) by LU. */
 PetscErrorCode RomIJacobianShell(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal shift, Mat A, Mat P, void *ctx)
 {
@@ -369,9 +370,11 @@ PetscErrorCode RomIJacobianShell(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal 
   PetscFunctionReturn(0);
 }
 
-/* Y = J^-1 X exactly, J = [[s I, -I], [K - Bt^T Nz B, s I + D - Bt^T Nv B]] (rows of the stage Jacobian):
- *   dq = S^-1 (b + (s I + D - Bt^T Nv B) a),  S = A(s) - Bt^T W B,  dp = s dq - a,
- *   S^-1 = A^-1 + A^-1 Bt_a^T (I - W_a B_a A^-1 Bt_a^T)^-1 W_a B_a A^-1   (Woodbury on the active constraints) */
+/* Y = J^-1 X exactly. J = [[s I, -I], [M^-1 (K - B^T N_z B), s I + M^-1 (D - B^T N_v B)]] (the stage
+ * Jacobian; M = M_r, D = C_r + G_r, K = K_r the model's own matrices). Multiplied through by M:
+ *   dq = S^-1 (M (b + s a) + D a - B^T N_v B a),  S = A(s) - B^T W B,  dp = s dq - a,
+ *   A(s) = s^2 M + s D + K,  W = N_z + s N_v,
+ *   S^-1 = A^-1 + A^-1 B_a^T (I - W_a B_a A^-1 B_a^T)^-1 W_a B_a A^-1   (Woodbury on the active constraints) */
 PetscErrorCode RomApplyInverse(RomCtx *c, Vec X, Vec Y)
 {
   const PetscReal *x;
@@ -383,16 +386,20 @@ PetscErrorCode RomApplyInverse(RomCtx *c, Vec X, Vec Y)
   PetscCall(VecGetArrayRead(X, &x));
   PetscCall(VecGetArrayWrite(Y, &y));
   const PetscReal *a = x, *b = x + r;
-  PetscReal *dq = y, *dp = y + r, *tmp = c->tmp;
-  for (PetscInt i = 0; i < r; i++) dq[i] = b[i] + s * a[i];
-  if (!c->d_zero) matvec_add(c->DT, r, a, dq);
-  if (c->implicit_contact && c->damped) { /* - Bt^T Nv B a */
+  PetscReal *dq = y, *dp = y + r, *tmp = c->tmp, *w = c->tmp2;
+  if (c->m_identity) for (PetscInt i = 0; i < r; i++) dq[i] = b[i] + s * a[i];
+  else {
+    for (PetscInt i = 0; i < r; i++) { w[i] = b[i] + s * a[i]; dq[i] = 0.0; }
+    matvec_add(c->MoT, r, w, dq);
+  }
+  if (!c->d_zero) matvec_add(c->DoT, r, a, dq);
+  if (c->implicit_contact && c->damped) { /* - B^T N_v B a */
     for (PetscInt l = 0; l < nl; l++) if (c->NvJ[l] != 0.0) {
-      const PetscReal *bl = c->B + l * r, *btl = c->Bt + l * r;
+      const PetscReal *bl = c->B + l * r;
       PetscReal sum = 0;
       for (PetscInt i = 0; i < r; i++) sum += bl[i] * a[i];
       sum *= c->NvJ[l];
-      for (PetscInt i = 0; i < r; i++) dq[i] -= btl[i] * sum;
+      for (PetscInt i = 0; i < r; i++) dq[i] -= bl[i] * sum;
     }
   }
   solveA(c, dq);

@@ -17,7 +17,9 @@ typedef struct {
   PetscInt r, nl, nprobe;
   PetscReal *K, *D, *B, *Bt, *BT;         /* r*r, r*r, nl*r, nl*r, r*nl (B^T row-major) */
   PetscReal *KT, *DT;                     /* K^T, D^T row-major (column access for the matrix-vector products) */
-  PetscReal *Ks, *Ds; int sym_ok;         /* symmetric parts of K, D; sym_ok: K, D symmetric to round-off (Cholesky) */
+  /* the stage solve works on the model's own M_r, D = C_r + G_r, K_r (symmetric for a symmetric structure) */
+  PetscReal *Mo, *Do, *Ko, *MoT, *DoT;     /* r*r each; MoT, DoT transposed (column access) */
+  PetscReal *Ms, *Ds, *Ks; int sym_ok, m_identity; /* their symmetric parts; sym_ok: symmetric to round-off (Cholesky); M_r = I exactly */
   PetscReal *rc, *base_load, *force_shape; /* nl, r, r */
   PetscReal *probe_B, *probe_r;            /* nprobe*r, nprobe */
   int d_zero;                              /* D == 0 exactly */
@@ -34,7 +36,7 @@ typedef struct {
   /* linearization at the last IJacobian: W = Nz + shift Nv, Nv, Nz, the side of each constraint */
   PetscReal shift, lin_t, *W, *NzJ, *NvJ; signed char *sides;
   /* the exact structured solve: A(shift) = shift^2 I + shift D + K factored once per shift */
-  PetscReal fact_shift, *L, *U, *AinvBt, *Cap, *Mcap; PetscInt *piv, *lpiv, *act, nact; int chol_ok;
+  PetscReal fact_shift, *L, *U, *AinvB, *Cap, *Mcap; PetscInt *piv, *lpiv, *act, nact; int chol_ok;
   long fact_id, *col_id, *cap_id;
   int linear_shortcut;
   Vec snes_dy;
