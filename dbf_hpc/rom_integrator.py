@@ -242,7 +242,8 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
         if settings.adaptive:
             defaults.update(ADAPT_DEFAULTS)
         configure(ts, settings, PREFIX, defaults, settings.adaptive, resume)
-        if fast is not None and c_newton and ts.getSNES().getType() == "shell" and not _user_viewers():
+        c_newton = c_newton and ts.getSNES().getType() == "shell"
+        if c_newton and not _user_viewers():
             # the *ViewFromOptions queries inside every stage solve cost more than the solve: off
             core.viewers_off()
             viewers_off = True
@@ -255,8 +256,8 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
         finally:
             if viewers_off:
                 core.viewers_pop()
-            if fast is not None:
-                fast.sync()
+            if fast is not None and fast.error is None:
+                fast.sync()   # the samples still in the C buffer, the statistics' scalars
         if fast is not None:
             if fast.error is not None:
                 raise fast.error
