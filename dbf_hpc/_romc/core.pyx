@@ -431,12 +431,13 @@ cdef class Problem:
             if self.recorder is not None:
                 RomStepStatistics(c, t, a)
             PyErr_CheckSignals()    # Python's signal handlers run here (SIGTERM asks for a checkpoint)
-            if self.commit is not None or self.on_step is not None:
+            hook = self.on_step is not None and (self.due is None or t >= self.due())
+            if self.commit is not None or hook:   # the state as numpy arrays only when Python needs it
                 state = np.asarray(<PetscReal[:2 * c.r]>(<PetscReal *>a))
                 q, p = state[:c.r].copy(), state[c.r:].copy()
                 if self.commit is not None:
                     self.commit(t, q, p)
-                if self.on_step is not None and (self.due is None or t >= self.due()):
+                if hook:
                     self.sync()
                     message = self.on_step(self.ts, t, q, p)
                     if message:
