@@ -99,6 +99,10 @@ class ConstraintSet:
         fast path (every law here acts on one component, so the blocks are 1 x 1)."""
         return self.laws.force_and_jacobian(z, v)
 
+    #: whether a law carries state that `commit` must see after every accepted step (the compiled
+    #: integrator calls it only then; the laws of laws.py have none)
+    stateful = False
+
     def commit(self, z, v) -> None:
         """Accept a step: laws with state (friction) take it here. The laws of laws.py have none."""
 

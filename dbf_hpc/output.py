@@ -164,6 +164,13 @@ class MemoryWriter:
             buffer.append(np.asarray(values[name], dtype=float).reshape(self.shapes[name]))
         self.count += 1
 
+    def append_rows(self, **blocks) -> None:
+        """Several samples at once: each value has one row per sample."""
+        count = len(blocks[layout.TIME])
+        for name, buffer in self.buffer.items():
+            buffer.extend(np.asarray(blocks[name], dtype=float).reshape((count, *self.shapes[name])))
+        self.count += count
+
     def flush(self) -> None:
         pass
 
@@ -198,6 +205,13 @@ class OutputWriter:
     def append(self, **values) -> None:
         for name, buffer in self.buffer.items():
             buffer.append(values[name])
+        if len(self.buffer[layout.TIME]) >= BLOCK:
+            self.flush()
+
+    def append_rows(self, **blocks) -> None:
+        """Several samples at once: each value has one row per sample."""
+        for name, buffer in self.buffer.items():
+            buffer.extend(blocks[name])
         if len(self.buffer[layout.TIME]) >= BLOCK:
             self.flush()
 

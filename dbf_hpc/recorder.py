@@ -80,6 +80,22 @@ class ReducedRecorder(SampleRecorder):
     def on_step(self, t, q, p) -> None:
         self.step(t, *self.model.constraint_state(t, q, p))
 
+    def record_rows(self, rows: np.ndarray) -> None:
+        """A block of samples the C callbacks computed (rom_integrator.py), one row each:
+        [t, q (r), q' (r), z, v, force, peak (N_L d each), probe (P)], the same values `record` gives
+        (the peak already includes the steps before each sample, and is reset after it)."""
+        r, n, m = self.model.size, self.peak.size, rows.shape[0]
+        cut = np.cumsum([1, r, r, n, n, n, n])
+        t, q, p, z, v, force, peak, probe = np.split(rows, cut, axis=1)
+        for i in self.snapshot_samples.intersection(range(self.index, self.index + m)):
+            self.snapshot_q[i] = q[i - self.index].copy()
+        self.index += m
+        self.writer.append_rows(**{layout.TIME: t[:, 0], layout.CONSTRAINT_DISPLACEMENT: z,
+                                   layout.CONSTRAINT_VELOCITY: v, layout.CONSTRAINT_FORCE: force,
+                                   layout.CONSTRAINT_FORCE_PEAK: peak, layout.PROBE_DISPLACEMENT: probe,
+                                   layout.REDUCED_Q: q, layout.REDUCED_QDOT: p})
+        self.final = (q[-1].copy(), p[-1].copy())
+
     def snapshots(self, times: np.ndarray):
         """(snapshot times, w at the field points) from the coordinates kept at the snapshot samples."""
         indices = sorted(self.snapshot_q)

@@ -15,18 +15,61 @@ Options prefix `rom_` (-rom_ts_arkimex_type, -rom_ts_adapt_type, -rom_snes_test_
 [integrator] values are set first, so command-line options win. A case runs on one rank
 (COMM_SELF). Samples are taken at fixed times by the TS's dense output (interpolated), or, for the
 types without one, by making steps land on the sample times.
+
+Two implementations of the same callbacks ([integrator] callbacks, docs/design.md "The reduced
+integrator's fast path"): ReducedProblem and _Monitor below, in Python, are the readable reference;
+the C core (dbf_hpc/_romc: rom_core.c, core.pyx), built as an optional extension, is the fast path.
+It keeps ARKIMEX and every option, and changes how the stage equations are solved: the Jacobian is a
+MatShell, and its exact inverse is structured (A(shift) = shift^2 I + shift D + K factored once per
+shift, Woodbury on the constraints in contact), applied by a Newton iteration in C (SNESSHELL) unless
+a -rom_snes_*, -rom_ksp_* or -rom_pc_* option asks for PETSc's own (then NEWTONLS, KSPPREONLY and the
+exact solve as a PCSHELL, so that -rom_snes_test_jacobian and monitors work). Its monitor takes the
+samples and the per-step statistics in C and calls Python only to write blocks of samples and when
+the per-step hook is due.
 """
 from __future__ import annotations
+
+import sys
 
 import numpy as np
 from petsc4py import PETSc
 
+from .errors import InputError, SolverError
 from .petsctools import destroy
 from .rom import ReducedModel
-from .timestepping import NO_DENSE_OUTPUT, IntegratorSettings, StepMonitor, check_outcome, configure, solve
+from .timestepping import (ADAPT_DEFAULTS, NO_DENSE_OUTPUT, IntegratorSettings, StepMonitor, check_outcome,
+                           configure, solve)
 
 PREFIX = "rom_"
 WHAT = "time integration"
+_warned = []
+
+
+def c_core(callbacks: str, say=None):
+    """The C core for [integrator] callbacks = `callbacks`, or None for the Python callbacks. "c"
+    without the extension is an InputError (one line saying how to build it); "auto" falls back to
+    Python with a one-line warning (once per process)."""
+    if callbacks == "python":
+        return None
+    from . import _romc
+    if _romc.core is not None:
+        return _romc.core
+    if callbacks == "c":
+        raise InputError(_romc.why)
+    if not _warned:
+        _warned.append(True)
+        print(f"dbf-hpc: warning: {_romc.why}; using the Python callbacks (slower)", file=sys.stderr)
+    return None
+
+
+def _user_solver_options() -> bool:
+    """Whether the user set any -rom_snes_*, -rom_ksp_* or -rom_pc_* option (then PETSc's own Newton)."""
+    return any(name.startswith((PREFIX + "snes_", PREFIX + "ksp_", PREFIX + "pc_"))
+               for name in PETSc.Options().getAll())
+
+
+def _user_viewers() -> bool:
+    return any(name.startswith(PREFIX) and "view" in name for name in PETSc.Options().getAll())
 
 
 class ReducedProblem:
@@ -95,8 +138,9 @@ class ReducedProblem:
 class _Monitor:
     """Samples (dense output, or the steps that land on them), the per-step hook, the law state."""
 
-    def __init__(self, problem: ReducedProblem, steps: StepMonitor, record, on_step, dense: bool):
+    def __init__(self, problem: ReducedProblem, steps: StepMonitor, record, on_step, dense: bool, recorder=None):
         self.problem, self.steps, self.record, self.on_step, self.dense = problem, steps, record, on_step, dense
+        self.recorder = recorder
         self.work = None
 
     def __call__(self, ts, step, t, y):
@@ -119,6 +163,8 @@ class _Monitor:
             q, p = a[:r], a[r:]
             model = self.problem.model
             model.constraints.commit(*model.constraint_state(t, q, p))
+            if self.recorder is not None:
+                self.recorder.on_step(t, q, p)
             if self.on_step is not None:
                 stop = self.on_step(ts, t, q, p)
                 if stop:
@@ -126,56 +172,116 @@ class _Monitor:
         steps.report(step, t)
 
 
-def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record, on_step=None, say=None,
-                      resume: dict | None = None) -> dict:
+def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=None, on_step=None, say=None,
+                      resume: dict | None = None, *, recorder=None, due=None) -> dict:
     """Integrate from t = 0 (model.q0, model.p0) to t_end, calling record(t, q, p) at every sample
     time and on_step(ts, t, q, p) after every step (it may return a message to stop the run).
+    `recorder` (recorder.ReducedRecorder) instead of `record`: the samples and the per-step impact
+    statistics go to it (recorder.record, recorder.on_step); the C callbacks then do that work in C,
+    in the recorder's own arrays. `due()`: the simulated time from which on on_step wants to be
+    called (the C callbacks call it only then; -inf: at the end of this step).
     `resume` (from a checkpoint taken at the end of a step: t, dt, steps, next_sample, q, p and the
     failure counts so far) continues exactly where that step ended: same steps, same answer.
     Progress lines go to say(line) when given. Returns solver statistics. Runs on COMM_SELF."""
+    if (record is None) == (recorder is None):
+        raise TypeError("integrate_reduced takes either record or recorder")
+    if recorder is not None:
+        record = recorder.record
+    core = c_core(settings.callbacks, say)
     r = model.size
-    problem = ReducedProblem(model, settings.contact == "implicit")
+    implicit = settings.contact == "implicit"
+    problem = ReducedProblem(model, implicit)
     comm = PETSc.COMM_SELF
     y = PETSc.Vec().createSeq(2 * r, comm=comm)
     y.getArray()[:r], y.getArray()[r:] = (resume["q"], resume["p"]) if resume else (model.q0, model.p0)
-    F, G = y.duplicate(), y.duplicate()
-    J = PETSc.Mat().createDense((2 * r, 2 * r), comm=comm)
-    J.setUp()
+    F, G, work = y.duplicate(), y.duplicate(), y.duplicate()
     ts = PETSc.TS().create(comm=comm)
-    monitor = None
+    J = fast = monitor = None
+    c_newton = viewers_off = False
     try:
         ts.setProblemType(PETSc.TS.ProblemType.NONLINEAR)
         ts.setType(PETSc.TS.Type.ARKIMEX)
         ts.setARKIMEXType(settings.scheme)
-        ts.setIFunction(problem.ifunction, F)
-        ts.setIJacobian(problem.ijacobian, J, J)
-        ts.setRHSFunction(problem.rhsfunction, G)
         ksp = ts.getSNES().getKSP()
         ksp.setType(PETSc.KSP.Type.PREONLY)
-        ksp.getPC().setType(PETSc.PC.Type.LU)
+        if core is None:
+            J = PETSc.Mat().createDense((2 * r, 2 * r), comm=comm)
+            J.setUp()
+            ts.setIFunction(problem.ifunction, F)
+            ts.setIJacobian(problem.ijacobian, J, J)
+            ts.setRHSFunction(problem.rhsfunction, G)
+            ksp.getPC().setType(PETSc.PC.Type.LU)
+        else:
+            fast = core.Problem(model, problem, implicit)
+            J = fast.shell_matrix()
+            fast.attach(ts, F, G, J, True)
+            fast.set_pcshell(ksp.getPC())
+            c_newton = not _user_solver_options()
+            if c_newton:
+                fast.set_snes_shell(ts.getSNES())
         dense = settings.scheme not in NO_DENSE_OUTPUT
         times = settings.sample_times
         first = resume["next_sample"] if resume else 0
         if not dense:  # the span starts at the initial time
             ts.setTimeSpan(np.concatenate([[resume["t"]], times[first:]]) if resume else times)
         steps = StepMonitor(times, first, resumed=bool(resume), say=say)
-        monitor = _Monitor(problem, steps, record, on_step, dense)
-        ts.setMonitor(monitor)
+        if fast is None:
+            monitor = _Monitor(problem, steps, record, on_step, dense, recorder)
+            ts.setMonitor(monitor)
+        else:
+            stateful = getattr(model.constraints, "stateful", False)
+            commit = (lambda t, q, p: model.constraints.commit(*model.constraint_state(t, q, p))) if stateful else None
+            steps.ts = ts
+            fast.set_monitor(ts, work, steps, times, dense, record, recorder, on_step, due, commit, bool(resume))
         # Full Newton steps: a backtracking line search stalls on the kinks of piecewise laws
         # (measured on the paper's beam: 90 Newton failures in 3 s with bt, 16 with basic).
+        # The step controller (docs/design.md, "The reduced integrator's fast path"): safety 0.8 and a
+        # growth of at most 1.5 per step halve the rejections at contact onset for fewer Newton iterations.
         # petsc4py 3.18 exposes neither TSAdapt nor SNESLineSearch: defaults go through the options.
         defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic"}
+        if settings.adaptive:
+            defaults.update(ADAPT_DEFAULTS)
         configure(ts, settings, PREFIX, defaults, settings.adaptive, resume)
-        wall = solve(ts, y, steps, WHAT, "reduce [integrator] dt or rtol")
+        c_newton = c_newton and ts.getSNES().getType() == "shell"
+        if c_newton and not _user_viewers():
+            # the *ViewFromOptions queries inside every stage solve cost more than the solve: off
+            core.viewers_off()
+            viewers_off = True
+        try:
+            wall = solve(ts, y, steps, WHAT, "reduce [integrator] dt or rtol")
+        except SolverError:
+            if fast is not None and fast.error is not None:
+                raise fast.error from None
+            raise
+        finally:
+            if viewers_off:
+                core.viewers_pop()
+            if fast is not None and fast.error is None:
+                fast.sync()   # the samples still in the C buffer, the statistics' scalars
+        if fast is not None:
+            if fast.error is not None:
+                raise fast.error
+            steps.next = fast.next_sample
+            if fast.nonfinite is not None:
+                step, t = fast.nonfinite
+                steps.failure = (f"the state is not finite at t = {t:.6g} s (step {step}); reduce [integrator] "
+                                 f"dt or rtol, or set contact = \"implicit\"")
+            elif fast.stop_message:
+                steps.failure = fast.stop_message
         before = resume or {}
         stats = {"steps": ts.getStepNumber(), "rejected_steps": ts.getStepRejections() + before.get("rejected", 0),
                  "snes_failures": ts.getSNESFailures() + before.get("snes_failures", 0),
                  "time_integration": wall + before.get("wall", 0.0),
                  "scheme": ts.getARKIMEXType(), "final_time": ts.getTime(),
-                 "adaptive": settings.adaptive, "contact": settings.contact}
+                 "adaptive": settings.adaptive, "contact": settings.contact,
+                 "callbacks": "python" if fast is None else "c",
+                 "newton": "petsc" if fast is None or not c_newton else "c"}
+        stats["newton_iterations"] = ts.getSNESIterations()
+        if fast is not None:
+            stats["c_counters"] = fast.counters
         reason = ts.getConvergedReason()
     finally:
-        destroy(ts, y, F, G, J, monitor.work if monitor is not None else None)
+        destroy(ts, y, F, G, J, work, monitor.work if monitor is not None else None)
     advice = ("set contact = \"implicit\" or reduce [integrator] dt" if settings.contact == "explicit"
               else "reduce [integrator] dt or rtol, or try another scheme")
     check_outcome(steps, reason, stats, settings.t_end, WHAT, advice)

@@ -231,7 +231,8 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
                   f"(contact {settings.contact}, {'adaptive' if settings.adaptive else 'fixed'} step)")
         t = time.perf_counter()
         with _interrupt_on_sigterm(stepper):
-            stats = integrate_reduced(model, settings, recorder.record, stepper.on_step, say, stepper.start)
+            stats = integrate_reduced(model, settings, None, stepper.on_step, say, stepper.start, recorder=recorder,
+                                      due=stepper.due)
         timings["integration"] = stats["time_integration"]   # a resumed run's whole, not this part
     except WRITE_ERRORS as exc:
         raise SolverError(_left_behind(f"cannot write {path}.partial or its checkpoint: {write_failure(exc)}",
@@ -275,8 +276,8 @@ def _left_behind(message: str, writer, checkpoint: Checkpoint | None) -> str:
 
 
 class Checkpointing:
-    """Rank 0's per-step hook of a reduced run: statistics, a checkpoint every checkpoint_dt of
-    simulated time and when SIGTERM asked for one, then a stop with the advice to resume."""
+    """Rank 0's per-step hook of a reduced run: a checkpoint every checkpoint_dt of simulated time and
+    when SIGTERM asked for one, then a stop with the advice to resume."""
 
     def __init__(self, recorder: ReducedRecorder, checkpoint: Checkpoint, interval: float, state: dict | None):
         self.recorder, self.checkpoint, self.interval = recorder, checkpoint, interval
@@ -293,8 +294,12 @@ class Checkpointing:
             self.next = float(state["t"]) + interval
         self.clock = time.perf_counter()
 
+    def due(self) -> float:
+        """The simulated time from which on_step has work to do (the integrator may skip it before)."""
+        return -np.inf if self.interrupted else self.next
+
     def on_step(self, ts, t, q, p):
-        self.recorder.on_step(t, q, p)
+        """After a step (the recorder has taken its statistics): a checkpoint when due or asked for."""
         if self.interrupted or t >= self.next:
             self.save(ts, t, q, p)
             self.next = t + self.interval

@@ -24,7 +24,7 @@ from .laws import law_from_dict
 from .matrices import MatrixFiles
 from .schema import NUMBER, SECTIONS, valid_keys
 from .structure import BOUNDARIES, Beam
-from .timestepping import IntegratorSettings
+from .timestepping import CALLBACKS, IntegratorSettings
 
 SCHEMA = {section: {name: (key.types, key.default) for name, key in keys.items()}
           for section, (_, keys) in SECTIONS.items()}
@@ -104,7 +104,8 @@ class Scene:
         i = self["integrator"]
         return IntegratorSettings(t_end=float(i["t_end"]), dt=float(i["dt"]), scheme=i["scheme"],
                                   adaptive=i["adaptive"], rtol=float(i["rtol"]), atol=float(i["atol"]),
-                                  contact=i["contact"], sample_dt=float(self.output().sample_dt))
+                                  contact=i["contact"], sample_dt=float(self.output().sample_dt),
+                                  callbacks=i["callbacks"])
 
     def fastest_forcing_hz(self) -> float:
         """The highest frequency the excitation contains (0 for free vibration)."""
@@ -346,6 +347,8 @@ def _check_integrator_and_output(sections: dict, path: str, at: _Positions) -> N
             raise InputError(f"{where}: {key} must be positive, got {i[key]!r}")
     if i["contact"] not in ("implicit", "explicit"):
         raise InputError(f"{where}: contact must be \"implicit\" or \"explicit\", got {i['contact']!r}")
+    if i["callbacks"] not in CALLBACKS:
+        raise InputError(f"{where}: callbacks must be \"auto\", \"c\" or \"python\", got {i['callbacks']!r}")
     o, where = sections["output"], f"{path}: [output]"
     for x in o["probes"]:
         at.check(f"{where} probes", x)

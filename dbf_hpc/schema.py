@@ -88,6 +88,8 @@ SECTIONS = {
         "atol": Key(NUMBER, 1e-9, "", "absolute tolerance of the adaptive steps (units of q and q')"),
         "contact": Key((str,), "implicit", "", '"implicit" (with its exact Jacobian) or "explicit" (the paper\'s '
                                                'IMEX split)'),
+        "callbacks": Key((str,), "auto", "", 'the reduced model\'s TS callbacks: "c" (compiled, fast), "python" '
+                                             '(the reference) or "auto" (C when built, else Python with a warning)'),
     }),
     "initial": ("The state at t = 0 (at rest in relative coordinates by default).", {
         "mode": Key((int,), 1, "", "reference mode of the initial displacement, counted from 1"),

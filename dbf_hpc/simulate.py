@@ -31,7 +31,7 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Not collective."""
     writer = MemoryWriter((model.constraints.count,), model.probe_B.shape[0], model.size)
     recorder = ReducedRecorder(writer, model, _snapshot_samples(snapshots, settings.sample_times))
-    stats = integrate_reduced(model, settings, recorder.record, lambda ts, t, q, p: recorder.on_step(t, q, p), say)
+    stats = integrate_reduced(model, settings, say=say, recorder=recorder)
     result = Result.from_recorder(recorder, stats)
     result.snapshot_time, result.snapshot_w = recorder.snapshots(settings.sample_times)
     return result

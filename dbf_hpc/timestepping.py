@@ -27,6 +27,10 @@ RTOL_FLOOR = 1e-14          # a relative error control tighter than this is belo
 MAX_STEPS = 1e10
 STEPS_PER_PERIOD = 20
 MAX_SAMPLES = 1e9           # 8 GB a series
+CALLBACKS = ("auto", "c", "python")
+# The step controller's defaults for the reduced model (scoped to -rom_, the user's options win):
+# measured in docs/design.md "Rejected steps".
+ADAPT_DEFAULTS = {"ts_adapt_safety": "0.8", "ts_adapt_clip": "0.1,1.5"}
 
 
 @dataclass(frozen=True)
@@ -34,7 +38,8 @@ class IntegratorSettings:
     """t_end (s); dt: the fixed step, or the first step of an adaptive run (s); scheme: the
     ARKIMEX type of the reduced model; rtol, atol: the adaptive error control; contact: the
     contact force on the "implicit" or "explicit" side of the reduced model's IMEX split;
-    sample_dt: the output interval (s)."""
+    sample_dt: the output interval (s); callbacks: the reduced model's TS callbacks, "c" (the compiled
+    fast path), "python" (the reference) or "auto" (C when built)."""
 
     t_end: float
     dt: float = 1e-4
@@ -44,12 +49,15 @@ class IntegratorSettings:
     atol: float = 1e-9
     contact: str = "implicit"
     sample_dt: float = 1e-3
+    callbacks: str = "auto"
 
     def __post_init__(self):
         object.__setattr__(self, "scheme", str(self.scheme).lower())
         if not RTOL_FLOOR <= self.rtol < 1:
             raise InputError(f"[integrator] rtol = {self.rtol:g} cannot be met in double precision: give a value "
                              f"from {RTOL_FLOOR:g} to 1")
+        if self.callbacks not in CALLBACKS:
+            raise InputError(f"[integrator] callbacks {self.callbacks!r}: choose one of {', '.join(CALLBACKS)}")
         if self.scheme not in ARKIMEX_TYPES:
             raise InputError(f"[integrator] scheme {self.scheme!r} is not an ARKIMEX type; "
                              f"choose one of {', '.join(ARKIMEX_TYPES)}")

@@ -1,0 +1,682 @@
+/* The reduced model's TS callbacks in C: see rom_core.h, and rom_integrator.py for the readable
+ * reference (Python) implementation of the same equations. The laws follow laws.py operation by
+ * operation, so that they give the same bits. */
+#include <math.h>
+#include <string.h>
+#include "rom_core.h"
+
+/* ---------------------------------------------------------------- excitation (excitation.Harmonic, RandomProcess) */
+static inline PetscReal omega_(const RomCtx *c, PetscReal t) { return c->sup_a * sin(c->sup_w * t + c->sup_ph); }
+static inline PetscReal omega_rate(const RomCtx *c, PetscReal t) { return c->sup_a * c->sup_w * cos(c->sup_w * t + c->sup_ph); }
+static inline PetscReal omega_acc(const RomCtx *c, PetscReal t)
+{
+  const PetscReal w = c->sup_w;
+  return -c->sup_a * w * w * sin(w * t + c->sup_ph);
+}
+static inline PetscReal force_value(const RomCtx *c, PetscReal t)
+{
+  if (c->nrand) {
+    PetscReal s = 0.0;
+    for (PetscInt i = 0; i < c->nrand; i++) s += cos(t * c->rand_omega[i] + c->rand_phase[i]) * c->rand_amp[i];
+    return s;
+  }
+  return c->force_a * sin(c->force_w * t + c->force_ph);
+}
+
+/* ---------------------------------------------------------------- laws (laws.ConstraintLaws.force_and_jacobian) */
+void RomLaws(RomCtx *c, const PetscReal *z, const PetscReal *v, PetscReal *N, PetscReal *Nz, PetscReal *Nv, int want_jac)
+{
+  for (PetscInt j = 0; j < c->nl; j++) {
+    PetscReal force, dz, mag = 0, dmag = 0;
+    int contact = 0;
+    const PetscReal zj = z[j];
+    switch (c->kind[j]) {
+    case LAW_TWO_SIDED: {
+      PetscReal xm = c->em[j] - zj, xp = zj - c->ep[j];
+      if (!(xm > 0.0)) xm = 0.0;
+      if (!(xp > 0.0)) xp = 0.0;
+      const double on_m = xm > 0.0, on_p = xp > 0.0;
+      PetscReal fm, fp, gm, gp;
+      if (c->two_linear) {
+        fm = c->km[j] * xm; fp = c->kp[j] * xp; gm = c->km[j] * on_m; gp = c->kp[j] * on_p;
+      } else {
+        const PetscReal tm = pow(xm, c->pm1[j]), tp = pow(xp, c->pp1[j]);
+        fm = c->km[j] * xm * tm; fp = c->kp[j] * xp * tp;
+        gm = c->km_pm[j] * tm * on_m; gp = c->kp_pp[j] * tp * on_p;
+      }
+      force = fm - fp; dz = -(gm + gp); mag = fm + fp; dmag = gp - gm;
+      contact = (on_m && c->km[j] > 0) || (on_p && c->kp[j] > 0);
+    } break;
+    case LAW_POLY: {
+      PetscReal stiff, slope;
+      if (c->poly_cubic) {
+        const PetscReal z2 = zj * zj;
+        stiff = c->kp[j] + c->k3[j] * z2; slope = c->kp[j] + 3.0 * c->k3[j] * z2;
+      } else stiff = slope = c->kp[j];
+      force = -stiff * zj; dz = -slope; mag = fabs(force);
+      dmag = (zj > 0 ? 1.0 : (zj < 0 ? -1.0 : 0.0)) * slope; contact = 1;
+    } break;
+    default: { /* LAW_TABLE */
+      const PetscReal *tz = c->tab_z + c->tab_off[j], *tf = c->tab_f + c->tab_off[j], *tsl = c->tab_slope + c->tab_off[j];
+      const PetscInt n = c->tab_n[j];
+      PetscInt count = 0;
+      for (PetscInt i = 0; i < n; i++) count += tz[i] <= zj;
+      PetscInt s = count - 1;
+      if (s < 0) s = 0;
+      if (s > n - 2) s = n - 2;
+      dz = tsl[s]; force = tf[s] + dz * (zj - tz[s]);
+      mag = fabs(force); dmag = (force > 0 ? 1.0 : (force < 0 ? -1.0 : 0.0)) * dz; contact = force != 0;
+    } break;
+    }
+    if (!c->damped) {
+      N[j] = force;
+      if (want_jac) { Nz[j] = dz; Nv[j] = 0.0; }
+      continue;
+    }
+    PetscReal dv = -c->c[j] * (double)contact;
+    if (c->hunt_crossley) {
+      const PetscReal a = c->alpha[j] * (double)contact;
+      dv -= a * mag;
+      dz = dz - a * dmag * v[j];
+    }
+    N[j] = force + dv * v[j];
+    if (want_jac) { Nz[j] = dz; Nv[j] = dv; }
+  }
+}
+
+/* z = B q + r_c Omega, v = B p + r_c Omega' (by columns of B: BT is B^T row-major, vectorized over
+   the constraints) */
+static inline void constraint_state(const RomCtx *c, PetscReal t, const PetscReal *q, const PetscReal *p, PetscReal *z, PetscReal *v)
+{
+  const PetscInt r = c->r, nl = c->nl;
+  const PetscReal om = omega_(c, t), omd = omega_rate(c, t);
+  for (PetscInt j = 0; j < nl; j++) { z[j] = 0.0; v[j] = 0.0; }
+  for (PetscInt i = 0; i < r; i++) {
+    const PetscReal *b = c->BT + i * nl, qi = q[i], pi = p[i];
+    for (PetscInt j = 0; j < nl; j++) { z[j] += b[j] * qi; v[j] += b[j] * pi; }
+  }
+  for (PetscInt j = 0; j < nl; j++) { z[j] += c->rc[j] * om; v[j] += c->rc[j] * omd; }
+}
+
+/* y += A x with A given by its transpose AT (row-major), i.e. column by column: the inner loop is an
+   axpy over contiguous memory, which the compiler vectorizes without reordering any sum */
+static inline void matvec_add(const PetscReal *AT, PetscInt r, const PetscReal *x, PetscReal *y)
+{
+  for (PetscInt j = 0; j < r; j++) {
+    const PetscReal *col = AT + j * r, xj = x[j];
+    for (PetscInt i = 0; i < r; i++) y[i] += col[i] * xj;
+  }
+}
+
+/* out += sign * Bt^T N */
+static inline void add_BtN(const RomCtx *c, const PetscReal *N, PetscReal sign, PetscReal *out)
+{
+  for (PetscInt j = 0; j < c->nl; j++) {
+    const PetscReal *b = c->Bt + j * c->r, nj = sign * N[j];
+    for (PetscInt i = 0; i < c->r; i++) out[i] += b[i] * nj;
+  }
+}
+
+/* ---------------------------------------------------------------- TS callbacks */
+PetscErrorCode RomIFunction(TS ts, PetscReal t, Vec U, Vec Udot, Vec F, void *ctx)
+{
+  RomCtx *c = (RomCtx *)ctx;
+  const PetscReal *u, *ud;
+  PetscReal *f;
+  const PetscInt r = c->r;
+  PetscFunctionBeginUser;
+  c->n_ifun++;
+  PetscCall(VecGetArrayRead(U, &u));
+  PetscCall(VecGetArrayRead(Udot, &ud));
+  PetscCall(VecGetArrayWrite(F, &f));
+  const PetscReal *q = u, *p = u + r, *qd = ud, *pd = ud + r;
+  PetscReal *fq = f, *fp = f + r;
+  for (PetscInt i = 0; i < r; i++) { fq[i] = qd[i] - p[i]; fp[i] = pd[i]; }
+  if (!c->d_zero) matvec_add(c->DT, r, p, fp);
+  matvec_add(c->KT, r, q, fp);
+  if (c->implicit_contact) {
+    constraint_state(c, t, q, p, c->z, c->v);
+    RomLaws(c, c->z, c->v, c->N, NULL, NULL, 0);
+    add_BtN(c, c->N, -1.0, fp);
+  }
+  PetscCall(VecRestoreArrayRead(U, &u));
+  PetscCall(VecRestoreArrayRead(Udot, &ud));
+  PetscCall(VecRestoreArrayWrite(F, &f));
+  PetscFunctionReturn(0);
+}
+
+PetscErrorCode RomRHSFunction(TS ts, PetscReal t, Vec U, Vec G, void *ctx)
+{
+  RomCtx *c = (RomCtx *)ctx;
+  PetscReal *g;
+  const PetscInt r = c->r;
+  PetscFunctionBeginUser;
+  c->n_rhs++;
+  PetscCall(VecGetArrayWrite(G, &g));
+  const PetscReal F = force_value(c, t), acc = omega_acc(c, t);
+  for (PetscInt i = 0; i < r; i++) { g[i] = 0.0; g[r + i] = c->force_shape[i] * F - c->base_load[i] * acc; }
+  if (!c->implicit_contact && c->nl) {
+    const PetscReal *u;
+    PetscCall(VecGetArrayRead(U, &u));
+    constraint_state(c, t, u, u + r, c->z, c->v);
+    RomLaws(c, c->z, c->v, c->N, NULL, NULL, 0);
+    add_BtN(c, c->N, 1.0, g + r);
+    PetscCall(VecRestoreArrayRead(U, &u));
+  }
+  PetscCall(VecRestoreArrayWrite(G, &g));
+  PetscFunctionReturn(0);
+}
+
+/* the side of each two-sided constraint: -1 below, 0 inside, +1 above (the laws' strict inequalities) */
+static inline signed char side_of(const RomCtx *c, PetscInt j, PetscReal z)
+{
+  if (c->kind[j] != LAW_TWO_SIDED) return 0;
+  return (c->em[j] - z > 0.0) ? -1 : ((z - c->ep[j] > 0.0) ? 1 : 0);
+}
+
+/* the linearization of the laws at (t, U): Nz, Nv, W = Nz + shift Nv, sides */
+static PetscErrorCode linearize(RomCtx *c, PetscReal t, Vec U, PetscReal shift)
+{
+  const PetscReal *u;
+  const PetscInt nl = c->nl;
+  PetscFunctionBeginUser;
+  c->shift = shift; c->lin_t = t;
+  if (!c->implicit_contact) {
+    for (PetscInt j = 0; j < nl; j++) c->W[j] = c->NzJ[j] = c->NvJ[j] = 0.0;
+    PetscFunctionReturn(0);
+  }
+  PetscCall(VecGetArrayRead(U, &u));
+  constraint_state(c, t, u, u + c->r, c->z, c->v);
+  PetscCall(VecRestoreArrayRead(U, &u));
+  RomLaws(c, c->z, c->v, c->N, c->NzJ, c->NvJ, 1);
+  for (PetscInt j = 0; j < nl; j++) {
+    c->sides[j] = side_of(c, j, c->z[j]);
+    c->W[j] = c->NzJ[j] + shift * c->NvJ[j];
+  }
+  PetscFunctionReturn(0);
+}
+
+/* the dense 2r x 2r Jacobian, for PETSc's own solvers (callbacks = "c" with a dense matrix) */
+PetscErrorCode RomIJacobianDense(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal shift, Mat A, Mat P, void *ctx)
+{
+  RomCtx *c = (RomCtx *)ctx;
+  PetscScalar *a;
+  PetscInt lda;
+  const PetscInt r = c->r, nl = c->nl, n = 2 * r;
+  PetscFunctionBeginUser;
+  c->n_ijac++;
+  PetscCall(linearize(c, t, U, shift));
+  PetscCall(MatDenseGetLDA(P, &lda));
+  PetscCall(MatDenseGetArrayWrite(P, &a));
+  for (PetscInt j = 0; j < n; j++) memset(a + j * lda, 0, sizeof(PetscScalar) * n);
+  for (PetscInt i = 0; i < r; i++) { a[i + i * lda] = shift; a[i + (r + i) * lda] = -1.0; }
+  for (PetscInt j = 0; j < r; j++)
+    for (PetscInt i = 0; i < r; i++) {
+      PetscReal kz = c->K[i * r + j], dv = c->D[i * r + j] + (i == j ? shift : 0.0);
+      for (PetscInt l = 0; l < nl; l++) {
+        const PetscReal bb = c->Bt[l * r + i] * c->B[l * r + j];
+        kz -= bb * c->NzJ[l];
+        dv -= bb * c->NvJ[l];
+      }
+      a[(r + i) + j * lda] = kz;
+      a[(r + i) + (r + j) * lda] = dv;
+    }
+  PetscCall(MatDenseRestoreArrayWrite(P, &a));
+  PetscCall(MatAssemblyBegin(P, MAT_FINAL_ASSEMBLY));
+  PetscCall(MatAssemblyEnd(P, MAT_FINAL_ASSEMBLY));
+  if (A != P) {
+    PetscCall(MatAssemblyBegin(A, MAT_FINAL_ASSEMBLY));
+    PetscCall(MatAssemblyEnd(A, MAT_FINAL_ASSEMBLY));
+  }
+  PetscFunctionReturn(0);
+}
+
+/* ---------------------------------------------------------------- the exact structured solve */
+/* Cholesky A = L L^T (right-looking; a holds the lower triangle of A, row-major, and gets L), U = L^T
+   row-major; col: work of n. Every inner loop runs over contiguous memory (vectorized axpys). */
+static int cholesky(PetscReal *a, PetscReal *U, PetscReal *col, PetscInt n)
+{
+  for (PetscInt j = 0; j < n; j++) {
+    const PetscReal d = a[j * n + j];
+    if (!(d > 0)) return 1;
+    const PetscReal ljj = sqrt(d), inv = 1.0 / ljj;
+    a[j * n + j] = ljj; U[j * n + j] = ljj;
+    for (PetscInt i = j + 1; i < n; i++) { const PetscReal l = a[i * n + j] * inv; a[i * n + j] = l; U[j * n + i] = l; }
+    for (PetscInt i = j + 1; i < n; i++) col[i] = U[j * n + i];
+    for (PetscInt i = j + 1; i < n; i++) {   /* trailing update of row i, columns j+1..i */
+      const PetscReal lij = col[i];
+      PetscReal *ai = a + i * n;
+      for (PetscInt k = j + 1; k <= i; k++) ai[k] -= lij * col[k];
+    }
+  }
+  return 0;
+}
+/* L L^T x = b in place: forward by columns of L (rows of U), backward by columns of U (rows of L) */
+static void chol_solve(const PetscReal *L, const PetscReal *U, PetscInt n, PetscReal *x)
+{
+  for (PetscInt k = 0; k < n; k++) {
+    const PetscReal *uk = U + k * n;
+    const PetscReal xk = x[k] / uk[k];
+    x[k] = xk;
+    for (PetscInt i = k + 1; i < n; i++) x[i] -= uk[i] * xk;
+  }
+  for (PetscInt k = n - 1; k >= 0; k--) {
+    const PetscReal *lk = L + k * n;
+    const PetscReal xk = x[k] / lk[k];
+    x[k] = xk;
+    for (PetscInt i = 0; i < k; i++) x[i] -= lk[i] * xk;
+  }
+}
+static int lu(PetscReal *a, PetscInt n, PetscInt *piv)
+{
+  for (PetscInt j = 0; j < n; j++) {
+    PetscInt p = j;
+    PetscReal m = fabs(a[j * n + j]);
+    for (PetscInt i = j + 1; i < n; i++) if (fabs(a[i * n + j]) > m) { m = fabs(a[i * n + j]); p = i; }
+    piv[j] = p;
+    if (m == 0.0) return 1;
+    if (p != j) for (PetscInt k = 0; k < n; k++) { PetscReal tmp = a[j * n + k]; a[j * n + k] = a[p * n + k]; a[p * n + k] = tmp; }
+    const PetscReal inv = 1.0 / a[j * n + j];
+    for (PetscInt i = j + 1; i < n; i++) {
+      const PetscReal f = a[i * n + j] * inv;
+      a[i * n + j] = f;
+      if (f != 0.0) for (PetscInt k = j + 1; k < n; k++) a[i * n + k] -= f * a[j * n + k];
+    }
+  }
+  return 0;
+}
+static void lu_solve(const PetscReal *a, PetscInt n, const PetscInt *piv, PetscReal *x)
+{
+  for (PetscInt j = 0; j < n; j++) if (piv[j] != j) { PetscReal tmp = x[j]; x[j] = x[piv[j]]; x[piv[j]] = tmp; }
+  for (PetscInt i = 0; i < n; i++) { PetscReal s = x[i]; for (PetscInt k = 0; k < i; k++) s -= a[i * n + k] * x[k]; x[i] = s; }
+  for (PetscInt i = n - 1; i >= 0; i--) { PetscReal s = x[i]; for (PetscInt k = i + 1; k < n; k++) s -= a[i * n + k] * x[k]; x[i] = s / a[i * n + i]; }
+}
+static inline void solveA(const RomCtx *c, PetscReal *x)
+{
+  if (c->chol_ok) chol_solve(c->L, c->U, c->r, x);
+  else lu_solve(c->L, c->r, c->lpiv, x);
+}
+
+/* A(shift) = shift^2 M + shift D + K with the model's own (symmetric) M_r, D, K: Cholesky of its
+   symmetric part when they are symmetric to round-off (sym_ok; Newton's residual removes the
+   difference), LU with partial pivoting otherwise or when the Cholesky fails */
+static PetscErrorCode factor(RomCtx *c, PetscReal shift)
+{
+  const PetscInt r = c->r;
+  const PetscReal s2 = shift * shift;
+  PetscFunctionBeginUser;
+  c->n_fact++;
+  c->fact_id++;   /* invalidates the cached columns A^-1 B_l^T and capacitance entries */
+  c->chol_ok = c->sym_ok;
+  if (c->chol_ok) {
+    for (PetscInt i = 0; i < r; i++)
+      for (PetscInt j = 0; j <= i; j++) c->L[i * r + j] = c->Ks[i * r + j] + shift * c->Ds[i * r + j] + s2 * c->Ms[i * r + j];
+    if (cholesky(c->L, c->U, c->tmp2, r)) c->chol_ok = 0;
+  }
+  if (!c->chol_ok) {
+    for (PetscInt i = 0; i < r; i++)
+      for (PetscInt j = 0; j < r; j++) c->L[i * r + j] = c->Ko[i * r + j] + shift * c->Do[i * r + j] + s2 * c->Mo[i * r + j];
+    if (lu(c->L, r, c->lpiv)) { c->fact_shift = -1; SETERRQ(PETSC_COMM_SELF, PETSC_ERR_MAT_LU_ZRPVT, "singular shift^2 M + shift D + K"); }
+  }
+  c->fact_shift = shift;
+  PetscFunctionReturn(0);
+}
+
+/* column l of A^-1 B^T, once per factorization, only for the constraints that are active */
+static inline const PetscReal *ainvbt(RomCtx *c, PetscInt l)
+{
+  PetscReal *x = c->AinvB + l * c->r;
+  if (c->col_id[l] != c->fact_id) {
+    for (PetscInt i = 0; i < c->r; i++) x[i] = c->B[l * c->r + i];
+    solveA(c, x);
+    c->col_id[l] = c->fact_id;
+  }
+  return x;
+}
+/* B_l A^-1 B_m^T */
+static inline PetscReal cap(RomCtx *c, PetscInt l, PetscInt m)
+{
+  const PetscInt nl = c->nl;
+  if (c->cap_id[l * nl + m] != c->fact_id) {
+    const PetscReal *x = ainvbt(c, m), *b = c->B + l * c->r;
+    PetscReal s = 0.0;
+    for (PetscInt i = 0; i < c->r; i++) s += b[i] * x[i];
+    c->Cap[l * nl + m] = s; c->cap_id[l * nl + m] = c->fact_id;
+  }
+  return c->Cap[l * nl + m];
+}
+
+/* The Jacobian as a MatShell (MatMult = RomMatMult); the linearization goes to the exact solve:
+   A(shift) factored when the shift changes, and the capacitance I - W_a B_a A^-1 B_a^T of the active
+   constraints a = {l : W_l != 0} (N_a x N_a) by LU. */
+PetscErrorCode RomIJacobianShell(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal shift, Mat A, Mat P, void *ctx)
+{
+  RomCtx *c = (RomCtx *)ctx;
+  const PetscInt nl = c->nl;
+  PetscInt na = 0;
+  PetscFunctionBeginUser;
+  c->n_ijac++;
+  PetscCall(linearize(c, t, U, shift));
+  if (shift != c->fact_shift) PetscCall(factor(c, shift));
+  for (PetscInt j = 0; j < nl; j++) if (c->W[j] != 0.0) c->act[na++] = j;
+  c->nact = na;
+  if (na) {
+    PetscReal *M = c->Mcap;
+    for (PetscInt i = 0; i < na; i++)
+      for (PetscInt j = 0; j < na; j++) M[i * na + j] = (i == j ? 1.0 : 0.0) - c->W[c->act[i]] * cap(c, c->act[i], c->act[j]);
+    if (lu(M, na, c->piv)) SETERRQ(PETSC_COMM_SELF, PETSC_ERR_MAT_LU_ZRPVT, "singular contact capacitance");
+  }
+  /* no MatAssembly: the MatShell was assembled once at creation */
+  PetscFunctionReturn(0);
+}
+
+/* Y = J^-1 X exactly. J = [[s I, -I], [M^-1 (K - B^T N_z B), s I + M^-1 (D - B^T N_v B)]] (the stage
+ * Jacobian; M = M_r, D = C_r + G_r, K = K_r the model's own matrices). Multiplied through by M:
+ *   dq = S^-1 (M (b + s a) + D a - B^T N_v B a),  S = A(s) - B^T W B,  dp = s dq - a,
+ *   A(s) = s^2 M + s D + K,  W = N_z + s N_v,
+ *   S^-1 = A^-1 + A^-1 B_a^T (I - W_a B_a A^-1 B_a^T)^-1 W_a B_a A^-1   (Woodbury on the active constraints) */
+PetscErrorCode RomApplyInverse(RomCtx *c, Vec X, Vec Y)
+{
+  const PetscReal *x;
+  PetscReal *y;
+  const PetscInt r = c->r, nl = c->nl, na = c->nact;
+  const PetscReal s = c->shift;
+  PetscFunctionBeginUser;
+  c->n_apply++;
+  PetscCall(VecGetArrayRead(X, &x));
+  PetscCall(VecGetArrayWrite(Y, &y));
+  const PetscReal *a = x, *b = x + r;
+  PetscReal *dq = y, *dp = y + r, *tmp = c->tmp, *w = c->tmp2;
+  if (c->m_identity) for (PetscInt i = 0; i < r; i++) dq[i] = b[i] + s * a[i];
+  else {
+    for (PetscInt i = 0; i < r; i++) { w[i] = b[i] + s * a[i]; dq[i] = 0.0; }
+    matvec_add(c->MoT, r, w, dq);
+  }
+  if (!c->d_zero) matvec_add(c->DoT, r, a, dq);
+  if (c->implicit_contact && c->damped) { /* - B^T N_v B a */
+    for (PetscInt l = 0; l < nl; l++) if (c->NvJ[l] != 0.0) {
+      const PetscReal *bl = c->B + l * r;
+      PetscReal sum = 0;
+      for (PetscInt i = 0; i < r; i++) sum += bl[i] * a[i];
+      sum *= c->NvJ[l];
+      for (PetscInt i = 0; i < r; i++) dq[i] -= bl[i] * sum;
+    }
+  }
+  solveA(c, dq);
+  if (c->implicit_contact && na) {
+    for (PetscInt i = 0; i < na; i++) {
+      const PetscReal *bl = c->B + c->act[i] * r;
+      PetscReal sum = 0;
+      for (PetscInt j = 0; j < r; j++) sum += bl[j] * dq[j];
+      tmp[i] = c->W[c->act[i]] * sum;
+    }
+    lu_solve(c->Mcap, na, c->piv, tmp);
+    for (PetscInt i = 0; i < na; i++) {
+      const PetscReal *col = ainvbt(c, c->act[i]), ti = tmp[i];
+      for (PetscInt j = 0; j < r; j++) dq[j] += col[j] * ti;
+    }
+  }
+  for (PetscInt i = 0; i < r; i++) dp[i] = s * dq[i] - a[i];
+  PetscCall(VecRestoreArrayRead(X, &x));
+  PetscCall(VecRestoreArrayWrite(Y, &y));
+  PetscFunctionReturn(0);
+}
+
+static PetscErrorCode RomPCApply(PC pc, Vec X, Vec Y)
+{
+  RomCtx *c;
+  PetscFunctionBeginUser;
+  PetscCall(PCShellGetContext(pc, &c));
+  PetscCall(RomApplyInverse(c, X, Y));
+  PetscFunctionReturn(0);
+}
+
+/* Y = J X for the MatShell (-snes_test_jacobian, MatComputeOperator, Krylov methods) */
+static PetscErrorCode RomMatMult(Mat A, Vec X, Vec Y)
+{
+  RomCtx *c;
+  const PetscReal *x;
+  PetscReal *y;
+  PetscFunctionBeginUser;
+  PetscCall(MatShellGetContext(A, &c));
+  const PetscInt r = c->r, nl = c->nl;
+  const PetscReal s = c->shift;
+  c->n_mult++;
+  PetscCall(VecGetArrayRead(X, &x));
+  PetscCall(VecGetArrayWrite(Y, &y));
+  const PetscReal *a = x, *b = x + r;
+  PetscReal *yq = y, *yp = y + r;
+  for (PetscInt i = 0; i < r; i++) {
+    PetscReal v = s * b[i];
+    for (PetscInt j = 0; j < r; j++) v += c->K[i * r + j] * a[j] + c->D[i * r + j] * b[j];
+    yq[i] = s * a[i] - b[i];
+    yp[i] = v;
+  }
+  for (PetscInt l = 0; l < nl; l++) {
+    const PetscReal *bl = c->B + l * r, *btl = c->Bt + l * r;
+    PetscReal ba = 0, bb = 0;
+    for (PetscInt i = 0; i < r; i++) { ba += bl[i] * a[i]; bb += bl[i] * b[i]; }
+    const PetscReal g = c->NzJ[l] * ba + c->NvJ[l] * bb;
+    for (PetscInt i = 0; i < r; i++) yp[i] -= btl[i] * g;
+  }
+  PetscCall(VecRestoreArrayRead(X, &x));
+  PetscCall(VecRestoreArrayWrite(Y, &y));
+  PetscFunctionReturn(0);
+}
+
+/* does every two-sided constraint lie on the side it had at the linearization? */
+static PetscErrorCode same_sides(RomCtx *c, Vec U, PetscBool *same)
+{
+  const PetscReal *u;
+  const PetscInt r = c->r;
+  PetscFunctionBeginUser;
+  *same = PETSC_TRUE;
+  PetscCall(VecGetArrayRead(U, &u));
+  const PetscReal om = omega_(c, c->lin_t);
+  for (PetscInt j = 0; j < c->nl; j++) {
+    const PetscReal *b = c->B + j * r;
+    PetscReal s = 0.0;
+    for (PetscInt i = 0; i < r; i++) s += b[i] * u[i];
+    if (side_of(c, j, s + c->rc[j] * om) != c->sides[j]) { *same = PETSC_FALSE; break; }
+  }
+  PetscCall(VecRestoreArrayRead(U, &u));
+  PetscFunctionReturn(0);
+}
+
+/* Newton on the stage equations without SNESComputeJacobian/KSPSolve (their per-call options queries
+ * cost more than the arithmetic at this size): NEWTONLS with a full step (line search basic), KSPPREONLY
+ * and the exact inverse, SNESConvergedDefault with the SNES's tolerances. With piecewise-linear laws
+ * (deadband p = 1, linear; no or linear contact damping), an iterate on which no constraint changed side
+ * solved the stage equation exactly (it is linear there): the residual check is skipped. */
+static PetscErrorCode RomSNESSolve(SNES snes, Vec X)
+{
+  RomCtx *c;
+  Vec F, Y;
+  Mat A, P;
+  void *jctx;
+  PetscErrorCode (*jac)(SNES, Vec, Mat, Mat, void *);
+  PetscReal atol, rtol, stol, fnorm, xnorm, ynorm;
+  PetscInt maxit, maxf, i;
+  SNESConvergedReason reason = SNES_CONVERGED_ITERATING;
+  PetscFunctionBeginUser;
+  PetscCall(SNESShellGetContext(snes, &c));
+  c->n_snes++;
+  PetscCall(SNESGetFunction(snes, &F, NULL, NULL));
+  PetscCall(SNESGetJacobian(snes, &A, &P, &jac, &jctx));
+  PetscCall(SNESGetTolerances(snes, &atol, &rtol, &stol, &maxit, &maxf));
+  if (!c->snes_dy) PetscCall(VecDuplicate(X, &c->snes_dy));
+  Y = c->snes_dy;
+  PetscCall(SNESComputeFunction(snes, X, F));
+  PetscCall(VecNorm(F, NORM_2, &fnorm));
+  PetscCall(SNESSetIterationNumber(snes, 0));
+  PetscCall(SNESSetFunctionNorm(snes, fnorm));
+  if (PetscIsInfOrNanReal(fnorm)) {
+    PetscCall(SNESSetConvergedReason(snes, SNES_DIVERGED_FNORM_NAN));
+    PetscFunctionReturn(0);
+  }
+  PetscCall(SNESConvergedDefault(snes, 0, 0.0, 0.0, fnorm, &reason, NULL));
+  for (i = 0; i < maxit && !reason; i++) {
+    c->n_newton++;
+    PetscCall((*jac)(snes, X, A, P, jctx));
+    PetscCall(RomApplyInverse(c, F, Y));
+    PetscCall(VecAXPY(X, -1.0, Y));
+    if (c->linear_shortcut && c->pwlinear) {
+      PetscBool same;
+      PetscCall(same_sides(c, X, &same));
+      if (same) {
+        c->n_shortcut++;
+        PetscCall(SNESSetIterationNumber(snes, i + 1));
+        reason = SNES_CONVERGED_ITS;
+        break;
+      }
+    }
+    PetscCall(SNESComputeFunction(snes, X, F));
+    PetscCall(VecNormBegin(F, NORM_2, &fnorm));
+    PetscCall(VecNormBegin(X, NORM_2, &xnorm));
+    PetscCall(VecNormBegin(Y, NORM_2, &ynorm));
+    PetscCall(VecNormEnd(F, NORM_2, &fnorm));
+    PetscCall(VecNormEnd(X, NORM_2, &xnorm));
+    PetscCall(VecNormEnd(Y, NORM_2, &ynorm));
+    if (PetscIsInfOrNanReal(fnorm)) { reason = SNES_DIVERGED_FNORM_NAN; break; }
+    PetscCall(SNESSetIterationNumber(snes, i + 1));
+    PetscCall(SNESSetFunctionNorm(snes, fnorm));
+    PetscCall(SNESConvergedDefault(snes, i + 1, xnorm, ynorm, fnorm, &reason, NULL));
+  }
+  if (!reason) reason = SNES_DIVERGED_MAX_IT;
+  PetscCall(SNESSetConvergedReason(snes, reason));
+  PetscFunctionReturn(0);
+}
+
+/* ---------------------------------------------------------------- the monitor's arithmetic */
+int RomFinite(RomCtx *c, const PetscReal *u)
+{
+  for (PetscInt i = 0; i < 2 * c->r; i++) if (!isfinite(u[i])) return 0;
+  return 1;
+}
+
+/* recorder.SampleRecorder._track_peak */
+static inline void track_peak(RomCtx *c, const PetscReal *N)
+{
+  for (PetscInt j = 0; j < c->nl; j++) if (fabs(N[j]) > fabs(c->peak[j])) c->peak[j] = N[j];
+}
+
+/* One row [t, q, p, z, v, N, peak, probe] per sample due up to t (recorder.SampleRecorder.sample):
+   dense output between steps, the step's own state at a sample it lands on. */
+PetscErrorCode RomTakeSamples(RomCtx *c, TS ts, PetscReal t, Vec U, PetscInt *taken)
+{
+  const PetscInt r = c->r, nl = c->nl;
+  PetscFunctionBeginUser;
+  *taken = 0;
+  while (c->next_sample < c->nsample && c->sample_t[c->next_sample] <= t + c->sample_tol && c->nrows < c->row_cap) {
+    const PetscReal ts_ = c->sample_t[c->next_sample];
+    const PetscReal *u;
+    Vec src = U;
+    if (!(fabs(ts_ - t) <= c->sample_tol) && c->dense_output) {
+      PetscCall(TSInterpolate(ts, ts_, c->work));
+      src = c->work;
+    }
+    PetscReal *row = c->rows + (size_t)c->nrows * c->row_len;
+    PetscCall(VecGetArrayRead(src, &u));
+    row[0] = ts_;
+    memcpy(row + 1, u, sizeof(PetscReal) * 2 * r);
+    PetscCall(VecRestoreArrayRead(src, &u));
+    PetscReal *z = row + 1 + 2 * r, *v = z + nl, *N = v + nl, *pk = N + nl, *probe = pk + nl;
+    constraint_state(c, ts_, row + 1, row + 1 + r, z, v);
+    RomLaws(c, z, v, N, NULL, NULL, 0);
+    track_peak(c, N);
+    for (PetscInt j = 0; j < nl; j++) { pk[j] = c->peak[j]; c->peak[j] = 0.0; }
+    const PetscReal om = omega_(c, ts_);
+    for (PetscInt k = 0; k < c->nprobe; k++) {
+      const PetscReal *pb = c->probe_B + k * r;
+      PetscReal s = 0.0;
+      for (PetscInt i = 0; i < r; i++) s += pb[i] * row[1 + i];
+      probe[k] = s + c->probe_r[k] * om;
+    }
+    c->nrows++; c->next_sample++; (*taken)++;
+  }
+  PetscFunctionReturn(0);
+}
+
+/* stats.ImpactAccumulator.add and SampleRecorder._track_peak for the state at the end of a step, operation
+   by operation as in Python (so a checkpoint taken on either side continues on the other) */
+void RomStepStatistics(RomCtx *c, PetscReal t, const PetscReal *u)
+{
+  const PetscInt nl = c->nl;
+  PetscReal *z = c->z, *v = c->v, *N = c->N;
+  PetscReal *pc = c->acc_prev, *pf = pc + nl, *pz = pf + nl, *pw = pz + nl;
+  if (!nl) { c->acc_t0 = c->acc_started ? c->acc_t0 : t; c->acc_t_prev = t; c->acc_started = 1; return; }
+  constraint_state(c, t, u, u + c->r, z, v);
+  RomLaws(c, z, v, N, NULL, NULL, 0);
+  const PetscReal half = c->acc_started ? 0.5 * (t - c->acc_t_prev) : 0.0;
+  for (PetscInt j = 0; j < nl; j++) {
+    const int contact = N[j] != 0;
+    const PetscReal cn = contact ? 1.0 : 0.0, f2 = N[j] * N[j], z2 = z[j] * z[j], pw_ = fabs(N[j] * v[j]);
+    const PetscReal aN = fabs(N[j]), az = fabs(z[j]);
+    if (aN > c->acc_force_peak[j] || isnan(aN)) c->acc_force_peak[j] = aN;
+    if (az > c->acc_displacement_peak[j] || isnan(az)) c->acc_displacement_peak[j] = az;
+    if (!c->acc_started) {
+      c->acc_impacts[j] += contact;
+    } else {
+      const PetscReal cp = pc[j];
+      c->acc_contact_time[j] += half * (cp + cn);
+      c->acc_f2[j] += half * (pf[j] + f2);
+      c->acc_z2[j] += half * (pz[j] + z2);
+      c->acc_power[j] += half * (pw[j] + pw_);
+      c->acc_run[j] += half * cp;
+      const int ended = (cp > 0) && !contact;
+      if (ended) {
+        if (c->acc_run[j] > c->acc_duration_max[j] || isnan(c->acc_run[j])) c->acc_duration_max[j] = c->acc_run[j];
+        c->acc_run[j] = 0.0;
+      }
+      c->acc_impacts[j] += contact && (cp == 0);
+      c->acc_run[j] += half * cn;
+    }
+    pc[j] = cn; pf[j] = f2; pz[j] = z2; pw[j] = pw_;
+  }
+  if (!c->acc_started) { c->acc_t0 = t; c->acc_started = 1; }
+  c->acc_t_prev = t;
+  track_peak(c, N);
+}
+
+/* ---------------------------------------------------------------- wiring */
+PetscErrorCode RomAttach(RomCtx *c, TS ts, Vec F, Vec G, Mat J, int shell)
+{
+  PetscFunctionBeginUser;
+  PetscCall(TSSetIFunction(ts, F, RomIFunction, c));
+  PetscCall(TSSetIJacobian(ts, J, J, shell ? RomIJacobianShell : RomIJacobianDense, c));
+  PetscCall(TSSetRHSFunction(ts, G, RomRHSFunction, c));
+  PetscFunctionReturn(0);
+}
+PetscErrorCode RomCreateShellMat(RomCtx *c, Mat *A)
+{
+  const PetscInt n = 2 * c->r;
+  PetscFunctionBeginUser;
+  PetscCall(MatCreateShell(PETSC_COMM_SELF, n, n, n, n, c, A));
+  PetscCall(MatShellSetOperation(*A, MATOP_MULT, (void (*)(void))RomMatMult));
+  PetscCall(MatAssemblyBegin(*A, MAT_FINAL_ASSEMBLY));
+  PetscCall(MatAssemblyEnd(*A, MAT_FINAL_ASSEMBLY));
+  PetscFunctionReturn(0);
+}
+PetscErrorCode RomSetPCShell(RomCtx *c, PC pc)
+{
+  PetscFunctionBeginUser;
+  PetscCall(PCSetType(pc, PCSHELL));
+  PetscCall(PCShellSetContext(pc, c));
+  PetscCall(PCShellSetApply(pc, RomPCApply));
+  PetscCall(PCShellSetName(pc, "dbf_hpc reduced model: exact solve (Cholesky of shift^2 I + shift D + K, Woodbury on the active constraints)"));
+  PetscFunctionReturn(0);
+}
+PetscErrorCode RomSetSNESShell(RomCtx *c, SNES snes)
+{
+  PetscFunctionBeginUser;
+  PetscCall(SNESSetType(snes, SNESSHELL));
+  PetscCall(SNESShellSetContext(snes, c));
+  PetscCall(SNESShellSetSolve(snes, RomSNESSolve));
+  PetscFunctionReturn(0);
+}
+PetscErrorCode RomDestroy(RomCtx *c)
+{
+  PetscFunctionBeginUser;
+  if (c->snes_dy) PetscCall(VecDestroy(&c->snes_dy));
+  PetscFunctionReturn(0);
+}
