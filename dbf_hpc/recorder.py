@@ -28,6 +28,7 @@ class SampleRecorder:
         n = constraints.count * constraints.dimension
         self.impacts = ImpactAccumulator(n)
         self.peak = np.zeros(n)  # signed largest |N| at the steps since the previous sample
+        self._tiled = {}         # block length -> the laws repeated for a block (steps)
 
     def _track_peak(self, force) -> None:
         larger = np.abs(force) > np.abs(self.peak)
@@ -45,6 +46,29 @@ class SampleRecorder:
         force = self.constraints.force(z, v)
         self.impacts.add(t, z, v, force)
         self._track_peak(force)
+
+    def steps(self, t, z, v) -> None:
+        """`step` for a block of k steps: t (k,), z and v (k, N_L d), in step order. One vectorized
+        law evaluation and accumulation per block (the full-order integrator's form)."""
+        t = np.asarray(t, dtype=float)
+        if t.size == 0:
+            return
+        n = self.peak.size
+        z = np.asarray(z, dtype=float).reshape(t.size, n)
+        v = np.asarray(v, dtype=float).reshape(t.size, n)
+        force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
+        self.impacts.add_block(t, z, v, force)
+        if n:
+            i = np.abs(force).argmax(axis=0)
+            self._track_peak(force[i, np.arange(n)])
+
+    def _block_laws(self, k: int):
+        """The laws repeated for k points (flat, point-major), one set per block length."""
+        from .laws import ConstraintLaws
+
+        if k not in self._tiled:
+            self._tiled[k] = ConstraintLaws(list(self.constraints.laws.laws) * k)
+        return self._tiled[k]
 
     def state(self) -> dict:
         """The recorder's part of a checkpoint (arrays)."""
