@@ -49,8 +49,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     the reduced model is measured against, same scene, same output layout."""
     if method not in ("rom", "full"):
         raise InputError(f"--method {method!r}: choose rom or full")
-    if method == "full" and (resume or initial_state is not None):
-        raise InputError("--method full starts from [initial]: it has no checkpoints to resume from")
+    if method == "full" and initial_state is not None:
+        raise InputError("--method full starts from [initial] (or resumes from its checkpoint), not from a reduced state")
     comm = comm or PETSc.COMM_WORLD
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else None
     path = output_path(scene, out)
@@ -62,7 +62,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         _say(say, f"dbf-hpc: {scene.path}: {fom.size} DOFs, {fom.constraints.count} constraint(s), "
                   f"{comm.getSize()} rank(s)")
         if method == "full":
-            return _run_full(scene, fom, path, settings, timings, say)
+            return _run_full(scene, fom, path, settings, timings, say, resume)
         t, solves = time.perf_counter(), counters["eigen_solves"]
         with Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
             basis = reductor.basis()
@@ -304,53 +304,113 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
             "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
 
 
-def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say) -> dict:
+class FullCheckpointing:
+    """Rank 0's control of a full-order run (fom_integrator.integrate_full's `control`): a checkpoint
+    every checkpoint_dt of simulated time and when SIGTERM asked for one, then a stop with the advice
+    to resume. A checkpoint holds the distributed state gathered on rank 0 (the rank count is part
+    of the run's identity), the recorder's statistics and the snapshots taken so far."""
+
+    def __init__(self, recorder: SampleRecorder, checkpoint: Checkpoint, interval: float, state: dict | None,
+                 snaps: dict):
+        self.recorder, self.checkpoint, self.interval, self.snaps = recorder, checkpoint, interval, snaps
+        self.interrupted = False
+        self.next = float(state["next_checkpoint"]) if state else interval
+        self.wall = float(state["wall"]) if state else 0.0
+        self.clock = time.perf_counter()
+
+    def at(self, t: float, steps: int):
+        if self.interrupted:
+            return "save and stop"
+        if t >= self.next:
+            self.next = t + self.interval
+            return "save"
+        return None
+
+    def save(self, state: dict) -> None:
+        self.recorder.writer.flush()
+        index = sorted(self.snaps)
+        width = len(self.snaps[index[0]]) if index else 0
+        self.checkpoint.write({**state, "samples": self.recorder.writer.count, "next_checkpoint": self.next,
+                               "wall": self.wall + time.perf_counter() - self.clock,
+                               "snapshot_index": np.array(index, dtype=np.int64),
+                               "snapshot_w": np.array([self.snaps[i] for i in index]).reshape(len(index), width),
+                               **self.recorder.state()})
+
+    def stop_message(self, t: float) -> str:
+        return f"stopped by a termination signal at t = {t:.6g} s; the run is checkpointed: rerun with --resume to continue"
+
+
+_RESUME_SCALARS = ("t", "steps", "next_sample", "lam", "pushing", "counters")
+
+
+def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume: bool) -> dict:
     """The full-order reference on fom.comm, every rank integrating its share of the state; rank 0
-    writes the same layout as a reduced run (no basis/ or reduced/ groups)."""
+    writes the same layout as a reduced run (no basis/ or reduced/ groups) and the checkpoints."""
     world = fom.comm.tompi4py()
     fom.damping_matrix()  # modal damping is an error: before any file is opened
     constraints, rows = fom.constraints, fom.constraints.flat_rows
     observed = np.concatenate([rows, fom.probe_rows])
     r_observed = fom.influence_at(observed)
     nc, support, field = rows.size, fom.support, fom.operators.field_map()
-    snap_index = _snapshot_samples(scene.output().snapshots, settings.sample_times)
+    output = scene.output()
+    snap_index = _snapshot_samples(output.snapshots, settings.sample_times)
     field_support = fom.field_support()
-    recorder, opened, snaps = None, None, {}
+    checkpoint = Checkpoint(f"{path}.checkpoint", run_identity(scene, {"fingerprint": fom.fingerprint}, world.size,
+                                                                "full"))
+    recorder = control = state = None
+    snaps, opened = {}, None
     if world.rank == 0:
         try:
-            recorder = SampleRecorder(OutputWriter(path, (constraints.count,), fom.probe_rows.size, 0), constraints)
+            state = checkpoint.read() if resume else None
+            if resume:
+                _say(say, f"resuming from the checkpoint at t = {float(state['t']):.6g} s" if state else
+                     "no usable checkpoint: starting from t = 0")
+            writer = (_reopen(path, int(state["samples"])) if state else
+                      OutputWriter(path, (constraints.count,), fom.probe_rows.size, 0))
+            recorder = SampleRecorder(writer, constraints)
+            if state:
+                recorder.restore(state)
+                snaps = {int(i): np.array(w) for i, w in zip(state["snapshot_index"], state["snapshot_w"])}
+            control = FullCheckpointing(recorder, checkpoint, output.checkpoint_dt, state, snaps)
+        except DbfError as exc:
+            opened = (type(exc).__name__, str(exc))
         except OSError as exc:
-            opened = f"cannot write {path}.partial: {exc.strerror or exc}"
-    opened = world.bcast(opened, root=0)  # every rank stops if rank 0 cannot write
+            opened = ("SolverError", f"cannot write {path}.partial: {exc.strerror or exc}")
+    opened = world.bcast(opened, root=0)  # every rank stops if rank 0 cannot write or resume
     if opened:
-        raise SolverError(opened)
+        raise (InputError if opened[0] == "InputError" else SolverError)(opened[1])
+    scalars = world.bcast({k: state[k] for k in _RESUME_SCALARS} if state else None, root=0)
+    resume_state = None if scalars is None else {**scalars, **({k: state[k] for k in ("X", "V", "A")} if state else {})}
 
     def record(t, x, xd):
         total, rate = x + r_observed * support.value(t), xd + r_observed * support.rate(t)
         recorder.sample(t, total[:nc], rate[:nc], total[nc:])
 
-    def on_step(t, x, xd):
-        recorder.step(t, x[:nc] + r_observed[:nc] * support.value(t), xd[:nc] + r_observed[:nc] * support.rate(t))
+    def on_steps(t, x, xd):
+        r_c = r_observed[:nc]
+        recorder.steps(t, x + np.outer(support.value(t), r_c), xd + np.outer(support.rate(t), r_c))
 
     def snapshot(i, values):
         if values is not None:
             snaps[i] = field.take(values) + field_support * support.value(settings.sample_times[i])
 
-    _say(say, f"integrating the full-order model to t = {settings.t_end:g} s with generalized-alpha (TSALPHA2, "
-              f"contact implicit, step {settings.dt:g} s)")
+    _say(say, f"integrating the full-order model to t = {settings.t_end:g} s with generalized-alpha (one "
+              f"factorization, contact condensed on {nc} DOF(s), step {settings.dt:g} s)")
     t = time.perf_counter()
     try:
-        stats = integrate_full(fom, settings, observed, record, on_step, snap_index, snapshot, say)
+        with _interrupt_on_sigterm(control):
+            stats = integrate_full(fom, settings, observed, record, on_steps, snap_index, snapshot, say,
+                                   control=control, resume=resume_state)
     except DbfError as exc:
-        raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, None)) from None
-    timings["integration"] = time.perf_counter() - t
+        raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint)) from None
+    timings["integration"] = time.perf_counter() - t + (control.wall if control else 0.0)
     summary = {}
     if world.rank == 0:
         snap_t = settings.sample_times[sorted(snaps)] if snaps else np.zeros(0)
         snap_w = np.array([snaps[i] for i in sorted(snaps)]).reshape(snap_t.size, field.positions.size)
         summary = finish(scene, recorder, stats, timings, world.size, "full", field.positions, snap_t, snap_w)
+        checkpoint.remove()
         summary_path = summary["path"]
-        _say(say, f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} "
-                  f"Newton failures, {stats['factorizations']} factorizations) in {timings['integration']:.2f} s; "
-                  f"wrote {summary_path}")
+        _say(say, f"done: {stats['steps']} steps ({stats['factorizations']} factorization(s), {stats['contact_steps']} "
+                  f"steps with contact) in {timings['integration']:.2f} s; wrote {summary_path}")
     return world.bcast(summary, root=0)

@@ -55,9 +55,9 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
         z, v = total(t, x, xd)
         recorder.sample(t, z[:n], v[:n], z[n:])
 
-    def on_step(t, x, xd):
-        z, v = total(t, x, xd)
-        recorder.step(t, z[:n], v[:n])
+    def on_steps(t, x, xd):
+        r_c = r[:n]
+        recorder.steps(t, x + np.outer(support.value(t), r_c), xd + np.outer(support.rate(t), r_c))
 
-    stats = integrate_full(fom, settings, observed, record, on_step, say=say)
+    stats = integrate_full(fom, settings, observed, record, on_steps, say=say)
     return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)
