@@ -59,6 +59,7 @@ contact problem is solved on rank 0 and broadcast, so every rank takes the same 
 """
 from __future__ import annotations
 
+import bisect
 import math
 import time
 
@@ -141,7 +142,8 @@ def step_count(t_end: float, dt: float) -> tuple[int, float]:
 class ConstraintRows:
     """Global rows, this rank's share of them, and their values gathered on every rank."""
 
-    def __init__(self, vec: PETSc.Vec, rows):
+    def __init__(self, vec: PETSc.Vec, rows, views: dict | None = None):
+        self.views = views or {}     # Vec handle -> local array, for vectors that outlive this object
         self.rows = np.asarray(rows, dtype=np.int64)
         self.n = self.rows.size
         lo, hi = vec.getOwnershipRange()
@@ -152,12 +154,19 @@ class ConstraintRows:
 
     def gather(self, vecs) -> np.ndarray:
         """(len(vecs), n): each Vec at the rows, on every rank (one Allreduce in parallel)."""
+        if not self.parallel:
+            return np.array([self._view(v)[self.local] for v in vecs])
         out = np.zeros((len(vecs), self.n))
         for i, v in enumerate(vecs):
-            out[i, self.mine] = v.getArray(readonly=True)[self.local]
-        if self.parallel:
-            self.comm.Allreduce(MPI.IN_PLACE, out)
+            out[i, self.mine] = self._view(v)[self.local]
+        self.comm.Allreduce(MPI.IN_PLACE, out)
         return out
+
+    def _view(self, vec: PETSc.Vec) -> np.ndarray:
+        """The local array of `vec`: the kept view of one of `views`' vectors (a Vec keeps its
+        array in place for its lifetime), else a fresh one."""
+        view = self.views.get(vec.handle)
+        return view if view is not None else vec.getArray(readonly=True)
 
 
 def _natural_fill_is_small(A: PETSc.Mat) -> bool:
@@ -765,15 +774,17 @@ class FullIntegrator:
                         y0 = yf
                     zb[k] = y0
                     vb[k] = vview[local]
+            if sampling:   # samples of this step come after the steps before it (cut k)
+                run.after(X[p], V, t_next, k)
+                next_sample = run.next_sample
             run.k = k + 1
-            if sampling or run.k == BLOCK or n + 1 == n_end:
+            if run.k == BLOCK or n + 1 == n_end or len(run.samples) >= BLOCK:
                 self.X0, self.X1, self.A0, self.A1 = X[p], X[1 - p], A[p], A[1 - p]
                 self.lam = lam
                 self.contact_steps += contact_steps
                 self.screened += screened
                 contact_steps = screened = 0
-                run.control(n + 1, t_next, sampling)
-                next_sample = run.next_sample
+                run.control(n + 1, t_next)
         self.X0, self.X1, self.A0, self.A1 = X[p], X[1 - p], A[p], A[1 - p]
         self.lam = lam
         self.contact_steps += contact_steps
@@ -820,24 +831,27 @@ class _Stop(Exception):
 
 
 class _Run:
-    """What the loop hands over at its control points (after a step that passed a sample, every
-    BLOCK steps, at the end of a run of equal steps): the samples (cubic Hermite between the steps
-    around them), the block of steps (on_steps), snapshots, progress, checkpoints, and rank 0's
-    word on stopping (an output that cannot be written, a stop request). Collective: every rank
-    takes the same path."""
+    """What the loop hands over: the samples (cubic Hermite between the steps around them) and the
+    steps, both buffered and handed to `on_block` at the control points (every BLOCK steps, at the
+    end of a run of equal steps), snapshots, progress, checkpoints, and rank 0's word on stopping
+    (an output that cannot be written, a stop request). Collective: every rank takes the same
+    path; the buffers live on rank 0."""
 
-    def __init__(self, integ: FullIntegrator, settings: IntegratorSettings, monitor: StepMonitor, rows, record,
-                 on_steps, snapshot_samples, snapshot, control, steps: int):
+    def __init__(self, integ: FullIntegrator, settings: IntegratorSettings, monitor: StepMonitor, rows, on_block,
+                 snapshot_samples, snapshot, control, steps: int):
         self.integ, self.monitor = integ, monitor
-        self.record, self.on_steps, self.snapshot, self.hook = record, on_steps, snapshot, control
+        self.on_block, self.snapshot, self.hook = on_block, snapshot, control
         self.snapshot_samples = set(int(i) for i in snapshot_samples)
+        self.snapshot_list = sorted(self.snapshot_samples)
         self.t_end, self.steps = settings.t_end, steps
         self.tol = monitor.tol
-        self.orow = ConstraintRows(integ.X0, rows)
+        self.orow = ConstraintRows(integ.X0, rows, {v.handle: v.getArray(readonly=True)
+                                                    for v in (integ.X0, integ.X1, integ.V)})
         self.world = integ.world
         nl = integ.nl
         self.tb, self.zb, self.vb = np.zeros(BLOCK), np.zeros((BLOCK, nl)), np.zeros((BLOCK, nl))
         self.k = 0
+        self.samples = []           # (t, values, rates, cut): cut = the block's steps before the sample
         self.start = None           # (t, values, rates) at the observed rows at the start of a sampling step
         self.prev_u = self.prev_v = None
         self.scatter = self.full = None
@@ -850,11 +864,12 @@ class _Run:
         return float(m.times[m.next]) if m.next < m.times.size else math.inf
 
     def initial(self, t: float) -> None:
-        """The samples at the start time itself (t = 0 of a new run)."""
+        """The samples at the start time itself (t = 0 of a new run), handed over at once."""
         X, V = self.integ.X0, self.integ.V
         values, rates = self.orow.gather([X, V])
         for index, sample, _ in self.monitor.samples_due(t):
-            self._emit(index, sample, values, rates, X, None)
+            self._sample(index, sample, values, rates, 0, X, None)
+        self._hand_over()
         self._word()
 
     def before(self, X, V, t: float, t_next: float) -> None:
@@ -863,25 +878,53 @@ class _Run:
         values, rates = self.orow.gather([X, V])
         self.start = (t, values, rates)
         m = self.monitor
-        i, snapshot = m.next, False
-        while i < m.times.size and m.times[i] <= t_next + self.tol:
-            snapshot |= i in self.snapshot_samples
-            i += 1
-        if snapshot:
+        later = self.snapshot_list[bisect.bisect_left(self.snapshot_list, m.next):]
+        if later and m.times[later[0]] <= t_next + self.tol:
             if self.prev_u is None:
                 self.prev_u, self.prev_v = X.duplicate(), V.duplicate()
             X.copy(self.prev_u)
             V.copy(self.prev_v)
 
-    def control(self, step: int, t: float, sampling: bool) -> None:
+    def after(self, X, V, t: float, cut: int) -> None:
+        """At the end of that step: its samples, after the block's first `cut` steps."""
+        values, rates = self.orow.gather([X, V])
+        t0, x0, xd0 = self.start
+        h = t - t0
+        for index, sample, exact in self.monitor.samples_due(t):
+            if exact:
+                self._sample(index, sample, values, rates, cut, X, None)
+                continue
+            weights, (c0, d0, c1, d1) = _hermite((sample - t0) / h, h)
+            a0, b0, a1, b1 = weights
+            x = a0 * x0 + b0 * h * xd0 + a1 * values + b1 * h * rates
+            xd = c0 * x0 + d0 * xd0 + c1 * values + d1 * rates
+            self._sample(index, sample, x, xd, cut, X, (weights, h, V))
+
+    def _sample(self, index, sample, x, xd, cut, X, interpolate) -> None:
+        if index in self.snapshot_samples and self.snapshot is not None:
+            field = self._field(X) if interpolate is None else self._interpolated_field(X, *interpolate)
+            self._call(self.snapshot, index, field)
+        if self.world.rank == 0:
+            self.samples.append((sample, x, xd, cut))
+
+    def _hand_over(self) -> None:
+        """The buffered steps and samples to on_block (rank 0), then empty buffers."""
+        if self.world.rank == 0 and (self.k or self.samples) and self.on_block is not None:
+            m = self.orow.n
+            samples = self.samples
+            self._call(self.on_block,
+                       (self.tb[:self.k].copy(), self.zb[:self.k].copy(), self.vb[:self.k].copy()),
+                       (np.array([s[0] for s in samples]), np.array([s[1] for s in samples]).reshape(-1, m),
+                        np.array([s[2] for s in samples]).reshape(-1, m),
+                        np.array([s[3] for s in samples], dtype=np.int64)))
+        self.k = 0
+        self.samples = []
+
+    def control(self, step: int, t: float) -> None:
         """A control point after `step` steps, at t."""
         integ, monitor = self.integ, self.monitor
         self.t = t
-        if sampling:
-            self._samples(t)
-        if self.k and self.on_steps is not None and integ.nl and self.world.rank == 0:
-            self._call(self.on_steps, self.tb[:self.k].copy(), self.zb[:self.k].copy(), self.vb[:self.k].copy())
-        self.k = 0
+        self._hand_over()
         norm = integ.X0.norm() + integ.V.norm()
         if not math.isfinite(norm):
             raise SolverError(f"the state is not finite at t = {t:.6g} s (step {step}); {ADVICE}, or lower "
@@ -908,28 +951,6 @@ class _Run:
         if self.failure:
             raise SolverError(self.failure)
         return action
-
-    def _samples(self, t: float) -> None:
-        X, V = self.integ.X0, self.integ.V
-        values, rates = self.orow.gather([X, V])
-        t0, x0, xd0 = self.start
-        h = t - t0
-        for index, sample, exact in self.monitor.samples_due(t):
-            if exact:
-                self._emit(index, sample, values, rates, X, None)
-                continue
-            weights, (c0, d0, c1, d1) = _hermite((sample - t0) / h, h)
-            a0, b0, a1, b1 = weights
-            x = a0 * x0 + b0 * h * xd0 + a1 * values + b1 * h * rates
-            xd = c0 * x0 + d0 * xd0 + c1 * values + d1 * rates
-            self._emit(index, sample, x, xd, X, (weights, h, V))
-
-    def _emit(self, index, sample, x, xd, X, interpolate) -> None:
-        if index in self.snapshot_samples and self.snapshot is not None:
-            field = self._field(X) if interpolate is None else self._interpolated_field(X, *interpolate)
-            self._call(self.snapshot, index, field)
-        if self.world.rank == 0:
-            self._call(self.record, sample, x, xd)
 
     def _field(self, u) -> np.ndarray | None:
         if self.scatter is None:
@@ -979,21 +1000,23 @@ def _segments(first: int, steps: int, dt: float, h_last: float):
     return out + ([(max(first, steps - 1), steps, h_last)] if first < steps else [])
 
 
-def integrate_full(fom: FullOrderModel, settings: IntegratorSettings, rows, record, on_steps=None,
-                   snapshot_samples=(), snapshot=None, say=None, control=None, resume=None) -> dict:
+def integrate_full(fom: FullOrderModel, settings: IntegratorSettings, rows, on_block, snapshot_samples=(),
+                   snapshot=None, say=None, control=None, resume=None) -> dict:
     """Integrate from (u(0), u'(0) = 0) at t = 0, or from a checkpoint (`resume`), to t_end with fixed
     steps [integrator] dt (the last one shortened to end at t_end), observing (u, u') at `rows`:
-      record(t, values, rates)   at each sample time (rank 0)
-      on_steps(t, z, v)          the steps in blocks, t (k,), z and v (k, N_L): u and u' at the
-                                 constraint rows fom.constraints.flat_rows after each step, handed
-                                 over before the next sample is recorded (rank 0)
+      on_block(steps, samples)   rank 0, in blocks (at most BLOCK steps), in order:
+                                 steps = (t (k,), z (k, N_L), v (k, N_L)): u, u' at the constraint
+                                 rows fom.constraints.flat_rows after each step;
+                                 samples = (t (J,), x (J, m), xd (J, m), cut (J,)): u, u' at `rows`
+                                 at the sample times, sample j coming after the block's first
+                                 cut[j] steps (FullRecorder.block takes both)
       snapshot(i, u)             the field at the samples in `snapshot_samples` (u on rank 0, None
                                  elsewhere; called on every rank)
-      control                    rank 0's hook at the control points (after each sample, at most
-                                 every BLOCK steps): control.at(t, steps) -> None, "save" or
-                                 "save and stop"; control.save(state) writes a checkpoint
-                                 (FullIntegrator.get_state() with t, steps, next_sample);
-                                 control.stop_message(t) is the Interrupted error's line
+      control                    rank 0's hook at the control points (every BLOCK steps at most):
+                                 control.at(t, steps) -> None, "save" or "save and stop";
+                                 control.save(state) writes a checkpoint (FullIntegrator.get_state()
+                                 with t, steps, next_sample); control.stop_message(t) is the
+                                 Interrupted error's line
       resume                     such a state (the arrays on rank 0, the rest on every rank)
     Returns solver statistics (the keys of the reduced integrator's, plus factorizations and contact
     counts). An OSError in a callback on rank 0 ends the run on every rank. Collective."""
@@ -1018,7 +1041,7 @@ def integrate_full(fom: FullOrderModel, settings: IntegratorSettings, rows, reco
                 integ.start(u, v)
             finally:
                 destroy(u, v)
-        run = _Run(integ, settings, monitor, rows, record, on_steps, snapshot_samples, snapshot, control, steps)
+        run = _Run(integ, settings, monitor, rows, on_block, snapshot_samples, snapshot, control, steps)
         if not resume:
             run.initial(0.0)
         try:

@@ -80,6 +80,65 @@ class SampleRecorder:
                                                      if k.startswith("impacts/")})
 
 
+class FullRecorder(SampleRecorder):
+    """A full-order run's samples and steps, handed over in blocks (fom_integrator.integrate_full's
+    on_block): u and u' relative to the support at the observed rows (the constraints', then the
+    probes'), made total here with the influence r_observed at those rows."""
+
+    def __init__(self, writer, constraints: ConstraintSet, r_observed, support):
+        super().__init__(writer, constraints)
+        self.r, self.support = np.asarray(r_observed, dtype=float), support
+        self.moving = bool(np.any(self.r))
+
+    def _total(self, t, x, xd):
+        if not self.moving:
+            return x, xd
+        return x + np.outer(self.support.value(t), self.r[:x.shape[1]]), \
+            xd + np.outer(self.support.rate(t), self.r[:x.shape[1]])
+
+    def block(self, steps, samples) -> None:
+        """steps = (t (k,), z (k, N_L), v (k, N_L)) after each step; samples = (t (J,), x (J, m),
+        xd (J, m), cut (J,)), sample j after the first cut[j] steps: the same rows, peaks and
+        statistics as step-by-step `step` and `sample` calls in that order."""
+        n = self.peak.size
+        t, z, v = steps
+        if t.size:
+            z, v = self._total(t, z, v)
+            force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
+            self.impacts.add_block(t, z, v, force)
+        ts, x, xd, cut = samples
+        if not ts.size:
+            if t.size:
+                self.peak = _segment_peaks(np.vstack((self.peak, force)), np.array([0]))[0]
+            return
+        x, xd = self._total(ts, x, xd)
+        sample_force = self._block_laws(ts.size).force(x[:, :n].ravel(), xd[:, :n].ravel()).reshape(ts.size, n)
+        # The sequence a step-by-step record sees: the peak carried in, then for each sample the steps
+        # before it and the sample itself (whose row carries the peak since the previous sample).
+        events = np.vstack((self.peak, np.insert(force, cut, sample_force, axis=0) if t.size else sample_force))
+        ends = 1 + np.asarray(cut) + np.arange(ts.size)
+        peaks = _segment_peaks(events[:ends[-1] + 1], np.concatenate(([0], ends[:-1] + 1)))
+        tail = events[ends[-1] + 1:]
+        self.peak = _segment_peaks(np.vstack((np.zeros(n), tail)), np.array([0]))[0] if tail.size else np.zeros(n)
+        for j in range(ts.size):
+            self.writer.append(**{layout.TIME: ts[j], layout.CONSTRAINT_DISPLACEMENT: x[j, :n],
+                                  layout.CONSTRAINT_VELOCITY: xd[j, :n], layout.CONSTRAINT_FORCE: sample_force[j],
+                                  layout.CONSTRAINT_FORCE_PEAK: peaks[j], layout.PROBE_DISPLACEMENT: x[j, n:],
+                                  layout.REDUCED_Q: (), layout.REDUCED_QDOT: ()})
+
+
+def _segment_peaks(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """(len(starts), n): in each run of rows values[starts[i]:starts[i + 1]] (the last to the end),
+    per column the first value of largest magnitude, signed: what successive `_track_peak` calls
+    keep (a later value replaces the peak only when strictly larger)."""
+    magnitude = np.abs(values)
+    largest = np.maximum.reduceat(magnitude, starts, axis=0)
+    segment = np.repeat(np.arange(starts.size), np.diff(np.append(starts, values.shape[0])))
+    rows = np.arange(values.shape[0])[:, None]
+    first = np.minimum.reduceat(np.where(magnitude == largest[segment], rows, values.shape[0]), starts, axis=0)
+    return values[first, np.arange(values.shape[1])]
+
+
 class ReducedRecorder(SampleRecorder):
     """A reduced run's samples from q: the values at the constraints and probes, the coordinates at
     the snapshot samples (for the field, rom.ReducedField), and the final state."""

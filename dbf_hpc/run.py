@@ -24,7 +24,7 @@ from .errors import DbfError, InputError, Interrupted, SolverError
 from .fom_integrator import integrate_full
 from .modes import counters
 from .output import OutputWriter, check_output_path
-from .recorder import ReducedRecorder, SampleRecorder
+from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
 from .rom_integrator import integrate_reduced
@@ -367,7 +367,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
                      "no usable checkpoint: starting from t = 0")
             writer = (_reopen(path, int(state["samples"])) if state else
                       OutputWriter(path, (constraints.count,), fom.probe_rows.size, 0))
-            recorder = SampleRecorder(writer, constraints)
+            recorder = FullRecorder(writer, constraints, r_observed, support)
             if state:
                 recorder.restore(state)
                 snaps = {int(i): np.array(w) for i, w in zip(state["snapshot_index"], state["snapshot_w"])}
@@ -382,14 +382,6 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     scalars = world.bcast({k: state[k] for k in _RESUME_SCALARS} if state else None, root=0)
     resume_state = None if scalars is None else {**scalars, **({k: state[k] for k in ("X", "V", "A")} if state else {})}
 
-    def record(t, x, xd):
-        total, rate = x + r_observed * support.value(t), xd + r_observed * support.rate(t)
-        recorder.sample(t, total[:nc], rate[:nc], total[nc:])
-
-    def on_steps(t, x, xd):
-        r_c = r_observed[:nc]
-        recorder.steps(t, x + np.outer(support.value(t), r_c), xd + np.outer(support.rate(t), r_c))
-
     def snapshot(i, values):
         if values is not None:
             snaps[i] = field.take(values) + field_support * support.value(settings.sample_times[i])
@@ -399,8 +391,8 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     t = time.perf_counter()
     try:
         with _interrupt_on_sigterm(control):
-            stats = integrate_full(fom, settings, observed, record, on_steps, snap_index, snapshot, say,
-                                   control=control, resume=resume_state)
+            stats = integrate_full(fom, settings, observed, recorder.block if recorder else None, snap_index, snapshot,
+                                   say, control=control, resume=resume_state)
     except DbfError as exc:
         raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint)) from None
     timings["integration"] = time.perf_counter() - t + (control.wall if control else 0.0)

@@ -14,7 +14,7 @@ import numpy as np
 from .fom import FullOrderModel
 from .fom_integrator import integrate_full
 from .output import MemoryWriter
-from .recorder import ReducedRecorder, Result, SampleRecorder
+from .recorder import FullRecorder, ReducedRecorder, Result
 from .rom import ReducedModel
 from .rom_integrator import integrate_reduced
 from .timestepping import IntegratorSettings
@@ -41,23 +41,8 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     """Integrate the full-order model (fom_integrator.py) and return the same Result as
     simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""
     world = fom.comm.tompi4py()
-    rows = fom.constraints.flat_rows
-    observed = np.concatenate([rows, fom.probe_rows])
-    r = fom.influence_at(observed)
-    n = rows.size
-    recorder = SampleRecorder(MemoryWriter((fom.constraints.count,), fom.probe_rows.size, 0), fom.constraints)
-    support = fom.support
-
-    def total(t, x, xd):
-        return x + r * support.value(t), xd + r * support.rate(t)
-
-    def record(t, x, xd):
-        z, v = total(t, x, xd)
-        recorder.sample(t, z[:n], v[:n], z[n:])
-
-    def on_steps(t, x, xd):
-        r_c = r[:n]
-        recorder.steps(t, x + np.outer(support.value(t), r_c), xd + np.outer(support.rate(t), r_c))
-
-    stats = integrate_full(fom, settings, observed, record, on_steps, say=say)
+    observed = np.concatenate([fom.constraints.flat_rows, fom.probe_rows])
+    recorder = FullRecorder(MemoryWriter((fom.constraints.count,), fom.probe_rows.size, 0), fom.constraints,
+                            fom.influence_at(observed), fom.support)
+    stats = integrate_full(fom, settings, observed, recorder.block, say=say)
     return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)
