@@ -171,15 +171,31 @@ class ConstraintRows:
 
 def _natural_fill_is_small(A: PETSc.Mat) -> bool:
     """Whether Cholesky in the natural ordering keeps the fill within 10 times the lower triangle
-    (a beam's banded matrix does; a 3-D mesh does not). Sequential matrices only."""
-    ia, ja = A.getRowIJ(symmetric=False, compressed=False)
+    (a beam's banded matrix does; a 3-D mesh does not). Collective."""
+    lo, _ = A.getOwnershipRange()
+    ia, ja, _ = A.getValuesCSR()
     n = ia.size - 1
-    if n == 0:
-        return True
-    first = np.minimum.reduceat(ja, ia[:-1]) if ja.size else np.arange(n)
-    envelope = float(np.sum(np.maximum(np.arange(n) - first, 0) + 1))
-    lower = (ja.size + n) / 2
+    envelope = lower = 0.0
+    if n:
+        first = np.minimum.reduceat(ja, ia[:-1])
+        envelope = float(np.sum(np.maximum(lo + np.arange(n) - first, 0) + 1))
+        lower = (ja.size + n) / 2
+    envelope, lower = A.getComm().tompi4py().allreduce(np.array([envelope, lower]))
     return envelope <= 10.0 * lower
+
+
+def factorization(A: PETSc.Mat) -> dict:
+    """The default factorization of an SPD matrix (options under the solver's prefix): PETSc's own
+    Cholesky in the natural ordering when that keeps the fill small (a beam: a solve costs
+    microseconds), on every rank at once in parallel (PCREDUNDANT: MUMPS's solve of a small
+    distributed system costs milliseconds); MUMPS's Cholesky otherwise. Collective."""
+    if _natural_fill_is_small(A):
+        native = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "natural"}
+        if A.getComm().getSize() == 1:
+            return {"ksp_type": "preonly", "pc_type": "cholesky", **native}
+        return {"ksp_type": "preonly", "pc_type": "redundant", "redundant_ksp_type": "preonly",
+                "redundant_pc_type": "cholesky", **{f"redundant_{k}": v for k, v in native.items()}}
+    return {"ksp_type": "preonly", "pc_type": "cholesky", "pc_factor_mat_solver_type": "mumps"}
 
 
 class EffectiveSystem:
@@ -202,8 +218,7 @@ class EffectiveSystem:
             A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
             if symmetric_positive:
                 A.setOption(PETSc.Mat.Option.SPD, True)
-            package = "mumps" if comm.getSize() > 1 or not _natural_fill_is_small(A) else "petsc"
-            self.ksp, self.solve, self.description = _factored(A, package, PREFIX, "the step's matrix K_eff")
+            self.ksp, self.solve, self.description = _factored(A, factorization(A), PREFIX, "the step's matrix K_eff")
             self.t_factor = time.perf_counter() - started
             lo, hi = A.getOwnershipRange()
             e = A.createVecLeft()
@@ -232,16 +247,13 @@ class EffectiveSystem:
         self.Y = []
 
 
-def _factored(A: PETSc.Mat, package: str, prefix: str, what: str):
-    """A KSP (preonly + Cholesky by `package` unless the user's options say otherwise) set up on A,
-    the fastest exact solve it offers (the factor's MatSolve for a plain factorization), and a
-    description. PETSc errors become one-line SolverErrors."""
+def _factored(A: PETSc.Mat, defaults: dict, prefix: str, what: str):
+    """A KSP set up on A with the code's `defaults` (factorization()) under `prefix`, the user's
+    options winning; the fastest exact solve it offers (the factor's MatSolve for a plain
+    factorization); a description. PETSc errors become one-line SolverErrors."""
     ksp = PETSc.KSP().create(comm=A.getComm())
     try:
         ksp.setOperators(A)
-        defaults = {"ksp_type": "preonly", "pc_type": "cholesky", "pc_factor_mat_solver_type": package}
-        if package == "petsc":
-            defaults["pc_factor_mat_ordering_type"] = "natural"  # PETSc's own Cholesky on AIJ takes no other
         with options_defaults(prefix, defaults):
             ksp.setOptionsPrefix(prefix)
             ksp.setFromOptions()
@@ -262,6 +274,12 @@ def _factored(A: PETSc.Mat, package: str, prefix: str, what: str):
                 factor.solve(b, x)
         else:
             description = f"KSP {kind} + PC {pc_type}"
+            if pc_type == "redundant":
+                options = PETSc.Options(prefix)
+                inner = (options.getString("redundant_pc_factor_mat_solver_type", defaults.get(
+                         "redundant_pc_factor_mat_solver_type", "?")), options.getString(
+                         "redundant_pc_type", defaults.get("redundant_pc_type", "lu")))
+                description = f"{inner[0]} {inner[1]} on every rank (redundant)"
 
             def solve(b, x):
                 ksp.solve(b, x)
@@ -570,8 +588,8 @@ class FullIntegrator:
         if not math.isfinite(norm):
             raise SolverError("the initial state gives a load that is not finite; check [initial] and the excitation")
         self.M.setOption(PETSc.Mat.Option.SPD, True)
-        package = "mumps" if self.comm.getSize() > 1 or not _natural_fill_is_small(self.M) else "petsc"
-        ksp, solve, description = _factored(self.M, package, PREFIX + "mass_", "the mass matrix M (the start)")
+        ksp, solve, description = _factored(self.M, factorization(self.M), PREFIX + "mass_",
+                                            "the mass matrix M (the start)")
         self.factorizations += 1
         try:
             solve(B, self.A0)
