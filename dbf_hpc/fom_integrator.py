@@ -796,7 +796,7 @@ class FullIntegrator:
                 run.after(X[p], V, t_next, k)
                 next_sample = run.next_sample
             run.k = k + 1
-            if run.k == BLOCK or n + 1 == n_end or len(run.samples) >= BLOCK:
+            if run.k == BLOCK or n + 1 == n_end or run.pending >= BLOCK:
                 self.X0, self.X1, self.A0, self.A1 = X[p], X[1 - p], A[p], A[1 - p]
                 self.lam = lam
                 self.contact_steps += contact_steps
@@ -869,7 +869,8 @@ class _Run:
         nl = integ.nl
         self.tb, self.zb, self.vb = np.zeros(BLOCK), np.zeros((BLOCK, nl)), np.zeros((BLOCK, nl))
         self.k = 0
-        self.samples = []           # (t, values, rates, cut): cut = the block's steps before the sample
+        self.samples = []           # rank 0: (t, values, rates, cut), cut = the block's steps before the sample
+        self.pending = 0            # samples taken since the last hand-over
         self.start = None           # (t, values, rates) at the observed rows at the start of a sampling step
         self.prev_u = self.prev_v = None
         self.scatter = self.full = None
@@ -922,6 +923,7 @@ class _Run:
         if index in self.snapshot_samples and self.snapshot is not None:
             field = self._field(X) if interpolate is None else self._interpolated_field(X, *interpolate)
             self._call(self.snapshot, index, field)
+        self.pending += 1   # on every rank: the control points depend on it
         if self.world.rank == 0:
             self.samples.append((sample, x, xd, cut))
 
@@ -935,7 +937,7 @@ class _Run:
                        (np.array([s[0] for s in samples]), np.array([s[1] for s in samples]).reshape(-1, m),
                         np.array([s[2] for s in samples]).reshape(-1, m),
                         np.array([s[3] for s in samples], dtype=np.int64)))
-        self.k = 0
+        self.k = self.pending = 0
         self.samples = []
 
     def control(self, step: int, t: float) -> None:
