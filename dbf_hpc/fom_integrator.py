@@ -75,6 +75,8 @@ from .timestepping import IntegratorSettings, StepMonitor, check_outcome
 PREFIX = "full_"
 WHAT = "full-order integration"
 ADVICE = "reduce [integrator] dt"
+NOT_FINITE = ("check the excitation, the initial state and the laws for values beyond double precision, or "
+              "reduce [integrator] dt")
 BLOCK = 256          # steps between control points at most (statistics handed over, checkpoints, stop)
 DIFFERENT = PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN
 EXACT_SOLVE = 1e-8   # relative residual a factorization's solves must reach
@@ -184,12 +186,14 @@ def _natural_fill_is_small(A: PETSc.Mat) -> bool:
     return envelope <= 10.0 * lower
 
 
-def factorization(A: PETSc.Mat) -> dict:
-    """The default factorization of an SPD matrix (options under the solver's prefix): PETSc's own
-    Cholesky in the natural ordering when that keeps the fill small (a beam: a solve costs
-    microseconds), on every rank at once in parallel (PCREDUNDANT: MUMPS's solve of a small
-    distributed system costs milliseconds); MUMPS's Cholesky otherwise. Collective."""
-    if _natural_fill_is_small(A):
+def factorization(A: PETSc.Mat, prefix: str) -> dict:
+    """The default factorization of an SPD matrix (options under `prefix`): PETSc's own Cholesky in
+    the natural ordering when that keeps the fill small (a beam: a solve costs microseconds), on
+    every rank at once in parallel (PCREDUNDANT: MUMPS's solve of a small distributed system costs
+    milliseconds); MUMPS's Cholesky otherwise, and whenever the user set a -<prefix>pc_, ksp_ or
+    mat_ option (which then applies to the distributed factorization, as they expect). Collective."""
+    user = any(k.startswith(tuple(prefix + p for p in ("pc_", "ksp_", "mat_"))) for k in PETSc.Options().getAll())
+    if not user and _natural_fill_is_small(A):
         native = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "natural"}
         if A.getComm().getSize() == 1:
             return {"ksp_type": "preonly", "pc_type": "cholesky", **native}
@@ -218,7 +222,7 @@ class EffectiveSystem:
             A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
             if symmetric_positive:
                 A.setOption(PETSc.Mat.Option.SPD, True)
-            self.ksp, self.solve, self.description = _factored(A, factorization(A), PREFIX, "the step's matrix K_eff")
+            self.ksp, self.solve, self.description = _factored(A, factorization(A, PREFIX), PREFIX, "the step's matrix K_eff")
             self.t_factor = time.perf_counter() - started
             lo, hi = A.getOwnershipRange()
             e = A.createVecLeft()
@@ -413,7 +417,7 @@ class ContactNewton:
         it = 0
         while not float(np.max(np.abs(r))) <= tol:
             if not np.all(np.isfinite(r)):
-                raise SolverError(f"the contact force is not finite at t = {t:.6g} s; {ADVICE}, or check the laws")
+                raise SolverError(f"the contact force is not finite at t = {t:.6g} s; {NOT_FINITE}")
             if it == self.MAX_IT:
                 y, lam = self._fallback(problem, tol, t)
                 break
@@ -464,7 +468,7 @@ class ContactNewton:
                         lo = mid
                 x = 0.5 * (lo + hi)
                 if not math.isfinite(x):
-                    raise SolverError(f"the contact force is not finite at t = {t:.6g} s; {ADVICE}, or check the laws")
+                    raise SolverError(f"the contact force is not finite at t = {t:.6g} s; {NOT_FINITE}")
                 if abs(r_j(x)) > tol:
                     self.jumps += 1
                 change = max(change, abs(x - y[j]))
@@ -588,7 +592,7 @@ class FullIntegrator:
         if not math.isfinite(norm):
             raise SolverError("the initial state gives a load that is not finite; check [initial] and the excitation")
         self.M.setOption(PETSc.Mat.Option.SPD, True)
-        ksp, solve, description = _factored(self.M, factorization(self.M), PREFIX + "mass_",
+        ksp, solve, description = _factored(self.M, factorization(self.M, PREFIX + "mass_"), PREFIX + "mass_",
                                             "the mass matrix M (the start)")
         self.factorizations += 1
         try:
@@ -822,8 +826,7 @@ class FullIntegrator:
                 problem = ContactStep(self.laws, D, yf, z_c, v_c, x_pred, af, sV)
                 y_start = yf + D @ lam_prev if lam_prev is not None else yf
                 if not (np.all(np.isfinite(yf)) and np.all(np.isfinite(x_pred))):
-                    raise SolverError(f"the state is not finite at t = {t:.6g} s; {ADVICE}, or lower "
-                                      f"-full_alpha_radius to damp the mesh modes")
+                    raise SolverError(f"the state is not finite at t = {t:.6g} s; {NOT_FINITE}")
                 _, lam = self.newton.solve(problem, y_start, t)
                 result = lam
             except SolverError as e:
@@ -947,8 +950,7 @@ class _Run:
         self._hand_over()
         norm = integ.X0.norm() + integ.V.norm()
         if not math.isfinite(norm):
-            raise SolverError(f"the state is not finite at t = {t:.6g} s (step {step}); {ADVICE}, or lower "
-                              f"-full_alpha_radius below 1 to damp the mesh modes")
+            raise SolverError(f"the state is not finite at t = {t:.6g} s (step {step}); {NOT_FINITE}")
         action = None
         if self.world.rank == 0 and not self.failure and self.hook is not None:
             action = self._call(self.hook.at, t, step)

@@ -22,6 +22,7 @@ from . import layout
 from .checkpoint import Checkpoint, identity
 from .errors import DbfError, InputError, Interrupted, SolverError
 from .fom_integrator import integrate_full
+from .fom_integrator import options as full_options
 from .modes import counters
 from .output import OutputWriter, check_output_path
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
@@ -347,7 +348,8 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     """The full-order reference on fom.comm, every rank integrating its share of the state; rank 0
     writes the same layout as a reduced run (no basis/ or reduced/ groups) and the checkpoints."""
     world = fom.comm.tompi4py()
-    fom.damping_matrix()  # modal damping is an error: before any file is opened
+    fom.damping_matrix()  # modal damping and bad -full_ options are errors before any file is opened
+    full_options()
     constraints, rows = fom.constraints, fom.constraints.flat_rows
     observed = np.concatenate([rows, fom.probe_rows])
     r_observed = fom.influence_at(observed)
