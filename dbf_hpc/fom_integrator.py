@@ -194,7 +194,10 @@ def factorization(A: PETSc.Mat, prefix: str) -> dict:
     mat_ option (which then applies to the distributed factorization, as they expect). Collective."""
     user = any(k.startswith(tuple(prefix + p for p in ("pc_", "ksp_", "mat_"))) for k in PETSc.Options().getAll())
     if not user and _natural_fill_is_small(A):
-        native = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "natural"}
+        # PETSc's own factorization calls a pivot below 1e-12 zero (an absolute tolerance): a fine beam's
+        # rotational masses are 3e-14 kg m^2 at 1000 elements. Only an exact 0 is a zero pivot here.
+        native = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "natural",
+                  "pc_factor_zeropivot": "0.0"}
         if A.getComm().getSize() == 1:
             return {"ksp_type": "preonly", "pc_type": "cholesky", **native}
         return {"ksp_type": "preonly", "pc_type": "redundant", "redundant_ksp_type": "preonly",
@@ -273,9 +276,7 @@ def _factored(A: PETSc.Mat, defaults: dict, prefix: str, what: str):
             factor = pc.getFactorMatrix()
             solver = pc.getFactorSolverType()
             description = f"{solver} {pc_type}"
-
-            def solve(b, x):
-                factor.solve(b, x)
+            solve = factor.solve
         else:
             description = f"KSP {kind} + PC {pc_type}"
             if pc_type == "redundant":
@@ -373,18 +374,26 @@ class ContactStep:
     def __init__(self, laws, D, y_free, z_c, v_c, x_pred, af: float, sV: float):
         self.laws, self.D, self.y_free = laws, D, y_free
         self.z_c, self.v_c, self.x_pred = z_c, v_c, x_pred
-        self.af, self.sV, self.afsV = af, sV, af * sV
+        self.af, self.sV, self.afsV, self.inv_af = af, sV, af * sV, 1.0 / af
 
     def state(self, y):
         """(z_a, v_a) at y."""
         return self.z_c + self.af * y, self.v_c + self.afsV * (y - self.x_pred)
 
+    def evaluate(self, y):
+        """(r, lambda = N / a_f, the diagonal N_z + s_V N_v of dlambda/dy)."""
+        N, Nz, Nv = self.laws.force_and_jacobian(self.z_c + self.af * y, self.v_c + self.afsV * (y - self.x_pred))
+        lam = N * self.inv_af
+        return y - self.y_free - self.D @ lam, lam, Nz + self.sV * Nv
+
+    def jacobian(self, slope):
+        """J = I - D diag(slope)."""
+        return np.eye(slope.size) - self.D * slope[None, :]
+
     def residual(self, y):
         """(r, lambda = N / a_f, J)."""
-        N, Nz, Nv = self.laws.force_and_jacobian(*self.state(y))
-        lam = N / self.af
-        J = np.eye(y.size) - self.D * (Nz + self.sV * Nv)[None, :]
-        return y - self.y_free - self.D @ lam, lam, J
+        r, lam, slope = self.evaluate(y)
+        return r, lam, self.jacobian(slope)
 
     def force(self, y):
         return self.laws.force(*self.state(y)) / self.af
@@ -410,34 +419,45 @@ class ContactNewton:
     def solve(self, problem: ContactStep, y_start, t: float):
         """(y, lambda) with lambda = None when no constraint pushes."""
         self.calls += 1
-        scale = max(float(np.max(np.abs(problem.y_free))), float(np.max(np.abs(y_start))), 1e-300)
+        scale = max(float(np.abs(problem.y_free).max()), float(np.abs(y_start).max()), 1e-300)
         tol = 1e-12 * scale
         y = y_start
-        r, lam, J = problem.residual(y)
+        r, lam, slope = problem.evaluate(y)
+        norm_inf = float(np.abs(r).max())
+        single = y.size == 1
+        D00 = float(problem.D[0, 0]) if single else 0.0
         it = 0
-        while not float(np.max(np.abs(r))) <= tol:
-            if not np.all(np.isfinite(r)):
+        while not norm_inf <= tol:
+            if not math.isfinite(norm_inf):
                 raise SolverError(f"the contact force is not finite at t = {t:.6g} s; {NOT_FINITE}")
             if it == self.MAX_IT:
                 y, lam = self._fallback(problem, tol, t)
                 break
             it += 1
-            try:
-                dy = np.linalg.solve(J, -r)
-            except np.linalg.LinAlgError:
-                y, lam = self._fallback(problem, tol, t)
-                break
+            if single:
+                pivot = 1.0 - D00 * float(slope[0])
+                if pivot == 0.0:
+                    y, lam = self._fallback(problem, tol, t)
+                    break
+                dy = -r / pivot
+            else:
+                try:
+                    dy = np.linalg.solve(problem.jacobian(slope), -r)
+                except np.linalg.LinAlgError:
+                    y, lam = self._fallback(problem, tol, t)
+                    break
             norm = float(r @ r)
             step = 1.0
             for _ in range(30):
                 trial = y + step * dy
-                rt, lam_t, J_t = problem.residual(trial)
-                if float(rt @ rt) <= (1 - 1e-4 * step) * norm or float(np.max(np.abs(rt))) <= tol:
+                r_t, lam_t, slope_t = problem.evaluate(trial)
+                norm_t = float(np.abs(r_t).max())
+                if float(r_t @ r_t) <= (1 - 1e-4 * step) * norm or norm_t <= tol:
                     break
                 step *= 0.5
-            y, r, lam, J = trial, rt, lam_t, J_t
+            y, r, lam, slope, norm_inf = trial, r_t, lam_t, slope_t, norm_t
         self.iterations += it
-        return y, (lam if np.any(lam) else None)
+        return y, (lam if lam.any() else None)
 
     def _fallback(self, problem: ContactStep, tol: float, t: float):
         """Nonlinear Gauss-Seidel with bracketed bisection per constraint (class docstring)."""
@@ -548,6 +568,7 @@ class FullIntegrator:
         self.lam = None              # lambda of the previous step (None: no constraint pushed)
         self.factorizations = 0
         self.setup_time = 0.0
+        self.loop_time = 0.0         # wall time of the steps, factorizations excluded
         self.contact_steps = self.screened = 0
 
     def _vec(self) -> PETSc.Vec:
@@ -652,6 +673,7 @@ class FullIntegrator:
         shorter than dt: it ends at t_end). Everything that does not change from step to step is
         hoisted; a contact-free step makes ~15 PETSc calls and no law evaluation."""
         S = self.system(h)
+        started = time.perf_counter()
         P = self.P
         am, af, gamma, beta = P.am, P.af, P.gamma, P.beta
         sV = S.sV
@@ -669,82 +691,76 @@ class FullIntegrator:
         cv = [h * (1 - gamma), h * gamma * ib]
         X, A = [self.X0, self.X1], [self.A0, self.A1]
         V, W, B, Wc = self.V, self.W, self.B, self.Wc
-        wv = [[X[p], V, A[p]] for p in (0, 1)]
-        vv_c = [[V, A[p]] for p in (0, 1)]
-        xv = [[V, A[p]] for p in (0, 1)]
-        av = [[A[p], A[1 - p]] for p in (0, 1)]
-        xview = [X[p].getArray(readonly=True) for p in (0, 1)]
-        aview = [A[p].getArray(readonly=True) for p in (0, 1)]
         vview = V.getArray(readonly=True)
+        # Everything that depends on the parity p of the step: which buffer holds X0, X1, A0, A1 (d).
+        parity = [(X[p], X[1 - p], A[p], A[1 - p], [X[p], V, A[p]], [V, A[p]], [A[p], A[1 - p]],
+                   X[1 - p].getArray(readonly=True), A[p].getArray(readonly=True)) for p in (0, 1)]
         Kmult, Mmultadd = self.K.mult, self.M.multAdd
         Cmultadd = self.C.multAdd if self.C is not None else None
         mass_term = am != 1.0
         solve = S.solve
         loads = self.loads
-        single_load = loads[0] if len(loads) == 1 else None
-        value, rate = self.value, self.rate
+        load_vec, load_fn = loads[0] if len(loads) == 1 else (None, None)
+        value = self.value
         nl, crow = self.nl, self.crow
         local, mine = crow.local, crow.mine
-        parallel, comm, rank = crow.parallel, crow.comm, self.world.rank
+        parallel, comm = crow.parallel, crow.comm
         D, Y = S.D, S.Y
-        rc = self.r_c
-        rc_list = rc.tolist()
+        rc_list = self.r_c.tolist()
         lo_list, hi_list = self.free.lo, self.free.hi
         screen = self.free.any
         c0 = 1.0 - af
-        newton, laws = self.newton, self.laws
         lam = self.lam
         buf1 = np.zeros(nl)
         buf3 = np.zeros((3, nl))
         # The state at the rows at the start of the first step: exact, from the vectors.
         start_rows = crow.gather([X[0], V, A[0]]) if nl else np.zeros((3, 0))
         y0 = start_rows[0].tolist()
-        v0 = start_rows[1]
-        a0 = start_rows[2]
+        v0, a0 = start_rows[1], start_rows[2]
         tb, zb, vb = run.tb, run.zb, run.vb
         contact_steps = screened = 0
         p = 0
+        k = run.k
         steps, t_end, tol = run.steps, run.t_end, run.tol
         next_sample = run.next_sample
+        last = n_end - 1
+        free = True
         for n in range(n_begin, n_end):
             t = n * dt
             t_next = (n + 1) * dt if n + 1 < steps else t_end
+            X0, X1, A0, Dv, w_vecs, x_vecs, v_vecs, x1view, a0view = parity[p]
             sampling = next_sample <= t_next + tol
             if sampling:
-                run.before(X[p], V, t, t_next)
-            X0, X1, A0, Dv = X[p], X[1 - p], A[p], A[1 - p]
+                run.before(X0, V, t, t_next)
             ta = t + af * h
             # 1. the right-hand side and the step's one solve
             W.zeroEntries()
-            W.maxpy(cw, wv[p])
+            W.maxpy(cw, w_vecs)
+            Kmult(W, B)
             if mass_term:
-                Kmult(W, B)
                 Mmultadd(A0, B, B)
-            else:
-                Kmult(W, B)
             if Cmultadd is not None:
                 Wc.zeroEntries()
-                Wc.maxpy(cc, vv_c[p])
+                Wc.maxpy(cc, x_vecs)
                 Cmultadd(Wc, B, B)
-            if single_load is not None:
-                B.axpby(single_load[1](ta) * inv_af, cb, single_load[0])
+            if load_vec is not None:
+                B.axpby(load_fn(ta) * inv_af, cb, load_vec)
             else:
                 B.scale(cb)
                 for vec, fn in loads:
                     B.axpy(fn(ta) * inv_af, vec)
-            solve(B, Dv)                                     # d_free
+            solve(B, Dv)                                    # d_free
             X1.waxpy(1.0, X0, Dv)
-            X1.maxpy(cx, xv[p])                             # X1 = X~ + d_free
+            X1.maxpy(cx, x_vecs)                            # X1 = X~ + d_free
             if nl:
                 # 2. the free displacement at the rows
                 if parallel:
                     buf1[:] = 0.0
-                    buf1[mine] = xview[1 - p][local]
+                    buf1[mine] = x1view[local]
                     comm.Allreduce(MPI.IN_PLACE, buf1)
                     yf = buf1.tolist()
                 else:
-                    v0 = vview[local]
-                    yf = xview[1 - p][local].tolist()
+                    yf = x1view[local].tolist()
                 # 3. screen, or Newton on the N_L unknowns
                 free = False
                 if screen and lam is None:
@@ -759,7 +775,7 @@ class FullIntegrator:
                     screened += 1
                 else:
                     if not parallel:
-                        a0 = aview[p][local]
+                        v0, a0 = vview[local], a0view[local]
                     lam = self._contact(D, np.array(y0), np.array(yf), v0, a0, ta, h, sV, lam, t_next)
                     if lam is not None:
                         # 4. the correction: no solve
@@ -770,65 +786,62 @@ class FullIntegrator:
                             X1.maxpy(lam[nz], cols)
                         else:
                             X1.waxpy(1.0, X0, Dv)
-                            X1.maxpy(cx, xv[p])
+                            X1.maxpy(cx, x_vecs)
                         contact_steps += 1
             # 5. velocity and acceleration
-            V.maxpy(cv, av[p])                              # V1 = V~ + gamma h A1
+            V.maxpy(cv, v_vecs)                             # V1 = V~ + gamma h A1
             Dv.scale(ib)                                    # A1 = d / (beta h^2)
             p = 1 - p
-            k = run.k
             tb[k] = t_next
             if nl:
                 if parallel:
                     buf3[:] = 0.0
-                    buf3[0, mine] = xview[p][local]
+                    buf3[0, mine] = x1view[local]
                     buf3[1, mine] = vview[local]
-                    buf3[2, mine] = aview[p][local]
+                    buf3[2, mine] = Dv.getArray(readonly=True)[local]
                     comm.Allreduce(MPI.IN_PLACE, buf3)
                     y0 = buf3[0].tolist()
                     v0, a0 = buf3[1].copy(), buf3[2].copy()
                     zb[k] = buf3[0]
                     vb[k] = v0
                 else:
-                    if not free:
-                        y0 = xview[p][local].tolist()
-                    else:
-                        y0 = yf
+                    y0 = yf if free else x1view[local].tolist()
                     zb[k] = y0
                     vb[k] = vview[local]
             if sampling:   # samples of this step come after the steps before it (cut k)
-                run.after(X[p], V, t_next, k)
+                run.after(X1, V, t_next, k)
                 next_sample = run.next_sample
-            run.k = k + 1
-            if run.k == BLOCK or n + 1 == n_end or run.pending >= BLOCK:
-                self.X0, self.X1, self.A0, self.A1 = X[p], X[1 - p], A[p], A[1 - p]
+            k += 1
+            if k == BLOCK or n == last or (sampling and run.pending >= BLOCK):
+                self.X0, self.X1, self.A0, self.A1 = X1, X0, Dv, A0
                 self.lam = lam
                 self.contact_steps += contact_steps
                 self.screened += screened
                 contact_steps = screened = 0
+                run.k = k
                 run.control(n + 1, t_next)
-        self.X0, self.X1, self.A0, self.A1 = X[p], X[1 - p], A[p], A[1 - p]
+                k = run.k
+        self.X0, self.X1, self.A0, self.A1 = parity[p][:4]
         self.lam = lam
         self.contact_steps += contact_steps
         self.screened += screened
+        self.loop_time += time.perf_counter() - started
 
     def _contact(self, D, y0, yf, v0, a0, ta, h, sV, lam_prev, t):
         """lambda of one step (None when no constraint pushes), computed on rank 0 and broadcast."""
         P = self.P
-        af, gamma, beta = P.af, P.gamma, P.beta
+        af = P.af
         world = self.world
         result = None
         if world.rank == 0:
             try:
-                x_pred = y0 + h * v0 + h * h * (0.5 - beta) * a0
-                z_c = (1 - af) * y0 + self.r_c * self.value(ta)
-                v_c = v0 + af * h * (1 - gamma) * a0 + self.r_c * self.rate(ta)
-                problem = ContactStep(self.laws, D, yf, z_c, v_c, x_pred, af, sV)
-                y_start = yf + D @ lam_prev if lam_prev is not None else yf
-                if not (np.all(np.isfinite(yf)) and np.all(np.isfinite(x_pred))):
+                x_pred = y0 + h * v0 + (h * h * (0.5 - P.beta)) * a0
+                if not (math.isfinite(float(yf.sum())) and math.isfinite(float(x_pred.sum()))):
                     raise SolverError(f"the state is not finite at t = {t:.6g} s; {NOT_FINITE}")
-                _, lam = self.newton.solve(problem, y_start, t)
-                result = lam
+                z_c = (1 - af) * y0 + self.value(ta) * self.r_c
+                v_c = v0 + (af * h * (1 - P.gamma)) * a0 + self.rate(ta) * self.r_c
+                problem = ContactStep(self.laws, D, yf, z_c, v_c, x_pred, af, sV)
+                _, result = self.newton.solve(problem, yf if lam_prev is None else yf + D @ lam_prev, t)
             except SolverError as e:
                 result = e
         if world.size > 1:
@@ -1079,7 +1092,7 @@ def integrate_full(fom: FullOrderModel, settings: IntegratorSettings, rows, on_b
                  "contact": "condensed", "dt": settings.dt, "dofs": fom.size, "alpha_radius": rho,
                  "contact_steps": integ.contact_steps, "contact_free_steps": integ.screened,
                  "contact_solves": integ.newton.calls, "contact_fallbacks": integ.newton.fallbacks,
-                 "factorization_time": integ.setup_time,
+                 "factorization_time": integ.setup_time, "step_time": integ.loop_time,
                  "factorization": ", ".join(sorted({S.description for S in integ.systems.values()}))}
     finally:
         if run is not None:

@@ -111,6 +111,13 @@ class MemoryWriter:
             buffer.append(np.asarray(values[name], dtype=float).reshape(self.shapes[name]))
         self.count += 1
 
+    def extend(self, **values) -> None:
+        """`append` for J samples at once: each series an array of J rows."""
+        count = len(values[layout.TIME])
+        for name, buffer in self.buffer.items():
+            buffer.extend(np.asarray(values[name], dtype=float).reshape((count, *self.shapes[name])))
+        self.count += count
+
     def flush(self) -> None:
         pass
 
@@ -144,6 +151,13 @@ class OutputWriter:
     def append(self, **values) -> None:
         for name, buffer in self.buffer.items():
             buffer.append(values[name])
+        if len(self.buffer[layout.TIME]) >= BLOCK:
+            self.flush()
+
+    def extend(self, **values) -> None:
+        """`append` for J samples at once: each series an array of J rows."""
+        for name, buffer in self.buffer.items():
+            buffer.extend(values[name])
         if len(self.buffer[layout.TIME]) >= BLOCK:
             self.flush()
 

@@ -120,11 +120,11 @@ class FullRecorder(SampleRecorder):
         peaks = _segment_peaks(events[:ends[-1] + 1], np.concatenate(([0], ends[:-1] + 1)))
         tail = events[ends[-1] + 1:]
         self.peak = _segment_peaks(np.vstack((np.zeros(n), tail)), np.array([0]))[0] if tail.size else np.zeros(n)
-        for j in range(ts.size):
-            self.writer.append(**{layout.TIME: ts[j], layout.CONSTRAINT_DISPLACEMENT: x[j, :n],
-                                  layout.CONSTRAINT_VELOCITY: xd[j, :n], layout.CONSTRAINT_FORCE: sample_force[j],
-                                  layout.CONSTRAINT_FORCE_PEAK: peaks[j], layout.PROBE_DISPLACEMENT: x[j, n:],
-                                  layout.REDUCED_Q: (), layout.REDUCED_QDOT: ()})
+        empty = np.zeros((ts.size, 0))
+        self.writer.extend(**{layout.TIME: ts, layout.CONSTRAINT_DISPLACEMENT: x[:, :n],
+                              layout.CONSTRAINT_VELOCITY: xd[:, :n], layout.CONSTRAINT_FORCE: sample_force,
+                              layout.CONSTRAINT_FORCE_PEAK: peaks, layout.PROBE_DISPLACEMENT: x[:, n:],
+                              layout.REDUCED_Q: empty, layout.REDUCED_QDOT: empty})
 
 
 def _segment_peaks(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
