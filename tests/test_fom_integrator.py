@@ -98,8 +98,8 @@ def test_condensed_generalized_alpha_is_petsc_tsalpha2_before_the_first_impact(c
     # The same scheme (rho 0.9) and the same step: before the first impact both are linear and may
     # differ only by round-off and by the start. PETSc's start takes A0 from two backward-Euler half
     # steps (twice the backward-difference estimate in 3.18), ours from the equation of motion; from
-    # rest with f(0) = 0 both are nearly 0. Measured (100 elements, 10 us steps, 0.1 s): 3.4e-12 of the
-    # peak at the constraint, 1.1e-12 at the probe.
+    # rest with f(0) = 0 both are nearly 0. Measured (100 elements, 10 us steps, 0.1 s): 8.2e-12 of the
+    # peak at the constraint, 8.9e-12 at the probe.
     with paper_fom() as fom:
         settings = IntegratorSettings(t_end=0.1, dt=1e-5, sample_dt=1e-4)
         ours = simulate_full(fom, settings)
