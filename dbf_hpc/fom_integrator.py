@@ -903,7 +903,7 @@ class _Run:
         X, V = self.integ.X0, self.integ.V
         values, rates = self.orow.gather([X, V])
         for index, sample, _ in self.monitor.samples_due(t):
-            self._sample(index, sample, values, rates, 0, X, None)
+            self._sample(index, sample, _EXACT, values, rates, values, rates, 0, X, None)
         self._hand_over()
         self._word()
 
@@ -921,38 +921,41 @@ class _Run:
             V.copy(self.prev_v)
 
     def after(self, X, V, t: float, cut: int) -> None:
-        """At the end of that step: its samples, after the block's first `cut` steps."""
+        """At the end of that step: its samples, after the block's first `cut` steps. A sample is
+        kept as its Hermite weights and the two states; the blends are formed per block."""
         values, rates = self.orow.gather([X, V])
         t0, x0, xd0 = self.start
         h = t - t0
         for index, sample, exact in self.monitor.samples_due(t):
             if exact:
-                self._sample(index, sample, values, rates, cut, X, None)
+                self._sample(index, sample, _EXACT, values, rates, values, rates, cut, X, None)
                 continue
-            weights, (c0, d0, c1, d1) = _hermite((sample - t0) / h, h)
+            weights, rate_weights = _hermite((sample - t0) / h, h)
             a0, b0, a1, b1 = weights
-            x = a0 * x0 + b0 * h * xd0 + a1 * values + b1 * h * rates
-            xd = c0 * x0 + d0 * xd0 + c1 * values + d1 * rates
-            self._sample(index, sample, x, xd, cut, X, (weights, h, V))
+            blend = (a0, b0 * h, a1, b1 * h, *rate_weights)
+            self._sample(index, sample, blend, x0, xd0, values, rates, cut, X, (weights, h, V))
 
-    def _sample(self, index, sample, x, xd, cut, X, interpolate) -> None:
+    def _sample(self, index, sample, blend, x0, xd0, x1, xd1, cut, X, interpolate) -> None:
         if index in self.snapshot_samples and self.snapshot is not None:
             field = self._field(X) if interpolate is None else self._interpolated_field(X, *interpolate)
             self._call(self.snapshot, index, field)
         self.pending += 1   # on every rank: the control points depend on it
         if self.world.rank == 0:
-            self.samples.append((sample, x, xd, cut))
+            self.samples.append((sample, blend, x0, xd0, x1, xd1, cut))
 
     def _hand_over(self) -> None:
         """The buffered steps and samples to on_block (rank 0), then empty buffers."""
         if self.world.rank == 0 and (self.k or self.samples) and self.on_block is not None:
             m = self.orow.n
             samples = self.samples
+            J = len(samples)
+            w = np.array([s[1] for s in samples]).reshape(J, 8).T[:, :, None]
+            x0, xd0, x1, xd1 = (np.array([s[i] for s in samples]).reshape(J, m) for i in (2, 3, 4, 5))
+            x = w[0] * x0 + w[1] * xd0 + w[2] * x1 + w[3] * xd1          # the order of the formula per sample
+            xd = w[4] * x0 + w[5] * xd0 + w[6] * x1 + w[7] * xd1
             self._call(self.on_block,
                        (self.tb[:self.k].copy(), self.zb[:self.k].copy(), self.vb[:self.k].copy()),
-                       (np.array([s[0] for s in samples]), np.array([s[1] for s in samples]).reshape(-1, m),
-                        np.array([s[2] for s in samples]).reshape(-1, m),
-                        np.array([s[3] for s in samples], dtype=np.int64)))
+                       (np.array([s[0] for s in samples]), x, xd, np.array([s[6] for s in samples], dtype=np.int64)))
         self.k = self.pending = 0
         self.samples = []
 
@@ -1017,6 +1020,9 @@ class _Run:
 
     def destroy(self) -> None:
         destroy(self.prev_u, self.prev_v, self.scatter, self.full)
+
+
+_EXACT = (0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)   # the blend of a sample at the step itself
 
 
 def _hermite(s: float, h: float):
