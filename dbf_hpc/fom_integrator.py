@@ -238,7 +238,19 @@ class EffectiveSystem:
                     y = A.createVecRight()
                     self.Y.append(y)
                     self.solve(e, y)
-                _check_exact(A, self.Y[:1] or None, crow.rows[:1], self.description)
+                if crow.n:
+                    _check_exact(A, self.Y[0], int(crow.rows[0]), self.description)
+                else:   # no constraint: one solve of a unit load at row 0, for the check alone
+                    e.zeroEntries()
+                    if lo == 0 and hi > 0:
+                        e.setValue(0, 1.0)
+                    e.assemble()
+                    y = A.createVecRight()
+                    try:
+                        self.solve(e, y)
+                        _check_exact(A, y, 0, self.description)
+                    finally:
+                        y.destroy()
             finally:
                 e.destroy()
             # D[i, j] = Y_j at row i: exactly what the correction X1 += Y lambda adds at the rows.
@@ -298,26 +310,26 @@ def _factored(A: PETSc.Mat, defaults: dict, prefix: str, what: str):
         raise
 
 
-def _check_exact(A: PETSc.Mat, X, rows, description: str) -> None:
-    """A solve of A must be exact to EXACT_SOLVE in relative residual: checked on the given solution
-    columns X (of unit vectors at rows), or, without constraints, on one solve of a vector of ones."""
-    if X is None:
-        return
+def _check_exact(A: PETSc.Mat, x: PETSc.Vec, row: int, description: str) -> None:
+    """x solves A x = e_row: it must, to EXACT_SOLVE in residual (a solver that is not exact would
+    give a wrong reference, not an error). Collective."""
     r = A.createVecLeft()
     try:
-        for x, row in zip(X, rows):
-            A.mult(x, r)
-            lo, hi = r.getOwnershipRange()
-            if lo <= row < hi:
-                r.setValue(int(row), -1.0, addv=PETSc.InsertMode.ADD_VALUES)
-            r.assemble()
-            residual = r.norm()
-            if not residual <= EXACT_SOLVE:
-                raise SolverError(f"the -{PREFIX} solver ({description}) is not exact: relative residual {residual:.2e} "
-                                  f"on a unit load; use a direct factorization (-{PREFIX}ksp_type preonly "
-                                  f"-{PREFIX}pc_type cholesky) or an iterative -{PREFIX}ksp_type with -{PREFIX}ksp_rtol 1e-12")
+        A.mult(x, r)
+        lo, hi = r.getOwnershipRange()
+        if lo <= row < hi:
+            r.setValue(row, -1.0, addv=PETSc.InsertMode.ADD_VALUES)
+        r.assemble()
+        residual = r.norm()
     finally:
         r.destroy()
+    if not math.isfinite(residual):
+        raise SolverError(f"the solve with K_eff = K + s_V C + s_A M ({description}) is not finite: check K, M and C "
+                          f"for entries that are not finite")
+    if not residual <= EXACT_SOLVE:
+        raise SolverError(f"the -{PREFIX} solver ({description}) is not exact: relative residual {residual:.2e} on a "
+                          f"unit load; use a direct factorization (-{PREFIX}ksp_type preonly -{PREFIX}pc_type "
+                          f"cholesky) or an iterative -{PREFIX}ksp_type with -{PREFIX}ksp_rtol 1e-12")
 
 
 # -- the contact problem on the N_L constraint DOFs ------------------------------------------------

@@ -130,6 +130,7 @@ def test_same_results_on_one_and_two_ranks(tmp_path):
     (("run", PAPER, "--method", "full", "--set", "damping.zeta=0.02"), "modal damping"),
     (("run", PAPER, "--method", "full", "-full_ts_adapt_type", "basic"), "its own generalized-alpha loop"),
     (("run", PAPER, "--method", "full", "-full_alpha_radius", "1.5"), "lies in [0, 1]"),
+    (("run", PAPER, "--method", "full", "-full_pc_type", "jacobi"), "is not exact"),
 ])
 def test_bad_run_input_is_one_line(args, message):
     out = dbf_hpc(*args)
