@@ -99,7 +99,6 @@ def build(case: str, solid: str):
         stops = [Constraint(law("deadband", clearance=2e-5, k=1e8), dof=d) for d in picks]
         files = MatrixFiles(stiffness=os.path.join(solid, "K.bin"), mass=os.path.join(solid, "M.bin"))
         fom = FullOrderModel.build(files, stops, NoExcitation(), probes=[info["tip_z"]])
-        ny, nz = info["elements"][1:]
         per_node = 3
 
         def bent(u):
@@ -109,7 +108,6 @@ def build(case: str, solid: str):
             node, comp = rows // per_node, rows % per_node
             i = node % nx + 1
             u.setArray(np.where(comp == 2, 1e-4 * (i / nx) ** 2, 0.0))
-            del ny, nz
 
         _released(fom, bent)
         return fom, IntegratorSettings(t_end=40 * 1e-5, dt=1e-5, sample_dt=1e-5)

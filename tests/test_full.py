@@ -191,7 +191,8 @@ damping = "C.mtx"
 ], ids=["deadband-linear-damping", "deadband-hunt-crossley", "hertz", "table-linear-damping"])
 def test_every_law_stops_the_full_model_at_its_clearance_kinks_and_force_jumps_included(shared_tmp_path, law_keys):
     # Linear contact damping switches c v on at the stop: the contact force jumps, and the condensed
-    # Newton falls back to its Gauss-Seidel bisection there (TSALPHA2's Newton failed on it at 11.5 ms).
+    # Newton falls back to its Gauss-Seidel bisection there. The TSALPHA2 reference it replaces stopped at
+    # the first impact of the first case (t = 0.107 s: its Newton failed on the jump).
     from dbf_hpc.constraints import Constraint
     from dbf_hpc.excitation import BaseMotion
     from dbf_hpc.fom import FullOrderModel
