@@ -8,9 +8,8 @@ influence vector of a unit support motion, r_c = G^T r; G: the unit vectors at t
 alpha M + beta K. The laws act on the TOTAL displacement and velocity at the constraints.
 
 A FullOrderModel owns its PETSc objects (the operators, the load vector, a Rayleigh C) and frees
-them in `destroy` (or at the end of a `with` block). It evaluates the residual and the linear part
-of the Jacobian for the full-order integrator (full.py), and is what a reductor (reductor.py)
-projects. Everything here is collective on the model's communicator unless it says otherwise.
+them in `destroy` (or at the end of a `with` block). It is what the full-order integrator
+(fom_integrator.py) steps and what a reductor (reductor.py) projects. Everything here is collective on the model's communicator unless it says otherwise.
 """
 from __future__ import annotations
 

@@ -130,7 +130,7 @@ def options() -> dict:
 
 def step_count(t_end: float, dt: float) -> tuple[int, float]:
     """(number of steps, length of the last step): steps of dt, the last one shortened to end at
-    t_end (or taken as dt when t_end is a multiple of dt to 1e-9 of a step)."""
+    t_end (or taken as dt when t_end / dt is a whole number to a relative 1e-9)."""
     ratio = t_end / dt
     whole = round(ratio)
     if whole >= 1 and abs(ratio - whole) <= 1e-9 * max(ratio, 1.0):
