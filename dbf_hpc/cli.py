@@ -73,7 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="continue a killed run from its last checkpoint (OUT.h5.checkpoint)")
     run.add_argument("--method", choices=("rom", "full"), default="rom",
                      help="rom: the reduced model (default); full: the full-order reference, the whole "
-                          "finite-element model with PETSc TS generalized-alpha (options prefix full_)")
+                          "finite-element model with generalized-alpha, one factorization and the contact "
+                          "condensed on the constraint DOFs (options prefix full_)")
     sweep = sub.add_parser("sweep", help="a parameter study: many cases of one scene over the ranks",
                            description="Expand a sweep file (a base scene and axes or listed cases), build "
                                        "each distinct basis once, run the cases spread over the MPI ranks "

@@ -8,9 +8,8 @@ influence vector of a unit support motion, r_c = G^T r; G: the unit vectors at t
 alpha M + beta K. The laws act on the TOTAL displacement and velocity at the constraints.
 
 A FullOrderModel owns its PETSc objects (the operators, the load vector, a Rayleigh C) and frees
-them in `destroy` (or at the end of a `with` block). It evaluates the residual and the linear part
-of the Jacobian for the full-order integrator (full.py), and is what a reductor (reductor.py)
-projects. Everything here is collective on the model's communicator unless it says otherwise.
+them in `destroy` (or at the end of a `with` block). It is what the full-order integrator
+(fom_integrator.py) steps and what a reductor (reductor.py) projects. Everything here is collective on the model's communicator unless it says otherwise.
 """
 from __future__ import annotations
 
@@ -198,13 +197,22 @@ class Observation:
     at the constraints and the total displacement at the probes. Not collective once built."""
 
     def __init__(self, fom: FullOrderModel):
-        constraint_rows = fom.constraints.flat_rows
-        self.probes, self.needed = fom.probes, fom.probes.needed_rows
+        rows = fom.constraints.flat_rows
+        self._set(rows, fom.influence_at(rows), fom.probes, fom.support_share(fom.probes), fom.support)
+
+    @classmethod
+    def of(cls, constraint_rows, r_c, probes: PointValues, probe_share, support) -> "Observation":
+        """From its parts: r at the constraint rows, the probes and their support share (fom.py)."""
+        observation = cls.__new__(cls)
+        observation._set(np.asarray(constraint_rows), np.asarray(r_c, dtype=float), probes,
+                         np.asarray(probe_share, dtype=float), support)
+        return observation
+
+    def _set(self, constraint_rows, r_c, probes, probe_share, support):
+        self.probes, self.needed = probes, probes.needed_rows
         self.rows = np.concatenate([constraint_rows, self.needed]).astype(np.int64)
         self.nc = constraint_rows.size
-        self.r_c = fom.influence_at(constraint_rows)
-        self.probe_share = fom.support_share(fom.probes)
-        self.support = fom.support
+        self.r_c, self.probe_share, self.support = r_c, probe_share, support
 
     def totals(self, t: float, values: np.ndarray, rates: np.ndarray):
         """(z, v, probe displacement) from u and u' at self.rows."""
@@ -212,6 +220,24 @@ class Observation:
         z, v = values[:nc] + self.r_c * omega, rates[:nc] + self.r_c * rate
         probe = self.probes.combine(values[nc:], self.needed) if self.needed.size else np.zeros(self.probes.count)
         return z, v, probe + self.probe_share * omega
+
+    def constraint_totals(self, t: np.ndarray, values: np.ndarray, rates: np.ndarray):
+        """Blocks of steps: t (k,), u and u' (k, >= N_L) at self.rows -> total z, v (k, N_L)."""
+        nc = self.nc
+        if not np.any(self.r_c):
+            return values[:, :nc], rates[:, :nc]
+        return (values[:, :nc] + np.outer(self.support.value(t), self.r_c),
+                rates[:, :nc] + np.outer(self.support.rate(t), self.r_c))
+
+    def block_totals(self, t: np.ndarray, values: np.ndarray, rates: np.ndarray):
+        """Blocks of samples: t (J,), u and u' (J, len(self.rows)) -> total z, v (J, N_L) and the
+        probes' total displacement (J, P)."""
+        z, v = self.constraint_totals(t, values, rates)
+        if self.needed.size:
+            probe = self.probes.combine(values[:, self.nc:].T, self.needed).T
+        else:
+            probe = np.zeros((t.size, self.probes.count))
+        return z, v, probe + np.outer(self.support.value(t), self.probe_share)
 
 
 def field_peak(ops: Operators, u: PETSc.Vec) -> float:

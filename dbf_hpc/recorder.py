@@ -28,6 +28,7 @@ class SampleRecorder:
         n = constraints.count * constraints.dimension
         self.impacts = ImpactAccumulator(n)
         self.peak = np.zeros(n)  # signed largest |N| at the steps since the previous sample
+        self._tiled = {}         # block length -> the laws repeated for a block (steps)
 
     def _track_peak(self, force) -> None:
         larger = np.abs(force) > np.abs(self.peak)
@@ -46,6 +47,29 @@ class SampleRecorder:
         self.impacts.add(t, z, v, force)
         self._track_peak(force)
 
+    def steps(self, t, z, v) -> None:
+        """`step` for a block of k steps: t (k,), z and v (k, N_L d), in step order. One vectorized
+        law evaluation and accumulation per block (the full-order integrator's form)."""
+        t = np.asarray(t, dtype=float)
+        if t.size == 0:
+            return
+        n = self.peak.size
+        z = np.asarray(z, dtype=float).reshape(t.size, n)
+        v = np.asarray(v, dtype=float).reshape(t.size, n)
+        force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
+        self.impacts.add_block(t, z, v, force)
+        if n:
+            i = np.abs(force).argmax(axis=0)
+            self._track_peak(force[i, np.arange(n)])
+
+    def _block_laws(self, k: int):
+        """The laws repeated for k points (flat, point-major), one set per block length."""
+        from .laws import ConstraintLaws
+
+        if k not in self._tiled:
+            self._tiled[k] = ConstraintLaws(list(self.constraints.laws.laws) * k)
+        return self._tiled[k]
+
     def state(self) -> dict:
         """The recorder's part of a checkpoint (arrays)."""
         return {"peak": self.peak.copy(), **{f"impacts/{k}": v for k, v in self.impacts.state().items()}}
@@ -54,6 +78,58 @@ class SampleRecorder:
         self.peak = np.array(state["peak"], dtype=float)
         self.impacts = ImpactAccumulator.from_state({k[len("impacts/"):]: v for k, v in state.items()
                                                      if k.startswith("impacts/")})
+
+
+class FullRecorder(SampleRecorder):
+    """A full-order run's samples and steps, handed over in blocks (fom_integrator.integrate_full's
+    on_block): u and u' relative to the support at the observation's rows (the constraints', then
+    those the probes combine), made total by the observation (fom.Observation)."""
+
+    def __init__(self, writer, constraints: ConstraintSet, observation):
+        super().__init__(writer, constraints)
+        self.observation = observation
+
+    def block(self, steps, samples) -> None:
+        """steps = (t (k,), z (k, N_L), v (k, N_L)) after each step; samples = (t (J,), x (J, m),
+        xd (J, m), cut (J,)), sample j after the first cut[j] steps: the same rows, peaks and
+        statistics as step-by-step `step` and `sample` calls in that order."""
+        n = self.peak.size
+        t, z, v = steps
+        if t.size:
+            z, v = self.observation.constraint_totals(t, z, v)
+            force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
+            self.impacts.add_block(t, z, v, force)
+        ts, x, xd, cut = samples
+        if not ts.size:
+            if t.size:
+                self.peak = _segment_peaks(np.vstack((self.peak, force)), np.array([0]))[0]
+            return
+        z_s, v_s, probe = self.observation.block_totals(ts, x, xd)
+        sample_force = self._block_laws(ts.size).force(z_s.ravel(), v_s.ravel()).reshape(ts.size, n)
+        # The sequence a step-by-step record sees: the peak carried in, then for each sample the steps
+        # before it and the sample itself (whose row carries the peak since the previous sample).
+        events = np.vstack((self.peak, np.insert(force, cut, sample_force, axis=0) if t.size else sample_force))
+        ends = 1 + np.asarray(cut) + np.arange(ts.size)
+        peaks = _segment_peaks(events[:ends[-1] + 1], np.concatenate(([0], ends[:-1] + 1)))
+        tail = events[ends[-1] + 1:]
+        self.peak = _segment_peaks(np.vstack((np.zeros(n), tail)), np.array([0]))[0] if tail.size else np.zeros(n)
+        empty = np.zeros((ts.size, 0))
+        self.writer.append_rows(**{layout.TIME: ts, layout.CONSTRAINT_DISPLACEMENT: z_s,
+                                   layout.CONSTRAINT_VELOCITY: v_s, layout.CONSTRAINT_FORCE: sample_force,
+                                   layout.CONSTRAINT_FORCE_PEAK: peaks, layout.PROBE_DISPLACEMENT: probe,
+                                   layout.REDUCED_Q: empty, layout.REDUCED_QDOT: empty})
+
+
+def _segment_peaks(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """(len(starts), n): in each run of rows values[starts[i]:starts[i + 1]] (the last to the end),
+    per column the first value of largest magnitude, signed: what successive `_track_peak` calls
+    keep (a later value replaces the peak only when strictly larger)."""
+    magnitude = np.abs(values)
+    largest = np.maximum.reduceat(magnitude, starts, axis=0)
+    segment = np.repeat(np.arange(starts.size), np.diff(np.append(starts, values.shape[0])))
+    rows = np.arange(values.shape[0])[:, None]
+    first = np.minimum.reduceat(np.where(magnitude == largest[segment], rows, values.shape[0]), starts, axis=0)
+    return values[first, np.arange(values.shape[1])]
 
 
 class ReducedRecorder(SampleRecorder):

@@ -24,9 +24,10 @@ from .checkpoint import Checkpoint, identity
 from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, write_failure
 from .fom import Observation
 from .fom_integrator import integrate_full
+from .fom_integrator import options as full_options
 from .modes import counters
 from .output import OutputLock, OutputWriter, check_free_space, check_output_path, output_bytes
-from .recorder import ReducedRecorder, SampleRecorder
+from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
 from .rom_integrator import integrate_reduced
@@ -72,8 +73,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     the reduced model is measured against, same scene, same output layout."""
     if method not in ("rom", "full"):
         raise InputError(f"--method {method!r}: choose rom or full")
-    if method == "full" and (resume or initial_state is not None):
-        raise InputError("--method full starts from [initial]: it has no checkpoints to resume from")
+    if method == "full" and initial_state is not None:
+        raise InputError("--method full starts from [initial] (or resumes from its checkpoint), not from a reduced state")
     comm = comm or PETSc.COMM_WORLD
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else None
     path = output_path(scene, out)
@@ -93,7 +94,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         _say(say, f"dbf-hpc: {scene.path}: {fom.size} DOFs, {fom.constraints.count} constraint(s), "
                   f"{comm.getSize()} rank(s)")
         if method == "full":
-            return _run_full(scene, fom, path, settings, timings, say)
+            return _run_full(scene, fom, path, settings, timings, say, resume)
         t, solves = time.perf_counter(), counters["eigen_solves"]
         with Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
             basis = reductor.basis()
@@ -384,54 +385,107 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
             "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
 
 
-def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say) -> dict:
+class FullCheckpointing:
+    """Rank 0's control of a full-order run (fom_integrator.integrate_full's `control`): a checkpoint
+    every checkpoint_dt of simulated time and when SIGTERM asked for one, then a stop with the advice
+    to resume. A checkpoint holds the distributed state gathered on rank 0 (the rank count is part
+    of the run's identity), the recorder's statistics and the snapshots taken so far."""
+
+    def __init__(self, recorder: SampleRecorder, checkpoint: Checkpoint, interval: float, state: dict | None,
+                 snaps: dict):
+        self.recorder, self.checkpoint, self.interval, self.snaps = recorder, checkpoint, interval, snaps
+        self.interrupted = False
+        self.next = float(state["next_checkpoint"]) if state else interval
+        self.wall = float(state["wall"]) if state else 0.0
+        self.clock = time.perf_counter()
+
+    def at(self, t: float, steps: int):
+        if self.interrupted:
+            return "save and stop"
+        if t >= self.next:
+            self.next = t + self.interval
+            return "save"
+        return None
+
+    def save(self, state: dict) -> None:
+        self.recorder.writer.flush()
+        index = sorted(self.snaps)
+        width = len(self.snaps[index[0]]) if index else 0
+        self.checkpoint.write({**state, "samples": self.recorder.writer.count, "next_checkpoint": self.next,
+                               "wall": self.wall + time.perf_counter() - self.clock,
+                               "snapshot_index": np.array(index, dtype=np.int64),
+                               "snapshot_w": np.array([self.snaps[i] for i in index]).reshape(len(index), width),
+                               **self.recorder.state()})
+
+    def stop_message(self, t: float) -> str:
+        return f"stopped by a termination signal at t = {t:.6g} s; the run is checkpointed: rerun with --resume to continue"
+
+
+_RESUME_SCALARS = ("t", "steps", "next_sample", "lam", "pushing", "counters")
+
+
+def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume: bool) -> dict:
     """The full-order reference on fom.comm, every rank integrating its share of the state; rank 0
-    writes the same layout as a reduced run (no basis/ or reduced/ groups)."""
+    writes the same layout as a reduced run (no basis/ or reduced/ groups) and the checkpoints."""
     world = fom.comm.tompi4py()
-    fom.damping_matrix()  # modal damping is an error: before any file is opened
+    fom.damping_matrix()  # modal damping and bad -full_ options are errors before any file is opened
+    full_options()
     constraints, observation = fom.constraints, Observation(fom)
     support, field = fom.support, fom.operators.field_map()
-    snap_index = _snapshot_samples(scene.output().snapshots, settings.sample_times)
+    output = scene.output()
+    snap_index = _snapshot_samples(output.snapshots, settings.sample_times)
     field_support = fom.field_support()
-    recorder, opened, snaps = None, None, {}
+    checkpoint = Checkpoint(f"{path}.checkpoint", run_identity(scene, {"fingerprint": fom.fingerprint}, world.size,
+                                                                "full"))
+    recorder = control = state = None
+    snaps, opened = {}, None
     if world.rank == 0:
         try:
-            check_free_space(path, output_bytes(settings.sample_times.size, constraints.count, fom.probes.count, 0,
-                                                scene.output().snapshots, field.count))
-            recorder = SampleRecorder(OutputWriter(path, (constraints.count,), fom.probes.count, 0), constraints)
-        except InputError as exc:
-            opened = str(exc)
+            state = checkpoint.read() if resume else None
+            if resume:
+                _say(say, f"resuming from the checkpoint at t = {float(state['t']):.6g} s" if state else
+                     "no usable checkpoint: starting from t = 0")
+            samples_left = settings.sample_times.size - (int(state["samples"]) if state else 0)
+            check_free_space(path, output_bytes(samples_left, constraints.count, fom.probes.count, 0,
+                                                output.snapshots, field.count) + 8.0 * 3 * fom.size)
+            writer = (_reopen(path, int(state["samples"])) if state else
+                      OutputWriter(path, (constraints.count,), fom.probes.count, 0))
+            recorder = FullRecorder(writer, constraints, observation)
+            if state:
+                recorder.restore(state)
+                snaps = {int(i): np.array(w) for i, w in zip(state["snapshot_index"], state["snapshot_w"])}
+            control = FullCheckpointing(recorder, checkpoint, output.checkpoint_dt, state, snaps)
+        except DbfError as exc:
+            opened = (type(exc).__name__, str(exc))
         except WRITE_ERRORS as exc:
-            opened = f"cannot write {path}.partial: {write_failure(exc)}"
-    opened = world.bcast(opened, root=0)  # every rank stops if rank 0 cannot write
+            opened = ("SolverError", f"cannot write {path}.partial: {write_failure(exc)}")
+    opened = world.bcast(opened, root=0)  # every rank stops if rank 0 cannot write or resume
     if opened:
-        raise InputError(opened)
-
-    def record(t, x, xd):
-        recorder.sample(t, *observation.totals(t, x, xd))
-
-    def on_step(t, x, xd):
-        recorder.step(t, *observation.totals(t, x, xd)[:2])
+        raise (InputError if opened[0] == "InputError" else SolverError)(opened[1])
+    scalars = world.bcast({k: state[k] for k in _RESUME_SCALARS} if state else None, root=0)
+    resume_state = None if scalars is None else {**scalars, **({k: state[k] for k in ("X", "V", "A")} if state else {})}
 
     def snapshot(i, values):
         if values is not None:
             snaps[i] = field.take(values) + field_support * support.value(settings.sample_times[i])
 
-    _say(say, f"integrating the full-order model to t = {settings.t_end:g} s with generalized-alpha (TSALPHA2, "
-              f"contact implicit, step {settings.dt:g} s)")
+    _say(say, f"integrating the full-order model to t = {settings.t_end:g} s with generalized-alpha (one "
+              f"factorization, contact condensed on {constraints.count} DOF(s), step {settings.dt:g} s)")
     t = time.perf_counter()
     try:
-        stats = integrate_full(fom, settings, observation.rows, record, on_step, snap_index, snapshot, say)
+        with _interrupt_on_sigterm(control):
+            stats = integrate_full(fom, settings, observation.rows, recorder.block if recorder else None, snap_index,
+                                   snapshot, say, control=control, resume=resume_state)
     except DbfError as exc:
-        raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, None)) from None
-    timings["integration"] = time.perf_counter() - t
+        raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint)) from None
+    timings["integration"] = time.perf_counter() - t + (control.wall if control else 0.0)
     summary = {}
     if world.rank == 0:
         snap_t = settings.sample_times[sorted(snaps)] if snaps else np.zeros(0)
         snap_w = np.array([snaps[i] for i in sorted(snaps)]).reshape(snap_t.size, field.positions.size)
         summary = finish(scene, recorder, stats, timings, world.size, "full", field, snap_t, snap_w)
+        checkpoint.remove()
         summary_path = summary["path"]
-        _say(say, f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} "
-                  f"Newton failures, {stats['factorizations']} factorizations) in {timings['integration']:.2f} s; "
-                  f"wrote {summary_path}")
+        _say(say, f"done: {stats['steps']} steps ({stats['factorizations']} factorization(s), {stats['contact_steps']} "
+                  f"steps with contact) in {timings['integration']:.2f} s; wrote {summary_path}")
     return world.bcast(summary, root=0)

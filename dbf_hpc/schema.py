@@ -78,7 +78,9 @@ SECTIONS = {
         "rayleigh_alpha": Key(NUMBER, 0.0, "1/s", "C = alpha M + beta K"),
         "rayleigh_beta": Key(NUMBER, 0.0, "s", "C = alpha M + beta K"),
     }),
-    "integrator": ("Time integration (PETSc TS; options prefixes rom_ and full_ override these).", {
+    "integrator": ("Time integration: the reduced model's PETSc TS ARKIMEX (options prefix rom_), the full-order "
+                   "reference's generalized-alpha at the fixed step dt (options prefix full_); command-line options "
+                   "override these.", {
         "t_end": Key(NUMBER, 1.0, "s", "end of the run"),
         "dt": Key(NUMBER, 1e-4, "s", "the fixed step, or the first step of an adaptive run"),
         "scheme": Key((str, int), "3", "", "the reduced model's ARKIMEX type: 1bee, a2, l2, ars122, 2c, 2d, 2e, "

@@ -14,7 +14,7 @@ import numpy as np
 from .fom import FullOrderModel, Observation
 from .fom_integrator import integrate_full
 from .output import MemoryWriter
-from .recorder import ReducedRecorder, Result, SampleRecorder
+from .recorder import FullRecorder, ReducedRecorder, Result
 from .rom import ReducedModel
 from .rom_integrator import integrate_reduced
 from .timestepping import IntegratorSettings
@@ -42,13 +42,6 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""
     world = fom.comm.tompi4py()
     observation = Observation(fom)
-    recorder = SampleRecorder(MemoryWriter((fom.constraints.count,), fom.probes.count, 0), fom.constraints)
-
-    def record(t, x, xd):
-        recorder.sample(t, *observation.totals(t, x, xd))
-
-    def on_step(t, x, xd):
-        recorder.step(t, *observation.totals(t, x, xd)[:2])
-
-    stats = integrate_full(fom, settings, observation.rows, record, on_step, say=say)
+    recorder = FullRecorder(MemoryWriter((fom.constraints.count,), fom.probes.count, 0), fom.constraints, observation)
+    stats = integrate_full(fom, settings, observation.rows, recorder.block, say=say)
     return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)

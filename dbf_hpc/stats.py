@@ -256,6 +256,65 @@ class ImpactAccumulator:
         self.t_prev = t
         self.prev = now
 
+    def add_block(self, t, z, v, force) -> None:
+        """`add` for k points at once, t (k,) increasing, z, v, force (k, n): the same sums,
+        vectorized (an integrator that takes 10^5 steps hands them over in blocks: a few dozen numpy
+        calls per block instead of a dozen per point). Equal to k calls of `add` to round-off; the
+        same blocks give the same bits."""
+        t = np.asarray(t, dtype=float)
+        k, n = t.size, self.n
+        if k == 0:
+            return
+        z, v, force = (np.asarray(a, dtype=float).reshape(k, n) for a in (z, v, force))
+        series = np.empty((4, k + 1, n))       # contact, F^2, z^2, |F v|; row 0: the previous point
+        now = series[:, 1:]
+        np.not_equal(force, 0.0, out=now[0])
+        np.multiply(force, force, out=now[1])
+        np.multiply(z, z, out=now[2])
+        np.multiply(force, v, out=now[3])
+        np.abs(now[3], out=now[3])
+        np.maximum(self.force_peak, np.abs(force).max(axis=0), out=self.force_peak)
+        np.maximum(self.displacement_peak, np.abs(z).max(axis=0), out=self.displacement_peak)
+        if self.prev is None:  # the first point of the run: no interval before it
+            self.t0 = t[0]
+            self.impacts += now[0, 0] > 0
+            times = t
+            series = series[:, 1:]
+        else:
+            series[:, 0] = self.prev
+            times = np.concatenate(([self.t_prev], t))
+        self.t_prev, self.prev = t[-1], tuple(series[:, -1].copy())
+        if times.size < 2:
+            return
+        half = 0.5 * np.diff(times)
+        pairs = series[:, :-1] + series[:, 1:]
+        increments = pairs * half[None, :, None]                 # the trapezoid of each interval
+        sums = increments.sum(axis=1)
+        self.contact_time += sums[0]
+        self.f2 += sums[1]
+        self.z2 += sums[2]
+        self.power += sums[3]
+        c = series[0]
+        self.impacts += np.count_nonzero((c[1:] > 0) & (c[:-1] == 0), axis=0)
+        if not c.any() and not self.run.any():
+            return
+        # The running impact duration: each interval adds the previous point's right half and this
+        # point's left half (together its contact_time increment); an interval that ends contact
+        # closes the impact (its duration counts toward the maximum) and restarts the count at 0.
+        total = self.run + np.cumsum(increments[0], axis=0)
+        ended = (c[:-1] > 0) & (c[1:] == 0)
+        cols = np.arange(n)
+        if ended.any():
+            index = np.where(ended, np.arange(ended.shape[0])[:, None], -1)
+            last = np.maximum.accumulate(index, axis=0)                      # last end at or before
+            before = np.vstack((np.full((1, n), -1), last[:-1]))             # last end strictly before
+            base = np.where(before >= 0, total[np.maximum(before, 0), cols], 0.0)
+            closed = np.where(ended, total - base, 0.0)
+            np.maximum(self.duration_max, closed.max(axis=0), out=self.duration_max)
+            self.run = total[-1] - np.where(last[-1] >= 0, total[np.maximum(last[-1], 0), cols], 0.0)
+        else:
+            self.run = total[-1]
+
     _ARRAYS = ("impacts", "contact_time", "run", "duration_max", "f2", "z2", "power", "force_peak",
                "displacement_peak")
 

@@ -1,4 +1,4 @@
-"""One time-stepping layer for both integrators (rom_integrator.py, full.py): the settings, the TS
+"""One time-stepping layer for both integrators (rom_integrator.py, fom_integrator.py): the settings, the TS
 configuration with the code's scoped defaults, the failure policy, sampling at fixed times,
 progress lines, and what a run reports when it cannot reach t_end.
 

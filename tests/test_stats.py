@@ -344,3 +344,30 @@ def test_accumulator_over_steps_equals_the_statistics_of_the_same_points():
     got = acc.result()
     for name in STATISTICS:
         np.testing.assert_allclose(got[name], expected[name], rtol=1e-10, atol=1e-15, err_msg=name)
+
+
+def test_accumulating_blocks_of_steps_equals_adding_them_one_by_one():
+    # The full-order integrator hands its steps over in blocks of any length (cut by samples and
+    # checkpoints); the statistics must not depend on where the blocks are cut.
+    from dbf_hpc.stats import ImpactAccumulator
+
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(0.5e-4, 1.5e-4, 5000))
+    A, d, k = np.array([3e-3, 1e-3, 2e-3]), np.array([2.5e-3, 2e-3, 1.5e-3]), 1e6
+    z = A * np.sin(2 * np.pi * 1.3 * t[:, None] + np.array([0.0, 0.4, 1.0]))
+    z[100:103, 0] = 2.7e-3   # a few one-step impacts and a contact at a block boundary
+    v = np.gradient(z, t, axis=0)
+    force = np.where(np.abs(z) > d, -k * (np.abs(z) - d) * np.sign(z), 0.0)
+    one = ImpactAccumulator(3)
+    for i in range(t.size):
+        one.add(t[i], z[i], v[i], force[i])
+    blocks = ImpactAccumulator(3)
+    cuts = np.unique(np.concatenate(([0, 1, 2, 101, 102, t.size], rng.integers(0, t.size, 60))))
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        blocks.add_block(t[a:b], z[a:b], v[a:b], force[a:b])
+    expected, got = one.result(), blocks.result()
+    for name in STATISTICS:
+        np.testing.assert_allclose(got[name], expected[name], rtol=1e-12, atol=1e-18, err_msg=name)
+    state = blocks.state()
+    for name in ("run", "duration_max", "contact_time"):
+        np.testing.assert_allclose(state[name], one.state()[name], rtol=1e-12, atol=1e-18, err_msg=name)

@@ -1,0 +1,270 @@
+"""The full-order integrator (fom_integrator.py) against independent implementations of the same
+scheme: PETSc's TSALPHA2 before the first impact, a dense generalized-alpha with Newton on every DOF
+through impacts, finite differences of the condensed contact Jacobian; and its bookkeeping: one
+factorization per step size, the same answer on 1 and 2 ranks."""
+import math
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from conftest import assert_all, to_numpy
+from dbf_hpc import (Beam, BaseMotion, Constraint, FullOrderModel, IntegratorSettings, PointForce, law,
+                     simulate_full)
+from dbf_hpc.fom import Observation
+from dbf_hpc.fom_integrator import Alpha2, ContactNewton, ContactStep, step_count
+from dbf_hpc.laws import ConstraintLaws
+
+PAPER_BEAM = dict(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0)
+
+
+def paper_fom(elements=100, constraints=None, comm=None, excitation=None, probes=(0.5,)):
+    beam = Beam(elements=elements, **PAPER_BEAM)
+    if constraints is None:
+        constraints = [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)]
+    return FullOrderModel.build(beam, constraints, excitation or BaseMotion(amplitude=5e-3, frequency_hz=1.0),
+                                probes=probes, comm=comm)
+
+
+def tsalpha2_reference(fom, dt, t_end, sample_dt):
+    """The previous reference: PETSc TS ALPHA2 (rho 0.9) on the linear part M u'' + K u = f(t), valid
+    until the first impact; its w at the constraint and the probe, cubic Hermite at the samples."""
+    ops = fom.operators
+    K, M, load = ops.K, ops.M, ops.base_mass_load
+    observation = Observation(fom)
+    rows = observation.rows
+    a, w = fom.support.amplitude, 2 * np.pi * fom.support.frequency_hz
+    history = []
+
+    def residual(ts, t, u, v, acc, F):
+        M.mult(acc, F)
+        K.multAdd(u, F, F)
+        F.axpy(-a * w * w * math.sin(w * t), load)      # - f(t) = + M r Omega''(t)
+
+    def jacobian(ts, t, u, v, acc, shift_v, shift_a, J, P):
+        K.copy(P)
+        P.axpy(shift_a, M)
+        P.assemble()
+        return True
+
+    def monitor(ts, step, t, u):
+        _, v = ts.getSolution2()
+        history.append((t, to_numpy(u)[rows], to_numpy(v)[rows]))
+
+    J = K.duplicate(copy=True)
+    J.axpy(1.0, M)
+    ts = PETSc.TS().create(comm=fom.comm)
+    F, u, v = K.createVecLeft(), K.createVecRight(), K.createVecRight()
+    u.zeroEntries()
+    v.zeroEntries()
+    try:
+        ts.setType(PETSc.TS.Type.ALPHA2)
+        ts.setI2Function(residual, F)
+        ts.setI2Jacobian(jacobian, J, J)
+        ts.setTimeStep(dt)
+        ts.setMaxTime(t_end)
+        ts.setMaxSteps(10**9)
+        ts.setExactFinalTime(PETSc.TS.ExactFinalTime.MATCHSTEP)
+        ts.getSNES().setTolerances(rtol=1e-14, atol=1e-20, max_it=20)
+        ts.getSNES().getKSP().setType("preonly")
+        ts.getSNES().getKSP().getPC().setType("lu")
+        ts.getSNES().getKSP().getPC().setFactorSolverType("mumps")
+        ts.setMonitor(monitor)
+        ts.setAlphaRadius(0.9) if hasattr(ts, "setAlphaRadius") else PETSc.Options().setValue("ts_alpha_radius", 0.9)
+        ts.setFromOptions()
+        ts.setSolution2(u, v)
+        ts.solve(u)
+    finally:
+        PETSc.Options().delValue("ts_alpha_radius")
+        for obj in (ts, F, u, v, J):
+            obj.destroy()
+    t = np.array([h[0] for h in history])
+    x = np.array([h[1] for h in history])
+    xd = np.array([h[2] for h in history])
+    times = np.arange(int(round(t_end / sample_dt)) + 1) * sample_dt
+    out = []
+    for s in times:
+        i = min(max(np.searchsorted(t, s) - 1, 0), t.size - 2)
+        h = t[i + 1] - t[i]
+        q = (s - t[i]) / h
+        out.append((2 * q**3 - 3 * q**2 + 1) * x[i] + (q**3 - 2 * q**2 + q) * h * xd[i]
+                   + (-2 * q**3 + 3 * q**2) * x[i + 1] + (q**3 - q**2) * h * xd[i + 1])
+    z, _, probes = observation.block_totals(times, np.array(out), np.array(out))
+    return times, np.column_stack([z, probes])
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="TS with MUMPS takes minutes on 2 ranks; the 1-vs-2-ranks "
+                                                   "test covers the parallel loop")
+def test_condensed_generalized_alpha_is_petsc_tsalpha2_before_the_first_impact(comm):
+    # The same scheme (rho 0.9) and the same step: before the first impact both are linear and may
+    # differ only by round-off and by the start. PETSc's start takes A0 from two backward-Euler half
+    # steps (twice the backward-difference estimate in 3.18), ours from the equation of motion; from
+    # rest with f(0) = 0 both are nearly 0. Measured (100 elements, 10 us steps, 0.1 s): 8.2e-12 of the
+    # peak at the constraint, 8.9e-12 at the probe.
+    with paper_fom() as fom:
+        settings = IntegratorSettings(t_end=0.1, dt=1e-5, sample_dt=1e-4)
+        ours = simulate_full(fom, settings)
+        times, theirs = tsalpha2_reference(fom, settings.dt, settings.t_end, settings.sample_dt)
+    assert_all(np.array_equal(ours.time, times))
+    w = np.column_stack([ours.displacement, ours.probes])
+    assert_all(np.abs(w[:, 0]).max() < 2.5e-3, "no impact before 0.1 s")
+    error = np.abs(w - theirs).max(axis=0) / np.abs(theirs).max(axis=0)
+    assert_all(np.all(error < 1e-10), error)
+
+
+def dense_generalized_alpha(fom, laws, t_end, dt, rho=0.9):
+    """An independent implementation: generalized-alpha written for X1 with Newton on all DOFs (dense
+    numpy), the laws at the mid-point, the consistent start. Returns (t, w at the constraints)."""
+    from test_matrices import to_scipy
+
+    K, M = to_scipy(fom.operators.K).toarray(), to_scipy(fom.operators.M).toarray()
+    load = to_numpy(fom.operators.base_mass_load)
+    rows = fom.constraints.flat_rows
+    r_c = fom.influence_at(rows)
+    s = fom.support
+    f = lambda t: -s.acceleration(t) * load                    # noqa: E731
+    P = Alpha2(rho)
+    am, af, gamma, beta = P.am, P.af, P.gamma, P.beta
+    n = K.shape[0]
+    X, V = np.zeros(n), np.zeros(n)
+    R0 = f(0.0) - K @ X
+    R0[rows] += laws.force(X[rows] + r_c * s.value(0.0), V[rows] + r_c * s.rate(0.0))
+    A = np.linalg.solve(M, R0)
+    steps, _ = step_count(t_end, dt)
+    h = dt
+    out = [X[rows] + r_c * s.value(0.0)]
+    for k in range(steps):
+        ta = k * h + af * h
+        X1 = X + h * V + h * h * (0.5 - beta) * A
+        for it in range(50):
+            A1 = (X1 - X - h * V) / (beta * h * h) - (1 - 2 * beta) / (2 * beta) * A
+            V1 = V + h * ((1 - gamma) * A + gamma * A1)
+            Xa, Va, Aa = X + af * (X1 - X), V + af * (V1 - V), A + am * (A1 - A)
+            N, Nz, Nv = laws.force_and_jacobian(Xa[rows] + r_c * s.value(ta), Va[rows] + r_c * s.rate(ta))
+            R = M @ Aa + K @ Xa - f(ta)
+            R[rows] -= N
+            J = am / (beta * h * h) * M + af * K
+            J[rows, rows] -= af * (Nz + Nv * gamma / (beta * h))
+            dX = np.linalg.solve(J, -R)
+            X1 = X1 + dX
+            if np.abs(dX).max() <= 1e-15 * np.abs(X1).max():
+                break
+        A1 = (X1 - X - h * V) / (beta * h * h) - (1 - 2 * beta) / (2 * beta) * A
+        V = V + h * ((1 - gamma) * A + gamma * A1)
+        X, A = X1, A1
+        out.append(X[rows] + r_c * s.value((k + 1) * h))
+    return np.arange(steps + 1) * h, np.array(out)
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="a dense serial reference")
+def test_condensed_contact_is_newton_on_every_dof_through_impacts():
+    # Two smooth laws that push hard (Hertz with Hunt-Crossley damping, a cubic spring with a dashpot):
+    # the N_L-sized Newton with the Delassus operator must give what Newton on all 80 DOFs gives, step
+    # for step, impacts included. Impacts amplify round-off (docs/design.md): measured 7.8e-11 of the
+    # peak over the 15 impacts of the first 10 ms, growing to 1e-8 by 20 ms.
+    laws = [law("hertz", clearance=2e-4, k=5e7, damping="hunt_crossley", alpha=0.3),
+            law("cubic", k=20.0, k3=1e7, damping="linear", c=2e-3)]
+    constraints = [Constraint(laws[0], x=0.25), Constraint(laws[1], x=0.6)]
+    with paper_fom(elements=40, constraints=constraints, excitation=BaseMotion(amplitude=2e-2, frequency_hz=8.0),
+                   probes=()) as fom:
+        settings = IntegratorSettings(t_end=0.01, dt=2e-5, sample_dt=2e-5)
+        ours = simulate_full(fom, settings)
+        t, dense = dense_generalized_alpha(fom, ConstraintLaws(laws), settings.t_end, settings.dt)
+    assert ours.statistics["impacts"][0] >= 10, "the Hertz stop is hit"
+    assert ours.solver["contact_steps"] == 500, "the cubic spring always pushes"
+    np.testing.assert_allclose(ours.time, t, rtol=0, atol=1e-12)
+    error = np.abs(ours.displacement - dense).max() / np.abs(dense).max()
+    assert error < 1e-9, error
+
+
+def test_condensed_contact_jacobian_is_the_derivative_of_its_residual():
+    # r(y) = y - y_free - D N(z_a(y), v_a(y)) / a_f with a smooth law and a dashpot: the exact
+    # Jacobian J = I - D diag(N_z + s_V N_v) against central differences.
+    rng = np.random.default_rng(11)
+    n = 4
+    B = rng.normal(size=(n, n))
+    D = 1e-6 * (B @ B.T + n * np.eye(n))
+    laws = ConstraintLaws([law("cubic", k=50.0, k3=1e8, damping="linear", c=0.3)] * 2
+                          + [law("hertz", clearance=1e-4, k=1e9, damping="hunt_crossley", alpha=0.5)] * 2)
+    P = Alpha2(0.9)
+    sV, _ = P.shifts(1e-5)
+    y_free = rng.normal(0, 1e-3, n)
+    problem = ContactStep(laws, D, y_free, z_c=rng.normal(0, 1e-4, n), v_c=rng.normal(0, 1e-2, n),
+                          x_pred=y_free + rng.normal(0, 1e-6, n), af=P.af, sV=sV)
+    y = y_free + np.array([1e-5, -2e-5, 4e-4, -3e-4])   # the Hertz stops compressed
+    _, _, J = problem.residual(y)
+    fd = np.empty((n, n))
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = 1e-9
+        fd[:, j] = (problem.residual(y + e)[0] - problem.residual(y - e)[0]) / 2e-9
+    assert np.abs(J - fd).max() < 1e-6 * np.abs(J).max(), np.abs(J - fd).max()
+
+
+def test_contact_newton_solves_a_force_jump_as_the_set_valued_contact():
+    # Linear contact damping switches c v on at the edge: with a fast approach the residual jumps
+    # across 0 and has no root. The fallback returns the point of the jump with the force inside it
+    # that satisfies y = y_free + D lambda.
+    laws = ConstraintLaws([law("deadband", clearance=1e-3, k=1e3, damping="linear", c=500.0)])
+    P = Alpha2(0.9)
+    sV, _ = P.shifts(1e-5)
+    D = np.array([[2e-7]])
+    z_c = np.array([(1 - P.af) * 0.9e-3])
+    edge = (1e-3 - z_c) / P.af             # y where the mid-point reaches the stop
+    problem = ContactStep(laws, D, y_free=edge + 1e-4, z_c=z_c, v_c=np.array([5.0]), x_pred=edge, af=P.af, sV=sV)
+    below, above = (problem.residual(edge + s)[0][0] for s in (-1e-12, 1e-12))
+    assert below < 0 < above and above - below > 5e-4, "r jumps across 0 at the edge: no root"
+    newton = ContactNewton()
+    y, lam = newton.solve(problem, problem.y_free.copy(), 0.0)
+    assert newton.fallbacks == 1 and newton.jumps >= 1
+    assert abs(problem.state(y)[0][0] - 1e-3) < 1e-15, "the mid-point stops at the edge, inside the jump"
+    assert lam[0] < 0 and abs(y[0] - problem.y_free[0] - D[0, 0] * lam[0]) < 1e-15
+    assert -500.0 * 5.0 / P.af < lam[0], "lambda lies inside the jump, between 0 and the damping force"
+
+
+def test_a_step_size_change_refactors_once_and_the_last_step_ends_at_t_end():
+    with paper_fom(elements=20) as fom:
+        whole = simulate_full(fom, IntegratorSettings(t_end=2e-3, dt=1e-4, sample_dt=1e-3))
+        cut = simulate_full(fom, IntegratorSettings(t_end=2.05e-3, dt=1e-4, sample_dt=1e-3))
+    assert_all(whole.solver["factorizations"] == 1 and whole.solver["steps"] == 20)
+    # 20 steps of dt and a last one of dt / 2: two step sizes, two factorizations, no more.
+    assert_all(cut.solver["factorizations"] == 2 and cut.solver["steps"] == 21)
+    assert_all(abs(cut.time[-1] - 2.05e-3) < 1e-15 and cut.solver["final_time"] == 2.05e-3)
+
+
+@pytest.mark.parallel
+def test_one_and_two_ranks_agree_before_the_first_impact_with_constraints_on_the_rank_boundary():
+    # 200 DOFs: rank 0 owns rows 0-99, rank 1 rows 100-199. One stop on each side of the boundary;
+    # PETSc's Cholesky on every rank (the default for a beam) and MUMPS on both ranks.
+    beam = Beam(elements=100, **PAPER_BEAM)
+    x_last = 0.5  # node 50: w at row 99 (v at 0.5 m is row 2 * 50 - 1 for a pinned left end)
+    with FullOrderModel.build(beam, [], BaseMotion(amplitude=5e-3, frequency_hz=1.0), probes=[x_last]) as fom:
+        row = int(fom.operators.mesh.w_row(x_last))
+        lo, hi = fom.operators.K.getOwnershipRange()
+    boundary = MPI.COMM_WORLD.bcast(hi if MPI.COMM_WORLD.rank == 0 else None, root=0)
+    assert_all(row in (boundary - 1, boundary), (row, boundary))
+    stops = [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=x) for x in (0.49, 0.5, 0.51)]
+    settings = IntegratorSettings(t_end=0.05, dt=2e-5, sample_dt=1e-4)
+    results = {}
+    for ranks, options in (("2", {}), ("2 mumps", {"full_pc_factor_mat_solver_type": "mumps",
+                                                   "full_pc_type": "cholesky"}), ("1", {})):
+        comm = PETSc.COMM_SELF if ranks == "1" else PETSc.COMM_WORLD
+        for k, v in options.items():
+            PETSc.Options().setValue(k, v)
+        try:
+            with paper_fom(constraints=stops, comm=comm) as fom:
+                if ranks != "1":
+                    rows = fom.constraints.flat_rows
+                    assert_all(rows.min() < boundary <= rows.max(), "the stops straddle the rank boundary")
+                results[ranks] = simulate_full(fom, settings)
+        finally:
+            for k in options:
+                PETSc.Options().delValue(k)
+    assert_all("petsc cholesky on every rank" in results["2"].solver["factorization"])
+    assert_all(results["2 mumps"].solver["factorization"] == "mumps cholesky")
+    one = results["1"].displacement
+    assert_all(np.abs(one).max() < 2.5e-3, "no impact before 0.05 s")
+    for ranks in ("2", "2 mumps"):
+        error = np.abs(results[ranks].displacement - one).max() / np.abs(one).max()
+        assert_all(error < 1e-11, (ranks, error))

@@ -1,0 +1,60 @@
+"""The recorder (recorder.py): a full-order run hands its steps and samples over in blocks; what it
+writes must be what step-by-step recording writes."""
+import numpy as np
+
+from dbf_hpc.constraints import ConstraintSet
+from dbf_hpc.excitation import Harmonic
+from dbf_hpc.fom import Observation
+from dbf_hpc.laws import ConstraintLaws, law
+from dbf_hpc.operators import PointValues
+from dbf_hpc.output import MemoryWriter
+from dbf_hpc.recorder import FullRecorder, SampleRecorder
+from dbf_hpc.stats import STATISTICS
+
+
+def test_blocks_of_steps_and_samples_record_what_step_by_step_recording_does():
+    rng = np.random.default_rng(7)
+    laws = ConstraintLaws([law("deadband", clearance=1e-3, k=1e6), law("hertz", clearance=2e-3, k=1e8,
+                                                                        damping="hunt_crossley", alpha=0.5)])
+    constraints = ConstraintSet(rows=np.array([[3], [9]]), laws=laws, labels=("a", "b"), positions=np.array([1., 2.]))
+    support = Harmonic(1e-3, 7.0)
+    r = np.array([0.3, 0.7, 0.5])           # two constraints and one probe
+    steps = 3000
+    t = np.arange(1, steps + 1) * 1e-5
+    z = 2.5e-3 * np.sin(2 * np.pi * 40 * t[:, None] + np.array([0.0, 1.0])) + rng.normal(0, 1e-4, (steps, 2))
+    v = rng.normal(0, 0.1, (steps, 2))
+    # Samples: after arbitrary steps, some steps with two samples, some samples between two steps.
+    sample_after = np.sort(rng.choice(steps, 400))
+    x_s = rng.normal(0, 2e-3, (400, 3))
+    xd_s = rng.normal(0, 0.1, (400, 3))
+    t_s = t[sample_after] - 3e-6
+
+    def total(time, x, xd, rows):
+        return x + np.outer(support.value(time), r[rows]), xd + np.outer(support.rate(time), r[rows])
+
+    one = SampleRecorder(MemoryWriter((2,), 1, 0), constraints)
+    j = 0
+    for i in range(steps):
+        while j < 400 and sample_after[j] == i:
+            zz, vv = total(t_s[j:j + 1], x_s[j:j + 1], xd_s[j:j + 1], slice(None))
+            one.sample(t_s[j], zz[0, :2], vv[0, :2], zz[0, 2:])
+            j += 1
+        zz, vv = total(t[i:i + 1], z[i:i + 1], v[i:i + 1], slice(0, 2))
+        one.step(t[i], zz[0], vv[0])
+
+    probe = PointValues.at_rows([4.0], [12])
+    observation = Observation.of(np.array([3, 9]), r[:2], probe, r[2:], support)
+    blocks = FullRecorder(MemoryWriter((2,), 1, 0), constraints, observation)
+    cuts = np.unique(np.concatenate(([0, steps], rng.integers(0, steps, 25), sample_after[:3])))
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        inside = (sample_after >= a) & (sample_after < b)
+        blocks.block((t[a:b], z[a:b], v[a:b]),
+                     (t_s[inside], x_s[inside], xd_s[inside], sample_after[inside] - a))
+    for name in ("time", "constraints/displacement", "constraints/velocity", "constraints/force",
+                 "constraints/force_peak", "probes/displacement"):
+        np.testing.assert_array_equal(blocks.writer.series_data(name), one.writer.series_data(name), err_msg=name)
+    expected, got = one.impacts.result(), blocks.impacts.result()
+    assert expected["impacts"].min() > 5, "the record has impacts"
+    for name in STATISTICS:
+        np.testing.assert_allclose(got[name], expected[name], rtol=1e-12, atol=1e-18, err_msg=name)
+    np.testing.assert_array_equal(blocks.peak, one.peak)
