@@ -357,7 +357,9 @@ def test_two_jobs_on_one_output_without_hdf5_file_locking_leave_the_first_intact
 
     monkeypatch.setenv("HDF5_USE_FILE_LOCKING", "FALSE")
     target = tmp_path / "shared.h5"
-    common = ("-q", "--set", "integrator.t_end=2", "--set", f"basis.cache={tmp_path}")
+    # The Python callbacks keep the first job running for several seconds (the C ones take 0.5 s).
+    common = ("-q", "--set", "integrator.t_end=2", "--set", f"basis.cache={tmp_path}",
+              "--set", "integrator.callbacks=python")
     first = _start("run", PAPER, "-o", str(target), *common)
     _wait_for(str(target) + ".partial", first)
     second = dbf_hpc("run", PAPER, "-o", str(target), *common)
@@ -408,8 +410,10 @@ def test_a_disk_too_small_or_filling_up_is_one_line_never_a_crash(small_disk):
                     "--set", f"basis.cache={small_disk / 'cache'}")
     assert cache.returncode == 0 and "cannot write the basis cache" in cache.stdout, cache.stdout + cache.stderr
     (small_disk / "filler").unlink()
+    # The Python callbacks keep the run going for several seconds (the C ones take 0.5 s): time for
+    # another job to fill the disk while the samples stream out.
     run = _start("run", PAPER, "-o", str(small_disk / "out.h5"), "-q", "--set", "basis.cache=off",
-                 "--set", "integrator.t_end=3")
+                 "--set", "integrator.t_end=3", "--set", "integrator.callbacks=python")
     _wait_for(str(small_disk / "out.h5.partial"), run)
     time.sleep(1)
     with open(small_disk / "filler", "wb") as f:      # another job fills the disk
