@@ -35,21 +35,28 @@ from .dbf import (DERIVATIVE_BACKWARD_TOL, EIGEN_TOL, PREFIX, REFINEMENT_STEPS, 
 from .errors import SolverError
 from .modes import lowest_eigenpair, normalize, shift_below_spectrum
 from .operators import Operators
-from .petsctools import destroy, direct_solver, unit_vector
+from .petsctools import destroy, direct_solver, options_defaults, unit_vector
 
 FACTOR_PREFIX = "dbf_shared_"
 KRYLOV_PREFIX = "dbf_krylov_"
 KRYLOV_RTOL = 1e-13      # preconditioned residual; the backward error is checked afterwards
 KRYLOV_MAX_IT = 200
-EIGEN_NCV = 8            # Krylov-Schur subspace beyond the branch index (convergence is checked per restart)
+EIGEN_NCV = 4            # Krylov-Schur subspace beyond the branch index: convergence is checked per restart
+                         # (m + 8 took 12 solves per eigenproblem on the 10^4-DOF beam, m + 4 takes 10)
+
+# On a one-rank group: PETSc's own sparse Cholesky (nested-dissection ordering). A MUMPS solve
+# costs ~6.5 ms on the 10^4-DOF beam whatever the arithmetic (its per-call overhead), PETSc's 0.4 ms,
+# and each constraint makes ~30 solves (docs/design.md). Groups of several ranks use MUMPS;
+# -dbf_shared_pc_factor_mat_solver_type mumps chooses MUMPS everywhere.
+FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "nd"}
 
 # Work done by this process on the shared path (tests and benchmarks read it).
 counters = {"factorizations": 0, "solves": 0}
 
 
 class SharedFactor:
-    """A = K - sigma M factored once (Cholesky, MUMPS; SPD as sigma lies below the spectrum) on
-    ops.comm. Owns A and its KSP. Collective."""
+    """A = K - sigma M factored once (Cholesky; SPD as sigma lies below the spectrum) on ops.comm
+    (FACTOR_DEFAULTS: which factorization). Owns A and its KSP. Collective."""
 
     def __init__(self, ops: Operators):
         self.ops, self.sigma = ops, shift_below_spectrum(ops)
@@ -60,8 +67,9 @@ class SharedFactor:
             self.ksp = direct_solver(PETSc.KSP().create(comm=ops.comm), PETSc.PC.Type.CHOLESKY)
             self.ksp.setOperators(self.A)
             self.ksp.setOptionsPrefix(FACTOR_PREFIX)
-            self.ksp.setFromOptions()
-            self.ksp.setUp()     # the factorization
+            with options_defaults(FACTOR_PREFIX, FACTOR_DEFAULTS if ops.comm.getSize() == 1 else {}):
+                self.ksp.setFromOptions()
+                self.ksp.setUp()     # the factorization
             counters["factorizations"] += 1
         except PETSc.Error as e:
             self.destroy()
