@@ -74,7 +74,8 @@ class SharedFactor:
         except PETSc.Error as e:
             self.destroy()
             raise SolverError(f"the shared DBF factorization of K - sigma M (sigma = {self.sigma:g}) failed "
-                              f"(PETSc error {e.ierr}); check K and M, or use [basis] dbf_solver = \"factor\"") from None
+                              f"(PETSc error {e.ierr}); check K and M, or use [basis] dbf_solver = \"factor\""
+                              ) from None
         except Exception:
             self.destroy()
             raise

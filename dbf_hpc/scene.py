@@ -98,7 +98,8 @@ class Scene:
         b = self["basis"]
         return BasisSettings(modes=b["modes"], max_frequency_hz=b["max_frequency_hz"],
                              dbf_stiffness=b["dbf_stiffness"], dbf_derivative=b["dbf_derivative"],
-                             groups=b["groups"], enrichment=b["enrichment"], dbf_solver=b["dbf_solver"])
+                             groups=b["groups"], enrichment=b["enrichment"],
+                             dbf_solver=b["dbf_solver"])
 
     def integrator_settings(self) -> IntegratorSettings:
         i = self["integrator"]
