@@ -112,12 +112,15 @@ class LowestModes:
 
     def _use_inverse(self, sigma: float, inverse) -> None:
         """Apply `inverse` as the ST's (K - sigma M)^-1 (a PCShell on the ST's KSP, implicit ST matrix)."""
-        st = self.eps.getST()
-        if st.getType() != SLEPc.ST.Type.SINVERT or self.eps.getTarget() != sigma or st.getShift() != sigma:
+        st, options = self.eps.getST(), PETSc.Options(self.prefix)
+        near = lambda x: abs(complex(x).real - sigma) <= 1e-14 * max(abs(sigma), 1.0)  # noqa: E731
+        if (st.getType() != SLEPc.ST.Type.SINVERT or not near(self.eps.getTarget())
+                or (options.hasName("st_shift") and not near(options.getReal("st_shift")))):
             self.eps.destroy()
             raise InputError(f"the shared-factorization DBF path needs shift-and-invert about {sigma:g} "
                              f"(-{self.prefix}eps_target, -{self.prefix}st_shift, -{self.prefix}st_type changed it); "
                              f"remove those options or use [basis] dbf_solver = \"factor\"")
+        st.setShift(sigma)
         st.setMatMode(SLEPc.ST.MatMode.SHELL)
         ksp = st.getKSP()
         ksp.setType(PETSc.KSP.Type.PREONLY)

@@ -195,6 +195,20 @@ def test_shared_factorization_gives_the_dbfs_of_the_three_factorizations(paper, 
     assert_same_dbfs(ops, shared, factor)
 
 
+@pytest.mark.parametrize("left", ["pinned", "sliding"])
+def test_shared_factorization_shifted_below_a_rigid_body_mode_gives_the_same_dbfs(left):
+    # One rigid-body mode (K singular): both paths shift to sigma = -eigen_scale, and the spring
+    # moves the rigid mode's zero eigenvalue (branch 1).
+    ops = assemble_beam(Beam(**TABLE1, elements=100, left=left, right="free"), points=[0.3, 0.7])
+    assert ops.rigid_modes == 1
+    modes = reference_modes(ops, count=6)
+    shared, factor = both_paths(ops, modes, [ops.mesh.w_row(x) for x in (0.3, 0.7)])
+    assert np.all(shared.branch == 1)
+    assert_same_dbfs(ops, shared, factor)
+    modes.destroy()
+    ops.destroy()
+
+
 def test_shared_factorization_gives_the_pinned_and_perturbed_eigenvalues_of_table_1(paper):
     ops, modes, row = paper
     part = participation(modes, np.array([row]))[0]
