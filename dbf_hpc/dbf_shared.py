@@ -102,6 +102,9 @@ class SpringInverse:
         g = unit_vector(self.z, row)
         try:
             factor.solve(g, self.z)
+        except Exception:
+            self.z.destroy()
+            raise
         finally:
             g.destroy()
         self.gz = value_at(self.z, row)   # g^T A^-1 g > 0 (A is SPD)
@@ -161,10 +164,10 @@ class SharedSolver:
         A, rhs, Mphi = derivative_system(self.ops, self.row, k, lam, phi)
         self.inverse.set_stiffness(k)
         self.inverse.deflate(phi, Mphi)
-        ksp = _krylov(A, self.inverse)
-        d, correction, residual = A.createVecRight(), A.createVecRight(), rhs.copy()
+        ksp, d, correction, residual = None, A.createVecRight(), A.createVecRight(), rhs.copy()
         d.set(0.0)
         try:
+            ksp = _krylov(A, self.inverse)
             for _ in range(REFINEMENT_STEPS + 1):
                 ksp.solve(residual, correction)
                 if ksp.getConvergedReason() < 0:
