@@ -31,6 +31,7 @@ from .petsctools import destroy
 # different rank layouts), so below 1e-9 the surviving part would be mostly round-off.
 BREAKDOWN_TOL = 1e-9
 ENRICHMENTS = tuple(STRATEGIES)
+DBF_SOLVERS = ("shared", "factor")
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,7 @@ class BasisSettings:
     dbf_derivative: str = "analytic"    # or "central"
     groups: int = 0                     # constraint groups; 0: min(ranks, constraints)
     enrichment: str = "dbf"             # "dbf" | "static" | "none" (enrichment.py)
+    dbf_solver: str = "shared"          # "shared" (one factorization per group) | "factor" (three per constraint)
 
     @property
     def strategy(self) -> Enrichment:
@@ -52,12 +54,14 @@ class BasisSettings:
             accepted = ", ".join(f'"{e}"' for e in STRATEGIES)
             raise InputError(f"basis enrichment must be one of {accepted}, got {self.enrichment!r}")
         if self.enrichment == "dbf":
-            return DbfEnrichment(self.dbf_stiffness, self.dbf_derivative, self.groups)
+            if self.dbf_solver not in DBF_SOLVERS:
+                raise InputError(f'basis dbf_solver must be "shared" or "factor", got {self.dbf_solver!r}')
+            return DbfEnrichment(self.dbf_stiffness, self.dbf_derivative, self.groups, self.dbf_solver)
         return STRATEGIES[self.enrichment]()
 
     def key(self) -> dict:
         """The settings that change the basis (groups do not: same basis to round-off; the DBF
-        stiffness and derivative only for DBFs)."""
+        stiffness, derivative and solver only for DBFs)."""
         return {"modes": self.modes, "max_frequency_hz": self.max_frequency_hz, **self.strategy.key()}
 
 

@@ -130,15 +130,18 @@ def auto_stiffness(pinned: float, reference_eigenvalue: float, participation: fl
     return max(pinned - reference_eigenvalue, 0.0) / participation
 
 
-def central_derivative(ops: Operators, row: int, k: float, branch: int, phi: PETSc.Vec) -> PETSc.Vec:
-    """d phi/dk by the paper's central difference in k, eigenvectors sign-aligned with phi."""
+def central_derivative(ops: Operators, row: int, k: float, branch: int, phi: PETSc.Vec,
+                       eigenpair=None) -> PETSc.Vec:
+    """d phi/dk by the paper's central difference in k, eigenvectors sign-aligned with phi;
+    eigenpair(k, branch) -> (lambda, phi) solves the spring-perturbed problem (default: factored)."""
+    eigenpair = eigenpair or (lambda kk, m: spring_eigenpair(ops, row, kk, m))
     h = CENTRAL_STEP
     Mphi = ops.M.createVecLeft()
     ops.M.mult(phi, Mphi)
     ends = []
     try:
         for factor in (1 + h, 1 - h):
-            _, v = spring_eigenpair(ops, row, k * factor, branch)
+            _, v = eigenpair(k * factor, branch)
             ends.append(v)
             if v.dot(Mphi) < 0:
                 v.scale(-1.0)
@@ -150,8 +153,9 @@ def central_derivative(ops: Operators, row: int, k: float, branch: int, phi: PET
     return d
 
 
-def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PETSc.Vec) -> PETSc.Vec:
-    """d phi/dk from the deflated derivative equation (module docstring, step 3)."""
+def derivative_system(ops: Operators, row: int, k: float, lam: float, phi: PETSc.Vec):
+    """(A - lambda M, the right side -(g (g^T phi) - (g^T phi)^2 M phi), M phi) of the derivative
+    equation (module docstring, step 3), A = K + k g g^T; new objects, the caller's. Collective."""
     A = with_spring(ops.K, row, k)
     A.axpy(-lam, ops.M, structure=PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
     gphi = value_at(phi, row)
@@ -163,7 +167,20 @@ def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PET
     if lo <= row < hi:
         rhs.setValue(row, -gphi, addv=PETSc.InsertMode.ADD_VALUES)
     rhs.assemble()
+    return A, rhs, Mphi
 
+
+def backward_error(A: PETSc.Mat, d: PETSc.Vec, rhs: PETSc.Vec, residual: PETSc.Vec) -> float:
+    """Normwise backward error ||r|| / (||A|| ||d|| + ||rhs||) of A d = rhs. A relative residual
+    ||r|| / ||rhs|| would grow with cond(A) ~ elements^4 and reject exact-to-round-off answers on
+    fine meshes. Collective."""
+    return residual.norm() / (A.norm(PETSc.NormType.FROBENIUS) * d.norm() + rhs.norm())
+
+
+def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PETSc.Vec) -> PETSc.Vec:
+    """d phi/dk from the deflated derivative equation (module docstring, step 3), by a factorization
+    of A - lambda M (LU: it is indefinite) with iterative refinement."""
+    A, rhs, Mphi = derivative_system(ops, row, k, lam, phi)
     ksp = direct_solver(PETSc.KSP().create(comm=ops.comm))  # A - lambda M is indefinite: LU
     ksp.setOperators(A)
     ksp.setOptionsPrefix(PREFIX)
@@ -180,9 +197,7 @@ def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PET
             d.axpy(1.0, correction)
             A.mult(d, residual)
             residual.aypx(-1.0, rhs)
-        # Normwise backward error: ||r|| / (||A|| ||d|| + ||rhs||). A relative residual ||r|| / ||rhs||
-        # would grow with cond(A) ~ elements^4 and reject exact-to-round-off answers on fine meshes.
-        backward = residual.norm() / (A.norm(PETSc.NormType.FROBENIUS) * d.norm() + rhs.norm())
+        backward = backward_error(A, d, rhs, residual)
         if not backward < DERIVATIVE_BACKWARD_TOL:
             raise SolverError(f"DBF derivative at row {row} is inaccurate (backward error {backward:.2e}); "
                               f"try dbf_derivative = \"central\" or a tighter -dbf_eps_tol")
@@ -194,26 +209,49 @@ def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PET
     return d
 
 
+class FactorSolver:
+    """The three solves of one constraint, each with its own factorization (dbf_solver = "factor",
+    the paper-faithful comparator): the pinned problem on K, M without the constraint's row and
+    column, the spring-perturbed problem on K + k g g^T, the derivative with LU of A - lambda M.
+    dbf_shared.SharedSolver has the same interface on one shared factorization."""
+
+    def __init__(self, ops: Operators, row: int):
+        self.ops, self.row = ops, row
+
+    def pinned(self, branch: int) -> float:
+        return pinned_eigenvalue(self.ops, self.row, branch)
+
+    def eigenpair(self, k: float, branch: int):
+        return spring_eigenpair(self.ops, self.row, k, branch)
+
+    def derivative(self, k: float, lam: float, phi: PETSc.Vec) -> PETSc.Vec:
+        return analytic_derivative(self.ops, self.row, k, lam, phi)
+
+    def destroy(self) -> None:
+        pass
+
+
 def dbf_source(ops: Operators, row: int, reference_eigenvalues: np.ndarray, participation: np.ndarray,
-               stiffness="auto", derivative: str = "analytic") -> DbfSource:
+               stiffness="auto", derivative: str = "analytic", solver=None) -> DbfSource:
     """The derivative d phi/dk that becomes constraint `row`'s DBF after Gram-Schmidt.
 
     reference_eigenvalues  lambda_i of the reference modes
     participation          (g^T phi_i)^2 of the reference modes at this constraint
+    solver                 FactorSolver(ops, row) (the default) or a dbf_shared.SharedSolver for row
     """
     branch = branch_of(participation)
     if branch == 0:
         raise SolverError(f"the constraint at row {row} does not move in any of the "
                           f"{participation.size} reference modes; add modes or move the constraint")
-    k_auto = auto_stiffness(pinned_eigenvalue(ops, row, branch), reference_eigenvalues[branch - 1],
-                            participation[branch - 1])
+    solver = solver or FactorSolver(ops, row)
+    k_auto = auto_stiffness(solver.pinned(branch), reference_eigenvalues[branch - 1], participation[branch - 1])
     k = k_auto if stiffness == "auto" else float(stiffness)
-    lam, phi = spring_eigenpair(ops, row, k, branch)
+    lam, phi = solver.eigenpair(k, branch)
     try:
         if derivative == "central":
-            d = central_derivative(ops, row, k, branch, phi)
+            d = central_derivative(ops, row, k, branch, phi, solver.eigenpair)
         else:
-            d = analytic_derivative(ops, row, k, lam, phi)
+            d = solver.derivative(k, lam, phi)
     finally:
         phi.destroy()
     return DbfSource(row=row, branch=branch, stiffness=k, transition=k_auto, eigenvalue=lam, derivative=d)

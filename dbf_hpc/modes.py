@@ -70,12 +70,23 @@ class ModalBasis:
         self.vectors.destroy()
 
 
+def shift_below_spectrum(ops: Operators) -> float:
+    """The shift-and-invert target sigma below the lowest eigenvalue: 0 for a supported structure
+    (K is SPD), -eigen_scale when rigid-body modes make K singular (LowestModes explains the value)."""
+    return -ops.eigen_scale if ops.rigid_modes else 0.0
+
+
 class LowestModes:
     """An EPS for the lowest eigenpairs of (K, ops.M), configured, with the user's options under
     `prefix`. K may differ from ops.K (spring-perturbed and pinned problems). Owns the EPS: use it
-    in a `with` block. Collective on K's communicator."""
+    in a `with` block. Collective on K's communicator.
 
-    def __init__(self, ops: Operators, K: PETSc.Mat, prefix: str, tol: float = 1e-10):
+    inverse: None (the ST factors K - sigma M itself), or a Python PC context whose apply(pc, x, y)
+    is an exact y = (K - sigma M)^-1 x, sigma = shift_below_spectrum(ops) (the shared-factorization
+    DBF path, dbf_shared.py): the ST then assembles and factors nothing, and the target and ST type
+    are fixed (an option changing them is refused: the inverse would not match)."""
+
+    def __init__(self, ops: Operators, K: PETSc.Mat, prefix: str, tol: float = 1e-10, inverse=None):
         self.prefix = prefix
         eps = self.eps = SLEPc.EPS().create(comm=K.getComm())
         eps.setOperators(K, ops.M)
@@ -87,7 +98,8 @@ class LowestModes:
         # -1e-3 eigen_scale a free-free beam lost its rigid modes (and returned wrong frequencies) beyond
         # ~800 elements, at -eigen_scale it keeps them past 4000, beyond what trust_check accepts. The
         # lowest elastic eigenvalue of a beam with rigid modes is >= 31 eigen_scale (sliding-free).
-        eps.setTarget(-ops.eigen_scale if ops.rigid_modes else 0.0)
+        sigma = shift_below_spectrum(ops)
+        eps.setTarget(sigma)
         eps.setTolerances(tol, 1000)
         st = eps.getST()
         st.setType(SLEPc.ST.Type.SINVERT)
@@ -95,13 +107,34 @@ class LowestModes:
         eps.setOptionsPrefix(prefix)
         with options_defaults(prefix, FACTOR_DEFAULTS):
             eps.setFromOptions()
+        if inverse is not None:
+            self._use_inverse(sigma, inverse)
 
-    def solve(self, nev: int, what: str) -> tuple[np.ndarray, list]:
-        """The nev lowest converged eigenpairs, sorted by eigenvalue (new Vecs, the caller's).
-        Collective."""
+    def _use_inverse(self, sigma: float, inverse) -> None:
+        """Apply `inverse` as the ST's (K - sigma M)^-1 (a PCShell on the ST's KSP, implicit ST matrix)."""
+        st, options = self.eps.getST(), PETSc.Options(self.prefix)
+        near = lambda x: abs(complex(x).real - sigma) <= 1e-14 * max(abs(sigma), 1.0)  # noqa: E731
+        if (st.getType() != SLEPc.ST.Type.SINVERT or not near(self.eps.getTarget())
+                or (options.hasName("st_shift") and not near(options.getReal("st_shift")))):
+            self.eps.destroy()
+            raise InputError(f"the shared-factorization DBF path needs shift-and-invert about {sigma:g} "
+                             f"(-{self.prefix}eps_target, -{self.prefix}st_shift, -{self.prefix}st_type changed it); "
+                             f"remove those options or use [basis] dbf_solver = \"factor\"")
+        st.setShift(sigma)
+        st.setMatMode(SLEPc.ST.MatMode.SHELL)
+        ksp = st.getKSP()
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(inverse)
+
+    def solve(self, nev: int, what: str, ncv: int | None = None) -> tuple[np.ndarray, list]:
+        """The nev lowest converged eigenpairs, sorted by eigenvalue (new Vecs, the caller's); ncv the
+        code's default Krylov subspace size (None: SLEPc's). Collective."""
         eps = self.eps
         options = PETSc.Options(self.prefix)  # keep the user's -eps_ncv, -eps_mpd (setDimensions resets them)
-        eps.setDimensions(nev, options.getInt("eps_ncv", PETSc.DEFAULT), options.getInt("eps_mpd", PETSc.DEFAULT))
+        eps.setDimensions(nev, options.getInt("eps_ncv", ncv or PETSc.DEFAULT),
+                          options.getInt("eps_mpd", PETSc.DEFAULT))
         try:
             # MUMPS reads its inertia switches when it factors: the defaults stay for the solve.
             with options_defaults(self.prefix, FACTOR_DEFAULTS):
@@ -146,10 +179,14 @@ class LowestModes:
         self.destroy()
 
 
-def lowest_eigenpair(ops: Operators, K: PETSc.Mat, m: int, prefix: str, what: str, tol: float):
-    """(lambda_m, phi_m): the m-th lowest eigenpair of (K, ops.M), phi not normalized. Collective."""
-    with LowestModes(ops, K, prefix, tol) as solver:
-        values, vectors = solver.solve(m, what)
+def lowest_eigenpair(ops: Operators, K: PETSc.Mat, m: int, prefix: str, what: str, tol: float, inverse=None,
+                     start: PETSc.Vec | None = None, ncv: int | None = None):
+    """(lambda_m, phi_m): the m-th lowest eigenpair of (K, ops.M), phi not normalized; inverse as in
+    LowestModes, start an initial vector of the Krylov space (or None), ncv as in solve. Collective."""
+    with LowestModes(ops, K, prefix, tol, inverse) as solver:
+        if start is not None:
+            solver.eps.setInitialSpace([start])
+        values, vectors = solver.solve(m, what, ncv)
     destroy(*vectors[:-1])
     return float(values[-1]), vectors[-1]
 

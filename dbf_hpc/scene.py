@@ -14,7 +14,7 @@ import tomllib
 from dataclasses import dataclass, field
 from typing import Optional
 
-from .basis import ENRICHMENTS, BasisSettings
+from .basis import DBF_SOLVERS, ENRICHMENTS, BasisSettings
 from .constraints import Constraint
 from .damping import Damping
 from .errors import InputError
@@ -98,7 +98,8 @@ class Scene:
         b = self["basis"]
         return BasisSettings(modes=b["modes"], max_frequency_hz=b["max_frequency_hz"],
                              dbf_stiffness=b["dbf_stiffness"], dbf_derivative=b["dbf_derivative"],
-                             groups=b["groups"], enrichment=b["enrichment"])
+                             groups=b["groups"], enrichment=b["enrichment"],
+                             dbf_solver=b["dbf_solver"])
 
     def integrator_settings(self) -> IntegratorSettings:
         i = self["integrator"]
@@ -332,6 +333,8 @@ def _check_basis(b: dict, where: str) -> None:
         raise InputError(f"{where}: dbf_stiffness must be \"auto\" or a positive number (N/m), got {k!r}")
     if b["dbf_derivative"] not in ("analytic", "central"):
         raise InputError(f"{where}: dbf_derivative must be \"analytic\" or \"central\", got {b['dbf_derivative']!r}")
+    if b["dbf_solver"] not in DBF_SOLVERS:
+        raise InputError(f"{where}: dbf_solver must be \"shared\" or \"factor\", got {b['dbf_solver']!r}")
     if b["groups"] < 0:
         raise InputError(f"{where}: groups must be 0 (automatic) or a positive count, got {b['groups']}")
     if b["enrichment"] not in ENRICHMENTS:

@@ -69,6 +69,9 @@ SECTIONS = {
                                                              'corner of the paper\'s Fig. 2) or a number'),
         "dbf_derivative": Key((str,), "analytic", "", '"analytic" (deflated derivative solve) or "central" (the '
                                                       'paper\'s central difference)'),
+        "dbf_solver": Key((str,), "shared", "", '"shared" (one factorization of K - sigma M per constraint group, '
+                                                'rank-one updates per constraint) or "factor" (three factorizations '
+                                                'per constraint, the paper-faithful comparator)'),
         "groups": Key((int,), 0, "", "constraint groups solved side by side (0: one per rank, at most one per "
                                      "constraint)"),
         "cache": Key((str,), "~/.cache/dbf_hpc", "", 'directory of cached bases, or "off"'),

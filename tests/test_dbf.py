@@ -8,10 +8,14 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
-from dbf_hpc.dbf import (analytic_derivative, branch_of, central_derivative, dbf_source, participation, pinned_eigenvalue,
-                         spring_eigenpair, stiffness_sweep, value_at)
+from dbf_hpc import dbf_shared
+from dbf_hpc.dbf import (FactorSolver, analytic_derivative, branch_of, central_derivative, dbf_source, participation,
+                         pinned_eigenvalue, spring_eigenpair, stiffness_sweep, value_at)
+from dbf_hpc.dbf_shared import SharedFactor, SharedSolver
+from dbf_hpc.enrichment import DbfEnrichment, constraint_groups
+from dbf_hpc.errors import InputError, SolverError
 from dbf_hpc.matrices import MatrixFiles, load_operators
-from dbf_hpc.modes import reference_modes
+from dbf_hpc.modes import normalize, reference_modes
 from dbf_hpc.structure import Beam, assemble_beam
 from exact import pinned_beam_with_intermediate_pin_omegas, spring_supported_pinned_beam_omegas
 
@@ -92,6 +96,25 @@ def test_branch_skips_modes_with_a_node_at_the_constraint(paper):
     assert branch_of(np.zeros(3)) == 0
 
 
+def two_beams(path):
+    """Two uncoupled pinned beams as one matrix model, the long one first: mode 1 lives on the long
+    beam only, so a constraint on the short beam sits at a node of mode 1. Returns (ops, the short
+    beam, the long beam's DOF count, the row of x = ELL on the short beam)."""
+    long_beam, short_beam = Beam(**{**TABLE1, "length": 1.3}, elements=30), Beam(**TABLE1, elements=30)
+    blocks = []
+    for b in (long_beam, short_beam):
+        ops = assemble_beam(b, comm=PETSc.COMM_SELF, points=[ELL])
+        blocks.append((ops.K.convert("dense").getDenseArray().copy(), ops.M.convert("dense").getDenseArray().copy(),
+                       ops.mesh.w_row(ELL), ops.size))
+        ops.destroy()
+    paths = [str(path / name) for name in ("K2.mtx", "M2.mtx")]
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths[0], scipy.sparse.block_diag([blocks[0][0], blocks[1][0]]).tocsr(), precision=17)
+        scipy.io.mmwrite(paths[1], scipy.sparse.block_diag([blocks[0][1], blocks[1][1]]).tocsr(), precision=17)
+    MPI.COMM_WORLD.Barrier()
+    return load_operators(MatrixFiles(*paths)), short_beam, blocks[0][3], blocks[0][3] + blocks[1][2]
+
+
 def test_constraint_at_a_node_of_the_first_mode_follows_the_first_branch_that_moves(shared_tmp_path):
     # Two uncoupled pinned beams, the long one first: mode 1 lives on the long beam only, so a
     # constraint on the short beam sits at a node of mode 1. Its DBF must come from the short beam's
@@ -123,3 +146,136 @@ def test_constraint_at_a_node_of_the_first_mode_follows_the_first_branch_that_mo
     src.derivative.destroy()
     modes.destroy()
     ops.destroy()
+
+
+# The shared-factorization path (dbf_shared.py) against the factored one (dbf.py): the same physics.
+AGREE = 1e-8   # both are exact to their solvers' tolerances (EIGEN_TOL 1e-12, backward error 1e-10)
+
+
+def normalized_columns(ops, columns):
+    """The columns of an EnrichmentColumns matrix, each M-normalized with the package's sign
+    convention, as numpy arrays on every rank."""
+    out = []
+    for j in range(columns.matrix.getSize()[1]):
+        v = ops.K.createVecRight()
+        columns.matrix.getColumnVector(j, v)
+        normalize(v, ops.M)
+        out.append(to_numpy(v))
+        v.destroy()
+    return np.array(out)
+
+
+def both_paths(ops, modes, rows, groups=0):
+    """(shared, factor): the EnrichmentColumns of both DBF solvers for the given rows."""
+    out = []
+    for solver in ("shared", "factor"):
+        out.append(DbfEnrichment(groups=groups, solver=solver).columns(ops, np.asarray(rows), modes))
+    return out
+
+
+def assert_same_dbfs(ops, shared, factor):
+    assert np.all(shared.branch == factor.branch)
+    assert np.allclose(shared.k_auto, factor.k_auto, rtol=AGREE, atol=0)
+    assert np.allclose(shared.k, factor.k, rtol=AGREE, atol=0)
+    a, b = normalized_columns(ops, shared), normalized_columns(ops, factor)
+    assert np.max(np.abs(a - b)) < AGREE * np.max(np.abs(b)), np.max(np.abs(a - b)) / np.max(np.abs(b))
+    for c in (shared, factor):
+        c.matrix.destroy()
+
+
+@pytest.mark.parametrize("groups", [0, 1])
+@pytest.mark.parametrize("positions", [[ELL], [0.1, ELL, 0.5, 0.8]])
+def test_shared_factorization_gives_the_dbfs_of_the_three_factorizations(paper, positions, groups):
+    # l = 0.5 is a node of mode 2 (mu_1 = lambda_2), l = 0.25 of mode 4; groups = 0 splits the
+    # constraints between the ranks, groups = 1 solves each on all ranks.
+    ops, modes, _ = paper
+    rows = [ops.mesh.w_row(x) for x in positions]
+    shared, factor = both_paths(ops, modes, rows, groups)
+    assert np.all(shared.branch == 1)
+    assert_same_dbfs(ops, shared, factor)
+
+
+@pytest.mark.parametrize("left", ["pinned", "sliding"])
+def test_shared_factorization_shifted_below_a_rigid_body_mode_gives_the_same_dbfs(left):
+    # One rigid-body mode (K singular): both paths shift to sigma = -eigen_scale, and the spring
+    # moves the rigid mode's zero eigenvalue (branch 1).
+    ops = assemble_beam(Beam(**TABLE1, elements=100, left=left, right="free"), points=[0.3, 0.7])
+    assert ops.rigid_modes == 1
+    modes = reference_modes(ops, count=6)
+    shared, factor = both_paths(ops, modes, [ops.mesh.w_row(x) for x in (0.3, 0.7)])
+    assert np.all(shared.branch == 1)
+    assert_same_dbfs(ops, shared, factor)
+    modes.destroy()
+    ops.destroy()
+
+
+def test_shared_factorization_gives_the_pinned_and_perturbed_eigenvalues_of_table_1(paper):
+    ops, modes, row = paper
+    part = participation(modes, np.array([row]))[0]
+    factor = SharedFactor(ops)
+    solver = SharedSolver(factor, row)
+    try:
+        assert solver.pinned(1) == pytest.approx(pinned_eigenvalue(ops, row, 1), rel=1e-10)
+        src = dbf_source(ops, row, modes.omega**2, part, "auto", solver=solver)
+        ref = dbf_source(ops, row, modes.omega**2, part, "auto", solver=FactorSolver(ops, row))
+        assert src.transition == pytest.approx(ref.transition, rel=1e-10)
+        assert src.eigenvalue == pytest.approx(ref.eigenvalue, rel=1e-10)
+        src.derivative.destroy()
+        ref.derivative.destroy()
+    finally:
+        solver.destroy()
+        factor.destroy()
+
+
+def test_shared_factorization_follows_the_first_branch_that_moves_at_a_node_of_mode_1(shared_tmp_path):
+    ops, _, _, row = two_beams(shared_tmp_path)
+    modes = reference_modes(ops, count=4)
+    shared, factor = both_paths(ops, modes, [row])
+    assert shared.branch[0] == 2
+    assert_same_dbfs(ops, shared, factor)
+    modes.destroy()
+    ops.destroy()
+
+
+def numeric_factorizations() -> int:
+    """Numeric Cholesky and LU factorizations logged by PETSc on this process so far."""
+    return sum(PETSc.Log.Event(name).getPerfInfo()["count"] for name in ("MatCholFctrNum", "MatLUFactorNum"))
+
+
+@pytest.mark.parametrize("groups", [0, 1])
+def test_shared_path_factors_once_per_group_and_the_factored_path_three_times_per_constraint(paper, groups):
+    ops, modes, _ = paper
+    PETSc.Log.begin()
+    rows = np.array([ops.mesh.w_row(x) for x in (0.1, ELL, 0.5)])
+    world = MPI.COMM_WORLD
+    n_groups = constraint_groups(world.size, rows.size, groups)
+    mine = len(range(world.rank * n_groups // world.size, rows.size, n_groups))  # this rank's group's share
+    counts = []
+    for solver in ("shared", "factor"):
+        before = numeric_factorizations()
+        columns = DbfEnrichment(groups=groups, solver=solver).columns(ops, rows, modes)
+        counts.append(numeric_factorizations() - before)
+        columns.matrix.destroy()
+    assert_all(counts == [1, 3 * mine], f"factorizations on rank {world.rank}: {counts} (share {mine})")
+
+
+def test_shared_derivative_refuses_a_krylov_solve_that_does_not_converge(paper):
+    ops, modes, row = paper
+    options = PETSc.Options()
+    options.setValue("dbf_krylov_ksp_max_it", "1")
+    try:
+        with pytest.raises(SolverError, match="did not converge"):
+            DbfEnrichment(solver="shared").columns(ops, np.array([row]), modes)
+    finally:
+        options.delValue("dbf_krylov_ksp_max_it")
+
+
+def test_shared_path_refuses_a_shift_its_factorization_does_not_have(paper):
+    ops, modes, row = paper
+    options = PETSc.Options()
+    options.setValue("dbf_eps_target", "1.0")
+    try:
+        with pytest.raises(InputError, match="dbf_solver"):
+            DbfEnrichment(solver="shared").columns(ops, np.array([row]), modes)
+    finally:
+        options.delValue("dbf_eps_target")

@@ -1,0 +1,210 @@
+"""The shared-factorization DBF path ([basis] dbf_solver = "shared", the default; docs/design.md,
+"One factorization per constraint group").
+
+The factored path (dbf.py, FactorSolver) factors three matrices per constraint: K and M without
+the constraint's row (the pinned mu_m), K + k g g^T - sigma M (the shift-and-invert of Eq. 13/34)
+and A_k - lambda M (the derivative of Eq. 17). All three differ from A = K - sigma M (sigma below
+the spectrum: modes.shift_below_spectrum) by rank one in g, so one factorization of A serves every
+constraint of a group, with z = A^-1 g (one solve per constraint) and Sherman-Morrison:
+
+    (A + k g g^T)^-1 x = A^-1 x - k z (z^T x) / (1 + k g^T z),
+    P x = A^-1 x - z (z^T x) / (g^T z)     (k -> infinity: the inverse on g^T u = 0, the pinned problem).
+
+- the spring-perturbed eigenpair: SLEPc Krylov-Schur with shift-and-invert about sigma, the ST's
+  KSP a PCShell applying (A + k g g^T)^-1 (one shared-factor solve, a dot and an axpy);
+- mu_m: the same EPS on (K, M) with P: P M x = theta x, theta != 0, is exactly the pinned problem
+  (g^T x = 0, (K - mu M) x parallel to g) with mu = sigma + 1/theta; the infinite eigenvalue of
+  x = M^-1 g (theta = 0) is never among the lowest;
+- the derivative (A_k - lambda M) phi' = rhs, phi^T M phi' = 0: GMRES, left-preconditioned by
+  Q (A + k g g^T)^-1 with Q = I - phi (M phi)^T. The preconditioned operator has the eigenvalues
+  1 - (lambda - sigma) / (lambda_i(k) - sigma), i != m, on the M-complement of phi (0 on phi,
+  which Q removes), so a few iterations suffice; then the backward error is checked as on the
+  factored path.
+
+Collective on the group's communicator. Options prefixes: `dbf_shared_` (the factorization,
+-dbf_shared_pc_factor_mat_solver_type ...), `dbf_krylov_` (the derivative's GMRES), `dbf_` (the
+EPS, as on the factored path).
+"""
+from __future__ import annotations
+
+import numpy as np
+from petsc4py import PETSc
+
+from .dbf import (DERIVATIVE_BACKWARD_TOL, EIGEN_TOL, PREFIX, REFINEMENT_STEPS, backward_error,
+                  derivative_system, value_at, with_spring)
+from .errors import SolverError
+from .modes import lowest_eigenpair, normalize, shift_below_spectrum
+from .operators import Operators
+from .petsctools import destroy, direct_solver, options_defaults, unit_vector
+
+FACTOR_PREFIX = "dbf_shared_"
+KRYLOV_PREFIX = "dbf_krylov_"
+KRYLOV_RTOL = 1e-13      # preconditioned residual; the backward error is checked afterwards
+KRYLOV_MAX_IT = 200
+EIGEN_NCV = 4            # Krylov-Schur subspace beyond the branch index: convergence is checked per restart
+                         # (m + 8 took 12 solves per eigenproblem on the 10^4-DOF beam, m + 4 takes 10)
+
+# On a one-rank group: PETSc's own sparse Cholesky (nested-dissection ordering). A MUMPS solve
+# costs ~6.5 ms on the 10^4-DOF beam whatever the arithmetic (its per-call overhead), PETSc's 0.4 ms,
+# and each constraint makes ~30 solves (docs/design.md). Groups of several ranks use MUMPS;
+# -dbf_shared_pc_factor_mat_solver_type mumps chooses MUMPS everywhere.
+FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "nd"}
+
+# Work done by this process on the shared path (tests and benchmarks read it).
+counters = {"factorizations": 0, "solves": 0}
+
+
+class SharedFactor:
+    """A = K - sigma M factored once (Cholesky; SPD as sigma lies below the spectrum) on ops.comm
+    (FACTOR_DEFAULTS: which factorization). Owns A and its KSP. Collective."""
+
+    def __init__(self, ops: Operators):
+        self.ops, self.sigma = ops, shift_below_spectrum(ops)
+        self.A, self.ksp = ops.K.duplicate(copy=True), None
+        try:
+            if self.sigma:
+                self.A.axpy(-self.sigma, ops.M, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+            self.ksp = direct_solver(PETSc.KSP().create(comm=ops.comm), PETSc.PC.Type.CHOLESKY)
+            self.ksp.setOperators(self.A)
+            self.ksp.setOptionsPrefix(FACTOR_PREFIX)
+            with options_defaults(FACTOR_PREFIX, FACTOR_DEFAULTS if ops.comm.getSize() == 1 else {}):
+                self.ksp.setFromOptions()
+                self.ksp.setUp()     # the factorization
+            counters["factorizations"] += 1
+        except PETSc.Error as e:
+            self.destroy()
+            raise SolverError(f"the shared DBF factorization of K - sigma M (sigma = {self.sigma:g}) failed "
+                              f"(PETSc error {e.ierr}); check K and M, or use [basis] dbf_solver = \"factor\""
+                              ) from None
+        except Exception:
+            self.destroy()
+            raise
+
+    def solve(self, x: PETSc.Vec, y: PETSc.Vec) -> None:
+        """y = A^-1 x. Collective."""
+        self.ksp.solve(x, y)
+        counters["solves"] += 1
+        if self.ksp.getConvergedReason() < 0:
+            raise SolverError(f"a solve with the shared DBF factorization failed ({self.ksp.getConvergedReason()})")
+
+    def destroy(self) -> None:
+        destroy(self.ksp, self.A)
+
+
+class SpringInverse:
+    """(A + k g g^T)^-1 by Sherman-Morrison, or P (k = inf, the pinned problem), optionally followed
+    by Q = I - phi (M phi)^T: a Python PC context (apply) for the EPS's ST and the derivative's
+    GMRES. Owns z = A^-1 g (one solve). Collective."""
+
+    def __init__(self, factor: SharedFactor, row: int):
+        self.factor, self.row = factor, row
+        self.z = factor.A.createVecRight()
+        g = unit_vector(self.z, row)
+        try:
+            factor.solve(g, self.z)
+        except Exception:
+            self.z.destroy()
+            raise
+        finally:
+            g.destroy()
+        self.gz = value_at(self.z, row)   # g^T A^-1 g > 0 (A is SPD)
+        self.phi = self.Mphi = None
+        self.set_stiffness(np.inf)
+
+    def set_stiffness(self, k: float) -> None:
+        self.coefficient = 1.0 / self.gz if np.isinf(k) else k / (1.0 + k * self.gz)
+
+    def deflate(self, phi: PETSc.Vec | None, Mphi: PETSc.Vec | None) -> None:
+        """Project out phi along M phi after each apply (None: no projection). Borrowed, not owned."""
+        self.phi, self.Mphi = phi, Mphi
+
+    def apply(self, pc, x: PETSc.Vec, y: PETSc.Vec) -> None:
+        self.factor.solve(x, y)
+        y.axpy(-self.coefficient * self.z.dot(x), self.z)
+        if self.phi is not None:
+            y.axpy(-y.dot(self.Mphi), self.phi)
+
+    def free(self) -> None:
+        """Destroy z (not `destroy`: petsc4py calls a context's destroy(pc) with each PC it served)."""
+        destroy(self.z)
+
+
+class SharedSolver:
+    """The three solves of one constraint (dbf.FactorSolver's interface) on a SharedFactor: no
+    factorization, one solve for z, then one solve per Krylov step. Owns its SpringInverse."""
+
+    def __init__(self, factor: SharedFactor, row: int):
+        self.factor, self.ops, self.row = factor, factor.ops, row
+        self.inverse = SpringInverse(factor, row)
+
+    def pinned(self, branch: int) -> float:
+        """mu_m, the m-th eigenvalue of the pinned problem. Collective."""
+        self.inverse.set_stiffness(np.inf)
+        mu, phi = lowest_eigenpair(self.ops, self.ops.K, branch, PREFIX,
+                                   f"pinned modes (row {self.row}, shared factorization)", EIGEN_TOL,
+                                   self.inverse, None, branch + EIGEN_NCV)
+        phi.destroy()
+        return mu
+
+    def eigenpair(self, k: float, branch: int):
+        """(lambda_m, phi_m) of (K + k g g^T, M), phi M-normalized as on the factored path. Collective."""
+        Kk = with_spring(self.ops.K, self.row, k)
+        self.inverse.set_stiffness(k)
+        try:
+            lam, phi = lowest_eigenpair(self.ops, Kk, branch, PREFIX,
+                                        f"spring-perturbed modes (k = {k:.3g} N/m at row {self.row}, shared "
+                                        f"factorization)", EIGEN_TOL, self.inverse, None, branch + EIGEN_NCV)
+        finally:
+            Kk.destroy()
+        normalize(phi, self.ops.M)
+        return lam, phi
+
+    def derivative(self, k: float, lam: float, phi: PETSc.Vec) -> PETSc.Vec:
+        """d phi/dk from the deflated derivative equation by preconditioned GMRES (module docstring)."""
+        A, rhs, Mphi = derivative_system(self.ops, self.row, k, lam, phi)
+        self.inverse.set_stiffness(k)
+        self.inverse.deflate(phi, Mphi)
+        ksp, d, correction, residual = None, A.createVecRight(), A.createVecRight(), rhs.copy()
+        d.set(0.0)
+        try:
+            ksp = _krylov(A, self.inverse)
+            for _ in range(REFINEMENT_STEPS + 1):
+                ksp.solve(residual, correction)
+                if ksp.getConvergedReason() < 0:
+                    raise SolverError(f"DBF derivative at row {self.row}: GMRES preconditioned by the shared "
+                                      f"factorization did not converge ({ksp.getConvergedReason()}, "
+                                      f"{ksp.getIterationNumber()} iterations); use [basis] dbf_solver = \"factor\"")
+                correction.axpy(-correction.dot(Mphi), phi)  # deflate: phi^T M phi' = 0
+                d.axpy(1.0, correction)
+                A.mult(d, residual)
+                residual.aypx(-1.0, rhs)
+                backward = backward_error(A, d, rhs, residual)
+                if backward < DERIVATIVE_BACKWARD_TOL:
+                    break
+            else:
+                raise SolverError(f"DBF derivative at row {self.row} is inaccurate (backward error {backward:.2e}) "
+                                  f"on the shared factorization; use [basis] dbf_solver = \"factor\"")
+        except Exception:
+            d.destroy()
+            raise
+        finally:
+            self.inverse.deflate(None, None)
+            destroy(ksp, A, rhs, Mphi, correction, residual)
+        return d
+
+    def destroy(self) -> None:
+        self.inverse.free()
+
+
+def _krylov(A: PETSc.Mat, inverse: SpringInverse) -> PETSc.KSP:
+    """GMRES on A, left-preconditioned by `inverse` (a PCShell), user options under dbf_krylov_."""
+    ksp = PETSc.KSP().create(comm=A.getComm())
+    ksp.setOperators(A)
+    ksp.setType(PETSc.KSP.Type.GMRES)
+    ksp.setTolerances(rtol=KRYLOV_RTOL, atol=0.0, max_it=KRYLOV_MAX_IT)
+    ksp.setOptionsPrefix(KRYLOV_PREFIX)
+    ksp.setFromOptions()
+    pc = ksp.getPC()   # after setFromOptions: the shared path is this preconditioner
+    pc.setType(PETSc.PC.Type.PYTHON)
+    pc.setPythonContext(inverse)
+    return ksp
