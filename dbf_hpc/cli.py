@@ -337,7 +337,8 @@ def _stiffness(args) -> int:
     import numpy as np
     from petsc4py import PETSc
 
-    from .dbf import auto_stiffness, branch_of, participation, pinned_eigenvalue, stiffness_sweep
+    from .dbf import (auto_stiffness, branch_of, cluster_participation, participation, pinned_eigenvalue,
+                      stiffness_sweep)
     from .errors import InputError
     from .modes import reference_modes
     from .output import check_output_path
@@ -358,11 +359,11 @@ def _stiffness(args) -> int:
         part = participation(modes, np.array([row]))[0]
         omega_free = modes.omega
         modes.destroy()
-        branch = branch_of(part)
+        branch = branch_of(part, omega_free ** 2)
         if branch == 0:
             raise InputError(f"constraint {args.constraint} does not move in any reference mode")
         mu = pinned_eigenvalue(ops, row, branch)
-        k_auto = auto_stiffness(mu, omega_free[branch - 1] ** 2, part[branch - 1])
+        k_auto = auto_stiffness(mu, omega_free[branch - 1] ** 2, cluster_participation(part, omega_free ** 2))
         omega = stiffness_sweep(ops, row, ks, branch)
     label = scene.constraints[args.constraint - 1].label
     say = PETSc.Sys.Print

@@ -49,6 +49,8 @@ PREFIX = "dbf_"
 PARTICIPATION_TOL = 1e-6
 # A given k_j more than this factor away from the transition is outside Fig. 2's useful range.
 STIFFNESS_RANGE = 1e2
+# Reference eigenvalues closer than this (relative) are one repeated eigenvalue (branch_of).
+CLUSTER_TOL = 1e-6
 CENTRAL_STEP = 1e-3  # relative step h of the central difference in k
 EIGEN_TOL = 1e-12    # tighter than the reference modes: derivatives amplify eigenvector errors
 DERIVATIVE_BACKWARD_TOL = 1e-10  # a backward-stable solve gives ~1e-16
@@ -67,11 +69,43 @@ class DbfSource:
     derivative: PETSc.Vec  # d phi / dk at k_j
 
 
-def branch_of(participation: np.ndarray) -> int:
-    """1-based index of the lowest reference mode that moves at the constraint, given
-    (g^T phi_i)^2 for the reference modes i = 1..N; 0 if none does."""
-    moving = np.flatnonzero(participation > PARTICIPATION_TOL * participation.max()) if participation.max() > 0 else []
-    return int(moving[0]) + 1 if len(moving) else 0
+def branch_of(participation: np.ndarray, eigenvalues: np.ndarray | None = None) -> int:
+    """1-based index of the eigen-branch to follow, given (g^T phi_i)^2 and lambda_i of the reference
+    modes i = 1..N: the lowest mode that moves at the constraint; 0 if none does.
+
+    A repeated eigenvalue (a cluster within CLUSTER_TOL, e.g. the two bending modes of a bar with a
+    square section) is one mode with a multi-dimensional eigenspace, of which the spring moves one
+    direction only: the cluster's other c - 1 eigenvalues stay at lambda, the moved one rises above
+    them, so the branch is the cluster's last index (and its participation the cluster's sum,
+    cluster_participation). Following the first index would follow an unmoved mode (k_auto = 0, a
+    zero DBF)."""
+    cluster = _cluster_of(participation, eigenvalues)
+    return int(cluster[-1]) + 1 if cluster.size else 0
+
+
+def cluster_participation(participation: np.ndarray, eigenvalues: np.ndarray | None = None) -> float:
+    """(g^T P g) over the eigenspace of the branch followed (branch_of): the slope of lambda_m(k) at
+    k = 0, whatever basis the eigensolver chose inside a repeated eigenvalue."""
+    cluster = _cluster_of(participation, eigenvalues)
+    return float(participation[cluster].sum()) if cluster.size else 0.0
+
+
+def _cluster_of(participation: np.ndarray, eigenvalues: np.ndarray | None) -> np.ndarray:
+    """0-based indices of the lowest (cluster of) reference mode(s) that moves at the constraint."""
+    participation = np.asarray(participation, dtype=float)
+    n = participation.size
+    if eigenvalues is None:
+        starts = np.arange(n + 1)
+    else:
+        lam = np.asarray(eigenvalues, dtype=float)
+        scale = np.maximum(np.abs(lam[1:]), np.abs(lam[:-1]))
+        split = np.flatnonzero(np.diff(lam) > CLUSTER_TOL * np.where(scale > 0, scale, 1.0)) + 1
+        starts = np.concatenate(([0], split, [n]))
+    sums = np.add.reduceat(participation, starts[:-1]) if n else np.zeros(0)
+    if not n or sums.max() <= 0:
+        return np.zeros(0, dtype=int)
+    first = int(np.flatnonzero(sums > PARTICIPATION_TOL * sums.max())[0])
+    return np.arange(starts[first], starts[first + 1])
 
 
 def with_spring(K: PETSc.Mat, row: int, k: float) -> PETSc.Mat:
@@ -239,12 +273,13 @@ def dbf_source(ops: Operators, row: int, reference_eigenvalues: np.ndarray, part
     participation          (g^T phi_i)^2 of the reference modes at this constraint
     solver                 FactorSolver(ops, row) (the default) or a dbf_shared.SharedSolver for row
     """
-    branch = branch_of(participation)
+    branch = branch_of(participation, reference_eigenvalues)
     if branch == 0:
         raise SolverError(f"the constraint at row {row} does not move in any of the "
                           f"{participation.size} reference modes; add modes or move the constraint")
     solver = solver or FactorSolver(ops, row)
-    k_auto = auto_stiffness(solver.pinned(branch), reference_eigenvalues[branch - 1], participation[branch - 1])
+    k_auto = auto_stiffness(solver.pinned(branch), reference_eigenvalues[branch - 1],
+                            cluster_participation(participation, reference_eigenvalues))
     k = k_auto if stiffness == "auto" else float(stiffness)
     lam, phi = solver.eigenpair(k, branch)
     try:

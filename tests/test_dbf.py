@@ -148,6 +148,55 @@ def test_constraint_at_a_node_of_the_first_mode_follows_the_first_branch_that_mo
     ops.destroy()
 
 
+@pytest.mark.parametrize("path", ["factor", "shared"])
+def test_a_repeated_eigenvalue_follows_the_direction_the_spring_moves(shared_tmp_path, path):
+    # Two identical uncoupled beams as one matrix model: every eigenvalue is double (like the two
+    # bending modes of a bar with a square section) and the eigensolver may return any basis of each
+    # eigenspace. A spring on beam 2 moves one direction of the lowest eigenspace only: its branch is
+    # the cluster's last (2), and its k_auto, lambda and DBF are those of beam 2 alone.
+    beam = Beam(**TABLE1, elements=30)
+    ops1 = assemble_beam(beam, comm=PETSc.COMM_SELF, points=[ELL])
+    K, M = ops1.K.convert("dense").getDenseArray().copy(), ops1.M.convert("dense").getDenseArray().copy()
+    n, row1 = ops1.size, ops1.mesh.w_row(ELL)
+    ops1.destroy()
+    paths = [str(shared_tmp_path / f"{name}{path}.mtx") for name in ("K", "M")]
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths[0], scipy.sparse.block_diag([K, K]).tocsr(), precision=17)
+        scipy.io.mmwrite(paths[1], scipy.sparse.block_diag([M, M]).tocsr(), precision=17)
+    MPI.COMM_WORLD.Barrier()
+    single = assemble_beam(beam, points=[ELL])
+    ops = load_operators(MatrixFiles(*paths))
+    try:
+        alone = reference_modes(single, count=2)
+        one = dbf_source(single, row1, alone.omega**2, participation(alone, np.array([row1]))[0], "auto")
+        modes = reference_modes(ops, count=4)
+        assert modes.omega[1] == pytest.approx(modes.omega[0], rel=1e-9)
+        part = participation(modes, np.array([n + row1]))[0]
+        assert branch_of(part, modes.omega**2) == 2
+        factor = SharedFactor(ops) if path == "shared" else None
+        solver = SharedSolver(factor, n + row1) if factor else FactorSolver(ops, n + row1)
+        try:
+            two = dbf_source(ops, n + row1, modes.omega**2, part, "auto", solver=solver)
+        finally:
+            if factor:
+                solver.destroy()
+                factor.destroy()
+        assert two.branch == 2
+        assert two.transition == pytest.approx(one.transition, rel=1e-7)
+        assert two.eigenvalue == pytest.approx(one.eigenvalue, rel=1e-9)
+        d1, d2 = to_numpy(one.derivative), to_numpy(two.derivative)
+        assert_all(np.abs(d2[:n]).max() < 1e-8 * np.abs(d2).max(), "the DBF stays on the beam with the spring")
+        scale = np.abs(d1).max()
+        assert_all(min(np.abs(d2[n:] - d1).max(), np.abs(d2[n:] + d1).max()) < 1e-6 * scale)
+        for src in (one, two):
+            src.derivative.destroy()
+        alone.destroy()
+        modes.destroy()
+    finally:
+        ops.destroy()
+        single.destroy()
+
+
 # The shared-factorization path (dbf_shared.py) against the factored one (dbf.py): the same physics.
 AGREE = 1e-8   # both are exact to their solvers' tolerances (EIGEN_TOL 1e-12, backward error 1e-10)
 
