@@ -17,10 +17,17 @@ E, RHO, SIDE, LENGTH = 200e9, 7800.0, 0.1, 1.0
 
 
 def generate(folder, elements, stops):
+    """Rank 0 runs the generator; every rank learns the outcome (a failure fails the test on all)."""
+    failure = None
     if MPI.COMM_WORLD.rank == 0:
-        subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "solid3d.py"), str(folder),
-                        "--elements", *map(str, elements), "--stops", str(stops)], check=True, capture_output=True)
-    MPI.COMM_WORLD.Barrier()
+        # a plain process, not a rank of this job: without the MPI launcher's variables
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+        done = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "solid3d.py"), str(folder),
+                               "--elements", *map(str, elements), "--stops", str(stops)], capture_output=True,
+                              text=True, env=env)
+        failure = done.stderr if done.returncode else None
+    failure = MPI.COMM_WORLD.bcast(failure, root=0)
+    assert failure is None, failure
     return os.path.join(str(folder), "scene.toml")
 
 
