@@ -20,6 +20,7 @@ import numpy as np
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
+from .accuracy import basis_flexibility, captured, exact_flexibility
 from .enrichment import STRATEGIES, DbfEnrichment, Enrichment
 from .errors import InputError, SolverError
 from .modes import bv_rows, normalize, reference_modes
@@ -66,7 +67,8 @@ class ReducedBasis:
     """M-orthonormal basis: N reference modes then the enrichment columns (one per constraint, or
     none), as columns of a BV. enrichment_omega holds hat-omega_j of each enrichment column;
     dbf_k, dbf_k_auto and dbf_branch the stiffness, transition and branch of each DBF (zero where a
-    column is not a DBF)."""
+    column is not a DBF); flexibility_exact and flexibility_captured the a-priori indicator of each
+    constraint (accuracy.py)."""
 
     vectors: SLEPc.BV
     omega: np.ndarray              # reference modes, rad/s
@@ -77,6 +79,8 @@ class ReducedBasis:
     dbf_k_auto: np.ndarray         # the transition stiffness of each constraint (N/m)
     settings: BasisSettings
     stats: dict = field(default_factory=dict)
+    flexibility_exact: np.ndarray = field(default_factory=lambda: np.zeros(0))     # g_j^T K^-1 g_j, m/N
+    flexibility_captured: np.ndarray = field(default_factory=lambda: np.zeros(0))  # f_basis / f_exact, 1
 
     @property
     def mode_count(self) -> int:
@@ -120,6 +124,13 @@ class ReducedBasis:
         """One line per DBF whose stiffness lies far outside the transition of Fig. 2."""
         labels = labels or [f"row {r}" for r in self.constraint_rows]
         return self.settings.strategy.warnings(self.dbf_k, self.dbf_k_auto, labels)
+
+    def set_flexibility(self, f_exact: np.ndarray, K_r: np.ndarray) -> None:
+        """Store f_exact (m/N) and the captured flexibility f_basis / f_exact with f_basis from this
+        basis's own K_r = V^T K V (accuracy.py). Collective."""
+        self.flexibility_exact = np.asarray(f_exact, dtype=float)
+        self.flexibility_captured = captured(basis_flexibility(K_r, self.rows(self.constraint_rows)),
+                                             self.flexibility_exact)
 
     def destroy(self) -> None:
         self.vectors.destroy()
@@ -224,7 +235,10 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     basis = ReducedBasis(vectors=V, omega=modes.omega.copy(), enrichment_omega=np.zeros(NL), dbf_k=columns.k,
                          dbf_branch=columns.branch, constraint_rows=rows, dbf_k_auto=columns.k_auto,
                          settings=settings)
-    basis.enrichment_omega = np.sqrt(np.clip(np.diag(basis.project(ops.K))[N:], 0.0, None))
+    K_r = basis.project(ops.K)
+    basis.enrichment_omega = np.sqrt(np.clip(np.diag(K_r)[N:], 0.0, None))
+    t3 = time.perf_counter()
+    basis.set_flexibility(exact_flexibility(ops, rows), K_r)
     basis.stats = {"time_modes": t1 - t0, "time_enrichment": t2 - t1,
-                   "time_orthogonalization": time.perf_counter() - t2}
+                   "time_orthogonalization": t3 - t2, "time_flexibility": time.perf_counter() - t3}
     return basis

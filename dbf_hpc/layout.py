@@ -21,6 +21,8 @@ PROBE_PEAK = "probes/peak"
 BASIS_OMEGA = "basis/omega"
 BASIS_ENRICHMENT_OMEGA = "basis/enrichment_omega"
 BASIS_DBF_K = "basis/dbf_k"
+BASIS_FLEXIBILITY_CAPTURED = "basis/flexibility_captured"
+BASIS_FLEXIBILITY_EXACT = "basis/flexibility_exact"
 REDUCED_Q = "reduced/q"
 REDUCED_QDOT = "reduced/qdot"
 REDUCED_M = "reduced/M"
@@ -52,6 +54,10 @@ DATASETS = {
     BASIS_OMEGA: ("rad/s", "reference frequencies (N)"),
     BASIS_ENRICHMENT_OMEGA: ("rad/s", "hat-omega_j of each enrichment column, Eq. 41 (N_L, or 0)"),
     BASIS_DBF_K: ("N/m", "DBF stiffness k_j of each constraint, 0 for other enrichment (N_L, or 0)"),
+    BASIS_FLEXIBILITY_CAPTURED: ("1", "the a-priori indicator: static flexibility at each constraint that the basis "
+                                      "captures, B_j K_r^-1 B_j^T / g_j^T K^-1 g_j (N_L; 1 with static modes, NaN "
+                                      "if K is singular)"),
+    BASIS_FLEXIBILITY_EXACT: ("m/N", "the full model's static flexibility g_j^T K^-1 g_j at each constraint (N_L)"),
     REDUCED_Q: ("1", "reduced coordinates q (nt x r; width 0 for a full-order run)"),
     REDUCED_QDOT: ("1/s", "reduced velocities q' (nt x r; width 0 for a full-order run)"),
     REDUCED_M: ("1", "reduced mass V^T M V (r x r; I to round-off)"),

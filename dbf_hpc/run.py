@@ -20,6 +20,7 @@ from slepc4py import SLEPc
 
 from . import layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
+from .accuracy import flexibility_warning
 from .checkpoint import Checkpoint, identity
 from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, write_failure
 from .fom import Observation
@@ -129,6 +130,14 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> N
     _say(say, f"basis: {basis.mode_count} modes ({f[0]:.4g} ... {f[-1]:.4g} Hz) {extra} ({seconds:.2f} s, "
               f"cache {basis.stats.get('cache')})")
     warnings = basis.warnings(labels)
+    flex = basis.flexibility_captured
+    if flex.size and np.any(np.isfinite(flex)):
+        j = int(np.nanargmin(flex))
+        _say(say, f"static flexibility captured (a-priori indicator): min {flex[j]:.4f} at constraint {j + 1} "
+                  f"({labels[j]})")
+    low = flexibility_warning(flex, labels)
+    if low:
+        warnings.append(low)
     elastic = f[f > 1e-9 * f[-1]] if f[-1] > 0 else f
     if elastic.size and elastic[0] < SUSPICIOUS_HZ:
         warnings.append(f"the lowest elastic frequency is {elastic[0]:.3g} Hz: check the structure's units (SI: E in "
@@ -363,7 +372,10 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     if model is not None:
         info = model.basis_info
         datasets.update({layout.BASIS_OMEGA: info["omega"], layout.BASIS_ENRICHMENT_OMEGA: info["enrichment_omega"],
-                         layout.BASIS_DBF_K: info["dbf_k"], layout.REDUCED_M: model.M, layout.REDUCED_K: model.K,
+                         layout.BASIS_DBF_K: info["dbf_k"],
+                         layout.BASIS_FLEXIBILITY_CAPTURED: info.get("flexibility_captured", np.zeros(0)),
+                         layout.BASIS_FLEXIBILITY_EXACT: info.get("flexibility_exact", np.zeros(0)),
+                         layout.REDUCED_M: model.M, layout.REDUCED_K: model.K,
                          layout.REDUCED_B: model.B, layout.REDUCED_D: model.damping})
         attrs["basis_enrichment"] = info["enrichment"]
     writer.finish(
