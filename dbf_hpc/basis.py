@@ -14,7 +14,7 @@ model needs, with or without enrichment columns. Everything here is collective o
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from petsc4py import PETSc
@@ -242,3 +242,36 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     basis.stats = {"time_modes": t1 - t0, "time_enrichment": t2 - t1,
                    "time_orthogonalization": t3 - t2, "time_flexibility": time.perf_counter() - t3}
     return basis
+
+
+def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None) -> ReducedBasis:
+    """The reference modes 1..`modes` (more than basis has) and basis's own enrichment columns,
+    M-orthonormalized: span(basis) lies inside the result's span, so the difference between the two
+    reduced models measures what the missing modes change (the error estimate, accuracy.py). No
+    enrichment is recomputed; the indicator is carried over (f_exact) and recomputed (captured).
+    Collective on ops.comm."""
+    rows = basis.constraint_rows
+    N, NL = basis.mode_count, basis.enrichment_count
+    more = reference_modes(ops, count=modes)
+    V = _basis_vectors(ops, modes + NL)
+    try:
+        _insert_columns(V, 0, more.vectors, modes, ops)
+        template = ops.K.createVecRight()
+        for j in range(NL):
+            basis.vectors.copyVec(N + j, template)
+            V.insertVec(modes + j, template)
+        template.destroy()
+        orthonormalize(V, modes, rows, labels, basis.settings.strategy.column_name or "column")
+    except Exception:
+        V.destroy()
+        raise
+    finally:
+        destroy(more)
+    settings = replace(basis.settings, modes=modes, max_frequency_hz=None)
+    rich = ReducedBasis(vectors=V, omega=more.omega.copy(), enrichment_omega=np.zeros(NL), dbf_k=basis.dbf_k,
+                        dbf_branch=basis.dbf_branch, constraint_rows=rows, dbf_k_auto=basis.dbf_k_auto,
+                        settings=settings, stats={"cache": "off"})
+    K_r = rich.project(ops.K)
+    rich.enrichment_omega = np.sqrt(np.clip(np.diag(K_r)[modes:], 0.0, None))
+    rich.set_flexibility(basis.flexibility_exact, K_r)
+    return rich

@@ -21,9 +21,11 @@ from .rom import ReducedField, ReducedModel
 class Reductor:
     """Owns the basis it obtains (destroyed with the reductor)."""
 
-    def __init__(self, fom: FullOrderModel, settings: BasisSettings = BasisSettings(), cache_dir: str | None = None):
+    def __init__(self, fom: FullOrderModel, settings: BasisSettings = BasisSettings(), cache_dir: str | None = None,
+                 basis: ReducedBasis | None = None):
+        """With `basis`, that basis (already built, e.g. basis.richer_basis; the reductor owns it)."""
         self.fom, self.settings, self.cache_dir = fom, settings, cache_dir
-        self._basis = None
+        self._basis = basis
 
     def basis(self) -> ReducedBasis:
         """The basis (obtained once). Collective."""

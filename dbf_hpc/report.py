@@ -78,7 +78,7 @@ def _estimate_lines(f) -> list:
     if not np.isfinite(value):
         return [f"  estimated error: not available ({f.attrs.get('estimated_error_note', '')})"]
     return [f"  estimated error in w at the constraints: {value:.3g} ({value:.2%}) over [0, {window:g}] s "
-            f"(against twice the modes at a 100x tighter rtol)"]
+            f"({f.attrs.get('estimated_error_note', '')})"]
 
 
 def _constraint_lines(f, partial: bool = False) -> list:
