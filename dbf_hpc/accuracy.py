@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from petsc4py import PETSc
 
-from .errors import InputError, SolverError
+from .errors import InputError, Interrupted, SolverError
 
 # Below this captured flexibility at some constraint a run prints a warning. Measured on the paper's
 # beam (1 and 9 stops): modes alone capture 0.979 to 0.996 at N = 4 (errors of 15 to 35 % in w),
@@ -121,6 +121,7 @@ class Estimate:
     window: float
     seconds: float = 0.0
     note: str = ""
+    reference: np.ndarray | None = None   # the richer run's w over the window (nt x N_L), for reuse
 
     def attrs(self) -> dict:
         """The output's root attributes."""
@@ -180,6 +181,8 @@ def nested_estimate(rich_model, settings, times: np.ndarray, w: np.ndarray, end:
     start = time.perf_counter()
     try:
         result = simulate_reduced(rich_model, rich_settings(settings, end))
+    except Interrupted:
+        raise
     except SolverError as e:
         return Estimate(np.nan, end, time.perf_counter() - start, f"the richer model failed: {e}")
     k = result.time.size
@@ -187,7 +190,17 @@ def nested_estimate(rich_model, settings, times: np.ndarray, w: np.ndarray, end:
         return Estimate(np.nan, end, time.perf_counter() - start, "the richer run is not sampled alike")
     value = relative_difference(w[:k], result.displacement)
     note = f"against {rich_model.size} basis vectors at rtol {rich_settings(settings, end).rtol:g}"
-    return Estimate(value, end, time.perf_counter() - start, note)
+    return Estimate(value, end, time.perf_counter() - start, note, result.displacement)
+
+
+def reused_estimate(calibration: Estimate, times: np.ndarray, w: np.ndarray) -> Estimate:
+    """A run's estimate against the richer run its calibration made (the tolerance mode): the
+    difference over the same window, without integrating the richer model again. Not collective."""
+    k = calibration.reference.shape[0]
+    if times.size < k:
+        return Estimate(np.nan, calibration.window, 0.0, "the run is shorter than its calibration window")
+    value = relative_difference(w[:k], calibration.reference)
+    return Estimate(value, calibration.window, 0.0, f"{calibration.note}, from the calibration")
 
 
 # The tolerance mode: the largest basis it tries, and the margin it keeps (the estimate was 0.62 to
@@ -207,21 +220,20 @@ def tolerance_rtol(tolerance: float, rtol: float) -> float:
 
 @dataclass
 class Pick:
-    """What the tolerance mode picked: modes, rtol, the estimate over the calibration window, the
-    richer reduced model it was measured against, and each candidate's (modes, estimate)."""
+    """What the tolerance mode picked: modes, rtol, the estimate over the calibration window (with the
+    richer run's w, which the run's own estimate reuses) and each candidate's (modes, estimate)."""
 
     modes: int
     rtol: float
     estimate: Estimate
-    rich: object
     tried: list
 
 
 def _measure(fom, basis_settings, cache_dir, settings, window: float | None, comm):
     """One candidate of the tolerance mode: its basis, its richer model, both integrated over the
     window (rank 0). Without a window, the candidate is first integrated over LINEAR_WINDOW t_end,
-    then t_end if it met no contact, and the window is estimate_window's. Returns (estimate, richer
-    model). Collective."""
+    then t_end if it met no contact, and the window is estimate_window's. Returns the estimate (the
+    same on every rank). Collective."""
     from .reductor import Reductor
     from .run import rich_model, wait_for_rank0
     from .simulate import simulate_reduced
@@ -248,7 +260,7 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
     result, failure = world.bcast((result, failure), root=0)
     if failure:
         raise SolverError(f"[basis] tolerance: the candidate with {basis_settings.modes} modes failed: {failure}")
-    return result, rich
+    return result
 
 
 def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSettings, comm, say=None) -> Pick:
@@ -264,13 +276,13 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
     limit = min(MAX_MODES, (fom.size - fom.constraints.count) // RICH_MODES)
     while modes <= limit:
         candidate = dataclasses.replace(basis_settings, modes=modes, max_frequency_hz=None)
-        measured, rich = _measure(fom, candidate, cache_dir, settings, window, comm)
+        measured = _measure(fom, candidate, cache_dir, settings, window, comm)
         window = measured.window     # every candidate over the first one's window
         tried.append((modes, measured.value))
         if say is not None:
             say(f"tolerance {tol:g}: {modes} modes at rtol {settings.rtol:g}: {measured.line()}")
         if measured.value <= TOLERANCE_MARGIN * tol:
-            return Pick(modes, settings.rtol, measured, rich, tried)
+            return Pick(modes, settings.rtol, measured, tried)
         modes *= 2
     reached = ", ".join(f"{m} modes {e:.3g}" for m, e in tried) or "no candidate fits the structure"
     raise InputError(f"[basis] tolerance = {tol:g} cannot be met within {limit} modes (estimates must reach "

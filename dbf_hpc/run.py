@@ -21,7 +21,7 @@ from slepc4py import SLEPc
 from . import layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
 from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, estimate_window, first_contact, flexibility_warning,
-                       nested_estimate, pick_basis)
+                       nested_estimate, pick_basis, reused_estimate)
 from .basis import richer_basis
 from .checkpoint import Checkpoint, identity
 from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, write_failure
@@ -120,7 +120,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
                          "rows": basis.constraint_rows.tolist()}
             cache_state = basis.stats.get("cache", "")
             timings["reduce"] = time.perf_counter() - t
-            rich, window = (pick.rich, pick.estimate.window) if pick else (None, estimate.window)
+            rich, window = (pick.estimate, pick.estimate.window) if pick else (None, estimate.window)
             if estimate.enabled and initial_state is None and pick is None:
                 t = time.perf_counter()
                 rich = rich_model(fom, basis)
@@ -247,8 +247,8 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     """Integrate a reduced model on this rank alone and write the run's output to `path` (rank 0 of
     a run, or any rank of a sweep). Checkpoints every [output] checkpoint_dt; SIGTERM checkpoints
     and stops (errors.Interrupted); with resume, continues from a valid checkpoint. With estimator =
-    (the richer reduced model or why there is none, window or None), the output carries the
-    a-posteriori estimate (accuracy.py). Returns the summary with the final state and excitation
+    (the richer reduced model, or the tolerance mode's calibration Estimate, or why there is none;
+    window or None), the output carries the a-posteriori estimate (accuracy.py). Returns the summary with the final state and excitation
     phase (for continuation)."""
     settings, output = scene.integrator_settings(), scene.output()
     timings = {} if timings is None else timings
@@ -311,7 +311,11 @@ def _estimate(estimator, writer, settings, timings: dict, say):
     end = estimate_window(times, _first_contact(writer, times), settings.t_end, window)
     k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
     writer.flush()
-    estimate = nested_estimate(rich, settings, times[:k], writer.series[layout.CONSTRAINT_DISPLACEMENT][:k], end)
+    w = writer.series[layout.CONSTRAINT_DISPLACEMENT][:k]
+    if isinstance(rich, Estimate):   # the tolerance mode's calibration: its richer run is reused
+        estimate = reused_estimate(rich, times[:k], w)
+    else:
+        estimate = nested_estimate(rich, settings, times[:k], w, end)
     timings["estimate"] = estimate.seconds
     _say(say, estimate.line())
     return estimate
