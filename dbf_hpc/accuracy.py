@@ -271,6 +271,8 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
     full-order run. An InputError naming what it
     reached when the tolerance cannot be met. Collective."""
     tol = estimate.tolerance
+    if not fom.constraints.count:
+        raise InputError("[basis] tolerance bounds the error in w at the constraints; this scene has none")
     settings = dataclasses.replace(settings, rtol=tolerance_rtol(tol, settings.rtol))
     modes, tried, window = max(int(basis_settings.modes or 4), 1), [], estimate.window
     limit = min(MAX_MODES, (fom.size - fom.constraints.count) // RICH_MODES)

@@ -121,7 +121,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             cache_state = basis.stats.get("cache", "")
             timings["reduce"] = time.perf_counter() - t
             rich, window = (pick.estimate, pick.estimate.window) if pick else (None, estimate.window)
-            if estimate.enabled and initial_state is None and pick is None:
+            if estimate.enabled and initial_state is None and pick is None and fom.constraints.count:
                 t = time.perf_counter()
                 rich = rich_model(fom, basis)
                 timings["estimate_basis"] = time.perf_counter() - t

@@ -74,7 +74,8 @@ SECTIONS = {
         "cache": Key((str,), "~/.cache/dbf_hpc", "", 'directory of cached bases, or "off"'),
         "estimate": Key((bool,), True, "", "the a-posteriori error estimate of a run (the attribute estimated_error): "
                                            "the same scene on twice the modes with the same enrichment at a 100x "
-                                           "tighter rtol, over estimate_window (docs/accuracy.md); sweeps do not make it"),
+                                           "tighter rtol, over estimate_window (docs/accuracy.md); sweeps and scenes without "
+                                           "constraints do not make it"),
         "estimate_window": Key(NUMBER, None, "s", "the window [0, T] the estimate holds over (default twice the time "
                                                   "of the first contact, or t_end / 10 without contact)"),
         "tolerance": Key(NUMBER, None, "1", "the tolerance mode: the number of modes (from modes, default 4, "
