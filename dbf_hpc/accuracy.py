@@ -64,7 +64,7 @@ def exact_flexibility(ops, rows) -> np.ndarray:
 
 def basis_flexibility(K_r: np.ndarray, B: np.ndarray) -> np.ndarray:
     """f_basis_j = B_j K_r^-1 B_j^T (m/N): the reduced model's own static flexibility at each
-    constraint (K_r = V^T K V, B = G^T V). NaN when K_r is singular. Not collective."""
+    constraint (K_r = V^T K V and B = G^T V of Eq. 21). NaN when K_r is singular. Not collective."""
     if not B.shape[0]:
         return np.zeros(0)
     K_sym = 0.5 * (K_r + K_r.T)

@@ -103,7 +103,11 @@ def reference() -> str:
     lines += ["", "Root attributes: `scene` (the scene's text), `scene_path`, `method` (`rom` or `full`), "
               "`basis_enrichment`, `field_kind` (`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
               "`slepc_version`, `mpi_ranks`, `solver_stats` and `wall_times` (JSON), `initial_state`, and "
-              "`complete = true` once the run finished.", "",
+              "`complete = true` once the run finished. A reduced run of a scene with constraints also has its "
+              "a-posteriori error estimate (docs/accuracy.md; not with `[basis] estimate = false`): "
+              "`estimated_error` (1, max over constraints of max_t |w - w_rich| / max_t |w_rich| against twice the "
+              "modes, NaN if it could not be made), `estimated_error_window` (s, the estimate holds over [0, it]) "
+              "and `estimated_error_note` (how it was made, or why not).", "",
              "With snapshots, `OUT.xdmf` beside the output describes `snapshots/points` and "
              "`snapshots/displacement/NNNNNN` as a time series that ParaView (Xdmf3 reader) and meshio open.", "",
              "A sweep summary (`dbf-hpc sweep`) holds a row per case: `cases/parameters/<section.key>` (NaN or "

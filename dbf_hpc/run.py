@@ -248,8 +248,8 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     a run, or any rank of a sweep). Checkpoints every [output] checkpoint_dt; SIGTERM checkpoints
     and stops (errors.Interrupted); with resume, continues from a valid checkpoint. With estimator =
     (the richer reduced model, or the tolerance mode's calibration Estimate, or why there is none;
-    window or None), the output carries the a-posteriori estimate (accuracy.py). Returns the summary with the final state and excitation
-    phase (for continuation)."""
+    window or None), the output carries the a-posteriori estimate (accuracy.py). Returns the
+    summary with the final state and excitation phase (for continuation)."""
     settings, output = scene.integrator_settings(), scene.output()
     timings = {} if timings is None else timings
     checkpoint = Checkpoint(f"{path}.checkpoint", ident or {})
@@ -284,7 +284,10 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         kind = Interrupted if stepper is not None and stepper.interrupted else type(exc)
         raise kind(_left_behind(str(exc), writer, checkpoint)) from None
     stats.update(extra_stats or {})
-    estimate = _estimate(estimator, writer, settings, timings, say)
+    try:
+        estimate = _estimate(estimator, writer, settings, timings, say)
+    except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
+        raise type(exc)(_left_behind(str(exc), writer, checkpoint)) from None
     t = time.perf_counter()
     snap_t, snap_w = recorder.snapshots(settings.sample_times)
     timings["snapshots"] = time.perf_counter() - t
@@ -300,8 +303,8 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
 
 
 def _estimate(estimator, writer, settings, timings: dict, say):
-    """Rank 0 (or a sweep's rank): the a-posteriori estimate of the samples just written (reading back
-    only the window), or None without an estimator."""
+    """Rank 0: the a-posteriori estimate of the samples just written (reading back only the window),
+    or None without an estimator. Not collective."""
     if estimator is None:
         return None
     rich, window = estimator
