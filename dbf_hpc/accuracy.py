@@ -43,13 +43,17 @@ LINEAR_WINDOW = 0.1
 def exact_flexibility(ops, rows) -> np.ndarray:
     """f_exact_j = g_j^T K^-1 g_j (m/N) of every constraint row: one Cholesky factorization of K and
     one solve per constraint (enrichment.static_modes, options prefix static_). NaN for all when K is
-    singular (rigid-body modes). Collective on ops.comm."""
+    singular (rigid-body modes, or a solve that fails: the indicator never stops a basis that can be
+    built). Collective on ops.comm."""
     from .enrichment import static_modes
 
     rows = np.asarray(rows, dtype=np.int64)
     if ops.rigid_modes or not rows.size:
         return np.full(rows.size, np.nan)
-    psi = static_modes(ops, rows)
+    try:
+        psi = static_modes(ops, rows)
+    except SolverError:   # decided on every rank alike (a collective residual norm)
+        return np.full(rows.size, np.nan)
     try:
         lo, hi = psi.getOwnershipRange()
         local = psi.getDenseArray()

@@ -81,7 +81,7 @@ SECTIONS = {
         "tolerance": Key(NUMBER, None, "1", "the tolerance mode: the number of modes (from modes, default 4, "
                                             "doubling) and rtol are picked so that the estimate over the window is "
                                             "below this relative error in w at the constraints; an error if it "
-                                            "cannot be met"),
+                                            "cannot be met (`run` only: `dbf-hpc basis` builds the first candidate)"),
     }),
     "damping": ("Linear damping of the structure (none by default, as in the paper).", {
         "zeta": Key((*NUMBER, list), 0.0, "1", "modal damping ratio, one for all or one per basis vector"),
