@@ -23,7 +23,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from petsc4py import PETSc
 
 from .errors import InputError, Interrupted, SolverError
 

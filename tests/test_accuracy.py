@@ -5,7 +5,7 @@ import pytest
 
 from conftest import assert_all
 from dbf_hpc import BaseMotion, BasisSettings, Beam, Constraint, FullOrderModel, Reductor, law
-from dbf_hpc.accuracy import basis_flexibility, exact_flexibility
+from dbf_hpc.accuracy import basis_flexibility
 
 BEAM = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=40)
 STOPS = [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=x) for x in (0.25, 0.6)]
