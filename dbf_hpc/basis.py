@@ -14,12 +14,13 @@ model needs, with or without enrichment columns. Everything here is collective o
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
+from .accuracy import basis_flexibility, captured, exact_flexibility
 from .enrichment import STRATEGIES, DbfEnrichment, Enrichment
 from .errors import InputError, SolverError
 from .modes import bv_rows, normalize, reference_modes
@@ -70,7 +71,8 @@ class ReducedBasis:
     """M-orthonormal basis: N reference modes then the enrichment columns (one per constraint, or
     none), as columns of a BV. enrichment_omega holds hat-omega_j of each enrichment column;
     dbf_k, dbf_k_auto and dbf_branch the stiffness, transition and branch of each DBF (zero where a
-    column is not a DBF)."""
+    column is not a DBF); flexibility_exact and flexibility_captured the a-priori indicator of each
+    constraint (accuracy.py)."""
 
     vectors: SLEPc.BV
     omega: np.ndarray              # reference modes, rad/s
@@ -81,6 +83,8 @@ class ReducedBasis:
     dbf_k_auto: np.ndarray         # the transition stiffness of each constraint (N/m)
     settings: BasisSettings
     stats: dict = field(default_factory=dict)
+    flexibility_exact: np.ndarray = field(default_factory=lambda: np.zeros(0))     # g_j^T K^-1 g_j, m/N
+    flexibility_captured: np.ndarray = field(default_factory=lambda: np.zeros(0))  # f_basis / f_exact, 1
 
     @property
     def mode_count(self) -> int:
@@ -124,6 +128,13 @@ class ReducedBasis:
         """One line per DBF whose stiffness lies far outside the transition of Fig. 2."""
         labels = labels or [f"row {r}" for r in self.constraint_rows]
         return self.settings.strategy.warnings(self.dbf_k, self.dbf_k_auto, labels)
+
+    def set_flexibility(self, f_exact: np.ndarray, K_r: np.ndarray) -> None:
+        """Store f_exact (m/N) and the captured flexibility f_basis / f_exact with f_basis from this
+        basis's own K_r = V^T K V (accuracy.py). Collective."""
+        self.flexibility_exact = np.asarray(f_exact, dtype=float)
+        self.flexibility_captured = captured(basis_flexibility(K_r, self.rows(self.constraint_rows)),
+                                             self.flexibility_exact)
 
     def destroy(self) -> None:
         self.vectors.destroy()
@@ -228,7 +239,43 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     basis = ReducedBasis(vectors=V, omega=modes.omega.copy(), enrichment_omega=np.zeros(NL), dbf_k=columns.k,
                          dbf_branch=columns.branch, constraint_rows=rows, dbf_k_auto=columns.k_auto,
                          settings=settings)
-    basis.enrichment_omega = np.sqrt(np.clip(np.diag(basis.project(ops.K))[N:], 0.0, None))
+    K_r = basis.project(ops.K)
+    basis.enrichment_omega = np.sqrt(np.clip(np.diag(K_r)[N:], 0.0, None))
+    t3 = time.perf_counter()
+    basis.set_flexibility(exact_flexibility(ops, rows), K_r)
     basis.stats = {"time_modes": t1 - t0, "time_enrichment": t2 - t1,
-                   "time_orthogonalization": time.perf_counter() - t2}
+                   "time_orthogonalization": t3 - t2, "time_flexibility": time.perf_counter() - t3}
     return basis
+
+
+def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None) -> ReducedBasis:
+    """The reference modes 1..`modes` (more than basis has) and basis's own enrichment columns,
+    M-orthonormalized: span(basis) lies inside the result's span, so the difference between the two
+    reduced models measures what the missing modes change (the error estimate, accuracy.py). No
+    enrichment is recomputed; the indicator is carried over (f_exact) and recomputed (captured).
+    Collective on ops.comm."""
+    rows = basis.constraint_rows
+    N, NL = basis.mode_count, basis.enrichment_count
+    more = reference_modes(ops, count=modes)
+    V = _basis_vectors(ops, modes + NL)
+    try:
+        _insert_columns(V, 0, more.vectors, modes, ops)
+        template = ops.K.createVecRight()
+        for j in range(NL):
+            basis.vectors.copyVec(N + j, template)
+            V.insertVec(modes + j, template)
+        template.destroy()
+        orthonormalize(V, modes, rows, labels, basis.settings.strategy.column_name or "column")
+    except Exception:
+        V.destroy()
+        raise
+    finally:
+        destroy(more)
+    settings = replace(basis.settings, modes=modes, max_frequency_hz=None)
+    rich = ReducedBasis(vectors=V, omega=more.omega.copy(), enrichment_omega=np.zeros(NL), dbf_k=basis.dbf_k,
+                        dbf_branch=basis.dbf_branch, constraint_rows=rows, dbf_k_auto=basis.dbf_k_auto,
+                        settings=settings, stats={"cache": "off"})
+    K_r = rich.project(ops.K)
+    rich.enrichment_omega = np.sqrt(np.clip(np.diag(K_r)[modes:], 0.0, None))
+    rich.set_flexibility(basis.flexibility_exact, K_r)
+    return rich

@@ -32,9 +32,11 @@ from .output import check_free_space
 from .operators import Operators
 
 # Bump when the construction changes what a basis is (an older file then has another key).
-ALGORITHM = "dbf-basis-4"  # 4: enrichment strategies; hat-omega of every enrichment column as enrichment_omega
+# 4: enrichment strategies; hat-omega of every enrichment column as enrichment_omega. 5: f_exact of
+# every constraint (the captured-flexibility indicator, accuracy.py).
+ALGORITHM = "dbf-basis-5"
 VERIFY_TOL = 1e-8
-ARRAYS = ("omega", "enrichment_omega", "dbf_k", "dbf_k_auto", "dbf_branch", "constraint_rows")
+ARRAYS = ("omega", "enrichment_omega", "dbf_k", "dbf_k_auto", "dbf_branch", "constraint_rows", "flexibility_exact")
 
 
 def solver_options(prefixes=("modes_", "dbf_")) -> dict:
@@ -126,7 +128,8 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings):
                 return "holds other constraint rows (corrupt)", {}, None
             if (arrays["enrichment_omega"].size != enriched
                     or f["V"].shape != (ops.size, arrays["omega"].size + enriched)
-                    or any(arrays[name].size != enriched for name in ("dbf_k", "dbf_k_auto", "dbf_branch"))):
+                    or any(arrays[name].size != enriched for name in ("dbf_k", "dbf_k_auto", "dbf_branch"))
+                    or arrays["flexibility_exact"].size != len(rows)):
                 return "has the wrong shape", {}, None
             return None, arrays, f["V"][lo:hi, :]
     except (OSError, KeyError, ValueError) as e:
@@ -157,14 +160,23 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows) -> 
                          **{name: arrays[name] for name in ARRAYS})
     G, Kr = basis.project(ops.M), basis.project(ops.K)
     N = basis.mode_count
+    basis.set_flexibility(arrays["flexibility_exact"], Kr)
     ok = (np.all(np.isfinite(G)) and np.abs(G - np.eye(r)).max() < VERIFY_TOL
           and np.allclose(np.diag(Kr)[:N], basis.omega**2, rtol=VERIFY_TOL * 100)
-          and np.allclose(np.diag(Kr)[N:], basis.enrichment_omega**2, rtol=VERIFY_TOL * 100))
+          and np.allclose(np.diag(Kr)[N:], basis.enrichment_omega**2, rtol=VERIFY_TOL * 100)
+          and _flexibility_plausible(basis.flexibility_captured))
     if not ok:
         _say(ops.comm, f"basis cache {path} does not match the operators (corrupt or stale); rebuilding it")
         basis.destroy()
         return None
     return basis
+
+
+def _flexibility_plausible(values: np.ndarray) -> bool:
+    """A stored f_exact belongs to these operators only if no basis flexibility exceeds it
+    (Rayleigh-Ritz: f_basis <= f_exact; NaN where K is singular)."""
+    finite = values[np.isfinite(values)]
+    return bool(np.all((finite > 0) & (finite <= 1 + 1e-6)))
 
 
 def cache_path(cache_dir: str, key: str) -> str:

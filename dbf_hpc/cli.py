@@ -294,6 +294,8 @@ def _write_shapes(path: str, scene, fom, reductor, basis) -> None:
 
 
 def _print_basis(say, basis, labels) -> None:
+    from .accuracy import flexibility_warning
+
     say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
     for i, w in enumerate(basis.omega):
         say(f"{i + 1:>6} {w / (2 * 3.141592653589793):>14.8g} {w:>16.8g}")
@@ -306,6 +308,15 @@ def _print_basis(say, basis, labels) -> None:
         for j in range(basis.enrichment_count):
             say(f"{j + 1:>6} {labels[j]:>14} {basis.dbf_k[j]:>12.5g} {basis.dbf_branch[j]:>7d} "
                 f"{basis.enrichment_omega[j]:>18.8g}")
+    flex = basis.flexibility_captured
+    if flex.size:
+        say("static flexibility captured (f_basis / f_exact, the a-priori indicator; 1 = the basis holds K^-1 g_j):")
+        say(f"{'j':>6} {'where':>14} {'captured':>10} {'f_exact (m/N)':>14}")
+        for j in range(flex.size):
+            say(f"{j + 1:>6} {labels[j]:>14} {flex[j]:>10.6f} {basis.flexibility_exact[j]:>14.6g}")
+        low = flexibility_warning(flex, labels)
+        if low:
+            say(f"dbf-hpc: warning: {low}")
     for warning in basis.warnings(labels):
         say(f"dbf-hpc: warning: {warning}")
     name = basis.settings.strategy.column_name

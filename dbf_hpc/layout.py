@@ -21,6 +21,8 @@ PROBE_PEAK = "probes/peak"
 BASIS_OMEGA = "basis/omega"
 BASIS_ENRICHMENT_OMEGA = "basis/enrichment_omega"
 BASIS_DBF_K = "basis/dbf_k"
+BASIS_FLEXIBILITY_CAPTURED = "basis/flexibility_captured"
+BASIS_FLEXIBILITY_EXACT = "basis/flexibility_exact"
 REDUCED_Q = "reduced/q"
 REDUCED_QDOT = "reduced/qdot"
 REDUCED_M = "reduced/M"
@@ -52,6 +54,10 @@ DATASETS = {
     BASIS_OMEGA: ("rad/s", "reference frequencies (N)"),
     BASIS_ENRICHMENT_OMEGA: ("rad/s", "hat-omega_j of each enrichment column, Eq. 41 (N_L, or 0)"),
     BASIS_DBF_K: ("N/m", "DBF stiffness k_j of each constraint, 0 for other enrichment (N_L, or 0)"),
+    BASIS_FLEXIBILITY_CAPTURED: ("1", "the a-priori indicator: static flexibility at each constraint that the basis "
+                                      "captures, B_j K_r^-1 B_j^T / g_j^T K^-1 g_j (N_L; 1 with static modes, NaN "
+                                      "if K is singular)"),
+    BASIS_FLEXIBILITY_EXACT: ("m/N", "the full model's static flexibility g_j^T K^-1 g_j at each constraint (N_L)"),
     REDUCED_Q: ("1", "reduced coordinates q (nt x r; width 0 for a full-order run)"),
     REDUCED_QDOT: ("1/s", "reduced velocities q' (nt x r; width 0 for a full-order run)"),
     REDUCED_M: ("1", "reduced mass V^T M V (r x r; I to round-off)"),
@@ -97,7 +103,11 @@ def reference() -> str:
     lines += ["", "Root attributes: `scene` (the scene's text), `scene_path`, `method` (`rom` or `full`), "
               "`basis_enrichment`, `field_kind` (`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
               "`slepc_version`, `mpi_ranks`, `solver_stats` and `wall_times` (JSON), `initial_state`, and "
-              "`complete = true` once the run finished.", "",
+              "`complete = true` once the run finished. A reduced run of a scene with constraints also has its "
+              "a-posteriori error estimate (docs/accuracy.md; not with `[basis] estimate = false`): "
+              "`estimated_error` (1, max over constraints of max_t |w - w_rich| / max_t |w_rich| against twice the "
+              "modes, NaN if it could not be made), `estimated_error_window` (s, the estimate holds over [0, it]) "
+              "and `estimated_error_note` (how it was made, or why not).", "",
              "With snapshots, `OUT.xdmf` beside the output describes `snapshots/points` and "
              "`snapshots/displacement/NNNNNN` as a time series that ParaView (Xdmf3 reader) and meshio open.", "",
              "A sweep summary (`dbf-hpc sweep`) holds a row per case: `cases/parameters/<section.key>` (NaN or "

@@ -21,9 +21,11 @@ from .rom import ReducedField, ReducedModel
 class Reductor:
     """Owns the basis it obtains (destroyed with the reductor)."""
 
-    def __init__(self, fom: FullOrderModel, settings: BasisSettings = BasisSettings(), cache_dir: str | None = None):
+    def __init__(self, fom: FullOrderModel, settings: BasisSettings = BasisSettings(), cache_dir: str | None = None,
+                 basis: ReducedBasis | None = None):
+        """With `basis`, that basis (already built, e.g. basis.richer_basis; the reductor owns it)."""
         self.fom, self.settings, self.cache_dir = fom, settings, cache_dir
-        self._basis = None
+        self._basis = basis
 
     def basis(self) -> ReducedBasis:
         """The basis (obtained once). Collective."""
@@ -57,7 +59,8 @@ class Reductor:
             r_q = basis.dot(Mr)
             Mr.destroy()
         info = {"omega": basis.omega, "enrichment_omega": basis.enrichment_omega, "dbf_k": basis.dbf_k,
-                "enrichment": basis.enrichment}
+                "enrichment": basis.enrichment, "flexibility_captured": basis.flexibility_captured,
+                "flexibility_exact": basis.flexibility_exact}
         return ReducedModel(M=M, C=C, K=K, G=G, B=basis.rows(rows), r_c=fom.influence_at(rows), base_load=base_load,
                             force_shape=force_shape, constraints=fom.constraints, support=fom.support,
                             force=fom.force, q0=q0, p0=np.zeros(basis.size), probe_B=self._basis_at(fom.probes),

@@ -55,6 +55,10 @@ def _run_lines(path: str, f) -> list:
         omega = f[layout.BASIS_OMEGA][:] / (2 * np.pi)
         lines.append(f"  basis: {omega.size} reference modes ({omega[0]:.4g} ... {omega[-1]:.4g} Hz), "
                      f"{layout.read(f, layout.BASIS_ENRICHMENT_OMEGA).size} {extra}")
+        if layout.BASIS_FLEXIBILITY_CAPTURED in f and f[layout.BASIS_FLEXIBILITY_CAPTURED].size:
+            flex = f[layout.BASIS_FLEXIBILITY_CAPTURED][:]
+            lines.append("  static flexibility captured (a-priori indicator): "
+                         + ", ".join(f"{v:.4f}" for v in flex))
     else:
         lines.append(f"  full-order model: {stats.get('dofs', '?')} DOFs")
     lines.append(f"  samples: {t.size} from {t[0]:g} to {t[-1]:g} s; snapshots: {f[layout.SNAPSHOT_TIME].size}")
@@ -62,7 +66,19 @@ def _run_lines(path: str, f) -> list:
     lines.append(f"  integrator: {scheme}, contact {stats['contact']}, {stats['steps']} steps, "
                  f"{stats['rejected_steps']} rejected, {stats['snes_failures']} Newton failures")
     lines.append("  wall time: " + ", ".join(f"{k} {v:.3g} s" for k, v in walls.items()))
+    lines += _estimate_lines(f)
     return lines + _constraint_lines(f) + _probe_lines(f)
+
+
+def _estimate_lines(f) -> list:
+    """The a-posteriori estimate (accuracy.py), when the run carries one."""
+    if "estimated_error" not in f.attrs:
+        return []
+    value, window = float(f.attrs["estimated_error"]), float(f.attrs.get("estimated_error_window", np.nan))
+    if not np.isfinite(value):
+        return [f"  estimated error: not available ({f.attrs.get('estimated_error_note', '')})"]
+    return [f"  estimated error in w at the constraints: {value:.3g} ({value:.2%}) over [0, {window:g}] s "
+            f"({f.attrs.get('estimated_error_note', '')})"]
 
 
 def _constraint_lines(f, partial: bool = False) -> list:

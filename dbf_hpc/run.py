@@ -20,6 +20,9 @@ from slepc4py import SLEPc
 
 from . import layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
+from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, estimate_window, first_contact, flexibility_warning,
+                       nested_estimate, pick_basis, reused_estimate)
+from .basis import richer_basis
 from .checkpoint import Checkpoint, identity
 from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, write_failure
 from .fom import Observation
@@ -96,6 +99,17 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         if method == "full":
             return _run_full(scene, fom, path, settings, timings, say, resume)
         t, solves = time.perf_counter(), counters["eigen_solves"]
+        estimate, pick = scene.estimate_settings(), None
+        if estimate.tolerance is not None:
+            pick = pick_basis(fom, scene.basis_settings(), scene.cache_dir(), settings, estimate, comm, say)
+            scene = scene.with_values("basis", modes=pick.modes, max_frequency_hz=None)
+            scene = scene.with_values("integrator", rtol=pick.rtol)
+            settings = scene.integrator_settings()
+            timings["tolerance"] = time.perf_counter() - t
+            _say(say, f"tolerance {estimate.tolerance:g}: picked {pick.modes} modes and rtol {pick.rtol:g}: the "
+                      f"smallest doubling whose estimate ({pick.estimate.value:.3g}) is at most {TOLERANCE_MARGIN:g} "
+                      f"x the tolerance over [0, {pick.estimate.window:g}] s")
+            t = time.perf_counter()
         with Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
             basis = reductor.basis()
             timings["basis"] = time.perf_counter() - t
@@ -105,12 +119,30 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             basis_key = {"fingerprint": fom.fingerprint, "basis": basis.settings.key(),
                          "rows": basis.constraint_rows.tolist()}
             cache_state = basis.stats.get("cache", "")
-        timings["reduce"] = time.perf_counter() - t
+            timings["reduce"] = time.perf_counter() - t
+            rich, window = (pick.estimate, pick.estimate.window) if pick else (None, estimate.window)
+            if estimate.enabled and initial_state is None and pick is None and fom.constraints.count:
+                t = time.perf_counter()
+                rich = rich_model(fom, basis)
+                timings["estimate_basis"] = time.perf_counter() - t
     if initial_state is not None:
         model = _continue_from(model, initial_state)
     ident = run_identity(scene, basis_key, comm.getSize(), "rom")
     return _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident,
-                        {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state})
+                        {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state},
+                        (rich, window) if rich is not None and initial_state is None else None)
+
+
+def rich_model(fom, basis):
+    """The reduced model of the estimate's richer basis (accuracy.RICH_MODES times the modes, the same
+    enrichment columns), or the reason it cannot be made (a string). Collective."""
+    labels = list(fom.constraints.labels)
+    try:
+        rich = richer_basis(fom.operators, basis, RICH_MODES * basis.mode_count, labels)
+    except DbfError as e:  # the same on every rank: too few DOFs, or a column the richer modes hold
+        return f"no richer basis: {e}"
+    with Reductor(fom, rich.settings, basis=rich) as reductor:
+        return reductor.reduce()
 
 
 def _say(say, message: str) -> None:
@@ -129,6 +161,14 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> N
     _say(say, f"basis: {basis.mode_count} modes ({f[0]:.4g} ... {f[-1]:.4g} Hz) {extra} ({seconds:.2f} s, "
               f"cache {basis.stats.get('cache')})")
     warnings = basis.warnings(labels)
+    flex = basis.flexibility_captured
+    if flex.size and np.any(np.isfinite(flex)):
+        j = int(np.nanargmin(flex))
+        _say(say, f"static flexibility captured (a-priori indicator): min {flex[j]:.4f} at constraint {j + 1} "
+                  f"({labels[j]})")
+    low = flexibility_warning(flex, labels)
+    if low:
+        warnings.append(low)
     elastic = f[f > 1e-9 * f[-1]] if f[-1] > 0 else f
     if elastic.size and elastic[0] < SUSPICIOUS_HZ:
         warnings.append(f"the lowest elastic frequency is {elastic[0]:.3g} Hz: check the structure's units (SI: E in "
@@ -180,14 +220,14 @@ def _snapshot_samples(count: int, sample_times: np.ndarray) -> np.ndarray:
     return np.unique(np.searchsorted(sample_times, np.linspace(0.0, t_end, count) - 1e-12 * t_end))
 
 
-def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident, basis_stats) -> dict:
+def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident, basis_stats, estimator=None) -> dict:
     """Rank 0 integrates and writes; the others wait and learn the outcome."""
     world = comm.tompi4py()
     summary, failure = {}, None
     if world.rank == 0:
         try:
             summary = run_case(scene, model, path, say=say, resume=resume, ident=ident, extra_stats=basis_stats,
-                               ranks=world.size, timings=timings)
+                               ranks=world.size, timings=timings, estimator=estimator)
         except DbfError as exc:
             failure = (type(exc).__name__, str(exc))
     else:
@@ -203,10 +243,12 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
 
 
 def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: bool = False, ident=None,
-             extra_stats=None, ranks: int = 1, timings=None) -> dict:
+             extra_stats=None, ranks: int = 1, timings=None, estimator=None) -> dict:
     """Integrate a reduced model on this rank alone and write the run's output to `path` (rank 0 of
     a run, or any rank of a sweep). Checkpoints every [output] checkpoint_dt; SIGTERM checkpoints
-    and stops (errors.Interrupted); with resume, continues from a valid checkpoint. Returns the
+    and stops (errors.Interrupted); with resume, continues from a valid checkpoint. With estimator =
+    (the richer reduced model, or the tolerance mode's calibration Estimate, or why there is none;
+    window or None), the output carries the a-posteriori estimate (accuracy.py). Returns the
     summary with the final state and excitation phase (for continuation)."""
     settings, output = scene.integrator_settings(), scene.output()
     timings = {} if timings is None else timings
@@ -242,15 +284,55 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         kind = Interrupted if stepper is not None and stepper.interrupted else type(exc)
         raise kind(_left_behind(str(exc), writer, checkpoint)) from None
     stats.update(extra_stats or {})
+    try:
+        estimate = _estimate(estimator, writer, settings, timings, say)
+    except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
+        raise type(exc)(_left_behind(str(exc), writer, checkpoint)) from None
     t = time.perf_counter()
     snap_t, snap_w = recorder.snapshots(settings.sample_times)
     timings["snapshots"] = time.perf_counter() - t
-    summary = finish(scene, recorder, stats, timings, ranks, "rom", model.field_points, snap_t, snap_w, model)
+    summary = finish(scene, recorder, stats, timings, ranks, "rom", model.field_points, snap_t, snap_w, model,
+                     estimate.attrs() if estimate else None)
+    if estimate:
+        summary["estimated_error"], summary["estimated_error_window"] = estimate.value, estimate.window
     summary["final_state"] = [recorder.final[0].tolist(), recorder.final[1].tolist()]
     checkpoint.remove()
     _say(say, f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} Newton "
               f"failures) in {timings['integration']:.2f} s; wrote {path}")
     return summary
+
+
+def _estimate(estimator, writer, settings, timings: dict, say):
+    """Rank 0: the a-posteriori estimate of the samples just written (reading back only the window),
+    or None without an estimator. Not collective."""
+    if estimator is None:
+        return None
+    rich, window = estimator
+    times = writer.series_data(layout.TIME)
+    if isinstance(rich, str):
+        return Estimate(np.nan, 0.0, 0.0, rich)
+    end = estimate_window(times, _first_contact(writer, times), settings.t_end, window)
+    k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
+    writer.flush()
+    w = writer.series[layout.CONSTRAINT_DISPLACEMENT][:k]
+    if isinstance(rich, Estimate):   # the tolerance mode's calibration: its richer run is reused
+        estimate = reused_estimate(rich, times[:k], w)
+    else:
+        estimate = nested_estimate(rich, settings, times[:k], w, end)
+    timings["estimate"] = estimate.seconds
+    _say(say, estimate.line())
+    return estimate
+
+
+def _first_contact(writer, times: np.ndarray, block: int = 1 << 16):
+    """The first sample time with a nonzero constraint force in a written output (read in blocks)."""
+    writer.flush()
+    series = writer.series[layout.CONSTRAINT_FORCE_PEAK]
+    for lo in range(0, times.size, block):
+        t = first_contact(times[lo:lo + block], series[lo:lo + block])
+        if t is not None:
+            return t
+    return None
 
 
 def _reopen(path: str, samples: int) -> OutputWriter:
@@ -339,7 +421,7 @@ def _interrupt_on_sigterm(stepper):
 
 
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
-           field, snap_t, snap_w, model: ReducedModel | None = None) -> dict:
+           field, snap_t, snap_w, model: ReducedModel | None = None, extra_attrs: dict | None = None) -> dict:
     """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
     snapshots, an XDMF file beside it for ParaView), and return the run's summary. `field` is the
     PointValues the snapshots are taken at."""
@@ -359,11 +441,14 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                 **{f"{layout.CONSTRAINT_STATS}/{k}": v for k, v in constraint_stats.items()}}
     if snap_t.size:
         datasets.update(node_vectors(geometry, snap_w, "snapshots"))
-    attrs = {"field_kind": geometry[0]}
+    attrs = {"field_kind": geometry[0], **(extra_attrs or {})}
     if model is not None:
         info = model.basis_info
         datasets.update({layout.BASIS_OMEGA: info["omega"], layout.BASIS_ENRICHMENT_OMEGA: info["enrichment_omega"],
-                         layout.BASIS_DBF_K: info["dbf_k"], layout.REDUCED_M: model.M, layout.REDUCED_K: model.K,
+                         layout.BASIS_DBF_K: info["dbf_k"],
+                         layout.BASIS_FLEXIBILITY_CAPTURED: info.get("flexibility_captured", np.zeros(0)),
+                         layout.BASIS_FLEXIBILITY_EXACT: info.get("flexibility_exact", np.zeros(0)),
+                         layout.REDUCED_M: model.M, layout.REDUCED_K: model.K,
                          layout.REDUCED_B: model.B, layout.REDUCED_D: model.damping})
         attrs["basis_enrichment"] = info["enrichment"]
     writer.finish(

@@ -8,6 +8,7 @@ output) are relative to the scene file's folder.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import tomllib
@@ -17,6 +18,7 @@ from typing import Optional
 from .basis import DBF_SOLVERS, ENRICHMENTS, BasisSettings
 from .constraints import Constraint
 from .damping import Damping
+from .accuracy import EstimateSettings
 from .errors import InputError
 from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce
 from .fom import FullOrderModel, InitialState
@@ -54,6 +56,12 @@ class Scene:
 
     def __getitem__(self, section: str) -> dict:
         return self.sections[section]
+
+    def with_values(self, section: str, **values) -> "Scene":
+        """The same scene with some values of one section replaced (what the tolerance mode picked)."""
+        sections = {name: dict(keys) for name, keys in self.sections.items()}
+        sections[section].update(values)
+        return dataclasses.replace(self, sections=sections)
 
     @property
     def is_beam(self) -> bool:
@@ -100,6 +108,10 @@ class Scene:
                              dbf_stiffness=b["dbf_stiffness"], dbf_derivative=b["dbf_derivative"],
                              groups=b["groups"], enrichment=b["enrichment"],
                              dbf_solver=b["dbf_solver"])
+
+    def estimate_settings(self) -> EstimateSettings:
+        b = self["basis"]
+        return EstimateSettings(enabled=b["estimate"], window=b["estimate_window"], tolerance=b["tolerance"])
 
     def integrator_settings(self) -> IntegratorSettings:
         i = self["integrator"]
@@ -322,8 +334,11 @@ def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
 def _check_basis(b: dict, where: str) -> None:
     if b["modes"] is not None and b["max_frequency_hz"] is not None:
         raise InputError(f"{where}: give modes or max_frequency_hz, not both")
+    EstimateSettings(enabled=b["estimate"], window=b["estimate_window"], tolerance=b["tolerance"])
+    if b["tolerance"] is not None and b["max_frequency_hz"] is not None:
+        raise InputError(f"{where}: tolerance picks the number of modes; remove max_frequency_hz")
     if b["modes"] is None and b["max_frequency_hz"] is None:
-        b["modes"] = 6
+        b["modes"] = 4 if b["tolerance"] is not None else 6
     if b["modes"] is not None and b["modes"] < 1:
         raise InputError(f"{where}: modes must be at least 1, got {b['modes']}")
     if b["max_frequency_hz"] is not None and not b["max_frequency_hz"] > 0:

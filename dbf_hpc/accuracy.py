@@ -1,0 +1,295 @@
+"""Accuracy control: an error indicator with every basis and an error estimate with every reduced run
+(docs/accuracy.md, "Error estimate and tolerance mode").
+
+A-priori, per constraint j (no time integration): the captured static flexibility
+
+    f_basis / f_exact,   f_exact = g_j^T K^-1 g_j,   f_basis = g_j^T V (V^T K V)^-1 V^T g_j = B_j K_r^-1 B_j^T
+
+g_j the unit vector at the constraint DOF. By Rayleigh-Ritz f_basis <= f_exact; the ratio is 1 when
+the basis contains the static mode K^-1 g_j (enrichment = "static"), and it rises with the number of
+modes. A low value says the basis cannot reproduce how the structure deflects under the contact
+force (paper Sec. 2.2: that is what the enrichment column is for). Undefined (NaN) when K is
+singular (rigid-body modes).
+
+A-posteriori (nested comparison): the same scene on a richer basis (twice the reference modes, the
+same enrichment columns; span(V) is inside the richer span) at a 10 times tighter rtol and implicit
+contact, over a window that holds the first impacts; estimated_error = max over constraints of
+max_t |w - w_rich| / max_t |w_rich| over that window.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError, Interrupted, SolverError
+
+# Below this captured flexibility at some constraint a run prints a warning. Measured on the paper's
+# beam (1 and 9 stops): modes alone capture 0.979 to 0.996 at N = 4 (errors of 15 to 35 % in w),
+# 0.999 at N = 10, every DBF or static basis 1 - 2e-7 or closer; the tube's 16 modes alone 0.9947.
+# The indicator is necessary, not sufficient: the a-posteriori estimate is the measure of error.
+FLEXIBILITY_WARN = 0.99
+# The richer basis of the estimate: this many times the reference modes, rtol this many times tighter
+# (100 times tighter gave the same ratios to the true error on the paper's beam at twice the cost).
+RICH_MODES = 2
+RICH_RTOL = 10.0
+# Without any contact in the run, the estimate's window is this fraction of t_end.
+LINEAR_WINDOW = 0.1
+
+
+def exact_flexibility(ops, rows) -> np.ndarray:
+    """f_exact_j = g_j^T K^-1 g_j (m/N) of every constraint row: one Cholesky factorization of K and
+    one solve per constraint (enrichment.static_modes, options prefix static_). NaN for all when K is
+    singular (rigid-body modes, or a solve that fails: the indicator never stops a basis that can be
+    built). Collective on ops.comm."""
+    from .enrichment import static_modes
+
+    rows = np.asarray(rows, dtype=np.int64)
+    if ops.rigid_modes or not rows.size:
+        return np.full(rows.size, np.nan)
+    try:
+        psi = static_modes(ops, rows)
+    except SolverError:   # decided on every rank alike (a collective residual norm)
+        return np.full(rows.size, np.nan)
+    try:
+        lo, hi = psi.getOwnershipRange()
+        local = psi.getDenseArray()
+        out = np.zeros(rows.size)
+        for j, row in enumerate(rows):
+            if lo <= row < hi:
+                out[j] = local[row - lo, j]
+    finally:
+        psi.destroy()
+    return ops.comm.tompi4py().allreduce(out)
+
+
+def basis_flexibility(K_r: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """f_basis_j = B_j K_r^-1 B_j^T (m/N): the reduced model's own static flexibility at each
+    constraint (K_r = V^T K V and B = G^T V of Eq. 21). NaN when K_r is singular. Not collective."""
+    if not B.shape[0]:
+        return np.zeros(0)
+    K_sym = 0.5 * (K_r + K_r.T)
+    try:
+        X = np.linalg.solve(K_sym, B.T)
+    except np.linalg.LinAlgError:
+        return np.full(B.shape[0], np.nan)
+    f = np.einsum("ij,ji->i", B, X)
+    return np.where(np.isfinite(f) & (np.linalg.cond(K_sym) < 1e14), f, np.nan)
+
+
+def captured(f_basis: np.ndarray, f_exact: np.ndarray) -> np.ndarray:
+    """f_basis / f_exact (1), NaN where undefined."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(f_exact > 0, f_basis / np.where(f_exact > 0, f_exact, 1.0), np.nan)
+
+
+def flexibility_warning(values: np.ndarray, labels) -> str | None:
+    """One line naming the constraint whose captured flexibility is lowest, if below FLEXIBILITY_WARN."""
+    values = np.asarray(values, dtype=float)
+    if not values.size or not np.any(np.isfinite(values)):
+        return None
+    j = int(np.nanargmin(values))
+    if values[j] >= FLEXIBILITY_WARN:
+        return None
+    low = int(np.sum(values < FLEXIBILITY_WARN))
+    return (f"the basis captures {values[j]:.1%} of the static flexibility at constraint {j + 1} ({labels[j]})"
+            f"{f' ({low} constraints below {FLEXIBILITY_WARN:.0%})' if low > 1 else ''}: expect errors of several "
+            f"percent; add modes, or use enrichment = \"static\" or a basis tolerance (docs/accuracy.md)")
+
+
+@dataclass(frozen=True)
+class EstimateSettings:
+    """[basis] estimate (on by default), estimate_window (s; None: automatic, estimate_window below)
+    and tolerance (the tolerance mode: the basis size is picked to meet it; None: off)."""
+
+    enabled: bool = True
+    window: float | None = None
+    tolerance: float | None = None
+
+    def __post_init__(self):
+        if self.window is not None and not self.window > 0:
+            raise InputError(f"[basis] estimate_window must be positive (s), got {self.window!r}")
+        if self.tolerance is not None and not 0 < self.tolerance < 1:
+            raise InputError(f"[basis] tolerance must be between 0 and 1 (a relative error), got {self.tolerance!r}")
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """estimated_error (1, NaN if none), the window [0, window] s it holds over, the wall time of the
+    richer run (s) and a note on how it was made."""
+
+    value: float
+    window: float
+    seconds: float = 0.0
+    note: str = ""
+    reference: np.ndarray | None = None   # the richer run's w over the window (nt x N_L), for reuse
+
+    def attrs(self) -> dict:
+        """The output's root attributes."""
+        return {"estimated_error": float(self.value), "estimated_error_window": float(self.window),
+                "estimated_error_note": self.note}
+
+    def line(self) -> str:
+        if not math.isfinite(self.value):
+            return f"estimated error: not available ({self.note})"
+        return (f"estimated error: {self.value:.3g} ({self.value:.2%} of max |w| at the worst constraint) over "
+                f"[0, {self.window:g}] s ({self.note}; {self.seconds:.2f} s)")
+
+
+def first_contact(times: np.ndarray, force_peak: np.ndarray) -> float | None:
+    """The first sample time whose interval holds a nonzero constraint force, or None."""
+    touched = np.flatnonzero(np.any(np.abs(force_peak.reshape(force_peak.shape[0], -1)) > 0, axis=1))
+    return float(times[touched[0]]) if touched.size else None
+
+
+def estimate_window(times: np.ndarray, t_contact: float | None, t_end: float, window: float | None = None) -> float:
+    """The sample time that ends the estimate's window: the given window, else twice the time of the
+    first contact (so the window holds the first impacts and what follows them for as long again),
+    else LINEAR_WINDOW t_end without contact (or with contact from the start); never beyond t_end
+    and never before the second sample. Not collective."""
+    if window is None:
+        window = 2 * t_contact if t_contact else LINEAR_WINDOW * t_end
+    k = int(np.searchsorted(times, min(window, t_end) * (1 - 1e-12)))
+    return float(times[min(max(k, 1), times.size - 1)])
+
+
+def rich_settings(settings, window: float):
+    """The richer run's integrator settings: to `window`, rtol and atol RICH_RTOL times tighter,
+    implicit contact; a fixed step four times shorter."""
+    from .timestepping import RTOL_FLOOR
+
+    return dataclasses.replace(settings, t_end=window, rtol=max(settings.rtol / RICH_RTOL, RTOL_FLOOR),
+                               atol=settings.atol / RICH_RTOL, contact="implicit",
+                               dt=settings.dt if settings.adaptive else settings.dt / 4)
+
+
+def relative_difference(w: np.ndarray, w_rich: np.ndarray) -> float:
+    """max over constraints of max_t |w - w_rich| / max_t |w_rich| (both nt x N_L)."""
+    n = min(w.shape[0], w_rich.shape[0])
+    w, w_rich = w[:n].reshape(n, -1), w_rich[:n].reshape(n, -1)
+    scale = np.abs(w_rich).max(axis=0)
+    return float(np.max(np.abs(w - w_rich).max(axis=0) / np.where(scale > 0, scale, 1.0)))
+
+
+def nested_estimate(rich_model, settings, times: np.ndarray, w: np.ndarray, end: float) -> Estimate:
+    """The a-posteriori estimate of a run whose samples at `times` are w (nt x N_L, at least to
+    `end`, estimate_window): the richer model (richer_basis) integrated to `end` with rich_settings,
+    compared sample by sample. Not collective (a reduced model runs on one rank)."""
+    import time
+
+    from .simulate import simulate_reduced
+
+    start = time.perf_counter()
+    try:
+        result = simulate_reduced(rich_model, rich_settings(settings, end))
+    except Interrupted:
+        raise
+    except SolverError as e:
+        return Estimate(np.nan, end, time.perf_counter() - start, f"the richer model failed: {e}")
+    k = result.time.size
+    if k > times.size or not np.allclose(result.time, times[:k], rtol=0, atol=1e-9 * max(end, 1e-300)):
+        return Estimate(np.nan, end, time.perf_counter() - start, "the richer run is not sampled alike")
+    value = relative_difference(w[:k], result.displacement)
+    note = f"against {rich_model.size} basis vectors at rtol {rich_settings(settings, end).rtol:g}"
+    return Estimate(value, end, time.perf_counter() - start, note, result.displacement)
+
+
+def reused_estimate(calibration: Estimate, times: np.ndarray, w: np.ndarray) -> Estimate:
+    """A run's estimate against the richer run its calibration made (the tolerance mode): the
+    difference over the same window, without integrating the richer model again. Not collective."""
+    k = calibration.reference.shape[0]
+    if times.size < k:
+        return Estimate(np.nan, calibration.window, 0.0, "the run is shorter than its calibration window")
+    value = relative_difference(w[:k], calibration.reference)
+    return Estimate(value, calibration.window, 0.0, f"{calibration.note}, from the calibration")
+
+
+# The tolerance mode: the largest basis it tries, and the margin it keeps (the estimate was 0.62 to
+# 1.51 times the true error on the paper's beam, docs/accuracy.md: accepting estimates below half
+# the tolerance keeps the true error below it).
+MAX_MODES = 256
+TOLERANCE_MARGIN = 0.5
+
+
+def tolerance_rtol(tolerance: float, rtol: float) -> float:
+    """The integrator rtol of the tolerance mode: tolerance 1e-4 (1e-6 for 1 %: the accuracy study
+    found rtol 1e-6 within 0.54 percentage points of rtol 1e-8), never looser than the scene's."""
+    from .timestepping import RTOL_FLOOR
+
+    return max(min(rtol, tolerance * 1e-4), RTOL_FLOOR)
+
+
+@dataclass
+class Pick:
+    """What the tolerance mode picked: modes, rtol, the estimate over the calibration window (with the
+    richer run's w, which the run's own estimate reuses) and each candidate's (modes, estimate)."""
+
+    modes: int
+    rtol: float
+    estimate: Estimate
+    tried: list
+
+
+def _measure(fom, basis_settings, cache_dir, settings, window: float | None, comm):
+    """One candidate of the tolerance mode: its basis, its richer model, both integrated over the
+    window (rank 0). Without a window, the candidate is first integrated over LINEAR_WINDOW t_end,
+    then t_end if it met no contact, and the window is estimate_window's. Returns the estimate (the
+    same on every rank). Collective."""
+    from .reductor import Reductor
+    from .run import rich_model, wait_for_rank0
+    from .simulate import simulate_reduced
+
+    with Reductor(fom, basis_settings, cache_dir) as reductor:
+        model = reductor.reduce()
+        rich = rich_model(fom, reductor.basis())
+    world = comm.tompi4py()
+    result = failure = None
+    if world.rank == 0:
+        try:
+            if isinstance(rich, str):
+                raise SolverError(rich)
+            for probe in ((window,) if window else (LINEAR_WINDOW * settings.t_end, settings.t_end)):
+                run = simulate_reduced(model, dataclasses.replace(settings, t_end=probe))
+                contact = first_contact(run.time, run.force_peak)
+                if window or contact is not None:
+                    break
+            end = estimate_window(run.time, contact, settings.t_end, window)
+            result = nested_estimate(rich, settings, run.time, run.displacement, end)
+        except SolverError as e:
+            failure = str(e)
+    wait_for_rank0(world)
+    result, failure = world.bcast((result, failure), root=0)
+    if failure:
+        raise SolverError(f"[basis] tolerance: the candidate with {basis_settings.modes} modes failed: {failure}")
+    return result
+
+
+def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSettings, comm, say=None) -> Pick:
+    """The tolerance mode: modes from basis_settings.modes doubling (at most MAX_MODES, and twice them
+    below the structure's DOFs) until the nested estimate over the calibration window is at most
+    TOLERANCE_MARGIN times the tolerance, at the rtol tolerance_rtol picks. The calibration window is
+    estimate.window, or the first candidate's (_measure), then the same for every candidate. No
+    full-order run. An InputError naming what it
+    reached when the tolerance cannot be met. Collective."""
+    tol = estimate.tolerance
+    if not fom.constraints.count:
+        raise InputError("[basis] tolerance bounds the error in w at the constraints; this scene has none")
+    settings = dataclasses.replace(settings, rtol=tolerance_rtol(tol, settings.rtol))
+    modes, tried, window = max(int(basis_settings.modes or 4), 1), [], estimate.window
+    limit = min(MAX_MODES, (fom.size - fom.constraints.count) // RICH_MODES)
+    while modes <= limit:
+        candidate = dataclasses.replace(basis_settings, modes=modes, max_frequency_hz=None)
+        measured = _measure(fom, candidate, cache_dir, settings, window, comm)
+        window = measured.window     # every candidate over the first one's window
+        tried.append((modes, measured.value))
+        if say is not None:
+            say(f"tolerance {tol:g}: {modes} modes at rtol {settings.rtol:g}: {measured.line()}")
+        if measured.value <= TOLERANCE_MARGIN * tol:
+            return Pick(modes, settings.rtol, measured, tried)
+        modes *= 2
+    reached = ", ".join(f"{m} modes {e:.3g}" for m, e in tried) or "no candidate fits the structure"
+    raise InputError(f"[basis] tolerance = {tol:g} cannot be met within {limit} modes (estimates must reach "
+                     f"{TOLERANCE_MARGIN * tol:.3g}): reached {reached}; loosen the tolerance, use a richer "
+                     f"enrichment or a finer question (a shorter estimate_window)")

@@ -1,0 +1,79 @@
+"""The a-posteriori estimate (accuracy.py) against the full-order truth on the paper's beam.
+
+    python scripts/study_estimate.py TRUTH_DIR [-o OUT.csv] [--modes 4,6,10,20,40] [--rtol 1e-6,1e-4]
+
+TRUTH_DIR holds the full-order truths of scripts/study_accuracy.py (truth-<constraints>-400-2.5e-06-0.2.h5:
+400 elements, 2.5 us steps, 0.2 s, samples every 1e-4 s, made by `study_accuracy.py -o DIR`, in DIR/runs).
+Each case is a reduced run of jobs/paper_beam*.toml (1, 4, 9 stops) to 0.2 s with the estimate over
+[0, 0.2] s; the true error is the estimate's own measure against the truth: max over constraints of
+max_t |w - w_truth| / max_t |w_truth|. Serial; each case is a run of under a second.
+"""
+import argparse
+import csv
+import os
+import sys
+import tempfile
+
+import h5py
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from dbf_hpc.accuracy import relative_difference  # noqa: E402
+from dbf_hpc.run import run  # noqa: E402
+from dbf_hpc.scene import load_scene  # noqa: E402
+
+SCENES = {1: "paper_beam.toml", 4: "paper_beam_4.toml", 9: "paper_beam_9.toml"}
+
+
+def case(label: int, modes: int, rtol: float, enrichment: str, truth_dir: str, work: str) -> dict:
+    with h5py.File(os.path.join(truth_dir, f"truth-{label}-400-2.5e-06-0.2.h5"), "r") as f:
+        w_truth = f["constraints/displacement"][:]
+    scene = load_scene(os.path.join(ROOT, "jobs", SCENES[label]),
+                       ["basis.cache=off", f"basis.modes={modes}", f"basis.enrichment={enrichment}",
+                        f"integrator.rtol={rtol}", "integrator.t_end=0.2", "output.sample_dt=1e-4",
+                        "output.snapshots=0", "basis.estimate_window=0.2"])
+    path = os.path.join(work, f"case-{label}-{modes}-{rtol:g}-{enrichment}.h5")
+    summary = run(scene, path, progress=False)
+    with h5py.File(path, "r") as f:
+        w = f["constraints/displacement"][:]
+    true = relative_difference(w, w_truth)
+    walls = summary["timings"]
+    return {"constraints": label, "modes": modes, "enrichment": enrichment, "rtol": rtol,
+            "estimate": summary["estimated_error"], "true": true, "ratio": summary["estimated_error"] / true,
+            "run_seconds": walls["basis"] + walls["integration"],
+            "estimate_seconds": walls.get("estimate_basis", 0.0) + walls.get("estimate", 0.0)}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("truth_dir")
+    parser.add_argument("-o", "--output", default="estimate.csv")
+    parser.add_argument("--modes", default="4,6,10,20,40")
+    parser.add_argument("--rtol", default="1e-6,1e-4")
+    parser.add_argument("--enrichment", default="dbf,none")
+    args = parser.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as work:
+        for label in SCENES:
+            for enrichment in args.enrichment.split(","):
+                for modes in map(int, args.modes.split(",")):
+                    for rtol in map(float, args.rtol.split(",")):
+                        row = case(label, modes, rtol, enrichment, args.truth_dir, work)
+                        rows.append(row)
+                        print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
+                              flush=True)
+    with open(args.output, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    ratio = np.array([r["ratio"] for r in rows])
+    big = np.array([r["true"] > 0.01 for r in rows])
+    print(f"{np.mean((ratio >= 0.5) & (ratio <= 2)):.0%} of {ratio.size} within 2x; "
+          f"optimistic by more than 2x where true > 1 %: {int(np.sum(big & (ratio < 0.5)))}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
