@@ -37,7 +37,13 @@ def test_tiny_accuracy_study_runs_on_two_ranks_and_measures_every_basis_kind(tmp
     # same space), 9.45 % for five modes alone: the enrichment helps at the same basis size.
     assert abs(err["dbf"] - err["static"]) < 0.1 * err["dbf"]
     assert err["modes"] > err["dbf"]
+    with open(out / "peers.csv") as f:
+        peers = list(csv.DictReader(f))
+    # The full-order peer (50 elements, 40 us) is the truth's own model, coarser: its error is its
+    # discretization's, positive and finite.
+    assert len(peers) == 1 and 0 < float(peers[0]["err_w"]) < 0.5
     table = (out / "accuracy.md").read_text()
+    assert "Full-order peers" in table
     assert "trusted horizon" in table and "Pareto front" in table and "3 cases, 0 failed" in table
     assert (out / "pareto.png").stat().st_size > 10000
     assert not list((out / "runs").glob("case-*.h5")), "case outputs are removed unless --keep"
