@@ -26,6 +26,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .dbf import STIFFNESS_RANGE, dbf_source, participation
+from .dbf_ritz import RitzSolver, RitzSpace
 from .dbf_shared import SharedFactor, SharedSolver
 from .errors import InputError, SolverError
 from .modes import ModalBasis
@@ -197,13 +198,17 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
     gathered = _dense_columns(ops, rows.size)
     k, k_auto, branch = _empty(rows.size)
     is_leader = (group.rank if group is not None else world.rank) == 0
-    factor = None
+    factor = space = None
     try:
         # Every rank of a group takes the same path; a group with no constraint factors nothing.
-        if settings.solver == "shared" and color < rows.size:
+        group_modes = _group_modes(modes, group_ops, n_groups) if settings.solver == "ritz" else []
+        if settings.solver in ("shared", "ritz") and color < rows.size:
             factor = SharedFactor(group_ops)
+        if factor is not None and settings.solver == "ritz":
+            space, group_modes = RitzSpace(factor, group_modes, lam), []
+        destroy(*group_modes)
         for j in range(color, rows.size, n_groups):
-            src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor)
+            src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
             lo, hi = src.derivative.getOwnershipRange()
             gathered.setValues(np.arange(lo, hi, dtype=PETSc.IntType), [j], src.derivative.array_r.reshape(-1, 1))
             if is_leader:
@@ -214,18 +219,59 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
         gathered.destroy()
         raise
     finally:
-        destroy(factor)
+        destroy(space, factor)
         _free_group(group, group_ops)
     return gathered, world.allreduce(k), world.allreduce(k_auto), world.allreduce(branch)
 
 
-def _dbf_source(ops: Operators, row: int, lam, part, settings: DbfEnrichment, factor: SharedFactor | None):
-    """One constraint's DBF source on the group's operators, on the shared factor if there is one."""
-    solver = SharedSolver(factor, row) if factor is not None else None
+def _dbf_source(ops: Operators, row: int, lam, part, settings: DbfEnrichment, factor: SharedFactor | None,
+                space: RitzSpace | None = None):
+    """One constraint's DBF source on the group's operators: by Rayleigh-Ritz on the group's space if
+    there is one, else on the shared factor if there is one, else with its own factorizations."""
+    if space is not None:
+        solver = RitzSolver(space, row)
+    else:
+        solver = SharedSolver(factor, row) if factor is not None else None
     try:
         return dbf_source(ops, row, lam, part, settings.stiffness, settings.derivative, solver)
     finally:
         destroy(solver)
+
+
+def _group_modes(modes: ModalBasis, group_ops: Operators, n_groups: int) -> list:
+    """The reference modes as Vecs laid out like the group's K (copies, the caller's): each rank
+    takes its group-local rows from the world BV by one scatter. Collective on the world."""
+    bv, template = modes.vectors, group_ops.K.createVecRight()
+    out = []
+    try:
+        if n_groups == 1:
+            for i in range(modes.count):
+                column = bv.getColumn(i)
+                out.append(column.copy())
+                bv.restoreColumn(i, column)
+            return out
+        lo, hi = template.getOwnershipRange()
+        world = bv.getComm()
+        column = bv.getColumn(0)
+        mine = PETSc.Vec().createMPI((hi - lo, PETSc.DECIDE), comm=world)
+        index = PETSc.IS().createStride(hi - lo, first=lo, step=1, comm=world)
+        scatter = PETSc.Scatter().create(column, index, mine, None)
+        bv.restoreColumn(0, column)
+        try:
+            for i in range(modes.count):
+                column = bv.getColumn(i)
+                scatter.scatter(column, mine, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
+                bv.restoreColumn(i, column)
+                out.append(template.duplicate())
+                out[-1].array = mine.array_r
+        finally:
+            destroy(scatter, index, mine)
+        return out
+    except Exception:
+        destroy(*out)
+        raise
+    finally:
+        template.destroy()
 
 
 def static_modes(ops: Operators, rows: np.ndarray, prefix: str = "static_") -> PETSc.Mat:
