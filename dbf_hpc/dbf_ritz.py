@@ -17,19 +17,24 @@ branch 1, ~(2/7)^4 = 0.007 per vector). The derivative d phi/dk differentiates (
 in lambda: the squared resolvent, the same series with a factor (j + 1): the same subspace.
 
 Per constraint: extend V one Krylov vector at a time (one shared-factor solve, CGS2 in the M inner
-product, one MatMult with K and one with M), and solve small dense problems on V, replicated on
-every rank (rank 0's numbers are broadcast, so every rank takes the same path):
-- mu_m: the m-th eigenvalue of V^T K V on the coefficients with h^T y = 0 (h = V^T g);
-- (lambda_m(k), phi_m): the m-th eigenpair of V^T K V + k h h^T;
-- d phi/dk: differentiating the small problem, (H_k - theta) y' = -(h (h^T y) - (h^T y)^2 y),
-  y^T y' = 0, from its eigendecomposition; d = V y'. The subspace does not depend on k, so this
-  is exactly the derivative of the Ritz vector (Galerkin with phi deflated).
-A stage is accepted when one more vector changes its eigenvalue by less than EIGEN_CHANGE_TOL
-(relative to lambda - sigma) and its M-normalized vector and derivative by less than
-VECTOR_CHANGE_TOL (the accepted iterate, one vector further, is ~0.007 times better still); then
-the eigen-residual and the derivative's backward error are checked on the full operators as on
-the factored path. A stage that does not converge within P_MAX vectors, or fails a check, falls
-back to the shared path (dbf_shared.SharedSolver) for the rest of that constraint (counters).
+product, one MatMult with M) and solve small dense problems, replicated (rank 0's numbers are
+broadcast, so every rank takes the same path). With V = [Phi, v_1..v_p] M-orthonormal, Gram-Schmidt
+gives z = A^-1 g = V s and A^-1 M V[:, :q] = V[:, :q+1] C (T0 = Phi^T M A^-1 M Phi once per group,
+N solves), so the shift-and-invert operators of all three problems,
+    (A + k g g^T)^-1 M = A^-1 M - c z z^T M,   c = k / (1 + k g^T z),  c = 1 / g^T z pinned,
+are known on V[:, :q], with their residual on the next vector, without K (the Rayleigh quotients
+through K lose ~u ||K|| / lambda: 1e-8 on the 100-element free beams):
+- mu_m: nu_m, the m-th largest eigenvalue of T - s s^T / g^T z, mu = sigma + 1/nu (the direction
+  M^-1 g has nu = 0: never among the largest);
+- (lambda_m(k), phi_m): the m-th eigenpair of T - c s s^T, phi = V y;
+- d phi/dk: differentiating the small problem in k, (T_k - nu) y' = dc (s^T y) s - dnu y,
+  y^T y' = 0, from its eigendecomposition; d = V y'. V does not depend on k, so this is exactly
+  the derivative of the Ritz vector (Galerkin with phi deflated).
+A stage is accepted when its residual on the next vector (the Lanczos residual) is below EIGEN_TOL
+relative to nu, as SLEPc's test on the other paths, and the derivative's below DERIVATIVE_TOL; then
+the eigen-residual and the derivative's backward error are checked on the full operators as on the
+factored path. A stage that does not converge within P_MAX vectors, or fails a check, falls back to
+the shared path (dbf_shared.SharedSolver) for the rest of that constraint (counters).
 
 Collective on the group's communicator; the options of the shared factorization apply
 (-dbf_shared_pc_factor_mat_solver_type ...).
@@ -39,14 +44,14 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
-from .dbf import DERIVATIVE_BACKWARD_TOL, value_at
+from .dbf import DERIVATIVE_BACKWARD_TOL, EIGEN_TOL, value_at
 from .dbf_shared import SharedFactor, SharedSolver
 from .modes import normalize
+from .operators import Operators
 from .petsctools import destroy, unit_vector
 
 P_MAX = 8                  # Krylov vectors per constraint before falling back to the shared path
-EIGEN_CHANGE_TOL = 1e-10   # change of the Ritz value, relative to lambda - sigma
-VECTOR_CHANGE_TOL = 1e-9   # change of the M-normalized Ritz vector and of the derivative (relative)
+DERIVATIVE_TOL = 1e-10     # the derivative's residual on the next vector, as EIGEN_TOL for the eigenpair
 RESIDUAL_TOL = DERIVATIVE_BACKWARD_TOL  # normwise backward error of the accepted eigenpair
 BREAKDOWN = 1e-10          # a Krylov vector this small after orthogonalization: V is invariant
 
@@ -57,22 +62,30 @@ counters = {"constraints": 0, "vectors": 0, "fallbacks": 0}
 
 class RitzSpace:
     """What the constraints of a group share: the factor of A = K - sigma M, the reference modes on
-    the group's communicator with M Phi and Phi^T K Phi, and ||K||_F, ||M||_F. Owns the mode Vecs
-    (given) and the factor if `own_factor`. Collective."""
+    the group's communicator (owned) with M Phi and T0 = Phi^T M A^-1 M Phi (N solves; A^-1 M Phi
+    is taken to lie in span Phi: the modes' own residual is neglected), and ||K||_F, ||M||_F for
+    the final checks. Collective."""
 
-    def __init__(self, factor: SharedFactor, modes: list, eigenvalues: np.ndarray):
+    def __init__(self, factor: SharedFactor, modes: list):
         self.factor, self.ops, self.sigma = factor, factor.ops, factor.sigma
-        K, M = self.ops.K, self.ops.M
+        M = self.ops.M
         self.Phi, self.MPhi = list(modes), []
         for phi in self.Phi:
             self.MPhi.append(M.createVecLeft())
             M.mult(phi, self.MPhi[-1])
-        # Phi^T K Phi = diag(lambda_i), the reference modes taken as exact eigenpairs: a Rayleigh
-        # quotient through K loses ~u ||K|| / lambda (5e-9 on the 100-element free beams), the
-        # shift-and-invert eigenvalues do not.
-        self.eigenvalues = np.asarray(eigenvalues, dtype=float)
-        self.H0 = np.diag(self.eigenvalues)
-        self.K_norm, self.M_norm = K.norm(PETSc.NormType.FROBENIUS), M.norm(PETSc.NormType.FROBENIUS)
+        # T0 = Phi^T M A^-1 M Phi by N solves, not diag(1 / (lambda_i - sigma)): with rigid-body modes
+        # the pinned operator subtracts nearly equal terms of size 1 / (lambda_1 - sigma), and the modes'
+        # own eigenvalue error (4e-9 for a rigid mode's 0) became 1e-6 in mu on the free beams.
+        n, w = len(self.Phi), M.createVecRight()
+        self.T0 = np.zeros((n, n))
+        try:
+            for j in range(n):
+                factor.solve(self.MPhi[j], w)
+                self.T0[:, j] = _dots(w, self.MPhi)
+        finally:
+            w.destroy()
+        self.T0 = self.ops.comm.tompi4py().bcast(0.5 * (self.T0 + self.T0.T), root=0)
+        self.K_norm, self.M_norm = self.ops.K.norm(PETSc.NormType.FROBENIUS), M.norm(PETSc.NormType.FROBENIUS)
 
     def destroy(self) -> None:
         destroy(*self.Phi, *self.MPhi)
@@ -82,65 +95,73 @@ class RitzSpace:
 class RitzSolver:
     """The three solves of one constraint (dbf.FactorSolver's interface) by Rayleigh-Ritz on
     span{Phi, z_1..z_p} (module docstring), falling back to dbf_shared.SharedSolver. Owns its
-    Krylov vectors and the fallback solver."""
+    Krylov vectors and the fallback solver.
+
+    In the M-orthonormal basis V = [Phi, v_1, ..., v_p] (v_j: the Krylov vectors orthonormalized),
+    z = A^-1 g = V s and A^-1 M V[:, :q] = V[:, :q+1] C[:q+1, :q] (the coefficients that
+    Gram-Schmidt produces), so the shift-and-invert operators of the three problems,
+        (A + k g g^T)^-1 M = A^-1 M - c_k z z^T M,   c_k = k / (1 + k g^T z)  (c = 1 / g^T z: pinned),
+    are known on V[:, :q] with their residual on the next vector, without touching K."""
 
     def __init__(self, space: RitzSpace, row: int):
         self.space, self.ops, self.row = space, space.ops, row
         self.comm = self.ops.comm.tompi4py()
         n = len(space.Phi)
         self.V, self.MV, self.own = list(space.Phi), list(space.MPhi), []
-        self.H = np.zeros((n + P_MAX, n + P_MAX))
-        self.H[:n, :n] = space.H0
-        lo, hi = self.ops.K.getOwnershipRange()
-        local = np.array([phi.getArray(readonly=True)[row - lo] if lo <= row < hi else 0.0 for phi in space.Phi])
-        self.h = np.zeros(n + P_MAX)
-        self.h[:n] = self.comm.allreduce(local)
+        self.C = np.zeros((n + P_MAX + 1, n + P_MAX + 1))
+        self.C[:n, :n] = space.T0
+        self.s = np.zeros(n + P_MAX + 1)
+        self.gz = None
         self.exhausted = False
         self.fallback = None
-        self.spring = None     # (k, branch, theta, y, y') of the last accepted spring-perturbed stage
+        self.spring = None     # (k, lambda, y, y') of the last accepted spring-perturbed stage
         counters["constraints"] += 1
 
     @property
     def size(self) -> int:
-        return len(self.V)
+        """Columns of V[:, :q] on which the operators are known (the last vector only closes them)."""
+        return len(self.V) - 1 if self.own else len(self.V)
 
     # -- the subspace -----------------------------------------------------------------------------
 
     def _extend(self) -> bool:
-        """Add one Krylov vector (one solve); False when P_MAX is reached or V is invariant."""
+        """One solve: z = A^-1 g first, then A^-1 M v_p; the result orthonormalized into V. False when
+        P_MAX is reached or V is invariant."""
         if self.exhausted or len(self.own) >= P_MAX:
             return False
-        factor, M, K = self.space.factor, self.ops.M, self.ops.K
+        factor, M = self.space.factor, self.ops.M
         x = M.createVecRight()
         g = unit_vector(x, self.row) if not self.own else None
         try:
             factor.solve(g if g is not None else self.MV[-1], x)
         finally:
             destroy(g)
+        if g is not None:
+            self.gz = value_at(x, self.row)           # g^T A^-1 g > 0 (A is SPD)
         Mx = M.createVecLeft()
         M.mult(x, Mx)
         before = np.sqrt(max(x.dot(Mx), 0.0))
+        q = len(self.V)
+        coefficients = np.zeros(q)
         for _ in range(2):     # classical Gram-Schmidt, twice, in the M inner product
-            x.maxpy(-np.asarray(_dots(x, self.MV)), self.V)
+            c = _dots(x, self.MV)
+            x.maxpy(-c, self.V)
+            coefficients += c
         M.mult(x, Mx)
         norm = np.sqrt(max(x.dot(Mx), 0.0))
+        column = np.append(coefficients, norm)
+        column, gz = self.comm.bcast((column, self.gz), root=0)   # every rank the same small problems
+        self.gz = gz
+        if g is not None:
+            self.s[:q + 1] = column
+        else:
+            self.C[:q + 1, q - 1] = column
         if not norm > BREAKDOWN * before:
             self.exhausted = True
             destroy(x, Mx)
             return False
         x.scale(1.0 / norm)
         Mx.scale(1.0 / norm)
-        Kx = K.createVecLeft()
-        K.mult(x, Kx)
-        q, n = self.size, len(self.space.Phi)
-        # K phi_i = lambda_i M phi_i (RitzSpace): the Phi rows without K's rounding
-        column = np.concatenate((self.space.eigenvalues * _dots(x, self.space.MPhi),
-                                 _dots(Kx, self.V[n:]), [Kx.dot(x)]))
-        Kx.destroy()
-        gx = value_at(x, self.row)
-        column, gx = self.comm.bcast((column, gx), root=0)   # every rank the same small problems
-        self.H[:q + 1, q] = self.H[q, :q + 1] = column
-        self.h[q] = gx
         self.V.append(x)
         self.MV.append(Mx)
         self.own.append(x)
@@ -151,21 +172,20 @@ class RitzSolver:
         """V y (a new Vec)."""
         x = self.ops.M.createVecRight()
         x.set(0.0)
-        x.maxpy(y[:self.size], self.V)
+        x.maxpy(y, self.V[:y.size])
         return x
 
     def _converge(self, reduce):
-        """Extend V until reduce() (on the current V: (eigenvalue, [coefficient vectors])) changes by
-        less than the tolerances; its last value, or None (P_MAX reached). Collective."""
+        """Extend V until reduce() (the small problem on V[:, :q]: (eigenvalue, vectors, converged))
+        converges; its value, or None (P_MAX reached). Collective."""
         if not self.own:
             self._extend()
-        previous = reduce()
-        while self._extend():
-            current = reduce()
-            if _close(previous, current, self.space.sigma):
-                return current
-            previous = current
-        return previous if self.exhausted else None   # an invariant V: the Ritz pair is exact
+        while True:
+            result = reduce()
+            if result[2]:
+                return result
+            if not self._extend():
+                return result if self.exhausted else None   # an invariant V: the Ritz pair is exact
 
     def _to_fallback(self) -> SharedSolver:
         if self.fallback is None:
@@ -175,27 +195,45 @@ class RitzSolver:
 
     # -- the small problems -----------------------------------------------------------------------
 
-    def _pinned_reduced(self, branch: int):
+    def _reduced(self, c: float, branch: int):
+        """The m-th eigenpair of the projected (A^-1 - c z z^T) M on V[:, :q]: nu, its coefficient
+        vector y and the eigendecomposition (nu descending), and the residual's coefficient on the
+        next vector (a function of a coefficient vector)."""
         q = self.size
-        h = self.h[:q]
-        basis, _ = np.linalg.qr(h.reshape(-1, 1), mode="complete")
-        Q = basis[:, 1:]              # the coefficients with h^T y = 0
-        theta, W = np.linalg.eigh(Q.T @ self.H[:q, :q] @ Q)
-        return theta[branch - 1], [Q @ W[:, branch - 1]]
+        T = self.C[:q, :q]
+        s = self.s[:q]
+        nu, W = np.linalg.eigh(0.5 * (T + T.T) - c * np.outer(s, s))
+        nu, W = nu[::-1], W[:, ::-1]
+        beta_row = self.C[q, :q] - c * self.s[q] * s   # A^-1 M V y's component on the next vector
+        return nu, W, beta_row
 
-    def _spring_reduced(self, k: float, branch: int):
-        q = self.size
-        h = self.h[:q]
-        theta, W = np.linalg.eigh(self.H[:q, :q] + k * np.outer(h, h))
+    def _pinned_reduced(self, branch: int):
+        nu, W, beta_row = self._reduced(1.0 / self.gz, branch)
         m = branch - 1
         y = W[:, m]
-        hy = h @ y
-        rhs = -(h * hy - hy**2 * y)
-        gaps = theta - theta[m]
+        converged = abs(beta_row @ y) <= EIGEN_TOL * abs(nu[m])
+        return self.space.sigma + 1.0 / nu[m], [y], converged
+
+    def _spring_reduced(self, k: float, branch: int):
+        c = k / (1.0 + k * self.gz)
+        dc = 1.0 / (1.0 + k * self.gz) ** 2                # d c / dk
+        nu, W, beta_row = self._reduced(c, branch)
+        m = branch - 1
+        y = W[:, m]
+        s = self.s[:y.size]
+        sy = s @ y
+        # d/dk of (T - c s s^T) y = nu y:  (T_k - nu) y' = dc (s^T y) s - dnu y,  y^T y' = 0
+        gaps = nu[m] - nu
         gaps[m] = 1.0
-        coefficients = (W.T @ rhs) / gaps
-        coefficients[m] = 0.0          # y^T y' = 0
-        return theta[m], [y, W @ coefficients]
+        coefficients = (W.T @ (-dc * sy * s)) / gaps
+        coefficients[m] = 0.0
+        dy = W @ coefficients
+        residual = abs(beta_row @ y)
+        # the derivative's residual on the next vector: (B_k y' + B_k' y) there, B_k' = -dc z z^T M
+        derivative_residual = abs(beta_row @ dy - dc * self.s[y.size] * sy)
+        converged = (residual <= EIGEN_TOL * abs(nu[m])
+                     and derivative_residual <= DERIVATIVE_TOL * abs(nu[m]) * np.linalg.norm(dy))
+        return self.space.sigma + 1.0 / nu[m], [y, dy], converged
 
     # -- the interface ----------------------------------------------------------------------------
 
@@ -213,21 +251,21 @@ class RitzSolver:
         if self.fallback is None:
             result = self._converge(lambda: self._spring_reduced(k, branch))
             if result is not None:
-                theta, (y, dy) = result
+                lam, (y, dy), _ = result
                 phi = self._vector(y)
-                if self._residual(k, theta, phi) < RESIDUAL_TOL:
+                if self._residual(k, lam, phi) < RESIDUAL_TOL:
                     normalize(phi, self.ops.M)   # the package's sign convention (y is M-normalized)
-                    self.spring = (k, branch, float(theta), y, dy)
-                    return float(theta), phi
+                    self.spring = (k, float(lam), y, dy)
+                    return float(lam), phi
                 phi.destroy()
         return self._to_fallback().eigenpair(k, branch)
 
     def derivative(self, k: float, lam: float, phi: PETSc.Vec) -> PETSc.Vec:
         """d phi/dk, the derivative of the Ritz vector (module docstring), sign-aligned with phi;
         checked by its backward error on the full operator. Collective."""
-        if self.fallback is None and self.spring is not None and self.spring[0] == k and self.spring[2] == lam:
-            _, _, _, y, dy = self.spring
-            sign = 1.0 if float(np.dot(np.asarray(_dots(phi, self.MV[:y.size])), y)) >= 0 else -1.0
+        if self.fallback is None and self.spring is not None and self.spring[:2] == (k, lam):
+            _, _, y, dy = self.spring
+            sign = 1.0 if float(np.dot(_dots(phi, self.MV[:y.size]), y)) >= 0 else -1.0
             d = self._vector(sign * dy)
             if self._derivative_backward_error(k, lam, phi, d) < DERIVATIVE_BACKWARD_TOL:
                 return d
@@ -283,24 +321,45 @@ class RitzSolver:
         self.V, self.MV, self.own, self.fallback = [], [], [], None
 
 
+def reference_vectors(modes, group_ops: Operators, n_groups: int = 1) -> list:
+    """The reference modes (a modes.ModalBasis on the world) as Vecs laid out like the group's K
+    (copies, the caller's; n_groups as in enrichment.constraint_groups): each rank takes its
+    group-local rows from the world BV by one scatter. Collective on the world."""
+    bv, template = modes.vectors, group_ops.K.createVecRight()
+    out = []
+    try:
+        if n_groups == 1:
+            for i in range(modes.count):
+                column = bv.getColumn(i)
+                out.append(column.copy())
+                bv.restoreColumn(i, column)
+            return out
+        lo, hi = template.getOwnershipRange()
+        world = bv.getComm()
+        column = bv.getColumn(0)
+        mine = PETSc.Vec().createMPI((hi - lo, PETSc.DECIDE), comm=world)
+        index = PETSc.IS().createStride(hi - lo, first=lo, step=1, comm=world)
+        scatter = PETSc.Scatter().create(column, index, mine, None)
+        bv.restoreColumn(0, column)
+        try:
+            for i in range(modes.count):
+                column = bv.getColumn(i)
+                scatter.scatter(column, mine, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
+                bv.restoreColumn(i, column)
+                out.append(template.duplicate())
+                out[-1].array = mine.array_r
+        finally:
+            destroy(scatter, index, mine)
+        return out
+    except Exception:
+        destroy(*out)
+        raise
+    finally:
+        template.destroy()
+
+
 def _dots(x: PETSc.Vec, vectors: list) -> np.ndarray:
     """[v^T x for v in vectors] on every rank, one reduction (petsc4py 3.18 has no Vec.mDot). Collective."""
     local = x.array_r
     out = np.array([np.dot(v.array_r, local) for v in vectors])
     return x.getComm().tompi4py().allreduce(out) if x.getComm().getSize() > 1 else out
-
-
-def _close(previous, current, sigma: float) -> bool:
-    """Whether two successive (eigenvalue, [coefficient vectors]) agree to the tolerances; the
-    vectors are compared up to sign, the shorter padded with zeros."""
-    (a, xs), (b, ys) = previous, current
-    if not abs(a - b) <= EIGEN_CHANGE_TOL * abs(b - sigma):
-        return False
-    sign = None
-    for x, y in zip(xs, ys):     # the first is the eigenvector: its sign is the derivative's too
-        x = np.pad(x, (0, y.size - x.size))
-        sign = sign or (1.0 if float(np.dot(x, y)) >= 0 else -1.0)
-        x = sign * x
-        if not np.linalg.norm(x - y) <= VECTOR_CHANGE_TOL * max(np.linalg.norm(y), 1e-300):
-            return False
-    return True

@@ -26,7 +26,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .dbf import STIFFNESS_RANGE, dbf_source, participation
-from .dbf_ritz import RitzSolver, RitzSpace
+from .dbf_ritz import RitzSolver, RitzSpace, reference_vectors
 from .dbf_shared import SharedFactor, SharedSolver
 from .errors import InputError, SolverError
 from .modes import ModalBasis
@@ -201,11 +201,11 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
     factor = space = None
     try:
         # Every rank of a group takes the same path; a group with no constraint factors nothing.
-        group_modes = _group_modes(modes, group_ops, n_groups) if settings.solver == "ritz" else []
+        group_modes = reference_vectors(modes, group_ops, n_groups) if settings.solver == "ritz" else []
         if settings.solver in ("shared", "ritz") and color < rows.size:
             factor = SharedFactor(group_ops)
         if factor is not None and settings.solver == "ritz":
-            space, group_modes = RitzSpace(factor, group_modes, lam), []
+            space, group_modes = RitzSpace(factor, group_modes), []
         destroy(*group_modes)
         for j in range(color, rows.size, n_groups):
             src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
@@ -236,42 +236,6 @@ def _dbf_source(ops: Operators, row: int, lam, part, settings: DbfEnrichment, fa
         return dbf_source(ops, row, lam, part, settings.stiffness, settings.derivative, solver)
     finally:
         destroy(solver)
-
-
-def _group_modes(modes: ModalBasis, group_ops: Operators, n_groups: int) -> list:
-    """The reference modes as Vecs laid out like the group's K (copies, the caller's): each rank
-    takes its group-local rows from the world BV by one scatter. Collective on the world."""
-    bv, template = modes.vectors, group_ops.K.createVecRight()
-    out = []
-    try:
-        if n_groups == 1:
-            for i in range(modes.count):
-                column = bv.getColumn(i)
-                out.append(column.copy())
-                bv.restoreColumn(i, column)
-            return out
-        lo, hi = template.getOwnershipRange()
-        world = bv.getComm()
-        column = bv.getColumn(0)
-        mine = PETSc.Vec().createMPI((hi - lo, PETSc.DECIDE), comm=world)
-        index = PETSc.IS().createStride(hi - lo, first=lo, step=1, comm=world)
-        scatter = PETSc.Scatter().create(column, index, mine, None)
-        bv.restoreColumn(0, column)
-        try:
-            for i in range(modes.count):
-                column = bv.getColumn(i)
-                scatter.scatter(column, mine, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
-                bv.restoreColumn(i, column)
-                out.append(template.duplicate())
-                out[-1].array = mine.array_r
-        finally:
-            destroy(scatter, index, mine)
-        return out
-    except Exception:
-        destroy(*out)
-        raise
-    finally:
-        template.destroy()
 
 
 def static_modes(ops: Operators, rows: np.ndarray, prefix: str = "static_") -> PETSc.Mat:
