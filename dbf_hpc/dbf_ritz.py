@@ -44,7 +44,7 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
-from .dbf import DERIVATIVE_BACKWARD_TOL, EIGEN_TOL, value_at
+from .dbf import DERIVATIVE_BACKWARD_TOL, EIGEN_TOL
 from .dbf_shared import SharedFactor, SharedSolver
 from .modes import normalize
 from .operators import Operators
@@ -63,34 +63,42 @@ counters = {"constraints": 0, "vectors": 0, "fallbacks": 0}
 
 class RitzSpace:
     """What the constraints of a group share: the factor of A = K - sigma M, the reference modes on
-    the group's communicator (owned) with M Phi and T0 = Phi^T M A^-1 M Phi (N solves; A^-1 M Phi
-    is taken to lie in span Phi: the modes' own residual is neglected), and ||K||_F, ||M||_F for
-    the final checks. Collective."""
+    the group's communicator (owned; their local rows also as a numpy block) with M Phi and
+    T0 = Phi^T M A^-1 M Phi (N solves; A^-1 M Phi is taken to lie in span Phi: the modes' own
+    residual is neglected), and ||K||_F, ||M||_F for the final checks. Collective."""
 
     def __init__(self, factor: SharedFactor, modes: list):
         self.factor, self.ops, self.sigma = factor, factor.ops, factor.sigma
         M = self.ops.M
+        self.comm = self.ops.comm.tompi4py()
         self.Phi, self.MPhi = list(modes), []
         for phi in self.Phi:
             self.MPhi.append(M.createVecLeft())
             M.mult(phi, self.MPhi[-1])
+        n, nloc = len(self.Phi), M.getLocalSize()[1]
+        # The local rows of V and M V for the constraints, one at a time: Phi's, then the Krylov vectors'
+        width = n + P_MAX + 1
+        self.V_local, self.MV_local = np.zeros((width, nloc)), np.zeros((width, nloc))
+        self.V_local[:n] = np.array([v.array_r for v in self.Phi]).reshape(n, nloc)
+        self.MV_local[:n] = np.array([v.array_r for v in self.MPhi]).reshape(n, nloc)
+        self.Phi_local, self.MPhi_local = self.V_local[:n], self.MV_local[:n]
         # T0 = Phi^T M A^-1 M Phi by N solves, not diag(1 / (lambda_i - sigma)): with rigid-body modes
         # the pinned operator subtracts nearly equal terms of size 1 / (lambda_1 - sigma), and the modes'
         # own eigenvalue error (4e-9 for a rigid mode's 0) became 1e-6 in mu on the free beams.
         # A^-1 M Phi is taken to lie in span Phi: the part outside, the modes' own shift-and-invert
         # residual rho_j (relative), bounds what the Ritz residuals can reach (module docstring).
-        n, w, Mw = len(self.Phi), M.createVecRight(), M.createVecLeft()
+        w, Mw = M.createVecRight(), M.createVecLeft()
         self.T0, rho = np.zeros((n, n)), np.zeros(n)
         try:
             for j in range(n):
                 factor.solve(self.MPhi[j], w)
-                self.T0[:, j] = _dots(w, self.MPhi)
-                w.maxpy(-self.T0[:, j], self.Phi)
+                self.T0[:, j] = _sum(self.comm, self.MPhi_local @ w.array_r)
+                w.array = w.array_r - self.T0[:, j] @ self.Phi_local
                 M.mult(w, Mw)
                 rho[j] = np.sqrt(max(w.dot(Mw), 0.0)) / abs(self.T0[j, j])
         finally:
             destroy(w, Mw)
-        self.T0, self.modes_residual = self.ops.comm.tompi4py().bcast(
+        self.T0, self.modes_residual = self.comm.bcast(
             (0.5 * (self.T0 + self.T0.T), float(rho.max(initial=0.0))), root=0)
         self.eigen_tol = max(EIGEN_TOL, MODES_RESIDUAL_FACTOR * self.modes_residual)
         self.derivative_tol = max(DERIVATIVE_TOL, MODES_RESIDUAL_FACTOR * self.modes_residual)
@@ -104,7 +112,9 @@ class RitzSpace:
 class RitzSolver:
     """The three solves of one constraint (dbf.FactorSolver's interface) by Rayleigh-Ritz on
     span{Phi, z_1..z_p} (module docstring), falling back to dbf_shared.SharedSolver. Owns its
-    Krylov vectors and the fallback solver.
+    work vectors and the fallback solver; writes its Krylov vectors' local rows into the space's
+    numpy blocks of V and M V (one BLAS call per Gram-Schmidt pass): one RitzSolver per space at a
+    time.
 
     In the M-orthonormal basis V = [Phi, v_1, ..., v_p] (v_j: the Krylov vectors orthonormalized),
     z = A^-1 g = V s and A^-1 M V[:, :q] = V[:, :q+1] C[:q+1, :q] (the coefficients that
@@ -114,79 +124,90 @@ class RitzSolver:
 
     def __init__(self, space: RitzSpace, row: int):
         self.space, self.ops, self.row = space, space.ops, row
-        self.comm = self.ops.comm.tompi4py()
-        n = len(space.Phi)
-        self.V, self.MV, self.own = list(space.Phi), list(space.MPhi), []
-        self.C = np.zeros((n + P_MAX + 1, n + P_MAX + 1))
+        self.comm = space.comm
+        n, width = len(space.Phi), len(space.Phi) + P_MAX + 1
+        self.V, self.MV = space.V_local, space.MV_local    # the space's blocks: one solver at a time
+        self.count, self.krylov = n, 0          # columns of V, Krylov vectors among them
+        lo, hi = self.ops.M.getOwnershipRange()
+        self.local_row = row - lo if lo <= row < hi else None
+        self.h = np.zeros(width)                # g^T V
+        if self.local_row is not None:
+            self.h[:n] = self.V[:n, self.local_row]
+        self.h[:n] = _sum(self.comm, self.h[:n])
+        self.C = np.zeros((width, width))
         self.C[:n, :n] = space.T0
-        self.s = np.zeros(n + P_MAX + 1)
+        self.s = np.zeros(width)
         self.gz = None
         self.exhausted = False
         self.fallback = None
         self.spring = None     # (k, lambda, y, y') of the last accepted spring-perturbed stage
+        self.x, self.Mx = self.ops.M.createVecRight(), self.ops.M.createVecLeft()
         counters["constraints"] += 1
 
     @property
     def size(self) -> int:
         """Columns of V[:, :q] on which the operators are known (the last vector only closes them)."""
-        return len(self.V) - 1 if self.own else len(self.V)
+        return self.count - 1 if self.krylov else self.count
 
     # -- the subspace -----------------------------------------------------------------------------
 
     def _extend(self) -> bool:
         """One solve: z = A^-1 g first, then A^-1 M v_p; the result orthonormalized into V. False when
         P_MAX is reached or V is invariant."""
-        if self.exhausted or len(self.own) >= P_MAX:
+        if self.exhausted or self.krylov >= P_MAX:
             return False
-        factor, M = self.space.factor, self.ops.M
-        x = M.createVecRight()
-        g = unit_vector(x, self.row) if not self.own else None
-        try:
-            factor.solve(g if g is not None else self.MV[-1], x)
-        finally:
-            destroy(g)
-        if g is not None:
-            self.gz = value_at(x, self.row)           # g^T A^-1 g > 0 (A is SPD)
-        q = len(self.V)
+        x, Mx, q = self.x, self.Mx, self.count
+        if self.krylov:
+            Mx.array = self.MV[q - 1]
+            self.space.factor.solve(Mx, x)
+        else:
+            g = unit_vector(x, self.row)
+            try:
+                self.space.factor.solve(g, x)
+            finally:
+                g.destroy()
+        a = x.array
+        gz = a[self.local_row] if self.local_row is not None else 0.0
         coefficients = np.zeros(q)
         for _ in range(2):     # classical Gram-Schmidt, twice, in the M inner product
-            c = _dots(x, self.MV)
-            x.maxpy(-c, self.V)
+            c = _sum(self.comm, self.MV[:q] @ a)
+            a -= c @ self.V[:q]
             coefficients += c
-        Mx = M.createVecLeft()
-        M.mult(x, Mx)
-        norm = np.sqrt(max(x.dot(Mx), 0.0))
+        self.ops.M.mult(x, Mx)
+        b = Mx.array_r
+        norm2, gx = _sum(self.comm, np.array([a @ b, a[self.local_row] if self.local_row is not None else 0.0]))
+        norm = np.sqrt(max(norm2, 0.0))
         before = np.hypot(np.linalg.norm(coefficients), norm)   # the M-norm before Gram-Schmidt
         column = np.append(coefficients, norm)
-        column, gz = self.comm.bcast((column, self.gz), root=0)   # every rank the same small problems
-        self.gz = gz
-        if g is not None:
+        if not self.krylov:
+            gz = _sum(self.comm, np.array([gz]))[0]
+        # every rank the same small problems: rank 0's numbers
+        column, gz, gx = self.comm.bcast((column, gz, gx), root=0) if self.comm.size > 1 else (column, gz, gx)
+        if not self.krylov:
+            self.gz = gz             # g^T A^-1 g > 0 (A is SPD)
             self.s[:q + 1] = column
         else:
             self.C[:q + 1, q - 1] = column
         if not norm > BREAKDOWN * before:
             self.exhausted = True
-            destroy(x, Mx)
             return False
-        x.scale(1.0 / norm)
-        Mx.scale(1.0 / norm)
-        self.V.append(x)
-        self.MV.append(Mx)
-        self.own.append(x)
+        self.V[q], self.MV[q] = a / norm, b / norm
+        self.h[q] = gx / norm
+        self.count += 1
+        self.krylov += 1
         counters["vectors"] += 1
         return True
 
     def _vector(self, y: np.ndarray) -> PETSc.Vec:
         """V y (a new Vec)."""
         x = self.ops.M.createVecRight()
-        x.set(0.0)
-        x.maxpy(y, self.V[:y.size])
+        x.array = y @ self.V[:y.size]
         return x
 
     def _converge(self, reduce):
         """Extend V until reduce() (the small problem on V[:, :q]: (eigenvalue, vectors, converged))
         converges; its value, or None (P_MAX reached). Collective."""
-        if not self.own:
+        if not self.krylov:
             self._extend()
         while True:
             result = reduce()
@@ -273,7 +294,7 @@ class RitzSolver:
         checked by its backward error on the full operator. Collective."""
         if self.fallback is None and self.spring is not None and self.spring[:2] == (k, lam):
             _, _, y, dy = self.spring
-            sign = 1.0 if float(np.dot(_dots(phi, self.MV[:y.size]), y)) >= 0 else -1.0
+            sign = 1.0 if float(_sum(self.comm, np.array([(y @ self.MV[:y.size]) @ phi.array_r]))[0]) >= 0 else -1.0
             d = self._vector(sign * dy)
             if self._derivative_backward_error(k, lam, phi, sign * y, d, sign * dy) < DERIVATIVE_BACKWARD_TOL:
                 return d
@@ -286,12 +307,10 @@ class RitzSolver:
         """(K + k g g^T - lam M) x for x = V y (a new Vec; M x = (M V) y)."""
         r = self.ops.K.createVecLeft()
         self.ops.K.mult(x, r)
-        r.maxpy(-lam * y, self.MV[:y.size])
-        gx = value_at(x, self.row)
-        lo, hi = r.getOwnershipRange()
-        if lo <= self.row < hi:
-            r.setValue(self.row, k * gx, addv=PETSc.InsertMode.ADD_VALUES)
-        r.assemble()
+        a = r.array
+        a -= lam * (y @ self.MV[:y.size])
+        if self.local_row is not None:
+            a[self.local_row] += k * (self.h[:y.size] @ y)
         return r
 
     def _norm_bound(self, k: float, lam: float) -> float:
@@ -313,21 +332,19 @@ class RitzSolver:
         r = self._apply(k, lam, d, dy)
         rhs = self.ops.M.createVecLeft()
         try:
-            gphi = value_at(phi, self.row)
-            rhs.set(0.0)
-            rhs.maxpy(gphi**2 * y, self.MV[:y.size])
-            lo, hi = rhs.getOwnershipRange()
-            if lo <= self.row < hi:
-                rhs.setValue(self.row, -gphi, addv=PETSc.InsertMode.ADD_VALUES)
-            rhs.assemble()
+            gphi = self.h[:y.size] @ y
+            a = rhs.array
+            a[:] = gphi**2 * (y @ self.MV[:y.size])
+            if self.local_row is not None:
+                a[self.local_row] -= gphi
             r.axpy(-1.0, rhs)
             return r.norm() / (self._norm_bound(k, lam) * d.norm() + rhs.norm())
         finally:
             destroy(r, rhs)
 
     def destroy(self) -> None:
-        destroy(self.fallback, *self.own, *self.MV[len(self.space.Phi):])
-        self.V, self.MV, self.own, self.fallback = [], [], [], None
+        destroy(self.fallback, self.x, self.Mx)
+        self.fallback = self.x = self.Mx = None
 
 
 def reference_vectors(modes, group_ops: Operators, n_groups: int = 1) -> list:
@@ -367,8 +384,11 @@ def reference_vectors(modes, group_ops: Operators, n_groups: int = 1) -> list:
         template.destroy()
 
 
-def _dots(x: PETSc.Vec, vectors: list) -> np.ndarray:
-    """[v^T x for v in vectors] on every rank, one reduction (petsc4py 3.18 has no Vec.mDot). Collective."""
-    local = x.array_r
-    out = np.array([np.dot(v.array_r, local) for v in vectors])
-    return x.getComm().tompi4py().allreduce(out) if x.getComm().getSize() > 1 else out
+def _sum(comm, local: np.ndarray) -> np.ndarray:
+    """The sum over comm's ranks of a float64 array (a buffer reduction; none on one rank). Collective."""
+    local = np.ascontiguousarray(local, dtype=float)
+    if comm.size == 1:
+        return local
+    out = np.empty_like(local)
+    comm.Allreduce(local, out)
+    return out
