@@ -7,9 +7,12 @@ key, the name of its columns, and its warnings.
 - DbfEnrichment ("dbf", the method; paper Sec. 2.2, Eqs. 13-17): the derivative d phi/dk of the
   spring-perturbed mode (dbf.py), in parallel over constraints: COMM_WORLD is split into groups,
   each group gets its own copy of K and M and takes every groups-th constraint; the derivatives are
-  gathered into one distributed matrix. solver "shared" (the default): each group factors
-  K - sigma M once and every constraint's solves reuse it (dbf_shared.py); "factor": three
-  factorizations per constraint (dbf.py, the paper-faithful comparator). Options prefix `dbf_`.
+  gathered into one distributed matrix. solver "ritz" (the default): each group factors
+  K - sigma M once and every constraint is a Rayleigh-Ritz problem on the reference modes plus a
+  few Krylov vectors on g with it (dbf_ritz.py; ~3 solves per constraint); "shared": the same
+  factorization, Krylov-Schur eigensolves and GMRES per constraint (dbf_shared.py, ~28 solves; the
+  ritz path's fallback); "factor": three factorizations per constraint (dbf.py, the
+  paper-faithful comparator). Options prefix `dbf_`.
 - StaticEnrichment ("static"): the static attachment mode K^-1 g_j (the static correction of
   industrial codes, e.g. code_aster's static modes): one Cholesky factorization of K (MUMPS,
   options prefix `static_`) and one solve per constraint. K must be regular.
@@ -111,14 +114,14 @@ class StaticEnrichment(Enrichment):
 class DbfEnrichment(Enrichment):
     """stiffness: "auto" (the corner of Fig. 2) or k_j in N/m for every constraint; derivative:
     "analytic" or "central"; groups: constraint groups side by side (0: one per rank, at most one
-    per constraint); solver: "shared" (one factorization per group) or "factor" (three per
+    per constraint); solver: "ritz" or "shared" (one factorization per group) or "factor" (three per
     constraint). Groups do not enter the key: the basis is the same to round-off. The solver does:
-    the two agree to ~1e-9 (docs/design.md), not to round-off."""
+    the three agree to ~1e-9 (docs/design.md), not to round-off."""
 
     stiffness: object = "auto"
     derivative: str = "analytic"
     groups: int = 0
-    solver: str = "shared"
+    solver: str = "ritz"
     kind = "dbf"
     column_name = "DBF"
     prefix = "dbf_"
