@@ -146,8 +146,9 @@ class RitzSolver:
 
     @property
     def size(self) -> int:
-        """Columns of V[:, :q] on which the operators are known (the last vector only closes them)."""
-        return self.count - 1 if self.krylov else self.count
+        """Columns of V[:, :q] on which the operators are known (the last vector only closes them,
+        unless V is invariant)."""
+        return self.count - 1 if self.krylov and not self.exhausted else self.count
 
     # -- the subspace -----------------------------------------------------------------------------
 

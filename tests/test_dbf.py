@@ -370,3 +370,16 @@ def test_ritz_path_falls_back_to_the_shared_path_when_the_subspace_does_not_conv
     ritz, factor = both_paths(ops, modes, rows, groups=1, path="ritz")
     assert dbf_ritz.counters["fallbacks"] - before == len(rows)
     assert_same_dbfs(ops, ritz, factor)
+
+
+def test_ritz_path_central_difference_agrees_with_its_analytic_derivative(paper):
+    # dbf_derivative = "central" calls the solver's eigenpair at k (1 +- h): Ritz problems at other k
+    # on the same subspace.
+    ops, modes, _ = paper
+    rows = [ops.mesh.w_row(x) for x in (0.1, ELL)]
+    central = DbfEnrichment(derivative="central", solver="ritz").columns(ops, np.asarray(rows), modes)
+    analytic = DbfEnrichment(solver="ritz").columns(ops, np.asarray(rows), modes)
+    a, c = normalized_columns(ops, analytic), normalized_columns(ops, central)
+    assert np.max(np.abs(a - c)) < 1e-5 * np.max(np.abs(a))
+    for columns in (central, analytic):
+        columns.matrix.destroy()
