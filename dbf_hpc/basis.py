@@ -32,7 +32,7 @@ from .petsctools import destroy
 # different rank layouts), so below 1e-9 the surviving part would be mostly round-off.
 BREAKDOWN_TOL = 1e-9
 ENRICHMENTS = tuple(STRATEGIES)
-DBF_SOLVERS = ("shared", "factor")
+DBF_SOLVERS = ("ritz", "shared", "factor")
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class BasisSettings:
     dbf_derivative: str = "analytic"    # or "central"
     groups: int = 0                     # constraint groups; 0: min(ranks, constraints)
     enrichment: str = "dbf"             # "dbf" | "static" | "none" (enrichment.py)
-    dbf_solver: str = "shared"          # "shared" (one factorization per group) | "factor" (three per constraint)
+    dbf_solver: str = "ritz"            # "ritz" | "shared" (one factorization per group) | "factor" (three per constraint)
 
     @property
     def strategy(self) -> Enrichment:
@@ -56,7 +56,7 @@ class BasisSettings:
             raise InputError(f"basis enrichment must be one of {accepted}, got {self.enrichment!r}")
         if self.enrichment == "dbf":
             if self.dbf_solver not in DBF_SOLVERS:
-                raise InputError(f'basis dbf_solver must be "shared" or "factor", got {self.dbf_solver!r}')
+                raise InputError(f'basis dbf_solver must be "ritz", "shared" or "factor", got {self.dbf_solver!r}')
             return DbfEnrichment(self.dbf_stiffness, self.dbf_derivative, self.groups, self.dbf_solver)
         return STRATEGIES[self.enrichment]()
 

@@ -52,7 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "mpirun -n 2 dbf-hpc modes jobs/paper_beam.toml",
         epilog="PETSc/SLEPc options go after the scene, e.g. -modes_eps_tol 1e-12 -log_view. "
                "Solver prefixes: modes_ (reference modes; -modes_trust_tol), dbf_ (spring-perturbed modes "
-               "and DBF derivatives; dbf_shared_ and dbf_krylov_ on the shared path), static_ (static modes), "
+               "and DBF derivatives; dbf_shared_ on the ritz and shared paths, dbf_krylov_ on the shared path), "
+               "static_ (static modes), "
                "rom_ (the reduced model's TS and SNES, e.g. -rom_ts_arkimex_type 4), full_ (the full-order "
                "reference). The scene format: docs/scene.md.")
     parser.add_argument("--version", action="version", version=f"dbf-hpc {__version__}")

@@ -7,9 +7,12 @@ key, the name of its columns, and its warnings.
 - DbfEnrichment ("dbf", the method; paper Sec. 2.2, Eqs. 13-17): the derivative d phi/dk of the
   spring-perturbed mode (dbf.py), in parallel over constraints: COMM_WORLD is split into groups,
   each group gets its own copy of K and M and takes every groups-th constraint; the derivatives are
-  gathered into one distributed matrix. solver "shared" (the default): each group factors
-  K - sigma M once and every constraint's solves reuse it (dbf_shared.py); "factor": three
-  factorizations per constraint (dbf.py, the paper-faithful comparator). Options prefix `dbf_`.
+  gathered into one distributed matrix. solver "ritz" (the default): each group factors
+  K - sigma M once and every constraint is a Rayleigh-Ritz problem on the reference modes plus a
+  few Krylov vectors on g with it (dbf_ritz.py; ~3 solves per constraint); "shared": the same
+  factorization, Krylov-Schur eigensolves and GMRES per constraint (dbf_shared.py, ~28 solves; the
+  ritz path's fallback); "factor": three factorizations per constraint (dbf.py, the
+  paper-faithful comparator). Options prefix `dbf_`.
 - StaticEnrichment ("static"): the static attachment mode K^-1 g_j (the static correction of
   industrial codes, e.g. code_aster's static modes): one Cholesky factorization of K (MUMPS,
   options prefix `static_`) and one solve per constraint. K must be regular.
@@ -26,6 +29,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .dbf import STIFFNESS_RANGE, dbf_source, participation
+from .dbf_ritz import RitzSolver, RitzSpace, reference_vectors
 from .dbf_shared import SharedFactor, SharedSolver
 from .errors import InputError, SolverError
 from .modes import ModalBasis
@@ -110,14 +114,14 @@ class StaticEnrichment(Enrichment):
 class DbfEnrichment(Enrichment):
     """stiffness: "auto" (the corner of Fig. 2) or k_j in N/m for every constraint; derivative:
     "analytic" or "central"; groups: constraint groups side by side (0: one per rank, at most one
-    per constraint); solver: "shared" (one factorization per group) or "factor" (three per
+    per constraint); solver: "ritz" or "shared" (one factorization per group) or "factor" (three per
     constraint). Groups do not enter the key: the basis is the same to round-off. The solver does:
-    the two agree to ~1e-9 (docs/design.md), not to round-off."""
+    the three agree to ~1e-9 (docs/design.md), not to round-off."""
 
     stiffness: object = "auto"
     derivative: str = "analytic"
     groups: int = 0
-    solver: str = "shared"
+    solver: str = "ritz"
     kind = "dbf"
     column_name = "DBF"
     prefix = "dbf_"
@@ -197,13 +201,17 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
     gathered = _dense_columns(ops, rows.size)
     k, k_auto, branch = _empty(rows.size)
     is_leader = (group.rank if group is not None else world.rank) == 0
-    factor = None
+    factor = space = None
     try:
         # Every rank of a group takes the same path; a group with no constraint factors nothing.
-        if settings.solver == "shared" and color < rows.size:
+        group_modes = reference_vectors(modes, group_ops, n_groups) if settings.solver == "ritz" else []
+        if settings.solver in ("shared", "ritz") and color < rows.size:
             factor = SharedFactor(group_ops)
+        if factor is not None and settings.solver == "ritz":
+            space, group_modes = RitzSpace(factor, group_modes), []
+        destroy(*group_modes)
         for j in range(color, rows.size, n_groups):
-            src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor)
+            src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
             lo, hi = src.derivative.getOwnershipRange()
             gathered.setValues(np.arange(lo, hi, dtype=PETSc.IntType), [j], src.derivative.array_r.reshape(-1, 1))
             if is_leader:
@@ -214,14 +222,19 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
         gathered.destroy()
         raise
     finally:
-        destroy(factor)
+        destroy(space, factor)
         _free_group(group, group_ops)
     return gathered, world.allreduce(k), world.allreduce(k_auto), world.allreduce(branch)
 
 
-def _dbf_source(ops: Operators, row: int, lam, part, settings: DbfEnrichment, factor: SharedFactor | None):
-    """One constraint's DBF source on the group's operators, on the shared factor if there is one."""
-    solver = SharedSolver(factor, row) if factor is not None else None
+def _dbf_source(ops: Operators, row: int, lam, part, settings: DbfEnrichment, factor: SharedFactor | None,
+                space: RitzSpace | None = None):
+    """One constraint's DBF source on the group's operators: by Rayleigh-Ritz on the group's space if
+    there is one, else on the shared factor if there is one, else with its own factorizations."""
+    if space is not None:
+        solver = RitzSolver(space, row)
+    else:
+        solver = SharedSolver(factor, row) if factor is not None else None
     try:
         return dbf_source(ops, row, lam, part, settings.stiffness, settings.derivative, solver)
     finally:

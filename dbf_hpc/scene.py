@@ -349,7 +349,7 @@ def _check_basis(b: dict, where: str) -> None:
     if b["dbf_derivative"] not in ("analytic", "central"):
         raise InputError(f"{where}: dbf_derivative must be \"analytic\" or \"central\", got {b['dbf_derivative']!r}")
     if b["dbf_solver"] not in DBF_SOLVERS:
-        raise InputError(f"{where}: dbf_solver must be \"shared\" or \"factor\", got {b['dbf_solver']!r}")
+        raise InputError(f"{where}: dbf_solver must be \"ritz\", \"shared\" or \"factor\", got {b['dbf_solver']!r}")
     if b["groups"] < 0:
         raise InputError(f"{where}: groups must be 0 (automatic) or a positive count, got {b['groups']}")
     if b["enrichment"] not in ENRICHMENTS:

@@ -69,9 +69,11 @@ SECTIONS = {
                                                              'corner of the paper\'s Fig. 2) or a number'),
         "dbf_derivative": Key((str,), "analytic", "", '"analytic" (deflated derivative solve) or "central" (the '
                                                       'paper\'s central difference)'),
-        "dbf_solver": Key((str,), "shared", "", '"shared" (one factorization of K - sigma M per constraint group, '
-                                                'rank-one updates per constraint) or "factor" (three factorizations '
-                                                'per constraint, the paper-faithful comparator)'),
+        "dbf_solver": Key((str,), "ritz", "", '"ritz" (one factorization of K - sigma M per constraint group, '
+                                              'Rayleigh-Ritz on the reference modes plus a few Krylov vectors per '
+                                              'constraint), "shared" (the same factorization, rank-one updates and '
+                                              'Krylov eigensolves per constraint) or "factor" (three factorizations '
+                                              'per constraint, the paper-faithful comparator)'),
         "groups": Key((int,), 0, "", "constraint groups solved side by side (0: one per rank, at most one per "
                                      "constraint)"),
         "cache": Key((str,), "~/.cache/dbf_hpc", "", 'directory of cached bases, or "off"'),

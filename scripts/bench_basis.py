@@ -10,13 +10,17 @@ reference modes, the wall time of
     limit, PETSc  the same with PETSc's own Cholesky (the shared DBF path's solver on one rank)
     static        the static attachment modes (enrichment.static_modes: the limit plus the
                   backward-error checks and the gathered matrix)
+    DBF ritz      DbfEnrichment(solver="ritz").columns: the same factorization, Rayleigh-Ritz on
+                  the reference modes plus a few Krylov vectors on g per constraint (dbf_ritz.py)
     DBF shared    DbfEnrichment(solver="shared").columns: one factorization of K - sigma M per
-                  group, ~30 solves per constraint (dbf_shared.py), the package default
+                  group, ~30 solves per constraint (dbf_shared.py)
     DBF factor    DbfEnrichment(solver="factor").columns: three factorizations per constraint
                   (dbf.py), the paper-faithful comparator
 all measured in the same process, after a warm-up on a small beam; each the fastest of --repeat.
 The reference modes are computed once per N_L and are not part of any of these times.
-The ratios are to "limit" (MUMPS); "shared / limit PETSc" compares like with like.
+The ratios are to "limit" (MUMPS) and "limit, PETSc" (the ritz and shared paths' solver on one
+rank: like with like). "solves per DBF" counts every solve with the shared factor, the ritz path's
+N per group (Phi^T M A^-1 M Phi) and any fallback's included.
 
 The 5000-element beam is far beyond what double precision resolves for this beam (~580 elements,
 modes.trust_check), so the check is switched off (-modes_trust_tol 1): the times are what they are,
@@ -67,7 +71,7 @@ def worker(args) -> None:
     from mpi4py import MPI
     from petsc4py import PETSc
     PETSc.Options().setValue("modes_trust_tol", "1")
-    from dbf_hpc import dbf_shared
+    from dbf_hpc import dbf_ritz, dbf_shared
     from dbf_hpc.enrichment import DbfEnrichment, static_modes
     from dbf_hpc.modes import reference_modes
     from dbf_hpc.structure import Beam, assemble_beam
@@ -96,17 +100,19 @@ def worker(args) -> None:
                       else None,
                       static=timed(lambda: static_modes(ops, rows)))
         for path in paths:
-            solves = dbf_shared.counters["solves"]
+            solves, fallbacks = dbf_shared.counters["solves"], dbf_ritz.counters["fallbacks"]
             record[path] = timed(lambda: DbfEnrichment(solver=path).columns(ops, rows, modes).matrix)
-            if path == "shared":
-                record["solves"] = (dbf_shared.counters["solves"] - solves) / (args.repeat * max(n_l, 1))
+            if path in ("shared", "ritz"):   # solves per DBF, the ritz path's per-group ones included
+                record[f"solves_{path}"] = (dbf_shared.counters["solves"] - solves) / (args.repeat * max(n_l, 1))
+            if path == "ritz":
+                record["fallbacks"] = (dbf_ritz.counters["fallbacks"] - fallbacks) / args.repeat
         modes.destroy()
         ops.destroy()
         return record
 
-    run(100, 4, ("shared", "factor"))      # warm-up: imports, first calls of MUMPS and SLEPc
+    run(100, 4, ("ritz", "shared", "factor"))      # warm-up: imports, first calls of MUMPS and SLEPc
     for n_l in (int(n) for n in args.constraints.split(",")):
-        paths = ("shared",) if n_l > args.factor_max else ("shared", "factor")
+        paths = ("ritz", "shared") if n_l > args.factor_max else ("ritz", "shared", "factor")
         PETSc.Sys.Print(json.dumps(run(args.elements, n_l, paths)), comm=comm)
 
 
@@ -129,15 +135,18 @@ def table(records: list[dict]) -> str:
     def ratio(a, b):
         return "-" if a is None or b is None else f"{a / b:.1f}"
 
-    lines = ["| N_L | DOFs | ranks | limit (s) | limit, PETSc (s) | static (s) | DBF shared (s) | DBF factor (s) "
-             "| solves per DBF | static / limit | shared / limit | factor / limit | shared / limit PETSc |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| N_L | DOFs | ranks | limit (s) | limit, PETSc (s) | static (s) | DBF ritz (s) | DBF shared (s) "
+             "| DBF factor (s) | solves per DBF: ritz, shared | ritz fallbacks | ritz / limit | ritz / limit PETSc "
+             "| shared / limit | shared / limit PETSc | factor / limit |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in sorted(records, key=lambda r: (r["n_l"], r["ranks"])):
         f = r.get("factor")
         lines.append(f"| {r['n_l']} | {r['dofs']} | {r['ranks']} | {s(r['limit'])} | {s(r['limit_petsc'])} "
-                     f"| {s(r['static'])} | {s(r['shared'])} | {s(f)} | {r['solves']:.0f} "
-                     f"| {ratio(r['static'], r['limit'])} | {ratio(r['shared'], r['limit'])} "
-                     f"| {ratio(f, r['limit'])} | {ratio(r['shared'], r['limit_petsc'])} |")
+                     f"| {s(r['static'])} | {s(r['ritz'])} | {s(r['shared'])} | {s(f)} "
+                     f"| {r['solves_ritz']:.1f}, {r['solves_shared']:.0f} | {r['fallbacks']:.0f} "
+                     f"| {ratio(r['ritz'], r['limit'])} | {ratio(r['ritz'], r['limit_petsc'])} "
+                     f"| {ratio(r['shared'], r['limit'])} | {ratio(r['shared'], r['limit_petsc'])} "
+                     f"| {ratio(f, r['limit'])} |")
     return "\n".join(lines)
 
 

@@ -8,9 +8,10 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
-from dbf_hpc import dbf_shared
+from dbf_hpc import dbf_ritz, dbf_shared
 from dbf_hpc.dbf import (FactorSolver, analytic_derivative, branch_of, central_derivative, dbf_source, participation,
                          pinned_eigenvalue, spring_eigenpair, stiffness_sweep, value_at)
+from dbf_hpc.dbf_ritz import RitzSolver, RitzSpace, reference_vectors
 from dbf_hpc.dbf_shared import SharedFactor, SharedSolver
 from dbf_hpc.enrichment import DbfEnrichment, constraint_groups
 from dbf_hpc.errors import InputError, SolverError
@@ -148,7 +149,18 @@ def test_constraint_at_a_node_of_the_first_mode_follows_the_first_branch_that_mo
     ops.destroy()
 
 
-@pytest.mark.parametrize("path", ["factor", "shared"])
+def one_solver(path, ops, modes, row):
+    """(solver, things to destroy after it) for path "factor", "shared" or "ritz" at `row`."""
+    if path == "factor":
+        return FactorSolver(ops, row), []
+    factor = SharedFactor(ops)
+    if path == "shared":
+        return SharedSolver(factor, row), [factor]
+    space = RitzSpace(factor, reference_vectors(modes, ops))
+    return RitzSolver(space, row), [space, factor]
+
+
+@pytest.mark.parametrize("path", ["factor", "shared", "ritz"])
 def test_a_repeated_eigenvalue_follows_the_direction_the_spring_moves(shared_tmp_path, path):
     # Two identical uncoupled beams as one matrix model: every eigenvalue is double (like the two
     # bending modes of a bar with a square section) and the eigensolver may return any basis of each
@@ -173,14 +185,13 @@ def test_a_repeated_eigenvalue_follows_the_direction_the_spring_moves(shared_tmp
         assert modes.omega[1] == pytest.approx(modes.omega[0], rel=1e-9)
         part = participation(modes, np.array([n + row1]))[0]
         assert branch_of(part, modes.omega**2) == 2
-        factor = SharedFactor(ops) if path == "shared" else None
-        solver = SharedSolver(factor, n + row1) if factor else FactorSolver(ops, n + row1)
+        solver, owned = one_solver(path, ops, modes, n + row1)
         try:
             two = dbf_source(ops, n + row1, modes.omega**2, part, "auto", solver=solver)
         finally:
-            if factor:
-                solver.destroy()
-                factor.destroy()
+            solver.destroy()
+            for obj in owned:
+                obj.destroy()
         assert two.branch == 2
         assert two.transition == pytest.approx(one.transition, rel=1e-7)
         assert two.eigenvalue == pytest.approx(one.eigenvalue, rel=1e-9)
@@ -197,7 +208,8 @@ def test_a_repeated_eigenvalue_follows_the_direction_the_spring_moves(shared_tmp
         single.destroy()
 
 
-# The shared-factorization path (dbf_shared.py) against the factored one (dbf.py): the same physics.
+# The shared-factorization (dbf_shared.py) and Rayleigh-Ritz (dbf_ritz.py) paths against the factored
+# one (dbf.py): the same physics.
 AGREE = 1e-8   # both are exact to their solvers' tolerances (EIGEN_TOL 1e-12, backward error 1e-10)
 
 
@@ -214,10 +226,10 @@ def normalized_columns(ops, columns):
     return np.array(out)
 
 
-def both_paths(ops, modes, rows, groups=0):
-    """(shared, factor): the EnrichmentColumns of both DBF solvers for the given rows."""
+def both_paths(ops, modes, rows, groups=0, path="shared"):
+    """(path, factor): the EnrichmentColumns of the DBF solver `path` and of the factored one."""
     out = []
-    for solver in ("shared", "factor"):
+    for solver in (path, "factor"):
         out.append(DbfEnrichment(groups=groups, solver=solver).columns(ops, np.asarray(rows), modes))
     return out
 
@@ -232,37 +244,39 @@ def assert_same_dbfs(ops, shared, factor):
         c.matrix.destroy()
 
 
+@pytest.mark.parametrize("path", ["shared", "ritz"])
 @pytest.mark.parametrize("groups", [0, 1])
 @pytest.mark.parametrize("positions", [[ELL], [0.1, ELL, 0.5, 0.8]])
-def test_shared_factorization_gives_the_dbfs_of_the_three_factorizations(paper, positions, groups):
+def test_shared_factorization_gives_the_dbfs_of_the_three_factorizations(paper, positions, groups, path):
     # l = 0.5 is a node of mode 2 (mu_1 = lambda_2), l = 0.25 of mode 4; groups = 0 splits the
     # constraints between the ranks, groups = 1 solves each on all ranks.
     ops, modes, _ = paper
     rows = [ops.mesh.w_row(x) for x in positions]
-    shared, factor = both_paths(ops, modes, rows, groups)
+    shared, factor = both_paths(ops, modes, rows, groups, path)
     assert np.all(shared.branch == 1)
     assert_same_dbfs(ops, shared, factor)
 
 
+@pytest.mark.parametrize("path", ["shared", "ritz"])
 @pytest.mark.parametrize("left", ["pinned", "sliding"])
-def test_shared_factorization_shifted_below_a_rigid_body_mode_gives_the_same_dbfs(left):
+def test_shared_factorization_shifted_below_a_rigid_body_mode_gives_the_same_dbfs(left, path):
     # One rigid-body mode (K singular): both paths shift to sigma = -eigen_scale, and the spring
     # moves the rigid mode's zero eigenvalue (branch 1).
     ops = assemble_beam(Beam(**TABLE1, elements=100, left=left, right="free"), points=[0.3, 0.7])
     assert ops.rigid_modes == 1
     modes = reference_modes(ops, count=6)
-    shared, factor = both_paths(ops, modes, [ops.mesh.w_row(x) for x in (0.3, 0.7)])
+    shared, factor = both_paths(ops, modes, [ops.mesh.w_row(x) for x in (0.3, 0.7)], path=path)
     assert np.all(shared.branch == 1)
     assert_same_dbfs(ops, shared, factor)
     modes.destroy()
     ops.destroy()
 
 
-def test_shared_factorization_gives_the_pinned_and_perturbed_eigenvalues_of_table_1(paper):
+@pytest.mark.parametrize("path", ["shared", "ritz"])
+def test_shared_factorization_gives_the_pinned_and_perturbed_eigenvalues_of_table_1(paper, path):
     ops, modes, row = paper
     part = participation(modes, np.array([row]))[0]
-    factor = SharedFactor(ops)
-    solver = SharedSolver(factor, row)
+    solver, owned = one_solver(path, ops, modes, row)
     try:
         assert solver.pinned(1) == pytest.approx(pinned_eigenvalue(ops, row, 1), rel=1e-10)
         src = dbf_source(ops, row, modes.omega**2, part, "auto", solver=solver)
@@ -273,13 +287,15 @@ def test_shared_factorization_gives_the_pinned_and_perturbed_eigenvalues_of_tabl
         ref.derivative.destroy()
     finally:
         solver.destroy()
-        factor.destroy()
+        for obj in owned:
+            obj.destroy()
 
 
-def test_shared_factorization_follows_the_first_branch_that_moves_at_a_node_of_mode_1(shared_tmp_path):
+@pytest.mark.parametrize("path", ["shared", "ritz"])
+def test_shared_factorization_follows_the_first_branch_that_moves_at_a_node_of_mode_1(shared_tmp_path, path):
     ops, _, _, row = two_beams(shared_tmp_path)
     modes = reference_modes(ops, count=4)
-    shared, factor = both_paths(ops, modes, [row])
+    shared, factor = both_paths(ops, modes, [row], path=path)
     assert shared.branch[0] == 2
     assert_same_dbfs(ops, shared, factor)
     modes.destroy()
@@ -291,8 +307,9 @@ def numeric_factorizations() -> int:
     return sum(PETSc.Log.Event(name).getPerfInfo()["count"] for name in ("MatCholFctrNum", "MatLUFactorNum"))
 
 
+@pytest.mark.parametrize("path", ["shared", "ritz"])
 @pytest.mark.parametrize("groups", [0, 1])
-def test_shared_path_factors_once_per_group_and_the_factored_path_three_times_per_constraint(paper, groups):
+def test_shared_path_factors_once_per_group_and_the_factored_path_three_times_per_constraint(paper, groups, path):
     ops, modes, _ = paper
     PETSc.Log.begin()
     rows = np.array([ops.mesh.w_row(x) for x in (0.1, ELL, 0.5)])
@@ -300,7 +317,7 @@ def test_shared_path_factors_once_per_group_and_the_factored_path_three_times_pe
     n_groups = constraint_groups(world.size, rows.size, groups)
     mine = len(range(world.rank * n_groups // world.size, rows.size, n_groups))  # this rank's group's share
     counts = []
-    for solver in ("shared", "factor"):
+    for solver in (path, "factor"):
         before = numeric_factorizations()
         columns = DbfEnrichment(groups=groups, solver=solver).columns(ops, rows, modes)
         counts.append(numeric_factorizations() - before)
@@ -328,3 +345,41 @@ def test_shared_path_refuses_a_shift_its_factorization_does_not_have(paper):
             DbfEnrichment(solver="shared").columns(ops, np.array([row]), modes)
     finally:
         options.delValue("dbf_eps_target")
+
+
+def test_ritz_path_makes_a_few_krylov_vectors_per_dbf_and_no_fallback(paper):
+    # Table 1 beam, 6 modes, branch 1: the tail converges like (lambda_2 / lambda_7) ~ 0.007 per
+    # vector, so a few vectors reach the residual 1e-12 (docs/design.md measures 3-5).
+    ops, modes, _ = paper
+    rows = np.array([ops.mesh.w_row(x) for x in (0.1, ELL, 0.5, 0.8)])
+    before = dict(dbf_ritz.counters)
+    columns = DbfEnrichment(groups=1, solver="ritz").columns(ops, rows, modes)
+    columns.matrix.destroy()
+    made = {key: dbf_ritz.counters[key] - before[key] for key in before}
+    assert made["constraints"] == rows.size and made["fallbacks"] == 0, made
+    assert made["vectors"] <= 6 * rows.size, made
+
+
+def test_ritz_path_falls_back_to_the_shared_path_when_the_subspace_does_not_converge(paper, monkeypatch):
+    # One Krylov vector cannot reach the residual 1e-12: every constraint is handed to the shared
+    # path, with the same DBFs.
+    ops, modes, _ = paper
+    monkeypatch.setattr(dbf_ritz, "P_MAX", 1)
+    rows = [ops.mesh.w_row(x) for x in (0.1, ELL)]
+    before = dbf_ritz.counters["fallbacks"]
+    ritz, factor = both_paths(ops, modes, rows, groups=1, path="ritz")
+    assert dbf_ritz.counters["fallbacks"] - before == len(rows)
+    assert_same_dbfs(ops, ritz, factor)
+
+
+def test_ritz_path_central_difference_agrees_with_its_analytic_derivative(paper):
+    # dbf_derivative = "central" calls the solver's eigenpair at k (1 +- h): Ritz problems at other k
+    # on the same subspace.
+    ops, modes, _ = paper
+    rows = [ops.mesh.w_row(x) for x in (0.1, ELL)]
+    central = DbfEnrichment(derivative="central", solver="ritz").columns(ops, np.asarray(rows), modes)
+    analytic = DbfEnrichment(solver="ritz").columns(ops, np.asarray(rows), modes)
+    a, c = normalized_columns(ops, analytic), normalized_columns(ops, central)
+    assert np.max(np.abs(a - c)) < 1e-5 * np.max(np.abs(a))
+    for columns in (central, analytic):
+        columns.matrix.destroy()

@@ -1,0 +1,395 @@
+"""The Rayleigh-Ritz DBF path ([basis] dbf_solver = "ritz"; docs/design.md, "One factorization per
+constraint group").
+
+Every vector a DBF needs lies, to high accuracy, in a small subspace: the N reference modes Phi
+(M-orthonormal, Phi^T K Phi = diag lambda_i) plus a rational Krylov sequence on g at the shared
+shift sigma (A = K - sigma M, factored once per group: dbf_shared.SharedFactor),
+
+    V = span{Phi, z_1, ..., z_p},   z_1 = A^-1 g,  z_{j+1} = A^-1 M z_j.
+
+Why: the spring-perturbed and the pinned eigenvectors are both (K - lambda M)^-1 g up to scale
+(lambda = lambda_m(k), or mu_m with g^T x = 0), i.e. sum_i phi_i (phi_i^T g) / (lambda_i - lambda).
+Phi carries the modes i <= N exactly; for the tail i > N,
+    1 / (lambda_i - lambda) = sum_j (lambda - sigma)^j / (lambda_i - sigma)^(j+1),
+a Neumann series whose j-th term is z_{j+1} minus its part on Phi, so the error after p vectors
+falls like ((lambda - sigma) / (lambda_{N+1} - sigma))^p (on the Table 1 beam with 6 modes and
+branch 1, ~(2/7)^4 = 0.007 per vector). The derivative d phi/dk differentiates (K - lambda M)^-1 g
+in lambda: the squared resolvent, the same series with a factor (j + 1): the same subspace.
+
+Per constraint: extend V one Krylov vector at a time (one shared-factor solve, CGS2 in the M inner
+product, one MatMult with M) and solve small dense problems, replicated (rank 0's numbers are
+broadcast, so every rank takes the same path). With V = [Phi, v_1..v_p] M-orthonormal, Gram-Schmidt
+gives z = A^-1 g = V s and A^-1 M V[:, :q] = V[:, :q+1] C (T0 = Phi^T M A^-1 M Phi once per group,
+N solves), so the shift-and-invert operators of all three problems,
+    (A + k g g^T)^-1 M = A^-1 M - c z z^T M,   c = k / (1 + k g^T z),  c = 1 / g^T z pinned,
+are known on V[:, :q], with their residual on the next vector, without K (the Rayleigh quotients
+through K lose ~u ||K|| / lambda: 1e-8 on the 100-element free beams):
+- mu_m: nu_m, the m-th largest eigenvalue of T - s s^T / g^T z, mu = sigma + 1/nu (the direction
+  M^-1 g has nu = 0: never among the largest);
+- (lambda_m(k), phi_m): the m-th eigenpair of T - c s s^T, phi = V y;
+- d phi/dk: differentiating the small problem in k, (T_k - nu) y' = dc (s^T y) s - dnu y,
+  y^T y' = 0, from its eigendecomposition; d = V y'. V does not depend on k, so this is exactly
+  the derivative of the Ritz vector (Galerkin with phi deflated).
+A stage is accepted when its residual on the next vector (the Lanczos residual) is below EIGEN_TOL
+relative to nu, as SLEPc's test on the other paths, and the derivative's below DERIVATIVE_TOL; then
+the eigen-residual and the derivative's backward error are checked on the full operators as on the
+factored path. A stage that does not converge within P_MAX vectors, or fails a check, falls back to
+the shared path (dbf_shared.SharedSolver) for the rest of that constraint (counters).
+
+Collective on the group's communicator; the options of the shared factorization apply
+(-dbf_shared_pc_factor_mat_solver_type ...).
+"""
+from __future__ import annotations
+
+import numpy as np
+from petsc4py import PETSc
+
+from .dbf import DERIVATIVE_BACKWARD_TOL, EIGEN_TOL
+from .dbf_shared import SharedFactor, SharedSolver
+from .modes import normalize
+from .operators import Operators
+from .petsctools import destroy, unit_vector
+
+P_MAX = 8                  # Krylov vectors per constraint before falling back to the shared path
+DERIVATIVE_TOL = 1e-10     # the derivative's residual on the next vector, as EIGEN_TOL for the eigenpair
+RESIDUAL_TOL = DERIVATIVE_BACKWARD_TOL  # normwise backward error of the accepted eigenpair
+MODES_RESIDUAL_FACTOR = 10  # the residuals asked for are at least this times the modes' own (RitzSpace)
+BREAKDOWN = 1e-10          # a Krylov vector this small after orthogonalization: V is invariant
+
+# Work done by this process on the Ritz path (tests and benchmarks read it): constraints served,
+# Krylov vectors made, stages handed to the shared path.
+counters = {"constraints": 0, "vectors": 0, "fallbacks": 0}
+
+
+class RitzSpace:
+    """What the constraints of a group share: the factor of A = K - sigma M, the reference modes on
+    the group's communicator (owned; their local rows also as a numpy block) with M Phi and
+    T0 = Phi^T M A^-1 M Phi (N solves; A^-1 M Phi is taken to lie in span Phi: the modes' own
+    residual is neglected), and ||K||_F, ||M||_F for the final checks. Collective."""
+
+    def __init__(self, factor: SharedFactor, modes: list):
+        self.factor, self.ops, self.sigma = factor, factor.ops, factor.sigma
+        M = self.ops.M
+        self.comm = self.ops.comm.tompi4py()
+        self.Phi, self.MPhi = list(modes), []
+        for phi in self.Phi:
+            self.MPhi.append(M.createVecLeft())
+            M.mult(phi, self.MPhi[-1])
+        n, nloc = len(self.Phi), M.getLocalSize()[1]
+        # The local rows of V and M V for the constraints, one at a time: Phi's, then the Krylov vectors'
+        width = n + P_MAX + 1
+        self.V_local, self.MV_local = np.zeros((width, nloc)), np.zeros((width, nloc))
+        self.V_local[:n] = np.array([v.array_r for v in self.Phi]).reshape(n, nloc)
+        self.MV_local[:n] = np.array([v.array_r for v in self.MPhi]).reshape(n, nloc)
+        self.Phi_local, self.MPhi_local = self.V_local[:n], self.MV_local[:n]
+        # T0 = Phi^T M A^-1 M Phi by N solves, not diag(1 / (lambda_i - sigma)): with rigid-body modes
+        # the pinned operator subtracts nearly equal terms of size 1 / (lambda_1 - sigma), and the modes'
+        # own eigenvalue error (4e-9 for a rigid mode's 0) became 1e-6 in mu on the free beams.
+        # A^-1 M Phi is taken to lie in span Phi: the part outside, the modes' own shift-and-invert
+        # residual rho_j (relative), bounds what the Ritz residuals can reach (module docstring).
+        w, Mw = M.createVecRight(), M.createVecLeft()
+        self.T0, rho = np.zeros((n, n)), np.zeros(n)
+        try:
+            for j in range(n):
+                factor.solve(self.MPhi[j], w)
+                self.T0[:, j] = _sum(self.comm, self.MPhi_local @ w.array_r)
+                w.array = w.array_r - self.T0[:, j] @ self.Phi_local
+                M.mult(w, Mw)
+                rho[j] = np.sqrt(max(w.dot(Mw), 0.0)) / abs(self.T0[j, j])
+        finally:
+            destroy(w, Mw)
+        self.T0, self.modes_residual = self.comm.bcast(
+            (0.5 * (self.T0 + self.T0.T), float(rho.max(initial=0.0))), root=0)
+        self.eigen_tol = max(EIGEN_TOL, MODES_RESIDUAL_FACTOR * self.modes_residual)
+        self.derivative_tol = max(DERIVATIVE_TOL, MODES_RESIDUAL_FACTOR * self.modes_residual)
+        self.K_norm, self.M_norm = self.ops.K.norm(PETSc.NormType.FROBENIUS), M.norm(PETSc.NormType.FROBENIUS)
+
+    def destroy(self) -> None:
+        destroy(*self.Phi, *self.MPhi)
+        self.Phi, self.MPhi = [], []
+
+
+class RitzSolver:
+    """The three solves of one constraint (dbf.FactorSolver's interface) by Rayleigh-Ritz on
+    span{Phi, z_1..z_p} (module docstring), falling back to dbf_shared.SharedSolver. Owns its
+    work vectors and the fallback solver; writes its Krylov vectors' local rows into the space's
+    numpy blocks of V and M V (one BLAS call per Gram-Schmidt pass): one RitzSolver per space at a
+    time.
+
+    In the M-orthonormal basis V = [Phi, v_1, ..., v_p] (v_j: the Krylov vectors orthonormalized),
+    z = A^-1 g = V s and A^-1 M V[:, :q] = V[:, :q+1] C[:q+1, :q] (the coefficients that
+    Gram-Schmidt produces), so the shift-and-invert operators of the three problems,
+        (A + k g g^T)^-1 M = A^-1 M - c_k z z^T M,   c_k = k / (1 + k g^T z)  (c = 1 / g^T z: pinned),
+    are known on V[:, :q] with their residual on the next vector, without touching K."""
+
+    def __init__(self, space: RitzSpace, row: int):
+        self.space, self.ops, self.row = space, space.ops, row
+        self.comm = space.comm
+        n, width = len(space.Phi), len(space.Phi) + P_MAX + 1
+        self.V, self.MV = space.V_local, space.MV_local    # the space's blocks: one solver at a time
+        self.count, self.krylov = n, 0          # columns of V, Krylov vectors among them
+        lo, hi = self.ops.M.getOwnershipRange()
+        self.local_row = row - lo if lo <= row < hi else None
+        self.h = np.zeros(width)                # g^T V
+        if self.local_row is not None:
+            self.h[:n] = self.V[:n, self.local_row]
+        self.h[:n] = _sum(self.comm, self.h[:n])
+        self.C = np.zeros((width, width))
+        self.C[:n, :n] = space.T0
+        self.s = np.zeros(width)
+        self.gz = None
+        self.exhausted = False
+        self.fallback = None
+        self.spring = None     # (k, lambda, y, y') of the last accepted spring-perturbed stage
+        self.x, self.Mx = self.ops.M.createVecRight(), self.ops.M.createVecLeft()
+        counters["constraints"] += 1
+
+    @property
+    def size(self) -> int:
+        """Columns of V[:, :q] on which the operators are known (the last vector only closes them,
+        unless V is invariant)."""
+        return self.count - 1 if self.krylov and not self.exhausted else self.count
+
+    # -- the subspace -----------------------------------------------------------------------------
+
+    def _extend(self) -> bool:
+        """One solve: z = A^-1 g first, then A^-1 M v_p; the result orthonormalized into V. False when
+        P_MAX is reached or V is invariant."""
+        if self.exhausted or self.krylov >= P_MAX:
+            return False
+        x, Mx, q = self.x, self.Mx, self.count
+        if self.krylov:
+            Mx.array = self.MV[q - 1]
+            self.space.factor.solve(Mx, x)
+        else:
+            g = unit_vector(x, self.row)
+            try:
+                self.space.factor.solve(g, x)
+            finally:
+                g.destroy()
+        a = x.array
+        gz = a[self.local_row] if self.local_row is not None else 0.0
+        coefficients = np.zeros(q)
+        for _ in range(2):     # classical Gram-Schmidt, twice, in the M inner product
+            c = _sum(self.comm, self.MV[:q] @ a)
+            a -= c @ self.V[:q]
+            coefficients += c
+        self.ops.M.mult(x, Mx)
+        b = Mx.array_r
+        norm2, gx = _sum(self.comm, np.array([a @ b, a[self.local_row] if self.local_row is not None else 0.0]))
+        norm = np.sqrt(max(norm2, 0.0))
+        before = np.hypot(np.linalg.norm(coefficients), norm)   # the M-norm before Gram-Schmidt
+        column = np.append(coefficients, norm)
+        if not self.krylov:
+            gz = _sum(self.comm, np.array([gz]))[0]
+        # every rank the same small problems: rank 0's numbers
+        column, gz, gx = self.comm.bcast((column, gz, gx), root=0) if self.comm.size > 1 else (column, gz, gx)
+        if not self.krylov:
+            self.gz = gz             # g^T A^-1 g > 0 (A is SPD)
+            self.s[:q + 1] = column
+        else:
+            self.C[:q + 1, q - 1] = column
+        if not norm > BREAKDOWN * before:
+            self.exhausted = True
+            return False
+        self.V[q], self.MV[q] = a / norm, b / norm
+        self.h[q] = gx / norm
+        self.count += 1
+        self.krylov += 1
+        counters["vectors"] += 1
+        return True
+
+    def _vector(self, y: np.ndarray) -> PETSc.Vec:
+        """V y (a new Vec)."""
+        x = self.ops.M.createVecRight()
+        x.array = y @ self.V[:y.size]
+        return x
+
+    def _converge(self, reduce):
+        """Extend V until reduce() (the small problem on V[:, :q]: (eigenvalue, vectors, converged))
+        converges; its value, or None (P_MAX reached). Collective."""
+        if not self.krylov:
+            self._extend()
+        while True:
+            result = reduce()
+            if result[2]:
+                return result
+            if not self._extend():
+                return result if self.exhausted else None   # an invariant V: the Ritz pair is exact
+
+    def _to_fallback(self) -> SharedSolver:
+        if self.fallback is None:
+            counters["fallbacks"] += 1
+            self.fallback = SharedSolver(self.space.factor, self.row)
+        return self.fallback
+
+    # -- the small problems -----------------------------------------------------------------------
+
+    def _reduced(self, c: float, branch: int):
+        """The m-th eigenpair of the projected (A^-1 - c z z^T) M on V[:, :q]: nu, its coefficient
+        vector y and the eigendecomposition (nu descending), and the residual's coefficient on the
+        next vector (a function of a coefficient vector)."""
+        q = self.size
+        T = self.C[:q, :q]
+        s = self.s[:q]
+        nu, W = np.linalg.eigh(0.5 * (T + T.T) - c * np.outer(s, s))
+        nu, W = nu[::-1], W[:, ::-1]
+        beta_row = self.C[q, :q] - c * self.s[q] * s   # A^-1 M V y's component on the next vector
+        return nu, W, beta_row
+
+    def _pinned_reduced(self, branch: int):
+        nu, W, beta_row = self._reduced(1.0 / self.gz, branch)
+        m = branch - 1
+        y = W[:, m]
+        converged = abs(beta_row @ y) <= self.space.eigen_tol * abs(nu[m])
+        return self.space.sigma + 1.0 / nu[m], [y], converged
+
+    def _spring_reduced(self, k: float, branch: int):
+        c = k / (1.0 + k * self.gz)
+        dc = 1.0 / (1.0 + k * self.gz) ** 2                # d c / dk
+        nu, W, beta_row = self._reduced(c, branch)
+        m = branch - 1
+        y = W[:, m]
+        s = self.s[:y.size]
+        sy = s @ y
+        # d/dk of (T - c s s^T) y = nu y:  (T_k - nu) y' = dc (s^T y) s - dnu y,  y^T y' = 0
+        gaps = nu[m] - nu
+        gaps[m] = 1.0
+        coefficients = (W.T @ (-dc * sy * s)) / gaps
+        coefficients[m] = 0.0
+        dy = W @ coefficients
+        residual = abs(beta_row @ y)
+        # the derivative's residual on the next vector: (B_k y' + B_k' y) there, B_k' = -dc z z^T M
+        derivative_residual = abs(beta_row @ dy - dc * self.s[y.size] * sy)
+        converged = (residual <= self.space.eigen_tol * abs(nu[m])
+                     and derivative_residual <= self.space.derivative_tol * abs(nu[m]) * np.linalg.norm(dy))
+        return self.space.sigma + 1.0 / nu[m], [y, dy], converged
+
+    # -- the interface ----------------------------------------------------------------------------
+
+    def pinned(self, branch: int) -> float:
+        """mu_m, the m-th eigenvalue of the pinned problem. Collective."""
+        if self.fallback is None:
+            result = self._converge(lambda: self._pinned_reduced(branch))
+            if result is not None:
+                return float(result[0])
+        return self._to_fallback().pinned(branch)
+
+    def eigenpair(self, k: float, branch: int):
+        """(lambda_m, phi_m) of (K + k g g^T, M), phi M-normalized as on the factored path. Collective."""
+        self.spring = None
+        if self.fallback is None:
+            result = self._converge(lambda: self._spring_reduced(k, branch))
+            if result is not None:
+                lam, (y, dy), _ = result
+                phi = self._vector(y)
+                if self._residual(k, lam, phi, y) < RESIDUAL_TOL:
+                    normalize(phi, self.ops.M)   # the package's sign convention (y is M-normalized)
+                    self.spring = (k, float(lam), y, dy)
+                    return float(lam), phi
+                phi.destroy()
+        return self._to_fallback().eigenpair(k, branch)
+
+    def derivative(self, k: float, lam: float, phi: PETSc.Vec) -> PETSc.Vec:
+        """d phi/dk, the derivative of the Ritz vector (module docstring), sign-aligned with phi;
+        checked by its backward error on the full operator. Collective."""
+        if self.fallback is None and self.spring is not None and self.spring[:2] == (k, lam):
+            _, _, y, dy = self.spring
+            sign = 1.0 if float(_sum(self.comm, np.array([(y @ self.MV[:y.size]) @ phi.array_r]))[0]) >= 0 else -1.0
+            d = self._vector(sign * dy)
+            if self._derivative_backward_error(k, lam, phi, sign * y, d, sign * dy) < DERIVATIVE_BACKWARD_TOL:
+                return d
+            d.destroy()
+        return self._to_fallback().derivative(k, lam, phi)
+
+    # -- checks on the full operators -------------------------------------------------------------
+
+    def _apply(self, k: float, lam: float, x: PETSc.Vec, y: np.ndarray) -> PETSc.Vec:
+        """(K + k g g^T - lam M) x for x = V y (a new Vec; M x = (M V) y)."""
+        r = self.ops.K.createVecLeft()
+        self.ops.K.mult(x, r)
+        a = r.array
+        a -= lam * (y @ self.MV[:y.size])
+        if self.local_row is not None:
+            a[self.local_row] += k * (self.h[:y.size] @ y)
+        return r
+
+    def _norm_bound(self, k: float, lam: float) -> float:
+        """||K||_F + k + |lam| ||M||_F >= ||K + k g g^T - lam M||_F."""
+        return self.space.K_norm + abs(k) + abs(lam) * self.space.M_norm
+
+    def _residual(self, k: float, lam: float, phi: PETSc.Vec, y: np.ndarray) -> float:
+        """Normwise backward error of the eigenpair (lam, phi = V y) on the full operators."""
+        r = self._apply(k, lam, phi, y)
+        try:
+            return r.norm() / (self._norm_bound(k, lam) * phi.norm())
+        finally:
+            r.destroy()
+
+    def _derivative_backward_error(self, k: float, lam: float, phi: PETSc.Vec, y: np.ndarray, d: PETSc.Vec,
+                                   dy: np.ndarray) -> float:
+        """Normwise backward error of d = V dy in the derivative equation (dbf.derivative_system) for
+        phi = V y, as on the factored path (with ||A||_F bounded by _norm_bound)."""
+        r = self._apply(k, lam, d, dy)
+        rhs = self.ops.M.createVecLeft()
+        try:
+            gphi = self.h[:y.size] @ y
+            a = rhs.array
+            a[:] = gphi**2 * (y @ self.MV[:y.size])
+            if self.local_row is not None:
+                a[self.local_row] -= gphi
+            r.axpy(-1.0, rhs)
+            return r.norm() / (self._norm_bound(k, lam) * d.norm() + rhs.norm())
+        finally:
+            destroy(r, rhs)
+
+    def destroy(self) -> None:
+        destroy(self.fallback, self.x, self.Mx)
+        self.fallback = self.x = self.Mx = None
+
+
+def reference_vectors(modes, group_ops: Operators, n_groups: int = 1) -> list:
+    """The reference modes (a modes.ModalBasis on the world) as Vecs laid out like the group's K
+    (copies, the caller's; n_groups as in enrichment.constraint_groups): each rank takes its
+    group-local rows from the world BV by one scatter. Collective on the world."""
+    bv, template = modes.vectors, group_ops.K.createVecRight()
+    out = []
+    try:
+        if n_groups == 1:
+            for i in range(modes.count):
+                column = bv.getColumn(i)
+                out.append(column.copy())
+                bv.restoreColumn(i, column)
+            return out
+        lo, hi = template.getOwnershipRange()
+        world = bv.getComm()
+        column = bv.getColumn(0)
+        mine = PETSc.Vec().createMPI((hi - lo, PETSc.DECIDE), comm=world)
+        index = PETSc.IS().createStride(hi - lo, first=lo, step=1, comm=world)
+        scatter = PETSc.Scatter().create(column, index, mine, None)
+        bv.restoreColumn(0, column)
+        try:
+            for i in range(modes.count):
+                column = bv.getColumn(i)
+                scatter.scatter(column, mine, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
+                bv.restoreColumn(i, column)
+                out.append(template.duplicate())
+                out[-1].array = mine.array_r
+        finally:
+            destroy(scatter, index, mine)
+        return out
+    except Exception:
+        destroy(*out)
+        raise
+    finally:
+        template.destroy()
+
+
+def _sum(comm, local: np.ndarray) -> np.ndarray:
+    """The sum over comm's ranks of a float64 array (a buffer reduction; none on one rank). Collective."""
+    local = np.ascontiguousarray(local, dtype=float)
+    if comm.size == 1:
+        return local
+    out = np.empty_like(local)
+    comm.Allreduce(local, out)
+    return out
