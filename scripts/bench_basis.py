@@ -17,6 +17,9 @@ reference modes, the wall time of
     DBF factor    DbfEnrichment(solver="factor").columns: three factorizations per constraint
                   (dbf.py), the paper-faithful comparator
 all measured in the same process, after a warm-up on a small beam; each the fastest of --repeat.
+With --structure solid the structure is the 3-D hexahedral bar of scripts/solid3d.py (104 040 DOFs,
+20 reference modes; its matrices are generated into --solid when missing) with N_L stops on the z
+DOFs of its top face, spread evenly; the factored path runs there only up to --factor-max.
 The reference modes are computed once per N_L and are not part of any of these times.
 The ratios are to "limit" (MUMPS) and "limit, PETSc" (the ritz and shared paths' solver on one
 rank: like with like). "solves per DBF" counts every solve with the shared factor, the ritz path's
@@ -88,12 +91,24 @@ def worker(args) -> None:
             out.destroy()
         return comm.tompi4py().allreduce(best, op=MPI.MAX)
 
-    def run(elements: int, n_l: int, paths) -> dict:
+    def structure(elements: int, n_l: int, solid: bool):
+        """(ops, constraint rows, reference modes) of the beam or the solid."""
+        if solid:
+            from dbf_hpc.matrices import MatrixFiles, load_operators
+            ops = load_operators(MatrixFiles(os.path.join(args.solid, "K.bin"), os.path.join(args.solid, "M.bin")), comm)
+            surface = np.array(solid_surface(args.solid))
+            rows = surface[np.linspace(0, surface.size - 1, n_l).round().astype(int)]
+            if np.unique(rows).size != n_l:
+                raise SystemExit(f"bench_basis: the solid's top face has {surface.size} z DOFs, fewer than {n_l}")
+            return ops, rows.astype(np.int64), reference_modes(ops, count=20)
         beam = Beam(elements=elements, **BEAM)
         positions = [beam.length * (j + 1) / (n_l + 1) for j in range(n_l)]
         ops = assemble_beam(beam, comm, points=positions)
         rows = np.array([ops.mesh.w_row(x) for x in positions], dtype=np.int64)
-        modes = reference_modes(ops, count=6)
+        return ops, rows, reference_modes(ops, count=6)
+
+    def run(elements: int, n_l: int, paths, solid: bool = False) -> dict:
+        ops, rows, modes = structure(elements, n_l, solid)
         record = dict(n_l=n_l, dofs=ops.size, ranks=comm.getSize(),
                       limit=min(limit(ops, rows, "mumps") for _ in range(args.repeat)),
                       limit_petsc=min(limit(ops, rows, "petsc") for _ in range(args.repeat)) if comm.getSize() == 1
@@ -112,14 +127,24 @@ def worker(args) -> None:
 
     run(100, 4, ("ritz", "shared", "factor"))      # warm-up: imports, first calls of MUMPS and SLEPc
     for n_l in (int(n) for n in args.constraints.split(",")):
-        paths = ("ritz", "shared") if n_l > args.factor_max else ("ritz", "shared", "factor")
-        PETSc.Sys.Print(json.dumps(run(args.elements, n_l, paths)), comm=comm)
+        paths = ("ritz",) + tuple(p for p, top in (("shared", args.shared_max), ("factor", args.factor_max))
+                                  if n_l <= top)
+        PETSc.Sys.Print(json.dumps(run(args.elements, n_l, paths, args.structure == "solid")), comm=comm)
+
+
+def solid_surface(folder: str) -> list:
+    """The top face's z DOFs of the generated solid (scripts/solid3d.py), from its dofs.json."""
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import solid3d
+    nx, ny, nz = json.load(open(os.path.join(folder, "dofs.json")))["elements"]
+    return solid3d.top_surface_z_dofs(nx, ny, nz)
 
 
 def launch(args, ranks: int) -> list[dict]:
     """Start this script as a worker on `ranks` ranks and collect its JSON lines."""
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--elements", str(args.elements),
-           "--constraints", args.constraints, "--repeat", str(args.repeat), "--factor-max", str(args.factor_max)]
+           "--constraints", args.constraints, "--repeat", str(args.repeat), "--factor-max", str(args.factor_max),
+           "--shared-max", str(args.shared_max), "--structure", args.structure, "--solid", args.solid]
     if ranks > 1:  # -m mpi4py: an exception on one rank aborts both instead of hanging the other
         cmd = ["mpirun", "-n", str(ranks), sys.executable, "-m", "mpi4py"] + cmd[1:]
     print(f"running: {' '.join(cmd)}", file=sys.stderr, flush=True)
@@ -140,12 +165,13 @@ def table(records: list[dict]) -> str:
              "| shared / limit | shared / limit PETSc | factor / limit |",
              "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in sorted(records, key=lambda r: (r["n_l"], r["ranks"])):
-        f = r.get("factor")
+        f, shared = r.get("factor"), r.get("shared")
+        solves_shared = "-" if shared is None else f"{r['solves_shared']:.0f}"
         lines.append(f"| {r['n_l']} | {r['dofs']} | {r['ranks']} | {s(r['limit'])} | {s(r['limit_petsc'])} "
-                     f"| {s(r['static'])} | {s(r['ritz'])} | {s(r['shared'])} | {s(f)} "
-                     f"| {r['solves_ritz']:.1f}, {r['solves_shared']:.0f} | {r['fallbacks']:.0f} "
+                     f"| {s(r['static'])} | {s(r['ritz'])} | {s(shared)} | {s(f)} "
+                     f"| {r['solves_ritz']:.1f}, {solves_shared} | {r['fallbacks']:.0f} "
                      f"| {ratio(r['ritz'], r['limit'])} | {ratio(r['ritz'], r['limit_petsc'])} "
-                     f"| {ratio(r['shared'], r['limit'])} | {ratio(r['shared'], r['limit_petsc'])} "
+                     f"| {ratio(shared, r['limit'])} | {ratio(shared, r['limit_petsc'])} "
                      f"| {ratio(f, r['limit'])} |")
     return "\n".join(lines)
 
@@ -159,6 +185,9 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=1, help="measurements per configuration; the fastest is kept")
     parser.add_argument("--factor-max", type=int, default=100,
                         help="time the factored DBF path only up to this N_L (it costs ~0.4 s per constraint)")
+    parser.add_argument("--shared-max", type=int, default=100, help="time the shared DBF path only up to this N_L")
+    parser.add_argument("--structure", choices=("beam", "solid"), default="beam")
+    parser.add_argument("--solid", default="/tmp/dbf_hpc_solid3d", help="the solid's matrices (generated if missing)")
     parser.add_argument("--quick", action="store_true", help="small sizes for a smoke run")
     parser.add_argument("-o", "--output", help="also write the markdown table to this file")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
@@ -170,6 +199,9 @@ def main() -> None:
         return
     if any(v in os.environ for v in ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK")):
         sys.exit("bench_basis.py starts its own MPI workers: run it without mpirun")
+    if args.structure == "solid" and not os.path.exists(os.path.join(args.solid, "dofs.json")):
+        subprocess.run([sys.executable, os.path.join(os.path.dirname(os.path.abspath(__file__)), "solid3d.py"),
+                        args.solid], check=True)
     start = time.perf_counter()
     records = [r for ranks in args.ranks.split(",") for r in launch(args, int(ranks))]
     text = table(records)

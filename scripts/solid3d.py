@@ -93,6 +93,13 @@ def top_z_dofs(nx: int, ny: int, nz: int) -> list:
     return [3 * (node(i, ny // 2, nz) - clamped_before(node(i, ny // 2, nz))) + 2 for i in range(1, nx + 1)]
 
 
+def top_surface_z_dofs(nx: int, ny: int, nz: int) -> list:
+    """The free z DOFs of every node on the top face (z = H) off the clamp, row by row in y."""
+    node = lambda i, j, k: (k * (ny + 1) + j) * (nx + 1) + i          # noqa: E731
+    clamped_before = lambda p: (p // ((nx + 1) * (ny + 1))) * (ny + 1) + (p % ((nx + 1) * (ny + 1))) // (nx + 1) + 1  # noqa: E731
+    return [3 * (node(i, j, nz) - clamped_before(node(i, j, nz))) + 2 for j in range(ny + 1) for i in range(1, nx + 1)]
+
+
 def scene_text(top: list, stops: int) -> str:
     """The guide-channel scene: `stops` stops spread over the outer 5/6 of the top centre line
     (0.2 mm clearance, 1e7 N/m), a 1 kN force at 60 Hz at the tip (below the first bending mode,
