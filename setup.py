@@ -18,7 +18,7 @@ DEBIAN_PETSC = "/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real"
 
 
 def c_extensions():
-    if os.environ.get("DBF_HPC_NO_C"):
+    if os.environ.get("DBF_HPC_NO_C", "") not in ("", "0"):
         return []
     petsc_dir = os.environ.get("PETSC_DIR") or DEBIAN_PETSC
     arch = os.environ.get("PETSC_ARCH", "")

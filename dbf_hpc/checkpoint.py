@@ -81,8 +81,9 @@ class Checkpoint:
         different = [part for part in sorted(set(stored) | set(self.identity))
                      if stored.get(part) != self.identity.get(part)]
         if different:
+            verb = "differs" if len(different) == 1 else "differ"
             raise InputError(f"{self.path} was written by a different scene or setup ({', '.join(different)} "
-                             f"differ); remove it or rerun without --resume")
+                             f"{verb}); remove it or rerun without --resume")
         if _checksum(state, stored) != checksum:
             raise InputError(f"{self.path} is corrupt (its checksum does not match its data); remove it to start "
                              f"again from t = 0")

@@ -177,9 +177,13 @@ def _plot(args) -> int:
     from .plots import parse_window, plot_run, plot_sweep
     from .report import open_output
 
+    window = parse_window(args.window)
     f, complete = open_output(args.output)
     sweep = "cases" in f
+    span = (float(f["time"][0]), float(f["time"][-1])) if not sweep and f["time"].size else None
     f.close()
+    if window and span and (window[0] > span[1] or window[1] < span[0]):
+        raise InputError(f"--window {args.window}: no samples there (the run spans {span[0]:g} to {span[1]:g} s)")
     if not (complete or sweep):
         raise InputError(f"{args.output!r}: the run did not finish (only its .partial file exists); "
                          f"rerun it, with --resume if it was checkpointed")
@@ -193,7 +197,7 @@ def _plot(args) -> int:
     if problem:
         raise InputError(problem)
     if MPI.COMM_WORLD.rank == 0:
-        written = (plot_sweep if sweep else plot_run)(args.output, args.directory, window=parse_window(args.window))
+        written = (plot_sweep if sweep else plot_run)(args.output, args.directory, window=window)
         for path in written:
             print(f"wrote {path}")
     return 0
@@ -245,6 +249,8 @@ def _basis(args) -> int:
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.set)
+    if args.xdmf:
+        _check_shapes_path(args.xdmf, scene)
     comm = PETSc.COMM_WORLD
     say = PETSc.Sys.Print
     with scene.full_order_model(comm) as fom, \
@@ -262,23 +268,33 @@ def _basis(args) -> int:
             f"eigen-solves on the busiest rank, cache {basis.stats.get('cache')})")
         _print_basis(say, basis, labels)
         if args.xdmf:
-            _write_shapes(args.xdmf, scene, fom, reductor, basis)
+            _write_shapes(args.xdmf, fom, reductor, basis)
     return 0
 
 
-def _write_shapes(path: str, scene, fom, reductor, basis) -> None:
+def _check_shapes_path(path: str, scene) -> None:
+    """basis --xdmf SHAPES.xdmf: refused before any work unless SHAPES.xdmf and SHAPES.h5 may be
+    written (new, or dbf-hpc's own files)."""
+    from . import xdmf
+    from .errors import InputError
+    from .output import check_output_path
+
+    if not path.endswith(".xdmf"):
+        raise InputError(f"--xdmf {path!r}: give a name ending in .xdmf (its data go to the .h5 of the same name)")
+    check_output_path(os.path.splitext(path)[0] + ".h5", scene.inputs())
+    check_output_path(path, scene.inputs(), replaceable=xdmf.is_dbf_xdmf)
+
+
+def _write_shapes(path: str, fom, reductor, basis) -> None:
     """The basis vectors at the field points as an XDMF time series (step i: basis vector i + 1) and
-    its HDF5 file. Collective (rank 0 writes)."""
+    its HDF5 file (_check_shapes_path checked both). Collective (rank 0 writes)."""
     import h5py
     import numpy as np
     from petsc4py import PETSc
 
     from . import xdmf
-    from .output import check_output_path
 
     h5 = os.path.splitext(path)[0] + ".h5"
-    for target in (path, h5):
-        check_output_path(target, scene.inputs())
     values = reductor.field_values()
     if PETSc.COMM_WORLD.getRank() == 0:
         geometry = fom.operators.field_map().geometry()
@@ -371,11 +387,12 @@ def _stiffness(args) -> int:
         part = participation(modes, np.array([row]))[0]
         omega_free = modes.omega
         modes.destroy()
-        branch = branch_of(part, omega_free ** 2)
+        lam_free = np.where(np.arange(part.size) < ops.rigid_modes, 0.0, omega_free ** 2)   # as dbf.dbf_source
+        branch = branch_of(part, lam_free)
         if branch == 0:
             raise InputError(f"constraint {args.constraint} does not move in any reference mode")
         mu = pinned_eigenvalue(ops, row, branch)
-        k_auto = auto_stiffness(mu, omega_free[branch - 1] ** 2, cluster_participation(part, omega_free ** 2))
+        k_auto = auto_stiffness(mu, omega_free[branch - 1] ** 2, cluster_participation(part, lam_free))
         omega = stiffness_sweep(ops, row, ks, branch)
     label = scene.constraints[args.constraint - 1].label
     say = PETSc.Sys.Print
@@ -460,7 +477,7 @@ def main(argv=None) -> int:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from .errors import DbfError
+    from .errors import DbfError, petsc_failure
 
     comm = MPI.COMM_WORLD
     signal.signal(signal.SIGTERM, _terminated)   # integrations and sweeps install their own while they run
@@ -470,11 +487,16 @@ def main(argv=None) -> int:
         _warn_unused(petsc_options, PETSc.COMM_WORLD)
     except DbfError as e:
         failure = str(e)
-    except Exception as e:  # a bug or a PETSc failure: say it in one line and end every rank
+    except PETSc.Error as e:  # most often an option PETSc refused: one line, the ranks agree as on a DbfError
         if os.environ.get("DBF_HPC_DEBUG"):
             raise
-        kind = "PETSc error" if isinstance(e, PETSc.Error) else f"internal error ({type(e).__name__})"
-        print(f"dbf-hpc: {kind} on rank {comm.rank}: {e}. Set DBF_HPC_DEBUG=1 for a traceback.",
+        given = [t for t in petsc_options if t.startswith("-")]
+        failure = petsc_failure(e) + (f"; check the PETSc options given ({' '.join(given)})" if given else "")
+    except Exception as e:  # a bug: say it in one line and end every rank
+        if os.environ.get("DBF_HPC_DEBUG"):
+            raise
+        print(f"dbf-hpc: internal error ({type(e).__name__}) on rank {comm.rank}: {e}. Set DBF_HPC_DEBUG=1 for a "
+              f"traceback.",
               file=sys.stderr, flush=True)
         if comm.size > 1:
             comm.Abort(70)

@@ -273,6 +273,9 @@ def dbf_source(ops: Operators, row: int, reference_eigenvalues: np.ndarray, part
     participation          (g^T phi_i)^2 of the reference modes at this constraint
     solver                 FactorSolver(ops, row) (the default) or a dbf_shared.SharedSolver for row
     """
+    # Rigid-body eigenvalues are zero up to round-off (1e-9 rad^2/s^2 apart on a free-free beam):
+    # exactly one repeated eigenvalue, which the spring moves in one direction only.
+    reference_eigenvalues = np.where(np.arange(participation.size) < ops.rigid_modes, 0.0, reference_eigenvalues)
     branch = branch_of(participation, reference_eigenvalues)
     if branch == 0:
         raise SolverError(f"the constraint at row {row} does not move in any of the "

@@ -32,7 +32,7 @@ from petsc4py import PETSc
 
 from .dbf import (DERIVATIVE_BACKWARD_TOL, EIGEN_TOL, PREFIX, REFINEMENT_STEPS, backward_error,
                   derivative_system, value_at, with_spring)
-from .errors import SolverError
+from .errors import SolverError, petsc_failure
 from .modes import lowest_eigenpair, normalize, shift_below_spectrum
 from .operators import Operators
 from .petsctools import destroy, direct_solver, options_defaults, unit_vector
@@ -74,8 +74,8 @@ class SharedFactor:
         except PETSc.Error as e:
             self.destroy()
             raise SolverError(f"the shared DBF factorization of K - sigma M (sigma = {self.sigma:g}) failed "
-                              f"(PETSc error {e.ierr}); check K and M, or use [basis] dbf_solver = \"factor\""
-                              ) from None
+                              f"({petsc_failure(e)}); check the -{FACTOR_PREFIX} options and K and M, or use "
+                              f"[basis] dbf_solver = \"factor\"") from None
         except Exception:
             self.destroy()
             raise

@@ -32,6 +32,18 @@ def write_failure(exc: Exception) -> str:
     return "No space left on device" if "errno = 28" in text or "No space left" in text else text.splitlines()[0]
 
 
+def petsc_failure(exc: Exception) -> str:
+    """One line from a petsc4py error: its code, the innermost PETSc function and PETSc's message
+    (str(exc) is "error code N" and then PETSc's traceback, innermost last, message last)."""
+    lines = [line.split("] ", 1)[-1].strip() for line in str(exc).splitlines()]
+    code = getattr(exc, "ierr", None) or (lines[0] if lines else "?")
+    calls = [line.split(" at ")[0] for line in lines[1:] if " at " in line and line.split(" at ")[0].endswith(")")]
+    notes = [line for line in lines[1:] if line and " at " not in line]
+    message = notes[-1] if notes else ""
+    where = f" in {calls[-1]}" if calls else ""
+    return f"PETSc error {code}{where}" + (f": {message}" if message else "")
+
+
 # HDF5 1.10 (Debian 12) crashes when an h5py object whose file failed to flush is freed (measured:
 # a full disk, then any close or garbage collection segfaults). Objects of a failed write are kept
 # here instead, and the command exits without tearing h5py down (cli.main).

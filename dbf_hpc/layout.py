@@ -100,7 +100,8 @@ def reference() -> str:
              "| dataset | unit | meaning |", "|---|---|---|"]
     lines += [f"| `{name}` | {unit} | {meaning} |" for name, (unit, meaning) in DATASETS.items()]
     lines += [f"| `{CONSTRAINT_STATS}/{name}` | {UNITS[name]} | {DESCRIPTIONS[name]} (N_L) |" for name in STATISTICS]
-    lines += ["", "Root attributes: `scene` (the scene's text), `scene_path`, `method` (`rom` or `full`), "
+    lines += ["", "Root attributes: `scene` (the scene file's text), `scene_effective` (JSON: every value the "
+              "run used, the `--set` items and defaults included), `scene_path`, `method` (`rom` or `full`), "
               "`basis_enrichment`, `field_kind` (`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
               "`slepc_version`, `mpi_ranks`, `solver_stats` and `wall_times` (JSON), `initial_state`, and "
               "`complete = true` once the run finished. A reduced run of a scene with constraints also has its "

@@ -49,11 +49,19 @@ def plot_stiffness_sweep(path: str, ks, omega, k_auto: float, label: str, omega_
 
 
 def parse_window(text: str | None):
-    """'T0:T1' (s, either end may be empty) -> (t0, t1) or None."""
+    """'T0:T1' (s, either end may be empty) -> (t0, t1) or None; an InputError unless t0 < t1."""
+    from .errors import InputError
+
     if not text:
         return None
     start, _, end = text.partition(":")
-    return (float(start) if start else -np.inf, float(end) if end else np.inf)
+    try:
+        window = (float(start) if start else -np.inf, float(end) if end else np.inf)
+    except ValueError:
+        window = (np.nan, np.nan)
+    if np.isnan(window).any() or not window[0] < window[1]:
+        raise InputError(f"--window {text!r}: give T0:T1 in seconds with T0 < T1 (either may be left out)")
+    return window
 
 
 def _panels(count: int, width: float = 8.0, height: float = 2.2):

@@ -17,7 +17,8 @@ HEADLINE = (("impacts", "{:.0f} impacts"), ("impact_rate", "{:.3g}/s"), ("contac
 
 
 def open_output(path: str):
-    """(open h5py file, complete?) of a run's output, or of its .partial file when only that exists."""
+    """(open h5py file, complete?) of a run's output, or of its .partial file when only that exists
+    (or when it is the file named)."""
     if os.path.isfile(path):
         target = path
     elif os.path.isfile(path + ".partial"):
@@ -31,16 +32,17 @@ def open_output(path: str):
     if layout.TIME not in f and "cases" not in f:
         f.close()
         raise InputError(f"{target!r} is not a dbf-hpc output")
-    return f, bool(f.attrs.get("complete", False)) and target == path
+    return f, bool(f.attrs.get("complete", False)) and not target.endswith(".partial")
 
 
 def describe(path: str) -> list:
     """The lines `info` prints for a run's output or a sweep summary."""
     f, complete = open_output(path)
+    run = path[:-len(".partial")] if path.endswith(".partial") else path   # its checkpoint is run.checkpoint
     with f:
         if "cases" in f:
             return _sweep_lines(path, f)
-        return _run_lines(path, f) if complete else _partial_lines(path, f)
+        return _run_lines(path, f) if complete else _partial_lines(run, f)
 
 
 def _run_lines(path: str, f) -> list:
@@ -83,11 +85,13 @@ def _estimate_lines(f) -> list:
 
 def _constraint_lines(f, partial: bool = False) -> list:
     z, force = f[layout.CONSTRAINT_DISPLACEMENT][:], f[layout.CONSTRAINT_FORCE_PEAK][:]
-    positions = f[layout.CONSTRAINT_POSITION][:] if layout.CONSTRAINT_POSITION in f else np.arange(z.shape[1])
+    # a .partial has no positions yet (written at the end): constraints by number only
+    where = ([f" at {x:g}" for x in f[layout.CONSTRAINT_POSITION][:]] if layout.CONSTRAINT_POSITION in f
+             else [""] * z.shape[1])
     stats = f.get(layout.CONSTRAINT_STATS)
     lines = []
-    for j, x in enumerate(positions):
-        line = (f"  constraint {j + 1} at {x:g}: w in [{z[:, j].min():.6g}, {z[:, j].max():.6g}] m, "
+    for j, at in enumerate(where):
+        line = (f"  constraint {j + 1}{at}: w in [{z[:, j].min():.6g}, {z[:, j].max():.6g}] m, "
                 f"peak force {np.abs(force[:, j]).max():.6g} N")
         if stats is not None and not partial:
             line += "; " + ", ".join(fmt.format(stats[name][j]) for name, fmt in HEADLINE if name in stats)

@@ -62,6 +62,13 @@ def c_core(callbacks: str, say=None):
     return None
 
 
+def effective_callbacks(callbacks: str) -> str:
+    """"c" or "python": what [integrator] callbacks = `callbacks` runs on this installation (part of a
+    checkpoint's identity: the two agree to the integrator's tolerance, not bit for bit)."""
+    from . import _romc
+    return "c" if callbacks != "python" and _romc.core is not None else "python"
+
+
 def _user_solver_options() -> bool:
     """Whether the user set any -rom_snes_*, -rom_ksp_* or -rom_pc_* option (then PETSc's own Newton)."""
     return any(name.startswith((PREFIX + "snes_", PREFIX + "ksp_", PREFIX + "pc_"))

@@ -24,7 +24,7 @@ from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, estimate_window, 
                        nested_estimate, pick_basis, reused_estimate)
 from .basis import richer_basis
 from .checkpoint import Checkpoint, identity
-from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, write_failure
+from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, petsc_failure, write_failure
 from .fom import Observation
 from .fom_integrator import integrate_full
 from .fom_integrator import options as full_options
@@ -33,7 +33,7 @@ from .output import OutputLock, OutputWriter, check_free_space, check_output_pat
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
-from .rom_integrator import integrate_reduced
+from .rom_integrator import effective_callbacks, integrate_reduced
 from .scene import Scene
 from .stats import DESCRIPTIONS, UNITS
 from .timestepping import check_work
@@ -43,7 +43,10 @@ def output_path(scene: Scene, override: str | None) -> str:
     path = override or scene.output().file
     if not path:
         raise InputError("no output file: give [output] file in the scene or -o OUT.h5")
-    return check_output_path(path, scene.inputs())
+    check_output_path(path, scene.inputs())
+    if scene.output().snapshots:
+        xdmf.check_sidecar(path, scene.inputs())
+    return path
 
 
 @contextlib.contextmanager
@@ -201,8 +204,9 @@ def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
 
 def run_identity(scene: Scene, basis_key: dict, ranks: int, method: str) -> dict:
     """What a checkpoint must match to be resumed: every part that changes the result."""
+    callbacks = effective_callbacks(scene.integrator_settings().callbacks) if method == "rom" else None
     return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], structure=basis_key,
-                    options=PETSc.Options().getAll(), ranks=ranks, method=method)
+                    options=PETSc.Options().getAll(), ranks=ranks, method=method, callbacks=callbacks)
 
 
 def wait_for_rank0(world) -> None:
@@ -277,6 +281,9 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
             stats = integrate_reduced(model, settings, None, stepper.on_step, say, stepper.start, recorder=recorder,
                                       due=stepper.due)
         timings["integration"] = stats["time_integration"]   # a resumed run's whole, not this part
+    except PETSc.Error as exc:   # before WRITE_ERRORS: petsc4py's Error is a RuntimeError
+        raise SolverError(_left_behind(f"the reduced integration: {petsc_failure(exc)}; check the -rom_ options",
+                                       writer, checkpoint)) from None
     except WRITE_ERRORS as exc:
         raise SolverError(_left_behind(f"cannot write {path}.partial or its checkpoint: {write_failure(exc)}",
                                        writer, checkpoint)) from None
@@ -456,6 +463,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
         dataset_attrs={f"{layout.CONSTRAINT_STATS}/{k}": {"unit": UNITS[k], "description": DESCRIPTIONS[k]}
                        for k in constraint_stats},
         attrs={"scene": scene.text, "scene_path": os.path.abspath(scene.path), "method": method,
+               "scene_effective": json.dumps(scene.effective(), default=str),
                "petsc_version": ".".join(map(str, PETSc.Sys.getVersion())),
                "slepc_version": ".".join(map(str, SLEPc.Sys.getVersion())),
                "mpi_ranks": ranks, "solver_stats": json.dumps(stats), "wall_times": json.dumps(timings),
@@ -464,7 +472,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                                 f"displacement {init.amplitude} m peak in reference mode {init.mode}",
                **attrs})
     if snap_t.size:
-        xdmf.write(os.path.splitext(writer.path)[0] + ".xdmf", writer.path, "snapshots", geometry[0],
+        xdmf.write(xdmf.sidecar(writer.path), writer.path, "snapshots", geometry[0],
                    geometry[1].shape[0], snap_t)
     return {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
             "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
@@ -561,6 +569,9 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
         with _interrupt_on_sigterm(control):
             stats = integrate_full(fom, settings, observation.rows, recorder.block if recorder else None, snap_index,
                                    snapshot, say, control=control, resume=resume_state)
+    except PETSc.Error as exc:   # an option PETSc refused in the set-up; the ranks fail alike
+        raise SolverError(_left_behind(f"the full-order integration: {petsc_failure(exc)}; check the -full_ "
+                                       f"options", recorder.writer if recorder else None, checkpoint)) from None
     except DbfError as exc:
         raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint)) from None
     timings["integration"] = time.perf_counter() - t + (control.wall if control else 0.0)

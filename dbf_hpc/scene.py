@@ -53,6 +53,13 @@ class Scene:
     text: str
     sections: dict
     constraints: tuple = field(default_factory=tuple)
+    overrides: tuple = ()      # the --set items applied to the file's text
+
+    def effective(self) -> dict:
+        """Every value the run uses (the file, the --set items and the defaults), JSON-ready: what an
+        output records next to the file's own text."""
+        return {**self.sections, "constraint": [dataclasses.asdict(c) for c in self.constraints],
+                "overrides": list(self.overrides)}
 
     def __getitem__(self, section: str) -> dict:
         return self.sections[section]
@@ -187,7 +194,7 @@ def load_scene(path: str, overrides=()) -> Scene:
             _override_constraints(data.get("constraint", []), key, value, item)
         else:
             data.setdefault(section, {})[key] = value
-    return validate(data, path, text)
+    return dataclasses.replace(validate(data, path, text), overrides=tuple(overrides))
 
 
 def _override_constraints(constraints, key: str, value, item: str) -> None:

@@ -309,7 +309,7 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
         record.update(status="failed", error=str(e))
     record["wall_time"] = time.perf_counter() - t
     if not sweep["keep_outputs"]:
-        for leftover in (case_out, f"{case_out}.partial", f"{case_out}.checkpoint"):
+        for leftover in (case_out, f"{case_out}.partial", f"{case_out}.checkpoint", os.path.splitext(case_out)[0] + ".xdmf"):
             if os.path.exists(leftover):
                 os.remove(leftover)
     return record

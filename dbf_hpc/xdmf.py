@@ -33,6 +33,41 @@ def geometry_datasets(geometry: tuple, prefix: str) -> dict:
     return out
 
 
+MARK = "<!-- written by dbf-hpc -->"
+
+
+def sidecar(h5_path: str) -> str:
+    """The XDMF file written beside an HDF5 output: the same name with .xdmf."""
+    return os.path.splitext(h5_path)[0] + ".xdmf"
+
+
+def is_dbf_xdmf(path: str) -> bool:
+    """Whether `path` is an XDMF file dbf-hpc wrote (a later run may replace it, nothing else)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(256)
+    except OSError:
+        return False
+    return head.startswith(b'<?xml version="1.0" ?>') and (MARK.encode() in head or
+                                                           b'<Xdmf Version="3.0"><Domain><Grid Name="' in head)
+
+
+def check_sidecar(h5_path: str, inputs=()) -> None:
+    """Refuse, before any work, an output whose XDMF sidecar would overwrite the output itself, an
+    input, a directory or a file dbf-hpc did not write."""
+    from .errors import InputError
+    from .output import check_output_path
+
+    path = sidecar(h5_path)
+    if os.path.abspath(path) == os.path.abspath(h5_path):
+        raise InputError(f"output {h5_path!r} ends in .xdmf, the name of the ParaView file written beside it: "
+                         f"name the output .h5")
+    if os.path.isdir(path):
+        raise InputError(f"output {h5_path!r}: its ParaView file {path!r} would replace a directory: "
+                         f"choose another output name")
+    check_output_path(path, inputs, replaceable=is_dbf_xdmf)
+
+
 def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, name: str = "displacement") -> None:
     """Write the XDMF `path` for `{prefix}/{name}/NNNNNN` (nodes x 3 each) and `{prefix}/points` in
     `h5_file` (referred to by its name: keep the two side by side). `steps` label the time series
@@ -52,7 +87,7 @@ def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, na
             f'<Attribute Name="{name}" AttributeType="Vector" Center="Node">'
             f'<DataItem Format="HDF" Dimensions="{nodes} 3" NumberType="Float" Precision="8">'
             f'{h5}:/{prefix}/{name}/{i:06d}</DataItem></Attribute></Grid>')
-    text = ('<?xml version="1.0" ?>\n<Xdmf Version="3.0"><Domain>'
+    text = (f'<?xml version="1.0" ?>\n{MARK}\n<Xdmf Version="3.0"><Domain>'
             f'<Grid Name="{name}" GridType="Collection" CollectionType="Temporal">\n'
             + "\n".join(grids) + "\n</Grid></Domain></Xdmf>\n")
     tmp = f"{path}.tmp-{os.getpid()}"

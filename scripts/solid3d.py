@@ -132,6 +132,8 @@ def main(argv=None) -> int:
     from petsc4py import PETSc
 
     nx, ny, nz = args.elements
+    if min(args.elements) < 1 or ny % 2:
+        parser.error("--elements: NX, NY, NZ >= 1 and NY even (the top centre line runs through nodes at y = W/2)")
     K, M, node = assemble(nx, ny, nz)
     n_nodes = (nx + 1) * (ny + 1) * (nz + 1)
     clamped = np.zeros(n_nodes, dtype=bool)

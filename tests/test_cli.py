@@ -469,3 +469,93 @@ def test_the_installed_command_works_without_an_activated_venv(tmp_path):
     api = subprocess.run([sys.executable, "-c", "import dbf_hpc; print(dbf_hpc.Beam.__name__)"],
                          capture_output=True, text=True, env=bare, timeout=120)
     assert api.returncode == 0 and api.stdout.strip() == "Beam", api.stderr
+
+
+# What the second red-team pass found (issues 12 and 16): each refused in one line before any work,
+# or recorded as it was asked.
+SHORT = ("--set", "integrator.t_end=0.01", "-q")
+
+
+def _one_line(out):
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    return out.returncode == 1 and len(lines) == 1 and lines[0].startswith("dbf-hpc: error:")
+
+
+def test_the_paraview_file_beside_an_output_never_replaces_what_dbf_hpc_did_not_write(tmp_path):
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "run.xdmf"), *SHORT)
+    assert _one_line(out) and "ends in .xdmf" in out.stderr and not os.listdir(tmp_path)
+    (tmp_path / "notes.xdmf").write_text("my notes")
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "notes.h5"), *SHORT)
+    assert _one_line(out) and (tmp_path / "notes.xdmf").read_text() == "my notes"
+    (tmp_path / "dir.xdmf").mkdir()
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "dir.h5"), *SHORT)
+    assert _one_line(out) and "directory" in out.stderr and not (tmp_path / "dir.h5").exists()
+    out = dbf_hpc("basis", PAPER, "--xdmf", str(tmp_path / "shapes.h5"))
+    assert _one_line(out) and "ending in .xdmf" in out.stderr
+    for _ in range(2):      # dbf-hpc's own files are replaced by a rerun
+        out = dbf_hpc("basis", PAPER, "--xdmf", str(tmp_path / "shapes.xdmf"))
+        assert out.returncode == 0, out.stderr
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "good.h5"), *SHORT)
+    assert out.returncode == 0 and (tmp_path / "good.xdmf").exists()
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "good.h5"), *SHORT)
+    assert out.returncode == 0, out.stderr
+
+
+def test_an_output_records_the_values_set_on_the_command_line(tmp_path):
+    import json
+
+    import h5py
+
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "set.h5"), *SHORT, "--set", "basis.modes=9",
+                  "--set", "constraint.k_plus=2e6")
+    assert out.returncode == 0, out.stderr
+    with h5py.File(tmp_path / "set.h5") as f:
+        effective = json.loads(f.attrs["scene_effective"])
+    assert effective["basis"]["modes"] == 9 and effective["constraint"][0]["law"]["k_plus"] == 2e6
+    assert effective["overrides"] == ["integrator.t_end=0.01", "basis.modes=9", "constraint.k_plus=2e6"]
+
+
+def test_an_option_petsc_refuses_is_one_line_and_leaves_no_file(tmp_path):
+    for method, option in (("rom", "-rom_pc_type"), ("full", "-full_pc_type"), ("rom", "-modes_st_type")):
+        target = tmp_path / f"{method}{option}.h5"
+        out = dbf_hpc("run", PAPER, "-o", str(target), *SHORT, "--method", method, option, "bogus")
+        assert _one_line(out) and "bogus" in out.stderr and "cannot write" not in out.stderr, out.stderr
+        assert not list(tmp_path.iterdir()), list(tmp_path.iterdir())
+
+
+def test_a_checkpoint_of_the_c_callbacks_is_not_resumed_with_the_python_ones(tmp_path):
+    import signal
+
+    target = tmp_path / "cb.h5"
+    common = ("--set", "integrator.t_end=20", "--set", "output.checkpoint_dt=0.01", "-q")
+    process = _start("run", PAPER, "-o", str(target), *common)
+    _wait_for(str(target) + ".checkpoint", process)
+    _kill_group(process, signal.SIGKILL)
+    env = {**mpi_env(), "DBF_HPC_NO_C": "1"}
+    out = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "dbf_hpc.cli", "run", PAPER, "-o", str(target),
+                          "--resume", *common], capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
+    lines = [line for line in out.stderr.splitlines() if line.strip() and "warning" not in line]
+    assert out.returncode == 1 and len(lines) == 1 and "callbacks differs" in lines[0], out.stderr
+
+
+def test_info_on_a_partial_file_names_it_and_its_checkpoint(tmp_path):
+    import signal
+
+    target = tmp_path / "part.h5"
+    process = _start("run", PAPER, "-o", str(target), "--set", "integrator.t_end=20", "--set",
+                     "output.checkpoint_dt=0.01", "-q")
+    _wait_for(str(target) + ".checkpoint", process)
+    _kill_group(process, signal.SIGKILL)
+    for name in (target, f"{target}.partial"):
+        out = dbf_hpc("info", str(name), ranks=1)
+        assert out.returncode == 0 and f"{target}.partial: INCOMPLETE" in out.stdout, out.stdout
+        assert "a checkpoint exists" in out.stdout and ".partial.partial" not in out.stdout
+        assert "constraint 1:" in out.stdout and "at 0:" not in out.stdout
+
+
+def test_a_plot_window_without_samples_is_refused(tmp_path):
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "w.h5"), *SHORT)
+    assert out.returncode == 0
+    for window in ("0.1:0.05", "5:6", "nan:1", "a:b"):
+        out = dbf_hpc("plot", str(tmp_path / "w.h5"), "-d", str(tmp_path / "figs"), "--window", window, ranks=1)
+        assert _one_line(out), (window, out.stderr)

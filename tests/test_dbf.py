@@ -273,6 +273,23 @@ def test_shared_factorization_shifted_below_a_rigid_body_mode_gives_the_same_dbf
 
 
 @pytest.mark.parametrize("path", ["shared", "ritz"])
+def test_a_free_free_beam_gets_a_dbf_from_its_two_rigid_body_modes(path):
+    # Two rigid-body modes (translation, rotation) share the eigenvalue 0, computed as round-off
+    # (~1e-9 rad^2/s^2, not equal). A spring at x moves one combination and leaves the rotation
+    # about x at 0: the branch is 2, whatever the eigensolver's basis of the pair. Before, branch 1
+    # followed an unmoved combination: a zero DBF at almost every x (red team).
+    positions = (0.0, 0.25, 0.5, 0.9)
+    ops = assemble_beam(Beam(**TABLE1, elements=100, left="free", right="free"), points=list(positions))
+    assert ops.rigid_modes == 2
+    modes = reference_modes(ops, count=6)
+    shared, factor = both_paths(ops, modes, [ops.mesh.w_row(x) for x in positions], path=path)
+    assert np.all(shared.branch == 2) and np.all(factor.branch == 2)
+    assert_same_dbfs(ops, shared, factor)
+    modes.destroy()
+    ops.destroy()
+
+
+@pytest.mark.parametrize("path", ["shared", "ritz"])
 def test_shared_factorization_gives_the_pinned_and_perturbed_eigenvalues_of_table_1(paper, path):
     ops, modes, row = paper
     part = participation(modes, np.array([row]))[0]
