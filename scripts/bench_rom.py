@@ -14,8 +14,9 @@
    intervals, on the beam (N = 40, 1 constraint) and the tube.
 3. Accuracy and the full-order reference: the paper's beam, 160 elements, 40 modes + 1 DBF, 0.2 s.
    The truth is the full-order model (dbf_hpc.simulate.simulate_full) on the same mesh at a step
-   of 5e-6 s; the error is max |w - w_truth| / max |w_truth| at the constraint (samples every
-   1e-4 s). The full-order model at coarser steps and the reduced model at looser tolerances are
+   of 2.5e-6 s; the error is max |w - w_truth| / max |w_truth| at the constraint (samples every
+   1e-4 s) up to the trusted horizon, where the truth and the full order at 5e-6 s part by 0.1 %
+   of max |w| (the beam is chaotic: beyond it round-off alone moves w by percents). The full-order model at coarser steps and the reduced model at looser tolerances are
    timed; the cheapest of each within 1 % error are compared.
 4. The shipped frequency sweep (jobs/sweep_paper_beam_frequency.toml) on this process's ranks:
    cases per second with each callbacks, at t_end = 2 s per case (the Python path at the shipped
@@ -126,12 +127,27 @@ def controller_table(args, cache: str) -> list:
     return rows
 
 
-def w_error(result, truth) -> float:
+HORIZON_TOL = 1e-3   # as scripts/study_accuracy.py: where two truths part by this much of max |w|
+
+
+def w_error(result, truth, horizon: float = float("inf")) -> float:
+    """max |w - w_truth| / max |w_truth| at the constraint over the samples up to `horizon`."""
     import numpy as np
 
     n = min(result.time.size, truth.time.size)
     assert np.allclose(result.time[:n], truth.time[:n])
+    n = min(n, int(np.searchsorted(truth.time, horizon * (1 + 1e-9), side="right")))
     return float(np.abs(result.displacement[:n] - truth.displacement[:n]).max() / np.abs(truth.displacement[:n]).max())
+
+
+def trusted_horizon(truth, check) -> float:
+    """The last sample time up to which two full-order truths agree within HORIZON_TOL of max |w|:
+    the impacting beam is chaotic, and beyond it no error can be measured."""
+    import numpy as np
+
+    gap = np.abs(truth.displacement - check.displacement).max(axis=1) / np.abs(truth.displacement).max()
+    beyond = np.flatnonzero(gap > HORIZON_TOL)
+    return float(truth.time[-1] if beyond.size == 0 else truth.time[max(beyond[0] - 1, 0)])
 
 
 def accuracy_table(args, cache: str) -> list:
@@ -142,11 +158,14 @@ def accuracy_table(args, cache: str) -> list:
     settings = scene.integrator_settings()
     rows = []
     with scene.full_order_model() as fom:
-        log("  full-order truth (step 5e-6 s) ...")
-        truth = simulate_full(fom, dataclasses.replace(settings, dt=5e-6))
-        for dt in (1e-5, 2e-5, 4e-5):
-            full = simulate_full(fom, dataclasses.replace(settings, dt=dt))
-            rows.append({"model": f"full order, 320 DOFs, step {dt:g} s", "error": w_error(full, truth),
+        log("  full-order truths (steps 2.5e-6 s and 5e-6 s) ...")
+        truth = simulate_full(fom, dataclasses.replace(settings, dt=2.5e-6))
+        horizon = trusted_horizon(truth, simulate_full(fom, dataclasses.replace(settings, dt=5e-6)))
+        log(f"  trusted horizon {horizon:.4g} s")
+        for dt in (1e-5, 2e-5, 4e-5, 8e-5, 1.6e-4):   # each the fastest of 3, as the reduced C runs
+            runs = [simulate_full(fom, dataclasses.replace(settings, dt=dt)) for _ in range(3)]
+            full = min(runs, key=lambda r: r.solver["time_integration"])
+            rows.append({"model": f"full order, 320 DOFs, step {dt:g} s", "error": w_error(full, truth, horizon),
                          "wall": full.solver["time_integration"], "steps": full.solver["steps"]})
             log(f"  {rows[-1]}")
     for rtol in (1e-4, 1e-5, 1e-6):
@@ -155,7 +174,7 @@ def accuracy_table(args, cache: str) -> list:
                 continue
             result = timed(model, dataclasses.replace(settings, rtol=rtol), callbacks, repeat)
             rows.append({"model": f"reduced, r = {model.size}, rtol {rtol:g}, {callbacks} callbacks",
-                         "error": w_error(result, truth), "wall": result.solver["time_integration"],
+                         "error": w_error(result, truth, horizon), "wall": result.solver["time_integration"],
                          "steps": result.solver["steps"], "rejected": result.solver["rejected_steps"]})
             log(f"  {rows[-1]}")
     return rows
@@ -207,7 +226,8 @@ def markdown(cost, controller, accuracy, sweep) -> str:
         out.append(f"| {r['case']} | {r['steps']} | {r['rejected']} | {r['rejected_pct']:.1f} | {r['us_per_step']:.1f} |")
     if accuracy:
         out += ["", "### Accuracy against the full-order model (paper's beam, 160 elements, 0.2 s; truth: full "
-                "order at 5e-6 s)", "", "| model | error in w | steps | integration wall s |", "|---|---:|---:|---:|"]
+                "order at 2.5e-6 s, errors up to where it and the full order at 5e-6 s part by 0.1 % of max |w|)", "",
+                "| model | error in w | steps | integration wall s |", "|---|---:|---:|---:|"]
         for r in accuracy:
             out.append(f"| {r['model']} | {100 * r['error']:.2f} % | {r['steps']} | {r['wall']:.3f} |")
         fulls = [r for r in accuracy if r["model"].startswith("full") and r["error"] <= 0.01]
@@ -229,6 +249,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-o", "--out", help="also write the tables (markdown) and the rows (JSON, .json) here")
     parser.add_argument("--quick", action="store_true", help="fewer cases, no full-order truth")
+    parser.add_argument("--tables", default="cost,controller,accuracy,sweep",
+                        help="which tables to measure (comma-separated; default all)")
     args = parser.parse_args(argv)
     from dbf_hpc import _petsc
 
@@ -242,16 +264,20 @@ def main(argv=None) -> int:
         return 1
     cache = MPI.COMM_WORLD.bcast(tempfile.mkdtemp(prefix="bench-basis-") if MPI.COMM_WORLD.rank == 0 else None)
     start = time.perf_counter()
-    log("1. cost per step")
-    cost = cost_table(args, cache)
-    log("2. step controller")
-    controller = controller_table(args, cache)
-    accuracy = []
-    if not args.quick:
+    tables = args.tables.split(",")
+    cost = controller = accuracy = sweep = []
+    if "cost" in tables:
+        log("1. cost per step")
+        cost = cost_table(args, cache)
+    if "controller" in tables:
+        log("2. step controller")
+        controller = controller_table(args, cache)
+    if "accuracy" in tables and not args.quick:
         log("3. accuracy and the full-order reference")
         accuracy = accuracy_table(args, cache)
-    log("4. the shipped frequency sweep")
-    sweep = sweep_table(args, cache)
+    if "sweep" in tables:
+        log("4. the shipped frequency sweep")
+        sweep = sweep_table(args, cache)
     text = markdown(cost, controller, accuracy, sweep)
     text += f"\n(bench_rom.py, {time.perf_counter() - start:.0f} s, {MPI.COMM_WORLD.size} rank(s))\n"
     if MPI.COMM_WORLD.rank == 0:
