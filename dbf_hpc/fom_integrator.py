@@ -75,6 +75,8 @@ from .timestepping import IntegratorSettings, StepMonitor, check_outcome
 PREFIX = "full_"
 WHAT = "full-order integration"
 ADVICE = "reduce [integrator] dt"
+FULL_2D = ("--method full: the full-order reference handles constraints of one direction (d = 1) only; "
+           "2-D laws (circular) run with --method rom")
 NOT_FINITE = ("check the excitation, the initial state and the laws for values beyond double precision, or "
               "reduce [integrator] dt")
 BLOCK = 256          # steps between control points at most (statistics handed over, checkpoints, stop)
@@ -1072,6 +1074,8 @@ def integrate_full(fom: FullOrderModel, settings: IntegratorSettings, rows, on_b
       resume                     such a state (the arrays on rank 0, the rest on every rank)
     Returns solver statistics (the keys of the reduced integrator's, plus factorizations and contact
     counts). An OSError in a callback on rank 0 ends the run on every rank. Collective."""
+    if fom.constraints.dimension > 1:
+        raise InputError(FULL_2D)
     from .errors import Interrupted
 
     rho = options()["rho"]

@@ -32,7 +32,7 @@ from .reductor import Reductor
 from .rom import ReducedModel
 from .rom_integrator import integrate_reduced
 from .scene import Scene
-from .stats import DESCRIPTIONS, UNITS
+from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
 from .timestepping import check_work
 
 
@@ -75,6 +75,9 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         raise InputError(f"--method {method!r}: choose rom or full")
     if method == "full" and initial_state is not None:
         raise InputError("--method full starts from [initial] (or resumes from its checkpoint), not from a reduced state")
+    if method == "full" and scene.is_beam and scene["structure"]["planes"] == 2 and scene.constraints:
+        from .fom_integrator import FULL_2D
+        raise InputError(FULL_2D)
     comm = comm or PETSc.COMM_WORLD
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else None
     path = output_path(scene, out)
@@ -99,7 +102,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         with Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
             basis = reductor.basis()
             timings["basis"] = time.perf_counter() - t
-            _say_basis(say, basis, timings["basis"], list(fom.constraints.labels), comm, scene.fastest_forcing_hz())
+            _say_basis(say, basis, timings["basis"], fom.constraints.component_labels, comm, scene.fastest_forcing_hz())
             t = time.perf_counter()
             model = reductor.reduce(field=scene.output().snapshots > 0)
             basis_key = {"fingerprint": fom.fingerprint, "basis": basis.settings.key(),
@@ -223,7 +226,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
                               model.size, output.snapshots, field)
         check_free_space(path, needed + 8.0 * (2 * model.size + 64))   # the output and its checkpoint
         writer = (_reopen(path, int(state["samples"])) if state else
-                  OutputWriter(path, (model.constraints.count,), model.probe_B.shape[0], model.size))
+                  OutputWriter(path, model.constraints.shape, model.probe_sample_shape, model.size))
         recorder = ReducedRecorder(writer, model, _snapshot_samples(output.snapshots, settings.sample_times))
         if state:
             recorder.restore(state)
