@@ -109,7 +109,11 @@ class FullRecorder(SampleRecorder):
         if t.size:
             z, v = self.observation.constraint_totals(t, z, v)
             force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
-            self.impacts.add_block(t, z, v, force)
+            if self.planar:
+                r, vn, f, fn, vt, _ = self.constraints.laws.radial(z, v, force)
+                self.impacts.add_block(t, r, vn, f, power=fn * np.abs(vn), work=fn * vt)
+            else:
+                self.impacts.add_block(t, z, v, force)
         ts, x, xd, cut = samples
         if not ts.size:
             if t.size:

@@ -75,9 +75,6 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         raise InputError(f"--method {method!r}: choose rom or full")
     if method == "full" and initial_state is not None:
         raise InputError("--method full starts from [initial] (or resumes from its checkpoint), not from a reduced state")
-    if method == "full" and scene.is_beam and scene["structure"]["planes"] == 2 and scene.constraints:
-        from .fom_integrator import FULL_2D
-        raise InputError(FULL_2D)
     comm = comm or PETSc.COMM_WORLD
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else None
     path = output_path(scene, out)
@@ -449,10 +446,11 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
                 _say(say, f"resuming from the checkpoint at t = {float(state['t']):.6g} s" if state else
                      "no usable checkpoint: starting from t = 0")
             samples_left = settings.sample_times.size - (int(state["samples"]) if state else 0)
-            check_free_space(path, output_bytes(samples_left, constraints.count, fom.probes.count, 0,
+            check_free_space(path, output_bytes(samples_left, constraints.count * constraints.dimension,
+                                                fom.probes.count, 0,
                                                 output.snapshots, field.count) + 8.0 * 3 * fom.size)
             writer = (_reopen(path, int(state["samples"])) if state else
-                      OutputWriter(path, (constraints.count,), fom.probes.count, 0))
+                      OutputWriter(path, constraints.shape, fom.probes.shape, 0))
             recorder = FullRecorder(writer, constraints, observation)
             if state:
                 recorder.restore(state)

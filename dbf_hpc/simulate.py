@@ -42,6 +42,6 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""
     world = fom.comm.tompi4py()
     observation = Observation(fom)
-    recorder = FullRecorder(MemoryWriter((fom.constraints.count,), fom.probes.count, 0), fom.constraints, observation)
+    recorder = FullRecorder(MemoryWriter(fom.constraints.shape, fom.probes.shape, 0), fom.constraints, observation)
     stats = integrate_full(fom, settings, observation.rows, recorder.block, say=say)
     return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)
