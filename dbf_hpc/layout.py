@@ -107,7 +107,8 @@ def reference() -> str:
              "On a beam of two planes (`[structure] planes = 2`, 2-D laws such as `circular`) the statistics are per "
              "support and radial: `displacement_*` of |u|, `force_*` of |F|, contact (and so the impacts) where "
              "|u| > clearance, `impact_power_mean` of |F_n v_n|, and `work_rate` = <|F_n| |v_t|> (W), the normal "
-             "work rate of code_aster (Archard wear).", "",
+             "work rate of code_aster (Archard wear), with `work_rate_ci95` (runs; the Python API's Result has "
+             "the work rate only).", "",
              "With snapshots, `OUT.xdmf` beside the output describes `snapshots/points` and "
              "`snapshots/displacement/NNNNNN` as a time series that ParaView (Xdmf3 reader) and meshio open.", "",
              "A sweep summary (`dbf-hpc sweep`) holds a row per case: `cases/parameters/<section.key>` (NaN or "

@@ -14,7 +14,7 @@ from .errors import InputError
 # The impact statistics a tube-vibration engineer reads first, with how to print them.
 HEADLINE = (("impacts", "{:.0f} impacts"), ("impact_rate", "{:.3g}/s"), ("contact_fraction", "in contact {:.2%}"),
             ("force_rms", "force RMS {:.3g} N"), ("impact_power_mean", "impact power {:.3g} W"),
-            ("work_rate", "work rate {:.3g} W"))
+            ("work_rate", "work rate {:.3g} W"), ("work_rate_ci95", "+- {:.2g} W (95 %)"))
 
 
 def open_output(path: str):

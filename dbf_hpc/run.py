@@ -145,7 +145,7 @@ def _warn_idle(summary: dict, constraints, comm) -> None:
     stats = summary.get("constraint_stats", {})
     for j, constraint in enumerate(constraints):
         law = constraint.law
-        if law.kind in ("deadband", "power", "hertz") and stats and stats["impacts"][j] == 0:
+        if law.kind in ("deadband", "power", "hertz", "circular") and stats and stats["impacts"][j] == 0:
             gap = min(law.clearance_minus, law.clearance_plus)
             PETSc.Sys.Print(f"dbf-hpc: warning: constraint {j + 1} at {constraint.label} never reached its stop "
                             f"(max |w| {stats['displacement_peak'][j]:.3g} m, clearance {gap:.3g} m): check the "
@@ -338,6 +338,17 @@ def _interrupt_on_sigterm(stepper):
         signal.signal(signal.SIGTERM, previous)
 
 
+def sample_work_rate_ci95(writer, constraints) -> np.ndarray:
+    """stats.batch_means_ci95 of |F_n| |v_t| at the samples, per support (2-D laws)."""
+    from .stats import batch_means_ci95
+
+    t = writer.series_data(layout.TIME)
+    z, v, force = (writer.series_data(name).reshape(t.size, -1) for name in
+                   (layout.CONSTRAINT_DISPLACEMENT, layout.CONSTRAINT_VELOCITY, layout.CONSTRAINT_FORCE))
+    _, _, _, fn, vt, _ = constraints.laws.radial(z, v, force)
+    return batch_means_ci95(t, fn * vt)
+
+
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
            field, snap_t, snap_w, model: ReducedModel | None = None) -> dict:
     """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
@@ -348,6 +359,8 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     snap_w = np.asarray(snap_w, dtype=float).reshape(np.size(snap_t), field.count)
     writer = recorder.writer
     constraint_stats = recorder.impacts.result()
+    if recorder.planar:   # supports of two directions: the work rate's confidence interval from the samples
+        constraint_stats["work_rate_ci95"] = sample_work_rate_ci95(writer, constraints)
     probe_peak = np.abs(writer.series_data(layout.PROBE_DISPLACEMENT)).max(axis=0, initial=0.0)
     geometry = field.geometry()
     datasets = {layout.CONSTRAINT_POSITION: constraints.positions,

@@ -84,11 +84,34 @@ DESCRIPTIONS = {
 
 assert set(UNITS) == set(STATISTICS) == set(DESCRIPTIONS)
 
-# Supports of two directions (laws.PlanarLaws) add the normal work rate.
-STATISTICS_2D = STATISTICS + ("work_rate",)
-UNITS_2D = {**UNITS, "work_rate": "W"}
-DESCRIPTIONS_2D = {**DESCRIPTIONS, "work_rate": "normal work rate <|F_n| |v_t|> (code_aster's definition, the input "
-                                                "of Archard wear): supports of two directions only"}
+# Supports of two directions (laws.PlanarLaws) add the normal work rate and its confidence interval.
+STATISTICS_2D = STATISTICS + ("work_rate", "work_rate_ci95")
+UNITS_2D = {**UNITS, "work_rate": "W", "work_rate_ci95": "W"}
+DESCRIPTIONS_2D = {**DESCRIPTIONS,
+                   "work_rate": "normal work rate <|F_n| |v_t|> (code_aster's definition, the input of Archard wear): "
+                                "supports of two directions only",
+                   "work_rate_ci95": "half-width of the 95 % confidence interval of the work rate, by batch means of "
+                                     "the samples (10 batches, Student t); supports of two directions only"}
+
+BATCHES = 10
+_T_975 = 2.2621571627982053   # Student's t, 97.5 % quantile, BATCHES - 1 = 9 degrees of freedom
+
+
+def batch_means_ci95(t, series) -> np.ndarray:
+    """The half-width of the 95 % confidence interval of the time mean of `series` (nt, n) sampled at
+    t (nt,): the samples cut into BATCHES runs of equal length, the trapezoid mean of each, and
+    t_(0.975, BATCHES - 1) s / sqrt(BATCHES), s the batch means' standard deviation. Batch means
+    treat the batches as independent: batches much longer than the correlation time of the series
+    (the tube's lowest periods, a few of its impacts). Fewer than 2 BATCHES samples: NaN."""
+    t = np.asarray(t, dtype=float)
+    series = np.asarray(series, dtype=float).reshape(t.size, -1)
+    if t.size < 2 * BATCHES:
+        return np.full(series.shape[1], np.nan)
+    means = []
+    for part in np.array_split(np.arange(t.size), BATCHES):
+        tp, sp = t[part], series[part]
+        means.append(np.trapz(sp, tp, axis=0) / (tp[-1] - tp[0]))
+    return _T_975 * np.std(means, axis=0, ddof=1) / np.sqrt(BATCHES)
 
 
 def _check(t, z, v, force, in_contact):

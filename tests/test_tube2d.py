@@ -149,6 +149,19 @@ def test_work_rate_of_a_forced_orbit_is_normal_force_times_sliding_speed():
         assert np.isclose(stats["displacement_peak"][0], R, rtol=1e-12)
 
 
+def test_batch_means_interval_is_student_t_over_the_spread_of_the_batch_means():
+    from dbf_hpc.stats import BATCHES, batch_means_ci95
+
+    t = np.linspace(0.0, 10.0, 1000)
+    batch = np.repeat(np.arange(BATCHES), 1000 // BATCHES)
+    levels = np.array([3.0, 1.0, 4.0, 1.0, 5.0, 9.0, 2.0, 6.0, 5.0, 3.0])
+    series = np.column_stack((levels[batch], np.full(t.size, 7.0)))
+    half = batch_means_ci95(t, series)
+    assert np.isclose(half[0], 2.2621571627982053 * np.std(levels, ddof=1) / np.sqrt(BATCHES), rtol=1e-12)
+    assert half[1] < 1e-14 * 7.0
+    assert np.all(np.isnan(batch_means_ci95(t[:5], series[:5])))
+
+
 def test_circular_law_keys_are_checked_with_one_line_errors():
     assert law_from_dict(1, {"law": "circular", "clearance": 2e-4, "k": 1e6, "mu": 0.3}).mu == 0.3
     for bad, text in (({"law": "circular", "k": 1e6}, "needs clearance"),
@@ -289,6 +302,7 @@ def test_the_two_plane_tube_writes_y_and_z_per_support_and_its_work_rate(shared_
             assert f["reduced/B"].shape[0] == 24
             assert f["constraints/stats/work_rate"].shape == (12,)
             assert f["constraints/stats/work_rate"].attrs["unit"] == "W"
+            assert np.all(np.isfinite(f["constraints/stats/work_rate_ci95"][:]))
             assert f["snapshots/w"].shape[1] == f["snapshots/x"].size
 
 
