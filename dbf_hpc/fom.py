@@ -285,7 +285,7 @@ def _beam_operators(beam: Beam, constraints, excitation, comm) -> Operators:
 
 
 def _check_dimensions(constraints, planes: int) -> None:
-    """A beam of two planes takes 2-D laws only (circular), any other structure 1-D laws only."""
+    """A beam of two planes takes 2-D laws only (circular, flat_bar), any other structure 1-D laws only."""
     for i, c in enumerate(constraints):
         d = getattr(c.law, "dimension", 1)
         if d == 2 and planes != 2:
@@ -293,7 +293,7 @@ def _check_dimensions(constraints, planes: int) -> None:
                              f"a beam bending in two planes ([structure] planes = 2)")
         if d == 1 and planes == 2:
             raise InputError(f"constraint {i + 1} ({c.label}): a beam of two planes takes 2-D laws "
-                             f"(law = \"circular\"), not {c.law.kind}")
+                             f"(law = \"circular\" or \"flat_bar\"), not {c.law.kind}")
 
 
 def _point_load(ops: Operators, excitation) -> PETSc.Vec:

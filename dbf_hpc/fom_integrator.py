@@ -337,14 +337,19 @@ class FreeIntervals:
     """Where each law gives N = 0 for every velocity (a deadband with its edges, a table's zero
     run): [lo, hi] per constraint, empty (lo > hi) for laws that always push. A step whose
     mid-point lies inside every interval needs no law evaluation at all. A round hole (2-D, per
-    component y, z) screens with the square inscribed in it, |y|, |z| <= c / sqrt(2)."""
+    component y, z) screens with the square inscribed in it, |y|, |z| <= c / sqrt(2); flat bars with
+    the square inside their strip."""
 
     def __init__(self, laws):
         lo, hi = [], []
         for law in laws.laws:
             a, b = math.inf, -math.inf
-            if law.kind == "circular":
-                half = law.clearance / math.sqrt(2.0)
+            if law.kind in ("circular", "flat_bar"):
+                if law.kind == "circular":
+                    half = law.clearance / math.sqrt(2.0)
+                else:   # the square inside the strip |u.e| <= c
+                    angle = math.radians(law.angle)
+                    half = law.clearance / (abs(math.cos(angle)) + abs(math.sin(angle)))
                 lo += [-half, -half]
                 hi += [half, half]
                 continue

@@ -534,8 +534,8 @@ class ConstraintLaws:
 
 # -- two-dimensional laws: a tube in a support of two directions (y, z) ----------------------------
 
-LAWS_2D = ("circular",)
-KEYS_2D = ("law", "clearance", "k", "mu", "v_reg", "damping", "c", "alpha")
+LAWS_2D = ("circular", "flat_bar")
+KEYS_2D = ("law", "clearance", "k", "mu", "v_reg", "damping", "c", "alpha", "angle")
 DEFAULT_V_REG = 1e-3
 
 
@@ -549,7 +549,11 @@ class CircularLaw:
 
     with the contact damping F_d of the 1-D laws along the normal (linear: c v_n; Hunt-Crossley:
     alpha k delta v_n), and Coulomb friction regularized over the velocity scale v_reg (m/s),
-    proportional to the elastic normal force k delta. Out of contact (r <= c) F = 0."""
+    proportional to the elastic normal force k delta. Out of contact (r <= c) F = 0.
+
+    kind = "flat_bar": two parallel flats at `angle` (degrees from y) around the tube, a gap c on each
+    side along their normal e = (cos angle, sin angle): the same law with r = |u.e|, n = sign(u.e) e
+    (a deadband along e, sliding along the flats)."""
 
     clearance: float = 0.0
     k: float = 0.0
@@ -558,11 +562,16 @@ class CircularLaw:
     damping: str = "none"
     c: float = 0.0
     alpha: float = 0.0
-    kind = "circular"
+    kind: str = "circular"
+    angle: float = 0.0
     dimension = 2
 
     def __post_init__(self):
-        for name in ("clearance", "k", "mu", "v_reg", "c", "alpha"):
+        if self.kind not in LAWS_2D:
+            raise InputError(f"a 2-D law is one of {_quoted(LAWS_2D)}, got {self.kind!r}")
+        if self.angle != 0 and self.kind != "flat_bar":
+            raise InputError("angle applies only to a flat_bar law")
+        for name in ("clearance", "k", "mu", "v_reg", "c", "alpha", "angle"):
             value = getattr(self, name)
             if not (_is_number(value) and math.isfinite(value)):
                 raise InputError(f"{name} must be a finite number, got {value!r}")
@@ -610,8 +619,10 @@ def circular_from_dict(where: str, d: dict) -> CircularLaw:
         raise InputError(f"{where}: damping = \"linear\" needs c (N s/m)")
     if damping == "hunt_crossley" and "alpha" not in d:
         raise InputError(f"{where}: damping = \"hunt_crossley\" needs alpha (s/m)")
+    if "angle" in d and d.get("law") != "flat_bar":
+        raise InputError(f"{where}: angle applies only to a flat_bar law")
     try:
-        return CircularLaw(**{k: v for k, v in d.items() if k != "law"})
+        return CircularLaw(kind=d["law"], **{k: v for k, v in d.items() if k != "law"})
     except InputError as e:
         raise InputError(f"{where}: {e}") from None
 
@@ -633,6 +644,10 @@ class PlanarLaws:
         arr = lambda name: np.array([getattr(law, name) for law in self.laws], dtype=float)  # noqa: E731
         self.gap, self.k, self.mu, self.v_reg = arr("clearance"), arr("k"), arr("mu"), arr("v_reg")
         self.c, self.alpha = arr("c"), arr("alpha")
+        self.flat = np.array([law.kind == "flat_bar" for law in self.laws], dtype=bool)
+        self.any_flat = bool(self.flat.any())
+        angle = np.radians(arr("angle"))
+        self.e = np.column_stack((np.cos(angle), np.sin(angle)))   # the flats' normal
 
     def _split(self, z, v):
         z = np.asarray(z, dtype=float)
@@ -642,12 +657,27 @@ class PlanarLaws:
         w = np.zeros_like(u) if v is None else np.asarray(v, dtype=float).reshape(self.n, 2)
         return u, w
 
+    def _gap_coordinate(self, u):
+        """(r, n, the curvature factor): r = |u| and n = u / |u| in a round hole, r = |u.e| and
+        n = sign(u.e) e between flat bars; the factor 1 (round: dn/du = t t^T / r) or 0 (flat)."""
+        r = np.hypot(u[..., 0], u[..., 1])
+        safe = np.where(r > 0, r, 1.0)
+        n = u / safe[..., None]
+        n[r == 0] = (1.0, 0.0)
+        if not self.any_flat:
+            return r, n, 1.0
+        along = np.einsum("...ja,ja->...j", u, self.e)
+        flat = np.broadcast_to(self.flat, r.shape)
+        r = np.where(flat, np.abs(along), r)
+        side = np.where(along < 0, -1.0, 1.0)
+        n = np.where(flat[..., None], side[..., None] * self.e, n)
+        return r, n, (~self.flat).astype(float)
+
     def _kinematics(self, u, w):
-        r = np.hypot(u[:, 0], u[:, 1])
+        r, n, curved = self._gap_coordinate(u)
         contact = r > self.gap
         safe = np.where(r > 0, r, 1.0)
-        n = u / safe[:, None]
-        n[r == 0] = (1.0, 0.0)
+        self._curved = curved
         t = np.column_stack((-n[:, 1], n[:, 0]))
         vn, vt = np.einsum("ja,ja->j", w, n), np.einsum("ja,ja->j", w, t)
         delta = np.where(contact, r - self.gap, 0.0)
@@ -672,7 +702,7 @@ class PlanarLaws:
         k, on = self.k, contact.astype(float)
         nn, tt = np.einsum("ja,jb->jab", n, n), np.einsum("ja,jb->jab", t, t)
         nt, tn = np.einsum("ja,jb->jab", n, t), np.einsum("ja,jb->jab", t, n)
-        inv_r = on / safe
+        inv_r = on * self._curved / safe     # 1 / r from dn/du = t t^T / r; 0 between flat bars
         s = lambda a: a[:, None, None]  # noqa: E731
         # elastic: -k delta n
         dz = -s(k * on) * nn - s(k * delta * inv_r) * tt
@@ -693,23 +723,22 @@ class PlanarLaws:
 
     def potential(self, z) -> np.ndarray:
         u, _ = self._split(z, None)
-        delta = np.maximum(np.hypot(u[:, 0], u[:, 1]) - self.gap, 0.0)
+        delta = np.maximum(self._gap_coordinate(u)[0] - self.gap, 0.0)
         return 0.5 * self.k * delta * delta
 
     def in_contact(self, z) -> np.ndarray:
-        """(n,) |u| > clearance."""
+        """(n,) |u| > clearance (flat bars: |u.e| > clearance)."""
         u, _ = self._split(z, None)
-        return np.hypot(u[:, 0], u[:, 1]) > self.gap
+        return self._gap_coordinate(u)[0] > self.gap
 
     def radial(self, z, v, force):
         """Per support, from flat (k, 2 n) arrays: |u|, the normal velocity v.n, |F|, the normal
         force magnitude |F.n|, the sliding speed |v.t| and contact (|u| > c), each (k, n)."""
         k = np.asarray(z).shape[0]
         u, w, f = (np.asarray(a, dtype=float).reshape(k, self.n, 2) for a in (z, v, force))
+        gap, n, _ = self._gap_coordinate(u)
         r = np.hypot(u[..., 0], u[..., 1])
-        safe = np.where(r > 0, r, 1.0)
-        n = u / safe[..., None]
         vn = np.einsum("kja,kja->kj", w, n)
         vt = n[..., 0] * w[..., 1] - n[..., 1] * w[..., 0]
         fn = np.abs(np.einsum("kja,kja->kj", f, n))
-        return r, vn, np.hypot(f[..., 0], f[..., 1]), fn, np.abs(vt), r > self.gap
+        return r, vn, np.hypot(f[..., 0], f[..., 1]), fn, np.abs(vt), gap > self.gap

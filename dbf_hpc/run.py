@@ -145,7 +145,7 @@ def _warn_idle(summary: dict, constraints, comm) -> None:
     stats = summary.get("constraint_stats", {})
     for j, constraint in enumerate(constraints):
         law = constraint.law
-        if law.kind in ("deadband", "power", "hertz", "circular") and stats and stats["impacts"][j] == 0:
+        if law.kind in ("deadband", "power", "hertz", "circular", "flat_bar") and stats and stats["impacts"][j] == 0:
             gap = min(law.clearance_minus, law.clearance_plus)
             PETSc.Sys.Print(f"dbf-hpc: warning: constraint {j + 1} at {constraint.label} never reached its stop "
                             f"(max |w| {stats['displacement_peak'][j]:.3g} m, clearance {gap:.3g} m): check the "

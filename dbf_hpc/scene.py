@@ -399,7 +399,7 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
         if d != planes:
             raise InputError(f"{path}: [[constraint]] {i + 1}: " + (
                 f"a {c.law.kind} law acts in two directions; it needs [structure] planes = 2" if d == 2 else
-                f"a beam of two planes takes law = \"circular\" (a 2-D law), not {c.law.kind}"))
+                f"a beam of two planes takes a 2-D law (law = \"circular\" or \"flat_bar\"), not {c.law.kind}"))
     _check_excitation(sections["excitation"], s, f"{path}: [excitation]", at)
     _check_basis(sections["basis"], f"{path}: [basis]")
     _check_integrator_and_output(sections, path, at)

@@ -118,10 +118,10 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
     "x": Key(NUMBER, None, "m", "beam: position (required on a beam)"),
     "dof": Key((int,), None, "", "matrices: the DOF it acts on, counted from 0 (required for matrices)"),
     "law": Key((str,), "deadband", "", '"deadband" (Eq. 23), "power" (Eq. 42), "hertz", "linear", "cubic", '
-                                       '"table", or on a beam of two planes "circular" (a round hole)'),
+                                       '"table", or on a beam of two planes "circular" (a round hole) or "flat_bar" (two parallel flats)'),
     "clearance": Key(NUMBER, None, "m", "deadband, power, hertz: gap on both sides (or clearance_minus, "
                                         "clearance_plus); negative is an interference fit; circular: the radial "
-                                        "clearance (>= 0)"),
+                                        "clearance (>= 0); flat_bar: the gap to each flat"),
     "k": Key(NUMBER, None, "N/m^p", "stiffness on both sides (or k_minus, k_plus); linear, cubic: the spring"),
     "exponent": Key(NUMBER, None, "", "power: exponent p on both sides (or exponent_minus, exponent_plus); "
                                       "hertz: 1.5"),
@@ -131,10 +131,12 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
                                        '(-alpha |N| v)'),
     "c": Key(NUMBER, None, "N s/m", "linear contact damping"),
     "alpha": Key(NUMBER, None, "s/m", "Hunt-Crossley contact damping"),
-    "mu": Key(NUMBER, None, "1", "circular: Coulomb friction coefficient (default 0), "
+    "mu": Key(NUMBER, None, "1", "circular, flat_bar: Coulomb friction coefficient (default 0), "
                                  "F_t = -mu k (|u| - c) tanh(v_t / v_reg)"),
-    "v_reg": Key(NUMBER, None, "m/s", "circular: the sliding speed over which friction is regularized (default "
-                                      "1e-3)"),
+    "v_reg": Key(NUMBER, None, "m/s", "circular, flat_bar: the sliding speed over which friction is regularized "
+                                      "(default 1e-3)"),
+    "angle": Key(NUMBER, None, "deg", "flat_bar: the direction of the flats' normal, from y towards z (default 0: "
+                                      "flats across y, sliding along z)"),
 })
 
 

@@ -87,19 +87,23 @@ def test_probes_and_snapshots_of_two_planes_give_y_and_z(comm):
 LAWS = [CircularLaw(clearance=1e-3, k=1e5, mu=0.3, v_reg=1e-2, damping="linear", c=5.0),
         CircularLaw(clearance=2e-3, k=1e6, mu=0.2, v_reg=1e-3, damping="hunt_crossley", alpha=0.3),
         CircularLaw(clearance=1e-3, k=1e5, mu=0.4),
-        CircularLaw(clearance=0.0, k=1e4)]
+        CircularLaw(clearance=0.0, k=1e4),
+        CircularLaw(kind="flat_bar", angle=30.0, clearance=1e-3, k=1e5, mu=0.3, v_reg=1e-2, damping="hunt_crossley",
+                    alpha=0.2),
+        CircularLaw(kind="flat_bar", angle=-70.0, clearance=5e-4, k=1e4, mu=0.1, damping="linear", c=3.0)]
 
 
-def test_circular_law_jacobian_matches_finite_differences_in_u_and_v():
+def test_circular_and_flat_bar_jacobians_match_finite_differences_in_u_and_v():
     laws = PlanarLaws(LAWS)
     rng = np.random.default_rng(3)
+    size = 2 * len(LAWS)
     for _ in range(20):
-        z, v = rng.normal(size=8) * 3e-3, rng.normal(size=8) * 1e-2
+        z, v = rng.normal(size=size) * 3e-3, rng.normal(size=size) * 1e-2
         force, dz, dv = laws.force_and_jacobian(z, v)
         assert np.array_equal(force, laws.force(z, v))
         h = 1e-9
-        for col in range(8):
-            e = np.zeros(8)
+        for col in range(size):
+            e = np.zeros(size)
             e[col] = h
             j, a = divmod(col, 2)
             fz = (laws.force(z + e, v) - laws.force(z - e, v))[2 * j:2 * j + 2] / (2 * h)
@@ -352,6 +356,26 @@ def test_full_order_radial_quantities_do_not_depend_on_the_direction_of_the_forc
             radial(getattr(a, name))).max(), name
     for name in a.statistics:
         assert np.allclose(a.statistics[name], b.statistics[name], rtol=1e-8, atol=1e-15), name
+
+
+def test_flat_bars_are_a_deadband_across_the_flats_and_free_along_them(comm):
+    # flats across y (angle 0), no friction, the force along (0.6, 0.8): y is the planar deadband
+    # under 0.6 of the force, z the unconstrained beam under 0.8 of it, to round-off
+    def planar(lawobj, share):
+        with FullOrderModel.build(paper_beam(1), [Constraint(lawobj, x=0.25)], PointForce(0.02 * share, 5.0, x=0.5),
+                                  probes=[0.5], damping=Damping(rayleigh_alpha=0.5), comm=comm) as fom:
+            return simulate_full(fom, IntegratorSettings(t_end=0.2, dt=1e-4, sample_dt=1e-3))
+
+    bars = full(2, CircularLaw(kind="flat_bar", clearance=1e-3, k=1e3), direction=(0.6, 0.8), comm=comm)
+    across = planar(law("deadband", clearance=1e-3, k=1e3), 0.6)
+    along = planar(law("linear", k=1e-12), 0.8)    # (a spring of 1e-12 N/m: free to round-off)
+    assert across.statistics["impacts"][0] >= 2
+    assert np.abs(bars.displacement[..., 0] - across.displacement).max() <= 1e-9 * np.abs(across.displacement).max()
+    assert np.abs(bars.displacement[..., 1] - along.displacement).max() <= 1e-9 * np.abs(along.displacement).max()
+    assert np.abs(bars.force[..., 0] - across.force).max() <= 1e-9 * np.abs(across.force).max()
+    assert not np.any(bars.force[..., 1])
+    for name in ("impacts", "contact_fraction", "force_peak", "force_rms"):
+        assert np.allclose(bars.statistics[name], across.statistics[name], rtol=1e-9), name
 
 
 def test_the_two_plane_tube_runs_full_order_with_the_same_layout(shared_tmp_path, comm):
