@@ -676,12 +676,11 @@ class PlanarLaws:
     def _kinematics(self, u, w):
         r, n, curved = self._gap_coordinate(u)
         contact = r > self.gap
-        safe = np.where(r > 0, r, 1.0)
-        self._curved = curved
+        inv_r = curved / np.where(r > 0, r, 1.0)   # 1 / r of dn/du = t t^T / r; 0 between flat bars
         t = np.column_stack((-n[:, 1], n[:, 0]))
         vn, vt = np.einsum("ja,ja->j", w, n), np.einsum("ja,ja->j", w, t)
         delta = np.where(contact, r - self.gap, 0.0)
-        return r, safe, contact, n, t, vn, vt, delta
+        return r, inv_r, contact, n, t, vn, vt, delta
 
     def force(self, z, v=None) -> np.ndarray:
         """F on the structure (flat, 2 n); v = None leaves out damping and friction."""
@@ -698,11 +697,11 @@ class PlanarLaws:
     def force_and_jacobian(self, z, v):
         """(F flat (2 n,), dF/du (n, 2, 2), dF/dv (n, 2, 2)): exact derivatives (docs/method.md)."""
         u, w = self._split(z, v)
-        r, safe, contact, n, t, vn, vt, delta = self._kinematics(u, w)
+        r, inv_r, contact, n, t, vn, vt, delta = self._kinematics(u, w)
         k, on = self.k, contact.astype(float)
         nn, tt = np.einsum("ja,jb->jab", n, n), np.einsum("ja,jb->jab", t, t)
         nt, tn = np.einsum("ja,jb->jab", n, t), np.einsum("ja,jb->jab", t, n)
-        inv_r = on * self._curved / safe     # 1 / r from dn/du = t t^T / r; 0 between flat bars
+        inv_r = on * inv_r
         s = lambda a: a[:, None, None]  # noqa: E731
         # elastic: -k delta n
         dz = -s(k * on) * nn - s(k * delta * inv_r) * tt
