@@ -255,7 +255,7 @@ def _basis(args) -> int:
     say = PETSc.Sys.Print
     with scene.full_order_model(comm) as fom, \
             Reductor(fom, scene.basis_settings(), None if args.no_cache else scene.cache_dir()) as reductor:
-        labels = list(fom.constraints.labels)
+        labels = fom.constraints.component_labels
         start, solves = time.perf_counter(), counters["eigen_solves"]
         basis = reductor.basis()
         elapsed = time.perf_counter() - start

@@ -2,7 +2,7 @@
 
 Constraint j acts on d displacement components of the structure, w_(j,a) = u[rows[j, a]],
 a = 1..d (d = 1 for a beam against a stop or a DOF of a matrix model; d = 2 for a tube moving in
-two transverse directions, which is not built yet). G, the n x (N_L d) matrix of unit vectors at
+two transverse directions, y and z, in a support such as a round hole: laws.PlanarLaws). G, the n x (N_L d) matrix of unit vectors at
 those rows, is never formed: every operator that needs it works on the rows.
 
 Vectors at the constraints are flat, constraint-major, of length N_L d: entry j d + a is
@@ -20,7 +20,7 @@ from typing import Optional
 
 import numpy as np
 
-from .laws import ConstraintLaws, Law
+from .laws import ConstraintLaws, Law, PlanarLaws
 
 
 @dataclass(frozen=True)
@@ -46,13 +46,13 @@ class ConstraintSet:
     """N_L constraints of dimension d.
 
     rows       (N_L, d) global DOF rows each constraint acts on
-    laws       their laws (d = 1: one scalar law per constraint, laws.py)
+    laws       their laws (d = 1: ConstraintLaws, one scalar law per constraint; d = 2: PlanarLaws)
     labels     how a user names each constraint in messages ("x = 0.25 m", "dof 17")
     positions  (N_L,) x (m) on a beam, the first DOF for matrix models (written to the output)
     """
 
     rows: np.ndarray
-    laws: ConstraintLaws
+    laws: object
     labels: tuple
     positions: np.ndarray
 
@@ -60,8 +60,9 @@ class ConstraintSet:
         rows = np.asarray(self.rows, dtype=np.int64)
         rows = rows.reshape(len(self.labels), -1 if rows.size else 1)
         object.__setattr__(self, "rows", rows)
-        if rows.shape[1] != 1 and rows.shape[0]:
-            raise NotImplementedError("constraints of dimension d > 1 come with two-direction supports")
+        if rows.shape[0] and rows.shape[1] != getattr(self.laws, "dimension", 1):
+            raise ValueError(f"laws of dimension {getattr(self.laws, 'dimension', 1)} for constraints on "
+                             f"{rows.shape[1]} DOFs each")
         if self.laws.n != rows.shape[0]:
             raise ValueError(f"{self.laws.n} laws for {rows.shape[0]} constraints")
 
@@ -81,6 +82,11 @@ class ConstraintSet:
         return self.rows.shape[1]
 
     @property
+    def shape(self) -> tuple:
+        """The shape of one sample of the constraints' values in an output: (N_L,) or (N_L, d)."""
+        return (self.count,) if self.dimension == 1 else (self.count, self.dimension)
+
+    @property
     def flat_rows(self) -> np.ndarray:
         """(N_L d,) the rows of G's columns, constraint-major."""
         return self.rows.ravel()
@@ -92,11 +98,15 @@ class ConstraintSet:
     def force_and_jacobian(self, z, v):
         """(force (N_L d,), dN/dz (N_L, d, d), dN/dv (N_L, d, d)) in one pass."""
         force, dz, dv = self.laws.force_and_jacobian(z, v)
+        if self.dimension > 1:
+            return force, dz, dv
         return force, dz[:, None, None], dv[:, None, None]
 
     def diagonal_jacobian(self, z, v):
         """(force, dN/dz, dN/dv) with the d = 1 Jacobians as flat (N_L,) diagonals: the integrators'
-        fast path (every law here acts on one component, so the blocks are 1 x 1)."""
+        fast path (d = 1 only: the blocks are 1 x 1)."""
+        if self.dimension > 1:
+            raise ValueError("diagonal_jacobian: the constraints are 2-D; use force_and_jacobian")
         return self.laws.force_and_jacobian(z, v)
 
     #: whether a law carries state that `commit` must see after every accepted step (the compiled
@@ -107,7 +117,15 @@ class ConstraintSet:
         """Accept a step: laws with state (friction) take it here. The laws of laws.py have none."""
 
     def in_contact(self, z) -> np.ndarray:
+        """(N_L,) whether each constraint is in contact."""
         return self.laws.in_contact(z)
+
+    @property
+    def component_labels(self) -> list:
+        """A label per flat component (the DBF columns): the constraint's, with (y) and (z) for d = 2."""
+        if self.dimension == 1:
+            return list(self.labels)
+        return [f"{label} ({axis})" for label in self.labels for axis in "yz"]
 
     @property
     def clearance_minus(self) -> np.ndarray:
@@ -117,6 +135,6 @@ class ConstraintSet:
     def clearance_plus(self) -> np.ndarray:
         return np.array([law.clearance_plus for law in self.laws.laws], dtype=float)
 
-    def with_laws(self, laws: ConstraintLaws) -> "ConstraintSet":
+    def with_laws(self, laws) -> "ConstraintSet":
         """The same constraints with other laws (a new law never needs a new basis)."""
         return ConstraintSet(rows=self.rows, laws=laws, labels=self.labels, positions=self.positions)

@@ -64,11 +64,13 @@ class NoExcitation:
 @dataclass(frozen=True)
 class BaseMotion:
     """The transverse support at `end` ("left" or "right" of a beam; the influence vector of a
-    matrix model) moves as amplitude sin(2 pi frequency_hz t) (m)."""
+    matrix model) moves as amplitude sin(2 pi frequency_hz t) (m); on a beam of two planes along
+    the unit vector `direction` (dy, dz)."""
 
     amplitude: float
     frequency_hz: float
     end: str = "left"
+    direction: tuple = (1.0, 0.0)
     kind = "base"
 
     def support(self) -> Harmonic:
@@ -77,12 +79,14 @@ class BaseMotion:
 
 @dataclass(frozen=True)
 class PointForce:
-    """amplitude sin(2 pi frequency_hz t) (N) at x (m, a beam) or at DOF `dof` (a matrix model)."""
+    """amplitude sin(2 pi frequency_hz t) (N) at x (m, a beam) or at DOF `dof` (a matrix model); on a
+    beam of two planes along the unit vector `direction` (dy, dz)."""
 
     amplitude: float
     frequency_hz: float
     x: Optional[float] = None
     dof: Optional[int] = None
+    direction: tuple = (1.0, 0.0)
     kind = "force"
 
     def history(self) -> Harmonic:
@@ -92,13 +96,15 @@ class PointForce:
 @dataclass(frozen=True)
 class RandomForce:
     """A distributed force per unit length on [span[0], span[1]] of a beam, fully correlated along
-    the span: a flat one-sided PSD psd ((N/m)^2/Hz) over band = (f_low, f_high) Hz, from seed."""
+    the span: a flat one-sided PSD psd ((N/m)^2/Hz) over band = (f_low, f_high) Hz, from seed; on a
+    beam of two planes along the unit vector `direction` (dy, dz)."""
 
     psd: float
     band: tuple
     seed: int = 1
     components: int = 256
     span: tuple = field(default=())
+    direction: tuple = (1.0, 0.0)
     kind = "random"
 
     def history(self) -> RandomProcess:

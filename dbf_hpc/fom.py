@@ -24,7 +24,7 @@ from .constraints import ConstraintSet
 from .damping import Damping
 from .errors import InputError
 from .excitation import NoExcitation, time_functions
-from .laws import ConstraintLaws
+from .laws import ConstraintLaws, PlanarLaws
 from .matrices import MatrixFiles, load_operators
 from .operators import Operators, PointValues
 from .petsctools import destroy, values_at
@@ -71,10 +71,14 @@ class FullOrderModel:
         (default COMM_WORLD). Bad placements are InputErrors, and nothing is leaked."""
         comm = comm or PETSc.COMM_WORLD
         constraints = tuple(constraints)
+        planes = structure.planes if isinstance(structure, Beam) else 1
+        _check_dimensions(constraints, planes)
         if isinstance(structure, Beam):
             ops = _beam_operators(structure, constraints, excitation, comm)
-            fingerprint = {"beam": dataclasses.asdict(structure),
-                           "nodes": hashlib.sha256(ops.mesh.x.tobytes()).hexdigest()}
+            beam = dataclasses.asdict(structure)
+            if planes == 1:
+                del beam["planes"]   # the cache keys of planar beams stay what they were
+            fingerprint = {"beam": beam, "nodes": hashlib.sha256(ops.mesh.x.tobytes()).hexdigest()}
         elif isinstance(structure, MatrixFiles):
             ops = load_operators(structure, comm)
             fingerprint = None
@@ -86,16 +90,23 @@ class FullOrderModel:
                 fingerprint = structure.fingerprint(comm)
             rows = [_row(ops, c.x, c.dof, f"constraint at {c.label}") for c in constraints]
             _distinct(rows, constraints)
-            constraint_set = ConstraintSet(rows=np.asarray(rows, dtype=np.int64).reshape(-1, 1),
-                                           laws=ConstraintLaws([c.law for c in constraints]),
+            laws = [c.law for c in constraints]
+            rows = np.asarray(rows, dtype=np.int64).reshape(-1, 1)
+            if planes == 2:
+                rows = np.column_stack([rows[:, 0], [_row(ops, c.x, None, f"constraint at {c.label}", plane=1)
+                                                     for c in constraints]]).astype(np.int64)
+            constraint_set = ConstraintSet(rows=rows.reshape(len(constraints), planes),
+                                           laws=PlanarLaws(laws) if planes == 2 else ConstraintLaws(laws),
                                            labels=tuple(c.label for c in constraints),
                                            positions=np.array([c.position for c in constraints], dtype=float))
             probes = _probes(ops, probes, excitation)
             force_row = None
-            if excitation.kind == "force":
+            if excitation.kind == "force" and planes == 2:
+                force_load = _point_load(ops, excitation)
+            elif excitation.kind == "force":
                 force_row = _row(ops, excitation.x, excitation.dof, "the force")
             elif excitation.kind == "random":
-                force_load = distributed_load(ops, *excitation.span)
+                force_load = distributed_load(ops, *excitation.span, direction=excitation.direction)
             if excitation.kind == "base" and ops.influence is None:
                 raise InputError("base excitation of a matrices structure needs [structure] influence")
             return cls(ops, constraint_set, excitation, damping, probes, initial, fingerprint, force_row, force_load)
@@ -255,7 +266,8 @@ def field_peak(ops: Operators, u: PETSc.Vec) -> float:
 def _probes(ops: Operators, probes, excitation) -> PointValues:
     """The probes' PointValues: interpolated on a beam (no node added), a DOF of a matrix model."""
     if ops.mesh is not None:
-        return ops.mesh.point_values(probes, excitation.end if excitation.kind == "base" else None)
+        return ops.mesh.point_values(probes, excitation.end if excitation.kind == "base" else None,
+                                     getattr(excitation, "direction", (1.0, 0.0)))
     for p in probes:
         if not 0 <= int(p) < ops.size:
             raise InputError(f"probe dof {int(p)} is outside the {ops.size} DOFs of the matrices")
@@ -268,14 +280,39 @@ def _beam_operators(beam: Beam, constraints, excitation, comm) -> Operators:
         points.append(excitation.x)
     elif excitation.kind == "random":
         points.extend(excitation.span)
-    return assemble_beam(beam, comm, points=points, base_end=excitation.end if excitation.kind == "base" else None)
+    return assemble_beam(beam, comm, points=points, base_end=excitation.end if excitation.kind == "base" else None,
+                         direction=getattr(excitation, "direction", (1.0, 0.0)))
 
 
-def _row(ops: Operators, x, dof, what: str) -> int:
-    """The row of w at x (a beam) or of `dof` (a matrix model); an InputError on a fixed DOF or
-    outside the structure."""
+def _check_dimensions(constraints, planes: int) -> None:
+    """A beam of two planes takes 2-D laws only (circular, flat_bar), any other structure 1-D laws only."""
+    for i, c in enumerate(constraints):
+        d = getattr(c.law, "dimension", 1)
+        if d == 2 and planes != 2:
+            raise InputError(f"constraint {i + 1} ({c.label}): a {c.law.kind} law acts in two directions; it needs "
+                             f"a beam bending in two planes ([structure] planes = 2)")
+        if d == 1 and planes == 2:
+            raise InputError(f"constraint {i + 1} ({c.label}): a beam of two planes takes 2-D laws "
+                             f"(law = \"circular\" or \"flat_bar\"), not {c.law.kind}")
+
+
+def _point_load(ops: Operators, excitation) -> PETSc.Vec:
+    """A unit point force along `direction` (dy, dz) at x on a beam of two planes. Collective."""
+    load = ops.K.createVecLeft()
+    load.zeroEntries()
+    lo, hi = load.getOwnershipRange()
+    for plane in range(2):
+        row = _row(ops, excitation.x, None, "the force", plane=plane)
+        if lo <= row < hi:
+            load.getArray()[row - lo] += excitation.direction[plane]
+    return load
+
+
+def _row(ops: Operators, x, dof, what: str, plane: int = 0) -> int:
+    """The row of w at x (a beam; plane 1: z) or of `dof` (a matrix model); an InputError on a fixed
+    DOF or outside the structure."""
     if ops.mesh is not None:
-        row = ops.mesh.w_row(x)
+        row = ops.mesh.w_row(x, plane)
         if row < 0:
             raise InputError(f"{what} acts on a fixed DOF: it is on a support; move it or remove it")
         return row

@@ -336,12 +336,23 @@ def _check_exact(A: PETSc.Mat, x: PETSc.Vec, row: int, description: str) -> None
 class FreeIntervals:
     """Where each law gives N = 0 for every velocity (a deadband with its edges, a table's zero
     run): [lo, hi] per constraint, empty (lo > hi) for laws that always push. A step whose
-    mid-point lies inside every interval needs no law evaluation at all."""
+    mid-point lies inside every interval needs no law evaluation at all. A round hole (2-D, per
+    component y, z) screens with the square inscribed in it, |y|, |z| <= c / sqrt(2); flat bars with
+    the square inside their strip."""
 
     def __init__(self, laws):
         lo, hi = [], []
         for law in laws.laws:
             a, b = math.inf, -math.inf
+            if law.kind in ("circular", "flat_bar"):
+                if law.kind == "circular":
+                    half = law.clearance / math.sqrt(2.0)
+                else:   # the square inside the strip |u.e| <= c
+                    angle = math.radians(law.angle)
+                    half = law.clearance / (abs(math.cos(angle)) + abs(math.sin(angle)))
+                lo += [-half, -half]
+                hi += [half, half]
+                continue
             if law.kind in ("deadband", "power", "hertz"):
                 a = -law.clearance_minus if law.k_minus > 0 else -math.inf
                 b = law.clearance_plus if law.k_plus > 0 else math.inf
@@ -380,7 +391,8 @@ class ContactStep:
 
         r(y) = y - y_free - D N(z_a(y), v_a(y)) / a_f,   z_a = z_c + a_f y,   v_a = v_c + a_f s_V (y - x_pred)
 
-    (x_pred: the predictor at the rows), with its exact Jacobian J = I - D diag(N_z + s_V N_v)."""
+    (x_pred: the predictor at the rows), with its exact Jacobian J = I - D diag(N_z + s_V N_v). With
+    2-D laws (d = 2) y holds (y, z) per constraint and diag(...) is block diagonal, 2 x 2 blocks."""
 
     def __init__(self, laws, D, y_free, z_c, v_c, x_pred, af: float, sV: float):
         self.laws, self.D, self.y_free = laws, D, y_free
@@ -398,7 +410,13 @@ class ContactStep:
         return y - self.y_free - self.D @ lam, lam, Nz + self.sV * Nv
 
     def jacobian(self, slope):
-        """J = I - D diag(slope)."""
+        """J = I - D diag(slope) (slope (n,), or (n, d, d) blocks for d > 1)."""
+        if slope.ndim == 3:
+            n, d = slope.shape[0], slope.shape[1]
+            S = np.zeros((n * d, n * d))
+            for j in range(n):
+                S[j * d:(j + 1) * d, j * d:(j + 1) * d] = slope[j]
+            return np.eye(n * d) - self.D @ S
         return np.eye(slope.size) - self.D * slope[None, :]
 
     def residual(self, y):
@@ -1072,6 +1090,7 @@ def integrate_full(fom: FullOrderModel, settings: IntegratorSettings, rows, on_b
       resume                     such a state (the arrays on rank 0, the rest on every rank)
     Returns solver statistics (the keys of the reduced integrator's, plus factorizations and contact
     counts). An OSError in a callback on rank 0 ends the run on every rank. Collective."""
+
     from .errors import Interrupted
 
     rho = options()["rho"]

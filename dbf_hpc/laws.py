@@ -181,10 +181,12 @@ def law(kind: str = "deadband", **keys) -> Law:
     return law_from_dict(None, {"law": kind, **keys})
 
 
-def law_from_dict(index: int | None, d: dict) -> Law:
+def law_from_dict(index: int | None, d: dict):
     """The Law of constraint `index` (as the user counts them) from its [[constraint]] table,
     without its position key. Every error names the constraint and the key."""
     where = f"constraint {index}" if index is not None else "law"
+    if d.get("law") in LAWS_2D:
+        return circular_from_dict(where, d)
     _check_values(where, d)
     kind, damping = d.get("law", "deadband"), d.get("damping", "none")
     _check_keys(where, d, kind, damping)
@@ -210,6 +212,8 @@ def law_from_dict(index: int | None, d: dict) -> Law:
 def _check_values(where: str, d: dict) -> None:
     """Known keys, each of the right type and range."""
     for key in d:
+        if key in KEYS_2D and key not in KEYS:
+            raise InputError(f"{where}: {key} applies only to a circular law (law = \"circular\")")
         if key not in KEYS:
             raise InputError(f"{where}: unknown key {key!r} (known: {', '.join(KEYS)})")
     for key, value in d.items():
@@ -234,7 +238,7 @@ def _check_values(where: str, d: dict) -> None:
 def _check_keys(where: str, d: dict, kind: str, damping: str) -> None:
     """The law and damping kinds exist, and every key applies to them."""
     if kind not in LAWS:
-        raise InputError(f"{where}: law must be one of {_quoted(LAWS)}, got {kind!r}")
+        raise InputError(f"{where}: law must be one of {_quoted(LAWS + LAWS_2D)}, got {kind!r}")
     if damping not in CONTACT_DAMPING:
         raise InputError(f"{where}: damping must be one of {_quoted(CONTACT_DAMPING)}, got {damping!r}")
     for both, sides in _SIDED.items():
@@ -526,3 +530,214 @@ class ConstraintLaws:
         """Where the elastic force is nonzero: outside the deadband on a side with k > 0; always for
         linear and cubic; where the tabulated force is nonzero for tables."""
         return self._gather(self._z(z), "in_contact", dtype=bool)
+
+
+# -- two-dimensional laws: a tube in a support of two directions (y, z) ----------------------------
+
+LAWS_2D = ("circular", "flat_bar")
+KEYS_2D = ("law", "clearance", "k", "mu", "v_reg", "damping", "c", "alpha", "angle")
+DEFAULT_V_REG = 1e-3
+
+
+@dataclass(frozen=True)
+class CircularLaw:
+    """A round hole of radial clearance c around a tube (two directions, y and z). u = (y, z) the
+    total displacement, v its velocity, r = |u|, n = u / r, t = (-n_z, n_y), v_n = v.n, v_t = v.t,
+    delta = r - c. In contact (delta > 0) the force on the tube is
+
+        F = -(k delta + F_d) n - mu k delta tanh(v_t / v_reg) t
+
+    with the contact damping F_d of the 1-D laws along the normal (linear: c v_n; Hunt-Crossley:
+    alpha k delta v_n), and Coulomb friction regularized over the velocity scale v_reg (m/s),
+    proportional to the elastic normal force k delta. Out of contact (r <= c) F = 0.
+
+    kind = "flat_bar": two parallel flats at `angle` (degrees from y) around the tube, a gap c on each
+    side along their normal e = (cos angle, sin angle): the same law with r = |u.e|, n = sign(u.e) e
+    (a deadband along e, sliding along the flats)."""
+
+    clearance: float = 0.0
+    k: float = 0.0
+    mu: float = 0.0
+    v_reg: float = DEFAULT_V_REG
+    damping: str = "none"
+    c: float = 0.0
+    alpha: float = 0.0
+    kind: str = "circular"
+    angle: float = 0.0
+    dimension = 2
+
+    def __post_init__(self):
+        if self.kind not in LAWS_2D:
+            raise InputError(f"a 2-D law is one of {_quoted(LAWS_2D)}, got {self.kind!r}")
+        if self.angle != 0 and self.kind != "flat_bar":
+            raise InputError("angle applies only to a flat_bar law")
+        for name in ("clearance", "k", "mu", "v_reg", "c", "alpha", "angle"):
+            value = getattr(self, name)
+            if not (_is_number(value) and math.isfinite(value)):
+                raise InputError(f"{name} must be a finite number, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        for name in ("clearance", "mu", "c", "alpha"):
+            if getattr(self, name) < 0:
+                raise InputError(f"{name} must be a non-negative number, got {getattr(self, name)!r}")
+        if not self.k > 0:
+            raise InputError(f"k must be a positive number, got {self.k!r}")
+        if not self.v_reg > 0:
+            raise InputError(f"v_reg must be a positive number (m/s), got {self.v_reg!r}")
+        if self.damping not in CONTACT_DAMPING:
+            raise InputError(f"damping must be one of {_quoted(CONTACT_DAMPING)}, got {self.damping!r}")
+        if self.c != 0 and self.damping != "linear":
+            raise InputError("c applies only with damping = \"linear\"")
+        if self.alpha != 0 and self.damping != "hunt_crossley":
+            raise InputError("alpha applies only with damping = \"hunt_crossley\"")
+        if self.damping == "linear" and not self.c > 0:
+            raise InputError(f"c must be a positive number with damping = \"linear\", got {self.c!r}")
+        if self.damping == "hunt_crossley" and not self.alpha > 0:
+            raise InputError(f"alpha must be a positive number with damping = \"hunt_crossley\", got {self.alpha!r}")
+
+    @property
+    def clearance_minus(self) -> float:
+        return self.clearance
+
+    @property
+    def clearance_plus(self) -> float:
+        return self.clearance
+
+
+def circular_from_dict(where: str, d: dict) -> CircularLaw:
+    """A CircularLaw from a [[constraint]] table (without its position key)."""
+    for key, value in d.items():
+        if key not in KEYS_2D:
+            takes = " (a key of the 1-D laws)" if key in KEYS else ""
+            raise InputError(f"{where}: {key} does not apply to a circular law{takes} (keys: {', '.join(KEYS_2D)})")
+        if key not in ("law", "damping") and not (_is_number(value) and math.isfinite(value)):
+            raise InputError(f"{where}: {key} must be a finite number, got {value!r}")
+    for key in ("clearance", "k"):
+        if key not in d:
+            raise InputError(f"{where}: a circular law needs {key}")
+    damping = d.get("damping", "none")
+    if damping == "linear" and "c" not in d:
+        raise InputError(f"{where}: damping = \"linear\" needs c (N s/m)")
+    if damping == "hunt_crossley" and "alpha" not in d:
+        raise InputError(f"{where}: damping = \"hunt_crossley\" needs alpha (s/m)")
+    if "angle" in d and d.get("law") != "flat_bar":
+        raise InputError(f"{where}: angle applies only to a flat_bar law")
+    try:
+        return CircularLaw(kind=d["law"], **{k: v for k, v in d.items() if k != "law"})
+    except InputError as e:
+        raise InputError(f"{where}: {e}") from None
+
+
+class PlanarLaws:
+    """The 2-D laws of all constraints, vectorized. Flat arrays of length 2 n in and out
+    (constraint-major: y_j, z_j); Jacobians as (n, 2, 2) blocks. The same interface as
+    ConstraintLaws where it makes sense (force, force_and_jacobian, potential, in_contact), plus
+    `radial`: the per-support quantities the statistics read."""
+
+    dimension = 2
+
+    def __init__(self, laws):
+        self.laws = tuple(laws)
+        for i, law in enumerate(self.laws):
+            if not isinstance(law, CircularLaw):
+                raise TypeError(f"constraint {i + 1}: expected a CircularLaw, got {type(law).__name__}")
+        self.n = len(self.laws)
+        arr = lambda name: np.array([getattr(law, name) for law in self.laws], dtype=float)  # noqa: E731
+        self.gap, self.k, self.mu, self.v_reg = arr("clearance"), arr("k"), arr("mu"), arr("v_reg")
+        self.c, self.alpha = arr("c"), arr("alpha")
+        self.flat = np.array([law.kind == "flat_bar" for law in self.laws], dtype=bool)
+        self.any_flat = bool(self.flat.any())
+        angle = np.radians(arr("angle"))
+        self.e = np.column_stack((np.cos(angle), np.sin(angle)))   # the flats' normal
+
+    def _split(self, z, v):
+        z = np.asarray(z, dtype=float)
+        if z.shape != (2 * self.n,):
+            raise ValueError(f"expected {2 * self.n} constraint displacements (y, z each), got shape {z.shape}")
+        u = z.reshape(self.n, 2)
+        w = np.zeros_like(u) if v is None else np.asarray(v, dtype=float).reshape(self.n, 2)
+        return u, w
+
+    def _gap_coordinate(self, u):
+        """(r, n, the curvature factor): r = |u| and n = u / |u| in a round hole, r = |u.e| and
+        n = sign(u.e) e between flat bars; the factor 1 (round: dn/du = t t^T / r) or 0 (flat)."""
+        r = np.hypot(u[..., 0], u[..., 1])
+        safe = np.where(r > 0, r, 1.0)
+        n = u / safe[..., None]
+        n[r == 0] = (1.0, 0.0)
+        if not self.any_flat:
+            return r, n, 1.0
+        along = np.einsum("...ja,ja->...j", u, self.e)
+        flat = np.broadcast_to(self.flat, r.shape)
+        r = np.where(flat, np.abs(along), r)
+        side = np.where(along < 0, -1.0, 1.0)
+        n = np.where(flat[..., None], side[..., None] * self.e, n)
+        return r, n, (~self.flat).astype(float)
+
+    def _kinematics(self, u, w):
+        r, n, curved = self._gap_coordinate(u)
+        contact = r > self.gap
+        inv_r = curved / np.where(r > 0, r, 1.0)   # 1 / r of dn/du = t t^T / r; 0 between flat bars
+        t = np.column_stack((-n[:, 1], n[:, 0]))
+        vn, vt = np.einsum("ja,ja->j", w, n), np.einsum("ja,ja->j", w, t)
+        delta = np.where(contact, r - self.gap, 0.0)
+        return r, inv_r, contact, n, t, vn, vt, delta
+
+    def force(self, z, v=None) -> np.ndarray:
+        """F on the structure (flat, 2 n); v = None leaves out damping and friction."""
+        u, w = self._split(z, v)
+        r, _, contact, n, t, vn, vt, delta = self._kinematics(u, w)
+        normal = self.k * delta
+        if v is not None:
+            normal = normal + contact * (self.c * vn + self.alpha * self.k * delta * vn)
+            tangent = self.mu * self.k * delta * np.tanh(vt / self.v_reg)
+        else:
+            tangent = np.zeros(self.n)
+        return (-(normal[:, None] * n) - tangent[:, None] * t).ravel()
+
+    def force_and_jacobian(self, z, v):
+        """(F flat (2 n,), dF/du (n, 2, 2), dF/dv (n, 2, 2)): exact derivatives (docs/method.md)."""
+        u, w = self._split(z, v)
+        r, inv_r, contact, n, t, vn, vt, delta = self._kinematics(u, w)
+        k, on = self.k, contact.astype(float)
+        nn, tt = np.einsum("ja,jb->jab", n, n), np.einsum("ja,jb->jab", t, t)
+        nt, tn = np.einsum("ja,jb->jab", n, t), np.einsum("ja,jb->jab", t, n)
+        inv_r = on * inv_r
+        s = lambda a: a[:, None, None]  # noqa: E731
+        # elastic: -k delta n
+        dz = -s(k * on) * nn - s(k * delta * inv_r) * tt
+        dv = np.zeros_like(dz)
+        # damping along the normal: -(c + alpha k delta) v_n n
+        cd = on * (self.c + self.alpha * k * delta)
+        dz -= s(cd * vt * inv_r) * nt + s(cd * vn * inv_r) * tt + s(on * self.alpha * k * vn) * nn
+        dv -= s(cd) * nn
+        # friction: -mu k delta tanh(v_t / v_reg) t
+        tau = np.tanh(vt / self.v_reg)
+        dtau = (1.0 - tau * tau) / self.v_reg
+        mk = self.mu * k
+        dz -= s(mk * on * tau) * tn - s(mk * delta * dtau * vn * inv_r) * tt - s(mk * delta * tau * inv_r) * nt
+        dv -= s(mk * delta * dtau) * tt
+        normal = k * delta + cd * vn
+        force = -(normal[:, None] * n) - (mk * delta * tau)[:, None] * t
+        return force.ravel(), dz, dv
+
+    def potential(self, z) -> np.ndarray:
+        u, _ = self._split(z, None)
+        delta = np.maximum(self._gap_coordinate(u)[0] - self.gap, 0.0)
+        return 0.5 * self.k * delta * delta
+
+    def in_contact(self, z) -> np.ndarray:
+        """(n,) |u| > clearance (flat bars: |u.e| > clearance)."""
+        u, _ = self._split(z, None)
+        return self._gap_coordinate(u)[0] > self.gap
+
+    def radial(self, z, v, force):
+        """Per support, from flat (k, 2 n) arrays: |u|, the normal velocity v.n, |F|, the normal
+        force magnitude |F.n|, the sliding speed |v.t| and contact (|u| > c), each (k, n)."""
+        k = np.asarray(z).shape[0]
+        u, w, f = (np.asarray(a, dtype=float).reshape(k, self.n, 2) for a in (z, v, force))
+        gap, n, _ = self._gap_coordinate(u)
+        r = np.hypot(u[..., 0], u[..., 1])
+        vn = np.einsum("kja,kja->kj", w, n)
+        vt = n[..., 0] * w[..., 1] - n[..., 1] * w[..., 0]
+        fn = np.abs(np.einsum("kja,kja->kj", f, n))
+        return r, vn, np.hypot(f[..., 0], f[..., 1]), fn, np.abs(vt), gap > self.gap

@@ -43,14 +43,16 @@ DATASETS = {
     CONSTRAINT_POSITION: ("m or 1", "x of each constraint on a beam, or its DOF (N_L)"),
     CONSTRAINT_CLEARANCE_MINUS: ("m", "clearance below each constraint (N_L)"),
     CONSTRAINT_CLEARANCE_PLUS: ("m", "clearance above each constraint (N_L)"),
-    CONSTRAINT_DISPLACEMENT: ("m", "total displacement at the constraints (nt x N_L)"),
-    CONSTRAINT_VELOCITY: ("m/s", "total velocity at the constraints (nt x N_L)"),
-    CONSTRAINT_FORCE: ("N", "constraint force on the structure at the samples (nt x N_L)"),
+    CONSTRAINT_DISPLACEMENT: ("m", "total displacement at the constraints (nt x N_L; nt x N_L x 2, (y, z), on a beam of two planes)"),
+    CONSTRAINT_VELOCITY: ("m/s", "total velocity at the constraints (nt x N_L; nt x N_L x 2, (y, z), on a beam of two planes)"),
+    CONSTRAINT_FORCE: ("N", "constraint force on the structure at the samples (nt x N_L; nt x N_L x 2, (y, z), on a beam of two planes)"),
     CONSTRAINT_FORCE_PEAK: ("N", "largest-magnitude constraint force at the solver's steps since the "
-                                 "previous sample (nt x N_L)"),
+                                 "previous sample (nt x N_L; nt x N_L x 2 on a beam of two "
+                                 "planes, per component)"),
     PROBE_POSITION: ("m or 1", "x of each probe on a beam, or its DOF (P)"),
-    PROBE_DISPLACEMENT: ("m", "total displacement at the probes (nt x P)"),
-    PROBE_PEAK: ("m", "the largest absolute displacement at each probe over the samples (P)"),
+    PROBE_DISPLACEMENT: ("m", "total displacement at the probes (nt x P; nt x P x 2, (y, z), on a beam of two planes)"),
+    PROBE_PEAK: ("m", "the largest absolute displacement at each probe over the samples (P; P x 2 per component on a "
+                    "beam of two planes)"),
     BASIS_OMEGA: ("rad/s", "reference frequencies (N)"),
     BASIS_ENRICHMENT_OMEGA: ("rad/s", "hat-omega_j of each enrichment column, Eq. 41 (N_L, or 0)"),
     BASIS_DBF_K: ("N/m", "DBF stiffness k_j of each constraint, 0 for other enrichment (N_L, or 0)"),
@@ -63,9 +65,11 @@ DATASETS = {
     REDUCED_M: ("1", "reduced mass V^T M V (r x r; I to round-off)"),
     REDUCED_K: ("1/s^2", "reduced stiffness V^T K V (r x r)"),
     REDUCED_D: ("1/s", "reduced damping C_r (r x r)"),
-    REDUCED_B: ("m", "the basis at the constraint DOFs, B = G^T V (N_L x r)"),
+    REDUCED_B: ("m", "the basis at the constraint DOFs, B = G^T V (N_L x r; 2 N_L x r, rows y_j, z_j, on a beam "
+                    "of two planes)"),
     SNAPSHOT_TIME: ("s", "snapshot times (S)"),
-    SNAPSHOT_X: ("m or 1", "field points: node x on a beam, or DOF index (F)"),
+    SNAPSHOT_X: ("m or 1", "field points: node x on a beam (twice each, y then z, on a beam of two planes), or DOF index "
+                    "(F)"),
     SNAPSHOT_W: ("m", "total displacement at the field points (S x F)"),
     "snapshots/displacement": ("m", "the snapshots as displacement vectors at the nodes, one dataset (nodes x 3) "
                                     "a snapshot, for the XDMF file beside the output"),
@@ -89,7 +93,7 @@ def read(f, name: str):
 def reference() -> str:
     """docs/outputs.md: every dataset of a run's output and of a sweep summary, with its unit
     (`python -m dbf_hpc.layout > docs/outputs.md`; a test checks the file is up to date)."""
-    from .stats import DESCRIPTIONS, STATISTICS, UNITS
+    from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, STATISTICS, STATISTICS_2D, UNITS_2D as UNITS
 
     lines = ["# Outputs: the reference", "",
              "Generated from `dbf_hpc/layout.py` (`python -m dbf_hpc.layout > docs/outputs.md`). One HDF5 file a "
@@ -100,6 +104,8 @@ def reference() -> str:
              "| dataset | unit | meaning |", "|---|---|---|"]
     lines += [f"| `{name}` | {unit} | {meaning} |" for name, (unit, meaning) in DATASETS.items()]
     lines += [f"| `{CONSTRAINT_STATS}/{name}` | {UNITS[name]} | {DESCRIPTIONS[name]} (N_L) |" for name in STATISTICS]
+    lines += [f"| `{CONSTRAINT_STATS}/{name}` | {UNITS[name]} | {DESCRIPTIONS[name]} (N_L) |"
+              for name in STATISTICS_2D if name not in STATISTICS]
     lines += ["", "Root attributes: `scene` (the scene file's text), `scene_effective` (JSON: every value the "
               "run used, the `--set` items and defaults included), `scene_path`, `method` (`rom` or `full`), "
               "`basis_enrichment`, `field_kind` (`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
@@ -109,6 +115,11 @@ def reference() -> str:
               "`estimated_error` (1, max over constraints of max_t |w - w_rich| / max_t |w_rich| against twice the "
               "modes, NaN if it could not be made), `estimated_error_window` (s, the estimate holds over [0, it]) "
               "and `estimated_error_note` (how it was made, or why not).", "",
+             "On a beam of two planes (`[structure] planes = 2`, 2-D laws such as `circular`) the statistics are per "
+             "support and radial: `displacement_*` of |u|, `force_*` of |F|, contact (and so the impacts) where "
+             "|u| > clearance, `impact_power_mean` of |F_n v_n|, and `work_rate` = <|F_n| |v_t|> (W), the normal "
+             "work rate of code_aster (Archard wear), with `work_rate_ci95` (runs; the Python API's Result has "
+             "the work rate only).", "",
              "With snapshots, `OUT.xdmf` beside the output describes `snapshots/points` and "
              "`snapshots/displacement/NNNNNN` as a time series that ParaView (Xdmf3 reader) and meshio open.", "",
              "A sweep summary (`dbf-hpc sweep`) holds a row per case: `cases/parameters/<section.key>` (NaN or "

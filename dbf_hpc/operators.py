@@ -38,6 +38,12 @@ class PointValues:
     node: Optional[np.ndarray] = None
     component: Optional[np.ndarray] = None
     coordinates: Optional[np.ndarray] = None
+    components: int = 1     # values per point: 2 on a beam of two planes (y, z), point-major
+
+    @property
+    def shape(self) -> tuple:
+        """The shape of one sample of these values in an output: (P,) or (P, components)."""
+        return (self.count,) if self.components == 1 else (self.count // self.components, self.components)
 
     @classmethod
     def at_rows(cls, positions, rows, moving=None, **where) -> "PointValues":

@@ -76,8 +76,10 @@ def is_dbf_output(path: str) -> bool:
 
 
 def series_shapes(constraint_shape: tuple, n_probes: int, r: int) -> dict:
-    """The shape of one sample of each series (constraint_shape: (N_L,) or (N_L, d))."""
-    shapes = {layout.TIME: (), layout.PROBE_DISPLACEMENT: (n_probes,), layout.REDUCED_Q: (r,),
+    """The shape of one sample of each series (constraint_shape: (N_L,) or (N_L, d); n_probes: P,
+    or the shape (P, 2) of the probes of a beam of two planes)."""
+    probe_shape = (n_probes,) if isinstance(n_probes, (int, np.integer)) else tuple(n_probes)
+    shapes = {layout.TIME: (), layout.PROBE_DISPLACEMENT: probe_shape, layout.REDUCED_Q: (r,),
               layout.REDUCED_QDOT: (r,)}
     for name in (layout.CONSTRAINT_DISPLACEMENT, layout.CONSTRAINT_VELOCITY, layout.CONSTRAINT_FORCE,
                  layout.CONSTRAINT_FORCE_PEAK):

@@ -26,7 +26,9 @@ class SampleRecorder:
     def __init__(self, writer, constraints: ConstraintSet):
         self.writer, self.constraints = writer, constraints
         n = constraints.count * constraints.dimension
-        self.impacts = ImpactAccumulator(n)
+        # supports of two directions: statistics per support from radial quantities (stats.py)
+        self.planar = constraints.dimension == 2
+        self.impacts = ImpactAccumulator(constraints.count, work=True) if self.planar else ImpactAccumulator(n)
         self.peak = np.zeros(n)  # signed largest |N| at the steps since the previous sample
         self._tiled = {}         # block length -> the laws repeated for a block (steps)
 
@@ -44,7 +46,11 @@ class SampleRecorder:
 
     def step(self, t, z, v) -> None:
         force = self.constraints.force(z, v)
-        self.impacts.add(t, z, v, force)
+        if self.planar:
+            r, vn, f, fn, vt, contact = (a[0] for a in self.constraints.laws.radial(z[None], v[None], force[None]))
+            self.impacts.add(t, r, vn, f, contact, power=fn * np.abs(vn), work=fn * vt)
+        else:
+            self.impacts.add(t, z, v, force)
         self._track_peak(force)
 
     def steps(self, t, z, v) -> None:
@@ -57,17 +63,22 @@ class SampleRecorder:
         z = np.asarray(z, dtype=float).reshape(t.size, n)
         v = np.asarray(v, dtype=float).reshape(t.size, n)
         force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
-        self.impacts.add_block(t, z, v, force)
+        if self.planar:
+            r, vn, f, fn, vt, _ = self.constraints.laws.radial(z, v, force)
+            self.impacts.add_block(t, r, vn, f, power=fn * np.abs(vn), work=fn * vt)
+        else:
+            self.impacts.add_block(t, z, v, force)
         if n:
             i = np.abs(force).argmax(axis=0)
             self._track_peak(force[i, np.arange(n)])
 
     def _block_laws(self, k: int):
         """The laws repeated for k points (flat, point-major), one set per block length."""
-        from .laws import ConstraintLaws
+        from .laws import ConstraintLaws, PlanarLaws
 
         if k not in self._tiled:
-            self._tiled[k] = ConstraintLaws(list(self.constraints.laws.laws) * k)
+            kind = PlanarLaws if self.planar else ConstraintLaws
+            self._tiled[k] = kind(list(self.constraints.laws.laws) * k)
         return self._tiled[k]
 
     def state(self) -> dict:
@@ -98,7 +109,11 @@ class FullRecorder(SampleRecorder):
         if t.size:
             z, v = self.observation.constraint_totals(t, z, v)
             force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
-            self.impacts.add_block(t, z, v, force)
+            if self.planar:
+                r, vn, f, fn, vt, _ = self.constraints.laws.radial(z, v, force)
+                self.impacts.add_block(t, r, vn, f, power=fn * np.abs(vn), work=fn * vt)
+            else:
+                self.impacts.add_block(t, z, v, force)
         ts, x, xd, cut = samples
         if not ts.size:
             if t.size:

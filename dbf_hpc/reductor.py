@@ -32,7 +32,7 @@ class Reductor:
         if self._basis is None:
             fom = self.fom
             self._basis = obtain_basis(fom.operators, fom.constraints.flat_rows, self.settings, fom.fingerprint,
-                                       self.cache_dir, list(fom.constraints.labels))
+                                       self.cache_dir, fom.constraints.component_labels)
         return self._basis
 
     def reduce(self, field: bool = False) -> ReducedModel:
@@ -65,7 +65,8 @@ class Reductor:
                             force_shape=force_shape, constraints=fom.constraints, support=fom.support,
                             force=fom.force, q0=q0, p0=np.zeros(basis.size), probe_B=self._basis_at(fom.probes),
                             probe_r=fom.support_share(fom.probes), basis_info=info, r_q=r_q,
-                            field=self._field() if field else None, field_points=ops.field_map())
+                            field=self._field() if field else None, field_points=ops.field_map(),
+                            probe_shape=fom.probes.shape)
 
     def _initial_coordinates(self) -> np.ndarray:
         """q(0): zero, or the initial amplitude (m, peak over the field) in a reference mode."""

@@ -13,7 +13,8 @@ from .errors import InputError
 
 # The impact statistics a tube-vibration engineer reads first, with how to print them.
 HEADLINE = (("impacts", "{:.0f} impacts"), ("impact_rate", "{:.3g}/s"), ("contact_fraction", "in contact {:.2%}"),
-            ("force_rms", "force RMS {:.3g} N"), ("impact_power_mean", "impact power {:.3g} W"))
+            ("force_rms", "force RMS {:.3g} N"), ("impact_power_mean", "impact power {:.3g} W"),
+            ("work_rate", "work rate {:.3g} W"), ("work_rate_ci95", "+- {:.2g} W (95 %)"))
 
 
 def open_output(path: str):
@@ -91,8 +92,12 @@ def _constraint_lines(f, partial: bool = False) -> list:
     stats = f.get(layout.CONSTRAINT_STATS)
     lines = []
     for j, at in enumerate(where):
-        line = (f"  constraint {j + 1}{at}: w in [{z[:, j].min():.6g}, {z[:, j].max():.6g}] m, "
-                f"peak force {np.abs(force[:, j]).max():.6g} N")
+        if z.ndim == 3:   # a support of two directions (y, z): radial values
+            line = (f"  constraint {j + 1}{at}: max |u| {np.hypot(*z[:, j].T).max():.6g} m, "
+                    f"peak |F| {np.hypot(*force[:, j].T).max():.6g} N")
+        else:
+            line = (f"  constraint {j + 1}{at}: w in [{z[:, j].min():.6g}, {z[:, j].max():.6g}] m, "
+                    f"peak force {np.abs(force[:, j]).max():.6g} N")
         if stats is not None and not partial:
             line += "; " + ", ".join(fmt.format(stats[name][j]) for name, fmt in HEADLINE if name in stats)
         lines.append(line)
@@ -104,6 +109,8 @@ def _probe_lines(f) -> list:
         return []
     w = f[layout.PROBE_DISPLACEMENT][:]
     positions = f[layout.PROBE_POSITION][:] if layout.PROBE_POSITION in f else np.arange(w.shape[1])
+    if w.ndim == 3:   # (y, z) at each probe
+        return [f"  probe at {x:g}: peak |(y, z)| {np.hypot(*w[:, p].T).max():.6g} m" for p, x in enumerate(positions)]
     return [f"  probe at {x:g}: peak |w| {np.abs(w[:, p]).max():.6g} m" for p, x in enumerate(positions)]
 
 

@@ -69,6 +69,12 @@ class ReducedModel:
     G: Optional[np.ndarray] = None
     field: Optional[ReducedField] = None
     field_points: Optional[object] = None
+    probe_shape: Optional[tuple] = None
+
+    @property
+    def probe_sample_shape(self) -> tuple:
+        """The shape of one sample of the probes: (P,), or (P, 2) (y, z) on a beam of two planes."""
+        return self.probe_shape or (self.probe_B.shape[0],)
 
     @property
     def size(self) -> int:

@@ -45,11 +45,18 @@ WHAT = "time integration"
 _warned = []
 
 
-def c_core(callbacks: str, say=None):
+def c_core(callbacks: str, say=None, dimension: int = 1):
     """The C core for [integrator] callbacks = `callbacks`, or None for the Python callbacks. "c"
     without the extension is an InputError (one line saying how to build it); "auto" falls back to
-    Python with a one-line warning (once per process)."""
+    Python with a one-line warning (once per process). The C callbacks handle laws of one direction
+    (d = 1): with 2-D laws "auto" takes the Python callbacks without a warning, and "c" is an
+    InputError."""
     if callbacks == "python":
+        return None
+    if dimension > 1:
+        if callbacks == "c":
+            raise InputError("callbacks = \"c\": the C callbacks handle constraints of one direction (d = 1) "
+                             "only; use callbacks = \"auto\" or \"python\" with 2-D laws (circular)")
         return None
     from . import _romc
     if _romc.core is not None:
@@ -125,9 +132,16 @@ class ReducedProblem:
         a[r:, r:] = shift * self.eye + self.D
         if self.implicit_contact:
             z, v = m.constraint_state(t, q, p)
-            _, dz, dv = m.constraints.diagonal_jacobian(z, v)
-            a[r:, :r] -= self.Bt @ (dz[:, None] * m.B)
-            a[r:, r:] -= self.Bt @ (dv[:, None] * m.B)
+            d = m.constraints.dimension
+            if d == 1:
+                _, dz, dv = m.constraints.diagonal_jacobian(z, v)
+                a[r:, :r] -= self.Bt @ (dz[:, None] * m.B)
+                a[r:, r:] -= self.Bt @ (dv[:, None] * m.B)
+            else:  # d x d blocks per constraint
+                _, dz, dv = m.constraints.force_and_jacobian(z, v)
+                blocks = m.B.reshape(-1, d, r)
+                a[r:, :r] -= self.Bt @ np.einsum("jab,jbr->jar", dz, blocks).reshape(-1, r)
+                a[r:, r:] -= self.Bt @ np.einsum("jab,jbr->jar", dv, blocks).reshape(-1, r)
         P.assemble()
         if J != P:
             J.assemble()
@@ -194,7 +208,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
         raise TypeError("integrate_reduced takes either record or recorder")
     if recorder is not None:
         record = recorder.record
-    core = c_core(settings.callbacks, say)
+    core = c_core(settings.callbacks, say, model.constraints.dimension)
     r = model.size
     implicit = settings.contact == "implicit"
     problem = ReducedProblem(model, implicit)

@@ -35,7 +35,7 @@ from .reductor import Reductor
 from .rom import ReducedModel
 from .rom_integrator import effective_callbacks, integrate_reduced
 from .scene import Scene
-from .stats import DESCRIPTIONS, UNITS
+from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
 from .timestepping import check_work
 
 
@@ -116,7 +116,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         with Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
             basis = reductor.basis()
             timings["basis"] = time.perf_counter() - t
-            _say_basis(say, basis, timings["basis"], list(fom.constraints.labels), comm, scene.fastest_forcing_hz())
+            _say_basis(say, basis, timings["basis"], fom.constraints.component_labels, comm, scene.fastest_forcing_hz())
             t = time.perf_counter()
             model = reductor.reduce(field=scene.output().snapshots > 0)
             basis_key = {"fingerprint": fom.fingerprint, "basis": basis.settings.key(),
@@ -188,7 +188,7 @@ def _warn_idle(summary: dict, constraints, comm) -> None:
     stats = summary.get("constraint_stats", {})
     for j, constraint in enumerate(constraints):
         law = constraint.law
-        if law.kind in ("deadband", "power", "hertz") and stats and stats["impacts"][j] == 0:
+        if law.kind in ("deadband", "power", "hertz", "circular", "flat_bar") and stats and stats["impacts"][j] == 0:
             gap = min(law.clearance_minus, law.clearance_plus)
             PETSc.Sys.Print(f"dbf-hpc: warning: constraint {j + 1} at {constraint.label} never reached its stop "
                             f"(max |w| {stats['displacement_peak'][j]:.3g} m, clearance {gap:.3g} m): check the "
@@ -269,7 +269,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
                               model.size, output.snapshots, field)
         check_free_space(path, needed + 8.0 * (2 * model.size + 64))   # the output and its checkpoint
         writer = (_reopen(path, int(state["samples"])) if state else
-                  OutputWriter(path, (model.constraints.count,), model.probe_B.shape[0], model.size))
+                  OutputWriter(path, model.constraints.shape, model.probe_sample_shape, model.size))
         recorder = ReducedRecorder(writer, model, _snapshot_samples(output.snapshots, settings.sample_times))
         if state:
             recorder.restore(state)
@@ -427,6 +427,17 @@ def _interrupt_on_sigterm(stepper):
         signal.signal(signal.SIGTERM, previous)
 
 
+def sample_work_rate_ci95(writer, constraints) -> np.ndarray:
+    """stats.batch_means_ci95 of |F_n| |v_t| at the samples, per support (2-D laws)."""
+    from .stats import batch_means_ci95
+
+    t = writer.series_data(layout.TIME)
+    z, v, force = (writer.series_data(name).reshape(t.size, -1) for name in
+                   (layout.CONSTRAINT_DISPLACEMENT, layout.CONSTRAINT_VELOCITY, layout.CONSTRAINT_FORCE))
+    _, _, _, fn, vt, _ = constraints.laws.radial(z, v, force)
+    return batch_means_ci95(t, fn * vt)
+
+
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
            field, snap_t, snap_w, model: ReducedModel | None = None, extra_attrs: dict | None = None) -> dict:
     """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
@@ -437,6 +448,8 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     snap_w = np.asarray(snap_w, dtype=float).reshape(np.size(snap_t), field.count)
     writer = recorder.writer
     constraint_stats = recorder.impacts.result()
+    if recorder.planar:   # supports of two directions: the work rate's confidence interval from the samples
+        constraint_stats["work_rate_ci95"] = sample_work_rate_ci95(writer, constraints)
     probe_peak = np.abs(writer.series_data(layout.PROBE_DISPLACEMENT)).max(axis=0, initial=0.0)
     geometry = field.geometry()
     datasets = {layout.CONSTRAINT_POSITION: constraints.positions,
@@ -539,10 +552,11 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
                 _say(say, f"resuming from the checkpoint at t = {float(state['t']):.6g} s" if state else
                      "no usable checkpoint: starting from t = 0")
             samples_left = settings.sample_times.size - (int(state["samples"]) if state else 0)
-            check_free_space(path, output_bytes(samples_left, constraints.count, fom.probes.count, 0,
+            check_free_space(path, output_bytes(samples_left, constraints.count * constraints.dimension,
+                                                fom.probes.count, 0,
                                                 output.snapshots, field.count) + 8.0 * 3 * fom.size)
             writer = (_reopen(path, int(state["samples"])) if state else
-                      OutputWriter(path, (constraints.count,), fom.probes.count, 0))
+                      OutputWriter(path, constraints.shape, fom.probes.shape, 0))
             recorder = FullRecorder(writer, constraints, observation)
             if state:
                 recorder.restore(state)

@@ -78,7 +78,7 @@ class Scene:
         s = self["structure"]
         return Beam(length=float(s["length"]), E=float(s["E"]), I=float(s["I"]), A=float(s["A"]),
                     rho=float(s["rho"]), elements=s["elements"], left=s["left"], right=s["right"],
-                    supports=tuple(float(x) for x in s["supports"]))
+                    supports=tuple(float(x) for x in s["supports"]), planes=s["planes"])
 
     def structure(self):
         """The structure: a Beam, or the MatrixFiles with paths resolved against the scene's folder."""
@@ -92,12 +92,16 @@ class Scene:
     def excitation(self):
         """The excitation description (excitation.py)."""
         e = self["excitation"]
+        d = e["direction"] or [1.0, 0.0]
+        direction = (float(d[0]) / math.hypot(*d), float(d[1]) / math.hypot(*d))
         if e["kind"] == "base":
-            return BaseMotion(float(e["amplitude"]), float(e["frequency_hz"]), e["end"])
+            return BaseMotion(float(e["amplitude"]), float(e["frequency_hz"]), e["end"], direction=direction)
         if e["kind"] == "force":
-            return PointForce(float(e["amplitude"]), float(e["frequency_hz"]), x=e["x"], dof=e["dof"])
+            return PointForce(float(e["amplitude"]), float(e["frequency_hz"]), x=e["x"], dof=e["dof"],
+                              direction=direction)
         if e["kind"] == "random":
-            return RandomForce(float(e["psd"]), tuple(e["band"]), e["seed"], e["components"], tuple(e["span"]))
+            return RandomForce(float(e["psd"]), tuple(e["band"]), e["seed"], e["components"], tuple(e["span"]),
+                               direction=direction)
         return NoExcitation()
 
     def damping(self) -> Damping:
@@ -258,7 +262,11 @@ def _check_structure(s: dict, where: str) -> None:
                 raise InputError(f"{where}: {end} must be one of {', '.join(BOUNDARIES)}, got {s[end]!r}")
         if s["elements"] < 1:
             raise InputError(f"{where}: elements must be at least 1, got {s['elements']}")
+        if s["planes"] not in (1, 2):
+            raise InputError(f"{where}: planes must be 1 or 2, got {s['planes']!r}")
     elif s["kind"] == "matrices":
+        if s["planes"] != 1:
+            raise InputError(f"{where}: planes applies to a beam; a matrix model gives its DOFs itself")
         for key in ("stiffness", "mass"):
             if s[key] is None:
                 raise InputError(f"{where}: {key} (a matrix file) is required for kind = \"matrices\"")
@@ -308,7 +316,19 @@ def _constraints(raw, path: str, at: _Positions, kind: str) -> tuple:
     return tuple(constraints)
 
 
+def _check_direction(e: dict, s: dict, where: str) -> None:
+    d = e["direction"]
+    if not d:
+        return
+    if s["kind"] != "beam" or s["planes"] != 2:
+        raise InputError(f"{where}: direction applies to a beam of two planes ([structure] planes = 2)")
+    if not (len(d) == 2 and all(isinstance(x, NUMBER) and not isinstance(x, bool) for x in d)
+            and math.hypot(*d) > 0):
+        raise InputError(f"{where}: direction must be [dy, dz], two numbers not both 0, got {d!r}")
+
+
 def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
+    _check_direction(e, s, where)
     if e["kind"] not in ("none", "base", "force", "random"):
         raise InputError(f"{where}: kind must be \"none\", \"base\", \"force\" or \"random\", got {e['kind']!r}")
     if e["kind"] == "random":
@@ -395,6 +415,13 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
     for x in s["supports"]:
         at.check(f"{path}: [structure] supports", x)
     constraints = _constraints(data.get("constraint", []), path, at, s["kind"])
+    planes = s["planes"] if at.beam else 1
+    for i, c in enumerate(constraints):
+        d = getattr(c.law, "dimension", 1)
+        if d != planes:
+            raise InputError(f"{path}: [[constraint]] {i + 1}: " + (
+                f"a {c.law.kind} law acts in two directions; it needs [structure] planes = 2" if d == 2 else
+                f"a beam of two planes takes a 2-D law (law = \"circular\" or \"flat_bar\"), not {c.law.kind}"))
     _check_excitation(sections["excitation"], s, f"{path}: [excitation]", at)
     _check_basis(sections["basis"], f"{path}: [basis]")
     _check_integrator_and_output(sections, path, at)

@@ -33,6 +33,9 @@ SECTIONS = {
         "left": Key((str,), "pinned", "", 'beam: left end, "pinned", "clamped", "free" or "sliding" (slope fixed)'),
         "right": Key((str,), "pinned", "", "beam: right end, as left"),
         "supports": Key((list,), [], "m", "beam: x of intermediate rigid supports (multi-span tubes)"),
+        "planes": Key((int,), 1, "", "beam: 1 (bending in the x-y plane, w = y) or 2 (bending in two planes: per "
+                                     "node y, dy/dx, z, dz/dx, the planes uncoupled with the same EI; constraints "
+                                     "then take 2-D laws, law = \"circular\")"),
         "stiffness": Key((str,), None, "", "matrices: K over the free DOFs, Matrix Market (.mtx) or PETSc binary "
                                            "(required)"),
         "mass": Key((str,), None, "", "matrices: M, as stiffness (required)"),
@@ -59,6 +62,8 @@ SECTIONS = {
         "seed": Key((int,), 1, "", "random: the same seed gives the same history"),
         "components": Key((int,), 256, "", "random: cosines of the spectral representation"),
         "span": Key((list,), [], "m", "random: [x0, x1] loaded (default the whole beam), fully correlated"),
+        "direction": Key((list,), [], "1", "beam of two planes: [dy, dz], the direction of the force or of the "
+                                           "support motion in the y-z plane (normalized; default [1, 0])"),
     }),
     "basis": ("Reference modes and one enrichment column per constraint.", {
         "modes": Key((int,), None, "", "number of reference modes (6 if neither this nor max_frequency_hz)"),
@@ -124,10 +129,11 @@ SECTIONS = {
 CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", {
     "x": Key(NUMBER, None, "m", "beam: position (required on a beam)"),
     "dof": Key((int,), None, "", "matrices: the DOF it acts on, counted from 0 (required for matrices)"),
-    "law": Key((str,), "deadband", "", '"deadband" (Eq. 23), "power" (Eq. 42), "hertz", "linear", "cubic" or '
-                                       '"table"'),
+    "law": Key((str,), "deadband", "", '"deadband" (Eq. 23), "power" (Eq. 42), "hertz", "linear", "cubic", '
+                                       '"table", or on a beam of two planes "circular" (a round hole) or "flat_bar" (two parallel flats)'),
     "clearance": Key(NUMBER, None, "m", "deadband, power, hertz: gap on both sides (or clearance_minus, "
-                                        "clearance_plus); negative is an interference fit"),
+                                        "clearance_plus); negative is an interference fit; circular: the radial "
+                                        "clearance (>= 0); flat_bar: the gap to each flat"),
     "k": Key(NUMBER, None, "N/m^p", "stiffness on both sides (or k_minus, k_plus); linear, cubic: the spring"),
     "exponent": Key(NUMBER, None, "", "power: exponent p on both sides (or exponent_minus, exponent_plus); "
                                       "hertz: 1.5"),
@@ -137,6 +143,12 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
                                        '(-alpha |N| v)'),
     "c": Key(NUMBER, None, "N s/m", "linear contact damping"),
     "alpha": Key(NUMBER, None, "s/m", "Hunt-Crossley contact damping"),
+    "mu": Key(NUMBER, None, "1", "circular, flat_bar: Coulomb friction coefficient (default 0), "
+                                 "F_t = -mu k (|u| - c) tanh(v_t / v_reg)"),
+    "v_reg": Key(NUMBER, None, "m/s", "circular, flat_bar: the sliding speed over which friction is regularized "
+                                      "(default 1e-3)"),
+    "angle": Key(NUMBER, None, "deg", "flat_bar: the direction of the flats' normal, from y towards z (default 0: "
+                                      "flats across y, sliding along z)"),
 })
 
 

@@ -29,7 +29,7 @@ def _snapshot_samples(count: int, times: np.ndarray) -> np.ndarray:
 def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
     """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Not collective."""
-    writer = MemoryWriter((model.constraints.count,), model.probe_B.shape[0], model.size)
+    writer = MemoryWriter(model.constraints.shape, model.probe_sample_shape, model.size)
     recorder = ReducedRecorder(writer, model, _snapshot_samples(snapshots, settings.sample_times))
     stats = integrate_reduced(model, settings, say=say, recorder=recorder)
     result = Result.from_recorder(recorder, stats)
@@ -42,6 +42,6 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""
     world = fom.comm.tompi4py()
     observation = Observation(fom)
-    recorder = FullRecorder(MemoryWriter((fom.constraints.count,), fom.probes.count, 0), fom.constraints, observation)
+    recorder = FullRecorder(MemoryWriter(fom.constraints.shape, fom.probes.shape, 0), fom.constraints, observation)
     stats = integrate_full(fom, settings, observation.rows, recorder.block, say=say)
     return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)

@@ -34,6 +34,13 @@ Definitions (each returned value has shape (N_L,)):
 - impact_power_mean = <|force v|>, W: the mean normal impact power over the whole run. A planar model
   has no sliding, so this is NOT a wear work rate (Archard wear needs the tangential sliding power).
 
+Supports of two directions (a tube in a round hole, laws.PlanarLaws): the statistics are per
+support, from radial quantities: z is |u| (m), contact is |u| > c, force is |F| (N), the impact
+power is <|F_n v_n|> (normal force times normal velocity), and one more statistic,
+- work_rate = <|F_n| |v_t|>, W: the normal work rate of code_aster's POST_USURE (the time-average
+  of the normal contact force times the sliding speed), the input of Archard's wear law. The
+  accumulator computes it over the solver's steps, as every other statistic.
+
 A record of one sample (nt = 1) has no duration: impact_rate and the durations are 0, impacts and
 contact_fraction are 1 or 0 from that sample, and the "time-weighted means" are the sample's values.
 N_L = 0 gives empty arrays. Bad shapes or times raise ValueError: those are programming errors.
@@ -76,6 +83,35 @@ DESCRIPTIONS = {
 }
 
 assert set(UNITS) == set(STATISTICS) == set(DESCRIPTIONS)
+
+# Supports of two directions (laws.PlanarLaws) add the normal work rate and its confidence interval.
+STATISTICS_2D = STATISTICS + ("work_rate", "work_rate_ci95")
+UNITS_2D = {**UNITS, "work_rate": "W", "work_rate_ci95": "W"}
+DESCRIPTIONS_2D = {**DESCRIPTIONS,
+                   "work_rate": "normal work rate <|F_n| |v_t|> (code_aster's definition, the input of Archard wear): "
+                                "supports of two directions only",
+                   "work_rate_ci95": "half-width of the 95 % confidence interval of the work rate, by batch means of "
+                                     "the samples (10 batches, Student t); supports of two directions only"}
+
+BATCHES = 10
+_T_975 = 2.2621571627982053   # Student's t, 97.5 % quantile, BATCHES - 1 = 9 degrees of freedom
+
+
+def batch_means_ci95(t, series) -> np.ndarray:
+    """The half-width of the 95 % confidence interval of the time mean of `series` (nt, n) sampled at
+    t (nt,): the samples cut into BATCHES runs of equal length, the trapezoid mean of each, and
+    t_(0.975, BATCHES - 1) s / sqrt(BATCHES), s the batch means' standard deviation. Batch means
+    treat the batches as independent: batches much longer than the correlation time of the series
+    (the tube's lowest periods, a few of its impacts). Fewer than 2 BATCHES samples: NaN."""
+    t = np.asarray(t, dtype=float)
+    series = np.asarray(series, dtype=float).reshape(t.size, -1)
+    if t.size < 2 * BATCHES:
+        return np.full(series.shape[1], np.nan)
+    means = []
+    for part in np.array_split(np.arange(t.size), BATCHES):
+        tp, sp = t[part], series[part]
+        means.append(np.trapz(sp, tp, axis=0) / (tp[-1] - tp[0]))
+    return _T_975 * np.std(means, axis=0, ddof=1) / np.sqrt(BATCHES)
 
 
 def _check(t, z, v, force, in_contact):
@@ -222,8 +258,11 @@ class ImpactAccumulator:
     resolved as finely as the steps resolve them. Each point carries the trapezoid weight of its
     half intervals, exactly as in `impact_statistics`, so both agree on the same points."""
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, work: bool = False):
         self.n = n
+        self.with_work = work
+        self.work = np.zeros(n)          # the trapezoid integral of the work-rate series (with work)
+        self.work_prev = None
         self.t0 = self.t_prev = None
         zeros = lambda: np.zeros(n)  # noqa: E731
         self.impacts, self.contact_time, self.run, self.duration_max = zeros(), zeros(), zeros(), zeros()
@@ -231,10 +270,18 @@ class ImpactAccumulator:
         self.force_peak, self.displacement_peak = zeros(), zeros()
         self.prev = None  # (contact, F^2, z^2, |F v|) at the previous point
 
-    def add(self, t: float, z, v, force, in_contact=None) -> None:
+    def add(self, t: float, z, v, force, in_contact=None, power=None, work=None) -> None:
+        """One point. `power` (default |force v|) and, for an accumulator with work, `work` (the
+        work-rate series, W) are given directly by 2-D supports."""
         z, v, force = (np.asarray(a, dtype=float) for a in (z, v, force))
         contact = force != 0 if in_contact is None else np.asarray(in_contact, dtype=bool)
-        now = (contact.astype(float), force * force, z * z, np.abs(force * v))
+        now = (contact.astype(float), force * force, z * z,
+               np.abs(force * v) if power is None else np.asarray(power, dtype=float))
+        if self.with_work:
+            work = np.asarray(work, dtype=float)
+            if self.work_prev is not None:
+                self.work += 0.5 * (t - self.t_prev) * (self.work_prev + work)
+            self.work_prev = work
         np.maximum(self.force_peak, np.abs(force), out=self.force_peak)
         np.maximum(self.displacement_peak, np.abs(z), out=self.displacement_peak)
         if self.prev is None:
@@ -256,7 +303,7 @@ class ImpactAccumulator:
         self.t_prev = t
         self.prev = now
 
-    def add_block(self, t, z, v, force) -> None:
+    def add_block(self, t, z, v, force, power=None, work=None) -> None:
         """`add` for k points at once, t (k,) increasing, z, v, force (k, n): the same sums,
         vectorized (an integrator that takes 10^5 steps hands them over in blocks: a few dozen numpy
         calls per block instead of a dozen per point). Equal to k calls of `add` to round-off; the
@@ -271,8 +318,18 @@ class ImpactAccumulator:
         np.not_equal(force, 0.0, out=now[0])
         np.multiply(force, force, out=now[1])
         np.multiply(z, z, out=now[2])
-        np.multiply(force, v, out=now[3])
-        np.abs(now[3], out=now[3])
+        if power is None:
+            np.multiply(force, v, out=now[3])
+            np.abs(now[3], out=now[3])
+        else:
+            now[3] = np.asarray(power, dtype=float).reshape(k, n)
+        if self.with_work:
+            work = np.asarray(work, dtype=float).reshape(k, n)
+            wt = t if self.work_prev is None else np.concatenate(([self.t_prev], t))
+            ws = work if self.work_prev is None else np.vstack((self.work_prev, work))
+            if wt.size > 1:
+                self.work += np.einsum("i,ij->j", 0.5 * np.diff(wt), ws[:-1] + ws[1:])
+            self.work_prev = work[-1].copy()
         np.maximum(self.force_peak, np.abs(force).max(axis=0), out=self.force_peak)
         np.maximum(self.displacement_peak, np.abs(z).max(axis=0), out=self.displacement_peak)
         if self.prev is None:  # the first point of the run: no interval before it
@@ -325,11 +382,18 @@ class ImpactAccumulator:
         out["times"] = np.array([self.t0, self.t_prev] if started else [np.nan, np.nan])
         out["prev"] = np.array(self.prev) if started else np.zeros((4, self.n))
         out["started"] = np.array(started)
+        if self.with_work:
+            out["work"] = self.work.copy()
+            out["work_prev"] = self.work_prev.copy() if self.work_prev is not None else np.full(self.n, np.nan)
         return out
 
     @classmethod
     def from_state(cls, state: dict) -> "ImpactAccumulator":
-        self = cls(np.asarray(state["impacts"]).size)
+        self = cls(np.asarray(state["impacts"]).size, work="work" in state)
+        if self.with_work:
+            self.work = np.array(state["work"], dtype=float)
+            prev = np.array(state["work_prev"], dtype=float)
+            self.work_prev = None if np.all(np.isnan(prev)) else prev
         for name in self._ARRAYS:
             setattr(self, name, np.array(state[name], dtype=float))
         if bool(state["started"]):
@@ -342,6 +406,9 @@ class ImpactAccumulator:
         span = (self.t_prev - self.t0) if self.prev is not None else 0.0
         duration_max = np.maximum(self.duration_max, self.run)
         safe = lambda a, b: np.divide(a, b, out=np.zeros(self.n), where=b > 0)  # noqa: E731
+        extra = {}
+        if self.with_work:
+            extra["work_rate"] = self.work / span if span > 0 else np.zeros(self.n)
         return {
             "impacts": self.impacts.copy(),
             "impact_rate": self.impacts / span if span > 0 else np.zeros(self.n),
@@ -354,4 +421,5 @@ class ImpactAccumulator:
             "displacement_rms": np.sqrt(self.z2 / span) if span > 0 else np.zeros(self.n),
             "displacement_peak": self.displacement_peak.copy(),
             "impact_power_mean": self.power / span if span > 0 else np.zeros(self.n),
+            **extra,
         }

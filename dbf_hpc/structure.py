@@ -1,13 +1,16 @@
 """Euler-Bernoulli beam by Hermite-cubic finite elements, assembled as distributed PETSc AIJ matrices.
 
-DOFs per node: w (transverse displacement, m) and theta = dw/dx (rad). Boundary conditions remove
+DOFs per node: w (transverse displacement, m) and theta = dw/dx (rad). With `planes = 2` the beam
+bends in two planes: per node (y, dy/dx, z, dz/dx), in this order, two uncoupled copies of the
+planar beam with the same EI (a tube's section is round); a planar beam's w is y. Boundary conditions remove
 DOFs (they are not penalised), so K and M are over the free DOFs only, numbered node by node: rank
 p owns a contiguous stretch of the beam and assembles only the elements touching its rows.
 
 Boundary conditions at each end:
     pinned   w = 0               clamped  w = 0, theta = 0
     free     (none)              sliding  theta = 0 (a guided end: no slope, no shear)
-Intermediate rigid supports pin w = 0 at interior points (multi-span tubes).
+Intermediate rigid supports pin w = 0 at interior points (multi-span tubes). With two planes every
+condition holds in both planes.
 """
 from __future__ import annotations
 
@@ -39,6 +42,7 @@ class Beam:
     left: str = "pinned"
     right: str = "pinned"
     supports: tuple = ()
+    planes: int = 1
 
     def __post_init__(self):
         for name in ("length", "E", "I", "A", "rho"):
@@ -47,6 +51,8 @@ class Beam:
                 raise InputError(f"beam {name} must be a positive number, got {value!r}")
         if not (isinstance(self.elements, int) and self.elements >= 1):
             raise InputError(f"beam elements must be a positive integer, got {self.elements!r}")
+        if self.planes not in (1, 2):
+            raise InputError(f"beam planes must be 1 or 2, got {self.planes!r}")
         for end in ("left", "right"):
             if getattr(self, end) not in BOUNDARIES:
                 raise InputError(f"beam {end} boundary must be one of {', '.join(BOUNDARIES)}, "
@@ -73,17 +79,21 @@ class BeamMesh:
     """Nodes of a beam mesh and its free-DOF numbering; the same small arrays on every rank.
 
     x      node positions (m), increasing, with a node at every requested point
-    row    (nodes, 2) global row of (w, theta) at each node, -1 where the DOF is fixed
+    row    (nodes, 2 planes) global row of (w, theta) at each node (two planes: y, y', z, z'), -1
+           where the DOF is fixed
     """
 
     def __init__(self, beam: Beam, points=()):
         self.beam = beam
+        self.planes = beam.planes
+        self.per_node = 2 * beam.planes
         self.x = _mesh_nodes(beam.length, beam.elements, [*points, *beam.supports])
-        fixed = np.zeros((self.x.size, 2), dtype=bool)
-        fixed[0, list(BOUNDARIES[beam.left])] = True
-        fixed[-1, list(BOUNDARIES[beam.right])] = True
-        for s in beam.supports:
-            fixed[self.node_at(s), W] = True
+        fixed = np.zeros((self.x.size, self.per_node), dtype=bool)
+        for plane in range(self.planes):
+            fixed[0, [2 * plane + d for d in BOUNDARIES[beam.left]]] = True
+            fixed[-1, [2 * plane + d for d in BOUNDARIES[beam.right]]] = True
+            for s in beam.supports:
+                fixed[self.node_at(s), 2 * plane + W] = True
         self.fixed = fixed
         self.row = np.full(fixed.shape, -1, dtype=np.int64)
         self.row[~fixed] = np.arange(np.count_nonzero(~fixed))
@@ -110,14 +120,36 @@ class BeamMesh:
             moving[0 if moving_end == "left" else -1] = 1.0
         return moving
 
-    def field_map(self, moving_end: str | None = None) -> PointValues:
-        """w at every node; the fixed w of the `moving_end` support follows the support motion."""
-        return PointValues.at_rows(self.x, self.row[:, W], self._moving(moving_end), kind="beam")
+    def field_map(self, moving_end: str | None = None, direction=(1.0, 0.0)) -> PointValues:
+        """w at every node; the fixed w of the `moving_end` support follows the support motion. Two
+        planes: (y, z) at every node, node-major, the support moving along `direction` (dy, dz)."""
+        if self.planes == 1:
+            return PointValues.at_rows(self.x, self.row[:, W], self._moving(moving_end), kind="beam")
+        moving = self._moving(moving_end)
+        nodes = np.repeat(np.arange(self.x.size), 2)
+        xyz = np.zeros((self.x.size, 3))
+        xyz[:, 0] = self.x
+        return PointValues.at_rows(self.x[nodes], self.row[:, [W, 2 + W]].ravel(),
+                                   (moving[:, None] * np.asarray(direction, dtype=float)[None, :]).ravel(),
+                                   kind="beam", node=nodes, component=np.tile([1, 2], self.x.size),
+                                   coordinates=xyz)
 
-    def point_values(self, xs, moving_end: str | None = None) -> PointValues:
+    def point_values(self, xs, moving_end: str | None = None, direction=(1.0, 0.0)) -> PointValues:
         """w at arbitrary points from the Hermite shape functions of the element holding each (a
         node's own w at a node): asking for a value never changes the mesh. A point on a fixed w
-        (a support) is an InputError."""
+        (a support) is an InputError. Two planes: (y, z) at each point, point-major (2 P values)."""
+        if self.planes == 2:
+            one = self._plane_values(xs, moving_end, 0)
+            two = self._plane_values(xs, moving_end, 2)
+            direction = np.asarray(direction, dtype=float)
+            rows = np.stack([one.rows, two.rows], axis=1).reshape(-1, one.rows.shape[1])
+            weights = np.stack([one.weights, two.weights], axis=1).reshape(rows.shape)
+            moving = np.stack([one.moving * direction[0], two.moving * direction[1]], axis=1).ravel()
+            return PointValues(positions=np.repeat(one.positions, 2), rows=rows, weights=weights, moving=moving,
+                               components=2)
+        return self._plane_values(xs, moving_end, 0)
+
+    def _plane_values(self, xs, moving_end, offset: int) -> PointValues:
         xs = np.asarray(xs, dtype=float).reshape(-1)
         moving_nodes = self._moving(moving_end)
         rows, weights, moving = np.full((xs.size, 4), -1, np.int64), np.zeros((xs.size, 4)), np.zeros(xs.size)
@@ -131,25 +163,25 @@ class BeamMesh:
                     raise InputError(f"probe at x = {x:g} m is on a support (a fixed DOF); move it")
                 e, s = (node, 0.0) if node < self.elements else (node - 1, 1.0)
             shape = (1 - 3 * s**2 + 2 * s**3, h * (s - 2 * s**2 + s**3), 3 * s**2 - 2 * s**3, h * (s**3 - s**2))
-            dofs = [(e, W), (e, THETA), (e + 1, W), (e + 1, THETA)]
+            dofs = [(e, W + offset), (e, THETA + offset), (e + 1, W + offset), (e + 1, THETA + offset)]
             for k, ((node, dof), weight) in enumerate(zip(dofs, shape)):
                 rows[p, k], weights[p, k] = self.row[node, dof], weight
-                if dof == W and self.fixed[node, W]:
+                if dof == W + offset and self.fixed[node, dof]:
                     moving[p] += weight * moving_nodes[node]
         return PointValues(positions=xs, rows=rows, weights=weights, moving=moving)
 
-    def w_row(self, x: float) -> int:
-        """Row of the displacement DOF at x, or -1 if w is fixed there."""
-        return int(self.row[self.node_at(x), W])
+    def w_row(self, x: float, plane: int = 0) -> int:
+        """Row of the displacement DOF at x (of plane 0 = y or 1 = z), or -1 if w is fixed there."""
+        return int(self.row[self.node_at(x), 2 * plane + W])
 
     def rigid_modes(self) -> int:
         """Number of rigid-body motions w = a + b x that the supports allow (0, 1 or 2)."""
         conditions = [[1.0, xi] for xi in self.x[self.fixed[:, W]]]
         conditions += [[0.0, 1.0]] * int(np.count_nonzero(self.fixed[:, THETA]))
         if not conditions:
-            return 2
+            return 2 * self.planes
         scaled = np.array(conditions) / [1.0, self.beam.length]
-        return 2 - np.linalg.matrix_rank(scaled)
+        return (2 - np.linalg.matrix_rank(scaled)) * self.planes
 
 
 def _mesh_nodes(length: float, elements: int, points) -> np.ndarray:
@@ -200,6 +232,18 @@ def element_matrices(h: np.ndarray, EI: float, rhoA: float):
     return k, m
 
 
+def planes_element(mats: np.ndarray, planes: int) -> np.ndarray:
+    """Element matrices (ne, 4, 4) of one plane -> (ne, 4 planes, 4 planes) in the element's DOF
+    order (node 1: y, y', z, z'; node 2: the same): the planes uncoupled."""
+    if planes == 1:
+        return mats
+    out = np.zeros((mats.shape[0], 8, 8))
+    for plane in range(2):
+        local = np.array([0, 1, 4, 5]) + 2 * plane
+        out[:, local[:, None], local[None, :]] = mats
+    return out
+
+
 def _assemble(comm, mesh: BeamMesh, element_mats, fixed_values=None):
     """Assemble element matrices into a distributed AIJ over the free DOFs. Collective.
 
@@ -210,14 +254,15 @@ def _assemble(comm, mesh: BeamMesh, element_mats, fixed_values=None):
     n = mesh.n_free
     rstart, rend = owned_rows(n, comm)
     if rend > rstart:
-        owned_nodes = mesh.free_dofs[[rstart, rend - 1]] // 2
+        owned_nodes = mesh.free_dofs[[rstart, rend - 1]] // mesh.per_node
         first, last = max(owned_nodes[0] - 1, 0), min(owned_nodes[1], mesh.elements - 1)
     else:
         first, last = 0, -1
     elems = np.arange(first, last + 1)
-    all_dofs = 2 * elems[:, None] + np.arange(4)[None, :]
+    per = mesh.per_node
+    all_dofs = per * elems[:, None] + np.arange(2 * per)[None, :]
     rows = mesh.row.ravel()[all_dofs]
-    mats = element_mats(mesh.x[elems + 1] - mesh.x[elems])
+    mats = planes_element(element_mats(mesh.x[elems + 1] - mesh.x[elems]), mesh.planes)
 
     ri = np.broadcast_to(rows[:, :, None], mats.shape)
     cj = np.broadcast_to(rows[:, None, :], mats.shape)
@@ -233,12 +278,13 @@ def _assemble(comm, mesh: BeamMesh, element_mats, fixed_values=None):
     return A, coupling
 
 
-def assemble_beam(beam: Beam, comm=None, points=(), base_end: str | None = None) -> Operators:
+def assemble_beam(beam: Beam, comm=None, points=(), base_end: str | None = None, direction=(1.0, 0.0)) -> Operators:
     """Assemble K and M of `beam` on `comm` (default COMM_WORLD). Collective.
 
     points    positions that must be nodes (constraints, probes)
     base_end  "left" or "right": also compute the support-motion influence vector for base
               excitation of that end's transverse support (see influence_vector).
+    direction (dy, dz), a unit vector: the direction the support moves on a beam of two planes
     """
     comm = comm or PETSc.COMM_WORLD
     mesh = BeamMesh(beam, points)
@@ -262,11 +308,12 @@ def assemble_beam(beam: Beam, comm=None, points=(), base_end: str | None = None)
         raise InputError("base excitation needs a structure without rigid-body modes; "
                          "add supports or use boundary conditions that restrain it")
     support = np.zeros(mesh.fixed.size)
-    support[2 * node + W] = 1.0
+    for plane in range(beam.planes):
+        support[mesh.per_node * node + 2 * plane + W] = direction[plane] if beam.planes == 2 else 1.0
     K, k_coupling = _assemble(comm, mesh, stiffness, support)
     M, m_coupling = _assemble(comm, mesh, mass, support)
     ops = Operators(comm=comm, K=K, M=M, mesh=mesh, rigid_modes=0, eigen_scale=beam.eigen_scale,
-                    field=mesh.field_map(base_end))
+                    field=mesh.field_map(base_end, direction))
     try:
         ops.influence, ops.base_mass_load = influence_vector(K, M, k_coupling, m_coupling)
     except Exception:
@@ -303,9 +350,10 @@ def influence_vector(K, M, k_coupling, m_coupling):
     return r, load
 
 
-def distributed_load(ops: Operators, x0: float, x1: float) -> PETSc.Vec:
+def distributed_load(ops: Operators, x0: float, x1: float, direction=(1.0, 0.0)) -> PETSc.Vec:
     """Consistent nodal loads of a unit uniform load per length (1 N/m) on [x0, x1] (nodes of the
-    mesh): (h/2, h^2/12, h/2, -h^2/12) per element. Collective."""
+    mesh): (h/2, h^2/12, h/2, -h^2/12) per element; on a beam of two planes along `direction`
+    (dy, dz). Collective."""
     mesh = ops.mesh
     load = ops.K.createVecLeft()
     lo, hi = load.getOwnershipRange()
@@ -313,7 +361,11 @@ def distributed_load(ops: Operators, x0: float, x1: float) -> PETSc.Vec:
     elems = np.arange(first, last)
     h = mesh.x[elems + 1] - mesh.x[elems]
     values = np.column_stack([h / 2, h**2 / 12, h / 2, -h**2 / 12])
-    rows = mesh.row.ravel()[2 * elems[:, None] + np.arange(4)[None, :]]
+    per = mesh.per_node
+    if mesh.planes == 2:
+        values = np.column_stack([values[:, :2] * direction[0], values[:, :2] * direction[1],
+                                  values[:, 2:] * direction[0], values[:, 2:] * direction[1]])
+    rows = mesh.row.ravel()[per * elems[:, None] + np.arange(2 * per)[None, :]]
     mine = (rows >= lo) & (rows < hi)
     load.array[:] = np.bincount(rows[mine] - lo, weights=values[mine], minlength=hi - lo)
     return load
