@@ -69,11 +69,12 @@ def c_core(callbacks: str, say=None, dimension: int = 1):
     return None
 
 
-def effective_callbacks(callbacks: str) -> str:
-    """"c" or "python": what [integrator] callbacks = `callbacks` runs on this installation (part of a
-    checkpoint's identity: the two agree to the integrator's tolerance, not bit for bit)."""
+def effective_callbacks(callbacks: str, dimension: int = 1) -> str:
+    """"c" or "python": what [integrator] callbacks = `callbacks` runs on this installation for laws
+    of `dimension` (as c_core decides; part of a checkpoint's identity: the two agree to the
+    integrator's tolerance, not bit for bit)."""
     from . import _romc
-    return "c" if callbacks != "python" and _romc.core is not None else "python"
+    return "c" if callbacks != "python" and dimension == 1 and _romc.core is not None else "python"
 
 
 def _user_solver_options() -> bool:

@@ -204,7 +204,8 @@ def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
 
 def run_identity(scene: Scene, basis_key: dict, ranks: int, method: str) -> dict:
     """What a checkpoint must match to be resumed: every part that changes the result."""
-    callbacks = effective_callbacks(scene.integrator_settings().callbacks) if method == "rom" else None
+    dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
+    callbacks = effective_callbacks(scene.integrator_settings().callbacks, dimension) if method == "rom" else None
     return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], structure=basis_key,
                     options=PETSc.Options().getAll(), ranks=ranks, method=method, callbacks=callbacks)
 
