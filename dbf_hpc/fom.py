@@ -78,6 +78,9 @@ class FullOrderModel:
             beam = dataclasses.asdict(structure)
             if planes == 1:
                 del beam["planes"]   # the cache keys of planar beams stay what they were
+            for key, default in (("axial_speed", 0.0), ("transported_mass", None), ("tension", 0.0)):
+                if beam[key] == default:
+                    del beam[key]    # nor do those of beams without axial transport or tension
             fingerprint = {"beam": beam, "nodes": hashlib.sha256(ops.mesh.x.tobytes()).hexdigest()}
         elif isinstance(structure, MatrixFiles):
             ops = load_operators(structure, comm)
