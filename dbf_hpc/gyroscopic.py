@@ -188,3 +188,30 @@ def gyroscopic_modes(ops: Operators, count: int | None = None, max_frequency_hz:
     finally:
         pep.destroy()
     return GyroscopicModes(eigenvalues=values, real=xr, imag=xi)
+
+
+def check_stable(ops: Operators, count: int, speed: str, prefix: str = "modes_") -> None:
+    """An InputError naming the first unstable mode among the lowest `count` complex modes (divergence
+    or flutter) at the axial `speed` (words): a linear model that grows without bound has no
+    steady response to run. Collective."""
+    modes = gyroscopic_modes(ops, count=min(count, ops.size), prefix=prefix)
+    try:
+        if modes.unstable:
+            raise InputError(f"the structure is unstable at axial speed {speed}: {modes.describe(modes.unstable[0])}; "
+                             f"lower the axial speed below the critical speed (or raise the tension)")
+    finally:
+        modes.destroy()
+
+
+def mode_state(ops: Operators, mode: int, prefix: str = "modes_") -> tuple:
+    """(u, v): the free vibration of complex mode `mode` (from 1) at t = 0, u = Re x, v = Re(lambda x)
+    (x normalized as in normalize_complex; new Vecs, the caller's). Collective."""
+    modes = gyroscopic_modes(ops, count=mode, prefix=prefix)
+    try:
+        lam = modes.eigenvalues[mode - 1]
+        u, v = modes.real[mode - 1].copy(), modes.real[mode - 1].copy()
+        v.scale(lam.real)
+        v.axpy(-lam.imag, modes.imag[mode - 1])
+    finally:
+        modes.destroy()
+    return u, v
