@@ -168,3 +168,117 @@ def test_a_matrix_model_takes_a_skew_gyroscopic_matrix_and_refuses_one_that_is_n
         ops.destroy()
     with pytest.raises(InputError, match="not skew-symmetric"):
         load_operators(MatrixFiles(paths["K"], paths["M"], gyroscopic=paths["bad"]))
+
+
+def moving_fom(speed, mode=1, elements=60, tension=100.0):
+    from dbf_hpc.excitation import NoExcitation
+    from dbf_hpc.fom import FullOrderModel, InitialState
+
+    beam = Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=elements, axial_speed=speed, tension=tension)
+    return FullOrderModel.build(beam, (), NoExcitation(), probes=(0.25,), initial=InitialState(mode=mode, amplitude=1e-3))
+
+
+def full_free_vibration(fom, omega, periods=3, per_period=2000):
+    from dbf_hpc.simulate import simulate_full
+    from dbf_hpc.timestepping import IntegratorSettings
+
+    T = 2 * np.pi / omega
+    return simulate_full(fom, IntegratorSettings(t_end=periods * T, dt=T / per_period, sample_dt=T / 200))
+
+
+def test_full_order_model_without_transport_is_unchanged_cholesky_and_the_same_samples():
+    results = []
+    for keys in ({}, {"axial_speed": 0.0, "tension": 0.0}):
+        from dbf_hpc.excitation import NoExcitation
+        from dbf_hpc.fom import FullOrderModel, InitialState
+
+        beam = Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=40, **keys)
+        with FullOrderModel.build(beam, (), NoExcitation(), probes=(0.25,),
+                                  initial=InitialState(mode=1, amplitude=1e-3)) as fom:
+            assert fom.velocity_matrix() is None
+            results.append(full_free_vibration(fom, 500.0, periods=1, per_period=200))
+    assert np.array_equal(results[0].probes, results[1].probes)
+    assert "cholesky" in results[0].solver["factorization"]
+
+
+@pytest.mark.parametrize("mode", [1, 2])
+def test_free_vibration_of_a_moving_beam_from_its_complex_mode_oscillates_at_the_gyroscopic_frequency(mode):
+    # U = 60 m/s is 0.38 of the critical speed; the frequencies are 5 to 14 % below the beam at rest's.
+    with moving_fom(60.0, mode) as fom:
+        modes = gyroscopic_modes(fom.operators, count=mode)
+        omega = modes.omega[mode - 1]
+        modes.destroy()
+        result = full_free_vibration(fom, omega)
+    t, w = result.time, result.probes[:, 0]
+    # A single mode: w at a point is one sinusoid, |x_p| cos(omega t + phi_p) (the start included).
+    basis = np.column_stack([np.cos(omega * t), np.sin(omega * t)])
+    fit = np.linalg.lstsq(basis, w, rcond=None)[0]
+    assert np.abs(basis @ fit - w).max() < 1e-4 * np.abs(w).max()
+    up = np.flatnonzero((w[:-1] < 0) & (w[1:] >= 0))
+    crossings = t[up] - w[up] * (t[up + 1] - t[up]) / (w[up + 1] - w[up])
+    measured = 2 * np.pi / np.mean(np.diff(crossings))
+    # Generalized-alpha's period error (omega dt)^2 / 12 = 8e-7 at 2000 steps a period.
+    assert abs(measured / omega - 1) < 1e-5
+    assert "lu" in result.solver["factorization"] and "cholesky" not in result.solver["factorization"]
+
+
+def moving_scene(tmp, speed):
+    text = f"""
+[structure]
+kind = "beam"
+length = 1.0
+elements = 40
+E = 2e11
+I = 1e-8
+A = 1e-4
+rho = 7800.0
+axial_speed = {speed}
+tension = 100.0
+
+[excitation]
+kind = "none"
+
+[initial]
+amplitude = 1e-3
+
+[basis]
+modes = 4
+cache = "off"
+
+[integrator]
+t_end = 0.002
+
+[output]
+probes = [0.5]
+"""
+    path = tmp / f"moving_{speed}.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(text)
+    MPI.COMM_WORLD.Barrier()
+    return str(path)
+
+
+def test_run_refuses_above_the_critical_speed_naming_the_mode_and_the_speed(shared_tmp_path):
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    scene = load_scene(moving_scene(shared_tmp_path, 200.0))   # u = 3.96 > pi
+    for method in ("full", "rom"):
+        with pytest.raises(InputError, match=r"unstable at axial speed 200 m/s: mode 1 is unstable \(divergence"):
+            run(scene, str(shared_tmp_path / "unstable.h5"), progress=False, method=method)
+
+
+def test_the_reduced_gyroscopic_model_is_refused_in_one_line_and_full_runs(shared_tmp_path):
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    scene = load_scene(moving_scene(shared_tmp_path, 30.0))
+    with pytest.raises(InputError, match="reduced model of a gyroscopic structure .* not built yet.*--method full"):
+        run(scene, str(shared_tmp_path / "rom.h5"), progress=False, method="rom")
+    summary = run(scene, str(shared_tmp_path / "full.h5"), progress=False, method="full")
+    assert summary is not None
+
+
+def test_an_axially_moving_beam_needs_w_fixed_at_both_ends():
+    with pytest.raises(InputError, match="needs w fixed at both ends"):
+        Beam(length=L, E=E, I=I, A=A, rho=RHO, left="clamped", right="free", axial_speed=1.0)
