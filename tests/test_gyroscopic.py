@@ -282,3 +282,14 @@ def test_the_reduced_gyroscopic_model_is_refused_in_one_line_and_full_runs(share
 def test_an_axially_moving_beam_needs_w_fixed_at_both_ends():
     with pytest.raises(InputError, match="needs w fixed at both ends"):
         Beam(length=L, E=E, I=I, A=A, rho=RHO, left="clamped", right="free", axial_speed=1.0)
+
+
+def test_the_reduced_basis_of_a_gyroscopic_structure_is_refused_in_one_line():
+    from dbf_hpc.basis import build_basis
+
+    ops = assemble_beam(Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=20, axial_speed=10.0))
+    try:
+        with pytest.raises(InputError, match="reduced basis of a gyroscopic structure .* not built yet"):
+            build_basis(ops, [3])
+    finally:
+        ops.destroy()
