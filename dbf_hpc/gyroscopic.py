@@ -110,28 +110,38 @@ def _solve(pep: SLEPc.PEP, ops: Operators, nev: int, prefix: str):
         raise SolverError(f"gyroscopic modes: the eigensolver failed (PETSc error {e.ierr}); K may be singular "
                           f"(the speed is exactly critical): move the axial speed off it") from None
     values, xr, xi = [], [], []
-    for i in range(pep.getConverged()):
-        a, b = ops.K.createVecRight(), ops.K.createVecRight()
-        lam = complex(pep.getEigenpair(i, a, b))
-        error = pep.computeError(i, SLEPc.PEP.ErrorType.BACKWARD)
-        tiny = UNSTABLE_TOL * abs(lam)
-        keep = lam.imag > tiny or (abs(lam.imag) <= tiny and lam.real >= -tiny)
-        if keep and error > BACKWARD_TOL:
-            destroy(a, b)
-            raise SolverError(f"gyroscopic modes: eigenvalue {lam:.6g} has backward error {error:.1e} > "
-                              f"{BACKWARD_TOL:g}: K is near singular close to a critical speed (move the speed away from it), or tighten "
-                              f"-{prefix}pep_tol or check the -{prefix}st_ options")
-        if keep:
-            if abs(lam.imag) <= tiny:   # a real eigenvalue: a real eigenvector
-                lam = complex(lam.real, 0.0)
-                b.zeroEntries()
-            values.append(lam)
-            xr.append(a)
-            xi.append(b)
-        else:
-            destroy(a, b)
+    try:
+        for i in range(pep.getConverged()):
+            _take(pep, ops, i, prefix, values, xr, xi)
+    except Exception:
+        destroy(*xr, *xi)
+        raise
     order = sorted(range(len(values)), key=lambda j: (round(values[j].imag, 12), abs(values[j])))
     return np.array([values[j] for j in order], dtype=complex), [xr[j] for j in order], [xi[j] for j in order]
+
+
+def _take(pep: SLEPc.PEP, ops: Operators, i: int, prefix: str, values: list, xr: list, xi: list) -> None:
+    """Append converged pair i to (values, xr, xi) if it has Im >= 0 (a real pair: lambda >= 0 only),
+    after checking its backward error. Collective."""
+    a, b = ops.K.createVecRight(), ops.K.createVecRight()
+    lam = complex(pep.getEigenpair(i, a, b))
+    error = pep.computeError(i, SLEPc.PEP.ErrorType.BACKWARD)
+    tiny = UNSTABLE_TOL * abs(lam)
+    keep = lam.imag > tiny or (abs(lam.imag) <= tiny and lam.real >= -tiny)
+    if not keep:
+        destroy(a, b)
+        return
+    if error > BACKWARD_TOL:
+        destroy(a, b)
+        raise SolverError(f"gyroscopic modes: eigenvalue {lam:.6g} has backward error {error:.1e} > {BACKWARD_TOL:g}: "
+                          f"K is near singular close to a critical speed (move the speed away from it), or tighten "
+                          f"-{prefix}pep_tol or check the -{prefix}st_ options")
+    if abs(lam.imag) <= tiny:   # a real eigenvalue: a real eigenvector
+        lam = complex(lam.real, 0.0)
+        b.zeroEntries()
+    values.append(lam)
+    xr.append(a)
+    xi.append(b)
 
 
 def normalize_complex(xr: PETSc.Vec, xi: PETSc.Vec, M: PETSc.Mat) -> None:

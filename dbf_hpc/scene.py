@@ -272,9 +272,15 @@ def _check_structure(s: dict, where: str) -> None:
         if s["axial_speed"] and not (s["left"] in ("pinned", "clamped") and s["right"] in ("pinned", "clamped")):
             raise InputError(f"{where}: axial_speed needs w fixed at both ends (left and right pinned or clamped), "
                              f"got {s['left']!r} and {s['right']!r}")
+        if s["gyroscopic"] is not None:
+            raise InputError(f"{where}: gyroscopic (a matrix file) is for kind = \"matrices\"; a beam's G comes from "
+                             f"axial_speed")
     elif s["kind"] == "matrices":
         if s["planes"] != 1:
             raise InputError(f"{where}: planes applies to a beam; a matrix model gives its DOFs itself")
+        if s["axial_speed"] or s["tension"] or s["transported_mass"] is not None:
+            raise InputError(f"{where}: axial_speed, tension and transported_mass apply to a beam; a matrix model "
+                             f"gives its gyroscopic matrix (gyroscopic = \"G.mtx\") and K with its tension")
         for key in ("stiffness", "mass"):
             if s[key] is None:
                 raise InputError(f"{where}: {key} (a matrix file) is required for kind = \"matrices\"")

@@ -266,6 +266,7 @@ def test_run_refuses_above_the_critical_speed_naming_the_mode_and_the_speed(shar
     for method in ("full", "rom"):
         with pytest.raises(InputError, match=r"unstable at axial speed 200 m/s: mode 1 is unstable \(divergence"):
             run(scene, str(shared_tmp_path / "unstable.h5"), progress=False, method=method)
+        assert not (shared_tmp_path / "unstable.h5").exists()
 
 
 def test_the_reduced_gyroscopic_model_is_refused_in_one_line_and_full_runs(shared_tmp_path):
@@ -293,3 +294,21 @@ def test_the_reduced_basis_of_a_gyroscopic_structure_is_refused_in_one_line():
             build_basis(ops, [3])
     finally:
         ops.destroy()
+
+
+@pytest.mark.parametrize("keys, message", [
+    ('kind = "matrices"\nstiffness = "K.mtx"\nmass = "M.mtx"\naxial_speed = 3.0', "apply to a beam"),
+    ('kind = "beam"\nlength = 1.0\nE = 2e11\nI = 1e-8\nA = 1e-4\nrho = 7800.0\ngyroscopic = "G.mtx"',
+     "is for kind"),
+    ('kind = "beam"\nlength = 1.0\nE = 2e11\nI = 1e-8\nA = 1e-4\nrho = 7800.0\nright = "free"\naxial_speed = 1.0',
+     "needs w fixed at both ends"),
+], ids=["speed-on-matrices", "g-on-a-beam", "free-end"])
+def test_scene_keys_of_axial_transport_are_checked_in_one_line(shared_tmp_path, keys, message):
+    from dbf_hpc.scene import load_scene
+
+    path = shared_tmp_path / "keys.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(f"[structure]\n{keys}\n\n[excitation]\nkind = \"none\"\n")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=message):
+        load_scene(str(path))
