@@ -47,7 +47,8 @@ A0 = 0 with no solve. This is the consistent start of Chung & Hulbert, not PETSc
 Euler half steps whose acceleration, in PETSc 3.18, is twice the backward-difference estimate).
 
 Factorization (options prefix full_): KSP preonly + Cholesky (LU when a gyroscopic G, skew, makes
-K_eff = K + s_V (C + G) + s_A M unsymmetric: PETSc's own on one rank, MUMPS in parallel); on one rank PETSc's own Cholesky when
+K_eff = K + s_V (C + G) + s_A M unsymmetric: PETSc's own on one rank, MUMPS in parallel); on one
+rank PETSc's own Cholesky when
 the natural ordering keeps the fill small (a beam: its solve costs microseconds, MUMPS's hundreds of
 microseconds), MUMPS otherwise and always in parallel. Any -full_ksp_/-full_pc_ option overrides;
 every factorization is checked by the residual of its N_L solves, so an inexact solver is an error,

@@ -37,8 +37,8 @@ SECTIONS = {
                                      "node y, dy/dx, z, dz/dx, the planes uncoupled with the same EI; constraints "
                                      "then take 2-D laws, law = \"circular\")"),
         "axial_speed": Key(NUMBER, 0.0, "m/s", "beam: axial transport speed U (an axially moving beam, or the flow "
-                                               "speed of a pipe conveying fluid); needs w fixed at both ends. "
-                                               "Adds the gyroscopic G = 2 m_t U int N^T N' dx and softens K by m_t U^2"),
+                                               "speed of a pipe conveying fluid); needs w fixed at both ends. Adds "
+                                               "the gyroscopic G = 2 m_t U int N^T N' dx and softens K by m_t U^2"),
         "transported_mass": Key(NUMBER, None, "kg/m", "beam: mass per length moving at axial_speed (default rho A; "
                                                       "a pipe's fluid mass per length)"),
         "tension": Key(NUMBER, 0.0, "N", "beam: axial tension T: K += (T - m_t U^2) int N'^T N' dx"),

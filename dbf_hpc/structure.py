@@ -85,8 +85,8 @@ class Beam:
         if m_t is not None and not (isinstance(m_t, (int, float)) and np.isfinite(m_t) and m_t > 0):
             raise InputError(f"beam transported_mass must be a positive number, got {m_t!r}")
         if self.axial_speed and any(W not in BOUNDARIES[getattr(self, end)] for end in ("left", "right")):
-            raise InputError(f"an axially moving beam (axial_speed = {self.axial_speed} m/s) needs w fixed at both ends "
-                             f"(pinned or clamped), got left = {self.left!r}, right = {self.right!r}: with a free "
+            raise InputError(f"an axially moving beam (axial_speed = {self.axial_speed} m/s) needs w fixed at both "
+                             f"ends (pinned or clamped), got left = {self.left!r}, right = {self.right!r}: with a free "
                              f"end the transport does work (a cantilevered pipe flutters) and is not modelled")
 
     @property

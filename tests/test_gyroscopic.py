@@ -175,7 +175,8 @@ def moving_fom(speed, mode=1, elements=60, tension=100.0):
     from dbf_hpc.fom import FullOrderModel, InitialState
 
     beam = Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=elements, axial_speed=speed, tension=tension)
-    return FullOrderModel.build(beam, (), NoExcitation(), probes=(0.25,), initial=InitialState(mode=mode, amplitude=1e-3))
+    return FullOrderModel.build(beam, (), NoExcitation(), probes=(0.25,),
+                                initial=InitialState(mode=mode, amplitude=1e-3))
 
 
 def full_free_vibration(fom, omega, periods=3, per_period=2000):
