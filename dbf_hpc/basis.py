@@ -211,9 +211,15 @@ def _insert_columns(V: SLEPc.BV, first: int, source, count: int, ops: Operators)
     template.destroy()
 
 
+GYROSCOPIC_BASIS = ("the reduced basis of a gyroscopic structure (axial_speed != 0 or a gyroscopic matrix) is not "
+                    "built yet: dbf-hpc modes gives its complex modes, dbf-hpc run --method full its response")
+
+
 def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(), labels=None) -> ReducedBasis:
     """Reference modes and the enrichment columns settings.strategy makes (one per constraint row,
     or none), M-orthonormalized. Collective on ops.comm."""
+    if ops.G is not None:
+        raise InputError(GYROSCOPIC_BASIS)
     strategy = settings.strategy
     rows = np.asarray(rows, dtype=np.int64)
     _check_rows(ops, rows)

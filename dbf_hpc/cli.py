@@ -150,6 +150,11 @@ def _cache(args) -> int:
     return 0
 
 
+def _axial_speed(scene) -> str:
+    """The scene's axial speed in words (a matrix model's G has no speed)."""
+    return f"{scene['structure']['axial_speed']:g} m/s" if scene.is_beam else "of the given G"
+
+
 def _run(args) -> int:
     from .run import run
     from .scene import load_scene
@@ -213,6 +218,7 @@ def _sweep(args) -> int:
 def _modes(args) -> int:
     from petsc4py import PETSc
 
+    from .gyroscopic import gyroscopic_modes
     from .modes import reference_modes
     from .scene import load_scene
 
@@ -223,18 +229,23 @@ def _modes(args) -> int:
     with scene.full_order_model(comm) as fom:
         ops = fom.operators
         assembled = time.perf_counter()
-        modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+        gyroscopic = ops.G is not None
+        solve = gyroscopic_modes if gyroscopic else reference_modes
+        modes = solve(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
         solved = time.perf_counter()
         say = PETSc.Sys.Print
         what = (f"beam, {ops.mesh.elements} Hermite-cubic elements" if ops.mesh is not None
                 else f"matrices from {scene['structure']['stiffness']}")
         say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s)")
         say(f"structure: {what}, {ops.size} free DOFs, nonzeros K {int(ops.K.getInfo()['nz_used'])}")
-        say(f"reference modes: {modes.count}" + (f" below {basis['max_frequency_hz']:g} Hz"
-                                                  if basis["max_frequency_hz"] else ""))
+        say(f"reference modes{' (gyroscopic, complex)' if gyroscopic else ''}: {modes.count}"
+            + (f" below {basis['max_frequency_hz']:g} Hz" if basis["max_frequency_hz"] else ""))
         say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
         for i, (f, w) in enumerate(zip(modes.frequency_hz, modes.omega)):
             say(f"{i + 1:>6} {f:>14.8g} {w:>16.8g}")
+        if gyroscopic:
+            for j in modes.unstable:
+                say(f"UNSTABLE at axial speed {_axial_speed(scene)}: {modes.describe(j)}")
         say(f"time: assembly {assembled - start:.3f} s, eigensolve {solved - assembled:.3f} s")
         modes.destroy()
     return 0
@@ -373,6 +384,9 @@ def _stiffness(args) -> int:
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.set)
+    if scene.is_beam and scene["structure"]["axial_speed"] or not scene.is_beam and scene["structure"]["gyroscopic"]:
+        from .basis import GYROSCOPIC_BASIS
+        raise InputError(GYROSCOPIC_BASIS.replace("reduced basis", "DBF stiffness sweep"))
     if not 1 <= args.constraint <= len(scene.constraints):
         raise InputError(f"--constraint {args.constraint}: the scene has {len(scene.constraints)} constraint(s)")
     ks = parse_stiffnesses(args.k)

@@ -60,7 +60,7 @@ class FullOrderModel:
         self.probes = probes
         self.force_row, self.force_load = force_row, force_load
         self.support, self.force = time_functions(excitation)
-        self._C = None
+        self._C = self._CG = None
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -78,6 +78,9 @@ class FullOrderModel:
             beam = dataclasses.asdict(structure)
             if planes == 1:
                 del beam["planes"]   # the cache keys of planar beams stay what they were
+            for key, default in (("axial_speed", 0.0), ("transported_mass", None), ("tension", 0.0)):
+                if beam[key] == default:
+                    del beam[key]    # nor do those of beams without axial transport or tension
             fingerprint = {"beam": beam, "nodes": hashlib.sha256(ops.mesh.x.tobytes()).hexdigest()}
         elif isinstance(structure, MatrixFiles):
             ops = load_operators(structure, comm)
@@ -176,6 +179,35 @@ class FullOrderModel:
             if lo <= self.force_row < hi:
                 F.getArray()[self.force_row - lo] += scale * float(self.force.value(t))
 
+    def initial_state(self) -> tuple:
+        """(u(0), u'(0)): initial_displacement() at rest, or on a gyroscopic structure (G set) the
+        free vibration of complex mode `initial.mode` (gyroscopic.mode_state), `initial.amplitude` m
+        peak in u. New Vecs, the caller's. Collective."""
+        if self.operators.G is None or not self.initial.amplitude:
+            u = self.initial_displacement()
+            v = u.duplicate()
+            v.zeroEntries()
+            return u, v
+        from .gyroscopic import mode_state
+
+        u, v = mode_state(self.operators, self.initial.mode)
+        scale = self.initial.amplitude / field_peak(self.operators, u)
+        u.scale(scale)
+        v.scale(scale)
+        return u, v
+
+    def velocity_matrix(self) -> PETSc.Mat | None:
+        """C + G (built once, owned here): what multiplies u' in the full-order equations; the damping
+        matrix alone (or None) without G."""
+        C, G = self.damping_matrix(), self.operators.G
+        if G is None:
+            return C
+        if self._CG is None:
+            self._CG = G.duplicate(copy=True)
+            if C is not None:
+                self._CG.axpy(1.0, C, PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+        return self._CG
+
     def initial_displacement(self) -> PETSc.Vec:
         """u(0): zero, or `initial.amplitude` m peak (over the field's DOFs) in reference mode
         `initial.mode`."""
@@ -192,7 +224,7 @@ class FullOrderModel:
         return u
 
     def destroy(self) -> None:
-        destroy(self._C, self.force_load)
+        destroy(self._C, self._CG, self.force_load)
         self.operators.destroy()
 
     def __enter__(self):

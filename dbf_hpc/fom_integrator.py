@@ -46,7 +46,9 @@ Start: the acceleration at t = 0 from the equation of motion, M A0 = f(0) - K X0
 A0 = 0 with no solve. This is the consistent start of Chung & Hulbert, not PETSc's (two backward
 Euler half steps whose acceleration, in PETSc 3.18, is twice the backward-difference estimate).
 
-Factorization (options prefix full_): KSP preonly + Cholesky; on one rank PETSc's own Cholesky when
+Factorization (options prefix full_): KSP preonly + Cholesky (LU when a gyroscopic G, skew, makes
+K_eff = K + s_V (C + G) + s_A M unsymmetric: PETSc's own on one rank, MUMPS in parallel); on one
+rank PETSc's own Cholesky when
 the natural ordering keeps the fill small (a beam: its solve costs microseconds, MUMPS's hundreds of
 microseconds), MUMPS otherwise and always in parallel. Any -full_ksp_/-full_pc_ option overrides;
 every factorization is checked by the residual of its N_L solves, so an inexact solver is an error,
@@ -186,13 +188,18 @@ def _natural_fill_is_small(A: PETSc.Mat) -> bool:
     return envelope <= 10.0 * lower
 
 
-def factorization(A: PETSc.Mat, prefix: str) -> dict:
+def factorization(A: PETSc.Mat, prefix: str, symmetric: bool = True) -> dict:
     """The default factorization of an SPD matrix (options under `prefix`): PETSc's own Cholesky in
     the natural ordering when that keeps the fill small (a beam: a solve costs microseconds), on
     every rank at once in parallel (PCREDUNDANT: MUMPS's solve of a small distributed system costs
     milliseconds); MUMPS's Cholesky otherwise, and whenever the user set a -<prefix>pc_, ksp_ or
     mat_ option (which then applies to the distributed factorization, as they expect). Collective."""
     user = any(k.startswith(tuple(prefix + p for p in ("pc_", "ksp_", "mat_"))) for k in PETSc.Options().getAll())
+    if not symmetric:   # a gyroscopic K_eff (issue 19): LU, PETSc's own on one rank, else MUMPS
+        if A.getComm().getSize() == 1 and not user:
+            return {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "petsc",
+                    "pc_factor_zeropivot": "0.0"}
+        return {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}
     if not user and _natural_fill_is_small(A):
         # PETSc's own factorization calls a pivot below 1e-12 zero (an absolute tolerance): a fine beam's
         # rotational masses are 3e-14 kg m^2 at 1000 elements. Only an exact 0 is a zero pivot here.
@@ -221,10 +228,11 @@ class EffectiveSystem:
             A.axpy(self.sA, M, DIFFERENT)
             if C is not None:
                 A.axpy(self.sV, C, DIFFERENT)
-            A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-            if symmetric_positive:
+            if symmetric_positive:   # with a gyroscopic G (skew) K_eff is not symmetric: LU
+                A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
                 A.setOption(PETSc.Mat.Option.SPD, True)
-            self.ksp, self.solve, self.description = _factored(A, factorization(A, PREFIX), PREFIX, "the step's matrix K_eff")
+            self.ksp, self.solve, self.description = _factored(A, factorization(A, PREFIX, symmetric_positive),
+                                                               PREFIX, "the step's matrix K_eff")
             self.t_factor = time.perf_counter() - started
             lo, hi = A.getOwnershipRange()
             e = A.createVecLeft()
@@ -559,7 +567,7 @@ class FullIntegrator:
     def __init__(self, fom: FullOrderModel, rho: float):
         self.fom = fom
         ops = fom.operators
-        self.K, self.M, self.C = ops.K, ops.M, fom.damping_matrix()
+        self.K, self.M, self.C = ops.K, ops.M, fom.velocity_matrix()   # C + G with a gyroscopic G
         self.comm = fom.comm
         self.world = self.comm.tompi4py()
         self.P = Alpha2(rho)
@@ -1105,9 +1113,7 @@ def integrate_full(fom: FullOrderModel, settings: IntegratorSettings, rows, on_b
         if resume:
             integ.set_state(resume)
         else:
-            u = fom.initial_displacement()
-            v = u.duplicate()
-            v.zeroEntries()
+            u, v = fom.initial_state()
             try:
                 integ.start(u, v)
             finally:

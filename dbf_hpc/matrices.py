@@ -196,10 +196,10 @@ def _read_matrix_market_vector(path: str, what: str) -> np.ndarray:
     return out
 
 
-def asymmetry(A: PETSc.Mat) -> float:
-    """||A - A^T||_F / ||A||_F. Collective."""
+def asymmetry(A: PETSc.Mat, skew: bool = False) -> float:
+    """||A - A^T||_F / ||A||_F (with `skew`: ||A + A^T||_F / ||A||_F). Collective."""
     At = A.transpose(PETSc.Mat())
-    At.axpy(-1.0, A, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+    At.axpy(1.0 if skew else -1.0, A, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
     norm = A.norm(PETSc.NormType.FROBENIUS)
     value = At.norm(PETSc.NormType.FROBENIUS) / norm if norm > 0 else 0.0
     At.destroy()
@@ -212,6 +212,7 @@ class MatrixFiles:
 
     stiffness, mass   K and M (required)
     damping           C (optional)
+    gyroscopic        G (optional), skew-symmetric: M u'' + (C + G) u' + K u = f (axial transport)
     influence         r over the free DOFs, for base excitation
     base_mass_load    M_(free, all) r_all including the coupling to the prescribed support DOFs; when
                       not given, M r is used, which neglects that coupling (docs/design.md)
@@ -228,10 +229,12 @@ class MatrixFiles:
     base_mass_load: Optional[str] = None
     nodes: Optional[str] = None
     dofs: Optional[str] = None
+    gyroscopic: Optional[str] = None
 
     def fingerprint(self, comm) -> dict:
-        """What identifies the operators for the basis cache: the bytes of K and M. Collective."""
-        return {key: file_digest(getattr(self, key), comm) for key in ("stiffness", "mass")}
+        """What identifies the operators for the basis cache: the bytes of K and M (and G). Collective."""
+        keys = ("stiffness", "mass", "gyroscopic") if self.gyroscopic else ("stiffness", "mass")
+        return {key: file_digest(getattr(self, key), comm) for key in keys}
 
 
 COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
@@ -283,7 +286,7 @@ def file_digest(path: str, comm) -> str:
 def load_operators(files: MatrixFiles, comm=None) -> Operators:
     """Operators of an external FE model. Collective on comm (default COMM_WORLD).
 
-    Sizes must agree and K, M (and C) must be symmetric; anything else is an InputError, and what
+    Sizes must agree, K, M (and C) must be symmetric and G skew-symmetric; anything else is an InputError, and what
     was loaded before it is freed.
     """
     comm = comm or PETSc.COMM_WORLD
@@ -293,8 +296,10 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
     try:
         ops.M = load_matrix(files.mass, comm, "mass")
         ops.C = load_matrix(files.damping, comm, "damping") if files.damping else None
+        ops.G = load_matrix(files.gyroscopic, comm, "gyroscopic") if files.gyroscopic else None
         n = ops.K.getSize()[0]
-        for name, A, path in (("mass", ops.M, files.mass), ("damping", ops.C, files.damping)):
+        for name, A, path in (("mass", ops.M, files.mass), ("damping", ops.C, files.damping),
+                              ("gyroscopic", ops.G, files.gyroscopic)):
             if A is not None and A.getSize()[0] != n:
                 raise InputError(f"{name} matrix {path!r} is {A.getSize()[0]} x {A.getSize()[0]}; "
                                  f"the stiffness is {n} x {n}")
@@ -305,6 +310,12 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
             skew = asymmetry(A) if A is not None else 0.0
             if skew > SYMMETRY_TOL:
                 raise InputError(f"{name} matrix {path!r} is not symmetric (||A - A^T|| / ||A|| = {skew:.3g})")
+        if ops.G is not None:
+            _check_finite("gyroscopic", files.gyroscopic, ops.G)
+            skew = asymmetry(ops.G, skew=True)
+            if skew > SYMMETRY_TOL:
+                raise InputError(f"gyroscopic matrix {files.gyroscopic!r} is not skew-symmetric "
+                                 f"(||G + G^T|| / ||G|| = {skew:.3g})")
         if bool(files.nodes) != bool(files.dofs):
             raise InputError("a node map needs both [structure] nodes and dofs")
         if files.nodes:

@@ -93,12 +93,27 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     return summary
 
 
+def _gyroscopic_checks(scene: Scene, fom, method: str) -> None:
+    """A gyroscopic structure (issue 19): refused above its critical speed (an unstable mode among the
+    [basis] modes lowest, or the lowest 8), and with the reduced model, not built yet. Collective."""
+    from .gyroscopic import check_stable
+
+    s = scene["structure"]
+    speed = f"{s['axial_speed']:g} m/s" if scene.is_beam else "of the given gyroscopic matrix"
+    check_stable(fom.operators, scene["basis"]["modes"] or 8, speed)
+    if method == "rom":
+        raise InputError("the reduced model of a gyroscopic structure (axial_speed != 0 or a gyroscopic matrix) "
+                         "is not built yet; run the full-order model with --method full")
+
+
 def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str) -> dict:
     timings, t = {}, time.perf_counter()
     with scene.full_order_model(comm) as fom:
         timings["operators"] = time.perf_counter() - t
         _say(say, f"dbf-hpc: {scene.path}: {fom.size} DOFs, {fom.constraints.count} constraint(s), "
                   f"{comm.getSize()} rank(s)")
+        if fom.operators.G is not None:
+            _gyroscopic_checks(scene, fom, method)
         if method == "full":
             return _run_full(scene, fom, path, settings, timings, say, resume)
         t, solves = time.perf_counter(), counters["eigen_solves"]

@@ -78,7 +78,9 @@ class Scene:
         s = self["structure"]
         return Beam(length=float(s["length"]), E=float(s["E"]), I=float(s["I"]), A=float(s["A"]),
                     rho=float(s["rho"]), elements=s["elements"], left=s["left"], right=s["right"],
-                    supports=tuple(float(x) for x in s["supports"]), planes=s["planes"])
+                    supports=tuple(float(x) for x in s["supports"]), planes=s["planes"],
+                    axial_speed=float(s["axial_speed"]), tension=float(s["tension"]),
+                    transported_mass=None if s["transported_mass"] is None else float(s["transported_mass"]))
 
     def structure(self):
         """The structure: a Beam, or the MatrixFiles with paths resolved against the scene's folder."""
@@ -87,7 +89,7 @@ class Scene:
         s = self["structure"]
         return MatrixFiles(**{key: self.resolve(s[key]) if s[key] else None
                               for key in ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes",
-                                          "dofs")})
+                                          "dofs", "gyroscopic")})
 
     def excitation(self):
         """The excitation description (excitation.py)."""
@@ -154,7 +156,8 @@ class Scene:
         if not self.is_beam:
             s = self["structure"]
             files += [(f"{key} file", self.resolve(s[key])) for key in
-                      ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes", "dofs") if s[key]]
+                      ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes", "dofs", "gyroscopic")
+                      if s[key]]
         return files
 
     def cache_dir(self):
@@ -264,9 +267,20 @@ def _check_structure(s: dict, where: str) -> None:
             raise InputError(f"{where}: elements must be at least 1, got {s['elements']}")
         if s["planes"] not in (1, 2):
             raise InputError(f"{where}: planes must be 1 or 2, got {s['planes']!r}")
+        if s["transported_mass"] is not None and not s["transported_mass"] > 0:
+            raise InputError(f"{where}: transported_mass must be positive, got {s['transported_mass']!r}")
+        if s["axial_speed"] and not (s["left"] in ("pinned", "clamped") and s["right"] in ("pinned", "clamped")):
+            raise InputError(f"{where}: axial_speed needs w fixed at both ends (left and right pinned or clamped), "
+                             f"got {s['left']!r} and {s['right']!r}")
+        if s["gyroscopic"] is not None:
+            raise InputError(f"{where}: gyroscopic (a matrix file) is for kind = \"matrices\"; a beam's G comes from "
+                             f"axial_speed")
     elif s["kind"] == "matrices":
         if s["planes"] != 1:
             raise InputError(f"{where}: planes applies to a beam; a matrix model gives its DOFs itself")
+        if s["axial_speed"] or s["tension"] or s["transported_mass"] is not None:
+            raise InputError(f"{where}: axial_speed, tension and transported_mass apply to a beam; a matrix model "
+                             f"gives its gyroscopic matrix (gyroscopic = \"G.mtx\") and K with its tension")
         for key in ("stiffness", "mass"):
             if s[key] is None:
                 raise InputError(f"{where}: {key} (a matrix file) is required for kind = \"matrices\"")

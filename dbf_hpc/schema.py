@@ -36,10 +36,18 @@ SECTIONS = {
         "planes": Key((int,), 1, "", "beam: 1 (bending in the x-y plane, w = y) or 2 (bending in two planes: per "
                                      "node y, dy/dx, z, dz/dx, the planes uncoupled with the same EI; constraints "
                                      "then take 2-D laws, law = \"circular\")"),
+        "axial_speed": Key(NUMBER, 0.0, "m/s", "beam: axial transport speed U (an axially moving beam, or the flow "
+                                               "speed of a pipe conveying fluid); needs w fixed at both ends. Adds "
+                                               "the gyroscopic G = 2 m_t U int N^T N' dx and softens K by m_t U^2"),
+        "transported_mass": Key(NUMBER, None, "kg/m", "beam: mass per length moving at axial_speed (default rho A; "
+                                                      "a pipe's fluid mass per length)"),
+        "tension": Key(NUMBER, 0.0, "N", "beam: axial tension T: K += (T - m_t U^2) int N'^T N' dx"),
         "stiffness": Key((str,), None, "", "matrices: K over the free DOFs, Matrix Market (.mtx) or PETSc binary "
                                            "(required)"),
         "mass": Key((str,), None, "", "matrices: M, as stiffness (required)"),
         "damping": Key((str,), None, "", "matrices: a damping matrix C (optional)"),
+        "gyroscopic": Key((str,), None, "", "matrices: a skew-symmetric gyroscopic matrix G (optional): "
+                                            "M u'' + (C + G) u' + K u = f"),
         "influence": Key((str,), None, "", "matrices: r, the displacement under a unit support motion (.npy, .txt, "
                                            ".mtx or PETSc binary; needed for base excitation)"),
         "base_mass_load": Key((str,), None, "", "matrices: M_(free, all) r_all with the coupling to the moving "

@@ -11,6 +11,17 @@ Boundary conditions at each end:
     free     (none)              sliding  theta = 0 (a guided end: no slope, no shear)
 Intermediate rigid supports pin w = 0 at interior points (multi-span tubes). With two planes every
 condition holds in both planes.
+
+Axial transport and tension (issue 19; the gyroscopic form of Brake & Segalman 2011, Section 2,
+Eqs. 3-20, with C -> C + G): a beam moving axially at speed U (or a pipe conveying fluid at U) with
+transported mass m_t per length and tension T obeys
+
+    rho A w_tt + 2 m_t U w_xt + (m_t U^2 - T) w_xx + EI w_xxxx = 0,
+
+which the same Hermite elements turn into M q'' + G q' + K q = 0 with
+    G = 2 m_t U int N^T N' dx  (its skew-symmetric part: exact when w is fixed at both ends)
+    K = K_bending + (T - m_t U^2) int N'^T N' dx   (tension stiffens, transport softens).
+With U = 0 there is no G; with U = 0 and T = 0, K is the bending stiffness alone, bit for bit.
 """
 from __future__ import annotations
 
@@ -43,6 +54,9 @@ class Beam:
     right: str = "pinned"
     supports: tuple = ()
     planes: int = 1
+    axial_speed: float = 0.0                 # U, m/s
+    transported_mass: float | None = None    # m_t, kg/m (None: rho A)
+    tension: float = 0.0                     # T, N
 
     def __post_init__(self):
         for name in ("length", "E", "I", "A", "rho"):
@@ -60,6 +74,20 @@ class Beam:
         for x in self.supports:
             if not 0 < x < self.length:
                 raise InputError(f"intermediate support at x = {x} m is not inside the beam (0, {self.length})")
+        self._check_transport()
+
+    def _check_transport(self) -> None:
+        for name in ("axial_speed", "tension"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value)):
+                raise InputError(f"beam {name} must be a number, got {value!r}")
+        m_t = self.transported_mass
+        if m_t is not None and not (isinstance(m_t, (int, float)) and np.isfinite(m_t) and m_t > 0):
+            raise InputError(f"beam transported_mass must be a positive number, got {m_t!r}")
+        if self.axial_speed and any(W not in BOUNDARIES[getattr(self, end)] for end in ("left", "right")):
+            raise InputError(f"an axially moving beam (axial_speed = {self.axial_speed} m/s) needs w fixed at both "
+                             f"ends (pinned or clamped), got left = {self.left!r}, right = {self.right!r}: with a free "
+                             f"end the transport does work (a cantilevered pipe flutters) and is not modelled")
 
     @property
     def EI(self) -> float:
@@ -68,6 +96,16 @@ class Beam:
     @property
     def rhoA(self) -> float:
         return self.rho * self.A
+
+    @property
+    def m_t(self) -> float:
+        """The transported mass per length, kg/m (rho A unless given)."""
+        return self.rhoA if self.transported_mass is None else float(self.transported_mass)
+
+    @property
+    def axial_force(self) -> float:
+        """T - m_t U^2 (N): the coefficient of the geometric stiffness int N'^T N' dx."""
+        return self.tension - self.m_t * self.axial_speed**2
 
     @property
     def eigen_scale(self) -> float:
@@ -232,6 +270,23 @@ def element_matrices(h: np.ndarray, EI: float, rhoA: float):
     return k, m
 
 
+def transport_matrices(h: np.ndarray, axial_force: float, m_t_U: float):
+    """Hermite-cubic geometric stiffness axial_force * int N'^T N' dx and gyroscopic
+    m_t_U * int (N^T N' - N'^T N) dx (the skew part of 2 m_t U int N^T N' dx) for elements of
+    lengths h: two (ne, 4, 4) arrays, DOFs (w1, theta1, w2, theta2)."""
+    h = np.asarray(h, dtype=float)[:, None, None]
+    one, zero = np.ones_like(h), np.zeros_like(h)
+    s = np.block([[36 * one, 3 * h, -36 * one, 3 * h],
+                  [3 * h, 4 * h**2, -3 * h, -h**2],
+                  [-36 * one, -3 * h, 36 * one, -3 * h],
+                  [3 * h, -h**2, -3 * h, 4 * h**2]]) * (axial_force / (30.0 * h))
+    g = np.block([[zero, 6 * h, 30 * one, -6 * h],
+                  [-6 * h, zero, 6 * h, -h**2],
+                  [-30 * one, -6 * h, zero, 6 * h],
+                  [6 * h, h**2, -6 * h, zero]]) * (m_t_U / 30.0)
+    return s, g
+
+
 def planes_element(mats: np.ndarray, planes: int) -> np.ndarray:
     """Element matrices (ne, 4, 4) of one plane -> (ne, 4 planes, 4 planes) in the element's DOF
     order (node 1: y, y', z, z'; node 2: the same): the planes uncoupled."""
@@ -290,14 +345,27 @@ def assemble_beam(beam: Beam, comm=None, points=(), base_end: str | None = None,
     mesh = BeamMesh(beam, points)
 
     def stiffness(h):
-        return element_matrices(h, beam.EI, beam.rhoA)[0]
+        k = element_matrices(h, beam.EI, beam.rhoA)[0]
+        if beam.axial_force:   # T = m_t U^2 = 0: the bending stiffness alone, bit for bit
+            k = k + transport_matrices(h, beam.axial_force, 0.0)[0]
+        return k
 
     def mass(h):
         return element_matrices(h, beam.EI, beam.rhoA)[1]
 
     if base_end is None:
-        return Operators(comm=comm, K=_assemble(comm, mesh, stiffness), M=_assemble(comm, mesh, mass), mesh=mesh,
-                         rigid_modes=mesh.rigid_modes(), eigen_scale=beam.eigen_scale, field=mesh.field_map())
+        ops = Operators(comm=comm, K=_assemble(comm, mesh, stiffness), M=_assemble(comm, mesh, mass), mesh=mesh,
+                        rigid_modes=mesh.rigid_modes(), eigen_scale=beam.eigen_scale, field=mesh.field_map())
+        if beam.axial_speed:
+            try:
+                ops.G = _assemble(comm, mesh, lambda h: transport_matrices(h, 0.0, beam.m_t * beam.axial_speed)[1])
+            except Exception:
+                ops.destroy()
+                raise
+        return ops
+    if beam.axial_speed:
+        raise InputError("base excitation of an axially moving beam (axial_speed != 0) is not modelled yet: the "
+                         "support's velocity would load the gyroscopic term; use a force or axial_speed = 0")
     if base_end not in ("left", "right"):
         raise InputError(f"base excitation end must be 'left' or 'right', got {base_end!r}")
     node = 0 if base_end == "left" else mesh.elements

@@ -1,0 +1,232 @@
+"""Reference modes of a gyroscopic structure: M u'' + G u' + K u = 0 (issue 19).
+
+Brake & Segalman 2011, Section 2 (Eqs. 3-20) write the structure in first-order (state-space) form;
+with a skew-symmetric G (axial transport, structure.py) the modes are complex: u = Re(x e^(lambda t))
+with the quadratic eigenproblem (lambda^2 M + lambda G + K) x = 0. While K is positive definite every
+lambda = +-i omega (a conservative gyroscopic system is stable); above a critical speed K loses its
+definiteness and a pair becomes real, +-sigma (divergence: the first frequency has fallen to zero),
+or two pairs meet and leave the imaginary axis (flutter).
+
+Solved with SLEPc's PEP (TOAR, real arithmetic: a complex pair is one (x_r, x_i)) by shift-and-invert
+about 0, P(0) = K factored by MUMPS's LU (K may be indefinite): the eigenvalues nearest 0 are the lowest
+frequencies and any divergence. Options prefix `modes_` as for the real modes (-modes_pep_tol, ...).
+The problem is scaled (lambda by sqrt(||K|| / ||M||)). Each returned pair is checked: its backward
+error must be below BACKWARD_TOL. With G = 0 the frequencies are the real solver's (modes.py) to 1e-10.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from petsc4py import PETSc
+from slepc4py import SLEPc
+
+from .errors import InputError, SolverError
+from .operators import Operators
+from .petsctools import destroy, direct_solver, options_defaults
+
+# A real part above this fraction of |lambda| is growth (the stable pairs' real parts are round-off).
+UNSTABLE_TOL = 1e-6
+# Largest backward error accepted for a returned eigenpair.
+BACKWARD_TOL = 1e-8
+FACTOR_DEFAULTS = {"st_mat_mumps_icntl_24": "1"}
+
+
+@dataclass
+class GyroscopicModes:
+    """The lowest complex modes, ascending in frequency: eigenvalues lambda_j (Im >= 0), and x_j =
+    real[j] + i imag[j] normalized to x^H M x = 1, its largest entry real (new Vecs, owned here)."""
+
+    eigenvalues: np.ndarray
+    real: list = field(default_factory=list)
+    imag: list = field(default_factory=list)
+
+    @property
+    def omega(self) -> np.ndarray:
+        """The frequencies Im(lambda), rad/s (0 for a diverging mode)."""
+        return self.eigenvalues.imag
+
+    @property
+    def frequency_hz(self) -> np.ndarray:
+        return self.omega / (2 * np.pi)
+
+    @property
+    def count(self) -> int:
+        return self.eigenvalues.size
+
+    @property
+    def unstable(self) -> list:
+        """Indices (from 0) of the modes that grow: Re(lambda) > UNSTABLE_TOL |lambda|."""
+        lam = self.eigenvalues
+        return [j for j in range(lam.size) if lam[j].real > UNSTABLE_TOL * abs(lam[j])]
+
+    def describe(self, j: int) -> str:
+        """What mode j (from 0) does, in words."""
+        lam = self.eigenvalues[j]
+        if lam.real > UNSTABLE_TOL * abs(lam):
+            kind = "divergence" if abs(lam.imag) <= UNSTABLE_TOL * abs(lam) else "flutter"
+            return (f"mode {j + 1} is unstable ({kind}: lambda = {lam.real:.6g} {lam.imag:+.6g}i 1/s, "
+                    f"growth rate {lam.real:.6g} 1/s)")
+        return f"mode {j + 1}: {lam.imag / (2 * np.pi):.6g} Hz"
+
+    def destroy(self) -> None:
+        destroy(*self.real, *self.imag)
+        self.real, self.imag = [], []
+
+
+def _pep(ops: Operators, prefix: str, tol: float) -> SLEPc.PEP:
+    """The configured PEP (lambda^2 M + lambda G + K) x = 0 about 0, the user's options under prefix."""
+    pep = SLEPc.PEP().create(comm=ops.comm)
+    try:
+        pep.setOperators([ops.K, ops.G, ops.M])
+        pep.setProblemType(SLEPc.PEP.ProblemType.GENERAL)
+        pep.setType(SLEPc.PEP.Type.TOAR)
+        pep.setWhichEigenpairs(SLEPc.PEP.Which.TARGET_MAGNITUDE)
+        pep.setTarget(0.0)
+        pep.setTolerances(tol, 1000)
+        # Scale lambda by sqrt(||K|| / ||M||): unscaled, a beam's ||K|| >> lambda^2 ||M|| and its third and
+        # fourth frequencies were 1e-7 off the real solver's at G = 0; scaled, 1e-11.
+        pep.setScale(SLEPc.PEP.Scale.SCALAR)
+        st = pep.getST()
+        st.setType(SLEPc.ST.Type.SINVERT)
+        direct_solver(st.getKSP(), PETSc.PC.Type.LU)
+        pep.setOptionsPrefix(prefix)
+        with options_defaults(prefix, FACTOR_DEFAULTS):
+            pep.setFromOptions()
+    except Exception:
+        pep.destroy()
+        raise
+    return pep
+
+
+def _solve(pep: SLEPc.PEP, ops: Operators, nev: int, prefix: str):
+    """(eigenvalues, xr list, xi list) of the converged pairs with Im >= 0 (a real pair: the growing
+    one, +sigma, only), ascending in (Im, |lambda|). Collective."""
+    pep.setDimensions(nev, PETSc.DEFAULT, PETSc.DEFAULT)
+    try:
+        with options_defaults(prefix, FACTOR_DEFAULTS):
+            pep.solve()
+    except PETSc.Error as e:
+        raise SolverError(f"gyroscopic modes: the eigensolver failed (PETSc error {e.ierr}); K may be singular "
+                          f"(the speed is exactly critical): move the axial speed off it") from None
+    values, xr, xi = [], [], []
+    try:
+        for i in range(pep.getConverged()):
+            _take(pep, ops, i, prefix, values, xr, xi)
+    except Exception:
+        destroy(*xr, *xi)
+        raise
+    order = sorted(range(len(values)), key=lambda j: (round(values[j].imag, 12), abs(values[j])))
+    return np.array([values[j] for j in order], dtype=complex), [xr[j] for j in order], [xi[j] for j in order]
+
+
+def _take(pep: SLEPc.PEP, ops: Operators, i: int, prefix: str, values: list, xr: list, xi: list) -> None:
+    """Append converged pair i to (values, xr, xi) if it has Im >= 0 (a real pair: lambda >= 0 only),
+    after checking its backward error. Collective."""
+    a, b = ops.K.createVecRight(), ops.K.createVecRight()
+    lam = complex(pep.getEigenpair(i, a, b))
+    error = pep.computeError(i, SLEPc.PEP.ErrorType.BACKWARD)
+    tiny = UNSTABLE_TOL * abs(lam)
+    keep = lam.imag > tiny or (abs(lam.imag) <= tiny and lam.real >= -tiny)
+    if not keep:
+        destroy(a, b)
+        return
+    if error > BACKWARD_TOL:
+        destroy(a, b)
+        raise SolverError(f"gyroscopic modes: eigenvalue {lam:.6g} has backward error {error:.1e} > {BACKWARD_TOL:g}: "
+                          f"K is near singular close to a critical speed (move the speed away from it), or tighten "
+                          f"-{prefix}pep_tol or check the -{prefix}st_ options")
+    if abs(lam.imag) <= tiny:   # a real eigenvalue: a real eigenvector
+        lam = complex(lam.real, 0.0)
+        b.zeroEntries()
+    values.append(lam)
+    xr.append(a)
+    xi.append(b)
+
+
+def normalize_complex(xr: PETSc.Vec, xi: PETSc.Vec, M: PETSc.Mat) -> None:
+    """Scale x = xr + i xi to x^H M x = 1 and turn its phase so that its largest entry (the lowest row
+    among equals) is real and positive: the same vectors on any number of ranks. Collective."""
+    lo, _ = xr.getOwnershipRange()
+    z = xr.getArray(readonly=True) + 1j * xi.getArray(readonly=True)
+    j = int(np.argmax(np.abs(z))) if z.size else -1
+    mine = (abs(z[j]), -(lo + j), complex(z[j])) if z.size else (-1.0, 0, 0j)
+    best = max(xr.getComm().tompi4py().allgather(mine), key=lambda t: (t[0], t[1]))
+    phase = np.conj(best[2]) / abs(best[2])
+    Mx = M.createVecLeft()
+    mass = 0.0
+    for v in (xr, xi):
+        M.mult(v, Mx)
+        mass += v.dot(Mx)
+    Mx.destroy()
+    scale = phase / np.sqrt(mass)
+    a, b = xr.getArray(), xi.getArray()
+    z = (a + 1j * b) * scale
+    a[:], b[:] = z.real, z.imag
+
+
+def gyroscopic_modes(ops: Operators, count: int | None = None, max_frequency_hz: float | None = None,
+                     prefix: str = "modes_", tol: float = 1e-12) -> GyroscopicModes:
+    """The lowest complex modes of M u'' + G u' + K u = 0 (ops.G set): `count` of them, or every mode
+    below `max_frequency_hz`, diverging and fluttering modes included (GyroscopicModes.unstable).
+    Collective on ops.comm."""
+    if ops.G is None:
+        raise InputError("gyroscopic modes need a gyroscopic matrix G")
+    if (count is None) == (max_frequency_hz is None):
+        raise InputError("give the number of modes or a maximum frequency, not both")
+    n = ops.size
+    if count is not None and not 1 <= count <= n:
+        raise InputError(f"number of modes must be between 1 and {n} (the free DOFs), got {count}")
+    pep = _pep(ops, prefix, tol)
+    values, xr, xi = np.zeros(0, complex), [], []
+    try:
+        nev = min(2 * count + 2 if count else 16, 2 * n)
+        while True:
+            destroy(*xr, *xi)
+            values, xr, xi = _solve(pep, ops, nev, prefix)
+            enough = (values.size >= count if count else
+                      values.size and values[-1].imag > 2 * np.pi * max_frequency_hz)
+            if enough or nev >= 2 * n:
+                break
+            nev = min(2 * nev, 2 * n)
+        keep = count if count else int(np.count_nonzero(values.imag <= 2 * np.pi * max_frequency_hz))
+        if values.size < keep or keep == 0:
+            raise SolverError(f"gyroscopic modes: only {values.size} modes converged" if count else
+                              f"no mode below max_frequency_hz = {max_frequency_hz} Hz")
+        destroy(*xr[keep:], *xi[keep:])
+        values, xr, xi = values[:keep], xr[:keep], xi[:keep]
+        for a, b in zip(xr, xi):
+            normalize_complex(a, b, ops.M)
+    except Exception:
+        destroy(*xr, *xi)
+        raise
+    finally:
+        pep.destroy()
+    return GyroscopicModes(eigenvalues=values, real=xr, imag=xi)
+
+
+def check_stable(ops: Operators, count: int, speed: str, prefix: str = "modes_") -> None:
+    """An InputError naming the first unstable mode among the lowest `count` complex modes (divergence
+    or flutter) at the axial `speed` (words): a linear model that grows without bound has no
+    steady response to run. Collective."""
+    modes = gyroscopic_modes(ops, count=min(count, ops.size), prefix=prefix)
+    try:
+        if modes.unstable:
+            raise InputError(f"the structure is unstable at axial speed {speed}: {modes.describe(modes.unstable[0])}; "
+                             f"lower the axial speed below the critical speed (or raise the tension)")
+    finally:
+        modes.destroy()
+
+
+def mode_state(ops: Operators, mode: int, prefix: str = "modes_") -> tuple:
+    """(u, v): the free vibration of complex mode `mode` (from 1) at t = 0, u = Re x, v = Re(lambda x)
+    (x normalized as in normalize_complex; new Vecs, the caller's). Collective."""
+    modes = gyroscopic_modes(ops, count=mode, prefix=prefix)
+    try:
+        lam = modes.eigenvalues[mode - 1]
+        u, v = modes.real[mode - 1].copy(), modes.real[mode - 1].copy()
+        v.scale(lam.real)
+        v.axpy(-lam.imag, modes.imag[mode - 1])
+    finally:
+        modes.destroy()
+    return u, v
