@@ -119,6 +119,7 @@ def worker(case: str, solid: str) -> None:
     from mpi4py import MPI
     from petsc4py import PETSc
 
+    from dbf_hpc.fom import Observation
     from dbf_hpc.fom_integrator import Alpha2, ConstraintRows, EffectiveSystem, integrate_full, options
     from dbf_hpc.output import MemoryWriter
     from dbf_hpc.recorder import FullRecorder
@@ -126,11 +127,11 @@ def worker(case: str, solid: str) -> None:
     world = MPI.COMM_WORLD
     fom, settings = build(case, solid)
     with fom:
-        observed = np.concatenate([fom.constraints.flat_rows, fom.probe_rows])
-        recorder = FullRecorder(MemoryWriter((fom.constraints.count,), fom.probe_rows.size, 0), fom.constraints,
-                                fom.influence_at(observed), fom.support)
+        observation = Observation(fom)
+        recorder = FullRecorder(MemoryWriter(fom.constraints.shape, fom.probes.shape, 0), fom.constraints,
+                                observation)
         started = time.perf_counter()
-        stats = integrate_full(fom, settings, observed, recorder.block if world.rank == 0 else None)
+        stats = integrate_full(fom, settings, observation.rows, recorder.block if world.rank == 0 else None)
         total = time.perf_counter() - started
         # One solve with the same matrix and the same factorization options, timed after the run.
         X = fom.operators.K.createVecRight()
