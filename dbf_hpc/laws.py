@@ -53,6 +53,18 @@ def _is_number(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
+def _check_contact_damping(damping: str, c: float, alpha: float) -> None:
+    """c belongs to linear contact damping, alpha to Hunt-Crossley's, each positive when used."""
+    if c != 0 and damping != "linear":
+        raise InputError("c applies only with damping = \"linear\"")
+    if alpha != 0 and damping != "hunt_crossley":
+        raise InputError("alpha applies only with damping = \"hunt_crossley\"")
+    if damping == "linear" and not c > 0:
+        raise InputError(f"c must be a positive number with damping = \"linear\", got {c!r}")
+    if damping == "hunt_crossley" and not alpha > 0:
+        raise InputError(f"alpha must be a positive number with damping = \"hunt_crossley\", got {alpha!r}")
+
+
 def _quoted(names) -> str:
     return ", ".join(f'"{n}"' for n in names)
 
@@ -128,15 +140,7 @@ class Law:
             put("table", ())
         else:
             raise InputError(f"table does not apply to a {kind} law")
-        if self.c != 0 and self.damping != "linear":
-            raise InputError("c applies only with damping = \"linear\"")
-        if self.alpha != 0 and self.damping != "hunt_crossley":
-            raise InputError("alpha applies only with damping = \"hunt_crossley\"")
-        if self.damping == "linear" and not self.c > 0:
-            raise InputError(f"c must be a positive number with damping = \"linear\", got {self.c!r}")
-        if self.damping == "hunt_crossley" and not self.alpha > 0:
-            raise InputError(f"alpha must be a positive number with damping = \"hunt_crossley\", "
-                             f"got {self.alpha!r}")
+        _check_contact_damping(self.damping, self.c, self.alpha)
 
 
 def _check_table(table) -> tuple:
@@ -585,14 +589,7 @@ class CircularLaw:
             raise InputError(f"v_reg must be a positive number (m/s), got {self.v_reg!r}")
         if self.damping not in CONTACT_DAMPING:
             raise InputError(f"damping must be one of {_quoted(CONTACT_DAMPING)}, got {self.damping!r}")
-        if self.c != 0 and self.damping != "linear":
-            raise InputError("c applies only with damping = \"linear\"")
-        if self.alpha != 0 and self.damping != "hunt_crossley":
-            raise InputError("alpha applies only with damping = \"hunt_crossley\"")
-        if self.damping == "linear" and not self.c > 0:
-            raise InputError(f"c must be a positive number with damping = \"linear\", got {self.c!r}")
-        if self.damping == "hunt_crossley" and not self.alpha > 0:
-            raise InputError(f"alpha must be a positive number with damping = \"hunt_crossley\", got {self.alpha!r}")
+        _check_contact_damping(self.damping, self.c, self.alpha)
 
     @property
     def clearance_minus(self) -> float:

@@ -62,15 +62,22 @@ class SampleRecorder:
         n = self.peak.size
         z = np.asarray(z, dtype=float).reshape(t.size, n)
         v = np.asarray(v, dtype=float).reshape(t.size, n)
+        force = self._add_steps(t, z, v)
+        if n:
+            i = np.abs(force).argmax(axis=0)
+            self._track_peak(force[i, np.arange(n)])
+
+    def _add_steps(self, t, z, v) -> np.ndarray:
+        """The laws' forces at steps t (k,) with z, v (k, N_L[, d]) into the impact statistics (radial
+        values for supports of two directions); returns the forces."""
+        n = self.peak.size
         force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
         if self.planar:
             r, vn, f, fn, vt, _ = self.constraints.laws.radial(z, v, force)
             self.impacts.add_block(t, r, vn, f, power=fn * np.abs(vn), work=fn * vt)
         else:
             self.impacts.add_block(t, z, v, force)
-        if n:
-            i = np.abs(force).argmax(axis=0)
-            self._track_peak(force[i, np.arange(n)])
+        return force
 
     def _block_laws(self, k: int):
         """The laws repeated for k points (flat, point-major), one set per block length."""
@@ -108,12 +115,7 @@ class FullRecorder(SampleRecorder):
         t, z, v = steps
         if t.size:
             z, v = self.observation.constraint_totals(t, z, v)
-            force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
-            if self.planar:
-                r, vn, f, fn, vt, _ = self.constraints.laws.radial(z, v, force)
-                self.impacts.add_block(t, r, vn, f, power=fn * np.abs(vn), work=fn * vt)
-            else:
-                self.impacts.add_block(t, z, v, force)
+            force = self._add_steps(t, z, v)
         ts, x, xd, cut = samples
         if not ts.size:
             if t.size:
