@@ -35,7 +35,7 @@ from .dbf import (DERIVATIVE_BACKWARD_TOL, EIGEN_TOL, PREFIX, REFINEMENT_STEPS, 
 from .errors import SolverError, petsc_failure
 from .modes import lowest_eigenpair, normalize, shift_below_spectrum
 from .operators import Operators
-from .petsctools import destroy, direct_solver, options_defaults, unit_vector
+from .petsctools import destroy, direct_solver, natural_fill_is_small, options_defaults, unit_vector
 
 FACTOR_PREFIX = "dbf_shared_"
 KRYLOV_PREFIX = "dbf_krylov_"
@@ -44,10 +44,12 @@ KRYLOV_MAX_IT = 200
 EIGEN_NCV = 4            # Krylov-Schur subspace beyond the branch index: convergence is checked per restart
                          # (m + 8 took 12 solves per eigenproblem on the 10^4-DOF beam, m + 4 takes 10)
 
-# On a one-rank group: PETSc's own sparse Cholesky (nested-dissection ordering). A MUMPS solve
-# costs ~6.5 ms on the 10^4-DOF beam whatever the arithmetic (its per-call overhead), PETSc's 0.4 ms,
-# and each constraint makes ~30 solves (docs/design.md). Groups of several ranks use MUMPS;
-# -dbf_shared_pc_factor_mat_solver_type mumps chooses MUMPS everywhere.
+# On a one-rank group whose K - sigma M keeps its fill small in the natural ordering (a beam):
+# PETSc's own sparse Cholesky (nested-dissection ordering). A MUMPS solve costs ~6.5 ms on the
+# 10^4-DOF beam whatever the arithmetic (its per-call overhead), PETSc's 0.4 ms, and each constraint
+# makes several solves (docs/design.md). A 3-D mesh (the 104 040-DOF solid: PETSc's own Cholesky
+# did not finish its factorization in minutes) and groups of several ranks use MUMPS;
+# -dbf_shared_pc_factor_mat_solver_type chooses either everywhere.
 FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "nd"}
 
 # Work done by this process on the shared path (tests and benchmarks read it).
@@ -67,7 +69,8 @@ class SharedFactor:
             self.ksp = direct_solver(PETSc.KSP().create(comm=ops.comm), PETSc.PC.Type.CHOLESKY)
             self.ksp.setOperators(self.A)
             self.ksp.setOptionsPrefix(FACTOR_PREFIX)
-            with options_defaults(FACTOR_PREFIX, FACTOR_DEFAULTS if ops.comm.getSize() == 1 else {}):
+            native = ops.comm.getSize() == 1 and natural_fill_is_small(self.A)
+            with options_defaults(FACTOR_PREFIX, FACTOR_DEFAULTS if native else {}):
                 self.ksp.setFromOptions()
                 self.ksp.setUp()     # the factorization
             counters["factorizations"] += 1

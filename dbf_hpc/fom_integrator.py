@@ -71,7 +71,7 @@ from petsc4py import PETSc
 
 from .errors import WRITE_ERRORS, InputError, SolverError, write_failure
 from .fom import FullOrderModel
-from .petsctools import destroy, options_defaults
+from .petsctools import destroy, natural_fill_is_small, options_defaults
 from .timestepping import IntegratorSettings, StepMonitor, check_outcome
 
 PREFIX = "full_"
@@ -173,21 +173,6 @@ class ConstraintRows:
         return view if view is not None else vec.getArray(readonly=True)
 
 
-def _natural_fill_is_small(A: PETSc.Mat) -> bool:
-    """Whether Cholesky in the natural ordering keeps the fill within 10 times the lower triangle
-    (a beam's banded matrix does; a 3-D mesh does not). Collective."""
-    lo, _ = A.getOwnershipRange()
-    ia, ja, _ = A.getValuesCSR()
-    n = ia.size - 1
-    envelope = lower = 0.0
-    if n:
-        first = np.minimum.reduceat(ja, ia[:-1])
-        envelope = float(np.sum(np.maximum(lo + np.arange(n) - first, 0) + 1))
-        lower = (ja.size + n) / 2
-    envelope, lower = A.getComm().tompi4py().allreduce(np.array([envelope, lower]))
-    return envelope <= 10.0 * lower
-
-
 def factorization(A: PETSc.Mat, prefix: str, symmetric: bool = True) -> dict:
     """The default factorization of an SPD matrix (options under `prefix`): PETSc's own Cholesky in
     the natural ordering when that keeps the fill small (a beam: a solve costs microseconds), on
@@ -200,7 +185,7 @@ def factorization(A: PETSc.Mat, prefix: str, symmetric: bool = True) -> dict:
             return {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "petsc",
                     "pc_factor_zeropivot": "0.0"}
         return {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}
-    if not user and _natural_fill_is_small(A):
+    if not user and natural_fill_is_small(A):
         # PETSc's own factorization calls a pivot below 1e-12 zero (an absolute tolerance): a fine beam's
         # rotational masses are 3e-14 kg m^2 at 1000 elements. Only an exact 0 is a zero pivot here.
         native = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "natural",

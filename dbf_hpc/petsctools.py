@@ -136,3 +136,18 @@ def unused_options(names, comm) -> list:
     anywhere = np.zeros(len(names), dtype=np.int32)
     comm.tompi4py().Allreduce(np.array(used, dtype=np.int32), anywhere, op=MPI.MAX)
     return [name for name, u in zip(names, anywhere) if not u]
+
+
+def natural_fill_is_small(A: PETSc.Mat) -> bool:
+    """Whether Cholesky in the natural ordering keeps the fill within 10 times the lower triangle
+    (a beam's banded matrix does; a 3-D mesh does not). Collective."""
+    lo, _ = A.getOwnershipRange()
+    ia, ja, _ = A.getValuesCSR()
+    n = ia.size - 1
+    envelope = lower = 0.0
+    if n:
+        first = np.minimum.reduceat(ja, ia[:-1])
+        envelope = float(np.sum(np.maximum(lo + np.arange(n) - first, 0) + 1))
+        lower = (ja.size + n) / 2
+    envelope, lower = A.getComm().tompi4py().allreduce(np.array([envelope, lower]))
+    return envelope <= 10.0 * lower
