@@ -47,8 +47,9 @@ EIGEN_NCV = 4            # Krylov-Schur subspace beyond the branch index: conver
 # On a one-rank group whose K - sigma M keeps its fill small in the natural ordering (a beam):
 # PETSc's own sparse Cholesky (nested-dissection ordering). A MUMPS solve costs ~6.5 ms on the
 # 10^4-DOF beam whatever the arithmetic (its per-call overhead), PETSc's 0.4 ms, and each constraint
-# makes several solves (docs/design.md). A 3-D mesh (the 104 040-DOF solid: PETSc's own Cholesky
-# did not finish its factorization in minutes) and groups of several ranks use MUMPS;
+# makes several solves (docs/design.md). A 3-D mesh (the 104 040-DOF solid: bench_basis with 10 and
+# 100 constraints had not finished after 13 min with PETSc's own, 7 min with MUMPS) and groups of
+# several ranks use MUMPS;
 # -dbf_shared_pc_factor_mat_solver_type chooses either everywhere.
 FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "nd"}
 
