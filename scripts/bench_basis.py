@@ -96,7 +96,8 @@ def worker(args) -> None:
         """(ops, constraint rows, reference modes) of the beam or the solid."""
         if solid:
             from dbf_hpc.matrices import MatrixFiles, load_operators
-            ops = load_operators(MatrixFiles(os.path.join(args.solid, "K.bin"), os.path.join(args.solid, "M.bin")), comm)
+            files = MatrixFiles(os.path.join(args.solid, "K.bin"), os.path.join(args.solid, "M.bin"))
+            ops = load_operators(files, comm)
             surface = np.array(solid_surface(args.solid))
             rows = surface[np.linspace(0, surface.size - 1, n_l).round().astype(int)]
             if np.unique(rows).size != n_l:
