@@ -206,6 +206,16 @@ def _wait_for(path, process, timeout=60):
         time.sleep(0.05)
 
 
+def _killed_after_a_checkpoint(target, *args):
+    """Start `run PAPER -o target args` on 2 ranks and SIGKILL the whole job once its first checkpoint
+    exists (a batch system's hard kill)."""
+    import signal
+
+    process = _start("run", PAPER, "-o", str(target), *args)
+    _wait_for(str(target) + ".checkpoint", process)
+    _kill_group(process, signal.SIGKILL)
+
+
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGTERM"])
 def test_a_killed_run_resumes_from_its_checkpoint_to_the_uninterrupted_result(tmp_path, how):
     import signal
@@ -274,27 +284,19 @@ def test_a_killed_full_order_run_resumes_to_the_bit_identical_uninterrupted_resu
 
 
 def test_resuming_a_full_order_run_on_another_rank_count_is_refused(tmp_path):
-    import signal
-
     common = ("-q", "--method", "full", "--set", "integrator.t_end=0.3", "--set", "integrator.dt=1e-5",
               "--set", "output.checkpoint_dt=0.005")
     target = tmp_path / "run.h5"
-    process = _start("run", PAPER, "-o", str(target), *common)
-    _wait_for(str(target) + ".checkpoint", process)
-    _kill_group(process, signal.SIGKILL)
+    _killed_after_a_checkpoint(target, *common)
     out = dbf_hpc("run", PAPER, "-o", str(target), "--resume", *common, ranks=1)
     assert out.returncode == 1 and "ranks differ" in out.stderr, out.stderr
 
 
 def test_resuming_with_a_different_scene_is_refused(tmp_path):
-    import signal
-
     common = ("-q", "--set", "integrator.t_end=3", "--set", "output.checkpoint_dt=0.25",
               "--set", f"basis.cache={tmp_path}")
     target = tmp_path / "run.h5"
-    process = _start("run", PAPER, "-o", str(target), *common)
-    _wait_for(str(target) + ".checkpoint", process)
-    _kill_group(process, signal.SIGKILL)
+    _killed_after_a_checkpoint(target, *common)
     out = dbf_hpc("run", PAPER, "-o", str(target), "--resume", *common, "--set", "constraint.clearance=1e-3")
     assert out.returncode == 1 and "written by a different scene" in out.stderr
 
@@ -375,13 +377,10 @@ def test_two_jobs_on_one_output_without_hdf5_file_locking_leave_the_first_intact
 def test_resuming_on_another_number_of_ranks_is_refused(tmp_path):
     # The basis depends on the rank layout through round-off, and the impacting beam amplifies it:
     # a resume on another layout would not continue the same run.
-    import signal
 
     common = ("-q", "--set", "integrator.t_end=3", "--set", "output.checkpoint_dt=0.25", "--set", f"basis.cache={tmp_path}")
     target = tmp_path / "run.h5"
-    process = _start("run", PAPER, "-o", str(target), *common)
-    _wait_for(str(target) + ".checkpoint", process)
-    _kill_group(process, signal.SIGKILL)
+    _killed_after_a_checkpoint(target, *common)
     out = dbf_hpc("run", PAPER, "-o", str(target), "--resume", *common, ranks=1)
     assert out.returncode == 1 and "ranks differ" in out.stderr, out.stderr
 
@@ -524,13 +523,9 @@ def test_an_option_petsc_refuses_is_one_line_and_leaves_no_file(tmp_path):
 
 
 def test_a_checkpoint_of_the_c_callbacks_is_not_resumed_with_the_python_ones(tmp_path):
-    import signal
-
     target = tmp_path / "cb.h5"
     common = ("--set", "integrator.t_end=20", "--set", "output.checkpoint_dt=0.01", "-q")
-    process = _start("run", PAPER, "-o", str(target), *common)
-    _wait_for(str(target) + ".checkpoint", process)
-    _kill_group(process, signal.SIGKILL)
+    _killed_after_a_checkpoint(target, *common)
     env = {**mpi_env(), "DBF_HPC_NO_C": "1"}
     out = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "dbf_hpc.cli", "run", PAPER, "-o", str(target),
                           "--resume", *common], capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
@@ -539,13 +534,8 @@ def test_a_checkpoint_of_the_c_callbacks_is_not_resumed_with_the_python_ones(tmp
 
 
 def test_info_on_a_partial_file_names_it_and_its_checkpoint(tmp_path):
-    import signal
-
     target = tmp_path / "part.h5"
-    process = _start("run", PAPER, "-o", str(target), "--set", "integrator.t_end=20", "--set",
-                     "output.checkpoint_dt=0.01", "-q")
-    _wait_for(str(target) + ".checkpoint", process)
-    _kill_group(process, signal.SIGKILL)
+    _killed_after_a_checkpoint(target, "--set", "integrator.t_end=20", "--set", "output.checkpoint_dt=0.01", "-q")
     for name in (target, f"{target}.partial"):
         out = dbf_hpc("info", str(name), ranks=1)
         assert out.returncode == 0 and f"{target}.partial: INCOMPLETE" in out.stdout, out.stdout
