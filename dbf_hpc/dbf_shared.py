@@ -30,8 +30,7 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
-from .dbf import (DERIVATIVE_BACKWARD_TOL, EIGEN_TOL, PREFIX, REFINEMENT_STEPS, backward_error,
-                  derivative_system, value_at, with_spring)
+from .dbf import EIGEN_TOL, PREFIX, derivative_system, refine_derivative, value_at, with_spring
 from .errors import SolverError, petsc_failure
 from .modes import lowest_eigenpair, normalize, shift_below_spectrum
 from .operators import Operators
@@ -168,32 +167,20 @@ class SharedSolver:
         A, rhs, Mphi = derivative_system(self.ops, self.row, k, lam, phi)
         self.inverse.set_stiffness(k)
         self.inverse.deflate(phi, Mphi)
-        ksp, d, correction, residual = None, A.createVecRight(), A.createVecRight(), rhs.copy()
-        d.set(0.0)
+        ksp = None
         try:
             ksp = _krylov(A, self.inverse)
-            for _ in range(REFINEMENT_STEPS + 1):
-                ksp.solve(residual, correction)
-                if ksp.getConvergedReason() < 0:
-                    raise SolverError(f"DBF derivative at row {self.row}: GMRES preconditioned by the shared "
-                                      f"factorization did not converge ({ksp.getConvergedReason()}, "
-                                      f"{ksp.getIterationNumber()} iterations); use [basis] dbf_solver = \"factor\"")
-                correction.axpy(-correction.dot(Mphi), phi)  # deflate: phi^T M phi' = 0
-                d.axpy(1.0, correction)
-                A.mult(d, residual)
-                residual.aypx(-1.0, rhs)
-                backward = backward_error(A, d, rhs, residual)
-                if backward < DERIVATIVE_BACKWARD_TOL:
-                    break
-            else:
-                raise SolverError(f"DBF derivative at row {self.row} is inaccurate (backward error {backward:.2e}) "
-                                  f"on the shared factorization; use [basis] dbf_solver = \"factor\"")
-        except Exception:
-            d.destroy()
-            raise
+            d = refine_derivative(
+                ksp, A, rhs, phi, Mphi,
+                failed=lambda reason: (f"DBF derivative at row {self.row}: GMRES preconditioned by the shared "
+                                       f"factorization did not converge ({reason}, {ksp.getIterationNumber()} "
+                                       f"iterations); use [basis] dbf_solver = \"factor\""),
+                inaccurate=lambda backward: (f"DBF derivative at row {self.row} is inaccurate (backward error "
+                                             f"{backward:.2e}) on the shared factorization; use [basis] "
+                                             f"dbf_solver = \"factor\""))
         finally:
             self.inverse.deflate(None, None)
-            destroy(ksp, A, rhs, Mphi, correction, residual)
+            destroy(ksp, A, rhs, Mphi)
         return d
 
     def destroy(self) -> None:
