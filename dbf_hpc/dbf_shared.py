@@ -90,6 +90,41 @@ class SharedFactor:
         if self.ksp.getConvergedReason() < 0:
             raise SolverError(f"a solve with the shared DBF factorization failed ({self.ksp.getConvergedReason()})")
 
+    def solve_block(self, b: np.ndarray) -> np.ndarray:
+        """A^-1 b for a block of local rows b (n_local x L, one right-hand side per column), as numpy
+        local rows: one MatMatSolve with the factor (MUMPS solves a block at a fraction of the cost of as
+        many single solves), column by column where the factor has none. Collective."""
+        n_local, L = b.shape
+        N = self.A.getSize()[0]
+        comm = self.ops.comm
+        B = PETSc.Mat().createDense(((n_local, N), (PETSc.DECIDE, L)), comm=comm)
+        X = PETSc.Mat().createDense(((n_local, N), (PETSc.DECIDE, L)), comm=comm)
+        try:
+            B.setUp()
+            X.setUp()
+            B.getDenseArray()[:] = b
+            B.assemble()
+            X.assemble()
+            try:
+                self.ksp.getPC().getFactorMatrix().matSolve(B, X)
+                out = np.array(X.getDenseArray(), order="F")
+            except PETSc.Error:   # the same decision on every rank: the factor's type
+                out = np.empty_like(b, order="F")
+                x, y = self.A.createVecRight(), self.A.createVecLeft()
+                try:
+                    for j in range(L):
+                        x.array = b[:, j]
+                        self.ksp.solve(x, y)
+                        out[:, j] = y.array_r
+                finally:
+                    destroy(x, y)
+        finally:
+            destroy(B, X)
+        counters["solves"] += L
+        if not np.isfinite(out).all():
+            raise SolverError("a block solve with the shared DBF factorization gave non-finite values")
+        return out
+
     def destroy(self) -> None:
         destroy(self.ksp, self.A)
 
