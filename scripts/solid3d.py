@@ -5,7 +5,7 @@ written as PETSc binary K and M over the free DOFs, with the node coordinates an
 dbf-hpc uses for its XDMF output, and a scene that runs it: a bar in a guide channel, N_L stops
 with a clearance on the z DOFs of the top centre line, driven by a harmonic force at the tip.
 
-    python scripts/solid3d.py OUT_DIR [--elements NX NY NZ] [--stops N]
+    python scripts/solid3d.py OUT_DIR [--elements NX NY NZ] [--stops N] [--surface]
 
 Default 120 x 16 x 16 elements: 104 040 free DOFs, 100 stops. Writes OUT_DIR/K.bin, OUT_DIR/M.bin,
 OUT_DIR/nodes.txt, OUT_DIR/dofs.txt, OUT_DIR/scene.toml and OUT_DIR/dofs.json (the free DOF of each
@@ -100,16 +100,17 @@ def top_surface_z_dofs(nx: int, ny: int, nz: int) -> list:
     return [3 * (node(i, j, nz) - clamped_before(node(i, j, nz))) + 2 for j in range(ny + 1) for i in range(1, nx + 1)]
 
 
-def scene_text(top: list, stops: int) -> str:
-    """The guide-channel scene: `stops` stops spread over the outer 5/6 of the top centre line
-    (0.2 mm clearance, 1e7 N/m), a 1 kN force at 60 Hz at the tip (below the first bending mode,
-    81.8 Hz), 1 % modal damping."""
-    if not 1 <= stops <= len(top):
-        raise SystemExit(f"solid3d: --stops must be from 1 to {len(top)} (the nodes of the top centre line)")
-    first = len(top) // 6
-    picks = np.unique(np.linspace(first, len(top) - 1, stops).round().astype(int))
+def scene_text(top: list, stops: int, surface: list | None = None) -> str:
+    """The guide-channel scene: `stops` stops spread over the outer 5/6 of the top centre line (or,
+    with `surface`, over all the top face's z DOFs off the clamp) (0.2 mm clearance, 1e7 N/m), a 1 kN
+    force at 60 Hz at the tip (below the first bending mode, 81.8 Hz), 1 % modal damping."""
+    where, places = ("top face", surface) if surface is not None else ("top centre line", top)
+    if not 1 <= stops <= len(places):
+        raise SystemExit(f"solid3d: --stops must be from 1 to {len(places)} (the nodes of the {where})")
+    first = 0 if surface is not None else len(places) // 6
+    picks = np.unique(np.linspace(first, len(places) - 1, stops).round().astype(int))
     lines = ["# A steel bar (1 m x 0.1 m x 0.1 m, trilinear hexahedra) clamped at x = 0, in a guide channel:",
-             f"# {picks.size} stops on the z DOFs of its top centre line, driven at the tip. Written by",
+             f"# {picks.size} stops on the z DOFs of its {where}, driven at the tip. Written by",
              "# scripts/solid3d.py, which also writes the matrices this scene reads.", "",
              "[structure]", 'kind = "matrices"', 'stiffness = "K.bin"', 'mass = "M.bin"',
              'nodes = "nodes.txt"', 'dofs = "dofs.txt"', "",
@@ -118,7 +119,7 @@ def scene_text(top: list, stops: int) -> str:
              "[integrator]", "t_end = 0.2", "", "[output]", "sample_dt = 1e-4", f"probes = [{top[-1]}]",
              "snapshots = 10", ""]
     for i in picks:
-        lines += ["[[constraint]]", f"dof = {top[i]}", 'law = "deadband"', "clearance = 2e-4       # m",
+        lines += ["[[constraint]]", f"dof = {places[i]}", 'law = "deadband"', "clearance = 2e-4       # m",
                   "k = 1e7                 # N/m", ""]
     return "\n".join(lines)
 
@@ -128,6 +129,8 @@ def main(argv=None) -> int:
     parser.add_argument("out")
     parser.add_argument("--elements", type=int, nargs=3, default=(120, 16, 16), metavar=("NX", "NY", "NZ"))
     parser.add_argument("--stops", type=int, default=100, help="stops on the top centre line (default 100)")
+    parser.add_argument("--surface", action="store_true",
+                        help="spread the stops over the whole top face instead (up to NX (NY + 1) of them)")
     args = parser.parse_args(argv)
     from petsc4py import PETSc
 
@@ -162,7 +165,7 @@ def main(argv=None) -> int:
     with open(os.path.join(args.out, "dofs.txt"), "w") as f:
         f.writelines(f"{dof // 3} {'xyz'[dof % 3]}\n" for dof in free_dofs)
     with open(os.path.join(args.out, "scene.toml"), "w") as f:
-        f.write(scene_text(top, args.stops))
+        f.write(scene_text(top, args.stops, top_surface_z_dofs(nx, ny, nz) if args.surface else None))
     print(f"{args.out}: {free_dofs.size} free DOFs, K nnz {K.nnz}")
     return 0
 
