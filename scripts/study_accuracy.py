@@ -132,7 +132,7 @@ def read_output(path: str, horizon: float) -> dict:
                 "stats": json.loads(f.attrs["solver_stats"]), "wall": json.loads(f.attrs["wall_times"]),
                 "estimate": float(f.attrs.get("estimated_error", math.nan)),
                 "estimate_window": float(f.attrs.get("estimated_error_window", math.nan)),
-                "effective": json.loads(f.attrs["scene_effective"])}
+                "effective": json.loads(f.attrs.get("scene_effective", "{}"))}
 
 
 def episodes(force) -> int:
@@ -339,8 +339,9 @@ def main(argv=None) -> int:
         try:
             run(load_scene(info["path"], sets), name, progress=False, comm=PETSc.COMM_SELF)
             result = read_output(name, info["horizon"])
+            err = errors(result, info["data"])
             row.update(status="ok", wall_time=result["stats"]["time_integration"], steps=result["stats"]["steps"],
-                       **errors(result, info["data"]), **estimate_of(result))
+                       **err, **estimate_of({**result, **err}))
         except DbfError as e:
             row.update(status=f"failed: {e}", wall_time=math.nan, steps=0, err_w=math.nan, err_w_each=math.nan,
                        err_force=math.nan, err_rms=math.nan, err_impacts=math.nan, estimate=math.nan,
@@ -611,13 +612,14 @@ def tolerance_lines(tol_table: list, table: list) -> list:
             lines.append(f"| {r['constraints']} | {r['tolerance']:.0%} | {r['status']} | | | no | | | | | | | |")
             continue
         c = cheapest_within(table, r["constraints"], r["tolerance"])
-        grid = (f"{c['kind']}, N = {c['modes']}, rtol {c['rtol']:g} | {c['err_w']:.2%} | {c['wall_time']:.3f} s | "
+        grid = (f"{c['kind']}, N = {c['modes']}, rtol {c['rtol']:g} | {c['err_w']:.2%} | {c['wall_time']:.3f} s, "
+                f"{c['steps']} steps | "
                 f"{r['wall_time'] / c['wall_time']:.1f}x | "
                 f"{(r['wall_time'] + r['calibration_time'] + r['basis_time']) / (c['wall_time'] + c['basis_time']):.1f}x"
                 if c else "none of the grid | | | |")
         lines.append(f"| {r['constraints']} | {r['tolerance']:.0%} | N = {r['modes']}, rtol {r['rtol']:g} | "
                      f"{r['estimate']:.2%} | {r['err_w']:.2%} | {'yes' if r['err_w'] <= r['tolerance'] else 'no'} | "
-                     f"{r['wall_time']:.3f} s | {r['calibration_time']:.2f} s | {grid} |")
+                     f"{r['wall_time']:.3f} s, {r['steps']} steps | {r['calibration_time']:.2f} s | {grid} |")
     return lines
 
 
