@@ -125,9 +125,8 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             settings = scene.integrator_settings()
             timings["tolerance"] = time.perf_counter() - t
             _say(say, f"tolerance {estimate.tolerance:g}: picked {pick.modes} modes, rtol {pick.rtol:g} and atol "
-                      f"{pick.atol:g}: the "
-                      f"first candidate whose estimate ({pick.estimate.value:.3g}) is at most {TOLERANCE_MARGIN:g} "
-                      f"x the tolerance over [0, {pick.estimate.window:g}] s")
+                      f"{pick.atol:g}: the first candidate whose estimate ({pick.estimate.value:.3g}) is at most "
+                      f"{TOLERANCE_MARGIN:g} x the tolerance over [0, {pick.estimate.window:g}] s")
             t = time.perf_counter()
         with Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
             basis = reductor.basis()
