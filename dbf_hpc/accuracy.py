@@ -221,8 +221,8 @@ def reused_estimate(calibration: Estimate, times: np.ndarray, w: np.ndarray) -> 
 
 
 # The tolerance mode: the largest basis it tries, and the margin it keeps. The accuracy study
-# (scripts/study_accuracy.py --grid control, docs/accuracy.md) measured the estimate at 0.58 to 1.44
-# times the true error over 64 cases (1, 4, 9 stops and the tube), below 0.79 in one case only:
+# (scripts/study_accuracy.py --grid control, docs/accuracy.md) measured the estimate at 0.58 to 1.39
+# times the true error over 64 cases (1, 4, 9 stops and the tube), below 0.80 in one case only:
 # accepting estimates below 0.75 times the tolerance keeps the true error below it where the
 # estimate is at least 0.75 times the truth. (The rules before, margin 0.5, doubling and rtol =
 # tolerance x 1e-4 with the scene's atol, cost more than twice the cheapest grid setting meeting
@@ -231,8 +231,8 @@ MAX_MODES = 256
 TOLERANCE_MARGIN = 0.75
 # rtol = TOLERANCE_RTOL x tolerance (1e-4 for 1 %). The estimate's richer run is 10 times tighter,
 # so it sees the time-stepping error too: the study's estimates at rtol 1e-4 were as close to the
-# truth as at 1e-6, and at rtol 1e-4 a run costs about 0.6 times one at 1e-6 (N = 40) and its
-# calibration a third.
+# truth as at 1e-6, and at N = 40 a run at rtol 1e-4 cost 0.44 to 0.67 times one at 1e-6, its
+# estimate 0.2 to 0.4 times.
 TOLERANCE_RTOL = 1e-2
 # The next candidate's modes: from the estimates' power law e ~ N^-p, the N that reaches the
 # margin, at least GROWTH_MIN and at most GROWTH_MAX times the last (doubling when the estimates
