@@ -112,9 +112,9 @@ def reference() -> str:
               "`slepc_version`, `mpi_ranks`, `solver_stats` and `wall_times` (JSON), `initial_state`, and "
               "`complete = true` once the run finished. A reduced run of a scene with constraints also has its "
               "a-posteriori error estimate (docs/accuracy.md; not with `[basis] estimate = false`): "
-              "`estimated_error` (1, max over constraints of max_t |w - w_rich| / max_t |w_rich| against twice the "
-              "modes, NaN if it could not be made), `estimated_error_window` (s, the estimate holds over [0, it]) "
-              "and `estimated_error_note` (how it was made, or why not).", "",
+              "`estimated_error` (1, the largest |w - w_rich| at any constraint over the largest |w_rich| at any "
+              "constraint, against twice the modes, NaN if it could not be made), `estimated_error_window` (s, "
+              "the estimate holds over [0, it]) and `estimated_error_note` (how it was made, or why not).", "",
              "On a beam of two planes (`[structure] planes = 2`, 2-D laws such as `circular`) the statistics are per "
              "support and radial: `displacement_*` of |u|, `force_*` of |F|, contact (and so the impacts) where "
              "|u| > clearance, `impact_power_mean` of |F_n v_n|, and `work_rate` = <|F_n| |v_t|> (W), the normal "

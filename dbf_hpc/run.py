@@ -121,12 +121,12 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         if estimate.tolerance is not None:
             pick = pick_basis(fom, scene.basis_settings(), scene.cache_dir(), settings, estimate, comm, say)
             scene = scene.with_values("basis", modes=pick.modes, max_frequency_hz=None)
-            scene = scene.with_values("integrator", rtol=pick.rtol)
+            scene = scene.with_values("integrator", rtol=pick.rtol, atol=pick.atol)
             settings = scene.integrator_settings()
             timings["tolerance"] = time.perf_counter() - t
-            _say(say, f"tolerance {estimate.tolerance:g}: picked {pick.modes} modes and rtol {pick.rtol:g}: the "
-                      f"smallest doubling whose estimate ({pick.estimate.value:.3g}) is at most {TOLERANCE_MARGIN:g} "
-                      f"x the tolerance over [0, {pick.estimate.window:g}] s")
+            _say(say, f"tolerance {estimate.tolerance:g}: picked {pick.modes} modes, rtol {pick.rtol:g} and atol "
+                      f"{pick.atol:g}: the first candidate whose estimate ({pick.estimate.value:.3g}) is at most "
+                      f"{TOLERANCE_MARGIN:g} x the tolerance over [0, {pick.estimate.window:g}] s")
             t = time.perf_counter()
         with Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
             basis = reductor.basis()

@@ -90,16 +90,18 @@ SECTIONS = {
         "groups": Key((int,), 0, "", "constraint groups solved side by side (0: one per rank, at most one per "
                                      "constraint)"),
         "cache": Key((str,), "~/.cache/dbf_hpc", "", 'directory of cached bases, or "off"'),
-        "estimate": Key((bool,), True, "", "the a-posteriori error estimate of a run (the attribute estimated_error): "
-                                           "the same scene on twice the modes with the same enrichment at a 100x "
-                                           "tighter rtol, over estimate_window (docs/accuracy.md); sweeps and scenes without "
-                                           "constraints do not make it"),
+        "estimate": Key((bool,), True, "", "the a-posteriori error estimate of a run (the attribute estimated_error: "
+                                           "the largest error in w at any constraint over the largest |w| at any "
+                                           "constraint): the same scene on twice the modes with the same enrichment "
+                                           "at a 10x tighter rtol, over estimate_window (docs/accuracy.md); sweeps "
+                                           "and scenes without constraints do not make it"),
         "estimate_window": Key(NUMBER, None, "s", "the window [0, T] the estimate holds over (default twice the time "
                                                   "of the first contact, or t_end / 10 without contact)"),
-        "tolerance": Key(NUMBER, None, "1", "the tolerance mode: the number of modes (from modes, default 4, "
-                                            "doubling) and rtol are picked so that the estimate over the window is "
-                                            "below this relative error in w at the constraints; an error if it "
-                                            "cannot be met (`run` only: `dbf-hpc basis` builds the first candidate)"),
+        "tolerance": Key(NUMBER, None, "1", "the tolerance mode: the number of modes (from modes, default 4, growing "
+                                            "at most twofold) and rtol (tolerance / 100) are picked so that the "
+                                            "estimate over the window is below 0.75 x this relative error in w at "
+                                            "the constraints; an error if it cannot be met (`run` only: `dbf-hpc "
+                                            "basis` builds the first candidate)"),
     }),
     "damping": ("Linear damping of the structure (none by default, as in the paper).", {
         "zeta": Key((*NUMBER, list), 0.0, "1", "modal damping ratio, one for all or one per basis vector"),

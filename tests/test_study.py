@@ -1,6 +1,7 @@
 """scripts/study_accuracy.py end to end on its tiny grid, under mpirun -n 2 as users run it: two
-full-order truths that agree over the trusted horizon, reduced cases dealt over the ranks, and the
-CSV, markdown and Pareto plot (serial pass only: it starts its own mpirun)."""
+full-order truths that agree over the trusted horizon, reduced cases dealt over the ranks, each with
+its a-posteriori estimate, one run of the tolerance mode, and the CSV, markdown, Pareto and estimate
+plots (serial pass only: it starts its own mpirun)."""
 import csv
 import math
 import os
@@ -13,13 +14,20 @@ pytestmark = pytest.mark.launcher
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def test_tiny_accuracy_study_runs_on_two_ranks_and_measures_every_basis_kind(tmp_path):
-    out = tmp_path / "study"
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The tiny study's output directory, run once for the module."""
+    out = tmp_path_factory.mktemp("tiny") / "study"
     cmd = ["mpirun", "-n", "2", sys.executable, os.path.join(ROOT, "scripts", "study_accuracy.py"),
            "--grid", "tiny", "-o", str(out)]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT,
                           env={**os.environ, "OMPI_MCA_rmaps_base_oversubscribe": "1"})
     assert done.returncode == 0, done.stderr[-2000:]
+    return out
+
+
+def test_tiny_accuracy_study_runs_on_two_ranks_and_measures_every_basis_kind(tiny):
+    out = tiny
     with open(out / "truth.csv") as f:
         truth = list(csv.DictReader(f))
     assert len(truth) == 1
@@ -47,3 +55,36 @@ def test_tiny_accuracy_study_runs_on_two_ranks_and_measures_every_basis_kind(tmp
     assert "trusted horizon" in table and "Pareto front" in table and "3 cases, 0 failed" in table
     assert (out / "pareto.png").stat().st_size > 10000
     assert not list((out / "runs").glob("case-*.h5")), "case outputs are removed unless --keep"
+
+
+def _estimates_and_tolerance(out):
+    with open(out / "accuracy.csv") as f:
+        cases = list(csv.DictReader(f))
+    with open(out / "tolerance.csv") as f:
+        tolerance = list(csv.DictReader(f))
+    with open(out / "truth.csv") as f:
+        horizon = float(next(csv.DictReader(f))["horizon"])
+    return cases, tolerance, horizon
+
+
+def test_tiny_study_sets_each_estimate_beside_its_true_error_over_the_trusted_horizon(tiny):
+    out = tiny
+    cases, tolerance, horizon = _estimates_and_tolerance(out)
+    for c in cases:
+        # The estimate holds over the window the truth is trusted over, and its cost is its own column.
+        assert float(c["estimate_window"]) == pytest.approx(horizon, abs=1e-4)
+        assert 0 < float(c["estimate"]) < 1 and float(c["estimate_time"]) > 0
+        assert float(c["estimate_ratio"]) == pytest.approx(float(c["estimate"]) / float(c["err_w"]))
+        # One constraint: the error relative to the largest |w| at any constraint is its own.
+        assert float(c["err_w_each"]) == pytest.approx(float(c["err_w"]))
+    # The tolerance mode (10 %): it picked on an estimate within its margin, and the truth agrees.
+    from dbf_hpc.accuracy import TOLERANCE_MARGIN
+
+    (run,) = tolerance
+    assert run["status"] == "ok" and int(run["modes"]) >= 4
+    assert float(run["estimate"]) <= TOLERANCE_MARGIN * 0.1
+    assert float(run["err_w"]) <= 0.1
+    assert float(run["rtol"]) == pytest.approx(1e-3)          # tolerance / 100
+    table = (out / "accuracy.md").read_text()
+    assert "estimate within 2x of the true error in" in table and "the tolerance mode met its tolerance in" in table
+    assert (out / "estimate.png").stat().st_size > 10000
