@@ -385,8 +385,8 @@ def _stiffness(args) -> int:
 
     scene = load_scene(args.scene, args.set)
     if scene.is_beam and scene["structure"]["axial_speed"] or not scene.is_beam and scene["structure"]["gyroscopic"]:
-        from .basis import GYROSCOPIC_BASIS
-        raise InputError(GYROSCOPIC_BASIS.replace("reduced basis", "DBF stiffness sweep"))
+        from .basis import GYROSCOPIC_SWEEP
+        raise InputError(GYROSCOPIC_SWEEP)
     if not 1 <= args.constraint <= len(scene.constraints):
         raise InputError(f"--constraint {args.constraint}: the scene has {len(scene.constraints)} constraint(s)")
     ks = parse_stiffnesses(args.k)
