@@ -29,9 +29,10 @@ reduced model reproduces the N complex modes exactly (and adds N further ones).
   complex vector's (the imaginary part of a mode at G = 0) is left out, as is a mode column that
   Gram-Schmidt leaves almost nothing of; a DBF of which neither part survives is a breakdown error
   as in basis.py.
-- hat-omega (Eq. 20): the positive root of the gyroscopic Rayleigh quotient of z = c_R + i c_I (the
-  orthonormal columns of the DBF): omega^2 (z^H M z) + omega gamma - z^H K z = 0, gamma = -i z^H G z;
-  it is omega_j for an exact mode (x^H P(i omega) x = 0) and sqrt(K_r,jj) (Eq. 41) at G = 0.
+- hat-omega (Eq. 20): the positive root of the gyroscopic Rayleigh quotient of the DBF's complex
+  vector z = Re d + i Im d, each part projected out of the modes and the earlier DBFs only (the
+  complex Gram-Schmidt of Eq. 18): omega^2 (z^H M z) + omega gamma - z^H K z = 0, gamma = -i z^H G z.
+  It is omega_j for an exact mode (x^H P(i omega) x = 0) and sqrt(K_r,jj) (Eq. 41) at G = 0.
 
 The derivative is always the central difference (dbf_derivative and dbf_solver are not used: the
 gyroscopic problem has one PEP solve per k); constraints are solved one after another on ops.comm.
@@ -182,13 +183,13 @@ def dbf_columns(ops: Operators, row: int, modes, stiffness="auto"):
     return dr, di, k, k_auto, branch
 
 
-def hat_omega(K_r: np.ndarray, G_r: np.ndarray, columns) -> float:
-    """Eq. 20 for the orthonormal real columns of one complex vector z = c_R (+ i c_I): the positive
-    root of omega^2 m + omega gamma - kappa = 0 (module docstring), rad/s."""
-    c = list(columns)
-    m = float(len(c))
-    kappa = sum(K_r[i, i] for i in c)
-    gamma = 2 * G_r[c[0], c[1]] if len(c) == 2 else 0.0
+def hat_omega(K_r: np.ndarray, G_r: np.ndarray, re: np.ndarray, im: np.ndarray) -> float:
+    """Eq. 20 for the complex vector z = re + i im (coordinates on the basis): the positive root of
+    omega^2 (z^H M_r z) + omega gamma - z^H K_r z = 0, gamma = -i z^H G_r z = 2 re^T G_r im (M_r = I),
+    rad/s. For an exact complex mode it is its frequency (z^H P(i omega) z = 0)."""
+    m = re @ re + im @ im
+    kappa = re @ K_r @ re + im @ K_r @ im
+    gamma = 2 * re @ G_r @ im
     return float((-gamma + np.sqrt(max(gamma**2 + 4 * m * kappa, 0.0))) / (2 * m))
 
 
@@ -215,6 +216,14 @@ class _Builder:
         V.restoreColumn(c, col)
         self.kept += 1
         return True
+
+    def coordinates(self, vec: PETSc.Vec) -> np.ndarray:
+        """The M-products of vec with the kept columns (its coordinates where vec lies in their
+        span). Collective."""
+        self.V.setActiveColumns(0, self.kept)
+        out = np.array(self.V.dotVec(vec))
+        self.V.setActiveColumns(0, self.V.getSizes()[1])
+        return out
 
     def finish(self) -> SLEPc.BV:
         out = _basis_vectors(self.ops, self.kept)
@@ -270,13 +279,16 @@ def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = Basis
                 first = builder.kept
                 for p in parts:
                     builder.add(p, scale)
+                # z = Re d + i Im d, each projected out of the earlier columns only (the complex
+                # Gram-Schmidt of Eq. 18): its coordinates on this constraint's new columns
+                z = [builder.coordinates(p)[first:] for p in parts] if builder.kept > first else []
             finally:
                 destroy(*parts)
             if builder.kept == first:
                 raise SolverError(f"basis breakdown: the {strategy.column_name} of the constraint at {labels[j]} is "
                                   f"numerically dependent on the reference modes and the earlier columns; use fewer "
                                   f"modes, a finer mesh, or merge constraints this close")
-            groups.append(list(range(first, builder.kept)))
+            groups.append((first, z))
         t2 = time.perf_counter()
         V = builder.finish()
     except Exception:
@@ -288,15 +300,15 @@ def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = Basis
     basis = ReducedBasis(vectors=V, omega=np.array(omega), enrichment_omega=np.zeros(V.getSizes()[1] - N), dbf_k=k,
                          dbf_branch=branch, constraint_rows=rows, dbf_k_auto=k_auto, settings=settings)
     K_r, G_r = basis.project(ops.K), basis.project(ops.G)
-    for cols in groups:
-        value = hat_omega(K_r, G_r, cols)
-        for c in cols:
-            basis.enrichment_omega[c - N] = value
+    for first, z in groups:
+        cols = slice(first, first + z[0].size)
+        value = hat_omega(K_r[cols, cols], G_r[cols, cols], z[0], z[1] if len(z) > 1 else np.zeros(z[0].size))
+        basis.enrichment_omega[cols.start - N:cols.stop - N] = value
     t3 = time.perf_counter()
     basis.set_flexibility(exact_flexibility(ops, rows), K_r)
     basis.stats = {"time_modes": t1 - t0, "time_enrichment": t2 - t1, "time_orthogonalization": 0.0,
                    "time_flexibility": time.perf_counter() - t3, "complex_modes": int(np.unique(omega).size),
-                   "constraint_columns": [len(c) for c in groups]}
+                   "constraint_columns": [z[0].size for _, z in groups]}
     return basis
 
 
