@@ -104,6 +104,22 @@ class ReducedBasis:
         """Columns after the reference modes: one per constraint, or none."""
         return self.size - self.mode_count
 
+    @property
+    def complex_modes(self) -> int:
+        """The complex modes of a gyroscopic basis (two columns each, Re and Im; gyroscopic_basis.py),
+        0 for a basis of real modes."""
+        return int(self.stats.get("complex_modes", 0))
+
+    def constraint_omega(self) -> np.ndarray:
+        """hat-omega of each constraint's enrichment: enrichment_omega, or on a gyroscopic basis (one
+        or two columns per constraint) the value of each constraint's first column."""
+        counts = self.stats.get("constraint_columns")
+        if counts is None:
+            return self.enrichment_omega
+        if not counts:
+            return np.zeros(0)
+        return self.enrichment_omega[np.concatenate(([0], np.cumsum(counts)[:-1])).astype(int)]
+
     def rows(self, rows) -> np.ndarray:
         """V restricted to the given rows (len(rows) x size), on every rank: B = G^T V for the
         constraint rows. Collective."""

@@ -272,9 +272,11 @@ def _basis(args) -> int:
         elapsed = time.perf_counter() - start
         strategy = basis.settings.strategy
         say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s), {fom.size} DOFs")
-        enriched = (f" + {basis.enrichment_count} {strategy.column_name}s" if strategy.column_name
+        enriched = (f" + {basis.constraint_omega().size} {strategy.column_name}s" if strategy.column_name
                     else " (no enrichment)")
-        say(f"basis: {basis.mode_count} reference modes{enriched}, M-orthonormal "
+        columns = (f" (Re and Im: {basis.size} real columns)" if basis.complex_modes else "")
+        say(f"basis: {basis.complex_modes or basis.mode_count} {'complex' if basis.complex_modes else 'reference'} "
+            f"modes{enriched}{columns}, M-orthonormal "
             f"({elapsed:.3f} s, {comm.tompi4py().allreduce(counters['eigen_solves'] - solves, op=MPI.MAX)} "
             f"eigen-solves on the busiest rank, cache {basis.stats.get('cache')})")
         _print_basis(say, basis, labels)
@@ -324,18 +326,23 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
 def _print_basis(say, basis, labels) -> None:
     from .accuracy import flexibility_warning
 
+    import numpy as np
+
+    # a gyroscopic basis has Re and Im columns of each complex mode: its frequencies once each
+    omega = np.unique(basis.omega) if basis.complex_modes else basis.omega
     say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
-    for i, w in enumerate(basis.omega):
+    for i, w in enumerate(omega):
         say(f"{i + 1:>6} {w / (2 * 3.141592653589793):>14.8g} {w:>16.8g}")
+    hat = basis.constraint_omega()
     if basis.enrichment == "static" and basis.enrichment_count:
         say(f"{'static':>6} {'constraint':>14} {'hat-omega [rad/s]':>18}")
-        for j in range(basis.enrichment_count):
-            say(f"{j + 1:>6} {labels[j]:>14} {basis.enrichment_omega[j]:>18.8g}")
+        for j in range(hat.size):
+            say(f"{j + 1:>6} {labels[j]:>14} {hat[j]:>18.8g}")
     elif basis.enrichment == "dbf" and basis.enrichment_count:
         say(f"{'DBF':>6} {'constraint':>14} {'k_j [N/m]':>12} {'branch':>7} {'hat-omega [rad/s]':>18}")
-        for j in range(basis.enrichment_count):
+        for j in range(hat.size):
             say(f"{j + 1:>6} {labels[j]:>14} {basis.dbf_k[j]:>12.5g} {basis.dbf_branch[j]:>7d} "
-                f"{basis.enrichment_omega[j]:>18.8g}")
+                f"{hat[j]:>18.8g}")
     flex = basis.flexibility_captured
     if flex.size:
         say("static flexibility captured (f_basis / f_exact, the a-priori indicator; 1 = the basis holds K^-1 g_j):")

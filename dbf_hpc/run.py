@@ -180,10 +180,12 @@ SUSPICIOUS_HZ = 1e-3
 
 def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> None:
     strategy = basis.settings.strategy
-    extra = f"+ {basis.enrichment_count} {strategy.column_name}s" if strategy.column_name else "(no enrichment)"
+    extra = f"+ {basis.constraint_omega().size} {strategy.column_name}s" if strategy.column_name else "(no enrichment)"
     f = basis.omega / (2 * np.pi)
-    _say(say, f"basis: {basis.mode_count} modes ({f[0]:.4g} ... {f[-1]:.4g} Hz) {extra} ({seconds:.2f} s, "
-              f"cache {basis.stats.get('cache')})")
+    modes = f"{basis.complex_modes} complex modes" if basis.complex_modes else f"{basis.mode_count} modes"
+    columns = f", Re and Im: {basis.size} real columns" if basis.complex_modes else ""
+    _say(say, f"basis: {modes} ({f[0]:.4g} ... {f[-1]:.4g} Hz) {extra} ({seconds:.2f} s, "
+              f"cache {basis.stats.get('cache')}{columns})")
     warnings = basis.warnings(labels)
     flex = basis.flexibility_captured
     if flex.size and np.any(np.isfinite(flex)):
