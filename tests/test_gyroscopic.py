@@ -569,3 +569,26 @@ def test_the_gyroscopic_basis_on_two_ranks_is_the_basis_on_one(ranks):
     two = gyroscopic_columns(PETSc.COMM_WORLD)
     assert_all(one.shape == two.shape)
     assert_all(np.abs(one - two).max() < 1e-8 * np.abs(one).max())
+
+
+@pytest.mark.parametrize("extra, message", [
+    ("[damping]\nzeta = 0.01\n", "modal damping ratios have no meaning"),
+    ("[basis]\ntolerance = 0.01\n", "tolerance mode is not available for a gyroscopic structure"),
+], ids=["modal-damping", "tolerance"])
+def test_a_reduced_run_of_a_moving_beam_refuses_what_its_real_basis_cannot_mean_in_one_line(shared_tmp_path, extra,
+                                                                                            message):
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    path, source = shared_tmp_path / "refused.toml", moving_scene(shared_tmp_path, 30.0)
+    if MPI.COMM_WORLD.rank == 0:
+        text = open(source).read()
+        if extra.startswith("[basis]"):
+            text = text.replace("[basis]\n", extra)
+        else:
+            text += "\n" + extra
+        path.write_text(text)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=message):
+        run(load_scene(str(path)), str(shared_tmp_path / "refused.h5"), progress=False, method="rom")
+    assert not (shared_tmp_path / "refused.h5").exists()
