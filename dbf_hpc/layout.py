@@ -53,8 +53,10 @@ DATASETS = {
     PROBE_DISPLACEMENT: ("m", "total displacement at the probes (nt x P; nt x P x 2, (y, z), on a beam of two planes)"),
     PROBE_PEAK: ("m", "the largest absolute displacement at each probe over the samples (P; P x 2 per component on a "
                     "beam of two planes)"),
-    BASIS_OMEGA: ("rad/s", "reference frequencies (N)"),
-    BASIS_ENRICHMENT_OMEGA: ("rad/s", "hat-omega_j of each enrichment column, Eq. 41 (N_L, or 0)"),
+    BASIS_OMEGA: ("rad/s", "reference frequencies (N; a gyroscopic structure: omega_j of the complex mode of each "
+                           "of its Re and Im columns)"),
+    BASIS_ENRICHMENT_OMEGA: ("rad/s", "hat-omega_j of each enrichment column, Eq. 41 (N_L, or 0; a gyroscopic "
+                                      "structure: Eq. 20 for each of a DBF's Re and Im columns)"),
     BASIS_DBF_K: ("N/m", "DBF stiffness k_j of each constraint, 0 for other enrichment (N_L, or 0)"),
     BASIS_FLEXIBILITY_CAPTURED: ("1", "the a-priori indicator: static flexibility at each constraint that the basis "
                                       "captures, B_j K_r^-1 B_j^T / g_j^T K^-1 g_j (N_L; 1 with static modes, NaN "
