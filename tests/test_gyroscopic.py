@@ -402,8 +402,9 @@ def test_gyroscopic_forces_do_no_work_the_undamped_reduced_free_response_keeps_i
     energy = np.array([model.energy(q, p) for q, p in zip(result.q, result.qdot)])
     power = np.array([p @ model.G @ p for p in result.qdot])   # G_r skew: p^T G_r p = 0
     assert np.abs(model.G).max() > 0 and np.abs(power).max() < 1e-12 * np.abs(model.G).max() * np.max(result.qdot**2) * model.size
-    # ~35 periods of the first mode: the energy moves by less than the integrator's tolerance.
-    assert np.abs(energy / energy[0] - 1).max() < 1e-7
+    # 4 periods of the first mode, 17 of the fourth: the energy moves by less than the integrator's
+    # error (measured 5.8e-8 at rtol 1e-10; a gyroscopic term of the wrong sign would grow or damp it).
+    assert np.abs(energy / energy[0] - 1).max() < 2e-7
     with band_fom(stops=False, excitation=False, damping=20.0) as fom:
         damped, _, _ = reduced(fom, modes=4, enrichment="static")
     lost = simulate_reduced(damped.with_case(q0=q0, p0=p0), IntegratorSettings(t_end=0.1, rtol=1e-10, atol=1e-14))
@@ -504,7 +505,8 @@ def test_c_and_python_callbacks_agree_on_a_gyroscopic_model_whose_damping_matrix
     runs = [simulate_reduced(model, IntegratorSettings(t_end=0.02, rtol=1e-9, sample_dt=1e-4, callbacks=c))
             for c in ("c", "python")]
     assert runs[0].solver["callbacks"] == "c" and runs[1].solver["callbacks"] == "python"
-    assert np.abs(runs[0].displacement - runs[1].displacement).max() < 1e-5 * np.abs(runs[1].displacement).max()
+    # measured 1.7e-7 through the first impacts (the two agree to the integrator's tolerance)
+    assert np.abs(runs[0].displacement - runs[1].displacement).max() < 1e-6 * np.abs(runs[1].displacement).max()
 
 
 def test_hat_omega_of_an_exact_complex_mode_is_its_frequency_and_at_zero_speed_eq_41():
