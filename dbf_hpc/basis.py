@@ -227,10 +227,6 @@ def _insert_columns(V: SLEPc.BV, first: int, source, count: int, ops: Operators)
     template.destroy()
 
 
-GYROSCOPIC_SWEEP = ("the DBF stiffness sweep of a gyroscopic structure (axial_speed != 0 or a gyroscopic matrix) is "
-                    "not built yet: dbf-hpc basis gives its DBFs, dbf-hpc modes its complex modes")
-
-
 def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(), labels=None) -> ReducedBasis:
     """Reference modes and the enrichment columns settings.strategy makes (one per constraint row,
     or none), M-orthonormalized. With a gyroscopic G, the real basis of the complex modes and DBFs

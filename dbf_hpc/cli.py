@@ -383,17 +383,11 @@ def _stiffness(args) -> int:
     import numpy as np
     from petsc4py import PETSc
 
-    from .dbf import (auto_stiffness, branch_of, cluster_participation, participation, pinned_eigenvalue,
-                      stiffness_sweep)
     from .errors import InputError
-    from .modes import reference_modes
     from .output import check_output_path
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.set)
-    if scene.is_beam and scene["structure"]["axial_speed"] or not scene.is_beam and scene["structure"]["gyroscopic"]:
-        from .basis import GYROSCOPIC_SWEEP
-        raise InputError(GYROSCOPIC_SWEEP)
     if not 1 <= args.constraint <= len(scene.constraints):
         raise InputError(f"--constraint {args.constraint}: the scene has {len(scene.constraints)} constraint(s)")
     ks = parse_stiffnesses(args.k)
@@ -404,17 +398,19 @@ def _stiffness(args) -> int:
     with scene.full_order_model(PETSc.COMM_WORLD) as fom:
         ops = fom.operators
         row = int(fom.constraints.flat_rows[args.constraint - 1])
-        modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
-        part = participation(modes, np.array([row]))[0]
-        omega_free = modes.omega
-        modes.destroy()
-        lam_free = np.where(np.arange(part.size) < ops.rigid_modes, 0.0, omega_free ** 2)   # as dbf.dbf_source
-        branch = branch_of(part, lam_free)
-        if branch == 0:
-            raise InputError(f"constraint {args.constraint} does not move in any reference mode")
-        mu = pinned_eigenvalue(ops, row, branch)
-        k_auto = auto_stiffness(mu, omega_free[branch - 1] ** 2, cluster_participation(part, lam_free))
-        omega = stiffness_sweep(ops, row, ks, branch)
+        if ops.G is not None:   # complex modes (gyroscopic_basis.py)
+            from . import gyroscopic_basis as gb
+
+            modes = gb._modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+            try:
+                branch, free, pinned, k_auto = gb.transition(ops, row, modes)
+            finally:
+                modes.destroy()
+            omega_free, mu = np.zeros(branch), pinned**2
+            omega_free[branch - 1] = free
+            omega = gb.stiffness_sweep(ops, row, ks, branch)
+        else:
+            branch, omega_free, mu, k_auto, omega = _real_sweep(ops, row, basis, ks, args.constraint)
     label = scene.constraints[args.constraint - 1].label
     say = PETSc.Sys.Print
     say(f"omega_{branch}(k) with a spring at {label}: from {omega_free[branch - 1]:.8g} rad/s (no spring) "
@@ -434,6 +430,28 @@ def _stiffness(args) -> int:
             plot_stiffness_sweep(args.plot, ks, omega, k_auto, label, omega_free[branch - 1], np.sqrt(mu))
             print(f"wrote {args.plot}")
     return 0
+
+
+def _real_sweep(ops, row: int, basis, ks, constraint: int) -> tuple:
+    """(branch, omega of the reference modes, mu, k_auto, omega(k)) of a structure without G (dbf.py)."""
+    import numpy as np
+
+    from .dbf import (auto_stiffness, branch_of, cluster_participation, participation, pinned_eigenvalue,
+                      stiffness_sweep)
+    from .errors import InputError
+    from .modes import reference_modes
+
+    modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+    part = participation(modes, np.array([row]))[0]
+    omega_free = modes.omega
+    modes.destroy()
+    lam_free = np.where(np.arange(part.size) < ops.rigid_modes, 0.0, omega_free ** 2)   # as dbf.dbf_source
+    branch = branch_of(part, lam_free)
+    if branch == 0:
+        raise InputError(f"constraint {constraint} does not move in any reference mode")
+    mu = pinned_eigenvalue(ops, row, branch)
+    k_auto = auto_stiffness(mu, omega_free[branch - 1] ** 2, cluster_participation(part, lam_free))
+    return branch, omega_free, mu, k_auto, stiffness_sweep(ops, row, ks, branch)
 
 
 def _write_atomically(path: str, write) -> None:

@@ -143,9 +143,10 @@ def gyroscopic_slope(ops: Operators, row: int, omega: float, xr: PETSc.Vec, xi: 
     return g / (2 * omega + gamma)
 
 
-def dbf_columns(ops: Operators, row: int, modes, stiffness="auto"):
-    """(Re d, Im d, k, k_auto, branch) of the constraint at `row`: d the central difference in k of the
-    spring-perturbed complex mode (module docstring). Collective."""
+def transition(ops: Operators, row: int, modes) -> tuple:
+    """(branch, omega_m, varpi_m, k_auto) of the constraint at `row`: the eigen-branch followed (the
+    lowest mode that moves there, dbf.branch_of), its frequency without and with the DOF pinned, and
+    the corner of Fig. 2 in omega^2 (module docstring). Collective."""
     lam = modes.omega ** 2
     part = np.array([values_at(a, [row])[0] ** 2 + values_at(b, [row])[0] ** 2
                      for a, b in zip(modes.real, modes.imag)])
@@ -161,7 +162,24 @@ def dbf_columns(ops: Operators, row: int, modes, stiffness="auto"):
                           f"(d omega/dk = {slope:.3g}); give [basis] dbf_stiffness as a number")
     # omega^2 rises by 2 omega slope k at first order; the corner of Fig. 2 in omega^2 (dbf.py)
     pinned = _pinned_frequency(ops, row, branch)
-    k_auto = max(pinned**2 - omega**2, 0.0) / (2 * omega * slope)
+    return branch, omega, pinned, max(pinned**2 - omega**2, 0.0) / (2 * omega * slope)
+
+
+def stiffness_sweep(ops: Operators, row: int, stiffnesses, branch: int = 1) -> np.ndarray:
+    """varpi_m(k) (rad/s) of the spring-perturbed gyroscopic problem over a list of k (the paper's
+    Fig. 2). Collective."""
+    out = []
+    for k in stiffnesses:
+        lam, xr, xi = _spring_mode(ops, row, float(k), branch)
+        destroy(xr, xi)
+        out.append(lam.imag)
+    return np.array(out)
+
+
+def dbf_columns(ops: Operators, row: int, modes, stiffness="auto"):
+    """(Re d, Im d, k, k_auto, branch) of the constraint at `row`: d the central difference in k of the
+    spring-perturbed complex mode (module docstring). Collective."""
+    branch, _, _, k_auto = transition(ops, row, modes)
     k = k_auto if stiffness == "auto" else float(stiffness)
     h = CENTRAL_STEP
     vecs = []

@@ -622,3 +622,25 @@ def test_gyroscopic_frequency_slope_under_a_spring_is_the_first_order_perturbati
     measured = (4 * steps[0] - steps[1]) / 2
     assert slope > 0 and abs(measured / slope - 1) < 1e-6
     assert abs(naive / slope - 1) > 0.3
+
+
+def test_gyroscopic_fig_2_runs_from_the_free_to_the_pinned_complex_frequency_with_auto_k_between():
+    from dbf_hpc import gyroscopic_basis as gb
+
+    ops = assemble_beam(Beam(elements=40, axial_speed=30.0, **BAND))
+    node = int(np.argmin(np.abs(ops.mesh.x - 0.3)))
+    row = int(ops.mesh.row[node, 0])
+    try:
+        modes = gyroscopic_modes(ops, count=4)
+        branch, free, pinned, k_auto = gb.transition(ops, row, modes)
+        modes.destroy()
+        ks = np.array([1e-3, 0.1, 1.0, 10.0, 100.0, 1e4]) * k_auto
+        omega = gb.stiffness_sweep(ops, row, ks, branch)
+    finally:
+        ops.destroy()
+    # Measured: 260.43 rad/s free, 377.47 pinned (the constraint DOF removed); 1e4 k_auto is 2e-5 below it.
+    assert branch == 1 and np.all(np.diff(omega) > 0)
+    assert abs(omega[0] / free - 1) < 1e-3 and abs(omega[-1] / pinned - 1) < 1e-3
+    # The corner of Fig. 2: at k_auto omega^2 has made about half its way (measured 0.545).
+    share = (omega[2] ** 2 - free**2) / (pinned**2 - free**2)
+    assert 0.3 < share < 0.7
