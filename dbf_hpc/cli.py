@@ -401,7 +401,7 @@ def _stiffness(args) -> int:
         if ops.G is not None:   # complex modes (gyroscopic_basis.py)
             from . import gyroscopic_basis as gb
 
-            modes = gb._modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+            modes = gb.stable_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
             try:
                 branch, free, pinned, k_auto = gb.transition(ops, row, modes)
             finally:
