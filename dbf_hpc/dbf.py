@@ -211,6 +211,35 @@ def backward_error(A: PETSc.Mat, d: PETSc.Vec, rhs: PETSc.Vec, residual: PETSc.V
     return residual.norm() / (A.norm(PETSc.NormType.FROBENIUS) * d.norm() + rhs.norm())
 
 
+def refine_derivative(ksp: PETSc.KSP, A: PETSc.Mat, rhs: PETSc.Vec, phi: PETSc.Vec, Mphi: PETSc.Vec,
+                      failed, inaccurate) -> PETSc.Vec:
+    """d with (K + k g g^T - lambda M) d = rhs and phi^T M d = 0 (the deflated derivative equation,
+    module docstring, step 3) by `ksp` on A with iterative refinement (A is nearly singular along
+    phi): at most REFINEMENT_STEPS + 1 solves, until the backward error is below
+    DERIVATIVE_BACKWARD_TOL. A failed solve raises SolverError(failed(reason)), an inaccurate result
+    SolverError(inaccurate(backward error)). Collective on A's communicator; the caller owns d."""
+    d, correction, residual = A.createVecRight(), A.createVecRight(), rhs.copy()
+    d.set(0.0)
+    try:
+        for _ in range(REFINEMENT_STEPS + 1):
+            ksp.solve(residual, correction)
+            if ksp.getConvergedReason() < 0:
+                raise SolverError(failed(ksp.getConvergedReason()))
+            correction.axpy(-correction.dot(Mphi), phi)  # deflate: phi^T M phi' = 0
+            d.axpy(1.0, correction)
+            A.mult(d, residual)
+            residual.aypx(-1.0, rhs)
+            backward = backward_error(A, d, rhs, residual)
+            if backward < DERIVATIVE_BACKWARD_TOL:
+                return d
+        raise SolverError(inaccurate(backward))
+    except Exception:
+        d.destroy()
+        raise
+    finally:
+        destroy(correction, residual)
+
+
 def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PETSc.Vec) -> PETSc.Vec:
     """d phi/dk from the deflated derivative equation (module docstring, step 3), by a factorization
     of A - lambda M (LU: it is indefinite) with iterative refinement."""
@@ -219,27 +248,15 @@ def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PET
     ksp.setOperators(A)
     ksp.setOptionsPrefix(PREFIX)
     ksp.setFromOptions()
-    d = A.createVecRight()
-    correction, residual = d.duplicate(), rhs.copy()
     try:
-        for _ in range(REFINEMENT_STEPS + 1):  # iterative refinement: A - lambda M is nearly singular
-            ksp.solve(residual, correction)
-            if ksp.getConvergedReason() < 0:
-                raise SolverError(f"DBF derivative solve failed at row {row} ({ksp.getConvergedReason()}); "
-                                  f"try dbf_derivative = \"central\"")
-            correction.axpy(-correction.dot(Mphi), phi)  # deflate: phi^T M phi' = 0
-            d.axpy(1.0, correction)
-            A.mult(d, residual)
-            residual.aypx(-1.0, rhs)
-        backward = backward_error(A, d, rhs, residual)
-        if not backward < DERIVATIVE_BACKWARD_TOL:
-            raise SolverError(f"DBF derivative at row {row} is inaccurate (backward error {backward:.2e}); "
-                              f"try dbf_derivative = \"central\" or a tighter -dbf_eps_tol")
-    except Exception:
-        d.destroy()
-        raise
+        d = refine_derivative(
+            ksp, A, rhs, phi, Mphi,
+            failed=lambda reason: (f"DBF derivative solve failed at row {row} ({reason}); "
+                                   f"try dbf_derivative = \"central\""),
+            inaccurate=lambda backward: (f"DBF derivative at row {row} is inaccurate (backward error {backward:.2e}); "
+                                         f"try dbf_derivative = \"central\" or a tighter -dbf_eps_tol"))
     finally:
-        destroy(correction, ksp, A, Mphi, rhs, residual)
+        destroy(ksp, A, Mphi, rhs)
     return d
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .dbf import STIFFNESS_RANGE, dbf_source, participation
-from .dbf_ritz import RitzSolver, RitzSpace, reference_vectors
+from .dbf_ritz import PREFETCH_BLOCK, RitzSolver, RitzSpace, reference_vectors
 from .dbf_shared import SharedFactor, SharedSolver
 from .errors import InputError, SolverError
 from .modes import ModalBasis
@@ -210,7 +210,10 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
         if factor is not None and settings.solver == "ritz":
             space, group_modes = RitzSpace(factor, group_modes), []
         destroy(*group_modes)
-        for j in range(color, rows.size, n_groups):
+        mine = list(range(color, rows.size, n_groups))
+        for position, j in enumerate(mine):
+            if space is not None and position % PREFETCH_BLOCK == 0:
+                space.prefetch(rows[mine[position:position + PREFETCH_BLOCK]])
             src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
             lo, hi = src.derivative.getOwnershipRange()
             gathered.setValues(np.arange(lo, hi, dtype=PETSc.IntType), [j], src.derivative.array_r.reshape(-1, 1))

@@ -430,7 +430,8 @@ class ContactNewton:
     to the root or to the jump, where lambda_j is the value inside the jump that satisfies the linear
     relation y = y_free + D lambda (the set-valued, complementarity solution). That needs a restoring
     and dissipative law (N non-increasing in z and in v), as every built-in law is. Converged when
-    ||r||_inf <= 1e-12 of the displacement scale. A problem it cannot solve is a SolverError."""
+    ||r||_inf or the Newton correction's ||dy||_inf is at most 1e-12 of the displacement scale (the
+    second where r's round-off, of the order of eps |D lambda|, exceeds that). A problem it cannot solve is a SolverError."""
 
     MAX_IT = 20
     SWEEPS = 200
@@ -468,6 +469,12 @@ class ContactNewton:
                 except np.linalg.LinAlgError:
                     y, lam = self._fallback(problem, tol, t)
                     break
+            if float(np.abs(dy).max()) <= tol:
+                # the correction is below the tolerance: r is at its round-off (|D lambda| can exceed the
+                # displacement scale by far, so |r| <= tol may be out of reach while y is exact)
+                y = y + dy
+                r, lam, slope = problem.evaluate(y)
+                break
             norm = float(r @ r)
             step = 1.0
             for _ in range(30):

@@ -16,8 +16,10 @@
    The truth is the full-order model (dbf_hpc.simulate.simulate_full) on the same mesh at a step
    of 2.5e-6 s; the error is max |w - w_truth| / max |w_truth| at the constraint (samples every
    1e-4 s) up to the trusted horizon, where the truth and the full order at 5e-6 s part by 0.1 %
-   of max |w| (the beam is chaotic: beyond it round-off alone moves w by percents). The full-order model at coarser steps and the reduced model at looser tolerances are
-   timed; the cheapest of each within 1 % error are compared.
+   of max |w| (the beam is chaotic: beyond it round-off alone moves w by percents). The full-order
+   model at steps from 1e-5 to 1e-3 s and the reduced model at rtol from 1e-6 to 0.1 (also without the
+   step cap) are timed; the cheapest of each within 1 % error are compared, over all settings and
+   over the settings whose finer settings are all within 1 % too.
 4. The shipped frequency sweep (jobs/sweep_paper_beam_frequency.toml) on this process's ranks:
    cases per second with each callbacks, at t_end = 2 s per case (the Python path at the shipped
    20 s would take a quarter of an hour), and with the C callbacks at the shipped 20 s.
@@ -128,6 +130,25 @@ def controller_table(args, cache: str) -> list:
 
 
 HORIZON_TOL = 1e-3   # as scripts/study_accuracy.py: where two truths part by this much of max |w|
+# The settings offered to each model in the accuracy table, finest first. The full order's steps go
+# up to the step cap of the reduced runs (10 samples = 1e-3 s); the reduced model's tolerances up to
+# 0.1, where its error is still the basis's (modal truncation), not the integrator's.
+FULL_STEPS = (1e-5, 2e-5, 4e-5, 8e-5, 1.6e-4, 3.2e-4, 6.4e-4, 1e-3)
+ROM_RTOLS = (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1)
+ROM_RTOLS_NO_CAP = (1e-2, 3e-2, 1e-1)
+TARGET = 0.01
+
+
+def cheapest(rows, robust: bool):
+    """The cheapest row within TARGET error; robust: only rows whose finer settings of the same family
+    (smaller step or rtol) are all within TARGET too, so that a lucky coarse setting (the beam is
+    chaotic: errors do not fall monotonically with the step) does not count."""
+    ok = []
+    for r in rows:
+        finer = [o for o in rows if o["family"] == r["family"] and o["order"] < r["order"]]
+        if r["error"] <= TARGET and (not robust or all(o["error"] <= TARGET for o in finer)):
+            ok.append(r)
+    return min(ok, key=lambda r: r["wall"]) if ok else None
 
 
 def w_error(result, truth, horizon: float = float("inf")) -> float:
@@ -162,21 +183,23 @@ def accuracy_table(args, cache: str) -> list:
         truth = simulate_full(fom, dataclasses.replace(settings, dt=2.5e-6))
         horizon = trusted_horizon(truth, simulate_full(fom, dataclasses.replace(settings, dt=5e-6)))
         log(f"  trusted horizon {horizon:.4g} s")
-        for dt in (1e-5, 2e-5, 4e-5, 8e-5, 1.6e-4):   # each the fastest of 3, as the reduced C runs
+        for dt in FULL_STEPS:   # each the fastest of 3, as the reduced C runs
             runs = [simulate_full(fom, dataclasses.replace(settings, dt=dt)) for _ in range(3)]
             full = min(runs, key=lambda r: r.solver["time_integration"])
             rows.append({"model": f"full order, 320 DOFs, step {dt:g} s", "error": w_error(full, truth, horizon),
-                         "wall": full.solver["time_integration"], "steps": full.solver["steps"]})
+                         "wall": full.solver["time_integration"], "steps": full.solver["steps"],
+                         "family": "full", "order": dt})
             log(f"  {rows[-1]}")
-    for rtol in (1e-4, 1e-5, 1e-6):
-        for callbacks, repeat in (("c", 3), ("python", 1)):
-            if callbacks == "python" and rtol != 1e-6:
-                continue
-            result = timed(model, dataclasses.replace(settings, rtol=rtol), callbacks, repeat)
-            rows.append({"model": f"reduced, r = {model.size}, rtol {rtol:g}, {callbacks} callbacks",
-                         "error": w_error(result, truth, horizon), "wall": result.solver["time_integration"],
-                         "steps": result.solver["steps"], "rejected": result.solver["rejected_steps"]})
-            log(f"  {rows[-1]}")
+    variants = [(rtol, "c", 3, [], "") for rtol in ROM_RTOLS]
+    variants += [(rtol, "c", 3, NO_CAP, ", no step cap") for rtol in ROM_RTOLS_NO_CAP]
+    variants.append((1e-6, "python", 1, [], ""))
+    for rtol, callbacks, repeat, options, note in variants:
+        result = timed(model, dataclasses.replace(settings, rtol=rtol), callbacks, repeat, options)
+        rows.append({"model": f"reduced, r = {model.size}, rtol {rtol:g}, {callbacks} callbacks{note}",
+                     "error": w_error(result, truth, horizon), "wall": result.solver["time_integration"],
+                     "steps": result.solver["steps"], "rejected": result.solver["rejected_steps"],
+                     "family": f"reduced {callbacks}{note}", "order": rtol})
+        log(f"  {rows[-1]}")
     return rows
 
 
@@ -230,13 +253,13 @@ def markdown(cost, controller, accuracy, sweep) -> str:
                 "| model | error in w | steps | integration wall s |", "|---|---:|---:|---:|"]
         for r in accuracy:
             out.append(f"| {r['model']} | {100 * r['error']:.2f} % | {r['steps']} | {r['wall']:.3f} |")
-        fulls = [r for r in accuracy if r["model"].startswith("full") and r["error"] <= 0.01]
-        roms = [r for r in accuracy if r["model"].startswith("reduced") and "c callbacks" in r["model"]
-                and r["error"] <= 0.01]
-        if fulls and roms:
-            f, m = min(fulls, key=lambda r: r["wall"]), min(roms, key=lambda r: r["wall"])
-            out += ["", f"Within 1 %: the reduced model ({m['model']}) in {m['wall']:.3f} s, the full-order model "
-                        f"({f['model']}) in {f['wall']:.3f} s: {f['wall'] / m['wall']:.0f}x."]
+        full = [r for r in accuracy if r["family"] == "full"]
+        rom = [r for r in accuracy if r["family"].startswith("reduced c")]
+        for robust, what in ((False, "any setting"), (True, "settings whose finer settings are all within 1 % too")):
+            f, m = cheapest(full, robust), cheapest(rom, robust)
+            if f and m:
+                out += ["", f"Within 1 %, {what}: the reduced model ({m['model']}) in {m['wall']:.4f} s, the "
+                            f"full-order model ({f['model']}) in {f['wall']:.4f} s: {f['wall'] / m['wall']:.1f}x."]
     out += ["", "### The shipped frequency sweep (18 cases: 9 frequencies up and down, continuation)", "",
             "| callbacks | t_end per case | ranks | cases | wall s | cases per s |", "|---|---:|---:|---:|---:|---:|"]
     for r in sweep:

@@ -8,7 +8,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
-from dbf_hpc import dbf_ritz, dbf_shared
+from dbf_hpc import dbf_ritz, dbf_shared, enrichment
 from dbf_hpc.dbf import (FactorSolver, analytic_derivative, branch_of, central_derivative, dbf_source, participation,
                          pinned_eigenvalue, spring_eigenpair, stiffness_sweep, value_at)
 from dbf_hpc.dbf_ritz import RitzSolver, RitzSpace, reference_vectors
@@ -400,3 +400,25 @@ def test_ritz_path_central_difference_agrees_with_its_analytic_derivative(paper)
     assert np.max(np.abs(a - c)) < 1e-5 * np.max(np.abs(a))
     for columns in (central, analytic):
         columns.matrix.destroy()
+
+
+@pytest.mark.parametrize("groups", [0, 1])
+def test_ritz_path_made_in_blocks_gives_the_dbfs_of_one_constraint_at_a_time(paper, monkeypatch, groups):
+    # RitzSpace.prefetch makes the first Krylov vectors of a block of constraints with one
+    # multi-right-hand-side solve per step: the same Gram-Schmidt, column by column, so the same DBFs.
+    # Blocks of 3 constraints for 4 rows: a second block of one.
+    ops, modes, _ = paper
+    rows = np.array([ops.mesh.w_row(x) for x in (0.1, ELL, 0.5, 0.8)])
+    monkeypatch.setattr(enrichment, "PREFETCH_BLOCK", 3)
+    before = dbf_shared.counters["solves"]
+    blocks = DbfEnrichment(groups=groups, solver="ritz").columns(ops, rows, modes)
+    mine = rows.size // MPI.COMM_WORLD.size if groups == 0 else rows.size   # this rank's group's constraints
+    assert dbf_shared.counters["solves"] - before >= dbf_ritz.PREFETCH * mine
+    monkeypatch.setattr(dbf_ritz, "PREFETCH", 0)
+    single = DbfEnrichment(groups=groups, solver="ritz").columns(ops, rows, modes)
+    assert np.all(blocks.branch == single.branch)
+    assert np.allclose(blocks.k_auto, single.k_auto, rtol=1e-10, atol=0)
+    a, b = normalized_columns(ops, blocks), normalized_columns(ops, single)
+    assert np.max(np.abs(a - b)) < 1e-10 * np.max(np.abs(b)), np.max(np.abs(a - b)) / np.max(np.abs(b))
+    for c in (blocks, single):
+        c.matrix.destroy()

@@ -223,6 +223,26 @@ def test_contact_newton_solves_a_force_jump_as_the_set_valued_contact():
     assert -500.0 * 5.0 / P.af < lam[0], "lambda lies inside the jump, between 0 and the damping force"
 
 
+def test_contact_newton_converges_where_the_residual_cannot_reach_its_tolerance_in_round_off():
+    # Captured on the paper's beam at a 3.2e-4 s step: the stop's force k (z - d) / a_f makes D lambda
+    # a thousand times the displacement scale of the tolerance, so |r| stays at its round-off (2e-16)
+    # above tol (1.6e-16) while y is exact. Newton stops on its correction (no Gauss-Seidel fallback,
+    # which made such steps cost 20 iterations and hundreds of law evaluations).
+    laws = ConstraintLaws([law("deadband", clearance=2.5e-3, k=1e6)])
+    D, y_free, af, sV, z_c, v_c, x_pred = (0.0005040768777111219, 0.00015855095169215903, 0.5263157894736842,
+                                           6234.374999999998, 0.002418407200366047, 0.05701200703150072,
+                                           0.00017241054780158004)
+    problem = ContactStep(laws, np.array([[D]]), y_free=np.array([y_free]), z_c=np.array([z_c]),
+                          v_c=np.array([v_c]), x_pred=np.array([x_pred]), af=af, sV=sV)
+    newton = ContactNewton()
+    y, lam = newton.solve(problem, problem.y_free.copy(), 0.0)
+    assert newton.fallbacks == 0 and newton.iterations <= 3
+    # the exact root on the contact branch z = z_c + a_f y > d: y = y_free - D k (z_c + a_f y - d) / a_f
+    exact = (y_free - D * 1e6 * (z_c - 2.5e-3) / af) / (1 + D * 1e6)
+    assert abs(y[0] - exact) <= 1e-12 * abs(exact)
+    assert lam[0] < 0 and abs(y[0] - y_free - D * lam[0]) < 1e-15
+
+
 def test_a_step_size_change_refactors_once_and_the_last_step_ends_at_t_end():
     with paper_fom(elements=20) as fom:
         whole = simulate_full(fom, IntegratorSettings(t_end=2e-3, dt=1e-4, sample_dt=1e-3))
