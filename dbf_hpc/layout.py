@@ -110,7 +110,8 @@ def reference() -> str:
               for name in STATISTICS_2D if name not in STATISTICS]
     lines += ["", "Root attributes: `scene` (the scene file's text), `scene_effective` (JSON: every value the "
               "run used, the `--set` items and defaults included), `scene_path`, `method` (`rom` or `full`), "
-              "`basis_enrichment`, `field_kind` (`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
+              "`basis_enrichment`, `basis_complex_modes` (a gyroscopic structure: the complex modes, two real "
+              "columns each), `field_kind` (`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
               "`slepc_version`, `mpi_ranks`, `solver_stats` and `wall_times` (JSON), `initial_state`, and "
               "`complete = true` once the run finished. A reduced run of a scene with constraints also has its "
               "a-posteriori error estimate (docs/accuracy.md; not with `[basis] estimate = false`): "

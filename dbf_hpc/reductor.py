@@ -61,7 +61,7 @@ class Reductor:
             Mr.destroy()
         info = {"omega": basis.omega, "enrichment_omega": basis.enrichment_omega, "dbf_k": basis.dbf_k,
                 "enrichment": basis.enrichment, "flexibility_captured": basis.flexibility_captured,
-                "flexibility_exact": basis.flexibility_exact}
+                "flexibility_exact": basis.flexibility_exact, "complex_modes": basis.complex_modes}
         return ReducedModel(M=M, C=C, K=K, G=G, B=basis.rows(rows), r_c=fom.influence_at(rows), base_load=base_load,
                             force_shape=force_shape, constraints=fom.constraints, support=fom.support,
                             force=fom.force, q0=q0, p0=p0, probe_B=self._basis_at(fom.probes),
