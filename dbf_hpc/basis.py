@@ -104,6 +104,22 @@ class ReducedBasis:
         """Columns after the reference modes: one per constraint, or none."""
         return self.size - self.mode_count
 
+    @property
+    def complex_modes(self) -> int:
+        """The complex modes of a gyroscopic basis (two columns each, Re and Im; gyroscopic_basis.py),
+        0 for a basis of real modes."""
+        return int(self.stats.get("complex_modes", 0))
+
+    def constraint_omega(self) -> np.ndarray:
+        """hat-omega of each constraint's enrichment: enrichment_omega, or on a gyroscopic basis (one
+        or two columns per constraint) the value of each constraint's first column."""
+        counts = self.stats.get("constraint_columns")
+        if counts is None:
+            return self.enrichment_omega
+        if not counts:
+            return np.zeros(0)
+        return self.enrichment_omega[np.concatenate(([0], np.cumsum(counts)[:-1])).astype(int)]
+
     def rows(self, rows) -> np.ndarray:
         """V restricted to the given rows (len(rows) x size), on every rank: B = G^T V for the
         constraint rows. Collective."""
@@ -211,15 +227,13 @@ def _insert_columns(V: SLEPc.BV, first: int, source, count: int, ops: Operators)
     template.destroy()
 
 
-GYROSCOPIC_BASIS = ("the reduced basis of a gyroscopic structure (axial_speed != 0 or a gyroscopic matrix) is not "
-                    "built yet: dbf-hpc modes gives its complex modes, dbf-hpc run --method full its response")
-
-
 def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(), labels=None) -> ReducedBasis:
     """Reference modes and the enrichment columns settings.strategy makes (one per constraint row,
-    or none), M-orthonormalized. Collective on ops.comm."""
+    or none), M-orthonormalized. With a gyroscopic G, the real basis of the complex modes and DBFs
+    (gyroscopic_basis.py). Collective on ops.comm."""
     if ops.G is not None:
-        raise InputError(GYROSCOPIC_BASIS)
+        from .gyroscopic_basis import build_gyroscopic_basis
+        return build_gyroscopic_basis(ops, rows, settings, labels)
     strategy = settings.strategy
     rows = np.asarray(rows, dtype=np.int64)
     _check_rows(ops, rows)
@@ -260,6 +274,9 @@ def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None) -
     reduced models measures what the missing modes change (the error estimate, accuracy.py). No
     enrichment is recomputed; the indicator is carried over (f_exact) and recomputed (captured).
     Collective on ops.comm."""
+    if ops.G is not None:
+        from .gyroscopic_basis import richer_gyroscopic_basis
+        return richer_gyroscopic_basis(ops, basis, modes)
     rows = basis.constraint_rows
     N, NL = basis.mode_count, basis.enrichment_count
     more = reference_modes(ops, count=modes)

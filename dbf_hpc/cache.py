@@ -204,7 +204,7 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
     """The basis from the cache when a valid one exists, else built (and cached if cache_dir). A
     cache that cannot be written is a warning (every rank agrees), never an error. Collective."""
     rows = np.asarray(rows, dtype=np.int64)
-    if not cache_dir:
+    if not cache_dir or ops.G is not None:   # a gyroscopic basis is not cached (gyroscopic_basis.py)
         basis = build_basis(ops, rows, settings, labels)
         basis.stats["cache"] = "off"
         return basis

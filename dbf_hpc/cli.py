@@ -272,9 +272,11 @@ def _basis(args) -> int:
         elapsed = time.perf_counter() - start
         strategy = basis.settings.strategy
         say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s), {fom.size} DOFs")
-        enriched = (f" + {basis.enrichment_count} {strategy.column_name}s" if strategy.column_name
+        enriched = (f" + {basis.constraint_omega().size} {strategy.column_name}s" if strategy.column_name
                     else " (no enrichment)")
-        say(f"basis: {basis.mode_count} reference modes{enriched}, M-orthonormal "
+        columns = (f" (Re and Im: {basis.size} real columns)" if basis.complex_modes else "")
+        say(f"basis: {basis.complex_modes or basis.mode_count} {'complex' if basis.complex_modes else 'reference'} "
+            f"modes{enriched}{columns}, M-orthonormal "
             f"({elapsed:.3f} s, {comm.tompi4py().allreduce(counters['eigen_solves'] - solves, op=MPI.MAX)} "
             f"eigen-solves on the busiest rank, cache {basis.stats.get('cache')})")
         _print_basis(say, basis, labels)
@@ -324,18 +326,23 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
 def _print_basis(say, basis, labels) -> None:
     from .accuracy import flexibility_warning
 
+    import numpy as np
+
+    # a gyroscopic basis has Re and Im columns of each complex mode: its frequencies once each
+    omega = np.unique(basis.omega) if basis.complex_modes else basis.omega
     say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
-    for i, w in enumerate(basis.omega):
+    for i, w in enumerate(omega):
         say(f"{i + 1:>6} {w / (2 * 3.141592653589793):>14.8g} {w:>16.8g}")
+    hat = basis.constraint_omega()
     if basis.enrichment == "static" and basis.enrichment_count:
         say(f"{'static':>6} {'constraint':>14} {'hat-omega [rad/s]':>18}")
-        for j in range(basis.enrichment_count):
-            say(f"{j + 1:>6} {labels[j]:>14} {basis.enrichment_omega[j]:>18.8g}")
+        for j in range(hat.size):
+            say(f"{j + 1:>6} {labels[j]:>14} {hat[j]:>18.8g}")
     elif basis.enrichment == "dbf" and basis.enrichment_count:
         say(f"{'DBF':>6} {'constraint':>14} {'k_j [N/m]':>12} {'branch':>7} {'hat-omega [rad/s]':>18}")
-        for j in range(basis.enrichment_count):
+        for j in range(hat.size):
             say(f"{j + 1:>6} {labels[j]:>14} {basis.dbf_k[j]:>12.5g} {basis.dbf_branch[j]:>7d} "
-                f"{basis.enrichment_omega[j]:>18.8g}")
+                f"{hat[j]:>18.8g}")
     flex = basis.flexibility_captured
     if flex.size:
         say("static flexibility captured (f_basis / f_exact, the a-priori indicator; 1 = the basis holds K^-1 g_j):")
@@ -376,17 +383,11 @@ def _stiffness(args) -> int:
     import numpy as np
     from petsc4py import PETSc
 
-    from .dbf import (auto_stiffness, branch_of, cluster_participation, participation, pinned_eigenvalue,
-                      stiffness_sweep)
     from .errors import InputError
-    from .modes import reference_modes
     from .output import check_output_path
     from .scene import load_scene
 
     scene = load_scene(args.scene, args.set)
-    if scene.is_beam and scene["structure"]["axial_speed"] or not scene.is_beam and scene["structure"]["gyroscopic"]:
-        from .basis import GYROSCOPIC_BASIS
-        raise InputError(GYROSCOPIC_BASIS.replace("reduced basis", "DBF stiffness sweep"))
     if not 1 <= args.constraint <= len(scene.constraints):
         raise InputError(f"--constraint {args.constraint}: the scene has {len(scene.constraints)} constraint(s)")
     ks = parse_stiffnesses(args.k)
@@ -397,17 +398,19 @@ def _stiffness(args) -> int:
     with scene.full_order_model(PETSc.COMM_WORLD) as fom:
         ops = fom.operators
         row = int(fom.constraints.flat_rows[args.constraint - 1])
-        modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
-        part = participation(modes, np.array([row]))[0]
-        omega_free = modes.omega
-        modes.destroy()
-        lam_free = np.where(np.arange(part.size) < ops.rigid_modes, 0.0, omega_free ** 2)   # as dbf.dbf_source
-        branch = branch_of(part, lam_free)
-        if branch == 0:
-            raise InputError(f"constraint {args.constraint} does not move in any reference mode")
-        mu = pinned_eigenvalue(ops, row, branch)
-        k_auto = auto_stiffness(mu, omega_free[branch - 1] ** 2, cluster_participation(part, lam_free))
-        omega = stiffness_sweep(ops, row, ks, branch)
+        if ops.G is not None:   # complex modes (gyroscopic_basis.py)
+            from . import gyroscopic_basis as gb
+
+            modes = gb.stable_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+            try:
+                branch, free, pinned, k_auto = gb.transition(ops, row, modes)
+            finally:
+                modes.destroy()
+            omega_free, mu = np.zeros(branch), pinned**2
+            omega_free[branch - 1] = free
+            omega = gb.stiffness_sweep(ops, row, ks, branch)
+        else:
+            branch, omega_free, mu, k_auto, omega = _real_sweep(ops, row, basis, ks, args.constraint)
     label = scene.constraints[args.constraint - 1].label
     say = PETSc.Sys.Print
     say(f"omega_{branch}(k) with a spring at {label}: from {omega_free[branch - 1]:.8g} rad/s (no spring) "
@@ -427,6 +430,28 @@ def _stiffness(args) -> int:
             plot_stiffness_sweep(args.plot, ks, omega, k_auto, label, omega_free[branch - 1], np.sqrt(mu))
             print(f"wrote {args.plot}")
     return 0
+
+
+def _real_sweep(ops, row: int, basis, ks, constraint: int) -> tuple:
+    """(branch, omega of the reference modes, mu, k_auto, omega(k)) of a structure without G (dbf.py)."""
+    import numpy as np
+
+    from .dbf import (auto_stiffness, branch_of, cluster_participation, participation, pinned_eigenvalue,
+                      stiffness_sweep)
+    from .errors import InputError
+    from .modes import reference_modes
+
+    modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+    part = participation(modes, np.array([row]))[0]
+    omega_free = modes.omega
+    modes.destroy()
+    lam_free = np.where(np.arange(part.size) < ops.rigid_modes, 0.0, omega_free ** 2)   # as dbf.dbf_source
+    branch = branch_of(part, lam_free)
+    if branch == 0:
+        raise InputError(f"constraint {constraint} does not move in any reference mode")
+    mu = pinned_eigenvalue(ops, row, branch)
+    k_auto = auto_stiffness(mu, omega_free[branch - 1] ** 2, cluster_participation(part, lam_free))
+    return branch, omega_free, mu, k_auto, stiffness_sweep(ops, row, ks, branch)
 
 
 def _write_atomically(path: str, write) -> None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
@@ -29,6 +30,8 @@ from .petsctools import destroy, direct_solver, options_defaults
 UNSTABLE_TOL = 1e-6
 # Largest backward error accepted for a returned eigenpair.
 BACKWARD_TOL = 1e-8
+# Entries of a mode within this fraction of its largest are ties for the phase (normalize_complex).
+TIE_TOL = 1e-8
 FACTOR_DEFAULTS = {"st_mat_mumps_icntl_24": "1"}
 
 
@@ -146,13 +149,18 @@ def _take(pep: SLEPc.PEP, ops: Operators, i: int, prefix: str, values: list, xr:
 
 def normalize_complex(xr: PETSc.Vec, xi: PETSc.Vec, M: PETSc.Mat) -> None:
     """Scale x = xr + i xi to x^H M x = 1 and turn its phase so that its largest entry (the lowest row
-    among equals) is real and positive: the same vectors on any number of ranks. Collective."""
+    among equals to TIE_TOL) is real and positive: the same vectors on any number of ranks. Collective."""
     lo, _ = xr.getOwnershipRange()
+    world = xr.getComm().tompi4py()
     z = xr.getArray(readonly=True) + 1j * xi.getArray(readonly=True)
-    j = int(np.argmax(np.abs(z))) if z.size else -1
-    mine = (abs(z[j]), -(lo + j), complex(z[j])) if z.size else (-1.0, 0, 0j)
-    best = max(xr.getComm().tompi4py().allgather(mine), key=lambda t: (t[0], t[1]))
-    phase = np.conj(best[2]) / abs(best[2])
+    # Entries within TIE_TOL of the largest are equals (a pinned-pinned travelling mode has |x| symmetric
+    # about the middle: exact ties that round-off would break differently on each rank layout)
+    peak = world.allreduce(float(np.abs(z).max()) if z.size else 0.0, op=MPI.MAX)
+    near = np.flatnonzero(np.abs(z) >= (1 - TIE_TOL) * peak)
+    row = world.allreduce(lo + int(near[0]) if near.size else np.iinfo(np.int64).max, op=MPI.MIN)
+    value = complex(z[row - lo]) if lo <= row < lo + z.size else 0j
+    value = world.allreduce(value)
+    phase = np.conj(value) / abs(value)
     Mx = M.createVecLeft()
     mass = 0.0
     for v in (xr, xi):

@@ -53,8 +53,10 @@ DATASETS = {
     PROBE_DISPLACEMENT: ("m", "total displacement at the probes (nt x P; nt x P x 2, (y, z), on a beam of two planes)"),
     PROBE_PEAK: ("m", "the largest absolute displacement at each probe over the samples (P; P x 2 per component on a "
                     "beam of two planes)"),
-    BASIS_OMEGA: ("rad/s", "reference frequencies (N)"),
-    BASIS_ENRICHMENT_OMEGA: ("rad/s", "hat-omega_j of each enrichment column, Eq. 41 (N_L, or 0)"),
+    BASIS_OMEGA: ("rad/s", "reference frequencies (N; a gyroscopic structure: omega_j of the complex mode of each "
+                           "of its Re and Im columns)"),
+    BASIS_ENRICHMENT_OMEGA: ("rad/s", "hat-omega_j of each enrichment column, Eq. 41 (N_L, or 0; a gyroscopic "
+                                      "structure: Eq. 20 for each of a DBF's Re and Im columns)"),
     BASIS_DBF_K: ("N/m", "DBF stiffness k_j of each constraint, 0 for other enrichment (N_L, or 0)"),
     BASIS_FLEXIBILITY_CAPTURED: ("1", "the a-priori indicator: static flexibility at each constraint that the basis "
                                       "captures, B_j K_r^-1 B_j^T / g_j^T K^-1 g_j (N_L; 1 with static modes, NaN "
@@ -108,7 +110,8 @@ def reference() -> str:
               for name in STATISTICS_2D if name not in STATISTICS]
     lines += ["", "Root attributes: `scene` (the scene file's text), `scene_effective` (JSON: every value the "
               "run used, the `--set` items and defaults included), `scene_path`, `method` (`rom` or `full`), "
-              "`basis_enrichment`, `field_kind` (`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
+              "`basis_enrichment`, `basis_complex_modes` (a gyroscopic structure: the complex modes, two real "
+              "columns each), `field_kind` (`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
               "`slepc_version`, `mpi_ranks`, `solver_stats` and `wall_times` (JSON), `initial_state`, and "
               "`complete = true` once the run finished. A reduced run of a scene with constraints also has its "
               "a-posteriori error estimate (docs/accuracy.md; not with `[basis] estimate = false`): "

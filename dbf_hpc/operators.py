@@ -94,7 +94,8 @@ class Operators:
 
     C                damping matrix, or None (Rayleigh or modal damping come from damping.py)
     G                gyroscopic matrix (skew-symmetric), or None: axial transport (issue 19); the
-                     gyroscopic modes (gyroscopic.py) and the full-order reference use it
+                     gyroscopic modes (gyroscopic.py), the reduced basis (gyroscopic_basis.py) and
+                     the full-order reference use it
     influence        r over the free DOFs: the displacement of the structure that follows a unit
                      support motion (the paper's Eq. 26 shape). Total u = u_rel + r * Omega(t).
     base_mass_load   M_(free, all) r_all: the support-motion load is -base_mass_load * Omega''(t).

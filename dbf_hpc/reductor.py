@@ -15,6 +15,7 @@ from .basis import BasisSettings, ReducedBasis
 from .cache import obtain_basis
 from .errors import InputError
 from .fom import FullOrderModel
+from .petsctools import destroy
 from .rom import ReducedField, ReducedModel
 
 
@@ -51,7 +52,7 @@ class Reductor:
             force_shape = basis.rows([fom.force_row])[0]
         else:
             force_shape = np.zeros(basis.size)
-        q0 = self._initial_coordinates()
+        q0, p0 = self._initial_coordinates()
         r_q = np.zeros(basis.size)
         if fom.moving_support:
             Mr = ops.M.createVecLeft()
@@ -60,24 +61,30 @@ class Reductor:
             Mr.destroy()
         info = {"omega": basis.omega, "enrichment_omega": basis.enrichment_omega, "dbf_k": basis.dbf_k,
                 "enrichment": basis.enrichment, "flexibility_captured": basis.flexibility_captured,
-                "flexibility_exact": basis.flexibility_exact}
+                "flexibility_exact": basis.flexibility_exact, "complex_modes": basis.complex_modes}
         return ReducedModel(M=M, C=C, K=K, G=G, B=basis.rows(rows), r_c=fom.influence_at(rows), base_load=base_load,
                             force_shape=force_shape, constraints=fom.constraints, support=fom.support,
-                            force=fom.force, q0=q0, p0=np.zeros(basis.size), probe_B=self._basis_at(fom.probes),
+                            force=fom.force, q0=q0, p0=p0, probe_B=self._basis_at(fom.probes),
                             probe_r=fom.support_share(fom.probes), basis_info=info, r_q=r_q,
                             field=self._field() if field else None, field_points=ops.field_map(),
                             probe_shape=fom.probes.shape)
 
-    def _initial_coordinates(self) -> np.ndarray:
-        """q(0): zero, or the initial amplitude (m, peak over the field) in a reference mode."""
+    def _initial_coordinates(self) -> tuple:
+        """(q(0), q'(0)): zero, or the initial amplitude (m, peak over the field) in a reference mode; on
+        a gyroscopic structure the M-projection of the full-order model's start (the free vibration
+        of a complex mode, whose real and imaginary parts the basis holds: exact). Collective."""
         basis, initial = self.basis(), self.fom.initial
-        q0 = np.zeros(basis.size)
-        if initial.amplitude:
+        q0, p0 = np.zeros(basis.size), np.zeros(basis.size)
+        if initial.amplitude and self.fom.operators.G is not None:
+            u, v = self.fom.initial_state()
+            q0, p0 = basis.vectors.dotVec(u), basis.vectors.dotVec(v)   # V^T M u (the BV's inner product is M)
+            destroy(u, v)
+        elif initial.amplitude:
             if not 1 <= initial.mode <= basis.mode_count:
                 raise InputError(f"[initial] mode = {initial.mode}: the basis has {basis.mode_count} reference modes")
             column = self._basis_at(self.fom.operators.field_map())[:, initial.mode - 1]
             q0[initial.mode - 1] = initial.amplitude / np.abs(column).max()
-        return q0
+        return q0, p0
 
     def _basis_at(self, points) -> np.ndarray:
         """(P, r) the basis at PointValues (combined as the points combine DOF values)."""

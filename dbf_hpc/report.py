@@ -56,8 +56,14 @@ def _run_lines(path: str, f) -> list:
         kind = f.attrs.get("basis_enrichment", "dbf")
         extra = {"dbf": "DBFs", "static": "static modes", "none": "enrichment columns"}[kind]
         omega = f[layout.BASIS_OMEGA][:] / (2 * np.pi)
-        lines.append(f"  basis: {omega.size} reference modes ({omega[0]:.4g} ... {omega[-1]:.4g} Hz), "
-                     f"{layout.read(f, layout.BASIS_ENRICHMENT_OMEGA).size} {extra}")
+        enriched = layout.read(f, layout.BASIS_ENRICHMENT_OMEGA).size
+        if "basis_complex_modes" in f.attrs:   # gyroscopic: Re and Im columns (gyroscopic_basis.py)
+            lines.append(f"  basis: {int(f.attrs['basis_complex_modes'])} complex modes ({omega[0]:.4g} ... "
+                         f"{omega[-1]:.4g} Hz), {f[layout.BASIS_DBF_K].size if kind != 'none' else 0} {extra}; "
+                         f"Re and Im: {omega.size + enriched} real columns")
+        else:
+            lines.append(f"  basis: {omega.size} reference modes ({omega[0]:.4g} ... {omega[-1]:.4g} Hz), "
+                         f"{enriched} {extra}")
         if layout.BASIS_FLEXIBILITY_CAPTURED in f and f[layout.BASIS_FLEXIBILITY_CAPTURED].size:
             flex = f[layout.BASIS_FLEXIBILITY_CAPTURED][:]
             lines.append("  static flexibility captured (a-priori indicator): "

@@ -4,7 +4,7 @@
 
 q: coordinates on V = [modes, enrichment columns] (V^T M V = I, so M_r is I to round-off);
 K_r = V^T K V, C_r = V^T C V (or modal / Rayleigh damping, damping.py), G_r = V^T G V (gyroscopic,
-not used yet; None); B = G^T V (the basis at the constraint DOFs); r_c: the support-motion influence
+skew: gyroscopic_basis.py; None without G); B = G^T V (the basis at the constraint DOFs); r_c: the support-motion influence
 at the constraints, so the law acts on the TOTAL displacement and velocity;
 f_r(t) = -V^T (M r) Omega''(t) + V^T g_F F(t). None of the matrices is symmetrized: what the
 projection gives is what is integrated.

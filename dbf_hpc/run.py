@@ -95,15 +95,19 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
 
 def _gyroscopic_checks(scene: Scene, fom, method: str) -> None:
     """A gyroscopic structure (issue 19): refused above its critical speed (an unstable mode among the
-    [basis] modes lowest, or the lowest 8), and with the reduced model, not built yet. Collective."""
+    [basis] modes lowest, or the lowest 8); the reduced model (gyroscopic_basis.py) takes no modal
+    damping ratios (its basis vectors are not modes) and no tolerance mode. Collective."""
     from .gyroscopic import check_stable
 
     s = scene["structure"]
     speed = f"{s['axial_speed']:g} m/s" if scene.is_beam else "of the given gyroscopic matrix"
     check_stable(fom.operators, scene["basis"]["modes"] or 8, speed)
-    if method == "rom":
-        raise InputError("the reduced model of a gyroscopic structure (axial_speed != 0 or a gyroscopic matrix) "
-                         "is not built yet; run the full-order model with --method full")
+    if method == "rom" and fom.damping.kind == "modal":
+        raise InputError("[damping] zeta: modal damping ratios have no meaning for the real basis of a gyroscopic "
+                         "structure's complex modes; give Rayleigh coefficients (rayleigh_alpha, rayleigh_beta)")
+    if method == "rom" and scene.estimate_settings().tolerance is not None:
+        raise InputError("[basis] tolerance: the tolerance mode is not available for a gyroscopic structure; give "
+                         "[basis] modes")
 
 
 def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str) -> dict:
@@ -156,7 +160,9 @@ def rich_model(fom, basis):
     enrichment columns), or the reason it cannot be made (a string). Collective."""
     labels = list(fom.constraints.labels)
     try:
-        rich = richer_basis(fom.operators, basis, RICH_MODES * basis.mode_count, labels)
+        # a gyroscopic basis has two columns (Re, Im) per complex mode: twice the complex modes
+        rich = richer_basis(fom.operators, basis, RICH_MODES * basis.stats.get("complex_modes", basis.mode_count),
+                            labels)
     except DbfError as e:  # the same on every rank: too few DOFs, or a column the richer modes hold
         return f"no richer basis: {e}"
     with Reductor(fom, rich.settings, basis=rich) as reductor:
@@ -174,10 +180,12 @@ SUSPICIOUS_HZ = 1e-3
 
 def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> None:
     strategy = basis.settings.strategy
-    extra = f"+ {basis.enrichment_count} {strategy.column_name}s" if strategy.column_name else "(no enrichment)"
+    extra = f"+ {basis.constraint_omega().size} {strategy.column_name}s" if strategy.column_name else "(no enrichment)"
     f = basis.omega / (2 * np.pi)
-    _say(say, f"basis: {basis.mode_count} modes ({f[0]:.4g} ... {f[-1]:.4g} Hz) {extra} ({seconds:.2f} s, "
-              f"cache {basis.stats.get('cache')})")
+    modes = f"{basis.complex_modes} complex modes" if basis.complex_modes else f"{basis.mode_count} modes"
+    columns = f", Re and Im: {basis.size} real columns" if basis.complex_modes else ""
+    _say(say, f"basis: {modes} ({f[0]:.4g} ... {f[-1]:.4g} Hz) {extra} ({seconds:.2f} s, "
+              f"cache {basis.stats.get('cache')}{columns})")
     warnings = basis.warnings(labels)
     flex = basis.flexibility_captured
     if flex.size and np.any(np.isfinite(flex)):
@@ -487,6 +495,8 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                          layout.REDUCED_M: model.M, layout.REDUCED_K: model.K,
                          layout.REDUCED_B: model.B, layout.REDUCED_D: model.damping})
         attrs["basis_enrichment"] = info["enrichment"]
+        if info.get("complex_modes"):   # a gyroscopic basis: Re and Im columns of each complex mode and DBF
+            attrs["basis_complex_modes"] = int(info["complex_modes"])
     writer.finish(
         datasets=datasets,
         dataset_attrs={f"{layout.CONSTRAINT_STATS}/{k}": {"unit": UNITS[k], "description": DESCRIPTIONS[k]}

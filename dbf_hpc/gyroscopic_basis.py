@@ -1,0 +1,369 @@
+"""The reduced basis of a gyroscopic structure, M u'' + (C + G) u' + K u = f + B^T N (issue 19;
+Brake & Segalman 2011, Section 2, Eqs. 3-20). docs/design.md, "Gyroscopic structures", says why.
+
+The paper works in state space, x = [u'; u] with A = [[M, 0], [0, K]] and B = [[G, K], [-K, 0]]
+(Eqs. 4, 9, 10): a complex mode psi_j = psi_j^R + i psi_j^I (Eqs. 5-7) has the displacement part
+phi_j = phi_j^R + i phi_j^I and the velocity part i omega_j phi_j, so both halves of the state are
+spanned by the REAL displacement vectors phi_j^R, phi_j^I. The basis here is that real span, used in
+the second-order form the rest of the package integrates:
+
+    V = [Re phi_1, Im phi_1, ..., Re phi_N, Im phi_N, Re d_1, Im d_1, ..., Re d_NL, Im d_NL]
+
+M-orthonormalized, and the reduced model M_r q'' + (C_r + G_r) q' + K_r q = ... with G_r = V^T G V
+skew (rom.py, rom_integrator.py; 2 r real states for r columns). The free vibration in a mode,
+u = Re(phi_j e^(i omega_j t)), stays in span V, so the Galerkin residual of a mode is zero: the
+reduced model reproduces the N complex modes exactly (and adds N further ones).
+
+- Reference modes: gyroscopic.gyroscopic_modes (SLEPc PEP), x^H M x = 1.
+- DBF of constraint j (Eqs. 13-17): the first complex mode that moves at the constraint of the
+  spring-perturbed problem (lambda^2 M + lambda G + K + k g g^T) x = 0 (Eq. 13), and its derivative
+  in k by the paper's central difference, each end turned to the phase of x(k) (x(k)^H M x(k +- hk)
+  real, the complex form of sign alignment). Its displacement part d = phi_{j,k} (Eq. 17; the
+  varpi_{,k} terms are dropped as in the paper) gives the two real columns Re d, Im d. A stiffness
+  "auto" is the corner of Fig. 2 in omega^2 (dbf.py), with the gyroscopic first-order slope
+  d omega/dk = |g^T x|^2 / (2 omega + gamma), gamma = -i x^H G x = 2 (Re x)^T G (Im x); with G = 0
+  it is the non-gyroscopic (mu - omega^2) / (g^T phi)^2.
+- Gram-Schmidt (Eqs. 18-19) in the M inner product, not the A inner product of the state vectors:
+  the real displacement columns are what the second-order model integrates, and for them the M
+  product is the natural one (docs/design.md). A column whose M-norm is below DROP_TOL of its
+  complex vector's (the imaginary part of a mode at G = 0) is left out, as is a mode column that
+  Gram-Schmidt leaves almost nothing of; a DBF of which neither part survives is a breakdown error
+  as in basis.py.
+- hat-omega (Eq. 20): the positive root of the gyroscopic Rayleigh quotient of the DBF's complex
+  vector z = Re d + i Im d, each part projected out of the modes and the earlier DBFs only (the
+  complex Gram-Schmidt of Eq. 18): omega^2 (z^H M z) + omega gamma - z^H K z = 0, gamma = -i z^H G z.
+  It is omega_j for an exact mode (x^H P(i omega) x = 0) and sqrt(K_r,jj) (Eq. 41) at G = 0.
+
+The derivative is always the central difference (dbf_derivative and dbf_solver are not used: the
+gyroscopic problem has one PEP solve per k); constraints are solved one after another on ops.comm.
+Four PEP solves per constraint (pinned, k, k (1 +- h)), each with its own MUMPS LU (options prefix
+`dbf_`: -dbf_pep_..., -dbf_st_...). Not cached (basis.stats["cache"] = "off"). Collective on ops.comm.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from petsc4py import PETSc
+from slepc4py import SLEPc
+
+from .accuracy import exact_flexibility
+from .basis import BREAKDOWN_TOL, BasisSettings, ReducedBasis, _basis_vectors, _check_rows
+from .dbf import CENTRAL_STEP, branch_of, with_spring
+from .enrichment import static_modes
+from .errors import InputError, SolverError
+from .gyroscopic import gyroscopic_modes
+from .modes import counters, normalize
+from .operators import Operators
+from .petsctools import destroy, values_at
+
+# A real column below this fraction of its complex vector's M-norm is left out: the imaginary part
+# of a mode or DBF at G = 0 is round-off (~1e-12 measured), and a physical part this small changes
+# the response by less than the integrator's tolerance.
+DROP_TOL = 1e-6
+PREFIX = "dbf_"
+
+
+def stable_modes(ops: Operators, count: int | None = None, max_frequency_hz: float | None = None, prefix="modes_"):
+    """gyroscopic_modes, or an InputError naming the first unstable mode (a basis of growing modes
+    has no meaning). Collective."""
+    counters["eigen_solves"] += 1
+    modes = gyroscopic_modes(ops, count=count, max_frequency_hz=max_frequency_hz, prefix=prefix)
+    if modes.unstable:
+        j = modes.unstable[0]
+        text = modes.describe(j)
+        modes.destroy()
+        raise InputError(f"the reduced basis of a gyroscopic structure needs stable modes: {text}; lower the axial "
+                         f"speed below the critical speed")
+    return modes
+
+
+def _mdot(M: PETSc.Mat, a: PETSc.Vec, b: PETSc.Vec) -> float:
+    """a^T M b. Collective."""
+    Mb = M.createVecLeft()
+    M.mult(b, Mb)
+    value = a.dot(Mb)
+    Mb.destroy()
+    return value
+
+
+def _spring_mode(ops: Operators, row: int, k: float, branch: int):
+    """(lambda, x_R, x_I): mode `branch` of (lambda^2 M + lambda G + K + k g g^T) x = 0 (Eq. 13),
+    x^H M x = 1 (new Vecs, the caller's). Collective."""
+    A = with_spring(ops.K, row, k)
+    try:
+        spring = Operators(comm=ops.comm, K=A, M=ops.M, G=ops.G)
+        modes = stable_modes(spring, count=branch, prefix=PREFIX)
+    finally:
+        A.destroy()
+    lam, xr, xi = modes.eigenvalues[branch - 1], modes.real[branch - 1], modes.imag[branch - 1]
+    destroy(*modes.real[:branch - 1], *modes.imag[:branch - 1])
+    return lam, xr, xi
+
+
+def _pinned_frequency(ops: Operators, row: int, branch: int) -> float:
+    """varpi_m with the constraint DOF fixed (k -> infinity), rad/s. Collective."""
+    lo, hi = ops.K.getOwnershipRange()
+    keep = np.arange(lo, hi, dtype=PETSc.IntType)
+    index = PETSc.IS().createGeneral(keep[keep != row], comm=ops.comm)
+    pinned = Operators(comm=ops.comm, K=ops.K.createSubMatrix(index, index), M=ops.M.createSubMatrix(index, index),
+                       G=ops.G.createSubMatrix(index, index))
+    try:
+        modes = stable_modes(pinned, count=branch, prefix=PREFIX)
+        omega = float(modes.omega[branch - 1])
+        modes.destroy()
+    finally:
+        pinned.destroy()
+        index.destroy()
+    return omega
+
+
+def _align(M: PETSc.Mat, ref: tuple, x: tuple) -> None:
+    """Turn the phase of x = (x_R, x_I) so that ref^H M x is real and positive. Collective."""
+    a, b = ref
+    c, d = x
+    inner = complex(_mdot(M, a, c) + _mdot(M, b, d), _mdot(M, a, d) - _mdot(M, b, c))
+    rot = np.conj(inner) / abs(inner)
+    zr, zi = c.copy(), d.copy()
+    c.scale(rot.real)
+    c.axpy(-rot.imag, zi)
+    d.scale(rot.real)
+    d.axpy(rot.imag, zr)
+    destroy(zr, zi)
+
+
+def gyroscopic_slope(ops: Operators, row: int, omega: float, xr: PETSc.Vec, xi: PETSc.Vec) -> float:
+    """d omega/dk at k = 0 of a mode x = x_R + i x_I (x^H M x = 1) under k g g^T: |g^T x|^2 / (2 omega +
+    gamma), gamma = 2 x_R^T G x_I: first-order perturbation of (lambda^2 M + lambda G + K) x = 0, where
+    x is its own left eigenvector (x^H P(i omega) = 0: P(i omega) is Hermitian for a skew G), so
+    d lambda/dk = -|g^T x|^2 / (x^H (2 lambda M + G) x). Collective."""
+    g = values_at(xr, [row])[0] ** 2 + values_at(xi, [row])[0] ** 2
+    Gx = ops.G.createVecLeft()
+    ops.G.mult(xi, Gx)
+    gamma = 2 * xr.dot(Gx)
+    Gx.destroy()
+    return g / (2 * omega + gamma)
+
+
+def transition(ops: Operators, row: int, modes) -> tuple:
+    """(branch, omega_m, varpi_m, k_auto) of the constraint at `row`: the eigen-branch followed (the
+    lowest mode that moves there, dbf.branch_of), its frequency without and with the DOF pinned, and
+    the corner of Fig. 2 in omega^2 (module docstring). Collective."""
+    lam = modes.omega ** 2
+    part = np.array([values_at(a, [row])[0] ** 2 + values_at(b, [row])[0] ** 2
+                     for a, b in zip(modes.real, modes.imag)])
+    branch = branch_of(part, lam)
+    if branch == 0:
+        raise SolverError(f"the constraint at row {row} does not move in any of the {part.size} reference modes; "
+                          f"add modes or move the constraint")
+    m = branch - 1
+    omega = modes.omega[m]
+    slope = gyroscopic_slope(ops, row, omega, modes.real[m], modes.imag[m])
+    if not slope > 0:
+        raise SolverError(f"the gyroscopic DBF at row {row}: mode {branch} does not stiffen under a spring "
+                          f"(d omega/dk = {slope:.3g}); give [basis] dbf_stiffness as a number")
+    # omega^2 rises by 2 omega slope k at first order; the corner of Fig. 2 in omega^2 (dbf.py)
+    pinned = _pinned_frequency(ops, row, branch)
+    return branch, omega, pinned, max(pinned**2 - omega**2, 0.0) / (2 * omega * slope)
+
+
+def stiffness_sweep(ops: Operators, row: int, stiffnesses, branch: int = 1) -> np.ndarray:
+    """varpi_m(k) (rad/s) of the spring-perturbed gyroscopic problem over a list of k (the paper's
+    Fig. 2). Collective."""
+    out = []
+    for k in stiffnesses:
+        lam, xr, xi = _spring_mode(ops, row, float(k), branch)
+        destroy(xr, xi)
+        out.append(lam.imag)
+    return np.array(out)
+
+
+def dbf_columns(ops: Operators, row: int, modes, stiffness="auto"):
+    """(Re d, Im d, k, k_auto, branch) of the constraint at `row`: d the central difference in k of the
+    spring-perturbed complex mode (module docstring). Collective."""
+    branch, _, _, k_auto = transition(ops, row, modes)
+    k = k_auto if stiffness == "auto" else float(stiffness)
+    h = CENTRAL_STEP
+    vecs = []
+    try:
+        _, xr, xi = _spring_mode(ops, row, k, branch)
+        vecs += [xr, xi]
+        ends = []
+        for factor in (1 + h, 1 - h):
+            _, cr, ci = _spring_mode(ops, row, k * factor, branch)
+            vecs += [cr, ci]
+            _align(ops.M, (xr, xi), (cr, ci))
+            ends.append((cr, ci))
+        dr, di = ends[0][0].copy(), ends[0][1].copy()
+        dr.axpy(-1.0, ends[1][0])
+        di.axpy(-1.0, ends[1][1])
+        dr.scale(1.0 / (2 * h * k))
+        di.scale(1.0 / (2 * h * k))
+    finally:
+        destroy(*vecs)
+    return dr, di, k, k_auto, branch
+
+
+def hat_omega(K_r: np.ndarray, G_r: np.ndarray, re: np.ndarray, im: np.ndarray) -> float:
+    """Eq. 20 for the complex vector z = re + i im (coordinates on the basis): the positive root of
+    omega^2 (z^H M_r z) + omega gamma - z^H K_r z = 0, gamma = -i z^H G_r z = 2 re^T G_r im (M_r = I),
+    rad/s. For an exact complex mode it is its frequency (z^H P(i omega) z = 0)."""
+    m = re @ re + im @ im
+    kappa = re @ K_r @ re + im @ K_r @ im
+    gamma = 2 * re @ G_r @ im
+    return float((-gamma + np.sqrt(max(gamma**2 + 4 * m * kappa, 0.0))) / (2 * m))
+
+
+class _Builder:
+    """Gram-Schmidt in M with columns left out (module docstring): candidates are added one at a
+    time; kept ones are M-orthonormal columns 0..kept-1 of a working BV. Collective."""
+
+    def __init__(self, ops: Operators, capacity: int):
+        self.ops, self.V, self.kept = ops, _basis_vectors(ops, max(capacity, 1)), 0
+        self.seconds = 0.0   # spent in Gram-Schmidt
+
+    def add(self, vec: PETSc.Vec, scale: float) -> bool:
+        """Orthonormalize vec against the kept columns; True if kept. `scale`: the M-norm of its
+        complex vector."""
+        start = time.perf_counter()
+        try:
+            before = np.sqrt(max(_mdot(self.ops.M, vec, vec), 0.0))
+            if not before > DROP_TOL * scale:
+                return False
+            V, c = self.V, self.kept
+            V.insertVec(c, vec)
+            norm, _ = V.orthogonalizeColumn(c)
+            if norm < BREAKDOWN_TOL * before:
+                return False
+            col = V.getColumn(c)
+            normalize(col, self.ops.M)
+            V.restoreColumn(c, col)
+            self.kept += 1
+            return True
+        finally:
+            self.seconds += time.perf_counter() - start
+
+    def coordinates(self, vec: PETSc.Vec) -> np.ndarray:
+        """The M-products of vec with the kept columns (its coordinates where vec lies in their
+        span). Collective."""
+        self.V.setActiveColumns(0, self.kept)
+        out = np.array(self.V.dotVec(vec))
+        self.V.setActiveColumns(0, self.V.getSizes()[1])
+        return out
+
+    def finish(self) -> SLEPc.BV:
+        out = _basis_vectors(self.ops, self.kept)
+        template = self.ops.K.createVecRight()
+        for j in range(self.kept):
+            self.V.copyVec(j, template)
+            out.insertVec(j, template)
+        template.destroy()
+        self.V.destroy()
+        return out
+
+
+def _add_modes(builder: _Builder, ops: Operators, modes) -> list:
+    """Re and Im of each mode; the frequency of each kept column."""
+    omega = []
+    for j in range(modes.count):
+        for part in (modes.real[j], modes.imag[j]):
+            if builder.add(part, 1.0):
+                omega.append(modes.omega[j])
+    return omega
+
+
+def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(), labels=None) -> ReducedBasis:
+    """The reduced basis of a gyroscopic structure (module docstring): Re/Im of the complex modes and
+    of one complex DBF per constraint ("dbf"), or one static mode K^-1 g ("static"), or none.
+    Collective on ops.comm."""
+    strategy = settings.strategy
+    rows = np.asarray(rows, dtype=np.int64)
+    _check_rows(ops, rows)
+    strategy.check(ops)
+    labels = labels or [f"row {r}" for r in rows]
+    t0 = time.perf_counter()
+    modes = stable_modes(ops, count=settings.modes, max_frequency_hz=settings.max_frequency_hz)
+    t1 = time.perf_counter()
+    NL = rows.size if strategy.kind != "none" else 0
+    builder = _Builder(ops, 2 * modes.count + 2 * NL)
+    k, k_auto, branch = np.zeros(NL), np.zeros(NL), np.zeros(NL, dtype=np.int64)
+    groups, static = [], None
+    try:
+        omega = _add_modes(builder, ops, modes)
+        N = builder.kept
+        if strategy.kind == "static" and NL:
+            static = static_modes(ops, rows)
+        for j in range(NL):
+            if strategy.kind == "dbf":
+                dr, di, k[j], k_auto[j], branch[j] = dbf_columns(ops, int(rows[j]), modes, strategy.stiffness)
+                parts = [dr, di]
+            else:
+                parts = [ops.K.createVecRight()]
+                static.getColumnVector(j, parts[0])
+            try:
+                scale = np.sqrt(sum(_mdot(ops.M, p, p) for p in parts))
+                first = builder.kept
+                for p in parts:
+                    builder.add(p, scale)
+                # z = Re d + i Im d, each projected out of the earlier columns only (the complex
+                # Gram-Schmidt of Eq. 18): its coordinates on this constraint's new columns
+                z = [builder.coordinates(p)[first:] for p in parts] if builder.kept > first else []
+            finally:
+                destroy(*parts)
+            if builder.kept == first:
+                raise SolverError(f"basis breakdown: the {strategy.column_name} of the constraint at {labels[j]} is "
+                                  f"numerically dependent on the reference modes and the earlier columns; use fewer "
+                                  f"modes, a finer mesh, or merge constraints this close")
+            groups.append((first, z))
+        t2 = time.perf_counter()
+        V = builder.finish()
+    except Exception:
+        builder.V.destroy()
+        raise
+    finally:
+        destroy(static)
+        modes.destroy()
+    basis = ReducedBasis(vectors=V, omega=np.array(omega), enrichment_omega=np.zeros(V.getSizes()[1] - N), dbf_k=k,
+                         dbf_branch=branch, constraint_rows=rows, dbf_k_auto=k_auto, settings=settings)
+    K_r, G_r = basis.project(ops.K), basis.project(ops.G)
+    for first, z in groups:
+        cols = slice(first, first + z[0].size)
+        value = hat_omega(K_r[cols, cols], G_r[cols, cols], z[0], z[1] if len(z) > 1 else np.zeros(z[0].size))
+        basis.enrichment_omega[cols.start - N:cols.stop - N] = value
+    t3 = time.perf_counter()
+    basis.set_flexibility(exact_flexibility(ops, rows), K_r)
+    # Gram-Schmidt runs column by column between the DBF solves: its time is taken out of theirs
+    basis.stats = {"time_modes": t1 - t0, "time_enrichment": t2 - t1 - builder.seconds,
+                   "time_orthogonalization": builder.seconds + t3 - t2,
+                   "time_flexibility": time.perf_counter() - t3, "complex_modes": int(np.unique(omega).size),
+                   "constraint_columns": [z[0].size for _, z in groups]}
+    return basis
+
+
+def richer_gyroscopic_basis(ops: Operators, basis: ReducedBasis, modes: int) -> ReducedBasis:
+    """The complex modes 1..`modes` and basis's own enrichment columns, M-orthonormalized (what
+    basis.richer_basis is for the error estimate). Collective."""
+    from dataclasses import replace
+
+    more = stable_modes(ops, count=modes)
+    first = basis.mode_count
+    builder = _Builder(ops, 2 * modes + basis.enrichment_count)
+    template = ops.K.createVecRight()
+    try:
+        omega = _add_modes(builder, ops, more)
+        for j in range(basis.enrichment_count):
+            basis.vectors.copyVec(first + j, template)
+            if not builder.add(template, 1.0):
+                raise SolverError("no richer basis: an enrichment column is held by the richer modes")
+        V = builder.finish()
+    except Exception:
+        builder.V.destroy()
+        raise
+    finally:
+        destroy(more, template)
+    settings = replace(basis.settings, modes=modes, max_frequency_hz=None)
+    rich = ReducedBasis(vectors=V, omega=np.array(omega), enrichment_omega=basis.enrichment_omega.copy(),
+                        dbf_k=basis.dbf_k, dbf_branch=basis.dbf_branch, constraint_rows=basis.constraint_rows,
+                        dbf_k_auto=basis.dbf_k_auto, settings=settings, stats={"cache": "off"})
+    rich.set_flexibility(basis.flexibility_exact, rich.project(ops.K))
+    return rich
