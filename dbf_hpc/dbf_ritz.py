@@ -65,7 +65,7 @@ BREAKDOWN = 1e-10          # a Krylov vector this small after orthogonalization:
 # solve with many right-hand sides costs a fraction of as many single solves (MUMPS on the 104 040-DOF
 # solid: 0.27 s a solve alone, 0.044 s each in a block of 50). A DBF uses 3-4 vectors (docs/benchmarks.md).
 PREFETCH = 4               # vectors per constraint made in blocks (at most P_MAX)
-PREFETCH_BLOCK = 32        # constraints per block (memory: 2 PREFETCH local rows of each)
+PREFETCH_BLOCK = 64        # constraints per block (memory: 2 PREFETCH local rows of each)
 
 # Work done by this process on the Ritz path (tests and benchmarks read it): constraints served,
 # Krylov vectors made, stages handed to the shared path.
@@ -98,17 +98,12 @@ class RitzSpace:
         # own eigenvalue error (4e-9 for a rigid mode's 0) became 1e-6 in mu on the free beams.
         # A^-1 M Phi is taken to lie in span Phi: the part outside, the modes' own shift-and-invert
         # residual rho_j (relative), bounds what the Ritz residuals can reach (module docstring).
-        w, Mw = M.createVecRight(), M.createVecLeft()
-        self.T0, rho = np.zeros((n, n)), np.zeros(n)
-        try:
-            for j in range(n):
-                factor.solve(self.MPhi[j], w)
-                self.T0[:, j] = _sum(self.comm, self.MPhi_local @ w.array_r)
-                w.array = w.array_r - self.T0[:, j] @ self.Phi_local
-                M.mult(w, Mw)
-                rho[j] = np.sqrt(max(w.dot(Mw), 0.0)) / abs(self.T0[j, j])
-        finally:
-            destroy(w, Mw)
+        # the N solves as one block (factor.solve_block)
+        W = factor.solve_block(np.asfortranarray(self.MPhi_local.T)) if n else np.zeros((nloc, 0))
+        self.T0 = _sum(self.comm, self.MPhi_local @ W)
+        W -= self.Phi_local.T @ self.T0
+        rho = (np.sqrt(np.maximum(_sum(self.comm, np.einsum("ij,ij->j", W, _mult_block(M, W))), 0.0))
+               / np.abs(np.diag(self.T0))) if n else np.zeros(0)
         self.T0, self.modes_residual = self.comm.bcast(
             (0.5 * (self.T0 + self.T0.T), float(rho.max(initial=0.0))), root=0)
         self.eigen_tol = max(EIGEN_TOL, MODES_RESIDUAL_FACTOR * self.modes_residual)
