@@ -49,6 +49,8 @@ class Reductor:
             force_shape = basis.dot(fom.force_load)
         elif fom.force_row is not None:
             force_shape = basis.rows([fom.force_row])[0]
+        elif fom.force_matrix is not None:   # (r, m): V^T W, the load shapes in basis coordinates
+            force_shape = basis.dot_rows(fom.force_matrix.rows)
         else:
             force_shape = np.zeros(basis.size)
         q0 = self._initial_coordinates()

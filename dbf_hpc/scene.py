@@ -20,7 +20,7 @@ from .constraints import Constraint
 from .damping import Damping
 from .accuracy import EstimateSettings
 from .errors import InputError
-from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce
+from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce, Turbulence
 from .fom import FullOrderModel, InitialState
 from .laws import law_from_dict
 from .matrices import MatrixFiles
@@ -104,6 +104,10 @@ class Scene:
         if e["kind"] == "random":
             return RandomForce(float(e["psd"]), tuple(e["band"]), e["seed"], e["components"], tuple(e["span"]),
                                direction=direction)
+        if e["kind"] == "turbulence":
+            return Turbulence(float(e["psd"]), tuple(e["band"]), float(e["correlation_length"]), e["seed"],
+                              e["components"], tuple(e["span"]), e["spectrum"],
+                              float(e["corner_hz"] or 0.0), float(e["slope"] or 0.0))
         return NoExcitation()
 
     def damping(self) -> Damping:
@@ -136,7 +140,7 @@ class Scene:
     def fastest_forcing_hz(self) -> float:
         """The highest frequency the excitation contains (0 for free vibration)."""
         e = self["excitation"]
-        return float(e["band"][1]) if e["kind"] == "random" else float(e["frequency_hz"]) if e["kind"] != "none" else 0.0
+        return float(e["band"][1]) if e["kind"] in ("random", "turbulence") else float(e["frequency_hz"]) if e["kind"] != "none" else 0.0
 
     def output(self) -> OutputSettings:
         o, t_end = self["output"], float(self["integrator"]["t_end"])
@@ -343,11 +347,14 @@ def _check_direction(e: dict, s: dict, where: str) -> None:
 
 def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
     _check_direction(e, s, where)
-    if e["kind"] not in ("none", "base", "force", "random"):
-        raise InputError(f"{where}: kind must be \"none\", \"base\", \"force\" or \"random\", got {e['kind']!r}")
-    if e["kind"] == "random":
+    if e["kind"] not in ("none", "base", "force", "random", "turbulence"):
+        raise InputError(f"{where}: kind must be \"none\", \"base\", \"force\", \"random\" or \"turbulence\", "
+                         f"got {e['kind']!r}")
+    if e["kind"] == "turbulence":
+        _check_turbulence(e, s, where)
+    if e["kind"] in ("random", "turbulence"):
         if not at.beam:
-            raise InputError(f"{where}: random forcing is distributed along a beam; not available for matrices")
+            raise InputError(f"{where}: {e['kind']} forcing is distributed along a beam; not available for matrices")
         band = e["band"]
         if not (len(band) == 2 and all(isinstance(b, NUMBER) for b in band) and 0 <= band[0] < band[1]):
             raise InputError(f"{where}: band must be [f_low, f_high] in Hz with 0 <= f_low < f_high, got {band!r}")
@@ -370,6 +377,24 @@ def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
             at.check(where, e[at.key])
         if e["kind"] == "base" and not at.beam and s["influence"] is None:
             raise InputError(f"{where}: base excitation of a matrices structure needs [structure] influence")
+
+
+def _check_turbulence(e: dict, s: dict, where: str) -> None:
+    if e["direction"]:
+        raise InputError(f"{where}: turbulence acts in every plane of the beam (independent in y and z); remove "
+                         f"direction")
+    lam = e["correlation_length"]
+    if lam is None or isinstance(lam, bool) or not lam > 0:
+        raise InputError(f"{where}: turbulence needs correlation_length > 0 (m; inf for a fully correlated load), "
+                         f"got {lam!r}")
+    if e["spectrum"] not in ("flat", "knee"):
+        raise InputError(f"{where}: spectrum must be \"flat\" or \"knee\", got {e['spectrum']!r}")
+    if e["spectrum"] == "knee":
+        for key in ("corner_hz", "slope"):
+            if e[key] is None or not e[key] > 0:
+                raise InputError(f"{where}: a knee spectrum needs {key} > 0, got {e[key]!r}")
+    elif e["corner_hz"] is not None or e["slope"] is not None:
+        raise InputError(f"{where}: corner_hz and slope belong to spectrum = \"knee\"; remove them or set spectrum")
 
 
 def _check_basis(b: dict, where: str) -> None:

@@ -59,17 +59,28 @@ SECTIONS = {
     }),
     "excitation": ("What drives the structure.", {
         "kind": Key((str,), "none", "", '"none" (free vibration), "base" (support motion), "force" (a point '
-                                        'force) or "random" (turbulence forcing along a beam)'),
+                                        'force), "random" (a fully correlated random load along a beam) or '
+                                        '"turbulence" (a random load along a beam with partial correlation, '
+                                        'independent in y and z with planes = 2)'),
         "amplitude": Key(NUMBER, 0.0, "m or N", "base: support displacement amplitude; force: force amplitude"),
         "frequency_hz": Key(NUMBER, 0.0, "Hz", "base, force: frequency of the sine"),
         "end": Key((str,), "left", "", 'base: the moving support of a beam, "left" or "right"'),
         "x": Key(NUMBER, None, "m", "force on a beam: where it acts"),
         "dof": Key((int,), None, "", "force on matrices: the DOF it acts on (counted from 0)"),
-        "psd": Key(NUMBER, 0.0, "(N/m)^2/Hz", "random: one-sided PSD of the force per unit length"),
-        "band": Key((list,), [], "Hz", "random: [f_low, f_high] of the flat PSD"),
-        "seed": Key((int,), 1, "", "random: the same seed gives the same history"),
-        "components": Key((int,), 256, "", "random: cosines of the spectral representation"),
-        "span": Key((list,), [], "m", "random: [x0, x1] loaded (default the whole beam), fully correlated"),
+        "psd": Key(NUMBER, 0.0, "(N/m)^2/Hz", "random, turbulence: one-sided PSD of the force per unit length at a "
+                                              "point (turbulence: its level below corner_hz)"),
+        "band": Key((list,), [], "Hz", "random, turbulence: [f_low, f_high] of the PSD"),
+        "seed": Key((int,), 1, "", "random, turbulence: the same seed gives the same history"),
+        "components": Key((int,), 256, "", "random, turbulence: cosines of the spectral representation (per "
+                                           "history)"),
+        "span": Key((list,), [], "m", "random, turbulence: [x0, x1] loaded, nodes of the mesh (default the whole "
+                                      "beam); random: fully correlated"),
+        "correlation_length": Key(NUMBER, None, "m", "turbulence: lambda of the coherence exp(-|dx| / lambda) "
+                                                     "between points of the span (required; inf: fully correlated)"),
+        "spectrum": Key((str,), "flat", "", 'turbulence: "flat" (S = psd) or "knee" (S = psd up to corner_hz, '
+                                            'psd (f / corner_hz)^-slope above)'),
+        "corner_hz": Key(NUMBER, None, "Hz", "turbulence, knee: where the PSD starts to fall"),
+        "slope": Key(NUMBER, None, "1", "turbulence, knee: the exponent of the fall (S ~ f^-slope)"),
         "direction": Key((list,), [], "1", "beam of two planes: [dy, dz], the direction of the force or of the "
                                            "support motion in the y-z plane (normalized; default [1, 0])"),
     }),
