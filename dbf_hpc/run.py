@@ -466,7 +466,13 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     writer = recorder.writer
     constraint_stats = recorder.impacts.result()
     if recorder.planar:   # supports of two directions: the work rate's confidence interval from the samples
+        from .stats import wear_volume
+
         constraint_stats["work_rate_ci95"] = sample_work_rate_ci95(writer, constraints)
+        t = writer.series_data(layout.TIME)
+        constraint_stats["wear_volume"], constraint_stats["wear_volume_ci95"] = wear_volume(
+            [c.wear_coefficient for c in scene.constraints], float(t[-1] - t[0]) if t.size else 0.0,
+            constraint_stats["work_rate"], constraint_stats["work_rate_ci95"])
     probe_peak = np.abs(writer.series_data(layout.PROBE_DISPLACEMENT)).max(axis=0, initial=0.0)
     geometry = field.geometry()
     datasets = {layout.CONSTRAINT_POSITION: constraints.positions,

@@ -322,8 +322,17 @@ def _constraints(raw, path: str, at: _Positions, kind: str) -> tuple:
         if at.key not in c:
             raise InputError(f"{where}: {at.key} is required")
         at.check(where, c[at.key])
-        law = law_from_dict(i + 1, {k: v for k, v in c.items() if k != at.key})
-        constraints.append(Constraint(law=law, x=float(c["x"]) if at.beam else None, dof=None if at.beam else c["dof"]))
+        law = law_from_dict(i + 1, {k: v for k, v in c.items() if k not in (at.key, "wear_coefficient")})
+        wear = c.get("wear_coefficient")
+        if wear is not None:
+            if getattr(law, "dimension", 1) != 2:
+                raise InputError(f"{where}: wear_coefficient needs a 2-D law (circular, flat_bar): a planar law has "
+                                 f"no sliding")
+            if isinstance(wear, bool) or not isinstance(wear, NUMBER) or not (math.isfinite(wear) and wear >= 0):
+                raise InputError(f"{where}: wear_coefficient must be a non-negative number (m^3/(N m)), got {wear!r}")
+            wear = float(wear)
+        constraints.append(Constraint(law=law, x=float(c["x"]) if at.beam else None, dof=None if at.beam else c["dof"],
+                                      wear_coefficient=wear))
     seen = {}
     for i, c in enumerate(constraints):
         key = round(c.x / at.length, 9) if at.beam else c.dof
