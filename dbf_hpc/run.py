@@ -221,7 +221,9 @@ def run_identity(scene: Scene, basis_key: dict, ranks: int, method: str) -> dict
     """What a checkpoint must match to be resumed: every part that changes the result."""
     dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
     matrix = scene["excitation"]["kind"] == "turbulence"   # a load matrix: the Python callbacks
-    callbacks = effective_callbacks(scene.integrator_settings().callbacks, dimension, matrix) if method == "rom" else None
+    friction = any(c.law.kind == "friction" for c in scene.constraints)
+    callbacks = (effective_callbacks(scene.integrator_settings().callbacks, dimension, matrix, friction)
+                 if method == "rom" else None)
     return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], structure=basis_key,
                     options=PETSc.Options().getAll(), ranks=ranks, method=method, callbacks=callbacks)
 

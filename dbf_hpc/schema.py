@@ -149,7 +149,9 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
     "x": Key(NUMBER, None, "m", "beam: position (required on a beam)"),
     "dof": Key((int,), None, "", "matrices: the DOF it acts on, counted from 0 (required for matrices)"),
     "law": Key((str,), "deadband", "", '"deadband" (Eq. 23), "power" (Eq. 42), "hertz", "linear", "cubic", '
-                                       '"table", or on a beam of two planes "circular" (a round hole) or "flat_bar" (two parallel flats)'),
+                                       '"table", "friction" (Coulomb friction alone against a given normal force), '
+                                       'or on a beam of two planes "circular" (a round hole) or "flat_bar" (two '
+                                       'parallel flats)'),
     "clearance": Key(NUMBER, None, "m", "deadband, power, hertz: gap on both sides (or clearance_minus, "
                                         "clearance_plus); negative is an interference fit; circular: the radial "
                                         "clearance (>= 0); flat_bar: the gap to each flat"),
@@ -163,9 +165,11 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
     "c": Key(NUMBER, None, "N s/m", "linear contact damping"),
     "alpha": Key(NUMBER, None, "s/m", "Hunt-Crossley contact damping"),
     "mu": Key(NUMBER, None, "1", "circular, flat_bar: Coulomb friction coefficient (default 0), "
-                                 "F_t = -mu k (|u| - c) tanh(v_t / v_reg)"),
-    "v_reg": Key(NUMBER, None, "m/s", "circular, flat_bar: the sliding speed over which friction is regularized "
-                                      "(default 1e-3)"),
+                                 "F_t = -mu k (|u| - c) tanh(v_t / v_reg); friction: N = -mu normal_force "
+                                 "tanh(v / v_reg) (required)"),
+    "v_reg": Key(NUMBER, None, "m/s", "circular, flat_bar, friction: the sliding speed over which friction is "
+                                      "regularized (default 1e-3)"),
+    "normal_force": Key(NUMBER, None, "N", "friction: the given normal force F_n (required)"),
     "angle": Key(NUMBER, None, "deg", "flat_bar: the direction of the flats' normal, from y towards z (default 0: "
                                       "flats across y, sliding along z)"),
     "wear_coefficient": Key(NUMBER, None, "m^3/(N m)", "circular, flat_bar: Archard's wear coefficient K_w; the "
