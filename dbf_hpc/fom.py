@@ -34,10 +34,16 @@ from .structure import Beam, assemble_beam, distributed_load, span_node_loads
 @dataclass(frozen=True)
 class InitialState:
     """The state at t = 0: at rest in relative coordinates, or displaced by `amplitude` (m, peak over
-    the displacement DOFs) in reference mode `mode` (counted from 1)."""
+    the displacement DOFs) in reference mode `mode` (counted from 1). On a beam of two planes,
+    `mode` counts the planar modes (each a y-z pair of the round tube) and the displacement is that
+    shape along the unit vector `direction` (dy, dz); `velocity` (m/s, peak) starts the same shape
+    moving along `velocity_direction`: across `direction`, the tube whirls in its holes."""
 
     mode: int = 1
     amplitude: float = 0.0
+    direction: tuple = (1.0, 0.0)
+    velocity: float = 0.0
+    velocity_direction: tuple = (0.0, 1.0)
 
 
 class FullOrderModel:
@@ -195,6 +201,8 @@ class FullOrderModel:
         """(u(0), u'(0)): initial_displacement() at rest, or on a gyroscopic structure (G set) the
         free vibration of complex mode `initial.mode` (gyroscopic.mode_state), `initial.amplitude` m
         peak in u. New Vecs, the caller's. Collective."""
+        if self.operators.mesh is not None and self.operators.mesh.planes == 2:
+            return self.two_plane_state()
         if self.operators.G is None or not self.initial.amplitude:
             u = self.initial_displacement()
             v = u.duplicate()
@@ -206,6 +214,23 @@ class FullOrderModel:
         scale = self.initial.amplitude / field_peak(self.operators, u)
         u.scale(scale)
         v.scale(scale)
+        return u, v
+
+    def two_plane_state(self) -> tuple:
+        """(u(0), u'(0)) on a beam of two planes: planar mode `initial.mode` as a shape phi (peak 1 in
+        w), u = amplitude (dy phi_y + dz phi_z), u' = velocity (ey phi_y + ez phi_z). New Vecs, the
+        caller's. Collective."""
+        init = self.initial
+        u, v = self.operators.K.createVecLeft(), self.operators.K.createVecLeft()
+        u.zeroEntries()
+        v.zeroEntries()
+        if init.amplitude or init.velocity:
+            y, z = planar_mode(self.operators, init.mode)
+            for vec, scale, (dy, dz) in ((u, init.amplitude, init.direction), (v, init.velocity,
+                                                                            init.velocity_direction)):
+                vec.axpy(scale * dy, y)
+                vec.axpy(scale * dz, z)
+            destroy(y, z)
         return u, v
 
     def velocity_matrix(self) -> PETSc.Mat | None:
@@ -341,6 +366,51 @@ class Observation:
         else:
             probe = np.zeros((t.size, self.probes.count))
         return z, v, probe + np.outer(self.support.value(t), self.probe_share)
+
+
+def planar_mode(ops: Operators, mode: int) -> tuple:
+    """(phi_y, phi_z): planar mode `mode` (counted from 1) of a beam of two planes as a shape in y
+    and the same shape in z, peak |w| = 1. The eigensolver returns any orthonormal pair of each y-z
+    eigenspace; the pair's member with the larger y part, cut to its y rows, is the planar mode
+    (the planes are uncoupled). Collective."""
+    from mpi4py import MPI
+    from .modes import reference_modes
+
+    mesh = ops.mesh
+    modes = reference_modes(ops, count=2 * mode)
+    y_rows, z_rows = mesh.row[:, :2].ravel(), mesh.row[:, 2:].ravel()
+    keep = y_rows >= 0           # the same DOFs are fixed in both planes
+    y_rows, z_rows = y_rows[keep], z_rows[keep]
+    lo, hi = ops.ownership_range()
+    world = ops.comm.tompi4py()
+    best, best_norm = None, -1.0
+    for i in (2 * mode - 2, 2 * mode - 1):
+        vec = ops.K.createVecLeft()
+        modes.vectors.copyVec(i, vec)
+        values = np.zeros(y_rows.size)
+        mine = (y_rows >= lo) & (y_rows < hi)
+        values[mine] = vec.getArray(readonly=True)[y_rows[mine] - lo]
+        values = world.allreduce(values, op=MPI.SUM)
+        vec.destroy()
+        if np.linalg.norm(values) > best_norm:
+            best, best_norm = values, np.linalg.norm(values)
+    modes.destroy()
+    peak = np.abs(best[_w_positions(mesh)]).max()
+    shapes = []
+    for rows in (y_rows, z_rows):
+        vec = ops.K.createVecLeft()
+        vec.zeroEntries()
+        mine = (rows >= lo) & (rows < hi)
+        vec.getArray()[rows[mine] - lo] = best[mine] / peak
+        shapes.append(vec)
+    return tuple(shapes)
+
+
+def _w_positions(mesh) -> np.ndarray:
+    """Among the free y DOFs in node order (w, dw/dx per node), the positions of the w's."""
+    rows = mesh.row[:, :2]
+    dof = np.broadcast_to(np.arange(2), rows.shape)
+    return np.flatnonzero(dof[rows >= 0] == 0)
 
 
 def field_peak(ops: Operators, u: PETSc.Vec) -> float:

@@ -86,7 +86,9 @@ def plot_run(path: str, folder: str, window=None) -> list:
     time_histories.png: w at each constraint with its clearance (Figs. 4, 7); phase.png: phase
     diagrams (Figs. 5, 8, 12); forces.png: the peak force per sample interval (Fig. 10); probes.png:
     w at each probe; snapshots.png: the field at the snapshot times with the constraints and their
-    deadbands (Figs. 6, 9, 11, 13). `window` (t0, t1) limits the time histories and phase diagrams.
+    deadbands (Figs. 6, 9, 11, 13). On a beam of two planes also orbits.png: each support's path z
+    against y inside its gap (the clearance circle of a round hole, the two lines of flat bars).
+    `window` (t0, t1) limits the time histories, phase diagrams and orbits.
     """
     import h5py
 
@@ -101,6 +103,8 @@ def plot_run(path: str, folder: str, window=None) -> list:
         span = f"t = {t[keep][0]:g} ... {t[keep][-1]:g} s" if keep.any() else "no samples"
         if positions.size:
             _constraint_figures(folder, t[keep], positions, series, gaps, span, written)
+            if series[layout.CONSTRAINT_DISPLACEMENT].ndim == 3:
+                _orbit_figure(folder, positions, series[layout.CONSTRAINT_DISPLACEMENT], _laws(f), span, written)
         probes = f[layout.PROBE_POSITION][:] if layout.PROBE_POSITION in f else np.zeros(0)
         if probes.size:
             fig, axes = _panels(probes.size)
@@ -153,6 +157,50 @@ def _constraint_figures(folder, t, positions, series, gaps, span, written) -> No
     axes[-1].set_xlabel("time t [s]")
     fig.suptitle(f"Constraint force, the peak over each sample interval ({span})")
     _save(fig, os.path.join(folder, "forces.png"), written)
+
+
+def _laws(f) -> list:
+    """Each constraint's law (a dict: kind, clearance, angle) from the run's effective scene."""
+    try:
+        return [c["law"] for c in json.loads(f.attrs["scene_effective"])["constraint"]]
+    except (KeyError, ValueError, TypeError):
+        return []
+
+
+def _orbit_figure(folder, positions, u, laws, span, written) -> None:
+    """orbits.png: z against y (mm) at each support of two directions, with its gap drawn."""
+    plt = _pyplot()
+    n = positions.size
+    columns = min(n, 4)
+    rows = int(np.ceil(n / columns))
+    fig, axes = plt.subplots(rows, columns, figsize=(3.4 * columns, 3.4 * rows), dpi=110, squeeze=False)
+    for ax in axes.ravel()[n:]:
+        ax.set_visible(False)
+    turn = np.linspace(0, 2 * np.pi, 241)
+    for j, ax in enumerate(axes.ravel()[:n]):
+        law = laws[j] if j < len(laws) else {}
+        c = float(law.get("clearance", 0.0)) * 1e3
+        reach = max(1.3 * c, 1.1 * float(np.abs(u[:, j]).max(initial=0.0)) * 1e3, 1e-9)
+        if law.get("kind") == "flat_bar":   # the flats: u.e = +-c, e at `angle` from y
+            a = np.radians(float(law.get("angle", 0.0)))
+            e, s = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+            for side in (-1, 1):
+                ends = side * c * e[:, None] + s[:, None] * np.array([-2 * reach, 2 * reach])
+                ax.plot(ends[0], ends[1], color="C3", lw=1.2)
+            gap = f"flats at {float(law.get('angle', 0.0)):g} deg, gap {c:.3g} mm"
+        else:
+            ax.plot(c * np.cos(turn), c * np.sin(turn), color="C3", lw=1.2)
+            gap = f"clearance {c:.3g} mm"
+        ax.plot(u[:, j, 0] * 1e3, u[:, j, 1] * 1e3, lw=0.5, color="C0")
+        ax.set_xlim(-reach, reach)
+        ax.set_ylim(-reach, reach)
+        ax.set_aspect("equal")
+        ax.set_xlabel("y [mm]")
+        ax.set_ylabel("z [mm]")
+        ax.set_title(f"{_where(positions[j])}: {gap}", fontsize=8)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"Orbits of the tube in its supports ({span})")
+    _save(fig, os.path.join(folder, "orbits.png"), written)
 
 
 def _snapshot_figure(folder, f, positions, gaps, written) -> None:

@@ -15,6 +15,7 @@ from .basis import BasisSettings, ReducedBasis
 from .cache import obtain_basis
 from .errors import InputError
 from .fom import FullOrderModel
+from .petsctools import destroy
 from .rom import ReducedField, ReducedModel
 
 
@@ -53,7 +54,7 @@ class Reductor:
             force_shape = basis.dot_rows(fom.force_matrix.rows)
         else:
             force_shape = np.zeros(basis.size)
-        q0 = self._initial_coordinates()
+        q0, p0 = self._initial_coordinates()
         r_q = np.zeros(basis.size)
         if fom.moving_support:
             Mr = ops.M.createVecLeft()
@@ -65,21 +66,38 @@ class Reductor:
                 "flexibility_exact": basis.flexibility_exact}
         return ReducedModel(M=M, C=C, K=K, G=G, B=basis.rows(rows), r_c=fom.influence_at(rows), base_load=base_load,
                             force_shape=force_shape, constraints=fom.constraints, support=fom.support,
-                            force=fom.force, q0=q0, p0=np.zeros(basis.size), probe_B=self._basis_at(fom.probes),
+                            force=fom.force, q0=q0, p0=p0, probe_B=self._basis_at(fom.probes),
                             probe_r=fom.support_share(fom.probes), basis_info=info, r_q=r_q,
                             field=self._field() if field else None, field_points=ops.field_map(),
                             probe_shape=fom.probes.shape)
 
-    def _initial_coordinates(self) -> np.ndarray:
-        """q(0): zero, or the initial amplitude (m, peak over the field) in a reference mode."""
+    def _initial_coordinates(self) -> tuple:
+        """(q(0), q'(0)): zero, or the initial amplitude (m, peak over the field) in a reference mode;
+        on a beam of two planes the M-projections V^T M u(0), V^T M u'(0) of fom.two_plane_state (the
+        planar mode lies in the span of the basis' modes, so the projection is exact)."""
         basis, initial = self.basis(), self.fom.initial
         q0 = np.zeros(basis.size)
+        mesh = self.fom.operators.mesh
+        if mesh is not None and mesh.planes == 2:
+            if not (initial.amplitude or initial.velocity):
+                return q0, np.zeros(basis.size)
+            if not 1 <= 2 * initial.mode <= basis.mode_count:
+                raise InputError(f"[initial] mode = {initial.mode}: a beam of two planes counts its modes in y-z "
+                                 f"pairs; the basis has {basis.mode_count // 2} pairs")
+            u, v = self.fom.two_plane_state()
+            Mx = u.duplicate()
+            out = []
+            for vec in (u, v):
+                self.fom.operators.M.mult(vec, Mx)
+                out.append(basis.dot(Mx))
+            destroy(u, v, Mx)
+            return out[0], out[1]
         if initial.amplitude:
             if not 1 <= initial.mode <= basis.mode_count:
                 raise InputError(f"[initial] mode = {initial.mode}: the basis has {basis.mode_count} reference modes")
             column = self._basis_at(self.fom.operators.field_map())[:, initial.mode - 1]
             q0[initial.mode - 1] = initial.amplitude / np.abs(column).max()
-        return q0
+        return q0, np.zeros(basis.size)
 
     def _basis_at(self, points) -> np.ndarray:
         """(P, r) the basis at PointValues (combined as the points combine DOF values)."""

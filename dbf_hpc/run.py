@@ -457,6 +457,16 @@ def sample_work_rate_ci95(writer, constraints) -> np.ndarray:
     return batch_means_ci95(t, fn * vt)
 
 
+def _initial_text(init) -> str:
+    if not (init.amplitude or init.velocity):
+        return "at rest in relative coordinates (u = 0, u_t = 0); absolute velocity Omega'(0) r"
+    if init.velocity or init.direction != (1.0, 0.0):   # a beam of two planes
+        return (f"displacement {init.amplitude} m peak along (dy, dz) = ({init.direction[0]:.4g}, "
+                f"{init.direction[1]:.4g}) and velocity {init.velocity} m/s peak along "
+                f"({init.velocity_direction[0]:.4g}, {init.velocity_direction[1]:.4g}) in planar mode {init.mode}")
+    return f"displacement {init.amplitude} m peak in reference mode {init.mode}"
+
+
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
            field, snap_t, snap_w, model: ReducedModel | None = None, extra_attrs: dict | None = None) -> dict:
     """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
@@ -505,9 +515,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                "petsc_version": ".".join(map(str, PETSc.Sys.getVersion())),
                "slepc_version": ".".join(map(str, SLEPc.Sys.getVersion())),
                "mpi_ranks": ranks, "solver_stats": json.dumps(stats), "wall_times": json.dumps(timings),
-               "initial_state": "at rest in relative coordinates (u = 0, u_t = 0); absolute velocity "
-                                "Omega'(0) r" if not init.amplitude else
-                                f"displacement {init.amplitude} m peak in reference mode {init.mode}",
+               "initial_state": _initial_text(init),
                **attrs})
     if snap_t.size:
         xdmf.write(xdmf.sidecar(writer.path), writer.path, "snapshots", geometry[0],

@@ -117,7 +117,14 @@ class Scene:
                        rayleigh_beta=float(d["rayleigh_beta"]))
 
     def initial(self) -> InitialState:
-        return InitialState(mode=self["initial"]["mode"], amplitude=float(self["initial"]["amplitude"]))
+        i = self["initial"]
+
+        def unit(d, default):
+            d = d or default
+            return (float(d[0]) / math.hypot(*d), float(d[1]) / math.hypot(*d))
+
+        return InitialState(mode=i["mode"], amplitude=float(i["amplitude"]), direction=unit(i["direction"], [1.0, 0.0]),
+                            velocity=float(i["velocity"]), velocity_direction=unit(i["velocity_direction"], [0.0, 1.0]))
 
     def basis_settings(self):
         b = self["basis"]
@@ -228,6 +235,8 @@ def _check_type(where: str, key: str, value, types) -> None:
     if not isinstance(value, types):
         raise InputError(f"{where}: {key} must be {_type_name(types)}, got {value!r}")
     numbers = value if isinstance(value, list) else [value]
+    if key == "correlation_length" and value == math.inf:
+        return   # turbulence: a fully correlated load
     if any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
         raise InputError(f"{where}: {key} must be finite, got {value!r}")
 
@@ -388,6 +397,20 @@ def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
             raise InputError(f"{where}: base excitation of a matrices structure needs [structure] influence")
 
 
+def _check_initial(i: dict, s: dict, where: str) -> None:
+    two = s["kind"] == "beam" and s["planes"] == 2
+    for key in ("direction", "velocity_direction"):
+        if i[key]:
+            if not two:
+                raise InputError(f"{where}: {key} applies to a beam of two planes ([structure] planes = 2)")
+            d = i[key]
+            if not (len(d) == 2 and all(isinstance(x, NUMBER) and not isinstance(x, bool) for x in d)
+                    and math.hypot(*d) > 0):
+                raise InputError(f"{where}: {key} must be [dy, dz], two numbers not both 0, got {d!r}")
+    if i["velocity"] and not two:
+        raise InputError(f"{where}: velocity applies to a beam of two planes (elsewhere start from a displaced mode)")
+
+
 def _check_turbulence(e: dict, s: dict, where: str) -> None:
     if e["direction"]:
         raise InputError(f"{where}: turbulence acts in every plane of the beam (independent in y and z); remove "
@@ -452,6 +475,7 @@ def _check_integrator_and_output(sections: dict, path: str, at: _Positions) -> N
         raise InputError(f"{where}: snapshots must be a count >= 0, got {o['snapshots']}")
     if sections["initial"]["mode"] < 1:
         raise InputError(f"{path}: [initial] mode counts from 1, got {sections['initial']['mode']}")
+    _check_initial(sections["initial"], sections["structure"], f"{path}: [initial]")
 
 
 def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:

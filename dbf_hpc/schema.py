@@ -135,6 +135,11 @@ SECTIONS = {
     "initial": ("The state at t = 0 (at rest in relative coordinates by default).", {
         "mode": Key((int,), 1, "", "reference mode of the initial displacement, counted from 1"),
         "amplitude": Key(NUMBER, 0.0, "m", "peak initial displacement in that mode"),
+        "direction": Key((list,), [], "1", "beam of two planes: [dy, dz], the direction of the initial "
+                                           "displacement (mode counts the y-z pairs; default [1, 0])"),
+        "velocity": Key(NUMBER, 0.0, "m/s", "beam of two planes: peak initial velocity in the same mode shape"),
+        "velocity_direction": Key((list,), [], "1", "beam of two planes: [dy, dz] of the initial velocity "
+                                                    "(default [0, 1]: across a displacement along y, a whirl)"),
     }),
     "output": ("What a run writes.", {
         "file": Key((str,), None, "", "the HDF5 output, relative to the scene's folder (or -o)"),

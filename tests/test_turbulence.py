@@ -180,6 +180,18 @@ file = "out.h5"
 """
 
 
+def test_turbulence_scene_takes_an_infinite_correlation_length(shared_tmp_path):
+    path = os.path.join(shared_tmp_path, "inf.toml")
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "w") as f:
+            f.write(SCENE.format(extra="correlation_length = inf\nspan = [0.5, 1.5]"))
+    MPI.COMM_WORLD.Barrier()
+    turbulence = load_scene(path).excitation()
+    assert turbulence.correlation_length == np.inf and turbulence.span == (0.5, 1.5)
+    with pytest.raises(InputError, match="finite"):
+        load_scene(path, ["excitation.psd=inf"])
+
+
 @pytest.mark.parametrize("extra, message", [
     ("", "correlation_length"),
     ("correlation_length = 0.0", "correlation_length > 0"),
