@@ -166,8 +166,10 @@ def coherence_factor(coherence: np.ndarray) -> np.ndarray:
     m = int(np.searchsorted(share, VARIANCE_KEPT) + 1)
     m = min(m, values.size)
     H = vectors[:, :m] * np.sqrt(values[:m])
-    # fix each eigenvector's sign (eigh's is arbitrary) so that the same input gives the same H
-    H *= np.where(H.sum(axis=0) < 0, -1.0, 1.0)
+    # fix each eigenvector's sign (eigh's is arbitrary): its first clearly nonzero entry positive (the
+    # sum would not do: half the eigenvectors of evenly spaced nodes are antisymmetric)
+    first = np.argmax(np.abs(H) > 1e-6 * np.abs(H).max(axis=0), axis=0)
+    H *= np.where(H[first, np.arange(m)] < 0, -1.0, 1.0)
     return H / np.linalg.norm(H, axis=1)[:, None]
 
 
