@@ -1,5 +1,6 @@
 """Coulomb friction through a law alone (issue 18): law = "friction", N = -mu F_n tanh(v / v_reg), on
-a single-DOF oscillator against Den Hartog's exact free decay with dry friction. Each test is named
+a single-DOF oscillator against Den Hartog's exact free decay with dry friction and his forced
+steady state without stops. Each test is named
 by the physical fact it checks."""
 import math
 
@@ -93,3 +94,46 @@ def test_friction_law_keys_are_checked_in_one_line():
     assert c_core("auto", friction=True) is None
     with pytest.raises(InputError, match="no friction law"):
         c_core("c", friction=True)
+
+
+def den_hartog_steady_state(k, m, P0, F, omega):
+    """The exact periodic motion without stops of m x'' + k x + F sign(x') = P0 cos(omega t + phi),
+    two stops-free halves per period (Den Hartog 1931, solved here in closed form): with
+    theta = pi omega_n / omega, D = P0 / (k - m omega^2), the half from the top (x = X, x' = 0, at
+    t = 0) is x = -F/k cos(omega_n t) + B sin(omega_n t) + D cos(omega t + phi) + F/k, B = -(F/k)
+    sin(theta) / (1 + cos(theta)), sin(phi) = B omega_n / (D omega), X = D cos(phi). Returns
+    (X, phi, x(t) over the first half)."""
+    wn = math.sqrt(k / m)
+    theta = math.pi * wn / omega
+    D = P0 / (k - m * omega**2)
+    B = -(F / k) * math.sin(theta) / (1 + math.cos(theta))
+    phi = math.asin(B * wn / (D * omega))
+    X = D * math.cos(phi)
+
+    def half(t):
+        return -F / k * np.cos(wn * t) + B * np.sin(wn * t) + D * np.cos(omega * t + phi) + F / k
+
+    return X, phi, half
+
+
+def test_forced_oscillator_with_coulomb_friction_follows_den_hartogs_steady_state_without_stops():
+    m, wn = 1.0, 2 * math.pi
+    k = m * wn**2
+    P0, F, beta = 1.0, 0.5, 0.6
+    omega = beta * wn
+    X, phi, half = den_hartog_steady_state(k, m, P0, F, omega)
+    T = 2 * math.pi / omega
+    s = np.linspace(0, T / 2, 2001)
+    assert np.all(np.diff(half(s))[:-1] < 0)                  # no stop in the half: the formula holds
+    assert half(T / 2) == pytest.approx(-X, rel=1e-12)
+    # friction takes 5 % off the frictionless amplitude D; the test resolves 1e-3 of X
+    assert X < 0.96 * P0 / (k - m * omega**2)
+    model = oscillator(k, X, law("friction", normal_force=F, mu=1.0, v_reg=1e-5 * X * omega), m)
+    model = model.with_case(force=Harmonic(P0, omega / (2 * math.pi), phi + math.pi / 2))
+    model = type(model)(**{**model.__dict__, "force_shape": np.ones(1)})
+    result = simulate_reduced(model, IntegratorSettings(t_end=2 * T, dt=1e-4, sample_dt=T / 400, rtol=1e-7,
+                                                        atol=1e-11))
+    t, x = result.time, result.displacement[:, 0]
+    cycle = np.mod(t, T)
+    exact = np.where(cycle <= T / 2, half(np.minimum(cycle, T / 2)), -half(np.maximum(cycle - T / 2, 0.0)))
+    assert np.max(np.abs(x - exact)) < 1e-3 * X
