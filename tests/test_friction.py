@@ -137,3 +137,17 @@ def test_forced_oscillator_with_coulomb_friction_follows_den_hartogs_steady_stat
     cycle = np.mod(t, T)
     exact = np.where(cycle <= T / 2, half(np.minimum(cycle, T / 2)), -half(np.maximum(cycle - T / 2, 0.0)))
     assert np.max(np.abs(x - exact)) < 1e-3 * X
+
+
+def test_friction_mixed_with_other_laws_gives_each_law_its_own_values():
+    friction = law("friction", normal_force=3.0, mu=0.4, v_reg=1e-3)
+    deadband = law("deadband", clearance=1e-3, k=1e5, damping="linear", c=20.0)
+    z, v = np.array([2e-3, 2e-3, 0.5]), np.array([0.01, 4e-4, -2e-4])
+    mixed = ConstraintLaws([deadband, friction, friction])
+    alone = [ConstraintLaws([deadband]), ConstraintLaws([friction]), ConstraintLaws([friction])]
+    force, dz, dv = mixed.force_and_jacobian(z, v)
+    for j, one in enumerate(alone):
+        f1, z1, v1 = one.force_and_jacobian(z[j:j + 1], v[j:j + 1])
+        assert (force[j], dz[j], dv[j]) == (f1[0], z1[0], v1[0])
+    assert np.array_equal(mixed.force(z, v), force)
+    assert np.all(mixed.in_contact(z)[1:]) and mixed.potential(z)[1] == 0.0
