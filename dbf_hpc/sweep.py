@@ -412,7 +412,8 @@ def _units(f, parameters) -> None:
                                                    "(NaN or null: the base scene's value)")
     for name in f["cases/stats"]:
         f[f"cases/stats/{name}"].attrs.update(unit=UNITS[name], description=DESCRIPTIONS[name] + " (case x constraint)")
-    f["cases/probe_peak"].attrs.update(unit="m", description="max |w| at each probe (case x probe)")
+    f["cases/probe_peak"].attrs.update(unit="m", description="max |w| at each probe (case x probe; on a beam of two "
+                                                             "planes the larger of the y and z peaks)")
     f["cases/wall_time"].attrs.update(unit="s", description="wall time of the case")
     for name in ("status", "error"):
         f[f"cases/{name}"].attrs.update(unit="", description=f"the case's {name}")
@@ -451,7 +452,10 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
             f.create_dataset(f"cases/stats/{name}", data=table)
         peaks = np.full((n, probes), np.nan)
         for i, r in enumerate(records):
-            peaks[i, :len(r.get("probe_peak", []))] = r.get("probe_peak", [])
+            peak = np.asarray(r.get("probe_peak", []), dtype=float)
+            if peak.ndim == 2:   # two planes: (y, z) peaks per probe; the summary keeps the larger
+                peak = peak.max(axis=1)
+            peaks[i, :peak.size] = peak
         f.create_dataset("cases/probe_peak", data=peaks)
         _units(f, sweep["parameters"])
         f.attrs["dbf_hpc_version"] = __version__
