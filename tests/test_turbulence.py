@@ -209,3 +209,29 @@ def test_turbulence_scenes_refuse_incomplete_keys_in_one_line(shared_tmp_path, e
     with pytest.raises(InputError, match=message) as e:
         load_scene(path)
     assert "\n" not in str(e.value)
+
+
+def test_a_planar_turbulence_scene_runs_reduced_on_the_python_callbacks_and_full_order(shared_tmp_path, comm):
+    import h5py
+    import json
+
+    from dbf_hpc.run import run
+
+    path = os.path.join(shared_tmp_path, "planar.toml")
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "w") as f:
+            f.write(SCENE.replace("planes = 2", "planes = 1").format(extra="correlation_length = 0.3\nspan = [1.0, 2.0]")
+                    + '[basis]\nmodes = 6\nestimate = false\n[[constraint]]\nx = 1.5\nclearance = 1e-6\nk = 1e5\n')
+    MPI.COMM_WORLD.Barrier()
+    scene = load_scene(path, [f"basis.cache={json.dumps(str(shared_tmp_path))}"])
+    peaks = []
+    for method in ("rom", "full"):
+        out = os.path.join(shared_tmp_path, f"planar-{method}.h5")
+        summary = run(scene, out, progress=False, comm=comm, method=method)
+        peaks.append(summary["constraint_stats"]["displacement_peak"][0])
+        if method == "rom":
+            assert summary["stats"]["callbacks"] == "python"
+            if comm.getRank() == 0:
+                with h5py.File(out) as f:
+                    assert f["constraints/displacement"].shape[1:] == (1,)
+    assert all(p > 0 for p in peaks)
