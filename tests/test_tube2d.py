@@ -519,3 +519,17 @@ def test_plot_of_two_planes_draws_each_support_orbit_inside_its_gap(shared_tmp_p
         with open(orbit, "rb") as png:
             assert png.read(8) == b"\x89PNG\r\n\x1a\n"
     assert_all(True)
+
+
+def test_wear_volume_is_archard_k_w_times_the_run_time_times_the_work_rate_and_nan_without_k_w():
+    from dbf_hpc.stats import wear_volume
+
+    volume, ci = wear_volume([2e-14, None, 0.0], 3.0, [1e-3, 5e-3, 2e-3], [4e-4, 1e-3, 1e-3])
+    assert volume[0] == pytest.approx(2e-14 * 3.0 * 1e-3, rel=1e-15) and ci[0] == pytest.approx(2e-14 * 3.0 * 4e-4)
+    assert np.isnan(volume[1]) and np.isnan(ci[1]) and volume[2] == 0.0
+    scene = load_scene(TUBE_2D)
+    assert [c.wear_coefficient for c in scene.constraints] == [2e-14] * 12
+    with pytest.raises(InputError, match="2-D law"):
+        load_scene(os.path.join(ROOT, "jobs", "steam_generator_tube.toml"), ["constraint.wear_coefficient=1e-14"])
+    with pytest.raises(InputError, match="non-negative"):
+        load_scene(TUBE_2D, ["constraint.3.wear_coefficient=-1e-14"])
