@@ -135,6 +135,24 @@ class Turbulence:
     slope: float = 0.0
     kind = "turbulence"
 
+    def __post_init__(self):
+        from .errors import InputError
+
+        f_low, f_high = (tuple(self.band) + (None, None))[:2]
+        problems = [(not (self.psd > 0), f"psd must be positive, got {self.psd!r}"),
+                    (not (f_low is not None and f_high is not None and 0 <= f_low < f_high),
+                     f"band must be (f_low, f_high) with 0 <= f_low < f_high, got {self.band!r}"),
+                    (not (self.correlation_length > 0), f"correlation_length must be positive (m), got "
+                                                        f"{self.correlation_length!r}"),
+                    (not (self.components >= 1), f"components must be at least 1, got {self.components!r}"),
+                    (self.spectrum not in ("flat", "knee"), f"spectrum must be \"flat\" or \"knee\", got "
+                                                            f"{self.spectrum!r}"),
+                    (self.spectrum == "knee" and not (self.corner_hz > 0 and self.slope > 0),
+                     "a knee spectrum needs corner_hz > 0 and slope > 0")]
+        for bad, message in problems:
+            if bad:
+                raise InputError(f"turbulence: {message}")
+
     def density(self, f) -> np.ndarray:
         """S(f), (N/m)^2/Hz."""
         f = np.asarray(f, dtype=float)

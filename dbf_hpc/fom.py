@@ -99,6 +99,9 @@ class FullOrderModel:
         else:
             raise InputError(f"a structure is a Beam or MatrixFiles, got {type(structure).__name__}")
         force_load = force_matrix = None
+        if excitation.kind in ("random", "turbulence") and not isinstance(structure, Beam):
+            ops.destroy()
+            raise InputError(f"{excitation.kind} forcing is distributed along a beam; not available for matrices")
         try:
             if fingerprint is None:
                 fingerprint = structure.fingerprint(comm)

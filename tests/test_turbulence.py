@@ -152,6 +152,15 @@ def test_reduced_and_full_order_agree_under_turbulence_before_any_contact(comm):
     assert np.abs(reduced.probes - full.probes).max() < 0.02 * peak
 
 
+def test_turbulence_descriptions_refuse_bad_values_in_one_line():
+    for bad in (dict(psd=0.0), dict(band=(10.0, 5.0)), dict(correlation_length=0.0), dict(components=0),
+                dict(spectrum="pink"), dict(spectrum="knee", corner_hz=0.0, slope=2.0)):
+        values = {"psd": 1.0, "band": (0.0, 10.0), "correlation_length": 0.2, **bad}
+        with pytest.raises(InputError, match="turbulence: ") as e:
+            Turbulence(**values)
+        assert "\n" not in str(e.value)
+
+
 def test_c_callbacks_refuse_a_load_matrix_and_auto_takes_python():
     assert c_core("auto", load_matrix=True) is None
     with pytest.raises(InputError, match="load matrix"):
