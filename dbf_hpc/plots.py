@@ -238,19 +238,23 @@ def _read_sweep(f) -> dict:
         raw = f[f"cases/parameters/{name}"][:]
         columns[name] = raw if raw.dtype.kind == "f" else np.array([json.loads(v) for v in raw], dtype=object)
     stats = {name: f[f"cases/stats/{name}"][:] for name in
-             ("displacement_peak", "impact_rate", "contact_fraction", "force_peak")}
+             ("displacement_peak", "impact_rate", "contact_fraction", "force_peak", "work_rate")
+             if f"cases/stats/{name}" in f}
     return {"ok": ok, "columns": columns, "stats": stats, "probe_peak": f["cases/probe_peak"][:]}
 
 
 PANELS = (("displacement_peak", "peak |w| [mm]", 1e3), ("impact_rate", "impacts per second [1/s]", 1),
           ("contact_fraction", "fraction of time in contact", 1), ("force_peak", "peak force [N]", 1))
+# supports of two directions: the normal work rate in place of the contact fraction
+PANELS_2D = PANELS[:2] + (("work_rate", "normal work rate [mW]", 1e3),) + PANELS[3:]
 
 
 def plot_sweep(path: str, folder: str, window=None) -> list:
     """Statistics of a sweep summary against each numeric parameter that varies, one line per
     combination of the other varying parameters (and sweep direction), each line its own colour:
     peak displacement at each constraint and probe (a frequency response when the parameter is the
-    excitation frequency), impact rate, contact fraction and peak force. Failed cases are marked
+    excitation frequency), impact rate, contact fraction (supports of two directions: the normal work
+    rate) and peak force. Failed cases are marked
     with a red cross on the axis. (`window` is for runs; a sweep has no time axis.)"""
     import h5py
 
@@ -274,7 +278,7 @@ def _sweep_figure(folder, name, others, data, written) -> None:
     fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), dpi=110, sharex=True)
     colour = iter(plt.cm.tab20(np.linspace(0, 1, 20)))
     colours = {}
-    for ax, (stat, label, scale) in zip(axes.ravel(), PANELS):
+    for ax, (stat, label, scale) in zip(axes.ravel(), PANELS_2D if "work_rate" in data["stats"] else PANELS):
         for key in series:
             _sweep_lines(ax, stat, scale, key, keys, x, others, data, colours, colour)
         failed = x[~ok & np.isfinite(x)]

@@ -256,4 +256,10 @@ def test_a_two_plane_tube_sweep_over_clearance_and_turbulence_level_records_work
             np.testing.assert_array_equal(f["cases/parameters/constraint.clearance"][:], [2e-5, 2e-5, 8e-5, 8e-5])
         lines = describe(result["output"])
         assert any("max work rate" in line and "wear volume" in line for line in lines)
+        from dbf_hpc.plots import _read_sweep, plot_sweep
+
+        with h5py.File(result["output"]) as f:
+            assert np.array_equal(_read_sweep(f)["stats"]["work_rate"], rate, equal_nan=True)
+        written = plot_sweep(result["output"], str(shared_tmp_path))
+        assert len(written) == 2 and all(os.path.getsize(p) > 10000 for p in written)
     assert_all(True)
