@@ -19,7 +19,8 @@ __version__ = "0.1.0"
 _API = {
     "Beam": "structure", "MatrixFiles": "matrices", "Constraint": "constraints", "ConstraintSet": "constraints",
     "Law": "laws", "law": "laws", "NoExcitation": "excitation", "BaseMotion": "excitation",
-    "PointForce": "excitation", "RandomForce": "excitation", "Turbulence": "excitation", "Harmonic": "excitation", "Damping": "damping",
+    "PointForce": "excitation", "RandomForce": "excitation", "Turbulence": "excitation", "Harmonic": "excitation",
+    "Damping": "damping",
     "InitialState": "fom", "FullOrderModel": "fom", "BasisSettings": "basis", "DbfEnrichment": "enrichment",
     "StaticEnrichment": "enrichment", "NoEnrichment": "enrichment", "Reductor": "reductor",
     "ReducedModel": "rom", "IntegratorSettings": "timestepping", "Result": "recorder",

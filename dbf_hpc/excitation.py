@@ -157,7 +157,8 @@ class Turbulence:
         """S(f), (N/m)^2/Hz."""
         f = np.asarray(f, dtype=float)
         if self.spectrum == "knee":
-            return self.psd * np.where(f <= self.corner_hz, 1.0, (np.maximum(f, 1e-300) / self.corner_hz) ** -self.slope)
+            fall = (np.maximum(f, 1e-300) / self.corner_hz) ** -self.slope
+            return self.psd * np.where(f <= self.corner_hz, 1.0, fall)
         return np.full(f.shape, float(self.psd))
 
     def coherence(self, x) -> np.ndarray:

@@ -85,8 +85,8 @@ def effective_callbacks(callbacks: str, dimension: int = 1, load_matrix: bool = 
     of `dimension` (as c_core decides; part of a checkpoint's identity: the two agree to the
     integrator's tolerance, not bit for bit)."""
     from . import _romc
-    return ("c" if callbacks != "python" and dimension == 1 and not load_matrix and not friction and _romc.core is not None
-            else "python")
+    simple = dimension == 1 and not load_matrix and not friction
+    return "c" if callbacks != "python" and simple and _romc.core is not None else "python"
 
 
 def _user_solver_options() -> bool:

@@ -147,7 +147,9 @@ class Scene:
     def fastest_forcing_hz(self) -> float:
         """The highest frequency the excitation contains (0 for free vibration)."""
         e = self["excitation"]
-        return float(e["band"][1]) if e["kind"] in ("random", "turbulence") else float(e["frequency_hz"]) if e["kind"] != "none" else 0.0
+        if e["kind"] in ("random", "turbulence"):
+            return float(e["band"][1])
+        return float(e["frequency_hz"]) if e["kind"] != "none" else 0.0
 
     def output(self) -> OutputSettings:
         o, t_end = self["output"], float(self["integrator"]["t_end"])

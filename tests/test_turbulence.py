@@ -229,7 +229,8 @@ def test_a_planar_turbulence_scene_runs_reduced_on_the_python_callbacks_and_full
     path = os.path.join(shared_tmp_path, "planar.toml")
     if MPI.COMM_WORLD.rank == 0:
         with open(path, "w") as f:
-            f.write(SCENE.replace("planes = 2", "planes = 1").format(extra="correlation_length = 0.3\nspan = [1.0, 2.0]")
+            planar = SCENE.replace("planes = 2", "planes = 1")
+            f.write(planar.format(extra="correlation_length = 0.3\nspan = [1.0, 2.0]")
                     + '[basis]\nmodes = 6\nestimate = false\n[[constraint]]\nx = 1.5\nclearance = 1e-6\nk = 1e5\n')
     MPI.COMM_WORLD.Barrier()
     scene = load_scene(path, [f"basis.cache={json.dumps(str(shared_tmp_path))}"])
