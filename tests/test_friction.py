@@ -151,3 +151,24 @@ def test_friction_mixed_with_other_laws_gives_each_law_its_own_values():
         assert (force[j], dz[j], dv[j]) == (f1[0], z1[0], v1[0])
     assert np.array_equal(mixed.force(z, v), force)
     assert np.all(mixed.in_contact(z)[1:]) and mixed.potential(z)[1] == 0.0
+
+
+def test_full_order_and_reduced_model_agree_on_a_beam_held_by_friction(comm):
+    from dbf_hpc import BasisSettings, Beam, Constraint, FullOrderModel, Reductor
+    from dbf_hpc.excitation import PointForce
+    from dbf_hpc.simulate import simulate_full
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=40)
+    held = [Constraint(x=0.5, law=law("friction", normal_force=0.02, mu=0.3, v_reg=1e-4))]
+    with FullOrderModel.build(beam, held, PointForce(0.05, 3.0, x=0.3), probes=[0.5], comm=comm) as fom:
+        with Reductor(fom, BasisSettings(modes=10)) as reductor:
+            model = reductor.reduce()
+        reduced = simulate_reduced(model, IntegratorSettings(t_end=0.3, dt=1e-4, sample_dt=1e-3, rtol=1e-8))
+        full = simulate_full(fom, IntegratorSettings(t_end=0.3, dt=1e-5, sample_dt=1e-3, adaptive=False))
+    peak = np.abs(full.displacement).max()
+    assert peak > 0
+    assert np.abs(reduced.displacement - full.displacement).max() < 0.02 * peak
+    # the friction force stays within mu F_n and opposes the velocity where the support slides
+    sliding = np.abs(full.velocity[:, 0]) > 10 * 1e-4
+    assert np.all(np.abs(full.force[:, 0]) <= 0.3 * 0.02 * (1 + 1e-12))
+    assert np.all(full.force[sliding, 0] * full.velocity[sliding, 0] < 0)
