@@ -5,7 +5,7 @@ The Python API (README "Python API"; docs/design.md for the objects and the para
     FullOrderModel.build(structure, constraints, excitation, damping, probes, initial)   fom.py
         structure: Beam (structure.py) or MatrixFiles (matrices.py)
         constraints: Constraint(law, x=... or dof=...) (constraints.py), law(...) (laws.py)
-        excitation: NoExcitation, BaseMotion, PointForce, RandomForce (excitation.py)
+        excitation: NoExcitation, BaseMotion, PointForce, RandomForce, Turbulence (excitation.py)
     Reductor(fom, BasisSettings(...), cache_dir).reduce() -> ReducedModel             reductor.py
     simulate_reduced(rom, IntegratorSettings(...)) -> Result                         simulate.py
     simulate_full(fom, IntegratorSettings(...)) -> Result
@@ -19,7 +19,8 @@ __version__ = "0.1.0"
 _API = {
     "Beam": "structure", "MatrixFiles": "matrices", "Constraint": "constraints", "ConstraintSet": "constraints",
     "Law": "laws", "law": "laws", "NoExcitation": "excitation", "BaseMotion": "excitation",
-    "PointForce": "excitation", "RandomForce": "excitation", "Harmonic": "excitation", "Damping": "damping",
+    "PointForce": "excitation", "RandomForce": "excitation", "Turbulence": "excitation", "Harmonic": "excitation",
+    "Damping": "damping",
     "InitialState": "fom", "FullOrderModel": "fom", "BasisSettings": "basis", "DbfEnrichment": "enrichment",
     "StaticEnrichment": "enrichment", "NoEnrichment": "enrichment", "Reductor": "reductor",
     "ReducedModel": "rom", "IntegratorSettings": "timestepping", "Result": "recorder",

@@ -140,6 +140,14 @@ class ReducedBasis:
         self.vectors.restoreMat(dense)
         return self.vectors.getComm().tompi4py().allreduce(out)
 
+    def dot_rows(self, rows: np.ndarray) -> np.ndarray:
+        """V^T W for a matrix W given by this rank's rows (local rows x m, K's layout): (r, m) on
+        every rank. Collective."""
+        dense = self.vectors.getMat()
+        out = dense.getDenseArray().T @ rows
+        self.vectors.restoreMat(dense)
+        return self.vectors.getComm().tompi4py().allreduce(out)
+
     def warnings(self, labels=None) -> list:
         """One line per DBF whose stiffness lies far outside the transition of Fig. 2."""
         labels = labels or [f"row {r}" for r in self.constraint_rows]

@@ -26,11 +26,13 @@ from .laws import ConstraintLaws, Law, PlanarLaws
 @dataclass(frozen=True)
 class Constraint:
     """One discrete constraint as a user describes it: where it acts (x in m on a beam, or the DOF
-    `dof` of a matrix model) and its law."""
+    `dof` of a matrix model) and its law; with a 2-D law, optionally Archard's wear coefficient
+    K_w (m^3/(N m)) for the wear volume K_w int |F_n| |v_t| dt (stats.py)."""
 
     law: Law
     x: Optional[float] = None
     dof: Optional[int] = None
+    wear_coefficient: Optional[float] = None
 
     @property
     def label(self) -> str:

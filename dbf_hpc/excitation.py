@@ -1,7 +1,7 @@
 """What drives the structure: support motion Omega(t) and forces F(t) with their spatial shapes.
 
-The descriptions (BaseMotion, PointForce, RandomForce, NoExcitation) are plain values: what a scene
-or a Python script asks for. The full-order model turns one into its time functions (Harmonic,
+The descriptions (BaseMotion, PointForce, RandomForce, Turbulence, NoExcitation) are plain values:
+what a scene or a Python script asks for. The full-order model turns one into its time functions (Harmonic,
 RandomProcess) and, for forces, a load at one DOF or a load vector. In relative coordinates
 (paper Eqs. 26-27) support motion loads the structure with -M r Omega''(t) and the laws act on the
 total displacement u + r Omega(t).
@@ -111,9 +111,129 @@ class RandomForce:
         return RandomProcess(self.psd, self.band, self.seed, self.components)
 
 
+@dataclass(frozen=True)
+class Turbulence:
+    """Turbulence along a span of a beam with partial correlation: a random force per unit length
+    p(x, t) with the one-sided PSD S(f) ((N/m)^2/Hz: the PSD of the force per unit length at a
+    point, so that var p = int S df in (N/m)^2) over band = (f_low, f_high) Hz, and the spatial
+    coherence exp(-|x_i - x_j| / correlation_length) (real, the same at every frequency;
+    correlation_length in m, inf for a fully correlated load). spectrum "flat": S = psd; "knee":
+    S = psd up to corner_hz and psd (f / corner_hz)^-slope above (the flat-then-power-law shape of
+    the reduced-frequency bounding spectra of tube-bundle turbulence). Generated at the span's nodes
+    (span = (x0, x1), default the whole beam) from seed; with two planes, independent fields in y
+    and z (the one plane with planes = 1). A distributed load: p is linear between the nodes and
+    enters through the consistent load vector of the Hermite elements (fom.py)."""
+
+    psd: float
+    band: tuple
+    correlation_length: float
+    seed: int = 1
+    components: int = 128
+    span: tuple = field(default=())
+    spectrum: str = "flat"
+    corner_hz: float = 0.0
+    slope: float = 0.0
+    kind = "turbulence"
+
+    def __post_init__(self):
+        from .errors import InputError
+
+        f_low, f_high = (tuple(self.band) + (None, None))[:2]
+        problems = [(not (self.psd > 0), f"psd must be positive, got {self.psd!r}"),
+                    (not (f_low is not None and f_high is not None and 0 <= f_low < f_high),
+                     f"band must be (f_low, f_high) with 0 <= f_low < f_high, got {self.band!r}"),
+                    (not (self.correlation_length > 0), f"correlation_length must be positive (m), got "
+                                                        f"{self.correlation_length!r}"),
+                    (not (self.components >= 1), f"components must be at least 1, got {self.components!r}"),
+                    (self.spectrum not in ("flat", "knee"), f"spectrum must be \"flat\" or \"knee\", got "
+                                                            f"{self.spectrum!r}"),
+                    (self.spectrum == "knee" and not (self.corner_hz > 0 and self.slope > 0),
+                     "a knee spectrum needs corner_hz > 0 and slope > 0")]
+        for bad, message in problems:
+            if bad:
+                raise InputError(f"turbulence: {message}")
+
+    def density(self, f) -> np.ndarray:
+        """S(f), (N/m)^2/Hz."""
+        f = np.asarray(f, dtype=float)
+        if self.spectrum == "knee":
+            fall = (np.maximum(f, 1e-300) / self.corner_hz) ** -self.slope
+            return self.psd * np.where(f <= self.corner_hz, 1.0, fall)
+        return np.full(f.shape, float(self.psd))
+
+    def coherence(self, x) -> np.ndarray:
+        """exp(-|x_i - x_j| / lambda) between the points x (m)."""
+        x = np.asarray(x, dtype=float)
+        return np.exp(-np.abs(x[:, None] - x[None, :]) / self.correlation_length)
+
+
+# The coherence matrix is factored by its eigenvectors (Gamma = Q L Q^T), keeping the fewest that hold
+# this share of its trace: few histories for long correlation lengths (one at lambda = inf).
+VARIANCE_KEPT = 0.999
+
+
+def coherence_factor(coherence: np.ndarray) -> np.ndarray:
+    """H (n x m) with H H^T ~ Gamma (the coherence matrix): the leading eigenvectors scaled by the
+    square roots of their eigenvalues, the fewest that hold VARIANCE_KEPT of the trace, each row then
+    scaled so that diag(H H^T) = 1 exactly (every point keeps its PSD). Deterministic (LAPACK's
+    symmetric eigensolver on the same small matrix on every rank). A Cholesky factor would do the
+    same with n histories; this one also takes the singular Gamma of lambda = inf (one history)."""
+    values, vectors = np.linalg.eigh(coherence)
+    order = np.argsort(values)[::-1]
+    values, vectors = np.clip(values[order], 0.0, None), vectors[:, order]
+    share = np.cumsum(values) / values.sum()
+    m = int(np.searchsorted(share, VARIANCE_KEPT) + 1)
+    m = min(m, values.size)
+    H = vectors[:, :m] * np.sqrt(values[:m])
+    # fix each eigenvector's sign (eigh's is arbitrary): its first clearly nonzero entry positive (the
+    # sum would not do: half the eigenvectors of evenly spaced nodes are antisymmetric)
+    first = np.argmax(np.abs(H) > 1e-6 * np.abs(H).max(axis=0), axis=0)
+    H *= np.where(H[first, np.arange(m)] < 0, -1.0, 1.0)
+    return H / np.linalg.norm(H, axis=1)[:, None]
+
+
+class CorrelatedProcess:
+    """Independent unit histories X_m(t), m = 0..n-1, of the spectral density S(f) of a Turbulence
+    (Shinozuka's spectral representation with Deodatis' double-indexed frequencies, so that a single
+    long sample is ergodic in its cross-correlations as well):
+
+        X_m(t) = sum_k sqrt(2 S(f_mk) df) cos(2 pi f_mk t + phi_mk),  f_mk = f_low + (k + (m + 1/2)/n) df
+
+    df = (f_high - f_low) / components, phi_mk uniform on [0, 2 pi) from the seed. value(t) is the
+    vector X(t) (n,), the histories a load matrix multiplies (fom.py, rom.py). Not collective: every
+    rank makes the same numbers from the same seed."""
+
+    def __init__(self, turbulence: Turbulence, count: int):
+        f_low, f_high = turbulence.band
+        K = turbulence.components
+        df = (f_high - f_low) / K
+        shift = (np.arange(count) + 0.5) / count
+        self.count = count
+        self.frequency = f_low + (np.arange(K)[None, :] + shift[:, None]) * df      # (n, K)
+        self.amplitude = np.sqrt(2 * turbulence.density(self.frequency) * df)
+        self.phase = np.random.default_rng(turbulence.seed).uniform(0, 2 * np.pi, (count, K))
+        self.omega = 2 * np.pi * self.frequency
+        self._w, self._a, self._ph = self.omega.ravel(), self.amplitude.ravel(), self.phase.ravel()
+
+    def value(self, t: float) -> np.ndarray:
+        """X(t), (n,)."""
+        return (self._a * np.cos(self._w * float(t) + self._ph)).reshape(self.count, -1).sum(axis=1)
+
+    def sample(self, times, chunk: int = 256) -> np.ndarray:
+        """X at many times, (len(times), n), in chunks (memory)."""
+        times = np.asarray(times, dtype=float)
+        out = np.empty((times.size, self.count))
+        for i in range(0, times.size, chunk):
+            t = times[i:i + chunk]
+            out[i:i + chunk] = np.einsum("tmk,mk->tm", np.cos(t[:, None, None] * self.omega + self.phase),
+                                         self.amplitude)
+        return out
+
+
 def time_functions(excitation) -> tuple:
     """(support motion Omega(t), force history F(t)) of an excitation description; a zero Harmonic
-    stands for what it does not have."""
+    stands for what it does not have (the histories of Turbulence depend on the mesh: fom.py makes
+    them)."""
     support = excitation.support() if excitation.kind == "base" else Harmonic()
     force = excitation.history() if excitation.kind in ("force", "random") else Harmonic()
     return support, force

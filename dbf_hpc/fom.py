@@ -23,21 +23,27 @@ from petsc4py import PETSc
 from .constraints import ConstraintSet
 from .damping import Damping
 from .errors import InputError
-from .excitation import NoExcitation, time_functions
+from .excitation import CorrelatedProcess, NoExcitation, coherence_factor, time_functions
 from .laws import ConstraintLaws, PlanarLaws
 from .matrices import MatrixFiles, load_operators
 from .operators import Operators, PointValues
 from .petsctools import destroy, values_at
-from .structure import Beam, assemble_beam, distributed_load
+from .structure import Beam, assemble_beam, distributed_load, span_node_loads
 
 
 @dataclass(frozen=True)
 class InitialState:
     """The state at t = 0: at rest in relative coordinates, or displaced by `amplitude` (m, peak over
-    the displacement DOFs) in reference mode `mode` (counted from 1)."""
+    the displacement DOFs) in reference mode `mode` (counted from 1). On a beam of two planes,
+    `mode` counts the planar modes (each a y-z pair of the round tube) and the displacement is that
+    shape along the unit vector `direction` (dy, dz); `velocity` (m/s, peak) starts the same shape
+    moving along `velocity_direction`: across `direction`, the tube whirls in its holes."""
 
     mode: int = 1
     amplitude: float = 0.0
+    direction: tuple = (1.0, 0.0)
+    velocity: float = 0.0
+    velocity_direction: tuple = (0.0, 1.0)
 
 
 class FullOrderModel:
@@ -47,6 +53,8 @@ class FullOrderModel:
     constraints  ConstraintSet (rows, laws, labels)
     excitation   the description (excitation.py); support and force are its time functions
     force_row    the DOF of a point force, or None; force_load the Vec of a distributed one, or None
+    force_matrix turbulence (excitation.Turbulence): a MatrixLoad, the load matrix W whose columns
+                 the histories of `force` (a CorrelatedProcess, value(t) a vector) multiply, or None
     probes       the displacement at the probes (PointValues: a DOF of a matrix model, or a beam's
                  Hermite interpolation between nodes: a probe never adds a node)
     fingerprint  what identifies the operators (for the basis cache)
@@ -54,12 +62,15 @@ class FullOrderModel:
 
     def __init__(self, operators: Operators, constraints: ConstraintSet, excitation, damping: Damping,
                  probes: PointValues, initial: InitialState, fingerprint: dict,
-                 force_row: int | None = None, force_load: PETSc.Vec | None = None):
+                 force_row: int | None = None, force_load: PETSc.Vec | None = None,
+                 force_matrix: "MatrixLoad | None" = None):
         self.operators, self.constraints, self.excitation = operators, constraints, excitation
         self.damping, self.initial, self.fingerprint = damping, initial, fingerprint
         self.probes = probes
-        self.force_row, self.force_load = force_row, force_load
+        self.force_row, self.force_load, self.force_matrix = force_row, force_load, force_matrix
         self.support, self.force = time_functions(excitation)
+        if force_matrix is not None:
+            self.force = force_matrix.process
         self._C = self._CG = None
 
     # -- construction -------------------------------------------------------------------------
@@ -87,7 +98,10 @@ class FullOrderModel:
             fingerprint = None
         else:
             raise InputError(f"a structure is a Beam or MatrixFiles, got {type(structure).__name__}")
-        force_load = None
+        force_load = force_matrix = None
+        if excitation.kind in ("random", "turbulence") and not isinstance(structure, Beam):
+            ops.destroy()
+            raise InputError(f"{excitation.kind} forcing is distributed along a beam; not available for matrices")
         try:
             if fingerprint is None:
                 fingerprint = structure.fingerprint(comm)
@@ -110,11 +124,16 @@ class FullOrderModel:
                 force_row = _row(ops, excitation.x, excitation.dof, "the force")
             elif excitation.kind == "random":
                 force_load = distributed_load(ops, *excitation.span, direction=excitation.direction)
+            elif excitation.kind == "turbulence":
+                force_matrix = MatrixLoad.turbulence(ops, excitation)
             if excitation.kind == "base" and ops.influence is None:
                 raise InputError("base excitation of a matrices structure needs [structure] influence")
-            return cls(ops, constraint_set, excitation, damping, probes, initial, fingerprint, force_row, force_load)
+            return cls(ops, constraint_set, excitation, damping, probes, initial, fingerprint, force_row, force_load,
+                       force_matrix)
         except Exception:
             destroy(force_load)
+            if force_matrix is not None:
+                force_matrix.destroy()
             ops.destroy()
             raise
 
@@ -178,11 +197,15 @@ class FullOrderModel:
             lo, hi = F.getOwnershipRange()
             if lo <= self.force_row < hi:
                 F.getArray()[self.force_row - lo] += scale * float(self.force.value(t))
+        if self.force_matrix is not None:
+            F.getArray()[:] += scale * self.force_matrix.local(t)
 
     def initial_state(self) -> tuple:
         """(u(0), u'(0)): initial_displacement() at rest, or on a gyroscopic structure (G set) the
         free vibration of complex mode `initial.mode` (gyroscopic.mode_state), `initial.amplitude` m
         peak in u. New Vecs, the caller's. Collective."""
+        if self.operators.mesh is not None and self.operators.mesh.planes == 2:
+            return self.two_plane_state()
         if self.operators.G is None or not self.initial.amplitude:
             u = self.initial_displacement()
             v = u.duplicate()
@@ -194,6 +217,23 @@ class FullOrderModel:
         scale = self.initial.amplitude / field_peak(self.operators, u)
         u.scale(scale)
         v.scale(scale)
+        return u, v
+
+    def two_plane_state(self) -> tuple:
+        """(u(0), u'(0)) on a beam of two planes: planar mode `initial.mode` as a shape phi (peak 1 in
+        w), u = amplitude (dy phi_y + dz phi_z), u' = velocity (ey phi_y + ez phi_z). New Vecs, the
+        caller's. Collective."""
+        init = self.initial
+        u, v = self.operators.K.createVecLeft(), self.operators.K.createVecLeft()
+        u.zeroEntries()
+        v.zeroEntries()
+        if init.amplitude or init.velocity:
+            y, z = planar_mode(self.operators, init.mode)
+            for vec, scale, (dy, dz) in ((u, init.amplitude, init.direction), (v, init.velocity,
+                                                                            init.velocity_direction)):
+                vec.axpy(scale * dy, y)
+                vec.axpy(scale * dz, z)
+            destroy(y, z)
         return u, v
 
     def velocity_matrix(self) -> PETSc.Mat | None:
@@ -225,6 +265,8 @@ class FullOrderModel:
 
     def destroy(self) -> None:
         destroy(self._C, self._CG, self.force_load)
+        if self.force_matrix is not None:
+            self.force_matrix.destroy()
         self.operators.destroy()
 
     def __enter__(self):
@@ -232,6 +274,52 @@ class FullOrderModel:
 
     def __exit__(self, *exc):
         self.destroy()
+
+
+class MatrixLoad:
+    """A load W X(t): a few load shapes (the columns of W, n x m) times their histories X(t) (a
+    process whose value(t) is an (m,) vector). Each rank holds its rows of W as a dense numpy block
+    (`rows`, local rows x m: small, and applying it is not collective). `vec` is a Vec of K's
+    layout that __call__(t) fills with W X(t) and then returns 1.0, so that the full-order loop
+    takes it as one more (vector, time function) load (fom_integrator.py)."""
+
+    def __init__(self, rows: np.ndarray, process, vec: PETSc.Vec, points: np.ndarray, factor: np.ndarray):
+        self.rows, self.process, self.vec = rows, process, vec
+        self.points, self.factor = points, factor     # the span's nodes, and H (H H^T ~ coherence)
+
+    @classmethod
+    def turbulence(cls, ops: Operators, turbulence) -> "MatrixLoad":
+        """The load of an excitation.Turbulence on a beam: p = H X(t) at the span's nodes (H from
+        excitation.coherence_factor, one factor for both planes; X independent histories, those of
+        the z plane after those of y), W = L blockdiag(H, H) with L the consistent hat loads
+        (structure.span_node_loads). Not collective (every rank builds the same H and X)."""
+        points, L = span_node_loads(ops, *(turbulence.span or (ops.mesh.x[0], ops.mesh.x[-1])))
+        H = coherence_factor(turbulence.coherence(points))
+        n, m, planes = points.size, H.shape[1], ops.mesh.planes
+        rows = np.hstack([L[:, p * n:(p + 1) * n] @ H for p in range(planes)])
+        return cls(rows, CorrelatedProcess(turbulence, planes * m), ops.K.createVecLeft(), points, H)
+
+    @property
+    def count(self) -> int:
+        """m, the number of histories."""
+        return self.rows.shape[1]
+
+    def local(self, t: float) -> np.ndarray:
+        """This rank's rows of W X(t)."""
+        return self.rows @ self.process.value(t)
+
+    def nodal(self, t: float) -> np.ndarray:
+        """p(t) at the span's nodes, (planes, n) in N/m (what the tests compare with the target)."""
+        X = self.process.value(t).reshape(-1, self.factor.shape[1])
+        return X @ self.factor.T
+
+    def __call__(self, t: float) -> float:
+        self.vec.getArray()[:] = self.local(t)
+        return 1.0
+
+    def destroy(self) -> None:
+        destroy(self.vec)
+        self.vec = None
 
 
 class Observation:
@@ -283,6 +371,51 @@ class Observation:
         return z, v, probe + np.outer(self.support.value(t), self.probe_share)
 
 
+def planar_mode(ops: Operators, mode: int) -> tuple:
+    """(phi_y, phi_z): planar mode `mode` (counted from 1) of a beam of two planes as a shape in y
+    and the same shape in z, peak |w| = 1. The eigensolver returns any orthonormal pair of each y-z
+    eigenspace; the pair's member with the larger y part, cut to its y rows, is the planar mode
+    (the planes are uncoupled). Collective."""
+    from mpi4py import MPI
+    from .modes import reference_modes
+
+    mesh = ops.mesh
+    modes = reference_modes(ops, count=2 * mode)
+    y_rows, z_rows = mesh.row[:, :2].ravel(), mesh.row[:, 2:].ravel()
+    keep = y_rows >= 0           # the same DOFs are fixed in both planes
+    y_rows, z_rows = y_rows[keep], z_rows[keep]
+    lo, hi = ops.ownership_range()
+    world = ops.comm.tompi4py()
+    best, best_norm = None, -1.0
+    for i in (2 * mode - 2, 2 * mode - 1):
+        vec = ops.K.createVecLeft()
+        modes.vectors.copyVec(i, vec)
+        values = np.zeros(y_rows.size)
+        mine = (y_rows >= lo) & (y_rows < hi)
+        values[mine] = vec.getArray(readonly=True)[y_rows[mine] - lo]
+        values = world.allreduce(values, op=MPI.SUM)
+        vec.destroy()
+        if np.linalg.norm(values) > best_norm:
+            best, best_norm = values, np.linalg.norm(values)
+    modes.destroy()
+    peak = np.abs(best[_w_positions(mesh)]).max()
+    shapes = []
+    for rows in (y_rows, z_rows):
+        vec = ops.K.createVecLeft()
+        vec.zeroEntries()
+        mine = (rows >= lo) & (rows < hi)
+        vec.getArray()[rows[mine] - lo] = best[mine] / peak
+        shapes.append(vec)
+    return tuple(shapes)
+
+
+def _w_positions(mesh) -> np.ndarray:
+    """Among the free y DOFs in node order (w, dw/dx per node), the positions of the w's."""
+    rows = mesh.row[:, :2]
+    dof = np.broadcast_to(np.arange(2), rows.shape)
+    return np.flatnonzero(dof[rows >= 0] == 0)
+
+
 def field_peak(ops: Operators, u: PETSc.Vec) -> float:
     """max |u| over the DOFs of the field a user sees (w at the nodes of a beam, all DOFs of a
     matrix model). Collective."""
@@ -310,7 +443,7 @@ def _beam_operators(beam: Beam, constraints, excitation, comm) -> Operators:
     points = [c.x for c in constraints]
     if excitation.kind == "force":
         points.append(excitation.x)
-    elif excitation.kind == "random":
+    elif excitation.kind in ("random", "turbulence"):
         points.extend(excitation.span)
     return assemble_beam(beam, comm, points=points, base_end=excitation.end if excitation.kind == "base" else None,
                          direction=getattr(excitation, "direction", (1.0, 0.0)))

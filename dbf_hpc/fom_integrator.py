@@ -549,6 +549,8 @@ def _time_functions(fom: FullOrderModel):
         else:
             history = lambda t: float(f.value(t))                                 # noqa: E731
         loads.append((fom.force_load, history))
+    if fom.force_matrix is not None:   # turbulence: the MatrixLoad fills its vector and returns 1
+        loads.append((fom.force_matrix.vec, fom.force_matrix))
     return value, rate, loads
 
 

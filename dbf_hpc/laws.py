@@ -26,6 +26,10 @@ Conventions (shared with the reduced model and the integrators):
   two sides' forces (equal to |N_el| unless both sides push at once), so an interference fit still
   dissipates at its balance point. Either is dissipative: F_d v <= 0.
 - A two-sided law may have k = 0 on one side: a one-sided stop.
+- friction: Coulomb friction alone against a given normal force F_n (N), regularized over the
+  sliding speed v_reg (m/s): N = -mu F_n tanh(v / v_reg), dN/dv = -(mu F_n / v_reg) sech^2(v / v_reg),
+  dN/dz = 0, no potential; always in contact. It tends to the set-valued Coulomb law as v_reg -> 0
+  (Den Hartog's oscillator with dry friction, tests/test_friction.py).
 
 Use: ConstraintLaws(laws).force(z, v), .jacobian(z, v) -> (dN/dz, dN/dv) (diagonal, one entry per
 constraint), .force_and_jacobian(z, v) for both in one pass, .potential(z), .in_contact(z).
@@ -41,7 +45,7 @@ import numpy as np
 
 from .errors import InputError
 
-LAWS = ("deadband", "power", "linear", "cubic", "hertz", "table")
+LAWS = ("deadband", "power", "linear", "cubic", "hertz", "table", "friction")
 CONTACT_DAMPING = ("none", "linear", "hunt_crossley")
 
 _TWO_SIDED = ("deadband", "power", "hertz")
@@ -90,10 +94,23 @@ class Law:
     damping: str = "none"
     c: float = 0.0
     alpha: float = 0.0
+    normal_force: float = 0.0
+    mu: float = 0.0
+    v_reg: float = 0.0
 
     def __post_init__(self):
         def put(name, value):
             object.__setattr__(self, name, value)
+
+        for name in ("normal_force", "mu", "v_reg"):
+            value = getattr(self, name)
+            if not (_is_number(value) and math.isfinite(value) and value >= 0):
+                raise InputError(f"{name} must be a non-negative finite number, got {value!r}")
+            if value != 0 and self.kind != "friction":
+                raise InputError(f"{name} applies only to a friction law (law = \"friction\")")
+            put(name, float(value))
+        if self.kind == "friction" and not (self.v_reg > 0):
+            raise InputError(f"v_reg must be a positive number for a friction law, got {self.v_reg!r}")
 
         if self.kind not in LAWS:
             raise InputError(f"law must be one of {_quoted(LAWS)}, got {self.kind!r}")
@@ -165,7 +182,8 @@ def _check_table(table) -> tuple:
 
 # Scene keys, and for each kind the keys it takes besides the damping keys.
 KEYS = ("law", "clearance", "clearance_minus", "clearance_plus", "k", "k_minus", "k_plus",
-        "exponent", "exponent_minus", "exponent_plus", "k3", "table", "damping", "c", "alpha")
+        "exponent", "exponent_minus", "exponent_plus", "k3", "table", "damping", "c", "alpha", "normal_force", "mu",
+        "v_reg")
 _SIDED = {"clearance": ("clearance_minus", "clearance_plus"), "k": ("k_minus", "k_plus"),
           "exponent": ("exponent_minus", "exponent_plus")}
 _KIND_KEYS = {
@@ -175,6 +193,7 @@ _KIND_KEYS = {
     "linear": ("k", "k_minus", "k_plus"),
     "cubic": ("k", "k_minus", "k_plus", "k3"),
     "table": ("table",),
+    "friction": ("normal_force", "mu", "v_reg"),
 }
 _KIND_KEYS["hertz"] = _KIND_KEYS["power"]
 
@@ -201,9 +220,16 @@ def law_from_dict(index: int | None, d: dict):
                 fields[side] = d[both]
             elif side in d:
                 fields[side] = d[side]
-    for key in ("k3", "c", "alpha", "table"):
+    for key in ("k3", "c", "alpha", "table", "normal_force", "mu", "v_reg"):
         if key in d:
             fields[key] = d[key]
+    if kind == "friction":
+        for key in ("normal_force", "mu"):
+            if key not in d:
+                raise InputError(f"{where}: a friction law needs {key}")
+        fields.setdefault("v_reg", DEFAULT_V_REG)
+        if d.get("damping", "none") != "none":
+            raise InputError(f"{where}: a friction law has no contact damping (it is all dissipation)")
     _check_stiffness(where, d, kind, fields)
     if kind in ("linear", "cubic") and "k_minus" in fields and "k_plus" not in fields:
         fields["k_plus"] = fields["k_minus"]  # a lone k_minus is the one k
@@ -218,6 +244,8 @@ def _check_values(where: str, d: dict) -> None:
     for key in d:
         if key in KEYS_2D and key not in KEYS:
             raise InputError(f"{where}: {key} applies only to a circular law (law = \"circular\")")
+        if key in ("mu", "v_reg", "normal_force") and d.get("law") != "friction":
+            raise InputError(f"{where}: {key} applies to law = \"friction\" (and mu, v_reg to circular, flat_bar)")
         if key not in KEYS:
             raise InputError(f"{where}: unknown key {key!r} (known: {', '.join(KEYS)})")
     for key, value in d.items():
@@ -452,6 +480,30 @@ class _Table(_Group):
         return self.elastic(z) != 0
 
 
+class _Friction(_Group):
+    """friction: no force from z (its velocity part is ConstraintLaws'), always in contact."""
+
+    def __init__(self, indices, laws):
+        super().__init__(indices)
+        self.zero = np.zeros(len(laws))
+
+    def evaluate(self, z):
+        zero = np.zeros(z.shape)
+        return zero, zero, zero.copy(), zero.copy(), np.ones(z.shape, dtype=bool)
+
+    def elastic(self, z):
+        return np.zeros(z.shape)
+
+    def stiffness(self, z):
+        return np.zeros(z.shape), np.zeros(z.shape)
+
+    def potential(self, z):
+        return np.zeros(z.shape)
+
+    def in_contact(self, z):
+        return np.ones(z.shape, dtype=bool)
+
+
 class ConstraintLaws:
     """The laws of all constraints, evaluated vectorized: one pass per family of kinds, with the
     parameters gathered into arrays once here. Arrays in and out have shape (n,)."""
@@ -463,7 +515,7 @@ class ConstraintLaws:
                 raise TypeError(f"constraint {i + 1}: expected a Law, got {type(law).__name__}")
         self.n = len(self.laws)
         families = {"two_sided": (_TwoSided, _TWO_SIDED), "polynomial": (_Polynomial, ("linear", "cubic")),
-                    "table": (_Table, ("table",))}
+                    "table": (_Table, ("table",)), "friction": (_Friction, ("friction",))}
         self._groups = []
         for cls, kinds in families.values():
             members = [i for i, law in enumerate(self.laws) if law.kind in kinds]
@@ -476,6 +528,16 @@ class ConstraintLaws:
         self._damped = bool(np.any(self.c > 0) or np.any(self.alpha > 0))
         self._hunt_crossley = bool(np.any(self.alpha > 0))
         self._minus_c = -self.c
+        # friction: N += -mu F_n tanh(v / v_reg), the one law whose force is nonlinear in v
+        self._slip = np.array([law.mu * law.normal_force for law in self.laws], dtype=float)
+        self._v_reg = np.array([law.v_reg if law.kind == "friction" else 1.0 for law in self.laws], dtype=float)
+        self.friction = bool(np.any(self._slip > 0))
+
+    def _friction(self, v):
+        """(N, dN/dv) of the friction laws (zeros elsewhere)."""
+        x = np.asarray(v, dtype=float) / self._v_reg
+        th = np.tanh(x)
+        return -self._slip * th, -(self._slip / self._v_reg) * (1.0 - th * th)
 
     def _gather(self, z, method, parts=1, dtype=float):
         """Call `method` of every group on its share of z; `parts` arrays, the last of `dtype`."""
@@ -497,6 +559,13 @@ class ConstraintLaws:
     def force_and_jacobian(self, z, v):
         """(N, dN/dz, dN/dv) in one pass; the Jacobians are diagonal, one entry per constraint."""
         z = self._z(z)
+        if self.friction:
+            force, dz, dv = self._without_friction(z, v)
+            f, g = self._friction(v)
+            return force + f, dz, dv + g
+        return self._without_friction(z, v)
+
+    def _without_friction(self, z, v):
         if not self._damped:
             force, dz = self._gather(z, "stiffness", parts=2)
             return force, dz, np.zeros(self.n)
@@ -510,8 +579,13 @@ class ConstraintLaws:
         return force + dv * v, dz, dv  # the damping force is linear in v
 
     def force(self, z, v=None) -> np.ndarray:
-        """N on the structure; v = None leaves out contact damping."""
+        """N on the structure; v = None leaves out contact damping and friction."""
         z = self._z(z)
+        if v is not None and self.friction:
+            return self._without_friction_force(z, v) + self._friction(v)[0]
+        return self._without_friction_force(z, v)
+
+    def _without_friction_force(self, z, v):
         if v is None or not self._damped:
             return self._gather(z, "elastic")
         force, _, mag, _, contact = self._gather(z, "evaluate", parts=5, dtype=bool)

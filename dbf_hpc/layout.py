@@ -121,14 +121,16 @@ def reference() -> str:
              "On a beam of two planes (`[structure] planes = 2`, 2-D laws such as `circular`) the statistics are per "
              "support and radial: `displacement_*` of |u|, `force_*` of |F|, contact (and so the impacts) where "
              "|u| > clearance, `impact_power_mean` of |F_n v_n|, and `work_rate` = <|F_n| |v_t|> (W), the normal "
-             "work rate of code_aster (Archard wear), with `work_rate_ci95` (runs; the Python API's Result has "
-             "the work rate only).", "",
+             "work rate of code_aster (Archard wear), with `work_rate_ci95`, and `wear_volume` = K_w T work_rate "
+             "(m^3) with `wear_volume_ci95` for a constraint's `wear_coefficient` K_w (NaN without one) (runs; the "
+             "Python API's Result has the work rate only).", "",
              "With snapshots, `OUT.xdmf` beside the output describes `snapshots/points` and "
              "`snapshots/displacement/NNNNNN` as a time series that ParaView (Xdmf3 reader) and meshio open.", "",
              "A sweep summary (`dbf-hpc sweep`) holds a row per case: `cases/parameters/<section.key>` (NaN or "
              "null where a listed case leaves the base scene's value), `cases/status`, `cases/error`, "
              "`cases/wall_time` (s), `cases/stats/<statistic>` (case x constraint, units as above) and "
-             "`cases/probe_peak` (m, case x probe).", ""]
+             "`cases/probe_peak` (m, case x probe); with supports of two directions also `work_rate`, "
+             "`work_rate_ci95`, `wear_volume` and `wear_volume_ci95` among the statistics.", ""]
     return "\n".join(lines)
 
 

@@ -86,7 +86,9 @@ def plot_run(path: str, folder: str, window=None) -> list:
     time_histories.png: w at each constraint with its clearance (Figs. 4, 7); phase.png: phase
     diagrams (Figs. 5, 8, 12); forces.png: the peak force per sample interval (Fig. 10); probes.png:
     w at each probe; snapshots.png: the field at the snapshot times with the constraints and their
-    deadbands (Figs. 6, 9, 11, 13). `window` (t0, t1) limits the time histories and phase diagrams.
+    deadbands (Figs. 6, 9, 11, 13). On a beam of two planes also orbits.png: each support's path z
+    against y inside its gap (the clearance circle of a round hole, the two lines of flat bars).
+    `window` (t0, t1) limits the time histories, phase diagrams and orbits.
     """
     import h5py
 
@@ -101,6 +103,8 @@ def plot_run(path: str, folder: str, window=None) -> list:
         span = f"t = {t[keep][0]:g} ... {t[keep][-1]:g} s" if keep.any() else "no samples"
         if positions.size:
             _constraint_figures(folder, t[keep], positions, series, gaps, span, written)
+            if series[layout.CONSTRAINT_DISPLACEMENT].ndim == 3:
+                _orbit_figure(folder, positions, series[layout.CONSTRAINT_DISPLACEMENT], _laws(f), span, written)
         probes = f[layout.PROBE_POSITION][:] if layout.PROBE_POSITION in f else np.zeros(0)
         if probes.size:
             fig, axes = _panels(probes.size)
@@ -155,6 +159,50 @@ def _constraint_figures(folder, t, positions, series, gaps, span, written) -> No
     _save(fig, os.path.join(folder, "forces.png"), written)
 
 
+def _laws(f) -> list:
+    """Each constraint's law (a dict: kind, clearance, angle) from the run's effective scene."""
+    try:
+        return [c["law"] for c in json.loads(f.attrs["scene_effective"])["constraint"]]
+    except (KeyError, ValueError, TypeError):
+        return []
+
+
+def _orbit_figure(folder, positions, u, laws, span, written) -> None:
+    """orbits.png: z against y (mm) at each support of two directions, with its gap drawn."""
+    plt = _pyplot()
+    n = positions.size
+    columns = min(n, 4)
+    rows = int(np.ceil(n / columns))
+    fig, axes = plt.subplots(rows, columns, figsize=(3.4 * columns, 3.4 * rows), dpi=110, squeeze=False)
+    for ax in axes.ravel()[n:]:
+        ax.set_visible(False)
+    turn = np.linspace(0, 2 * np.pi, 241)
+    for j, ax in enumerate(axes.ravel()[:n]):
+        law = laws[j] if j < len(laws) else {}
+        c = float(law.get("clearance", 0.0)) * 1e3
+        reach = max(1.3 * c, 1.1 * float(np.abs(u[:, j]).max(initial=0.0)) * 1e3, 1e-9)
+        if law.get("kind") == "flat_bar":   # the flats: u.e = +-c, e at `angle` from y
+            a = np.radians(float(law.get("angle", 0.0)))
+            e, s = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+            for side in (-1, 1):
+                ends = side * c * e[:, None] + s[:, None] * np.array([-2 * reach, 2 * reach])
+                ax.plot(ends[0], ends[1], color="C3", lw=1.2)
+            gap = f"flats at {float(law.get('angle', 0.0)):g} deg, gap {c:.3g} mm"
+        else:
+            ax.plot(c * np.cos(turn), c * np.sin(turn), color="C3", lw=1.2)
+            gap = f"clearance {c:.3g} mm"
+        ax.plot(u[:, j, 0] * 1e3, u[:, j, 1] * 1e3, lw=0.5, color="C0")
+        ax.set_xlim(-reach, reach)
+        ax.set_ylim(-reach, reach)
+        ax.set_aspect("equal")
+        ax.set_xlabel("y [mm]")
+        ax.set_ylabel("z [mm]")
+        ax.set_title(f"{_where(positions[j])}: {gap}", fontsize=8)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"Orbits of the tube in its supports ({span})")
+    _save(fig, os.path.join(folder, "orbits.png"), written)
+
+
 def _snapshot_figure(folder, f, positions, gaps, written) -> None:
     plt = _pyplot()
     xs, ws, ts = f[layout.SNAPSHOT_X][:], f[layout.SNAPSHOT_W][:], f[layout.SNAPSHOT_TIME][:]
@@ -190,19 +238,23 @@ def _read_sweep(f) -> dict:
         raw = f[f"cases/parameters/{name}"][:]
         columns[name] = raw if raw.dtype.kind == "f" else np.array([json.loads(v) for v in raw], dtype=object)
     stats = {name: f[f"cases/stats/{name}"][:] for name in
-             ("displacement_peak", "impact_rate", "contact_fraction", "force_peak")}
+             ("displacement_peak", "impact_rate", "contact_fraction", "force_peak", "work_rate")
+             if f"cases/stats/{name}" in f}
     return {"ok": ok, "columns": columns, "stats": stats, "probe_peak": f["cases/probe_peak"][:]}
 
 
 PANELS = (("displacement_peak", "peak |w| [mm]", 1e3), ("impact_rate", "impacts per second [1/s]", 1),
           ("contact_fraction", "fraction of time in contact", 1), ("force_peak", "peak force [N]", 1))
+# supports of two directions: the normal work rate in place of the contact fraction
+PANELS_2D = PANELS[:2] + (("work_rate", "normal work rate [mW]", 1e3),) + PANELS[3:]
 
 
 def plot_sweep(path: str, folder: str, window=None) -> list:
     """Statistics of a sweep summary against each numeric parameter that varies, one line per
     combination of the other varying parameters (and sweep direction), each line its own colour:
     peak displacement at each constraint and probe (a frequency response when the parameter is the
-    excitation frequency), impact rate, contact fraction and peak force. Failed cases are marked
+    excitation frequency), impact rate, contact fraction (supports of two directions: the normal work
+    rate) and peak force. Failed cases are marked
     with a red cross on the axis. (`window` is for runs; a sweep has no time axis.)"""
     import h5py
 
@@ -226,7 +278,7 @@ def _sweep_figure(folder, name, others, data, written) -> None:
     fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), dpi=110, sharex=True)
     colour = iter(plt.cm.tab20(np.linspace(0, 1, 20)))
     colours = {}
-    for ax, (stat, label, scale) in zip(axes.ravel(), PANELS):
+    for ax, (stat, label, scale) in zip(axes.ravel(), PANELS_2D if "work_rate" in data["stats"] else PANELS):
         for key in series:
             _sweep_lines(ax, stat, scale, key, keys, x, others, data, colours, colour)
         failed = x[~ok & np.isfinite(x)]

@@ -50,6 +50,8 @@ class Reductor:
             force_shape = basis.dot(fom.force_load)
         elif fom.force_row is not None:
             force_shape = basis.rows([fom.force_row])[0]
+        elif fom.force_matrix is not None:   # (r, m): V^T W, the load shapes in basis coordinates
+            force_shape = basis.dot_rows(fom.force_matrix.rows)
         else:
             force_shape = np.zeros(basis.size)
         q0, p0 = self._initial_coordinates()
@@ -70,11 +72,28 @@ class Reductor:
                             probe_shape=fom.probes.shape)
 
     def _initial_coordinates(self) -> tuple:
-        """(q(0), q'(0)): zero, or the initial amplitude (m, peak over the field) in a reference mode; on
-        a gyroscopic structure the M-projection of the full-order model's start (the free vibration
-        of a complex mode, whose real and imaginary parts the basis holds: exact). Collective."""
+        """(q(0), q'(0)): zero, or the initial amplitude (m, peak over the field) in a reference mode;
+        on a beam of two planes the M-projections V^T M u(0), V^T M u'(0) of fom.two_plane_state (the
+        planar mode lies in the span of the basis' modes, so the projection is exact); on a gyroscopic
+        structure the M-projection of the full-order model's start (the free vibration of a complex
+        mode, whose real and imaginary parts the basis holds: exact). Collective."""
         basis, initial = self.basis(), self.fom.initial
         q0, p0 = np.zeros(basis.size), np.zeros(basis.size)
+        mesh = self.fom.operators.mesh
+        if mesh is not None and mesh.planes == 2:
+            if not (initial.amplitude or initial.velocity):
+                return q0, p0
+            if not 1 <= 2 * initial.mode <= basis.mode_count:
+                raise InputError(f"[initial] mode = {initial.mode}: a beam of two planes counts its modes in y-z "
+                                 f"pairs; the basis has {basis.mode_count // 2} pairs")
+            u, v = self.fom.two_plane_state()
+            Mx = u.duplicate()
+            out = []
+            for vec in (u, v):
+                self.fom.operators.M.mult(vec, Mx)
+                out.append(basis.dot(Mx))
+            destroy(u, v, Mx)
+            return out[0], out[1]
         if initial.amplitude and self.fom.operators.G is not None:
             u, v = self.fom.initial_state()
             q0, p0 = basis.vectors.dotVec(u), basis.vectors.dotVec(v)   # V^T M u (the BV's inner product is M)

@@ -14,7 +14,8 @@ from .errors import InputError
 # The impact statistics a tube-vibration engineer reads first, with how to print them.
 HEADLINE = (("impacts", "{:.0f} impacts"), ("impact_rate", "{:.3g}/s"), ("contact_fraction", "in contact {:.2%}"),
             ("force_rms", "force RMS {:.3g} N"), ("impact_power_mean", "impact power {:.3g} W"),
-            ("work_rate", "work rate {:.3g} W"), ("work_rate_ci95", "+- {:.2g} W (95 %)"))
+            ("work_rate", "work rate {:.3g} W"), ("work_rate_ci95", "+- {:.2g} W (95 %)"),
+            ("wear_volume", "wear volume {:.3g} m^3"), ("wear_volume_ci95", "+- {:.2g} m^3 (95 %)"))
 
 
 def open_output(path: str):
@@ -105,7 +106,8 @@ def _constraint_lines(f, partial: bool = False) -> list:
             line = (f"  constraint {j + 1}{at}: w in [{z[:, j].min():.6g}, {z[:, j].max():.6g}] m, "
                     f"peak force {np.abs(force[:, j]).max():.6g} N")
         if stats is not None and not partial:
-            line += "; " + ", ".join(fmt.format(stats[name][j]) for name, fmt in HEADLINE if name in stats)
+            line += "; " + ", ".join(fmt.format(stats[name][j]) for name, fmt in HEADLINE
+                                     if name in stats and not (name.startswith("wear") and np.isnan(stats[name][j])))
         lines.append(line)
     return lines
 
@@ -147,10 +149,29 @@ def _sweep_lines(path: str, f) -> list:
                            if not _missing(columns[name][i]))
         if state == "ok":
             lines.append(f"  case {i + 1} ({values}): max |w| {np.nanmax(peak[i]):.4g} m, "
-                         f"{np.nansum(impacts[i]):.0f} impacts, peak force {np.nanmax(force[i]):.4g} N")
+                         f"{np.nansum(impacts[i]):.0f} impacts, peak force {np.nanmax(force[i]):.4g} N"
+                         + _work_summary(f, i))
         else:
             lines.append(f"  case {i + 1} ({values}): FAILED: {errors[i]}")
     return lines
+
+
+def _work_summary(f, i: int) -> str:
+    """Supports of two directions: the largest work rate over the supports with its 95 % interval (and
+    the wear volume there, when a wear coefficient was given)."""
+    if "cases/stats/work_rate" not in f:
+        return ""
+    rate = f["cases/stats/work_rate"][i]
+    if not np.any(np.isfinite(rate)):
+        return ""
+    j = int(np.nanargmax(rate))
+    text = f", max work rate {rate[j]:.3g} W"
+    if "cases/stats/work_rate_ci95" in f:
+        text += f" +- {f['cases/stats/work_rate_ci95'][i, j]:.2g} W"
+    text += f" (constraint {j + 1})"
+    if "cases/stats/wear_volume" in f and np.isfinite(f["cases/stats/wear_volume"][i, j]):
+        text += f", wear volume {f['cases/stats/wear_volume'][i, j]:.3g} m^3"
+    return text
 
 
 def _missing(v) -> bool:

@@ -6,7 +6,8 @@ q: coordinates on V = [modes, enrichment columns] (V^T M V = I, so M_r is I to r
 K_r = V^T K V, C_r = V^T C V (or modal / Rayleigh damping, damping.py), G_r = V^T G V (gyroscopic,
 skew: gyroscopic_basis.py; None without G); B = G^T V (the basis at the constraint DOFs); r_c: the support-motion influence
 at the constraints, so the law acts on the TOTAL displacement and velocity;
-f_r(t) = -V^T (M r) Omega''(t) + V^T g_F F(t). None of the matrices is symmetrized: what the
+f_r(t) = -V^T (M r) Omega''(t) + V^T g_F F(t), or with turbulence V^T W X(t) (W: m load shapes, X(t):
+their m histories; excitation.CorrelatedProcess). None of the matrices is symmetrized: what the
 projection gives is what is integrated.
 
 A ReducedModel is small and holds numpy arrays only, the same on every rank: it can be handed to
@@ -23,6 +24,11 @@ import numpy as np
 
 from .constraints import ConstraintSet
 from .excitation import Harmonic
+
+
+def applied(shape: np.ndarray, value) -> np.ndarray:
+    """A load shape times its history: (r,) times a number, or (r, m) times an (m,) vector."""
+    return shape * value if shape.ndim == 1 else shape @ value
 
 
 @dataclass(frozen=True)
@@ -87,7 +93,7 @@ class ReducedModel:
 
     def external_force(self, t: float) -> np.ndarray:
         """f_r(t)."""
-        return self.force_shape * self.force.value(t) - self.base_load * self.support.acceleration(t)
+        return applied(self.force_shape, self.force.value(t)) - self.base_load * self.support.acceleration(t)
 
     def constraint_state(self, t: float, q: np.ndarray, p: np.ndarray):
         """Total displacement and velocity at the constraints (flat, N_L d)."""

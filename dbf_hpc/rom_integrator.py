@@ -36,7 +36,7 @@ from petsc4py import PETSc
 
 from .errors import InputError, SolverError
 from .petsctools import destroy
-from .rom import ReducedModel
+from .rom import ReducedModel, applied
 from .timestepping import (ADAPT_DEFAULTS, NO_DENSE_OUTPUT, IntegratorSettings, StepMonitor, check_outcome,
                            configure, solve)
 
@@ -45,13 +45,24 @@ WHAT = "time integration"
 _warned = []
 
 
-def c_core(callbacks: str, say=None, dimension: int = 1):
+def c_core(callbacks: str, say=None, dimension: int = 1, load_matrix: bool = False, friction: bool = False):
     """The C core for [integrator] callbacks = `callbacks`, or None for the Python callbacks. "c"
     without the extension is an InputError (one line saying how to build it); "auto" falls back to
     Python with a one-line warning (once per process). The C callbacks handle laws of one direction
-    (d = 1): with 2-D laws "auto" takes the Python callbacks without a warning, and "c" is an
+    (d = 1) without friction and one load shape times one history: with 2-D laws, a friction law or a
+    load matrix (turbulence) "auto" takes the Python callbacks without a warning, and "c" is an
     InputError."""
     if callbacks == "python":
+        return None
+    if friction:
+        if callbacks == "c":
+            raise InputError("callbacks = \"c\": the C callbacks have no friction law; use callbacks = \"auto\" or "
+                             "\"python\"")
+        return None
+    if load_matrix:
+        if callbacks == "c":
+            raise InputError("callbacks = \"c\": the C callbacks handle one load shape; turbulence has a load matrix: "
+                             "use callbacks = \"auto\" or \"python\"")
         return None
     if dimension > 1:
         if callbacks == "c":
@@ -69,12 +80,13 @@ def c_core(callbacks: str, say=None, dimension: int = 1):
     return None
 
 
-def effective_callbacks(callbacks: str, dimension: int = 1) -> str:
+def effective_callbacks(callbacks: str, dimension: int = 1, load_matrix: bool = False, friction: bool = False) -> str:
     """"c" or "python": what [integrator] callbacks = `callbacks` runs on this installation for laws
     of `dimension` (as c_core decides; part of a checkpoint's identity: the two agree to the
     integrator's tolerance, not bit for bit)."""
     from . import _romc
-    return "c" if callbacks != "python" and dimension == 1 and _romc.core is not None else "python"
+    simple = dimension == 1 and not load_matrix and not friction
+    return "c" if callbacks != "python" and simple and _romc.core is not None else "python"
 
 
 def _user_solver_options() -> bool:
@@ -111,7 +123,7 @@ class ReducedProblem:
 
     def forcing(self, t) -> np.ndarray:
         m = self.model
-        return self.force_shape * m.force.value(t) - self.base_load * m.support.acceleration(t)
+        return applied(self.force_shape, m.force.value(t)) - self.base_load * m.support.acceleration(t)
 
     def ifunction(self, ts, t, y, ydot, f):
         r = self.r
@@ -209,7 +221,8 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
         raise TypeError("integrate_reduced takes either record or recorder")
     if recorder is not None:
         record = recorder.record
-    core = c_core(settings.callbacks, say, model.constraints.dimension)
+    core = c_core(settings.callbacks, say, model.constraints.dimension, model.force_shape.ndim == 2,
+                  getattr(model.constraints.laws, "friction", False))
     r = model.size
     implicit = settings.contact == "implicit"
     problem = ReducedProblem(model, implicit)

@@ -228,7 +228,10 @@ def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
 def run_identity(scene: Scene, basis_key: dict, ranks: int, method: str) -> dict:
     """What a checkpoint must match to be resumed: every part that changes the result."""
     dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
-    callbacks = effective_callbacks(scene.integrator_settings().callbacks, dimension) if method == "rom" else None
+    matrix = scene["excitation"]["kind"] == "turbulence"   # a load matrix: the Python callbacks
+    friction = any(c.law.kind == "friction" for c in scene.constraints)
+    callbacks = (effective_callbacks(scene.integrator_settings().callbacks, dimension, matrix, friction)
+                 if method == "rom" else None)
     return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], structure=basis_key,
                     options=PETSc.Options().getAll(), ranks=ranks, method=method, callbacks=callbacks)
 
@@ -462,6 +465,16 @@ def sample_work_rate_ci95(writer, constraints) -> np.ndarray:
     return batch_means_ci95(t, fn * vt)
 
 
+def _initial_text(init) -> str:
+    if not (init.amplitude or init.velocity):
+        return "at rest in relative coordinates (u = 0, u_t = 0); absolute velocity Omega'(0) r"
+    if init.velocity or init.direction != (1.0, 0.0):   # a beam of two planes
+        return (f"displacement {init.amplitude} m peak along (dy, dz) = ({init.direction[0]:.4g}, "
+                f"{init.direction[1]:.4g}) and velocity {init.velocity} m/s peak along "
+                f"({init.velocity_direction[0]:.4g}, {init.velocity_direction[1]:.4g}) in planar mode {init.mode}")
+    return f"displacement {init.amplitude} m peak in reference mode {init.mode}"
+
+
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
            field, snap_t, snap_w, model: ReducedModel | None = None, extra_attrs: dict | None = None) -> dict:
     """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
@@ -473,7 +486,13 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     writer = recorder.writer
     constraint_stats = recorder.impacts.result()
     if recorder.planar:   # supports of two directions: the work rate's confidence interval from the samples
+        from .stats import wear_volume
+
         constraint_stats["work_rate_ci95"] = sample_work_rate_ci95(writer, constraints)
+        t = writer.series_data(layout.TIME)
+        constraint_stats["wear_volume"], constraint_stats["wear_volume_ci95"] = wear_volume(
+            [c.wear_coefficient for c in scene.constraints], float(t[-1] - t[0]) if t.size else 0.0,
+            constraint_stats["work_rate"], constraint_stats["work_rate_ci95"])
     probe_peak = np.abs(writer.series_data(layout.PROBE_DISPLACEMENT)).max(axis=0, initial=0.0)
     geometry = field.geometry()
     datasets = {layout.CONSTRAINT_POSITION: constraints.positions,
@@ -506,9 +525,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                "petsc_version": ".".join(map(str, PETSc.Sys.getVersion())),
                "slepc_version": ".".join(map(str, SLEPc.Sys.getVersion())),
                "mpi_ranks": ranks, "solver_stats": json.dumps(stats), "wall_times": json.dumps(timings),
-               "initial_state": "at rest in relative coordinates (u = 0, u_t = 0); absolute velocity "
-                                "Omega'(0) r" if not init.amplitude else
-                                f"displacement {init.amplitude} m peak in reference mode {init.mode}",
+               "initial_state": _initial_text(init),
                **attrs})
     if snap_t.size:
         xdmf.write(xdmf.sidecar(writer.path), writer.path, "snapshots", geometry[0],

@@ -20,7 +20,7 @@ from .constraints import Constraint
 from .damping import Damping
 from .accuracy import EstimateSettings
 from .errors import InputError
-from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce
+from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce, Turbulence
 from .fom import FullOrderModel, InitialState
 from .laws import law_from_dict
 from .matrices import MatrixFiles
@@ -104,6 +104,10 @@ class Scene:
         if e["kind"] == "random":
             return RandomForce(float(e["psd"]), tuple(e["band"]), e["seed"], e["components"], tuple(e["span"]),
                                direction=direction)
+        if e["kind"] == "turbulence":
+            return Turbulence(float(e["psd"]), tuple(e["band"]), float(e["correlation_length"]), e["seed"],
+                              e["components"], tuple(e["span"]), e["spectrum"],
+                              float(e["corner_hz"] or 0.0), float(e["slope"] or 0.0))
         return NoExcitation()
 
     def damping(self) -> Damping:
@@ -113,7 +117,14 @@ class Scene:
                        rayleigh_beta=float(d["rayleigh_beta"]))
 
     def initial(self) -> InitialState:
-        return InitialState(mode=self["initial"]["mode"], amplitude=float(self["initial"]["amplitude"]))
+        i = self["initial"]
+
+        def unit(d, default):
+            d = d or default
+            return (float(d[0]) / math.hypot(*d), float(d[1]) / math.hypot(*d))
+
+        return InitialState(mode=i["mode"], amplitude=float(i["amplitude"]), direction=unit(i["direction"], [1.0, 0.0]),
+                            velocity=float(i["velocity"]), velocity_direction=unit(i["velocity_direction"], [0.0, 1.0]))
 
     def basis_settings(self):
         b = self["basis"]
@@ -136,7 +147,9 @@ class Scene:
     def fastest_forcing_hz(self) -> float:
         """The highest frequency the excitation contains (0 for free vibration)."""
         e = self["excitation"]
-        return float(e["band"][1]) if e["kind"] == "random" else float(e["frequency_hz"]) if e["kind"] != "none" else 0.0
+        if e["kind"] in ("random", "turbulence"):
+            return float(e["band"][1])
+        return float(e["frequency_hz"]) if e["kind"] != "none" else 0.0
 
     def output(self) -> OutputSettings:
         o, t_end = self["output"], float(self["integrator"]["t_end"])
@@ -224,6 +237,8 @@ def _check_type(where: str, key: str, value, types) -> None:
     if not isinstance(value, types):
         raise InputError(f"{where}: {key} must be {_type_name(types)}, got {value!r}")
     numbers = value if isinstance(value, list) else [value]
+    if key == "correlation_length" and value == math.inf:
+        return   # turbulence: a fully correlated load
     if any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
         raise InputError(f"{where}: {key} must be finite, got {value!r}")
 
@@ -318,8 +333,17 @@ def _constraints(raw, path: str, at: _Positions, kind: str) -> tuple:
         if at.key not in c:
             raise InputError(f"{where}: {at.key} is required")
         at.check(where, c[at.key])
-        law = law_from_dict(i + 1, {k: v for k, v in c.items() if k != at.key})
-        constraints.append(Constraint(law=law, x=float(c["x"]) if at.beam else None, dof=None if at.beam else c["dof"]))
+        law = law_from_dict(i + 1, {k: v for k, v in c.items() if k not in (at.key, "wear_coefficient")})
+        wear = c.get("wear_coefficient")
+        if wear is not None:
+            if getattr(law, "dimension", 1) != 2:
+                raise InputError(f"{where}: wear_coefficient needs a 2-D law (circular, flat_bar): a planar law has "
+                                 f"no sliding")
+            if isinstance(wear, bool) or not isinstance(wear, NUMBER) or not (math.isfinite(wear) and wear >= 0):
+                raise InputError(f"{where}: wear_coefficient must be a non-negative number (m^3/(N m)), got {wear!r}")
+            wear = float(wear)
+        constraints.append(Constraint(law=law, x=float(c["x"]) if at.beam else None, dof=None if at.beam else c["dof"],
+                                      wear_coefficient=wear))
     seen = {}
     for i, c in enumerate(constraints):
         key = round(c.x / at.length, 9) if at.beam else c.dof
@@ -343,11 +367,14 @@ def _check_direction(e: dict, s: dict, where: str) -> None:
 
 def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
     _check_direction(e, s, where)
-    if e["kind"] not in ("none", "base", "force", "random"):
-        raise InputError(f"{where}: kind must be \"none\", \"base\", \"force\" or \"random\", got {e['kind']!r}")
-    if e["kind"] == "random":
+    if e["kind"] not in ("none", "base", "force", "random", "turbulence"):
+        raise InputError(f"{where}: kind must be \"none\", \"base\", \"force\", \"random\" or \"turbulence\", "
+                         f"got {e['kind']!r}")
+    if e["kind"] == "turbulence":
+        _check_turbulence(e, s, where)
+    if e["kind"] in ("random", "turbulence"):
         if not at.beam:
-            raise InputError(f"{where}: random forcing is distributed along a beam; not available for matrices")
+            raise InputError(f"{where}: {e['kind']} forcing is distributed along a beam; not available for matrices")
         band = e["band"]
         if not (len(band) == 2 and all(isinstance(b, NUMBER) for b in band) and 0 <= band[0] < band[1]):
             raise InputError(f"{where}: band must be [f_low, f_high] in Hz with 0 <= f_low < f_high, got {band!r}")
@@ -370,6 +397,38 @@ def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
             at.check(where, e[at.key])
         if e["kind"] == "base" and not at.beam and s["influence"] is None:
             raise InputError(f"{where}: base excitation of a matrices structure needs [structure] influence")
+
+
+def _check_initial(i: dict, s: dict, where: str) -> None:
+    two = s["kind"] == "beam" and s["planes"] == 2
+    for key in ("direction", "velocity_direction"):
+        if i[key]:
+            if not two:
+                raise InputError(f"{where}: {key} applies to a beam of two planes ([structure] planes = 2)")
+            d = i[key]
+            if not (len(d) == 2 and all(isinstance(x, NUMBER) and not isinstance(x, bool) for x in d)
+                    and math.hypot(*d) > 0):
+                raise InputError(f"{where}: {key} must be [dy, dz], two numbers not both 0, got {d!r}")
+    if i["velocity"] and not two:
+        raise InputError(f"{where}: velocity applies to a beam of two planes (elsewhere start from a displaced mode)")
+
+
+def _check_turbulence(e: dict, s: dict, where: str) -> None:
+    if e["direction"]:
+        raise InputError(f"{where}: turbulence acts in every plane of the beam (independent in y and z); remove "
+                         f"direction")
+    lam = e["correlation_length"]
+    if lam is None or isinstance(lam, bool) or not lam > 0:
+        raise InputError(f"{where}: turbulence needs correlation_length > 0 (m; inf for a fully correlated load), "
+                         f"got {lam!r}")
+    if e["spectrum"] not in ("flat", "knee"):
+        raise InputError(f"{where}: spectrum must be \"flat\" or \"knee\", got {e['spectrum']!r}")
+    if e["spectrum"] == "knee":
+        for key in ("corner_hz", "slope"):
+            if e[key] is None or not e[key] > 0:
+                raise InputError(f"{where}: a knee spectrum needs {key} > 0, got {e[key]!r}")
+    elif e["corner_hz"] is not None or e["slope"] is not None:
+        raise InputError(f"{where}: corner_hz and slope belong to spectrum = \"knee\"; remove them or set spectrum")
 
 
 def _check_basis(b: dict, where: str) -> None:
@@ -418,6 +477,7 @@ def _check_integrator_and_output(sections: dict, path: str, at: _Positions) -> N
         raise InputError(f"{where}: snapshots must be a count >= 0, got {o['snapshots']}")
     if sections["initial"]["mode"] < 1:
         raise InputError(f"{path}: [initial] mode counts from 1, got {sections['initial']['mode']}")
+    _check_initial(sections["initial"], sections["structure"], f"{path}: [initial]")
 
 
 def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:

@@ -59,17 +59,28 @@ SECTIONS = {
     }),
     "excitation": ("What drives the structure.", {
         "kind": Key((str,), "none", "", '"none" (free vibration), "base" (support motion), "force" (a point '
-                                        'force) or "random" (turbulence forcing along a beam)'),
+                                        'force), "random" (a fully correlated random load along a beam) or '
+                                        '"turbulence" (a random load along a beam with partial correlation, '
+                                        'independent in y and z with planes = 2)'),
         "amplitude": Key(NUMBER, 0.0, "m or N", "base: support displacement amplitude; force: force amplitude"),
         "frequency_hz": Key(NUMBER, 0.0, "Hz", "base, force: frequency of the sine"),
         "end": Key((str,), "left", "", 'base: the moving support of a beam, "left" or "right"'),
         "x": Key(NUMBER, None, "m", "force on a beam: where it acts"),
         "dof": Key((int,), None, "", "force on matrices: the DOF it acts on (counted from 0)"),
-        "psd": Key(NUMBER, 0.0, "(N/m)^2/Hz", "random: one-sided PSD of the force per unit length"),
-        "band": Key((list,), [], "Hz", "random: [f_low, f_high] of the flat PSD"),
-        "seed": Key((int,), 1, "", "random: the same seed gives the same history"),
-        "components": Key((int,), 256, "", "random: cosines of the spectral representation"),
-        "span": Key((list,), [], "m", "random: [x0, x1] loaded (default the whole beam), fully correlated"),
+        "psd": Key(NUMBER, 0.0, "(N/m)^2/Hz", "random, turbulence: one-sided PSD of the force per unit length at a "
+                                              "point (turbulence: its level below corner_hz)"),
+        "band": Key((list,), [], "Hz", "random, turbulence: [f_low, f_high] of the PSD"),
+        "seed": Key((int,), 1, "", "random, turbulence: the same seed gives the same history"),
+        "components": Key((int,), 256, "", "random, turbulence: cosines of the spectral representation (per "
+                                           "history)"),
+        "span": Key((list,), [], "m", "random, turbulence: [x0, x1] loaded, nodes of the mesh (default the whole "
+                                      "beam); random: fully correlated"),
+        "correlation_length": Key(NUMBER, None, "m", "turbulence: lambda of the coherence exp(-|dx| / lambda) "
+                                                     "between points of the span (required; inf: fully correlated)"),
+        "spectrum": Key((str,), "flat", "", 'turbulence: "flat" (S = psd) or "knee" (S = psd up to corner_hz, '
+                                            'psd (f / corner_hz)^-slope above)'),
+        "corner_hz": Key(NUMBER, None, "Hz", "turbulence, knee: where the PSD starts to fall"),
+        "slope": Key(NUMBER, None, "1", "turbulence, knee: the exponent of the fall (S ~ f^-slope)"),
         "direction": Key((list,), [], "1", "beam of two planes: [dy, dz], the direction of the force or of the "
                                            "support motion in the y-z plane (normalized; default [1, 0])"),
     }),
@@ -126,6 +137,11 @@ SECTIONS = {
     "initial": ("The state at t = 0 (at rest in relative coordinates by default).", {
         "mode": Key((int,), 1, "", "reference mode of the initial displacement, counted from 1"),
         "amplitude": Key(NUMBER, 0.0, "m", "peak initial displacement in that mode"),
+        "direction": Key((list,), [], "1", "beam of two planes: [dy, dz], the direction of the initial "
+                                           "displacement (mode counts the y-z pairs; default [1, 0])"),
+        "velocity": Key(NUMBER, 0.0, "m/s", "beam of two planes: peak initial velocity in the same mode shape"),
+        "velocity_direction": Key((list,), [], "1", "beam of two planes: [dy, dz] of the initial velocity "
+                                                    "(default [0, 1]: across a displacement along y, a whirl)"),
     }),
     "output": ("What a run writes.", {
         "file": Key((str,), None, "", "the HDF5 output, relative to the scene's folder (or -o)"),
@@ -140,7 +156,9 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
     "x": Key(NUMBER, None, "m", "beam: position (required on a beam)"),
     "dof": Key((int,), None, "", "matrices: the DOF it acts on, counted from 0 (required for matrices)"),
     "law": Key((str,), "deadband", "", '"deadband" (Eq. 23), "power" (Eq. 42), "hertz", "linear", "cubic", '
-                                       '"table", or on a beam of two planes "circular" (a round hole) or "flat_bar" (two parallel flats)'),
+                                       '"table", "friction" (Coulomb friction alone against a given normal force), '
+                                       'or on a beam of two planes "circular" (a round hole) or "flat_bar" (two '
+                                       'parallel flats)'),
     "clearance": Key(NUMBER, None, "m", "deadband, power, hertz: gap on both sides (or clearance_minus, "
                                         "clearance_plus); negative is an interference fit; circular: the radial "
                                         "clearance (>= 0); flat_bar: the gap to each flat"),
@@ -154,11 +172,16 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
     "c": Key(NUMBER, None, "N s/m", "linear contact damping"),
     "alpha": Key(NUMBER, None, "s/m", "Hunt-Crossley contact damping"),
     "mu": Key(NUMBER, None, "1", "circular, flat_bar: Coulomb friction coefficient (default 0), "
-                                 "F_t = -mu k (|u| - c) tanh(v_t / v_reg)"),
-    "v_reg": Key(NUMBER, None, "m/s", "circular, flat_bar: the sliding speed over which friction is regularized "
-                                      "(default 1e-3)"),
+                                 "F_t = -mu k (|u| - c) tanh(v_t / v_reg); friction: N = -mu normal_force "
+                                 "tanh(v / v_reg) (required)"),
+    "v_reg": Key(NUMBER, None, "m/s", "circular, flat_bar, friction: the sliding speed over which friction is "
+                                      "regularized (default 1e-3)"),
+    "normal_force": Key(NUMBER, None, "N", "friction: the given normal force F_n (required)"),
     "angle": Key(NUMBER, None, "deg", "flat_bar: the direction of the flats' normal, from y towards z (default 0: "
                                       "flats across y, sliding along z)"),
+    "wear_coefficient": Key(NUMBER, None, "m^3/(N m)", "circular, flat_bar: Archard's wear coefficient K_w; "
+                                                       "the output's wear_volume = K_w int |F_n| |v_t| dt (NaN "
+                                                       "without it)"),
 })
 
 

@@ -84,14 +84,28 @@ DESCRIPTIONS = {
 
 assert set(UNITS) == set(STATISTICS) == set(DESCRIPTIONS)
 
-# Supports of two directions (laws.PlanarLaws) add the normal work rate and its confidence interval.
-STATISTICS_2D = STATISTICS + ("work_rate", "work_rate_ci95")
-UNITS_2D = {**UNITS, "work_rate": "W", "work_rate_ci95": "W"}
+# Supports of two directions (laws.PlanarLaws) add the normal work rate and its confidence interval, and
+# Archard's wear volume K_w int |F_n| |v_t| dt = K_w T work_rate with the interval K_w T work_rate_ci95.
+STATISTICS_2D = STATISTICS + ("work_rate", "work_rate_ci95", "wear_volume", "wear_volume_ci95")
+UNITS_2D = {**UNITS, "work_rate": "W", "work_rate_ci95": "W", "wear_volume": "m^3", "wear_volume_ci95": "m^3"}
 DESCRIPTIONS_2D = {**DESCRIPTIONS,
                    "work_rate": "normal work rate <|F_n| |v_t|> (code_aster's definition, the input of Archard wear): "
                                 "supports of two directions only",
                    "work_rate_ci95": "half-width of the 95 % confidence interval of the work rate, by batch means of "
-                                     "the samples (10 batches, Student t); supports of two directions only"}
+                                     "the samples (10 batches, Student t); supports of two directions only",
+                   "wear_volume": "Archard wear volume K_w int |F_n| |v_t| dt = K_w T work_rate over the run's T, for "
+                                  "the constraint's wear_coefficient K_w (NaN without one); supports of two directions "
+                                  "only",
+                   "wear_volume_ci95": "half-width of the 95 % confidence interval of the wear volume: K_w T "
+                                       "work_rate_ci95"}
+
+
+def wear_volume(coefficients, duration: float, work_rate, work_rate_ci95) -> tuple:
+    """(wear volume, half-width of its 95 % interval), m^3, per support: K_w T <|F_n| |v_t|> (Archard,
+    with the work rate of code_aster's POST_USURE) and K_w T times the work rate's half-width; NaN
+    where K_w is None."""
+    k = np.array([np.nan if c is None else float(c) for c in coefficients], dtype=float)
+    return k * duration * np.asarray(work_rate, dtype=float), k * duration * np.asarray(work_rate_ci95, dtype=float)
 
 BATCHES = 10
 _T_975 = 2.2621571627982053   # Student's t, 97.5 % quantile, BATCHES - 1 = 9 degrees of freedom

@@ -437,3 +437,29 @@ def distributed_load(ops: Operators, x0: float, x1: float, direction=(1.0, 0.0))
     mine = (rows >= lo) & (rows < hi)
     load.array[:] = np.bincount(rows[mine] - lo, weights=values[mine], minlength=hi - lo)
     return load
+
+
+def span_node_loads(ops: Operators, x0: float, x1: float) -> tuple:
+    """The consistent nodal loads of a load per unit length that is linear between the nodes of
+    [x0, x1] (the hat function of each node, cut at the span's ends): per element of length h, a
+    unit value at its first node gives (7h/20, h^2/20, 3h/20, -h^2/30), at its second (3h/20,
+    h^2/30, 7h/20, -h^2/20) (exact integrals of the Hermite cubics times the hats; together
+    distributed_load's uniform load). Returns (x of the span's nodes (n,), this rank's rows of the
+    load matrix (local rows x planes n): column p n + i is node i's hat in plane p). Not collective."""
+    mesh = ops.mesh
+    lo, hi = ops.ownership_range()
+    first, last = mesh.node_at(x0), mesh.node_at(x1)
+    nodes = np.arange(first, last + 1)
+    n, per = nodes.size, mesh.per_node
+    out = np.zeros((hi - lo, mesh.planes * n))
+    for e in range(first, last):
+        h = mesh.x[e + 1] - mesh.x[e]
+        hats = {e - first: (7 * h / 20, h**2 / 20, 3 * h / 20, -h**2 / 30),
+                e + 1 - first: (3 * h / 20, h**2 / 30, 7 * h / 20, -h**2 / 20)}
+        for i, (wa, ta, wb, tb) in hats.items():
+            for plane in range(mesh.planes):
+                for node, dof, value in ((e, 0, wa), (e, 1, ta), (e + 1, 0, wb), (e + 1, 1, tb)):
+                    row = mesh.row[node, 2 * plane + dof]
+                    if lo <= row < hi:
+                        out[row - lo, plane * n + i] += value
+    return mesh.x[nodes].copy(), out

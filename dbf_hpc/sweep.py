@@ -54,7 +54,6 @@ from petsc4py import PETSc
 from .checkpoint import Checkpoint
 from .errors import DbfError, InputError, Interrupted
 from .excitation import Harmonic, time_functions
-from .laws import ConstraintLaws
 from .matrices import file_digest
 from .output import OutputLock, check_output_path
 from .reductor import Reductor
@@ -62,13 +61,15 @@ from .run import run_case
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
-from .stats import DESCRIPTIONS, STATISTICS, UNITS
+from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, STATISTICS, STATISTICS_2D, UNITS_2D as UNITS
 
 SWEEP_KEYS = {"scene", "output", "keep_outputs", "axes", "case", "continuation", "directions"}
 DIRECTION = "sweep_direction"
 # What a reduced model depends on: everything but the laws, the excitation history and the integrator.
 MODEL_KEYS = {"structure": None, "basis": None, "damping": None, "initial": None,
               "excitation": ("kind", "end", "x", "dof", "span"), "output": ("probes",)}
+# Turbulence's histories and load matrix are made with the full-order model: all of it is the model's.
+TURBULENCE_KEYS = ("psd", "band", "seed", "components", "correlation_length", "spectrum", "corner_hz", "slope")
 
 
 def _typed(path: str, data: dict, key: str, kind, default):
@@ -214,6 +215,8 @@ def _identities(sweep: dict) -> list:
 def _model_key(scene) -> str:
     parts = {section: (scene[section] if keys is None else {k: scene[section][k] for k in keys})
              for section, keys in MODEL_KEYS.items()}
+    if scene["excitation"]["kind"] == "turbulence":
+        parts["turbulence"] = {k: scene["excitation"][k] for k in TURBULENCE_KEYS}
     parts["constraints"] = [(c.x, c.dof) for c in scene.constraints]
     parts["field"] = scene.output().snapshots > 0
     return json.dumps(parts, sort_keys=True, default=str)
@@ -243,7 +246,9 @@ def _continued(model, scene, previous: dict | None):
     case's final state when it continues a chain (the stepped sine keeps its phase, and the total
     displacement and velocity stay continuous: the jump of r Omega is taken up by q)."""
     support, force = time_functions(scene.excitation())
-    laws = ConstraintLaws([c.law for c in scene.constraints])
+    if scene["excitation"]["kind"] == "turbulence":
+        force = model.force   # its histories came with the model (the model key holds all of turbulence)
+    laws = type(model.constraints.laws)([c.law for c in scene.constraints])   # ConstraintLaws or PlanarLaws
     if previous is None:
         return model.with_case(constraints=model.constraints.with_laws(laws), support=support, force=force)
     phase = previous["final_phase"]
@@ -405,9 +410,10 @@ def _units(f, parameters) -> None:
     for name in parameters:
         f[f"cases/parameters/{name}"].attrs.update(unit=unit_of(name) or "1", description=f"the case's {name} "
                                                    "(NaN or null: the base scene's value)")
-    for name in STATISTICS:
+    for name in f["cases/stats"]:
         f[f"cases/stats/{name}"].attrs.update(unit=UNITS[name], description=DESCRIPTIONS[name] + " (case x constraint)")
-    f["cases/probe_peak"].attrs.update(unit="m", description="max |w| at each probe (case x probe)")
+    f["cases/probe_peak"].attrs.update(unit="m", description="max |w| at each probe (case x probe; on a beam of two "
+                                                             "planes the larger of the y and z peaks)")
     f["cases/wall_time"].attrs.update(unit="s", description="wall time of the case")
     for name in ("status", "error"):
         f[f"cases/{name}"].attrs.update(unit="", description=f"the case's {name}")
@@ -435,7 +441,10 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
         f.create_dataset("cases/status", data=[r["status"] for r in records])
         f.create_dataset("cases/error", data=[r.get("error", "") for r in records])
         f.create_dataset("cases/wall_time", data=[r["wall_time"] for r in records])
-        for name in STATISTICS:
+        # supports of two directions add the work rate (and what follows from it) to the 1-D statistics
+        names = [*STATISTICS, *(k for k in STATISTICS_2D if k not in STATISTICS
+                                and any(k in r.get("stats", {}) for r in records))]
+        for name in names:
             table = np.full((n, width), np.nan)
             for i, r in enumerate(records):
                 values = r.get("stats", {}).get(name, [])
@@ -443,7 +452,10 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
             f.create_dataset(f"cases/stats/{name}", data=table)
         peaks = np.full((n, probes), np.nan)
         for i, r in enumerate(records):
-            peaks[i, :len(r.get("probe_peak", []))] = r.get("probe_peak", [])
+            peak = np.asarray(r.get("probe_peak", []), dtype=float)
+            if peak.ndim == 2:   # two planes: (y, z) peaks per probe; the summary keeps the larger
+                peak = peak.max(axis=1)
+            peaks[i, :peak.size] = peak
         f.create_dataset("cases/probe_peak", data=peaks)
         _units(f, sweep["parameters"])
         f.attrs["dbf_hpc_version"] = __version__

@@ -225,3 +225,41 @@ def test_every_dataset_of_a_summary_carries_its_unit(shared_tmp_path):
                          if isinstance(obj, h5py.Dataset) and "unit" not in obj.attrs else None)
             assert f["cases/parameters/excitation.frequency_hz"].attrs["unit"] == "Hz"
         assert not missing, missing
+
+
+def test_a_two_plane_tube_sweep_over_clearance_and_turbulence_level_records_work_rate_per_support(shared_tmp_path):
+    """The shipped 2-D sweep, shortened: every case ok, the work rate, its interval and the wear volume
+    per support in the summary, wear = K_w T work_rate, every case sliding."""
+    from dbf_hpc.report import describe
+
+    shipped = os.path.join(ROOT, "jobs", "sweep_steam_generator_2d.toml")
+    path = shared_tmp_path / "sweep2d.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        text = open(shipped).read().replace('scene = "steam_generator_tube_2d.toml"',
+                                            f'scene = "{os.path.join(ROOT, "jobs", "steam_generator_tube_2d.toml")}"')
+        # 0.05 s from rest: stronger turbulence and tighter holes than the shipped study, to meet them
+        text = text.replace('"integrator.t_end" = [0.25]', '"integrator.t_end" = [0.05]')
+        text = text.replace('"excitation.psd" = [0.01, 0.04]', '"excitation.psd" = [1.0, 4.0]')
+        path.write_text(text.replace('"constraint.clearance" = [1e-4, 2e-4]', '"constraint.clearance" = [2e-5, 8e-5]'))
+    MPI.COMM_WORLD.Barrier()
+    result = run_sweep(str(path), progress=False, overrides=[f"basis.cache={json.dumps(str(shared_tmp_path))}",
+                                                             "basis.estimate=false", "structure.elements=100"])
+    assert result["cases"] == 4 and result["failed"] == 0
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(result["output"]) as f:
+            rate, ci = f["cases/stats/work_rate"][:], f["cases/stats/work_rate_ci95"][:]
+            wear = f["cases/stats/wear_volume"][:]
+            assert rate.shape == (4, 12) and f["cases/stats/work_rate"].attrs["unit"] == "W"
+            assert np.all(np.isfinite(ci)) and np.all(rate >= 0)
+            assert np.allclose(wear, 2e-14 * 0.05 * rate, rtol=1e-9, atol=0)
+            assert np.all(rate.sum(axis=1) > 0)        # every case slides somewhere
+            np.testing.assert_array_equal(f["cases/parameters/constraint.clearance"][:], [2e-5, 2e-5, 8e-5, 8e-5])
+        lines = describe(result["output"])
+        assert any("max work rate" in line and "wear volume" in line for line in lines)
+        from dbf_hpc.plots import _read_sweep, plot_sweep
+
+        with h5py.File(result["output"]) as f:
+            assert np.array_equal(_read_sweep(f)["stats"]["work_rate"], rate, equal_nan=True)
+        written = plot_sweep(result["output"], str(shared_tmp_path))
+        assert len(written) == 2 and all(os.path.getsize(p) > 10000 for p in written)
+    assert_all(True)

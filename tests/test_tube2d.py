@@ -458,3 +458,78 @@ def test_circular_contact_jacobian_passes_petsc_jacobian_test(tmp_path):
     ratios = [float(v) for v in re.findall(r"\|\|J - Jfd\|\|_F/\|\|J\|\|_F = ([\d.e+-]+)", out.stdout)]
     assert len(ratios) > 10
     assert max(ratios) < 1e-4 and np.median(ratios) < 1e-5, (max(ratios), np.median(ratios))
+
+
+# -- 6. the initial state of two planes, orbit plots -----------------------------------------------
+
+def test_a_tube_displaced_in_y_and_started_in_z_at_amplitude_times_omega_whirls_on_a_circle(comm):
+    from dbf_hpc.excitation import NoExcitation
+    from dbf_hpc.fom import InitialState
+
+    A = 1e-3
+    with FullOrderModel.build(paper_beam(2, elements=30), [], NoExcitation(), probes=[0.5], comm=comm) as fom:
+        omega = reference_modes(fom.operators, count=1).omega[0]
+    initial = InitialState(mode=1, amplitude=A, direction=(1.0, 0.0), velocity=A * omega, velocity_direction=(0.0, 1.0))
+    with FullOrderModel.build(paper_beam(2, elements=30), [], NoExcitation(), probes=[0.5], initial=initial,
+                              comm=comm) as fom:
+        with Reductor(fom, BasisSettings(modes=6)) as reductor:
+            model = reductor.reduce()
+        period = 2 * math.pi / omega
+        reduced = simulate_reduced(model, IntegratorSettings(t_end=period, dt=1e-4, sample_dt=period / 200,
+                                                             rtol=1e-10, atol=1e-14))
+        full = simulate_full(fom, IntegratorSettings(t_end=period, dt=period / 20000, sample_dt=period / 200,
+                                                     adaptive=False))
+    for result in (reduced, full):   # midspan: the peak of mode 1
+        u = result.probes[:, 0, :]
+        assert np.allclose(u[0], [A, 0.0], atol=1e-12 * A)
+        radius = np.hypot(u[:, 0], u[:, 1])
+        assert np.max(np.abs(radius / A - 1)) < 1e-6
+        angle = np.unwrap(np.arctan2(u[:, 1], u[:, 0]))
+        assert angle[-1] == pytest.approx(2 * math.pi, rel=1e-3)   # one turn a period
+
+
+def test_initial_directions_belong_to_two_planes_and_are_checked_in_one_line():
+    with pytest.raises(InputError, match="two planes"):
+        load_scene(os.path.join(ROOT, "jobs", "steam_generator_tube.toml"), ["initial.direction=[0, 1]"])
+    with pytest.raises(InputError, match="two planes"):
+        load_scene(os.path.join(ROOT, "jobs", "steam_generator_tube.toml"), ["initial.velocity=0.1"])
+    with pytest.raises(InputError, match="velocity_direction"):
+        load_scene(TUBE_2D, ["initial.velocity_direction=[0, 0]"])
+    scene = load_scene(TUBE_2D, ["initial.amplitude=1e-4", "initial.direction=[3, 4]", "initial.velocity=0.01"])
+    init = scene.initial()
+    assert init.direction == pytest.approx((0.6, 0.8)) and init.velocity_direction == (0.0, 1.0)
+
+
+def test_plot_of_two_planes_draws_each_support_orbit_inside_its_gap(shared_tmp_path, comm):
+    from dbf_hpc.plots import _laws, plot_run
+
+    out = str(shared_tmp_path / "orbit.h5")
+    run(tube_scene(shared_tmp_path, "integrator.t_end=0.02", "basis.estimate=false",
+                   'constraint.12.law="flat_bar"', "constraint.12.angle=30.0"), out, progress=False, comm=comm)
+    if comm.getRank() == 0:
+        with h5py.File(out) as f:
+            laws = _laws(f)
+        assert [law["kind"] for law in laws] == ["circular"] * 11 + ["flat_bar"]
+        assert laws[11]["angle"] == 30.0 and laws[0]["clearance"] == 2e-4
+        folder = shared_tmp_path / "plots"
+        folder.mkdir()
+        written = plot_run(out, str(folder))
+        orbit = folder / "orbits.png"
+        assert str(orbit) in written and orbit.stat().st_size > 10000
+        with open(orbit, "rb") as png:
+            assert png.read(8) == b"\x89PNG\r\n\x1a\n"
+    assert_all(True)
+
+
+def test_wear_volume_is_archard_k_w_times_the_run_time_times_the_work_rate_and_nan_without_k_w():
+    from dbf_hpc.stats import wear_volume
+
+    volume, ci = wear_volume([2e-14, None, 0.0], 3.0, [1e-3, 5e-3, 2e-3], [4e-4, 1e-3, 1e-3])
+    assert volume[0] == pytest.approx(2e-14 * 3.0 * 1e-3, rel=1e-15) and ci[0] == pytest.approx(2e-14 * 3.0 * 4e-4)
+    assert np.isnan(volume[1]) and np.isnan(ci[1]) and volume[2] == 0.0
+    scene = load_scene(TUBE_2D)
+    assert [c.wear_coefficient for c in scene.constraints] == [2e-14] * 12
+    with pytest.raises(InputError, match="2-D law"):
+        load_scene(os.path.join(ROOT, "jobs", "steam_generator_tube.toml"), ["constraint.wear_coefficient=1e-14"])
+    with pytest.raises(InputError, match="non-negative"):
+        load_scene(TUBE_2D, ["constraint.3.wear_coefficient=-1e-14"])
