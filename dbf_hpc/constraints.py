@@ -20,7 +20,7 @@ from typing import Optional
 
 import numpy as np
 
-from .laws import ConstraintLaws, Law, PlanarLaws
+from .laws import ConstraintLaws, Law
 
 
 @dataclass(frozen=True)

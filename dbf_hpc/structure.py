@@ -450,7 +450,7 @@ def span_node_loads(ops: Operators, x0: float, x1: float) -> tuple:
     lo, hi = ops.ownership_range()
     first, last = mesh.node_at(x0), mesh.node_at(x1)
     nodes = np.arange(first, last + 1)
-    n, per = nodes.size, mesh.per_node
+    n = nodes.size
     out = np.zeros((hi - lo, mesh.planes * n))
     for e in range(first, last):
         h = mesh.x[e + 1] - mesh.x[e]

@@ -52,7 +52,6 @@ BEAM = dict(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, left="pinned
 def limit(ops, rows, solver_type: str, block: bool = False) -> float:
     """Seconds for one Cholesky of K (solver_type) and one solve per constraint row; block: all the
     rows' right-hand sides in one MatMatSolve. Collective."""
-    import numpy as np
     from petsc4py import PETSc
     from dbf_hpc.petsctools import destroy, direct_solver, unit_vector
 

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import subprocess
 import sys
@@ -117,7 +116,6 @@ def build(case: str, solid: str):
 def worker(case: str, solid: str) -> None:
     import numpy as np
     from mpi4py import MPI
-    from petsc4py import PETSc
 
     from dbf_hpc.fom import Observation
     from dbf_hpc.fom_integrator import Alpha2, ConstraintRows, EffectiveSystem, integrate_full, options

@@ -10,7 +10,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
-from dbf_hpc import (Beam, BaseMotion, Constraint, FullOrderModel, IntegratorSettings, PointForce, law,
+from dbf_hpc import (Beam, BaseMotion, Constraint, FullOrderModel, IntegratorSettings, law,
                      simulate_full)
 from dbf_hpc.fom import Observation
 from dbf_hpc.fom_integrator import Alpha2, ContactNewton, ContactStep, step_count
