@@ -231,9 +231,12 @@ def reused_estimate(calibration: Estimate, times: np.ndarray, w: np.ndarray) -> 
 # nothing about the rest of the run, while the statistics still converge.
 STATISTICS_WINDOWS = 5
 # The statistics window: [0, STATISTICS_FRACTION t_end] unless [basis] estimate_statistics_window
-# gives it. The richer run costs about 1.5 to 3 times the reduced run per simulated second (twice
-# the modes, rtol / 10), so this fraction keeps the estimate's cost near the run's own.
+# gives it, and at most STATISTICS_MAX_SAMPLES samples. On the paper's beam the richer run cost 1.3
+# times the reduced run per simulated second (6 modes; 13 richer vectors, rtol / 10), so the fraction
+# keeps the estimate's cost near a third of the run's. The richer run's samples are held in memory
+# (simulate_reduced): the cap bounds that (a 10^5-sample run grew by 37 MB without it) and the cost.
 STATISTICS_FRACTION = 0.25
+STATISTICS_MAX_SAMPLES = 5000
 # The statistics estimated: those a time mean over a long run converges for (peaks and durations
 # are extremes, not means: no batch-means interval), and the work rate of 2-D laws.
 ESTIMATED_STATISTICS = ("impact_rate", "contact_fraction", "force_rms", "displacement_rms")
@@ -246,10 +249,11 @@ def is_long(t_end: float, window: float) -> bool:
     return math.isfinite(window) and window > 0 and t_end > STATISTICS_WINDOWS * window
 
 
-def statistics_window(t_end: float, given: float | None = None) -> float:
-    """The end of the statistics window: the given one (never beyond t_end), else
-    STATISTICS_FRACTION t_end. Not collective."""
-    return min(given, t_end) if given is not None else STATISTICS_FRACTION * t_end
+def statistics_window(t_end: float, sample_dt: float, given: float | None = None) -> float:
+    """The end of the statistics window: the given one, else STATISTICS_FRACTION t_end; never beyond
+    t_end nor STATISTICS_MAX_SAMPLES samples of sample_dt. Not collective."""
+    window = given if given is not None else STATISTICS_FRACTION * t_end
+    return min(window, t_end, STATISTICS_MAX_SAMPLES * sample_dt)
 
 
 def _statistics(t, z, v, force, laws) -> dict:
@@ -268,21 +272,29 @@ def _statistics(t, z, v, force, laws) -> dict:
     return out
 
 
-def window_statistics(t, z, v, force, laws=None) -> tuple:
-    """(values, ci95) of the estimated statistics over the samples t (each (N_L,)): the values over
-    all of them, and the half-width of their 95 % confidence interval by batch means (stats.BATCHES
-    batches of equal sample count, each batch's statistic, Student t over their spread; the same
-    construction as stats.batch_means_ci95, applied to each statistic instead of a time mean). NaN
-    intervals with fewer than 2 BATCHES samples. Not collective."""
+def batch_ci95(read, nt: int, laws=None) -> dict:
+    """The half-width of the 95 % confidence interval of each estimated statistic of nt samples, by
+    batch means: stats.BATCHES batches of equal sample count, each batch's statistic, Student t over
+    their spread (stats.batch_means_ci95's construction, applied to each statistic instead of a time
+    mean). read(lo, hi) gives the samples' (t, z, v, force) from lo to hi: one batch in memory at a
+    time. NaN with fewer than 2 BATCHES samples. Not collective."""
     from .stats import _T_975, BATCHES
 
+    if nt < 2 * BATCHES:
+        t, z, v, force = read(0, nt)
+        return {name: np.full(value.shape, np.nan) for name, value in _statistics(t, z, v, force, laws).items()}
+    bounds = [part[0] for part in np.array_split(np.arange(nt), BATCHES)] + [nt]
+    batches = [_statistics(*read(lo, hi), laws) for lo, hi in zip(bounds[:-1], bounds[1:])]
+    return {name: _T_975 * np.std([b[name] for b in batches], axis=0, ddof=1) / math.sqrt(BATCHES)
+            for name in batches[0]}
+
+
+def window_statistics(t, z, v, force, laws=None) -> tuple:
+    """(values, ci95) of the estimated statistics over the samples t, each (N_L,): the values over
+    all of them and their batch-means half-widths (batch_ci95). Not collective."""
     t = np.asarray(t, dtype=float)
-    values = _statistics(t, z, v, force, laws)
-    if t.size < 2 * BATCHES:
-        return values, {name: np.full(value.shape, np.nan) for name, value in values.items()}
-    batches = [_statistics(t[p], z[p], v[p], force[p], laws) for p in np.array_split(np.arange(t.size), BATCHES)]
-    ci = {name: _T_975 * np.std([b[name] for b in batches], axis=0, ddof=1) / math.sqrt(BATCHES) for name in values}
-    return values, ci
+    return _statistics(t, z, v, force, laws), batch_ci95(lambda lo, hi: (t[lo:hi], z[lo:hi], v[lo:hi], force[lo:hi]),
+                                                         t.size, laws)
 
 
 @dataclass
@@ -359,9 +371,9 @@ def statistics_lines(error: dict, values: dict | None = None) -> list:
     return lines
 
 
-def statistics_estimate(rich_model, settings, times, z, v, force, end: float, laws=None) -> StatisticsEstimate:
-    """The statistics' errors of a long run sampled at `times` (z, v, force its constraint samples,
-    the whole run): the run's own batch-means intervals, and the richer model (nested_estimate's)
+def statistics_estimate(rich_model, settings, read, times, end: float, laws=None) -> StatisticsEstimate:
+    """The statistics' errors of a long run sampled at `times`, read(lo, hi) its samples' (t, z, v,
+    force) (batch_ci95): the run's own batch-means intervals, and the richer model (nested_estimate's)
     integrated over [0, end] with rich_settings, its statistics against the run's over the same
     samples. Not collective."""
     import time
@@ -369,9 +381,9 @@ def statistics_estimate(rich_model, settings, times, z, v, force, end: float, la
     from .simulate import simulate_reduced
 
     start = time.perf_counter()
-    _, sampling = window_statistics(times, z, v, force, laws)
+    sampling = batch_ci95(read, times.size, laws)
     k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
-    reduced, reduced_ci = window_statistics(times[:k], z[:k], v[:k], force[:k], laws)
+    reduced, reduced_ci = window_statistics(*read(0, k), laws)
     nan = {name: np.full(value.shape, np.nan) for name, value in reduced.items()}
     try:
         result = simulate_reduced(rich_model, rich_settings(settings, float(times[k - 1])))

@@ -357,17 +357,20 @@ def _estimate(estimator, writer, settings, timings: dict, say):
 def _estimate_statistics(estimator, estimate, writer, constraints, settings, timings: dict):
     """Rank 0: the statistics' errors of a long run (accuracy.is_long: t_end beyond STATISTICS_WINDOWS
     times the pointwise window), or None (a short run, no richer model, the tolerance mode's reused
-    calibration). Reads the run's constraint samples back whole. Not collective."""
-    if estimator is None or estimate is None or not hasattr(estimator[0], "size") or \
+    calibration). Reads the run's constraint samples back a batch at a time. Not collective."""
+    if estimator is None or estimate is None or isinstance(estimator[0], (str, Estimate)) or \
             not is_long(settings.t_end, estimate.window):
         return None
     writer.flush()
     times = writer.series_data(layout.TIME)
-    z, v, force = (writer.series_data(name) for name in
-                   (layout.CONSTRAINT_DISPLACEMENT, layout.CONSTRAINT_VELOCITY, layout.CONSTRAINT_FORCE))
+    names = (layout.TIME, layout.CONSTRAINT_DISPLACEMENT, layout.CONSTRAINT_VELOCITY, layout.CONSTRAINT_FORCE)
+
+    def read(lo, hi):   # a batch of the samples from the file: memory stays flat however long the run
+        return tuple(writer.series[name][lo:hi] for name in names)
+
     laws = constraints.laws if constraints.dimension == 2 else None
-    end = statistics_window(settings.t_end, estimator[2])
-    result = statistics_estimate(estimator[0], settings, times, z, v, force, end, laws)
+    end = statistics_window(settings.t_end, settings.sample_dt, estimator[2])
+    result = statistics_estimate(estimator[0], settings, read, times, end, laws)
     timings["estimate_statistics"] = result.seconds
     return result
 

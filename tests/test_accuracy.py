@@ -234,3 +234,15 @@ def test_without_contact_the_contact_statistics_errors_are_exactly_zero(shared_t
     # The motion itself has a model error and a sampling spread, both finite and nonzero.
     assert np.all(np.isfinite(rom["error/displacement_rms"])) and np.all(rom["error/displacement_rms"] > 0)
     assert summary["estimated_statistics"]["window"] == pytest.approx(0.25)
+
+
+@pytest.mark.launcher
+def test_a_long_cli_run_on_two_ranks_prints_its_statistics_errors_and_info_prints_them_again(tmp_path):
+    from test_cli import PAPER, dbf_hpc
+
+    out = tmp_path / "long.h5"
+    done = dbf_hpc("run", PAPER, "-o", str(out), *[f"--set={s}" for s in LONG], "--set=integrator.t_end=1")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.count("statistics' estimated errors") == 1 and "constraint 1: impact rate" in done.stdout
+    info = dbf_hpc("info", str(out), ranks=1)
+    assert "statistics' estimated errors" in info.stdout and "contact fraction" in info.stdout
