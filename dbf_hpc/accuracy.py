@@ -231,9 +231,10 @@ def reused_estimate(calibration: Estimate, times: np.ndarray, w: np.ndarray) -> 
 # nothing about the rest of the run, while the statistics still converge.
 STATISTICS_WINDOWS = 5
 # The statistics window: [0, STATISTICS_FRACTION t_end] unless [basis] estimate_statistics_window
-# gives it, and at most STATISTICS_MAX_SAMPLES samples. On the paper's beam the richer run cost 1.3
-# times the reduced run per simulated second (6 modes; 13 richer vectors, rtol / 10), so the fraction
-# keeps the estimate's cost near a third of the run's. The richer run's samples are held in memory
+# gives it, and at most STATISTICS_MAX_SAMPLES samples. Per simulated second the richer run cost 1.3
+# times the reduced run on the paper's beam (6 modes, 13 richer vectors) and 2.7 times on the 2-D
+# tube (40 Hz basis): with this fraction the estimate costs 0.3 to 0.7 times the run (docs/accuracy.md).
+# The richer run's samples are held in memory
 # (simulate_reduced): the cap bounds that (a 10^5-sample run grew by 37 MB without it) and the cost.
 STATISTICS_FRACTION = 0.25
 STATISTICS_MAX_SAMPLES = 5000
