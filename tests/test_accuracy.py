@@ -246,3 +246,18 @@ def test_a_long_cli_run_on_two_ranks_prints_its_statistics_errors_and_info_print
     assert done.stdout.count("statistics' estimated errors") == 1 and "constraint 1: impact rate" in done.stdout
     info = dbf_hpc("info", str(out), ranks=1)
     assert "statistics' estimated errors" in info.stdout and "contact fraction" in info.stdout
+
+
+def test_the_contact_fractions_batch_interval_is_the_batch_means_interval_of_the_contact_indicator():
+    # contact_fraction is the trapezoid time mean of the contact indicator, so its batch-means
+    # half-width must be stats.batch_means_ci95 of that indicator, on non-uniform samples too.
+    from dbf_hpc.accuracy import window_statistics
+    from dbf_hpc.stats import batch_means_ci95
+
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.5e-3, 1.5e-3, 2001))
+    z = np.column_stack([np.sin(40 * t) + 0.3 * np.sin(97 * t), 0.5 * np.sin(13 * t)])
+    force = np.where(np.abs(z) > 0.8, -1e3 * z, 0.0)
+    values, ci = window_statistics(t, z, np.gradient(z, t, axis=0), force)
+    assert np.allclose(ci["contact_fraction"], batch_means_ci95(t, (force != 0).astype(float)), rtol=1e-12, atol=0)
+    assert ci["contact_fraction"][0] > 0 and values["impact_rate"][1] == 0 and ci["impact_rate"][1] == 0
