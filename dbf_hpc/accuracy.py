@@ -105,18 +105,23 @@ def flexibility_warning(values: np.ndarray, labels) -> str | None:
 
 @dataclass(frozen=True)
 class EstimateSettings:
-    """[basis] estimate (on by default), estimate_window (s; None: automatic, estimate_window below)
-    and tolerance (the tolerance mode: the basis size is picked to meet it; None: off)."""
+    """[basis] estimate (on by default), estimate_window (s; None: automatic, estimate_window below),
+    tolerance (the tolerance mode: the basis size is picked to meet it; None: off) and
+    estimate_statistics_window (s; None: STATISTICS_FRACTION t_end, for long runs only)."""
 
     enabled: bool = True
     window: float | None = None
     tolerance: float | None = None
+    statistics_window: float | None = None
 
     def __post_init__(self):
         if self.window is not None and not self.window > 0:
             raise InputError(f"[basis] estimate_window must be positive (s), got {self.window!r}")
         if self.tolerance is not None and not 0 < self.tolerance < 1:
             raise InputError(f"[basis] tolerance must be between 0 and 1 (a relative error), got {self.tolerance!r}")
+        if self.statistics_window is not None and not self.statistics_window > 0:
+            raise InputError(f"[basis] estimate_statistics_window must be positive (s), got "
+                             f"{self.statistics_window!r}")
 
 
 @dataclass(frozen=True)
@@ -218,6 +223,183 @@ def reused_estimate(calibration: Estimate, times: np.ndarray, w: np.ndarray) -> 
         return Estimate(np.nan, calibration.window, 0.0, "the run is shorter than its calibration window")
     value = relative_difference(w[:k], calibration.reference)
     return Estimate(value, calibration.window, 0.0, f"{calibration.note}, from the calibration")
+
+
+# Long runs: the statistics' errors (docs/accuracy.md, "Statistics of long runs"). A run is long when
+# t_end exceeds STATISTICS_WINDOWS times the pointwise estimate's window: past the first impacts and
+# as long again, w itself drifts off any reference (chaotic horizon) and the estimate in w says
+# nothing about the rest of the run, while the statistics still converge.
+STATISTICS_WINDOWS = 5
+# The statistics window: [0, STATISTICS_FRACTION t_end] unless [basis] estimate_statistics_window
+# gives it, and at most STATISTICS_MAX_SAMPLES samples. Per simulated second the richer run cost 1.3
+# times the reduced run on the paper's beam (6 modes, 13 richer vectors) and 2.7 times on the 2-D
+# tube (40 Hz basis): with this fraction the estimate costs 0.3 to 0.7 times the run (docs/accuracy.md).
+# The richer run's samples are held in memory
+# (simulate_reduced): the cap bounds that (a 10^5-sample run grew by 37 MB without it) and the cost.
+STATISTICS_FRACTION = 0.25
+STATISTICS_MAX_SAMPLES = 5000
+# The statistics estimated: those a time mean over a long run converges for (peaks and durations
+# are extremes, not means: no batch-means interval), and the work rate of 2-D laws.
+ESTIMATED_STATISTICS = ("impact_rate", "contact_fraction", "force_rms", "displacement_rms")
+ESTIMATED_STATISTICS_2D = ESTIMATED_STATISTICS + ("work_rate",)
+
+
+def is_long(t_end: float, window: float) -> bool:
+    """Whether a run to t_end gets the statistics' estimate besides the pointwise one over
+    [0, window]. Not collective."""
+    return math.isfinite(window) and window > 0 and t_end > STATISTICS_WINDOWS * window
+
+
+def statistics_window(t_end: float, sample_dt: float, given: float | None = None) -> float:
+    """The end of the statistics window: the given one, else STATISTICS_FRACTION t_end; never beyond
+    t_end nor STATISTICS_MAX_SAMPLES samples of sample_dt. Not collective."""
+    window = given if given is not None else STATISTICS_FRACTION * t_end
+    return min(window, t_end, STATISTICS_MAX_SAMPLES * sample_dt)
+
+
+def _statistics(t, z, v, force, laws) -> dict:
+    """The ESTIMATED_STATISTICS (with work_rate for 2-D laws, `laws` a PlanarLaws) from samples, as
+    stats.impact_statistics defines them (radial values on supports of two directions)."""
+    from .stats import impact_statistics
+
+    k = t.size
+    if laws is None:
+        s = impact_statistics(t, z.reshape(k, -1), v.reshape(k, -1), force.reshape(k, -1))
+        return {name: np.asarray(s[name], dtype=float) for name in ESTIMATED_STATISTICS}
+    r, vn, f, fn, vt, contact = laws.radial(z.reshape(k, -1), v.reshape(k, -1), force.reshape(k, -1))
+    s = impact_statistics(t, r, vn, f, contact)
+    out = {name: np.asarray(s[name], dtype=float) for name in ESTIMATED_STATISTICS}
+    out["work_rate"] = np.trapz(fn * vt, t, axis=0) / (t[-1] - t[0]) if k > 1 else fn[0] * vt[0]
+    return out
+
+
+def batch_ci95(read, nt: int, laws=None) -> dict:
+    """The half-width of the 95 % confidence interval of each estimated statistic of nt samples, by
+    batch means: stats.BATCHES batches of equal sample count, each batch's statistic, Student t over
+    their spread (stats.batch_means_ci95's construction, applied to each statistic instead of a time
+    mean). read(lo, hi) gives the samples' (t, z, v, force) from lo to hi: one batch in memory at a
+    time. NaN with fewer than 2 BATCHES samples. Not collective."""
+    from .stats import _T_975, BATCHES
+
+    if nt < 2 * BATCHES:
+        t, z, v, force = read(0, nt)
+        return {name: np.full(value.shape, np.nan) for name, value in _statistics(t, z, v, force, laws).items()}
+    bounds = [part[0] for part in np.array_split(np.arange(nt), BATCHES)] + [nt]
+    batches = [_statistics(*read(lo, hi), laws) for lo, hi in zip(bounds[:-1], bounds[1:])]
+    return {name: _T_975 * np.std([b[name] for b in batches], axis=0, ddof=1) / math.sqrt(BATCHES)
+            for name in batches[0]}
+
+
+def window_statistics(t, z, v, force, laws=None) -> tuple:
+    """(values, ci95) of the estimated statistics over the samples t, each (N_L,): the values over
+    all of them and their batch-means half-widths (batch_ci95). Not collective."""
+    t = np.asarray(t, dtype=float)
+    return _statistics(t, z, v, force, laws), batch_ci95(lambda lo, hi: (t[lo:hi], z[lo:hi], v[lo:hi], force[lo:hi]),
+                                                         t.size, laws)
+
+
+@dataclass
+class StatisticsEstimate:
+    """The statistics' errors of a long run, per statistic (each (N_L,)): `sampling` the 95 %
+    half-width of the run's own statistic over [0, t_end] (batch means); over [0, window], the
+    reduced run's and the richer run's values and half-widths; `error` = |rich - reduced| + the three
+    half-widths (a bound: the model difference, its uncertainty and the run's sampling error). NaN
+    arrays (and a note) when the richer run failed."""
+
+    window: float
+    sampling: dict
+    reduced: dict
+    reduced_ci95: dict
+    rich: dict
+    rich_ci95: dict
+    seconds: float = 0.0
+    note: str = ""
+
+    @property
+    def difference(self) -> dict:
+        return {name: self.rich[name] - self.reduced[name] for name in self.sampling}
+
+    @property
+    def error(self) -> dict:
+        return {name: np.abs(self.rich[name] - self.reduced[name]) + self.sampling[name] + self.reduced_ci95[name]
+                + self.rich_ci95[name] for name in self.sampling}
+
+    def datasets(self, group: str) -> dict:
+        """name -> array under `group` (layout.STATISTICS_ERROR)."""
+        out = {}
+        for name in self.sampling:
+            out.update({f"{group}/{name}": self.error[name], f"{group}/{name}_sampling_ci95": self.sampling[name],
+                        f"{group}/{name}_model": self.difference[name],
+                        f"{group}/{name}_window_reduced": self.reduced[name],
+                        f"{group}/{name}_window_reduced_ci95": self.reduced_ci95[name],
+                        f"{group}/{name}_window_rich": self.rich[name],
+                        f"{group}/{name}_window_rich_ci95": self.rich_ci95[name]})
+        return out
+
+    def attrs(self) -> dict:
+        return {"estimated_statistics_window": float(self.window), "estimated_statistics_note": self.note}
+
+    def summary(self) -> dict:
+        return {"window": self.window, "note": self.note,
+                **{name: {"error": self.error[name].tolist(), "sampling_ci95": self.sampling[name].tolist(),
+                          "model": self.difference[name].tolist(), "reduced_ci95": self.reduced_ci95[name].tolist(),
+                          "rich_ci95": self.rich_ci95[name].tolist()} for name in self.sampling}}
+
+    def lines(self, values: dict | None = None) -> list:
+        """One line a constraint: each statistic's estimated error (with the run's value, if given)."""
+        head = (f"statistics' estimated errors (run's 95 % CI + |richer - reduced| over [0, {self.window:g}] s + "
+                f"both CIs; {self.note}; {self.seconds:.2f} s):")
+        return [head] + statistics_lines(self.error, values)
+
+
+_SHORT = {"impact_rate": ("impact rate", "/s"), "contact_fraction": ("contact fraction", ""),
+          "force_rms": ("force RMS", " N"), "displacement_rms": ("displacement RMS", " m"),
+          "work_rate": ("work rate", " W")}
+
+
+def statistics_lines(error: dict, values: dict | None = None) -> list:
+    """`  constraint j: impact rate 4.1 +- 0.3/s, ...` from per-statistic arrays (N_L,)."""
+    names = [name for name in _SHORT if name in error]
+    count = len(error[names[0]]) if names else 0
+    lines = []
+    for j in range(count):
+        parts = []
+        for name in names:
+            label, unit = _SHORT[name]
+            value = f"{values[name][j]:.4g} " if values is not None and name in values else ""
+            parts.append(f"{label} {value}+- {error[name][j]:.2g}{unit}")
+        lines.append(f"  constraint {j + 1}: " + ", ".join(parts))
+    return lines
+
+
+def statistics_estimate(rich_model, settings, read, times, end: float, laws=None) -> StatisticsEstimate:
+    """The statistics' errors of a long run sampled at `times`, read(lo, hi) its samples' (t, z, v,
+    force) (batch_ci95): the run's own batch-means intervals, and the richer model (nested_estimate's)
+    integrated over [0, end] with rich_settings, its statistics against the run's over the same
+    samples. Not collective."""
+    import time
+
+    from .simulate import simulate_reduced
+
+    start = time.perf_counter()
+    sampling = batch_ci95(read, times.size, laws)
+    k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
+    reduced, reduced_ci = window_statistics(*read(0, k), laws)
+    nan = {name: np.full(value.shape, np.nan) for name, value in reduced.items()}
+    try:
+        result = simulate_reduced(rich_model, rich_settings(settings, float(times[k - 1])))
+    except Interrupted:
+        raise
+    except SolverError as e:
+        return StatisticsEstimate(end, sampling, reduced, reduced_ci, nan, nan, time.perf_counter() - start,
+                                  f"the richer model failed: {e}")
+    if result.time.size != k or not np.allclose(result.time, times[:k], rtol=0, atol=1e-9 * max(end, 1e-300)):
+        return StatisticsEstimate(end, sampling, reduced, reduced_ci, nan, nan, time.perf_counter() - start,
+                                  "the richer run is not sampled alike")
+    rich, rich_ci = window_statistics(result.time, result.displacement, result.velocity, result.force, laws)
+    note = f"against {rich_model.size} basis vectors at rtol {rich_settings(settings, end).rtol:g}"
+    return StatisticsEstimate(float(times[k - 1]), sampling, reduced, reduced_ci, rich, rich_ci,
+                              time.perf_counter() - start, note)
 
 
 # The tolerance mode: the largest basis it tries, and the margin it keeps. The accuracy study

@@ -15,6 +15,7 @@ CONSTRAINT_VELOCITY = "constraints/velocity"
 CONSTRAINT_FORCE = "constraints/force"
 CONSTRAINT_FORCE_PEAK = "constraints/force_peak"
 CONSTRAINT_STATS = "constraints/stats"
+STATISTICS_ERROR = "constraints/stats_error"
 PROBE_POSITION = "probes/position"
 PROBE_DISPLACEMENT = "probes/displacement"
 PROBE_PEAK = "probes/peak"
@@ -81,6 +82,26 @@ DATASETS = {
     "snapshots/component": ("1", "the direction of each field point: 0 = x, 1 = y, 2 = z (F)"),
 }
 
+# The statistics' errors of a long reduced run (accuracy.StatisticsEstimate, docs/accuracy.md):
+# per estimated statistic, these datasets (N_L each, the statistic's unit).
+_ESTIMATED_UNITS = {"impact_rate": "1/s", "contact_fraction": "1", "force_rms": "N", "displacement_rms": "m",
+                    "work_rate": "W"}
+_ERROR_PARTS = {
+    "": "its estimated error: the {0}_sampling_ci95 + |{0}_model| + {0}_window_reduced_ci95 + "
+        "{0}_window_rich_ci95",
+    "_sampling_ci95": "95 % confidence half-width of the run's own {0} over the whole run (batch means of the samples)",
+    "_model": "the model error: the richer model's {0} minus the run's, both over the statistics window",
+    "_window_reduced": "the run's {0} over the statistics window (from the samples)",
+    "_window_reduced_ci95": "95 % confidence half-width of {0}_window_reduced (batch means)",
+    "_window_rich": "the richer model's {0} over the statistics window (from the samples)",
+    "_window_rich_ci95": "95 % confidence half-width of {0}_window_rich (batch means)",
+}
+for _name, _unit in _ESTIMATED_UNITS.items():
+    for _suffix, _meaning in _ERROR_PARTS.items():
+        DATASETS[f"{STATISTICS_ERROR}/{_name}{_suffix}"] = (
+            _unit, _meaning.format(_name) + " (N_L; long reduced runs only" +
+            (", supports of two directions only)" if _name == "work_rate" else ")"))
+
 # Earlier names still read (outputs of dbf_hpc before the enrichment strategies).
 LEGACY = {BASIS_ENRICHMENT_OMEGA: "basis/dbf_omega"}
 
@@ -117,7 +138,10 @@ def reference() -> str:
               "a-posteriori error estimate (docs/accuracy.md; not with `[basis] estimate = false`): "
               "`estimated_error` (1, the largest |w - w_rich| at any constraint over the largest |w_rich| at any "
               "constraint, against twice the modes, NaN if it could not be made), `estimated_error_window` (s, "
-              "the estimate holds over [0, it]) and `estimated_error_note` (how it was made, or why not).", "",
+              "the estimate holds over [0, it]) and `estimated_error_note` (how it was made, or why not). A long "
+              "reduced run (t_end over 5 times `estimated_error_window`) also has its statistics' errors: the "
+              "`constraints/stats_error` datasets above, `estimated_statistics_window` (s, the statistics window "
+              "[0, it] of the model error) and `estimated_statistics_note`.", "",
              "On a beam of two planes (`[structure] planes = 2`, 2-D laws such as `circular`) the statistics are per "
              "support and radial: `displacement_*` of |u|, `force_*` of |F|, contact (and so the impacts) where "
              "|u| > clearance, `impact_power_mean` of |F_n v_n|, and `work_rate` = <|F_n| |v_t|> (W), the normal "

@@ -88,7 +88,22 @@ def _estimate_lines(f) -> list:
     if not np.isfinite(value):
         return [f"  estimated error: not available ({f.attrs.get('estimated_error_note', '')})"]
     return [f"  estimated error in w at the constraints: {value:.3g} ({value:.2%}) over [0, {window:g}] s "
-            f"({f.attrs.get('estimated_error_note', '')})"]
+            f"({f.attrs.get('estimated_error_note', '')})"] + _statistics_error_lines(f)
+
+
+def _statistics_error_lines(f) -> list:
+    """A long run's statistics' errors (accuracy.StatisticsEstimate), when it carries them."""
+    from .accuracy import ESTIMATED_STATISTICS_2D, statistics_lines
+
+    if layout.STATISTICS_ERROR not in f:
+        return []
+    group, stats = f[layout.STATISTICS_ERROR], f.get(layout.CONSTRAINT_STATS)
+    error = {name: group[name][:] for name in ESTIMATED_STATISTICS_2D if name in group}
+    values = {name: stats[name][:] for name in error if stats is not None and name in stats}
+    window = float(f.attrs.get("estimated_statistics_window", np.nan))
+    head = (f"  statistics' estimated errors (run's 95 % CI + |richer - reduced| over [0, {window:g}] s + both CIs; "
+            f"{f.attrs.get('estimated_statistics_note', '')}):")
+    return [head] + ["  " + line for line in statistics_lines(error, values)]
 
 
 def _constraint_lines(f, partial: bool = False) -> list:

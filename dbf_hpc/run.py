@@ -21,7 +21,7 @@ from slepc4py import SLEPc
 from . import layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
 from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, estimate_window, first_contact, flexibility_warning,
-                       nested_estimate, pick_basis, reused_estimate)
+                       is_long, nested_estimate, pick_basis, reused_estimate, statistics_estimate, statistics_window)
 from .basis import richer_basis
 from .checkpoint import Checkpoint, identity
 from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, petsc_failure, write_failure
@@ -152,7 +152,8 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
     ident = run_identity(scene, basis_key, comm.getSize(), "rom")
     return _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident,
                         {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state},
-                        (rich, window) if rich is not None and initial_state is None else None)
+                        (rich, window, estimate.statistics_window) if rich is not None and initial_state is None
+                        else None)
 
 
 def rich_model(fom, basis):
@@ -320,15 +321,21 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     stats.update(extra_stats or {})
     try:
         estimate = _estimate(estimator, writer, settings, timings, say)
+        long_run = _estimate_statistics(estimator, estimate, writer, model.constraints, settings, timings)
     except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
         raise type(exc)(_left_behind(str(exc), writer, checkpoint)) from None
     t = time.perf_counter()
     snap_t, snap_w = recorder.snapshots(settings.sample_times)
     timings["snapshots"] = time.perf_counter() - t
     summary = finish(scene, recorder, stats, timings, ranks, "rom", model.field_points, snap_t, snap_w, model,
-                     estimate.attrs() if estimate else None)
+                     {**(estimate.attrs() if estimate else {}), **(long_run.attrs() if long_run else {})},
+                     long_run.datasets(layout.STATISTICS_ERROR) if long_run else None)
     if estimate:
         summary["estimated_error"], summary["estimated_error_window"] = estimate.value, estimate.window
+    if long_run:
+        summary["estimated_statistics"] = long_run.summary()
+        for line in long_run.lines({k: np.asarray(v) for k, v in summary["constraint_stats"].items()}):
+            _say(say, line)
     summary["final_state"] = [recorder.final[0].tolist(), recorder.final[1].tolist()]
     checkpoint.remove()
     _say(say, f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} Newton "
@@ -341,7 +348,7 @@ def _estimate(estimator, writer, settings, timings: dict, say):
     or None without an estimator. Not collective."""
     if estimator is None:
         return None
-    rich, window = estimator
+    rich, window, _ = estimator
     times = writer.series_data(layout.TIME)
     if isinstance(rich, str):
         return Estimate(np.nan, 0.0, 0.0, rich)
@@ -356,6 +363,27 @@ def _estimate(estimator, writer, settings, timings: dict, say):
     timings["estimate"] = estimate.seconds
     _say(say, estimate.line())
     return estimate
+
+
+def _estimate_statistics(estimator, estimate, writer, constraints, settings, timings: dict):
+    """Rank 0: the statistics' errors of a long run (accuracy.is_long: t_end beyond STATISTICS_WINDOWS
+    times the pointwise window), or None (a short run, no richer model, the tolerance mode's reused
+    calibration). Reads the run's constraint samples back a batch at a time. Not collective."""
+    if estimator is None or estimate is None or isinstance(estimator[0], (str, Estimate)) or \
+            not is_long(settings.t_end, estimate.window):
+        return None
+    writer.flush()
+    times = writer.series_data(layout.TIME)
+    names = (layout.TIME, layout.CONSTRAINT_DISPLACEMENT, layout.CONSTRAINT_VELOCITY, layout.CONSTRAINT_FORCE)
+
+    def read(lo, hi):   # a batch of the samples from the file: memory stays flat however long the run
+        return tuple(writer.series[name][lo:hi] for name in names)
+
+    laws = constraints.laws if constraints.dimension == 2 else None
+    end = statistics_window(settings.t_end, settings.sample_dt, estimator[2])
+    result = statistics_estimate(estimator[0], settings, read, times, end, laws)
+    timings["estimate_statistics"] = result.seconds
+    return result
 
 
 def _first_contact(writer, times: np.ndarray, block: int = 1 << 16):
@@ -476,7 +504,8 @@ def _initial_text(init) -> str:
 
 
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
-           field, snap_t, snap_w, model: ReducedModel | None = None, extra_attrs: dict | None = None) -> dict:
+           field, snap_t, snap_w, model: ReducedModel | None = None, extra_attrs: dict | None = None,
+           extra_datasets: dict | None = None) -> dict:
     """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
     snapshots, an XDMF file beside it for ParaView), and return the run's summary. `field` is the
     PointValues the snapshots are taken at."""
@@ -504,6 +533,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                 **{f"{layout.CONSTRAINT_STATS}/{k}": v for k, v in constraint_stats.items()}}
     if snap_t.size:
         datasets.update(node_vectors(geometry, snap_w, "snapshots"))
+    datasets.update(extra_datasets or {})
     attrs = {"field_kind": geometry[0], **(extra_attrs or {})}
     if model is not None:
         info = model.basis_info

@@ -135,7 +135,8 @@ class Scene:
 
     def estimate_settings(self) -> EstimateSettings:
         b = self["basis"]
-        return EstimateSettings(enabled=b["estimate"], window=b["estimate_window"], tolerance=b["tolerance"])
+        return EstimateSettings(enabled=b["estimate"], window=b["estimate_window"], tolerance=b["tolerance"],
+                                statistics_window=b["estimate_statistics_window"])
 
     def integrator_settings(self) -> IntegratorSettings:
         i = self["integrator"]
@@ -434,7 +435,8 @@ def _check_turbulence(e: dict, s: dict, where: str) -> None:
 def _check_basis(b: dict, where: str) -> None:
     if b["modes"] is not None and b["max_frequency_hz"] is not None:
         raise InputError(f"{where}: give modes or max_frequency_hz, not both")
-    EstimateSettings(enabled=b["estimate"], window=b["estimate_window"], tolerance=b["tolerance"])
+    EstimateSettings(enabled=b["estimate"], window=b["estimate_window"], tolerance=b["tolerance"],
+                     statistics_window=b["estimate_statistics_window"])
     if b["tolerance"] is not None and b["max_frequency_hz"] is not None:
         raise InputError(f"{where}: tolerance picks the number of modes; remove max_frequency_hz")
     if b["modes"] is None and b["max_frequency_hz"] is None:
