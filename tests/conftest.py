@@ -19,6 +19,34 @@ def pytest_configure(config):
             config.pluginmanager.unregister(reporter)
 
 
+_failed = []   # this rank's failed tests
+
+
+def pytest_runtest_logreport(report):
+    if report.failed:
+        _failed.append(report.nodeid)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Rank 0 reports; a test that failed on another rank only is named here (else the pass would
+    fail with rank 0's summary saying all passed). Collective."""
+    world = MPI.COMM_WORLD
+    if world.size < 2:
+        return
+    everyone = world.gather(sorted(set(_failed)), root=0)
+    if world.rank == 0:
+        elsewhere = sorted({nodeid for failed in everyone[1:] for nodeid in failed} - set(everyone[0]))
+        reporter = session.config.pluginmanager.getplugin("terminalreporter")
+        if reporter is not None and elsewhere:
+            reporter.ensure_newline()
+        for nodeid in elsewhere:
+            ranks = [rank for rank, failed in enumerate(everyone) if nodeid in failed]
+            line = f"FAILED on rank(s) {ranks} only: {nodeid}"
+            reporter.write_line(line) if reporter is not None else print(line)
+        if elsewhere:
+            session.exitstatus = 1
+
+
 def pytest_collection_modifyitems(config, items):
     parallel = MPI.COMM_WORLD.size >= 2
     skip_parallel = pytest.mark.skip(reason="needs 2 MPI ranks (runs in the 2-rank pass)")
