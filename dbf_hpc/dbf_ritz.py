@@ -157,10 +157,10 @@ class RitzSpace:
             scale = np.where(ok, norm, 1.0)
             a /= scale
             b /= scale
-            for j, r in enumerate(rows):
+            for j, r in enumerate(rows):   # views into the block (column-major): no second copy
                 if alive[j]:
                     steps[r].append(_Prefetched(columns[:, j].copy(), float(gz[j]), float(gx[j] / scale[j]),
-                                                a[:, j].copy() if ok[j] else None, b[:, j].copy() if ok[j] else None))
+                                                a[:, j] if ok[j] else None, b[:, j] if ok[j] else None))
             alive = ok
             if not alive.any():
                 break

@@ -61,7 +61,6 @@ def limit(ops, rows, solver_type: str, block: bool = False) -> float:
     if solver_type == "petsc":
         ksp.getPC().setFactorOrdering("nd")
     ksp.setOperators(ops.K)
-    psi = ops.K.createVecRight()
     if block:
         ksp.setUp()
         lo, hi = ops.K.getOwnershipRange()
@@ -80,12 +79,14 @@ def limit(ops, rows, solver_type: str, block: bool = False) -> float:
         ksp.getPC().getFactorMatrix().matSolve(B, X)
         destroy(B, X)
     else:
+        psi = ops.K.createVecRight()
         for row in rows:
             g = unit_vector(psi, int(row))
             ksp.solve(g, psi)
             g.destroy()
+        psi.destroy()
     elapsed = time.perf_counter() - t0
-    destroy(ksp, psi)
+    destroy(ksp)
     return elapsed
 
 
