@@ -246,3 +246,76 @@ def test_a_planar_turbulence_scene_runs_reduced_on_the_python_callbacks_and_full
                 with h5py.File(out) as f:
                     assert f["constraints/displacement"].shape[1:] == (1,)
     assert all(p > 0 for p in peaks)
+
+
+TWO_PLANE_SUPPORTS = """[basis]
+modes = 8
+estimate = false
+[output]
+checkpoint_dt = 0.03
+snapshots = 4
+[[constraint]]
+x = 0.7
+law = "circular"
+clearance = 2e-6
+k = 2e4
+mu = 0.3
+[[constraint]]
+x = 1.5
+law = "flat_bar"
+angle = 30.0
+clearance = 2e-6
+k = 2e4
+mu = 0.3
+"""
+
+
+@pytest.mark.parametrize("callbacks", ["python"])
+def test_a_two_plane_run_under_turbulence_stopped_at_a_checkpoint_resumes_to_the_uninterrupted_result(
+        shared_tmp_path, callbacks, monkeypatch):
+    """The turbulence histories are not stored in the checkpoint: they are sums of cosines whose
+    phases come from the seed, regenerated on resume (excitation.CorrelatedProcess). The resumed run
+    is the uninterrupted one bit for bit, and a resume with another seed or PSD (other histories) is
+    refused by the checkpoint's scene key."""
+    import h5py
+    import json
+
+    from dbf_hpc import run as run_module
+    from dbf_hpc.errors import DbfError
+
+    path = os.path.join(shared_tmp_path, "resume2d.toml")
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "w") as f:
+            f.write(SCENE.format(extra="correlation_length = 0.3\nspan = [1.0, 2.0]\nseed = 7")
+                    .replace("t_end = 0.01", "t_end = 0.09")
+                    .replace("psd = 1.0", "psd = 4.0").replace('[output]\nfile = "out.h5"\n', "")
+                    + TWO_PLANE_SUPPORTS)
+    MPI.COMM_WORLD.Barrier()
+    sets = [f"basis.cache={json.dumps(str(shared_tmp_path))}", f"integrator.callbacks={callbacks}"]
+    reference, target = (os.path.join(shared_tmp_path, f"{name}-2d-{callbacks}.h5") for name in ("ref", "cut"))
+    run_module.run(load_scene(path, sets), reference, progress=False)
+    original = run_module.Checkpointing.on_step
+
+    def stop_at_the_second_checkpoint(self, ts, t, q, p):
+        if t >= 0.06:
+            self.interrupted = True   # as SIGTERM does
+        return original(self, ts, t, q, p)
+
+    monkeypatch.setattr(run_module.Checkpointing, "on_step", stop_at_the_second_checkpoint)
+    with pytest.raises(DbfError, match="checkpointed"):
+        run_module.run(load_scene(path, sets), target, progress=False)
+    monkeypatch.setattr(run_module.Checkpointing, "on_step", original)
+    for change in ("excitation.seed=8", "excitation.psd=1.1"):
+        with pytest.raises(InputError, match="written by a different scene or setup \\(scene differs\\)"):
+            run_module.run(load_scene(path, sets + [change]), target, progress=False, resume=True)
+    summary = run_module.run(load_scene(path, sets), target, progress=False, resume=True)
+    assert summary["stats"]["final_time"] == pytest.approx(0.09)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(reference) as a, h5py.File(target) as b:
+            assert json.loads(a.attrs["solver_stats"])["callbacks"] == json.loads(b.attrs["solver_stats"])["callbacks"]
+            assert a["constraints/displacement"].shape[1:] == (2, 2)
+            assert np.all(a["constraints/stats/work_rate"][:] > 0)     # both supports slide under friction
+            for name in ("time", "constraints/displacement", "constraints/force", "constraints/force_peak",
+                         "reduced/q", "snapshots/w", *[f"constraints/stats/{k}" for k in a["constraints/stats"]]):
+                assert np.array_equal(a[name][:], b[name][:], equal_nan=True), name
+    assert_all(True)
