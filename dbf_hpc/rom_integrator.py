@@ -48,26 +48,18 @@ _warned = []
 def c_core(callbacks: str, say=None, dimension: int = 1, load_matrix: bool = False, friction: bool = False):
     """The C core for [integrator] callbacks = `callbacks`, or None for the Python callbacks. "c"
     without the extension is an InputError (one line saying how to build it); "auto" falls back to
-    Python with a one-line warning (once per process). The C callbacks handle laws of one direction
-    (d = 1) without friction and one load shape times one history: with 2-D laws, a friction law or a
-    load matrix (turbulence) "auto" takes the Python callbacks without a warning, and "c" is an
-    InputError."""
+    Python with a one-line warning (once per process). The C callbacks handle every law of laws.py:
+    those of one direction (d = 1, with law = "friction"), and those of two (d = 2: circular, flat_bar,
+    with friction and contact damping); one load shape times one history, or a load matrix times its
+    histories (turbulence). `load_matrix` and `friction` are therefore covered; with constraints of
+    more than two directions "auto" takes the Python callbacks without a warning, and "c" is an
+    InputError. The decision depends on the model alone: the same on every rank."""
     if callbacks == "python":
         return None
-    if friction:
+    if not _covered(dimension, load_matrix, friction):
         if callbacks == "c":
-            raise InputError("callbacks = \"c\": the C callbacks have no friction law; use callbacks = \"auto\" or "
-                             "\"python\"")
-        return None
-    if load_matrix:
-        if callbacks == "c":
-            raise InputError("callbacks = \"c\": the C callbacks handle one load shape; turbulence has a load matrix: "
-                             "use callbacks = \"auto\" or \"python\"")
-        return None
-    if dimension > 1:
-        if callbacks == "c":
-            raise InputError("callbacks = \"c\": the C callbacks handle constraints of one direction (d = 1) "
-                             "only; use callbacks = \"auto\" or \"python\" with 2-D laws (circular)")
+            raise InputError(f"callbacks = \"c\": the C callbacks handle constraints of one or two directions, "
+                             f"not {dimension}; use callbacks = \"auto\" or \"python\"")
         return None
     from . import _romc
     if _romc.core is not None:
@@ -85,8 +77,14 @@ def effective_callbacks(callbacks: str, dimension: int = 1, load_matrix: bool = 
     of `dimension` (as c_core decides; part of a checkpoint's identity: the two agree to the
     integrator's tolerance, not bit for bit)."""
     from . import _romc
-    simple = dimension == 1 and not load_matrix and not friction
-    return "c" if callbacks != "python" and simple and _romc.core is not None else "python"
+    return "c" if callbacks != "python" and _covered(dimension, load_matrix, friction) and _romc.core is not None \
+        else "python"
+
+
+def _covered(dimension: int, load_matrix: bool, friction: bool) -> bool:
+    """Whether the C callbacks implement the model: laws of one or two directions (with friction, with
+    a load matrix or not)."""
+    return dimension in (1, 2)
 
 
 def _user_solver_options() -> bool:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dbf_hpc import IntegratorSettings, law, simulate_reduced
+from dbf_hpc import IntegratorSettings, _romc, law, simulate_reduced
 from dbf_hpc.constraints import ConstraintSet
 from dbf_hpc.errors import InputError
 from dbf_hpc.excitation import Harmonic
@@ -47,7 +47,10 @@ def coulomb_free_decay(t, omega, delta, x0):
     return x, turn, stopped_at
 
 
-def test_free_decay_with_coulomb_friction_loses_4_mu_n_over_k_a_cycle_and_stops_in_the_dead_zone():
+@pytest.mark.parametrize("callbacks", ["python", "c"])
+def test_free_decay_with_coulomb_friction_loses_4_mu_n_over_k_a_cycle_and_stops_in_the_dead_zone(callbacks):
+    if callbacks == "c" and _romc.core is None:
+        pytest.skip(_romc.why)
     m, omega = 1.0, 2 * math.pi
     k = m * omega**2
     mu, normal = 0.25, 4.0
@@ -55,7 +58,9 @@ def test_free_decay_with_coulomb_friction_loses_4_mu_n_over_k_a_cycle_and_stops_
     x0 = 10.3 * delta                             # turning points 10.3, -8.3, 6.3, -4.3, 2.3, -0.3 delta
     v_reg = 1e-6 * x0 * omega
     model = oscillator(k, x0, law("friction", normal_force=normal, mu=mu, v_reg=v_reg), m)
-    result = simulate_reduced(model, IntegratorSettings(t_end=4.0, dt=1e-4, sample_dt=1e-3, rtol=1e-8, atol=1e-12))
+    result = simulate_reduced(model, IntegratorSettings(t_end=4.0, dt=1e-4, sample_dt=1e-3, rtol=1e-8, atol=1e-12,
+                                                        callbacks=callbacks))
+    assert result.solver["callbacks"] == callbacks
     t, x = result.time, result.displacement[:, 0]
     exact, rest, stop = coulomb_free_decay(t, omega, delta, x0)
     assert rest == pytest.approx(-0.3 * delta) and stop == pytest.approx(2.5)
@@ -91,9 +96,7 @@ def test_friction_law_keys_are_checked_in_one_line():
         law("deadband", clearance=1e-3, k=1e6, normal_force=2.0)
     with pytest.raises(InputError, match="no contact damping"):
         law("friction", normal_force=1.0, mu=0.3, damping="linear", c=1.0)
-    assert c_core("auto", friction=True) is None
-    with pytest.raises(InputError, match="no friction law"):
-        c_core("c", friction=True)
+    assert c_core("python", friction=True) is None
 
 
 def den_hartog_steady_state(k, m, P0, F, omega):
@@ -116,7 +119,10 @@ def den_hartog_steady_state(k, m, P0, F, omega):
     return X, phi, half
 
 
-def test_forced_oscillator_with_coulomb_friction_follows_den_hartogs_steady_state_without_stops():
+@pytest.mark.parametrize("callbacks", ["python", "c"])
+def test_forced_oscillator_with_coulomb_friction_follows_den_hartogs_steady_state_without_stops(callbacks):
+    if callbacks == "c" and _romc.core is None:
+        pytest.skip(_romc.why)
     m, wn = 1.0, 2 * math.pi
     k = m * wn**2
     P0, F, beta = 1.0, 0.5, 0.6
@@ -132,7 +138,8 @@ def test_forced_oscillator_with_coulomb_friction_follows_den_hartogs_steady_stat
     model = model.with_case(force=Harmonic(P0, omega / (2 * math.pi), phi + math.pi / 2))
     model = type(model)(**{**model.__dict__, "force_shape": np.ones(1)})
     result = simulate_reduced(model, IntegratorSettings(t_end=2 * T, dt=1e-4, sample_dt=T / 400, rtol=1e-7,
-                                                        atol=1e-11))
+                                                        atol=1e-11, callbacks=callbacks))
+    assert result.solver["callbacks"] == callbacks
     t, x = result.time, result.displacement[:, 0]
     cycle = np.mod(t, T)
     exact = np.where(cycle <= T / 2, half(np.minimum(cycle, T / 2)), -half(np.maximum(cycle - T / 2, 0.0)))

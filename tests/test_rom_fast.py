@@ -270,3 +270,181 @@ def json_stats(f):
     import json
 
     return json.loads(f.attrs["solver_stats"])
+
+
+# -- two-direction laws, friction and the load matrix (issue 18) -------------------------------------
+
+PLANAR_LAWS = [
+    ("circular", dict(clearance=1e-4, k=1e3, mu=0.3, v_reg=1e-2, damping="linear", c=0.01)),
+    ("circular", dict(clearance=2e-4, k=1e5, mu=0.2)),
+    ("flat_bar", dict(angle=30.0, clearance=1e-4, k=1e4, mu=0.3, damping="hunt_crossley", alpha=0.2)),
+    ("flat_bar", dict(angle=90.0, clearance=0.0, k=1e4)),
+]
+
+
+@pytest.fixture(scope="module")
+def tube2d():
+    """A two-plane beam in two round holes and two pairs of flat bars (friction, both kinds of contact
+    damping), under correlated turbulence (a load matrix of 22 histories)."""
+    from dbf_hpc import BasisSettings, Beam, Constraint, FullOrderModel, Reductor
+    from dbf_hpc.damping import Damping
+    from dbf_hpc.excitation import Turbulence
+    from dbf_hpc.laws import CircularLaw
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20, planes=2)
+    turbulence = Turbulence(psd=1e-4, band=(0.0, 40.0), correlation_length=0.3, span=(0.5, 1.0), components=16,
+                            seed=3)
+    supports = [Constraint(CircularLaw(kind=kind, **keys), x=x) for (kind, keys), x in zip(PLANAR_LAWS, (0.2, 0.4, 0.6, 0.8))]
+    with FullOrderModel.build(beam, supports, turbulence, probes=[0.5], damping=Damping(zeta=0.01),
+                              comm=PETSc.COMM_SELF) as fom:
+        with Reductor(fom, BasisSettings(modes=8)) as reductor:
+            return reductor.reduce()
+
+
+def _planar_scales(laws, z, v):
+    """Per support, the size of each Jacobian's terms before they cancel: the friction factor
+    1 - tanh^2(v_t / v_reg) loses digits where tanh is near 1, and numpy's tanh and the C library's
+    differ by an ulp, so the two are compared on that scale (mu k delta / v_reg, times |v| / r in dF/du)."""
+    u, w = z.reshape(-1, 2), v.reshape(-1, 2)
+    r, _, curved = laws._gap_coordinate(u)
+    delta = np.maximum(r - laws.gap, 0.0)
+    inv_r = curved / np.where(r > 0, r, 1.0)
+    speed = np.hypot(w[:, 0], w[:, 1])
+    friction = laws.mu * laws.k * delta / laws.v_reg
+    sz = laws.k * (1 + laws.alpha * speed) + (laws.k * delta + laws.c * speed) * inv_r + friction * (1 + speed * inv_r)
+    sv = laws.c + laws.alpha * laws.k * delta + friction
+    return sz, sv
+
+
+@needs_c
+def test_two_direction_and_friction_laws_in_c_agree_with_laws_py_to_round_off(tube2d, paper):
+    # circular and flat_bar with friction and contact damping: random states in and out of contact, the
+    # axis (u = 0), the edge of contact (|u| = c); values to 1e-13 of the largest force, the 2 x 2 blocks
+    # to 1e-12 of each block's term scale (_planar_scales)
+    model = tube2d
+    laws = model.constraints.laws
+    problem = _problem(model)
+    rng = np.random.default_rng(11)
+    gaps = np.repeat(laws.gap, 2)
+    edge = [np.concatenate([[g, 0.0] for g in laws.gap]), np.concatenate([[0.0, -g] for g in laws.gap])]
+    states = [np.zeros(8)] + edge + list(rng.normal(0, 1.5, (400, 8)) * np.maximum(gaps, 1e-4))
+    worst = 0.0
+    for z in states:
+        v = rng.normal(0, 1e-2, 8) * rng.choice([0.0, 1e-2, 1.0, 30.0])
+        (N, Nz, Nv), (N0, Nz0, Nv0) = problem.laws(z, v), laws.force_and_jacobian(z, v)
+        sz, sv = _planar_scales(laws, z, v)
+        assert Nz.shape == Nz0.shape == (4, 2, 2)
+        assert np.abs(N - N0).max() <= 1e-13 * max(np.abs(N0).max(), 1e-300)
+        assert np.all(np.abs(Nz - Nz0).max(axis=(1, 2)) <= 1e-12 * sz), (z, v)
+        assert np.all(np.abs(Nv - Nv0).max(axis=(1, 2)) <= 1e-12 * sv), (z, v)
+        worst = max(worst, (np.abs(Nz - Nz0).max(axis=(1, 2)) / sz).max())
+    assert np.count_nonzero([np.any(laws.in_contact(z)) for z in states]) > 100
+    # law = "friction" (d = 1) among the scalar laws: the same, on the scale mu F_n / v_reg of dN/dv
+    scalar = LAWS[:1] + [law("friction", normal_force=3.0, mu=0.4, v_reg=1e-3), law("friction", normal_force=0.5, mu=0.2)]
+    n = len(scalar)
+    constraints = dataclasses.replace(paper[0].constraints, rows=np.zeros((n, 1), dtype=np.int64),
+                                      laws=ConstraintLaws(scalar), labels=tuple(map(str, range(n))), positions=np.zeros(n))
+    one = dataclasses.replace(paper[0], constraints=constraints, B=np.ones((n, paper[0].size)), r_c=np.zeros(n))
+    problem, python = _problem(one), ConstraintLaws(scalar)
+    slip = np.array([x.mu * x.normal_force / (x.v_reg or 1.0) for x in scalar])
+    for z in rng.uniform(-4e-3, 4e-3, (200, n)):
+        v = rng.normal(0, 1e-2, n) * rng.choice([0.0, 1e-2, 1.0, 30.0])
+        (N, Nz, Nv), (N0, Nz0, Nv0) = problem.laws(z, v), python.force_and_jacobian(z, v)
+        assert np.array_equal(Nz, Nz0)
+        assert np.all(np.abs(N - N0) <= 1e-15 * np.abs(N0).max())
+        assert np.all(np.abs(Nv - Nv0) <= 1e-13 * (np.abs(Nv0) + slip))
+
+
+@needs_c
+def test_the_c_jacobian_of_two_direction_laws_is_the_python_jacobian_and_its_structured_inverse_is_exact(tube2d):
+    # the 2 x 2 blocks in the MatShell's product and in Woodbury's capacitance (friction makes them
+    # unsymmetric), against the Python dense Jacobian; J (J^-1 x) = x
+    model = tube2d
+    r = model.size
+    python, fast = ReducedProblem(model, True), _problem(model)
+    ts = PETSc.TS().create(PETSc.COMM_SELF)
+    ts.setType("arkimex")
+    y, ydot = PETSc.Vec().createSeq(2 * r, comm=PETSc.COMM_SELF), PETSc.Vec().createSeq(2 * r, comm=PETSc.COMM_SELF)
+    F, G = y.duplicate(), y.duplicate()
+    shell = fast.shell_matrix()
+    fast.attach(ts, F, G, shell, True)
+    dense = PETSc.Mat().createDense((2 * r, 2 * r), comm=PETSc.COMM_SELF)
+    dense.setUp()
+    pc = PETSc.PC().create(PETSc.COMM_SELF)
+    fast.set_pcshell(pc)
+    pc.setOperators(shell)
+    pc.setUp()
+    rng = np.random.default_rng(4)
+    x, out, back, Fc, Fp = (y.duplicate() for _ in range(5))
+    contacts = 0
+    for trial in range(30):
+        z = rng.normal(0, 3e-4, 8)
+        q = np.linalg.lstsq(model.B, z, rcond=None)[0]
+        p = np.linalg.lstsq(model.B, rng.normal(0, 1e-2, 8), rcond=None)[0]
+        state = np.concatenate([q, p])
+        y.setArray(state)
+        ydot.setArray(rng.normal(0, 1, 2 * r))
+        t, shift = rng.uniform(0, 1), 10 ** rng.uniform(2, 5)
+        ts.computeIJacobian(t, y, ydot, shift, shell, shell)
+        python.ijacobian(ts, t, y, ydot, shift, dense, dense)
+        ts.computeIFunction(t, y, ydot, Fc, imex=True)   # F alone (imex=False subtracts G)
+        python.ifunction(ts, t, y, ydot, Fp)
+        np.testing.assert_allclose(Fc.getArray(), Fp.getArray(), rtol=0, atol=1e-12 * np.abs(Fp.getArray()).max())
+        contacts += np.count_nonzero(model.constraints.in_contact(model.constraint_state(t, q, p)[0]))
+        A = dense.getDenseArray().copy()
+        for _ in range(3):
+            x.setArray(rng.normal(0, 1, 2 * r))
+            shell.mult(x, out)
+            np.testing.assert_allclose(out.getArray(), A @ x.getArray(), rtol=1e-12,
+                                       atol=1e-12 * np.abs(A).max() * np.abs(x.getArray()).max())
+            pc.apply(x, back)
+            solution = back.getArray()
+            residual = np.abs(A @ solution - x.getArray()).max()
+            backward = residual / (np.abs(A).sum(axis=1).max() * np.abs(solution).max() + np.abs(x.getArray()).max())
+            assert backward < 1e-12, backward
+    assert contacts > 30   # the 2 x 2 Woodbury blocks were exercised
+    for obj in (ts, y, ydot, F, G, shell, dense, pc, x, out, back, Fc, Fp):
+        obj.destroy()
+
+
+@needs_c
+def test_the_load_matrix_forcing_in_c_is_the_python_forcing_of_the_turbulence_histories(tube2d):
+    # X(t) by Horner's rule over the equally spaced frequencies against excitation.CorrelatedProcess's
+    # cosines, times V^T W: to 1e-13 of the force at times up to 100 s
+    model = tube2d
+    r = model.size
+    python, fast = ReducedProblem(model, True), _problem(model)
+    ts = PETSc.TS().create(PETSc.COMM_SELF)
+    y = PETSc.Vec().createSeq(2 * r, comm=PETSc.COMM_SELF)
+    F, G, shell, out = y.duplicate(), y.duplicate(), fast.shell_matrix(), y.duplicate()
+    fast.attach(ts, F, G, shell, True)
+    y.set(0.0)
+    assert model.force_shape.shape == (r, 22)
+    for t in np.concatenate([[0.0], np.random.default_rng(2).uniform(0, 100.0, 50)]):
+        ts.computeRHSFunction(t, y, out)
+        reference = python.forcing(t)
+        assert not np.any(out.getArray()[:r])
+        assert np.abs(out.getArray()[r:] - reference).max() <= 1e-13 * np.abs(reference).max() * max(1.0, t), t
+    for obj in (ts, y, F, G, shell, out):
+        obj.destroy()
+
+
+@needs_c
+def test_c_callbacks_follow_the_python_trajectory_of_a_two_plane_beam_under_turbulence_with_friction(tube2d):
+    # The same fixed steps: the C and Python callbacks differ by round-off in the laws and the
+    # forcing, which contacts amplify (3e-9 of the peak after 0.06 s, measured); the statistics the
+    # C monitor accumulates (radial quantities, work rate) are those of recorder.py
+    settings = IntegratorSettings(t_end=0.03, dt=2e-5, adaptive=False, sample_dt=1e-3)
+    a, b = (simulate_reduced(tube2d, dataclasses.replace(settings, callbacks=cb)) for cb in ("python", "c"))
+    assert a.solver["callbacks"] == "python" and b.solver["callbacks"] == "c" and b.solver["newton"] == "c"
+    assert a.displacement.shape == b.displacement.shape == (31, 4, 2)
+    assert a.statistics["impacts"][:3].sum() >= 3 and np.all(a.statistics["work_rate"][1:] > 0)   # three slide
+    peak = np.abs(a.displacement).max()
+    assert np.abs(a.displacement - b.displacement).max() <= 1e-7 * peak
+    assert np.abs(a.force_peak - b.force_peak).max() <= 1e-6 * np.abs(a.force_peak).max()
+    np.testing.assert_array_equal(a.statistics["impacts"], b.statistics["impacts"])
+    for name in a.statistics:
+        np.testing.assert_allclose(b.statistics[name], a.statistics[name], rtol=1e-6, atol=0, err_msg=name)
+    np.testing.assert_allclose(b.force.reshape(31, -1), [tube2d.constraints.force(z, v) for z, v in
+                                                         zip(b.displacement.reshape(31, -1), b.velocity.reshape(31, -1))],
+                               rtol=0, atol=1e-13 * np.abs(b.force).max())

@@ -10,10 +10,10 @@ from mpi4py import MPI
 from petsc4py import PETSc
 from scipy import signal
 
-from dbf_hpc import Beam, BasisSettings, FullOrderModel, IntegratorSettings, Reductor
+from dbf_hpc import Beam, BasisSettings, FullOrderModel, IntegratorSettings, Reductor, _romc
 from dbf_hpc.errors import InputError
 from dbf_hpc.excitation import Turbulence
-from dbf_hpc.rom_integrator import c_core
+from dbf_hpc.rom_integrator import c_core, effective_callbacks
 from dbf_hpc.scene import load_scene
 from dbf_hpc.structure import distributed_load
 
@@ -162,10 +162,15 @@ def test_turbulence_descriptions_refuse_bad_values_in_one_line():
         assert "\n" not in str(e.value)
 
 
-def test_c_callbacks_refuse_a_load_matrix_and_auto_takes_python():
-    assert c_core("auto", load_matrix=True) is None
-    with pytest.raises(InputError, match="load matrix"):
-        c_core("c", load_matrix=True)
+def test_c_callbacks_take_a_load_matrix_of_one_or_two_plane_turbulence():
+    from dbf_hpc import _romc
+
+    if _romc.core is None:
+        pytest.skip(_romc.why)
+    for dimension in (1, 2):
+        assert c_core("c", dimension=dimension, load_matrix=True) is _romc.core
+        assert c_core("auto", dimension=dimension, load_matrix=True) is _romc.core
+    assert c_core("python", load_matrix=True) is None
 
 
 SCENE = """
@@ -221,7 +226,7 @@ def test_turbulence_scenes_refuse_incomplete_keys_in_one_line(shared_tmp_path, e
     assert "\n" not in str(e.value)
 
 
-def test_a_planar_turbulence_scene_runs_reduced_on_the_python_callbacks_and_full_order(shared_tmp_path, comm):
+def test_a_planar_turbulence_scene_runs_reduced_on_the_c_callbacks_and_full_order(shared_tmp_path, comm):
     import h5py
     import json
 
@@ -241,7 +246,8 @@ def test_a_planar_turbulence_scene_runs_reduced_on_the_python_callbacks_and_full
         summary = run(scene, out, progress=False, comm=comm, method=method)
         peaks.append(summary["constraint_stats"]["displacement_peak"][0])
         if method == "rom":
-            assert summary["stats"]["callbacks"] == "python"
+            assert summary["stats"]["callbacks"] == effective_callbacks("auto", load_matrix=True)
+            assert summary["stats"]["callbacks"] == ("python" if _romc.core is None else "c")
             if comm.getRank() == 0:
                 with h5py.File(out) as f:
                     assert f["constraints/displacement"].shape[1:] == (1,)
@@ -270,7 +276,7 @@ mu = 0.3
 """
 
 
-@pytest.mark.parametrize("callbacks", ["python"])
+@pytest.mark.parametrize("callbacks", ["python", "c"])
 def test_a_two_plane_run_under_turbulence_stopped_at_a_checkpoint_resumes_to_the_uninterrupted_result(
         shared_tmp_path, callbacks, monkeypatch):
     """The turbulence histories are not stored in the checkpoint: they are sums of cosines whose
@@ -282,6 +288,9 @@ def test_a_two_plane_run_under_turbulence_stopped_at_a_checkpoint_resumes_to_the
 
     from dbf_hpc import run as run_module
     from dbf_hpc.errors import DbfError
+
+    if callbacks == "c" and _romc.core is None:
+        pytest.skip(_romc.why)
 
     path = os.path.join(shared_tmp_path, "resume2d.toml")
     if MPI.COMM_WORLD.rank == 0:
@@ -312,7 +321,8 @@ def test_a_two_plane_run_under_turbulence_stopped_at_a_checkpoint_resumes_to_the
     assert summary["stats"]["final_time"] == pytest.approx(0.09)
     if MPI.COMM_WORLD.rank == 0:
         with h5py.File(reference) as a, h5py.File(target) as b:
-            assert json.loads(a.attrs["solver_stats"])["callbacks"] == json.loads(b.attrs["solver_stats"])["callbacks"]
+            assert json.loads(a.attrs["solver_stats"])["callbacks"] == callbacks
+            assert json.loads(b.attrs["solver_stats"])["callbacks"] == callbacks
             assert a["constraints/displacement"].shape[1:] == (2, 2)
             assert np.all(a["constraints/stats/work_rate"][:] > 0)     # both supports slide under friction
             for name in ("time", "constraints/displacement", "constraints/force", "constraints/force_peak",

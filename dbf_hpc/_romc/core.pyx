@@ -25,6 +25,7 @@ cdef extern from "petscviewer.h":
 cdef extern from "rom_core.h":
     ctypedef struct RomCtx:
         PetscInt r, nl, nprobe
+        PetscInt dim, ncon
         PetscReal *K
         PetscReal *D
         PetscReal *B
@@ -52,6 +53,27 @@ cdef extern from "rom_core.h":
         PetscReal *rand_amp
         PetscReal *rand_omega
         PetscReal *rand_phase
+        PetscInt nhist, nterm
+        PetscReal *hist_amp
+        PetscReal *hist_omega
+        PetscReal *hist_phase
+        PetscReal *X
+        int hist_horner
+        PetscReal hist_dw
+        PetscReal *hist_w0
+        PetscReal *hist_re
+        PetscReal *hist_im
+        int friction, has_nv
+        PetscReal *slip
+        PetscReal *fvreg
+        PetscReal *pl_gap
+        PetscReal *pl_k
+        PetscReal *pl_mu
+        PetscReal *pl_vreg
+        PetscReal *pl_c
+        PetscReal *pl_alpha
+        PetscReal *pl_e
+        int *pl_flat
         int implicit_contact, damped, hunt_crossley, poly_cubic, two_linear, pwlinear
         int *kind
         PetscReal *em
@@ -109,6 +131,8 @@ cdef extern from "rom_core.h":
         PetscReal *acc_prev
         PetscReal acc_t0, acc_t_prev
         int acc_started
+        PetscReal *acc_work
+        PetscReal *acc_work_prev
         PetscReal *sample_t
         PetscReal sample_tol
         PetscInt nsample, next_sample
@@ -126,7 +150,7 @@ cdef extern from "rom_core.h":
     PetscErrorCode RomSetSNESShell(RomCtx *, PetscSNES)
     PetscErrorCode RomDestroy(RomCtx *)
 
-LAW_CODE = {"deadband": 0, "power": 0, "hertz": 0, "linear": 1, "cubic": 1, "table": 2}
+LAW_CODE = {"deadband": 0, "power": 0, "hertz": 0, "linear": 1, "cubic": 1, "table": 2, "friction": 3}
 ACCUMULATED = ("impacts", "contact_time", "run", "duration_max", "f2", "z2", "power", "force_peak",
                "displacement_peak")
 SYMMETRY_TOL = 1e-10   # relative asymmetry of K, D up to which the symmetric part is factored (Cholesky)
@@ -164,7 +188,7 @@ cdef class Problem:
     must be as long as the TS it is attached to."""
     cdef RomCtx c
     cdef list keep
-    cdef object rows_arr, prev_arr
+    cdef object rows_arr, prev_arr, work_prev_arr
     # the monitor's Python side
     cdef public object error, record, recorder, on_step, due, steps, commit, stop_message, ts
     cdef public object nonfinite
@@ -190,12 +214,15 @@ cdef class Problem:
         return <PetscInt *><size_t>a.ctypes.data
 
     def __init__(self, model, operators, bint implicit_contact=True):
-        from dbf_hpc.excitation import Harmonic, RandomProcess
+        from dbf_hpc.excitation import CorrelatedProcess, Harmonic, RandomProcess
         if np.dtype(PETSc.ScalarType) != np.float64 or np.dtype(PETSc.IntType).itemsize != sizeof(PetscInt):
             raise ImportError("the C callbacks need a real double-precision PETSc")
         cdef RomCtx *c = &self.c
         r, nl = model.size, model.B.shape[0]
-        c.r, c.nl = r, nl
+        d = model.constraints.dimension
+        if d not in (1, 2):
+            raise TypeError(f"constraints of {d} directions have no C implementation")
+        c.r, c.nl, c.dim, c.ncon = r, nl, d, nl // d
         K, D = np.asarray(operators.K, float), np.asarray(operators.D, float)
         c.K, c.D = self.dptr(K), self.dptr(D)
         c.KT, c.DT = self.dptr(K.T), self.dptr(D.T)
@@ -213,7 +240,7 @@ cdef class Problem:
         c.B, c.BT = self.dptr(B), self.dptr(B.T)
         c.Bt = c.B if np.array_equal(B, Bt) else self.dptr(Bt)
         c.rc = self.dptr(model.r_c)
-        c.base_load, c.force_shape = self.dptr(operators.base_load), self.dptr(operators.force_shape)
+        c.base_load, c.force_shape = self.dptr(operators.base_load), self.dptr(operators.force_shape)  # (r,) or (r, m)
         c.nprobe = model.probe_B.shape[0]
         c.probe_B, c.probe_r = self.dptr(model.probe_B), self.dptr(model.probe_r)
         c.d_zero = int(not np.any(D))
@@ -221,7 +248,21 @@ cdef class Problem:
         s = model.support
         c.sup_a, c.sup_w, c.sup_ph = s.amplitude, two_pi * s.frequency_hz, s.phase
         f = model.force
-        if isinstance(f, RandomProcess):
+        if isinstance(f, CorrelatedProcess) != (np.ndim(operators.force_shape) == 2):
+            raise TypeError("a load matrix goes with a CorrelatedProcess's histories, one load shape with one history")
+        if isinstance(f, CorrelatedProcess):
+            c.nhist, c.nterm = f.count, f.omega.shape[1]
+            c.hist_amp, c.hist_omega, c.hist_phase = self.dptr(f.amplitude), self.dptr(f.omega), self.dptr(f.phase)
+            c.X = self.dptr(np.zeros(f.count))
+            # equally spaced in k (Deodatis' frequencies): Horner's rule instead of a cosine per term, the
+            # same sum to round-off (the phase error of w0 + k dw against omega_mk is ~1e-16 omega_mk t)
+            K = f.omega.shape[1]
+            dw = (f.omega[0, -1] - f.omega[0, 0]) / (K - 1) if K > 1 else 0.0
+            if K > 1 and np.allclose(f.omega, f.omega[:, :1] + dw * np.arange(K), rtol=1e-13, atol=0.0):
+                c.hist_horner, c.hist_dw = 1, dw
+                A = f.amplitude * np.exp(1j * f.phase)
+                c.hist_w0, c.hist_re, c.hist_im = self.dptr(f.omega[:, 0]), self.dptr(A.real), self.dptr(A.imag)
+        elif isinstance(f, RandomProcess):
             c.nrand = f.omega.size
             c.rand_amp, c.rand_omega, c.rand_phase = self.dptr(f.amplitude), self.dptr(f.omega), self.dptr(f.phase)
         elif isinstance(f, Harmonic):
@@ -230,6 +271,51 @@ cdef class Problem:
             raise TypeError(f"a force history {type(f).__name__} has no C implementation")
         laws = model.constraints.laws.laws
         c.implicit_contact = int(implicit_contact and nl > 0)
+        if d == 2:
+            self.planar(laws)
+        else:
+            self.scalar(laws)
+        n = max(nl, 1)
+        c.z, c.v, c.N = self.dptr(np.zeros(n)), self.dptr(np.zeros(n)), self.dptr(np.zeros(n))
+        c.Nz, c.Nv, c.tmp = self.dptr(np.zeros(n * d)), self.dptr(np.zeros(n * d)), self.dptr(np.zeros(n))
+        c.BtN, c.tmp2 = self.dptr(np.zeros(r)), self.dptr(np.zeros(r))
+        c.W, c.NzJ, c.NvJ = self.dptr(np.zeros(n * d)), self.dptr(np.zeros(n * d)), self.dptr(np.zeros(n * d))
+        c.L, c.U, c.AinvB = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * n))
+        c.Cap, c.Mcap = self.dptr(np.zeros(n * n)), self.dptr(np.zeros(n * n))
+        c.piv, c.lpiv, c.act = self.iptr(np.zeros(n)), self.iptr(np.zeros(r)), self.iptr(np.zeros(n))
+        ids = np.full(n * n + n, -1, dtype=np.int_)
+        self.keep.append(ids)
+        c.col_id = <long *><size_t>ids.ctypes.data
+        c.cap_id = <long *><size_t>(ids.ctypes.data + n * ids.itemsize)
+        sides = np.zeros(n, dtype=np.int8)
+        self.keep.append(sides)
+        c.sides = <signed char *><size_t>sides.ctypes.data
+        c.fact_shift = -1.0
+        c.linear_shortcut = 1
+        self.prev_arr = np.zeros((4, n))
+        c.acc_prev = <PetscReal *><size_t>self.prev_arr.ctypes.data
+        self.work_prev_arr = np.zeros(n)
+        c.acc_work_prev = <PetscReal *><size_t>self.work_prev_arr.ctypes.data
+        self.on_step = self.due = self.recorder = self.record = self.steps = self.commit = None
+
+    def planar(self, laws):
+        """The 2-D laws (laws.CircularLaw: circular, flat_bar) as per-support arrays."""
+        cdef RomCtx *c = &self.c
+        g = lambda name: np.array([float(getattr(l, name)) for l in laws], dtype=float)
+        c.pl_gap, c.pl_k, c.pl_mu, c.pl_vreg = self.dptr(g("clearance")), self.dptr(g("k")), self.dptr(g("mu")), self.dptr(g("v_reg"))
+        c.pl_c, c.pl_alpha = self.dptr(g("c")), self.dptr(g("alpha"))
+        angle = np.radians(g("angle"))
+        c.pl_e = self.dptr(np.column_stack((np.cos(angle), np.sin(angle))))   # as laws.PlanarLaws
+        flat = np.array([l.kind == "flat_bar" for l in laws], dtype=np.intc)
+        self.keep.append(flat)
+        c.pl_flat = <int *><size_t>flat.ctypes.data if flat.size else NULL
+        c.damped = int(any(l.c > 0 or l.alpha > 0 for l in laws))
+        c.has_nv = int(c.damped or any(l.mu > 0 for l in laws))
+        c.pwlinear = 0
+
+    def scalar(self, laws):
+        """The 1-D laws (laws.Law) as per-constraint arrays, by family as laws.ConstraintLaws."""
+        cdef RomCtx *c = &self.c
         kinds = np.array([LAW_CODE[l.kind] for l in laws], dtype=np.intc)
         self.keep.append(kinds)
         c.kind = <int *><size_t>kinds.ctypes.data if kinds.size else NULL
@@ -261,26 +347,11 @@ cdef class Problem:
                 ns.append(0)
         c.tab_off, c.tab_n = self.iptr(offs), self.iptr(ns)
         c.tab_z, c.tab_f, c.tab_slope = self.dptr(tz), self.dptr(tf), self.dptr(tsl)
-        n = max(nl, 1)
-        c.z, c.v, c.N = self.dptr(np.zeros(n)), self.dptr(np.zeros(n)), self.dptr(np.zeros(n))
-        c.Nz, c.Nv, c.tmp = self.dptr(np.zeros(n)), self.dptr(np.zeros(n)), self.dptr(np.zeros(n))
-        c.BtN, c.tmp2 = self.dptr(np.zeros(r)), self.dptr(np.zeros(r))
-        c.W, c.NzJ, c.NvJ = self.dptr(np.zeros(n)), self.dptr(np.zeros(n)), self.dptr(np.zeros(n))
-        c.L, c.U, c.AinvB = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * n))
-        c.Cap, c.Mcap = self.dptr(np.zeros(n * n)), self.dptr(np.zeros(n * n))
-        c.piv, c.lpiv, c.act = self.iptr(np.zeros(n)), self.iptr(np.zeros(r)), self.iptr(np.zeros(n))
-        ids = np.full(n * n + n, -1, dtype=np.int_)
-        self.keep.append(ids)
-        c.col_id = <long *><size_t>ids.ctypes.data
-        c.cap_id = <long *><size_t>(ids.ctypes.data + n * ids.itemsize)
-        sides = np.zeros(n, dtype=np.int8)
-        self.keep.append(sides)
-        c.sides = <signed char *><size_t>sides.ctypes.data
-        c.fact_shift = -1.0
-        c.linear_shortcut = 1
-        self.prev_arr = np.zeros((4, n))
-        c.acc_prev = <PetscReal *><size_t>self.prev_arr.ctypes.data
-        self.on_step = self.due = self.recorder = self.record = self.steps = self.commit = None
+        # law = "friction": N = -mu F_n tanh(v / v_reg) (laws.ConstraintLaws._friction)
+        c.slip = self.dptr(g("mu") * g("normal_force"))
+        c.fvreg = self.dptr(np.array([l.v_reg if l.kind == "friction" else 1.0 for l in laws], dtype=float))
+        c.friction = int(any(l.kind == "friction" for l in laws))
+        c.has_nv = int(c.damped or c.friction)
 
     def __dealloc__(self):
         RomDestroy(&self.c)
@@ -326,12 +397,15 @@ cdef class Problem:
                     linear_shortcuts=c.n_shortcut)
 
     def laws(self, z, v):
-        """(N, dN/dz, dN/dv) of the C laws at z, v (to test them against laws.py)."""
+        """(N, dN/dz, dN/dv) of the C laws at z, v (to test them against laws.py): flat (N_L d,) values,
+        the Jacobians (N_L,) diagonals for d = 1 and (N_L, 2, 2) blocks for d = 2."""
         z = np.ascontiguousarray(z, dtype=float)
         v = np.ascontiguousarray(v, dtype=float)
         if z.shape != (self.c.nl,) or v.shape != (self.c.nl,):
             raise ValueError(f"expected {self.c.nl} values")
-        N, Nz, Nv = np.zeros(self.c.nl), np.zeros(self.c.nl), np.zeros(self.c.nl)
+        d = self.c.dim
+        N = np.zeros(self.c.nl)
+        Nz, Nv = (np.zeros(self.c.nl) if d == 1 else np.zeros((self.c.ncon, d, d)) for _ in range(2))
         RomLaws(&self.c, <PetscReal *><size_t>z.ctypes.data, <PetscReal *><size_t>v.ctypes.data,
                 <PetscReal *><size_t>N.ctypes.data, <PetscReal *><size_t>Nz.ctypes.data,
                 <PetscReal *><size_t>Nv.ctypes.data, 1)
@@ -374,10 +448,23 @@ cdef class Problem:
         cdef RomCtx *c = &self.c
         rec = self.recorder
         acc = rec.impacts
+        planar = c.dim == 2
+        if planar != bool(getattr(acc, "with_work", False)):
+            raise TypeError("the recorder's statistics do not match the constraints' dimension")
         arrays = [rec.peak] + [getattr(acc, name) for name in ACCUMULATED]
-        for a in arrays:
-            if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous and a.size == c.nl):
+        for i, a in enumerate(arrays):   # the peak per component, the statistics per support
+            if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous
+                    and a.size == (c.nl if i == 0 else c.ncon)):
                 raise TypeError("the recorder's arrays must be float64, contiguous, one value per constraint")
+        if planar:
+            work = acc.work
+            if not (isinstance(work, np.ndarray) and work.dtype == np.float64 and work.flags.c_contiguous
+                    and work.size == c.ncon):
+                raise TypeError("the recorder's work integral must be float64, contiguous, one value per support")
+            self.keep.append(work)
+            c.acc_work = <PetscReal *><size_t>work.ctypes.data if work.size else self.dptr(np.zeros(1))
+            if acc.work_prev is not None:
+                self.work_prev_arr[:c.ncon] = acc.work_prev
         cdef size_t[10] ptrs
         for i, a in enumerate(arrays):
             ptrs[i] = <size_t>a.ctypes.data if a.size else <size_t>self.dptr(np.zeros(1))
@@ -389,7 +476,7 @@ cdef class Problem:
         c.acc_started = acc.prev is not None
         if c.acc_started:
             c.acc_t0, c.acc_t_prev = acc.t0, acc.t_prev
-            self.prev_arr[:, :c.nl] = np.array(acc.prev).reshape(4, c.nl)
+            self.prev_arr[:, :c.ncon] = np.array(acc.prev).reshape(4, c.ncon)
 
     def sync(self):
         """Hand the samples taken so far and the accumulator's scalars to the Python objects."""
@@ -406,7 +493,9 @@ cdef class Problem:
         if self.recorder is not None and c.acc_started:
             acc = self.recorder.impacts
             acc.t0, acc.t_prev = c.acc_t0, c.acc_t_prev
-            acc.prev = tuple(self.prev_arr[i, :c.nl].copy() for i in range(4))
+            acc.prev = tuple(self.prev_arr[i, :c.ncon].copy() for i in range(4))
+            if c.dim == 2:
+                acc.work_prev = self.work_prev_arr[:c.ncon].copy()
 
     cdef int monitor(self, PetscTS ts, PetscInt step, PetscReal t, PetscVec u) except -1:
         cdef RomCtx *c = &self.c

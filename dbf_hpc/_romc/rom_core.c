@@ -23,9 +23,104 @@ static inline PetscReal force_value(const RomCtx *c, PetscReal t)
   return c->force_a * sin(c->force_w * t + c->force_ph);
 }
 
+/* g = f(t) (r values): force_shape F(t) - base_load Omega''(t), or with a load matrix force_shape X(t)
+   - base_load Omega''(t), X(t) as excitation.CorrelatedProcess.value (each term cos(omega t + phase) amp) */
+void RomForcing(RomCtx *c, PetscReal t, PetscReal *g)
+{
+  const PetscInt r = c->r;
+  const PetscReal acc = omega_acc(c, t);
+  if (c->nhist && c->hist_horner) {
+    const PetscInt m = c->nhist, K = c->nterm;
+    const PetscReal zr = cos(c->hist_dw * t), zi = sin(c->hist_dw * t);
+    for (PetscInt h = 0; h < m; h++) {
+      const PetscReal *ar = c->hist_re + h * K, *ai = c->hist_im + h * K;
+      PetscReal sr = ar[K - 1], si = ai[K - 1];
+      for (PetscInt k = K - 2; k >= 0; k--) {
+        const PetscReal tr = sr * zr - si * zi + ar[k];
+        si = sr * zi + si * zr + ai[k];
+        sr = tr;
+      }
+      const PetscReal wt = c->hist_w0[h] * t;
+      c->X[h] = cos(wt) * sr - sin(wt) * si;
+    }
+  } else if (c->nhist) {
+    const PetscInt m = c->nhist, K = c->nterm;
+    for (PetscInt h = 0; h < m; h++) {
+      const PetscReal *a = c->hist_amp + h * K, *w = c->hist_omega + h * K, *ph = c->hist_phase + h * K;
+      PetscReal x = 0.0;
+      for (PetscInt k = 0; k < K; k++) x += a[k] * cos(w[k] * t + ph[k]);
+      c->X[h] = x;
+    }
+  }
+  if (c->nhist) {
+    const PetscInt m = c->nhist;
+    for (PetscInt i = 0; i < r; i++) {
+      const PetscReal *row = c->force_shape + i * m;
+      PetscReal s = 0.0;
+      for (PetscInt h = 0; h < m; h++) s += row[h] * c->X[h];
+      g[i] = s - c->base_load[i] * acc;
+    }
+    return;
+  }
+  const PetscReal F = force_value(c, t);
+  for (PetscInt i = 0; i < r; i++) g[i] = c->force_shape[i] * F - c->base_load[i] * acc;
+}
+
+/* ---------------------------------------------------------------- 2-D laws (laws.PlanarLaws.force_and_jacobian) */
+/* The gap coordinate of support j at u: r = |u|, n = u / |u| in a round hole (n = (1, 0) at u = 0), r = |u.e|,
+   n = sign(u.e) e between flat bars; *curved = 1 (dn/du = t t^T / r) or 0 (flat) */
+static inline void gap_coordinate(const RomCtx *c, PetscInt j, const PetscReal *u, PetscReal *r, PetscReal *n, PetscReal *curved)
+{
+  if (c->pl_flat[j]) {
+    const PetscReal *e = c->pl_e + 2 * j, along = u[0] * e[0] + u[1] * e[1], side = along < 0 ? -1.0 : 1.0;
+    *r = fabs(along); n[0] = side * e[0]; n[1] = side * e[1]; *curved = 0.0;
+  } else {
+    const PetscReal rr = hypot(u[0], u[1]);
+    *r = rr; *curved = 1.0;
+    if (rr > 0) { n[0] = u[0] / rr; n[1] = u[1] / rr; } else { n[0] = 1.0; n[1] = 0.0; }
+  }
+}
+
+/* F = -(k delta + (c + alpha k delta) v_n) n - mu k delta tanh(v_t / v_reg) t in contact (delta = r - gap > 0),
+   with its exact 2 x 2 derivatives dF/du, dF/dv (row-major blocks) */
+static void planar_laws(RomCtx *c, const PetscReal *z, const PetscReal *v, PetscReal *N, PetscReal *Nz, PetscReal *Nv, int want_jac)
+{
+  for (PetscInt j = 0; j < c->ncon; j++) {
+    const PetscReal *u = z + 2 * j, *w = v + 2 * j;
+    PetscReal r, n[2], curved;
+    gap_coordinate(c, j, u, &r, n, &curved);
+    const int contact = r > c->pl_gap[j];
+    const PetscReal t0 = -n[1], t1 = n[0];
+    const PetscReal vn = w[0] * n[0] + w[1] * n[1], vt = w[0] * t0 + w[1] * t1;
+    const PetscReal delta = contact ? r - c->pl_gap[j] : 0.0, on = contact ? 1.0 : 0.0;
+    const PetscReal k = c->pl_k[j], inv_r = on * (curved / (r > 0 ? r : 1.0));
+    const PetscReal cd = on * (c->pl_c[j] + c->pl_alpha[j] * k * delta);
+    const PetscReal tau = tanh(vt / c->pl_vreg[j]), mk = c->pl_mu[j] * k;
+    const PetscReal normal = k * delta + cd * vn, tangent = mk * delta * tau;
+    N[2 * j] = -(normal * n[0]) - tangent * t0;
+    N[2 * j + 1] = -(normal * n[1]) - tangent * t1;
+    if (!want_jac) continue;
+    const PetscReal dtau = (1.0 - tau * tau) / c->pl_vreg[j];
+    /* coefficients of n n^T, t t^T, n t^T, t n^T in dF/du and dF/dv */
+    const PetscReal znn = -k * on - on * c->pl_alpha[j] * k * vn;
+    const PetscReal ztt = -(k * delta * inv_r) - cd * vn * inv_r + mk * delta * dtau * vn * inv_r;
+    const PetscReal znt = -(cd * vt * inv_r) + mk * delta * tau * inv_r;
+    const PetscReal ztn = -(mk * on * tau);
+    const PetscReal vnn = -cd, vtt = -(mk * delta * dtau);
+    const PetscReal nv[2] = {n[0], n[1]}, tv[2] = {t0, t1};
+    PetscReal *bz = Nz + 4 * j, *bv = Nv + 4 * j;
+    for (int a = 0; a < 2; a++)
+      for (int b = 0; b < 2; b++) {
+        bz[2 * a + b] = znn * nv[a] * nv[b] + ztt * tv[a] * tv[b] + znt * nv[a] * tv[b] + ztn * tv[a] * nv[b];
+        bv[2 * a + b] = vnn * nv[a] * nv[b] + vtt * tv[a] * tv[b];
+      }
+  }
+}
+
 /* ---------------------------------------------------------------- laws (laws.ConstraintLaws.force_and_jacobian) */
 void RomLaws(RomCtx *c, const PetscReal *z, const PetscReal *v, PetscReal *N, PetscReal *Nz, PetscReal *Nv, int want_jac)
 {
+  if (c->dim == 2) { planar_laws(c, z, v, N, Nz, Nv, want_jac); return; }
   for (PetscInt j = 0; j < c->nl; j++) {
     PetscReal force, dz, mag = 0, dmag = 0;
     int contact = 0;
@@ -67,10 +162,14 @@ void RomLaws(RomCtx *c, const PetscReal *z, const PetscReal *v, PetscReal *N, Pe
       dz = tsl[s]; force = tf[s] + dz * (zj - tz[s]);
       mag = fabs(force); dmag = (force > 0 ? 1.0 : (force < 0 ? -1.0 : 0.0)) * dz; contact = force != 0;
     } break;
+    case LAW_FRICTION: /* no force from z: ConstraintLaws adds -mu F_n tanh(v / v_reg) below */
+      force = 0.0; dz = 0.0; contact = 1;
+      break;
     }
     if (!c->damped) {
       N[j] = force;
       if (want_jac) { Nz[j] = dz; Nv[j] = 0.0; }
+      if (c->kind[j] == LAW_FRICTION) goto friction;
       continue;
     }
     PetscReal dv = -c->c[j] * (double)contact;
@@ -81,6 +180,12 @@ void RomLaws(RomCtx *c, const PetscReal *z, const PetscReal *v, PetscReal *N, Pe
     }
     N[j] = force + dv * v[j];
     if (want_jac) { Nz[j] = dz; Nv[j] = dv; }
+    if (c->kind[j] != LAW_FRICTION) continue;
+  friction: {
+      const PetscReal th = tanh(v[j] / c->fvreg[j]);
+      N[j] += -c->slip[j] * th;
+      if (want_jac) Nv[j] += -(c->slip[j] / c->fvreg[j]) * (1.0 - th * th);
+    }
   }
 }
 
@@ -153,8 +258,8 @@ PetscErrorCode RomRHSFunction(TS ts, PetscReal t, Vec U, Vec G, void *ctx)
   PetscFunctionBeginUser;
   c->n_rhs++;
   PetscCall(VecGetArrayWrite(G, &g));
-  const PetscReal F = force_value(c, t), acc = omega_acc(c, t);
-  for (PetscInt i = 0; i < r; i++) { g[i] = 0.0; g[r + i] = c->force_shape[i] * F - c->base_load[i] * acc; }
+  for (PetscInt i = 0; i < r; i++) g[i] = 0.0;
+  RomForcing(c, t, g + r);
   if (!c->implicit_contact && c->nl) {
     const PetscReal *u;
     PetscCall(VecGetArrayRead(U, &u));
@@ -178,21 +283,20 @@ static inline signed char side_of(const RomCtx *c, PetscInt j, PetscReal z)
 static PetscErrorCode linearize(RomCtx *c, PetscReal t, Vec U, PetscReal shift)
 {
   const PetscReal *u;
-  const PetscInt nl = c->nl;
+  const PetscInt nl = c->nl, nb = c->ncon * c->dim * c->dim;
   PetscFunctionBeginUser;
   c->shift = shift; c->lin_t = t;
   if (!c->implicit_contact) {
-    for (PetscInt j = 0; j < nl; j++) c->W[j] = c->NzJ[j] = c->NvJ[j] = 0.0;
+    for (PetscInt j = 0; j < nb; j++) c->W[j] = c->NzJ[j] = c->NvJ[j] = 0.0;
     PetscFunctionReturn(0);
   }
   PetscCall(VecGetArrayRead(U, &u));
   constraint_state(c, t, u, u + c->r, c->z, c->v);
   PetscCall(VecRestoreArrayRead(U, &u));
   RomLaws(c, c->z, c->v, c->N, c->NzJ, c->NvJ, 1);
-  for (PetscInt j = 0; j < nl; j++) {
-    c->sides[j] = side_of(c, j, c->z[j]);
-    c->W[j] = c->NzJ[j] + shift * c->NvJ[j];
-  }
+  for (PetscInt j = 0; j < nb; j++) c->W[j] = c->NzJ[j] + shift * c->NvJ[j];
+  if (c->dim == 1)
+    for (PetscInt j = 0; j < nl; j++) c->sides[j] = side_of(c, j, c->z[j]);
   PetscFunctionReturn(0);
 }
 
@@ -202,7 +306,7 @@ PetscErrorCode RomIJacobianDense(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal 
   RomCtx *c = (RomCtx *)ctx;
   PetscScalar *a;
   PetscInt lda;
-  const PetscInt r = c->r, nl = c->nl, n = 2 * r;
+  const PetscInt r = c->r, d = c->dim, n = 2 * r;
   PetscFunctionBeginUser;
   c->n_ijac++;
   PetscCall(linearize(c, t, U, shift));
@@ -213,11 +317,13 @@ PetscErrorCode RomIJacobianDense(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal 
   for (PetscInt j = 0; j < r; j++)
     for (PetscInt i = 0; i < r; i++) {
       PetscReal kz = c->K[i * r + j], dv = c->D[i * r + j] + (i == j ? shift : 0.0);
-      for (PetscInt l = 0; l < nl; l++) {
-        const PetscReal bb = c->Bt[l * r + i] * c->B[l * r + j];
-        kz -= bb * c->NzJ[l];
-        dv -= bb * c->NvJ[l];
-      }
+      for (PetscInt l = 0; l < c->ncon; l++)   /* - Bt^T blockdiag(N_z) B, the d x d block of each constraint */
+        for (PetscInt a = 0; a < d; a++)
+          for (PetscInt b = 0; b < d; b++) {
+            const PetscReal bb = c->Bt[(l * d + a) * r + i] * c->B[(l * d + b) * r + j];
+            kz -= bb * c->NzJ[(l * d + a) * d + b];
+            dv -= bb * c->NvJ[(l * d + a) * d + b];
+          }
       a[(r + i) + j * lda] = kz;
       a[(r + i) + (r + j) * lda] = dv;
     }
@@ -348,23 +454,36 @@ static inline PetscReal cap(RomCtx *c, PetscInt l, PetscInt m)
 
 /* The Jacobian as a MatShell (MatMult = RomMatMult); the linearization goes to the exact solve:
    A(shift) factored when the shift changes, and the capacitance I - W_a B_a A^-1 B_a^T of the active
-   constraints a = {l : W_l != 0} (N_a x N_a) by LU. */
+   constraints a = {l : W_l != 0} (N_a d x N_a d, W_a block diagonal with the d x d blocks) by LU. */
 PetscErrorCode RomIJacobianShell(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal shift, Mat A, Mat P, void *ctx)
 {
   RomCtx *c = (RomCtx *)ctx;
-  const PetscInt nl = c->nl;
+  const PetscInt d = c->dim, dd = d * d;
   PetscInt na = 0;
   PetscFunctionBeginUser;
   c->n_ijac++;
   PetscCall(linearize(c, t, U, shift));
   if (shift != c->fact_shift) PetscCall(factor(c, shift));
-  for (PetscInt j = 0; j < nl; j++) if (c->W[j] != 0.0) c->act[na++] = j;
+  for (PetscInt j = 0; j < c->ncon; j++) {
+    int on = 0;
+    for (PetscInt k = 0; k < dd; k++) on |= c->W[j * dd + k] != 0.0;
+    if (on) c->act[na++] = j;
+  }
   c->nact = na;
   if (na) {
     PetscReal *M = c->Mcap;
+    const PetscInt m = na * d;
     for (PetscInt i = 0; i < na; i++)
-      for (PetscInt j = 0; j < na; j++) M[i * na + j] = (i == j ? 1.0 : 0.0) - c->W[c->act[i]] * cap(c, c->act[i], c->act[j]);
-    if (lu(M, na, c->piv)) SETERRQ(PETSC_COMM_SELF, PETSC_ERR_MAT_LU_ZRPVT, "singular contact capacitance");
+      for (PetscInt a = 0; a < d; a++) {
+        const PetscReal *w = c->W + c->act[i] * dd + a * d;   /* row a of constraint act[i]'s block */
+        for (PetscInt j = 0; j < na; j++)
+          for (PetscInt b = 0; b < d; b++) {
+            PetscReal s = w[0] * cap(c, c->act[i] * d, c->act[j] * d + b);
+            for (PetscInt e = 1; e < d; e++) s += w[e] * cap(c, c->act[i] * d + e, c->act[j] * d + b);
+            M[(i * d + a) * m + j * d + b] = (i == j && a == b ? 1.0 : 0.0) - s;
+          }
+      }
+    if (lu(M, m, c->piv)) SETERRQ(PETSC_COMM_SELF, PETSC_ERR_MAT_LU_ZRPVT, "singular contact capacitance");
   }
   /* no MatAssembly: the MatShell was assembled once at creation */
   PetscFunctionReturn(0);
@@ -379,7 +498,7 @@ PetscErrorCode RomApplyInverse(RomCtx *c, Vec X, Vec Y)
 {
   const PetscReal *x;
   PetscReal *y;
-  const PetscInt r = c->r, nl = c->nl, na = c->nact;
+  const PetscInt r = c->r, na = c->nact, d = c->dim, dd = d * d;
   const PetscReal s = c->shift;
   PetscFunctionBeginUser;
   c->n_apply++;
@@ -393,28 +512,50 @@ PetscErrorCode RomApplyInverse(RomCtx *c, Vec X, Vec Y)
     matvec_add(c->MoT, r, w, dq);
   }
   if (!c->d_zero) matvec_add(c->DoT, r, a, dq);
-  if (c->implicit_contact && c->damped) { /* - B^T N_v B a */
-    for (PetscInt l = 0; l < nl; l++) if (c->NvJ[l] != 0.0) {
-      const PetscReal *bl = c->B + l * r;
-      PetscReal sum = 0;
-      for (PetscInt i = 0; i < r; i++) sum += bl[i] * a[i];
-      sum *= c->NvJ[l];
-      for (PetscInt i = 0; i < r; i++) dq[i] -= bl[i] * sum;
+  if (c->implicit_contact && c->has_nv) { /* - B^T N_v B a, block by block */
+    for (PetscInt l = 0; l < c->ncon; l++) {
+      const PetscReal *nv = c->NvJ + l * dd;
+      int on = 0;
+      for (PetscInt k = 0; k < dd; k++) on |= nv[k] != 0.0;
+      if (!on) continue;
+      PetscReal ba[2];
+      for (PetscInt e = 0; e < d; e++) {
+        const PetscReal *bl = c->B + (l * d + e) * r;
+        PetscReal sum = 0;
+        for (PetscInt i = 0; i < r; i++) sum += bl[i] * a[i];
+        ba[e] = sum;
+      }
+      for (PetscInt e = 0; e < d; e++) {
+        const PetscReal *bl = c->B + (l * d + e) * r;
+        PetscReal g = ba[0] * nv[e * d];
+        for (PetscInt f = 1; f < d; f++) g += nv[e * d + f] * ba[f];
+        for (PetscInt i = 0; i < r; i++) dq[i] -= bl[i] * g;
+      }
     }
   }
   solveA(c, dq);
   if (c->implicit_contact && na) {
     for (PetscInt i = 0; i < na; i++) {
-      const PetscReal *bl = c->B + c->act[i] * r;
-      PetscReal sum = 0;
-      for (PetscInt j = 0; j < r; j++) sum += bl[j] * dq[j];
-      tmp[i] = c->W[c->act[i]] * sum;
+      PetscReal bq[2];
+      for (PetscInt e = 0; e < d; e++) {
+        const PetscReal *bl = c->B + (c->act[i] * d + e) * r;
+        PetscReal sum = 0;
+        for (PetscInt j = 0; j < r; j++) sum += bl[j] * dq[j];
+        bq[e] = sum;
+      }
+      const PetscReal *w = c->W + c->act[i] * dd;
+      for (PetscInt e = 0; e < d; e++) {
+        PetscReal g = w[e * d] * bq[0];
+        for (PetscInt f = 1; f < d; f++) g += w[e * d + f] * bq[f];
+        tmp[i * d + e] = g;
+      }
     }
-    lu_solve(c->Mcap, na, c->piv, tmp);
-    for (PetscInt i = 0; i < na; i++) {
-      const PetscReal *col = ainvbt(c, c->act[i]), ti = tmp[i];
-      for (PetscInt j = 0; j < r; j++) dq[j] += col[j] * ti;
-    }
+    lu_solve(c->Mcap, na * d, c->piv, tmp);
+    for (PetscInt i = 0; i < na; i++)
+      for (PetscInt e = 0; e < d; e++) {
+        const PetscReal *col = ainvbt(c, c->act[i] * d + e), ti = tmp[i * d + e];
+        for (PetscInt j = 0; j < r; j++) dq[j] += col[j] * ti;
+      }
   }
   for (PetscInt i = 0; i < r; i++) dp[i] = s * dq[i] - a[i];
   PetscCall(VecRestoreArrayRead(X, &x));
@@ -439,7 +580,7 @@ static PetscErrorCode RomMatMult(Mat A, Vec X, Vec Y)
   PetscReal *y;
   PetscFunctionBeginUser;
   PetscCall(MatShellGetContext(A, &c));
-  const PetscInt r = c->r, nl = c->nl;
+  const PetscInt r = c->r, d = c->dim;
   const PetscReal s = c->shift;
   c->n_mult++;
   PetscCall(VecGetArrayRead(X, &x));
@@ -452,12 +593,19 @@ static PetscErrorCode RomMatMult(Mat A, Vec X, Vec Y)
     yq[i] = s * a[i] - b[i];
     yp[i] = v;
   }
-  for (PetscInt l = 0; l < nl; l++) {
-    const PetscReal *bl = c->B + l * r, *btl = c->Bt + l * r;
-    PetscReal ba = 0, bb = 0;
-    for (PetscInt i = 0; i < r; i++) { ba += bl[i] * a[i]; bb += bl[i] * b[i]; }
-    const PetscReal g = c->NzJ[l] * ba + c->NvJ[l] * bb;
-    for (PetscInt i = 0; i < r; i++) yp[i] -= btl[i] * g;
+  for (PetscInt l = 0; l < c->ncon; l++) {
+    PetscReal ba[2], bb[2];
+    for (PetscInt e = 0; e < d; e++) {
+      const PetscReal *bl = c->B + (l * d + e) * r;
+      ba[e] = 0; bb[e] = 0;
+      for (PetscInt i = 0; i < r; i++) { ba[e] += bl[i] * a[i]; bb[e] += bl[i] * b[i]; }
+    }
+    for (PetscInt e = 0; e < d; e++) {
+      const PetscReal *nz = c->NzJ + (l * d + e) * d, *nv = c->NvJ + (l * d + e) * d, *btl = c->Bt + (l * d + e) * r;
+      PetscReal g = nz[0] * ba[0] + nv[0] * bb[0];
+      for (PetscInt f = 1; f < d; f++) g += nz[f] * ba[f] + nv[f] * bb[f];
+      for (PetscInt i = 0; i < r; i++) yp[i] -= btl[i] * g;
+    }
   }
   PetscCall(VecRestoreArrayRead(X, &x));
   PetscCall(VecRestoreArrayWrite(Y, &y));
@@ -599,9 +747,59 @@ PetscErrorCode RomTakeSamples(RomCtx *c, TS ts, PetscReal t, Vec U, PetscInt *ta
 
 /* stats.ImpactAccumulator.add and SampleRecorder._track_peak for the state at the end of a step, operation
    by operation as in Python (so a checkpoint taken on either side continues on the other) */
+/* the same for supports of two directions (recorder.SampleRecorder.step with laws.PlanarLaws.radial):
+   per support the radial quantities |u|, v.n, |F|, contact = gap coordinate > clearance, the power
+   |F.n| |v.n| and the work rate |F.n| |v.t| (its trapezoid integral in acc_work) */
+static void step_statistics_planar(RomCtx *c, PetscReal t, const PetscReal *u)
+{
+  const PetscInt nc = c->ncon;
+  PetscReal *z = c->z, *v = c->v, *N = c->N;
+  PetscReal *pc = c->acc_prev, *pf = pc + c->nl, *pz = pf + c->nl, *pw = pz + c->nl;   /* rows of the Python side's (4, nl) array */
+  constraint_state(c, t, u, u + c->r, z, v);
+  RomLaws(c, z, v, N, NULL, NULL, 0);
+  const PetscReal half = c->acc_started ? 0.5 * (t - c->acc_t_prev) : 0.0;
+  for (PetscInt j = 0; j < nc; j++) {
+    const PetscReal *uj = z + 2 * j, *wj = v + 2 * j, *fj = N + 2 * j;
+    PetscReal gap, n[2], curved;
+    gap_coordinate(c, j, uj, &gap, n, &curved);
+    const PetscReal r = hypot(uj[0], uj[1]), vn = wj[0] * n[0] + wj[1] * n[1];
+    const PetscReal vt = fabs(n[0] * wj[1] - n[1] * wj[0]), f = hypot(fj[0], fj[1]);
+    const PetscReal fn = fabs(fj[0] * n[0] + fj[1] * n[1]);
+    const int contact = gap > c->pl_gap[j];
+    const PetscReal cn = contact ? 1.0 : 0.0, f2 = f * f, z2 = r * r, pw_ = fn * fabs(vn), work = fn * vt;
+    if (c->acc_started) c->acc_work[j] += half * (c->acc_work_prev[j] + work);
+    c->acc_work_prev[j] = work;
+    const PetscReal af = fabs(f), az = fabs(r);
+    if (af > c->acc_force_peak[j] || isnan(af)) c->acc_force_peak[j] = af;
+    if (az > c->acc_displacement_peak[j] || isnan(az)) c->acc_displacement_peak[j] = az;
+    if (!c->acc_started) {
+      c->acc_impacts[j] += contact;
+    } else {
+      const PetscReal cp = pc[j];
+      c->acc_contact_time[j] += half * (cp + cn);
+      c->acc_f2[j] += half * (pf[j] + f2);
+      c->acc_z2[j] += half * (pz[j] + z2);
+      c->acc_power[j] += half * (pw[j] + pw_);
+      c->acc_run[j] += half * cp;
+      const int ended = (cp > 0) && !contact;
+      if (ended) {
+        if (c->acc_run[j] > c->acc_duration_max[j] || isnan(c->acc_run[j])) c->acc_duration_max[j] = c->acc_run[j];
+        c->acc_run[j] = 0.0;
+      }
+      c->acc_impacts[j] += contact && (cp == 0);
+      c->acc_run[j] += half * cn;
+    }
+    pc[j] = cn; pf[j] = f2; pz[j] = z2; pw[j] = pw_;
+  }
+  if (!c->acc_started) { c->acc_t0 = t; c->acc_started = 1; }
+  c->acc_t_prev = t;
+  track_peak(c, N);
+}
+
 void RomStepStatistics(RomCtx *c, PetscReal t, const PetscReal *u)
 {
   const PetscInt nl = c->nl;
+  if (c->dim == 2 && nl) { step_statistics_planar(c, t, u); return; }
   PetscReal *z = c->z, *v = c->v, *N = c->N;
   PetscReal *pc = c->acc_prev, *pf = pc + nl, *pz = pf + nl, *pw = pz + nl;
   if (!nl) { c->acc_t0 = c->acc_started ? c->acc_t0 : t; c->acc_t_prev = t; c->acc_started = 1; return; }

@@ -4,17 +4,22 @@
  *   y = [q, p] (2r),  F(t, y, y') = [q' - p ; p' + D p + K q - Bt^T N(z, v)],  G(t, y) = [0 ; f(t)]
  *   z = B q + r_c Omega(t),  v = B p + r_c Omega'(t),  f(t) = force_shape F(t) - base_load Omega''(t)
  *
- * B and Bt are N_L x r, row-major: B's rows are the basis at the constraints, Bt's rows those of
- * M_r^-1 B^T (the same array when M_r = I). K and D are r x r row-major (M_r^-1 applied).
+ * B and Bt are N_L d x r, row-major: B's rows are the basis at the constraints' components, Bt's
+ * rows those of M_r^-1 B^T (the same array when M_r = I). K and D are r x r row-major (M_r^-1 applied).
+ * Constraints of d = 2 directions (laws.PlanarLaws: circular, flat_bar) have d x d Jacobian blocks,
+ * stored row-major per constraint (Nz[j d^2 + a d + b]); nl counts the components (N_L d).
+ * f(t) is force_shape F(t) for one load shape, or force_shape X(t) for a load matrix (turbulence:
+ * force_shape r x m row-major, X_m(t) = sum_k amp_mk cos(omega_mk t + phase_mk), excitation.CorrelatedProcess).
  */
 #ifndef DBF_ROM_CORE_H
 #define DBF_ROM_CORE_H
 #include <petscts.h>
 
-enum { LAW_TWO_SIDED = 0, LAW_POLY = 1, LAW_TABLE = 2 };
+enum { LAW_TWO_SIDED = 0, LAW_POLY = 1, LAW_TABLE = 2, LAW_FRICTION = 3 };
 
 typedef struct {
   PetscInt r, nl, nprobe;
+  PetscInt dim, ncon;                      /* d (1 or 2) and N_L = nl / d */
   PetscReal *K, *D, *B, *Bt, *BT;         /* r*r, r*r, nl*r, nl*r, r*nl (B^T row-major) */
   PetscReal *KT, *DT;                     /* K^T, D^T row-major (column access for the matrix-vector products) */
   /* the stage solve works on the model's own M_r, D = C_r + G_r, K_r (symmetric for a symmetric structure) */
@@ -26,11 +31,18 @@ typedef struct {
   /* excitation: Omega = sup_a sin(sup_w t + sup_ph); F = force_a sin(force_w t + force_ph), or the random sum */
   PetscReal sup_a, sup_w, sup_ph, force_a, force_w, force_ph;
   PetscInt nrand; PetscReal *rand_amp, *rand_omega, *rand_phase;
+  PetscInt nhist, nterm; PetscReal *hist_amp, *hist_omega, *hist_phase, *X;  /* load matrix: m histories of nterm cosines */
+  /* equally spaced frequencies omega_mk = w0_m + k dw (excitation.CorrelatedProcess): X_m = Re(e^{i w0_m t} sum_k A_mk e^{i k dw t}),
+     A_mk = amp_mk e^{i phase_mk}, the sum by Horner's rule in e^{i dw t} (one complex multiply-add a term, not a cosine) */
+  int hist_horner; PetscReal hist_dw, *hist_w0, *hist_re, *hist_im;
   /* laws (laws.py's families, the same evaluation order) */
   int implicit_contact, damped, hunt_crossley, poly_cubic, two_linear, pwlinear;
   int *kind;
   PetscReal *em, *ep, *km, *kp, *pm1, *pp1, *km_pm, *kp_pp, *k3, *c, *alpha;
   PetscInt *tab_off, *tab_n; PetscReal *tab_z, *tab_f, *tab_slope;
+  int friction, has_nv; PetscReal *slip, *fvreg;   /* law = "friction": slip = mu F_n; has_nv: some dN/dv != 0 */
+  /* 2-D laws (laws.PlanarLaws), per constraint: gap, k, mu, v_reg, c, alpha, the flats' normal e (2 each), flat or round */
+  PetscReal *pl_gap, *pl_k, *pl_mu, *pl_vreg, *pl_c, *pl_alpha, *pl_e; int *pl_flat;
   /* work */
   PetscReal *z, *v, *N, *Nz, *Nv, *BtN, *tmp, *tmp2;
   /* linearization at the last IJacobian: W = Nz + shift Nv, Nv, Nz, the side of each constraint */
@@ -47,6 +59,7 @@ typedef struct {
   PetscReal *acc_impacts, *acc_contact_time, *acc_run, *acc_duration_max, *acc_f2, *acc_z2, *acc_power,
             *acc_force_peak, *acc_displacement_peak, *acc_prev;  /* nl each; prev 4*nl */
   PetscReal acc_t0, acc_t_prev; int acc_started;
+  PetscReal *acc_work, *acc_work_prev;                    /* N_L each, d = 2: the work-rate integral and its last point */
   /* samples: times, the next one, rows [t, q, p, z, v, N, peak, probe] buffered for Python */
   PetscReal *sample_t, sample_tol; PetscInt nsample, next_sample; int dense_output;
   PetscReal *rows; PetscInt row_len, row_cap, nrows;
@@ -65,6 +78,7 @@ PetscErrorCode RomApplyInverse(RomCtx *, Vec X, Vec Y);
 int RomFinite(RomCtx *, const PetscReal *u);
 PetscErrorCode RomTakeSamples(RomCtx *, TS, PetscReal t, Vec U, PetscInt *taken);
 void RomStepStatistics(RomCtx *, PetscReal t, const PetscReal *u);
+void RomForcing(RomCtx *, PetscReal t, PetscReal *g);
 
 /* wiring */
 PetscErrorCode RomAttach(RomCtx *, TS, Vec F, Vec G, Mat J, int shell);
