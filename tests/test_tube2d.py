@@ -523,8 +523,9 @@ def test_plot_of_two_planes_draws_each_support_orbit_inside_its_gap(shared_tmp_p
     if comm.getRank() == 0:
         with h5py.File(out) as f:
             laws = _laws(f)
-        assert [law["kind"] for law in laws] == ["circular"] * 11 + ["flat_bar"]
-        assert laws[11]["angle"] == 30.0 and laws[0]["clearance"] == 2e-4
+        # the shipped tube's two supports nearest the U-bend are flat bars (normal to z); the last one turned
+        assert [law["kind"] for law in laws] == ["circular"] * 10 + ["flat_bar"] * 2
+        assert laws[10]["angle"] == 90.0 and laws[11]["angle"] == 30.0 and laws[0]["clearance"] == 2e-4
         folder = shared_tmp_path / "plots"
         folder.mkdir()
         written = plot_run(out, str(folder))
