@@ -63,6 +63,8 @@ cdef extern from "rom_core.h":
         PetscReal *hist_w0
         PetscReal *hist_re
         PetscReal *hist_im
+        PetscReal *hist_sr
+        PetscReal *hist_si
         int friction, has_nv
         PetscReal *slip
         PetscReal *fvreg
@@ -261,7 +263,8 @@ cdef class Problem:
             if K > 1 and np.allclose(f.omega, f.omega[:, :1] + dw * np.arange(K), rtol=1e-13, atol=0.0):
                 c.hist_horner, c.hist_dw = 1, dw
                 A = f.amplitude * np.exp(1j * f.phase)
-                c.hist_w0, c.hist_re, c.hist_im = self.dptr(f.omega[:, 0]), self.dptr(A.real), self.dptr(A.imag)
+                c.hist_w0, c.hist_re, c.hist_im = self.dptr(f.omega[:, 0]), self.dptr(A.real.T), self.dptr(A.imag.T)
+                c.hist_sr, c.hist_si = self.dptr(np.zeros(f.count)), self.dptr(np.zeros(f.count))
         elif isinstance(f, RandomProcess):
             c.nrand = f.omega.size
             c.rand_amp, c.rand_omega, c.rand_phase = self.dptr(f.amplitude), self.dptr(f.omega), self.dptr(f.phase)

@@ -32,16 +32,20 @@ void RomForcing(RomCtx *c, PetscReal t, PetscReal *g)
   if (c->nhist && c->hist_horner) {
     const PetscInt m = c->nhist, K = c->nterm;
     const PetscReal zr = cos(c->hist_dw * t), zi = sin(c->hist_dw * t);
-    for (PetscInt h = 0; h < m; h++) {
-      const PetscReal *ar = c->hist_re + h * K, *ai = c->hist_im + h * K;
-      PetscReal sr = ar[K - 1], si = ai[K - 1];
-      for (PetscInt k = K - 2; k >= 0; k--) {
-        const PetscReal tr = sr * zr - si * zi + ar[k];
-        si = sr * zi + si * zr + ai[k];
-        sr = tr;
+    PetscReal *sr = c->hist_sr, *si = c->hist_si;
+    /* the histories side by side (A stored k-major): independent Horner chains, vectorized over h */
+    for (PetscInt h = 0; h < m; h++) { sr[h] = c->hist_re[(K - 1) * m + h]; si[h] = c->hist_im[(K - 1) * m + h]; }
+    for (PetscInt k = K - 2; k >= 0; k--) {
+      const PetscReal *ar = c->hist_re + k * m, *ai = c->hist_im + k * m;
+      for (PetscInt h = 0; h < m; h++) {
+        const PetscReal tr = sr[h] * zr - si[h] * zi + ar[h];
+        si[h] = sr[h] * zi + si[h] * zr + ai[h];
+        sr[h] = tr;
       }
+    }
+    for (PetscInt h = 0; h < m; h++) {
       const PetscReal wt = c->hist_w0[h] * t;
-      c->X[h] = cos(wt) * sr - sin(wt) * si;
+      c->X[h] = cos(wt) * sr[h] - sin(wt) * si[h];
     }
   } else if (c->nhist) {
     const PetscInt m = c->nhist, K = c->nterm;

@@ -34,7 +34,7 @@ typedef struct {
   PetscInt nhist, nterm; PetscReal *hist_amp, *hist_omega, *hist_phase, *X;  /* load matrix: m histories of nterm cosines */
   /* equally spaced frequencies omega_mk = w0_m + k dw (excitation.CorrelatedProcess): X_m = Re(e^{i w0_m t} sum_k A_mk e^{i k dw t}),
      A_mk = amp_mk e^{i phase_mk}, the sum by Horner's rule in e^{i dw t} (one complex multiply-add a term, not a cosine) */
-  int hist_horner; PetscReal hist_dw, *hist_w0, *hist_re, *hist_im;
+  int hist_horner; PetscReal hist_dw, *hist_w0, *hist_re, *hist_im, *hist_sr, *hist_si;  /* re, im: K x m (k-major) */
   /* laws (laws.py's families, the same evaluation order) */
   int implicit_contact, damped, hunt_crossley, poly_cubic, two_linear, pwlinear;
   int *kind;
