@@ -294,7 +294,8 @@ def tube2d():
     beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20, planes=2)
     turbulence = Turbulence(psd=1e-4, band=(0.0, 40.0), correlation_length=0.3, span=(0.5, 1.0), components=16,
                             seed=3)
-    supports = [Constraint(CircularLaw(kind=kind, **keys), x=x) for (kind, keys), x in zip(PLANAR_LAWS, (0.2, 0.4, 0.6, 0.8))]
+    supports = [Constraint(CircularLaw(kind=kind, **keys), x=x)
+                for (kind, keys), x in zip(PLANAR_LAWS, (0.2, 0.4, 0.6, 0.8))]
     with FullOrderModel.build(beam, supports, turbulence, probes=[0.5], damping=Damping(zeta=0.01),
                               comm=PETSc.COMM_SELF) as fom:
         with Reductor(fom, BasisSettings(modes=8)) as reductor:
@@ -340,10 +341,12 @@ def test_two_direction_and_friction_laws_in_c_agree_with_laws_py_to_round_off(tu
         worst = max(worst, (np.abs(Nz - Nz0).max(axis=(1, 2)) / sz).max())
     assert np.count_nonzero([np.any(laws.in_contact(z)) for z in states]) > 100
     # law = "friction" (d = 1) among the scalar laws: the same, on the scale mu F_n / v_reg of dN/dv
-    scalar = LAWS[:1] + [law("friction", normal_force=3.0, mu=0.4, v_reg=1e-3), law("friction", normal_force=0.5, mu=0.2)]
+    scalar = LAWS[:1] + [law("friction", normal_force=3.0, mu=0.4, v_reg=1e-3),
+                         law("friction", normal_force=0.5, mu=0.2)]
     n = len(scalar)
     constraints = dataclasses.replace(paper[0].constraints, rows=np.zeros((n, 1), dtype=np.int64),
-                                      laws=ConstraintLaws(scalar), labels=tuple(map(str, range(n))), positions=np.zeros(n))
+                                      laws=ConstraintLaws(scalar), labels=tuple(map(str, range(n))),
+                                      positions=np.zeros(n))
     one = dataclasses.replace(paper[0], constraints=constraints, B=np.ones((n, paper[0].size)), r_c=np.zeros(n))
     problem, python = _problem(one), ConstraintLaws(scalar)
     slip = np.array([x.mu * x.normal_force / (x.v_reg or 1.0) for x in scalar])
@@ -445,6 +448,6 @@ def test_c_callbacks_follow_the_python_trajectory_of_a_two_plane_beam_under_turb
     np.testing.assert_array_equal(a.statistics["impacts"], b.statistics["impacts"])
     for name in a.statistics:
         np.testing.assert_allclose(b.statistics[name], a.statistics[name], rtol=1e-6, atol=0, err_msg=name)
-    np.testing.assert_allclose(b.force.reshape(31, -1), [tube2d.constraints.force(z, v) for z, v in
-                                                         zip(b.displacement.reshape(31, -1), b.velocity.reshape(31, -1))],
-                               rtol=0, atol=1e-13 * np.abs(b.force).max())
+    laws_force = [tube2d.constraints.force(z, v) for z, v in zip(b.displacement.reshape(31, -1),
+                                                                 b.velocity.reshape(31, -1))]
+    np.testing.assert_allclose(b.force.reshape(31, -1), laws_force, rtol=0, atol=1e-13 * np.abs(b.force).max())

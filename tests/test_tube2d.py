@@ -455,6 +455,8 @@ def test_circular_contact_jacobian_passes_petsc_jacobian_test(tmp_path, callback
     # median 1.6e-7 at 1e-12). The same Jacobian agrees with central differences to 1e-7
     # (test_reduced_contact_jacobian_of_two_directions_matches_finite_differences). With the C
     # callbacks the Jacobian tested is the MatShell's (its 2 x 2 blocks), with PETSc's Newton.
+    import json
+
     from dbf_hpc import _romc
 
     if callbacks == "c" and _romc.core is None:
@@ -462,10 +464,10 @@ def test_circular_contact_jacobian_passes_petsc_jacobian_test(tmp_path, callback
     scene = tmp_path / "jacobian.toml"
     scene.write_text(JACOBIAN_SCENE)
     out = _dbf_hpc("run", str(scene), "-o", str(tmp_path / "j.h5"), "-q", "--set", f"basis.cache={tmp_path}",
-                   "--set", f'integrator.callbacks="{callbacks}"', "-rom_snes_test_jacobian", "-rom_snes_test_err", "1e-12")
+                   "--set", f'integrator.callbacks="{callbacks}"', "-rom_snes_test_jacobian",
+                   "-rom_snes_test_err", "1e-12")
     assert out.returncode == 0, out.stderr
     with h5py.File(tmp_path / "j.h5") as f:
-        import json
         stats = json.loads(f.attrs["solver_stats"])
         assert stats["callbacks"] == callbacks and stats["newton"] == "petsc"
     import re

@@ -305,7 +305,8 @@ cdef class Problem:
         """The 2-D laws (laws.CircularLaw: circular, flat_bar) as per-support arrays."""
         cdef RomCtx *c = &self.c
         g = lambda name: np.array([float(getattr(l, name)) for l in laws], dtype=float)
-        c.pl_gap, c.pl_k, c.pl_mu, c.pl_vreg = self.dptr(g("clearance")), self.dptr(g("k")), self.dptr(g("mu")), self.dptr(g("v_reg"))
+        c.pl_gap, c.pl_k = self.dptr(g("clearance")), self.dptr(g("k"))
+        c.pl_mu, c.pl_vreg = self.dptr(g("mu")), self.dptr(g("v_reg"))
         c.pl_c, c.pl_alpha = self.dptr(g("c")), self.dptr(g("alpha"))
         angle = np.radians(g("angle"))
         c.pl_e = self.dptr(np.column_stack((np.cos(angle), np.sin(angle))))   # as laws.PlanarLaws
