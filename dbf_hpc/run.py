@@ -409,7 +409,7 @@ def _left_behind(message: str, writer, checkpoint: Checkpoint | None) -> str:
     before its second sample leaves nothing (its one sample is the initial state)."""
     if writer is None:
         return message
-    samples = writer.count + len(writer.buffer.get(layout.TIME, ()))
+    samples = writer.count + writer.pending
     writer.abort()
     if samples <= 1 and not (checkpoint is not None and os.path.exists(checkpoint.path)):
         if os.path.exists(writer.partial) and not writer.parked:
