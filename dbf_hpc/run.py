@@ -544,6 +544,9 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                          layout.REDUCED_M: model.M, layout.REDUCED_K: model.K,
                          layout.REDUCED_B: model.B, layout.REDUCED_D: model.damping})
         attrs["basis_enrichment"] = info["enrichment"]
+        for key in ("mass_orthonormality_defect", "mode_coupling_defect"):
+            if key in info:
+                attrs[f"basis_{key}"] = float(info[key])
         if info.get("complex_modes"):   # a gyroscopic basis: Re and Im columns of each complex mode and DBF
             attrs["basis_complex_modes"] = int(info["complex_modes"])
     writer.finish(
