@@ -154,32 +154,36 @@ class OutputLock:
 
 
 class _Blocks:
-    """Samples buffered as blocks of rows, one list of 2-D arrays per series: a block of samples
-    costs one array, not one per sample (the C callbacks hand over hundreds at a time)."""
+    """Samples buffered as blocks of rows (a list of chunks, one array per series in each): a block of
+    samples costs no copy until the series are assembled, once (the C callbacks hand over hundreds
+    of samples at a time, and at small r the copies, not the arithmetic, are the cost)."""
 
     def __init__(self, shapes: dict):
         self.shapes = shapes
-        self.buffer = {name: [] for name in shapes}
+        self.chunks = []
         self.pending = 0
 
     def append(self, **values) -> None:
-        for name, buffer in self.buffer.items():
-            buffer.append(np.asarray(values[name], dtype=float).reshape((1, *self.shapes[name])))
+        self.chunks.append({name: np.array(values[name], dtype=float).reshape((1, *shape))
+                            for name, shape in self.shapes.items()})
         self.pending += 1
 
     def append_rows(self, **blocks) -> None:
-        """Several samples at once: each value has one row per sample."""
+        """Several samples at once: each value has one row per sample. The arrays are kept, not
+        copied: the caller hands them over."""
         count = len(blocks[layout.TIME])
-        for name, buffer in self.buffer.items():
-            buffer.append(np.array(blocks[name], dtype=float).reshape((count, *self.shapes[name])))
+        self.chunks.append({name: np.asarray(blocks[name], dtype=float).reshape((count, *shape))
+                            for name, shape in self.shapes.items()})
         self.pending += count
 
-    def take(self, name: str) -> np.ndarray:
-        """The buffered samples of one series as one array, the buffer emptied."""
-        parts = self.buffer[name]
-        block = parts[0] if len(parts) == 1 else np.concatenate(parts or [np.zeros((0, *self.shapes[name]))])
-        parts.clear()
-        return block
+    def series(self, name: str) -> np.ndarray:
+        """The buffered samples of one series as one new array."""
+        if not self.chunks:
+            return np.zeros((0, *self.shapes[name]))
+        return np.concatenate([chunk[name] for chunk in self.chunks])
+
+    def clear(self) -> None:
+        self.chunks, self.pending = [], 0
 
 
 class MemoryWriter:
@@ -188,15 +192,14 @@ class MemoryWriter:
     def __init__(self, constraint_shape: tuple, n_probes: int, r: int):
         self.shapes = series_shapes(constraint_shape, n_probes, r)
         self.blocks = _Blocks(self.shapes)
-        self.parts = {name: [] for name in self.shapes}
-        self.written = 0
 
     @property
     def count(self) -> int:
-        return self.written + self.blocks.pending
+        return self.blocks.pending
 
     @property
     def pending(self) -> int:
+        """Samples not yet written: none (memory is where they go)."""
         return 0
 
     def append(self, **values) -> None:
@@ -206,19 +209,11 @@ class MemoryWriter:
         self.blocks.append_rows(**blocks)
 
     def flush(self) -> None:
-        if self.blocks.pending:
-            for name in self.shapes:
-                self.parts[name].append(self.blocks.take(name))
-            self.written += self.blocks.pending
-            self.blocks.pending = 0
+        pass
 
     def series_data(self, name: str) -> np.ndarray:
         """A new array of the series' samples so far."""
-        self.flush()
-        parts = self.parts[name]
-        if len(parts) > 1:
-            parts[:] = [np.concatenate(parts)]
-        return parts[0].copy() if parts else np.zeros((0, *self.shapes[name]))
+        return self.blocks.series(name)
 
 
 class OutputWriter:
@@ -267,8 +262,8 @@ class OutputWriter:
             return
         for name, dataset in self.series.items():
             dataset.resize(self.count + n, axis=0)
-            dataset[self.count:] = self.blocks.take(name)
-        self.blocks.pending = 0
+            dataset[self.count:] = self.blocks.series(name)
+        self.blocks.clear()
         self.count += n
         self.file.flush()
 

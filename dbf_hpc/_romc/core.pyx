@@ -430,9 +430,10 @@ cdef class Problem:
     def sync(self):
         """Hand the samples taken so far and the accumulator's scalars to the Python objects."""
         cdef RomCtx *c = &self.c
-        if c.nrows:
-            rows = self.rows_arr[:c.nrows].copy()
-            c.nrows = 0
+        if c.nrows:   # the buffer itself is handed over (the writer keeps views of it): a new one for C
+            rows = self.rows_arr[:c.nrows]
+            self.rows_arr = np.empty_like(self.rows_arr)
+            c.rows, c.nrows = <PetscReal *><size_t>self.rows_arr.ctypes.data, 0
             if self.recorder is not None:
                 self.recorder.record_rows(rows)
             else:
