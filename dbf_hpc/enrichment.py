@@ -29,6 +29,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .dbf import STIFFNESS_RANGE, dbf_source, participation
+from . import dbf_ritz
 from .dbf_ritz import PREFETCH_BLOCK, RitzSolver, RitzSpace, reference_vectors
 from .dbf_shared import SharedFactor, SharedSolver
 from .errors import InputError, SolverError
@@ -210,16 +211,28 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
         if factor is not None and settings.solver == "ritz":
             space, group_modes = RitzSpace(factor, group_modes), []
         destroy(*group_modes)
-        mine = list(range(color, rows.size, n_groups))
-        for position, j in enumerate(mine):
-            if space is not None and position % PREFETCH_BLOCK == 0:
-                space.prefetch(rows[mine[position:position + PREFETCH_BLOCK]])
-            src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
-            lo, hi = src.derivative.getOwnershipRange()
-            gathered.setValues(np.arange(lo, hi, dtype=PETSc.IntType), [j], src.derivative.array_r.reshape(-1, 1))
-            if is_leader:
-                k[j], k_auto[j], branch[j] = src.stiffness, src.transition, src.branch
-            src.derivative.destroy()
+        mine = np.arange(color, rows.size, n_groups)
+        lo, hi = group_ops.K.getOwnershipRange()
+        local_rows = np.arange(lo, hi, dtype=PETSc.IntType)
+        # the analytic derivative on the ritz path: a block of constraints at a time (RitzSpace.sources)
+        blocks = space is not None and settings.derivative == "analytic" and dbf_ritz.BLOCK_SOURCES
+        for start in range(0, mine.size, PREFETCH_BLOCK):
+            chunk = mine[start:start + PREFETCH_BLOCK]
+            served = np.zeros(0, dtype=np.int64)
+            if blocks:
+                served, b, kj, kj_auto, _, d = space.sources(rows[chunk], lam, part[chunk], settings.stiffness)
+                if served.size:
+                    gathered.setValues(local_rows, chunk[served].astype(PETSc.IntType), np.ascontiguousarray(d))
+                    if is_leader:
+                        k[chunk[served]], k_auto[chunk[served]], branch[chunk[served]] = kj, kj_auto, b
+            elif space is not None:
+                space.prefetch(rows[chunk])
+            for j in np.delete(chunk, served):    # one at a time (and the block's unserved)
+                src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
+                gathered.setValues(local_rows, [j], src.derivative.array_r.reshape(-1, 1))
+                if is_leader:
+                    k[j], k_auto[j], branch[j] = src.stiffness, src.transition, src.branch
+                src.derivative.destroy()
         gathered.assemble()
     except Exception:
         gathered.destroy()
