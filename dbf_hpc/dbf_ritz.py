@@ -68,9 +68,9 @@ PREFETCH = 4               # vectors per constraint made in blocks (at most P_MA
 PREFETCH_BLOCK = 64        # constraints per block (memory: 2 PREFETCH local rows of each)
 BLOCK_SOURCES = True       # the analytic DBFs of a block at once (RitzSpace.sources); False: one at a time
 
-# Work done by this process on the Ritz path (tests and benchmarks read it): constraints served,
-# Krylov vectors made, stages handed to the shared path.
-counters = {"constraints": 0, "vectors": 0, "fallbacks": 0}
+# Work done by this process on the Ritz path (tests and benchmarks read it): constraints served (of
+# them by RitzSpace.sources: "in blocks"), Krylov vectors made, stages handed to the shared path.
+counters = {"constraints": 0, "in blocks": 0, "vectors": 0, "fallbacks": 0}
 
 
 class RitzSpace:
@@ -304,6 +304,7 @@ class RitzSpace:
         D *= np.where(ramp_x >= 0, 1.0, -1.0)
         served = done[accepted]
         counters["constraints"] += served.size
+        counters["in blocks"] += served.size
         return (served, branch[served], k[served], k_auto[served], lam[served],
                 D if accepted.all() else np.asfortranarray(D[:, accepted]))
 
