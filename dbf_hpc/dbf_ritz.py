@@ -271,23 +271,28 @@ class RitzSpace:
         empty = (done, branch[done], k[done], k_auto[done], lam[done], np.zeros((nloc, done.size), order="F"))
         if not done.size:
             return empty
-        # phi = V y and d = V y' of the converged constraints, with M phi and M d from M V
-        X, MX = self._combine(done, Y, steps, n), self._combine(done, Y, steps, n, 2)
-        D, MD = self._combine(done, DY, steps, n), self._combine(done, DY, steps, n, 2)
-        KXD = _mult_block(self.ops.K, np.hstack([X, D]))
-        KX, KD = KXD[:, :done.size], KXD[:, done.size:]
+        # phi = V y and d = V y' of the converged constraints, [phi d] and M [phi d] (from M V): one pass
+        owners = np.concatenate([done, done])
+        coefficients = np.vstack([Y[done], DY[done]])
+        XD, MXD = self._combine(owners, coefficients, steps, n, 1), self._combine(owners, coefficients, steps, n, 2)
+        KXD = _mult_block(self.ops.K, XD)
+        nd = done.size
+        X, D, MX, MD = XD[:, :nd], XD[:, nd:], MXD[:, :nd], MXD[:, nd:]
         kd, lamd = k[done], lam[done]
         gphi = np.einsum("ij,ij->i", H[done], Y[done])           # g^T phi
         gd = np.einsum("ij,ij->i", H[done], DY[done])            # g^T d
         here = np.flatnonzero(mine[done])
         at_rows = rows[done][here] - lo
-        R = KX - lamd * MX                                        # (K + k g g^T - lambda M) phi
+        R = KXD[:, :nd]                                           # (K + k g g^T - lambda M) phi
+        R -= lamd * MX
         R[at_rows, here] += kd[here] * gphi[here]
         # the derivative equation's residual: (K + k g g^T - lambda M) d - rhs,
         # rhs = (g^T phi)^2 M phi - (g^T phi) g
         rhs = gphi**2 * MX
         rhs[at_rows, here] -= gphi[here]
-        RD = KD - lamd * MD - rhs
+        RD = KXD[:, nd:]
+        RD -= lamd * MD
+        RD -= rhs
         RD[at_rows, here] += kd[here] * gd[here]
         ramp = 1.0 + (np.arange(lo, hi) + 0.5) / M.getSize()[0]
         sums = _sum(comm, np.vstack([np.einsum("ij,ij->j", R, R), np.einsum("ij,ij->j", X, X),
@@ -305,8 +310,7 @@ class RitzSpace:
         served = done[accepted]
         counters["constraints"] += served.size
         counters["in blocks"] += served.size
-        return (served, branch[served], k[served], k_auto[served], lam[served],
-                D if accepted.all() else np.asfortranarray(D[:, accepted]))
+        return (served, branch[served], k[served], k_auto[served], lam[served], D[:, accepted])
 
     def _pinned_stage(self, J, q, C, S, gz, branch, stage, size, lam) -> None:
         """RitzSolver._pinned_reduced for the constraints J at size q, as one stack; the converged move
@@ -353,22 +357,19 @@ class RitzSpace:
         DY[J] = 0.0
         Y[J, :q], DY[J, :q] = y, dy
 
-    def _combine(self, done, Y, steps, n: int, which: int = 1) -> np.ndarray:
-        """V Y^T for the constraints `done` (which = 1) or M V Y^T (which = 2): their Ritz vectors'
-        local rows, n_local x done.size."""
-        out = np.zeros((self.Phi_local.shape[1], done.size), order="F")
-        vectors, coefficients = [], []
+    def _combine(self, owners, coefficients, steps, n: int, which: int = 1) -> np.ndarray:
+        """V_j y_i for coefficient rows y_i (coefficients: m x width) of the constraints j = owners[i]
+        (which = 1), or M V_j y_i (which = 2): local rows, n_local x m. The modes' part as one
+        product, the Krylov vectors column by column (each its own)."""
+        base = self.Phi_local if which == 1 else self.MPhi_local
+        out = np.asfortranarray(base.T @ coefficients[:, :n].T)
+        columns = out.T
         for p, step in enumerate(steps):
-            have = np.isin(done, step[0])
-            if not have.any():
-                break
-            block = np.zeros((out.shape[0], done.size), order="F") if not have.all() else None
-            if block is not None:
-                block[:, have] = _columns(step, done[have], which)
-            vectors.append(block if block is not None else _columns(step, done, which))
-            coefficients.append(Y[done, n + p])
-        _subtract(out, self.Phi_local if which == 1 else self.MPhi_local, -Y[done, :n].T, vectors,
-                  -np.array(coefficients).reshape(len(vectors), done.size))
+            have, block = step[0], step[which].T
+            position = np.minimum(np.searchsorted(have, owners), have.size - 1)
+            d = coefficients[:, n + p]
+            for i in np.flatnonzero((have[position] == owners) & (d != 0.0)):
+                columns[i] += d[i] * block[position[i]]
         return out
 
     def destroy(self) -> None:
