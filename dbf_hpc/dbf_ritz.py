@@ -362,8 +362,8 @@ class RitzSpace:
         (which = 1), or M V_j y_i (which = 2): local rows, n_local x m. The modes' part as one
         product, the Krylov vectors column by column (each its own)."""
         base = self.Phi_local if which == 1 else self.MPhi_local
-        out = np.asfortranarray(base.T @ coefficients[:, :n].T)
-        columns = out.T
+        columns = coefficients[:, :n] @ base       # m x n_local, row-major: out (column-major) is its transpose
+        out = columns.T
         for p, step in enumerate(steps):
             have, block = step[0], step[which].T
             position = np.minimum(np.searchsorted(have, owners), have.size - 1)
