@@ -36,11 +36,18 @@ the eigen-residual and the derivative's backward error are checked on the full o
 factored path. A stage that does not converge within P_MAX vectors, or fails a check, falls back to
 the shared path (dbf_shared.SharedSolver) for the rest of that constraint (counters).
 
-In blocks: the first PREFETCH Krylov vectors of PREFETCH_BLOCK constraints at a time are made by
-RitzSpace.prefetch with one multi-right-hand-side solve per step (MatMatSolve) and the same
-Gram-Schmidt on the block; each RitzSolver takes its own and solves singly only beyond them. The
-DBFs are those of one constraint at a time (to round-off); a block solve costs a fraction of as many
-single solves with MUMPS (docs/benchmarks.md).
+In blocks (the default for the analytic derivative: RitzSpace.sources, PREFETCH_BLOCK constraints
+at a time): every step above for all the block's constraints together. Per Krylov step one
+multi-right-hand-side solve (MatMatSolve), the same CGS2 and one M product (MatMatMult) for the
+constraints still unconverged; the small problems of all of them as one stack (numpy's batched
+eigh); then phi = V y and d = V y' of the block with M phi and M d from M V, one K product
+(MatMatMult) for the eigen-residuals and the derivatives' backward errors, normalization and the
+sign in one pass. Each constraint's V, coefficients and decisions are those it makes alone, so the
+DBFs are those of one constraint at a time (to round-off, 1e-14-1e-12; tests at 1e-10). A
+constraint with no moving mode, an invariant V, no convergence within P_MAX vectors or a failed
+check is left to the one-at-a-time path (RitzSolver), which repeats its steps and takes the same
+fallback. The central-difference derivative goes one at a time, its first PREFETCH Krylov vectors
+made in blocks by RitzSpace.prefetch.
 
 Collective on the group's communicator; the options of the shared factorization apply
 (-dbf_shared_pc_factor_mat_solver_type ...).
@@ -65,7 +72,7 @@ BREAKDOWN = 1e-10          # a Krylov vector this small after orthogonalization:
 # solve with many right-hand sides costs a fraction of as many single solves (MUMPS on the 104 040-DOF
 # solid: 0.27 s a solve alone, 0.044 s each in a block of 50). A DBF uses 3-4 vectors (docs/benchmarks.md).
 PREFETCH = 4               # vectors per constraint made in blocks (at most P_MAX)
-PREFETCH_BLOCK = 64        # constraints per block (memory: 2 PREFETCH local rows of each)
+PREFETCH_BLOCK = 64        # constraints per block (memory: ~2 P_MAX + 6 local rows of each)
 BLOCK_SOURCES = True       # the analytic DBFs of a block at once (RitzSpace.sources); False: one at a time
 
 # Work done by this process on the Ritz path (tests and benchmarks read it): constraints served (of
@@ -271,11 +278,10 @@ class RitzSpace:
         empty = (done, branch[done], k[done], k_auto[done], lam[done], np.zeros((nloc, done.size), order="F"))
         if not done.size:
             return empty
-        # phi = V y and d = V y' of the converged constraints, [phi d] and M [phi d] (from M V): one pass
-        owners = np.concatenate([done, done])
-        coefficients = np.vstack([Y[done], DY[done]])
-        XD, MXD = self._combine(owners, coefficients, steps, n, 1), self._combine(owners, coefficients, steps, n, 2)
-        KXD = _mult_block(self.ops.K, XD)
+        # phi = V y and d = V y' of the converged constraints as one block [phi d], then K [phi d] and
+        # M [phi d] (two MatMatMults: cheaper than forming M V y from M V)
+        XD = self._combine(np.concatenate([done, done]), np.vstack([Y[done], DY[done]]), steps, n)
+        KXD, MXD = _mult_block(self.ops.K, XD), _mult_block(M, XD)
         nd = done.size
         X, D, MX, MD = XD[:, :nd], XD[:, nd:], MXD[:, :nd], MXD[:, nd:]
         kd, lamd = k[done], lam[done]
@@ -357,15 +363,14 @@ class RitzSpace:
         DY[J] = 0.0
         Y[J, :q], DY[J, :q] = y, dy
 
-    def _combine(self, owners, coefficients, steps, n: int, which: int = 1) -> np.ndarray:
-        """V_j y_i for coefficient rows y_i (coefficients: m x width) of the constraints j = owners[i]
-        (which = 1), or M V_j y_i (which = 2): local rows, n_local x m. The modes' part as one
-        product, the Krylov vectors column by column (each its own)."""
-        base = self.Phi_local if which == 1 else self.MPhi_local
-        columns = coefficients[:, :n] @ base       # m x n_local, row-major: out (column-major) is its transpose
+    def _combine(self, owners, coefficients, steps, n: int) -> np.ndarray:
+        """V_j y_i for coefficient rows y_i (coefficients: m x width) of the constraints j = owners[i]:
+        local rows, n_local x m. The modes' part as one product, the Krylov vectors column by column
+        (each its own)."""
+        columns = coefficients[:, :n] @ self.Phi_local   # m x n_local, row-major: out (column-major) is its transpose
         out = columns.T
         for p, step in enumerate(steps):
-            have, block = step[0], step[which].T
+            have, block = step[0], step[1].T
             position = np.minimum(np.searchsorted(have, owners), have.size - 1)
             d = coefficients[:, n + p]
             for i in np.flatnonzero((have[position] == owners) & (d != 0.0)):

@@ -9,13 +9,15 @@ key, the name of its columns, and its warnings.
   each group gets its own copy of K and M and takes every groups-th constraint; the derivatives are
   gathered into one distributed matrix. solver "ritz" (the default): each group factors
   K - sigma M once and every constraint is a Rayleigh-Ritz problem on the reference modes plus a
-  few Krylov vectors on g with it (dbf_ritz.py; ~3 solves per constraint); "shared": the same
+  few Krylov vectors on g with it (dbf_ritz.py; ~3 solves per constraint, a block of constraints at
+  a time: multi-right-hand-side solves, batched small eigenproblems); "shared": the same
   factorization, Krylov-Schur eigensolves and GMRES per constraint (dbf_shared.py, ~28 solves; the
   ritz path's fallback); "factor": three factorizations per constraint (dbf.py, the
   paper-faithful comparator). Options prefix `dbf_`.
 - StaticEnrichment ("static"): the static attachment mode K^-1 g_j (the static correction of
   industrial codes, e.g. code_aster's static modes): one Cholesky factorization of K (MUMPS,
-  options prefix `static_`) and one solve per constraint. K must be regular.
+  options prefix `static_`) and one multi-right-hand-side solve per STATIC_BLOCK constraints. K must
+  be regular.
 - NoEnrichment ("none"): the reference modes alone (plain modal truncation).
 "static" and "none" are comparators for accuracy studies, with everything else the same.
 
