@@ -278,10 +278,11 @@ class RitzSpace:
         empty = (done, branch[done], k[done], k_auto[done], lam[done], np.zeros((nloc, done.size), order="F"))
         if not done.size:
             return empty
-        # phi = V y and d = V y' of the converged constraints as one block [phi d], then K [phi d] and
-        # M [phi d] (two MatMatMults: cheaper than forming M V y from M V)
-        XD = self._combine(np.concatenate([done, done]), np.vstack([Y[done], DY[done]]), steps, n)
-        KXD, MXD = _mult_block(self.ops.K, XD), _mult_block(M, XD)
+        # phi = V y and d = V y' of the converged constraints as one block [phi d], and M [phi d] from
+        # M V (on a 3-D mesh a MatMatMult with M costs more than these few columns per vector)
+        owners, coefficients = np.concatenate([done, done]), np.vstack([Y[done], DY[done]])
+        XD, MXD = self._combine(owners, coefficients, steps, n, 1), self._combine(owners, coefficients, steps, n, 2)
+        KXD = _mult_block(self.ops.K, XD)
         nd = done.size
         X, D, MX, MD = XD[:, :nd], XD[:, nd:], MXD[:, :nd], MXD[:, nd:]
         kd, lamd = k[done], lam[done]
@@ -363,14 +364,15 @@ class RitzSpace:
         DY[J] = 0.0
         Y[J, :q], DY[J, :q] = y, dy
 
-    def _combine(self, owners, coefficients, steps, n: int) -> np.ndarray:
-        """V_j y_i for coefficient rows y_i (coefficients: m x width) of the constraints j = owners[i]:
-        local rows, n_local x m. The modes' part as one product, the Krylov vectors column by column
-        (each its own)."""
-        columns = coefficients[:, :n] @ self.Phi_local   # m x n_local, row-major: out (column-major) is its transpose
+    def _combine(self, owners, coefficients, steps, n: int, which: int = 1) -> np.ndarray:
+        """V_j y_i for coefficient rows y_i (coefficients: m x width) of the constraints j = owners[i]
+        (which = 1), or M V_j y_i (which = 2): local rows, n_local x m. The modes' part as one
+        product, the Krylov vectors column by column (each its own)."""
+        base = self.Phi_local if which == 1 else self.MPhi_local
+        columns = coefficients[:, :n] @ base       # m x n_local, row-major: out (column-major) is its transpose
         out = columns.T
         for p, step in enumerate(steps):
-            have, block = step[0], step[1].T
+            have, block = step[0], step[which].T
             position = np.minimum(np.searchsorted(have, owners), have.size - 1)
             d = coefficients[:, n + p]
             for i in np.flatnonzero((have[position] == owners) & (d != 0.0)):
