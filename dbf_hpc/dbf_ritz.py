@@ -193,7 +193,7 @@ class RitzSpace:
         from .dbf import auto_stiffness, branches
         rows = np.asarray(rows, dtype=np.int64)
         L, n, comm = rows.size, len(self.Phi), self.comm
-        M, sigma = self.ops.M, self.sigma
+        M = self.ops.M
         lo, hi = M.getOwnershipRange()
         nloc = hi - lo
         participation = np.asarray(participation, dtype=float).reshape(L, -1)
@@ -212,7 +212,6 @@ class RitzSpace:
         # stage: 0 pinned, 1 spring-perturbed, 2 done, -1 not served (the one-at-a-time path)
         stage = np.where(branch > 0, 0, -1)
         k, k_auto, lam = np.zeros(L), np.zeros(L), np.zeros(L)
-        size = np.zeros(L, dtype=np.int64)
         Y, DY = np.zeros((L, width)), np.zeros((L, width))
         steps = []            # per Krylov step: (constraints, their vectors' local rows, M times them)
         for p in range(P_MAX):
@@ -240,7 +239,7 @@ class RitzSpace:
                 for j, (_, Mv) in enumerate(previous):
                     c[n + j] = np.einsum("ij,ij->j", Mv, a)
                 c = _sum(comm, c)
-                # in place, column by column for the Krylov part (BLAS: no temporary blocks)
+                # in place, the Krylov part column by column (each constraint its own vectors)
                 _subtract(a, self.Phi_local, c[:n], [v for v, _ in previous], c[n:])
                 coefficients += c
             b = _mult_block(M, a)
@@ -267,11 +266,11 @@ class RitzSpace:
             H[act, q] = gx / scale
             steps.append((act, a, b))
             # the small problems on V[:, :q] (q = n + p: the newest vector closes them)
-            moved = self._pinned_stage(np.flatnonzero(stage == 0), q, C, S, gz, branch, stage, size, lam)
+            moved = self._pinned_stage(np.flatnonzero(stage == 0), q, C, S, gz, branch, stage, lam)
             for j in moved:                    # mu_m known: the stiffness (dbf.dbf_source)
                 k_auto[j] = auto_stiffness(lam[j], reference[branch[j] - 1], cluster[j])
                 k[j] = k_auto[j] if stiffness == "auto" else float(stiffness)
-            self._spring_stage(np.flatnonzero(stage == 1), q, C, S, gz, k, branch, stage, size, lam, Y, DY)
+            self._spring_stage(np.flatnonzero(stage == 1), q, C, S, gz, k, branch, stage, lam, Y, DY)
             if p + 1 >= P_MAX:
                 stage[(stage == 0) | (stage == 1)] = -1      # P_MAX reached: the shared path
         done = np.flatnonzero(stage == 2)
@@ -319,7 +318,7 @@ class RitzSpace:
         counters["in blocks"] += served.size
         return (served, branch[served], k[served], k_auto[served], lam[served], D[:, accepted])
 
-    def _pinned_stage(self, J, q, C, S, gz, branch, stage, size, lam) -> None:
+    def _pinned_stage(self, J, q, C, S, gz, branch, stage, lam) -> np.ndarray:
         """RitzSolver._pinned_reduced for the constraints J at size q, as one stack; the converged move
         to the spring-perturbed stage with mu_m in lam (returned: those)."""
         if not J.size:
@@ -330,11 +329,11 @@ class RitzSpace:
         num = nu[np.arange(J.size), m]
         converged = np.abs(np.einsum("ij,ij->i", beta_row, y)) <= self.eigen_tol * np.abs(num)
         J = J[converged]
-        stage[J], size[J] = 1, q
+        stage[J] = 1
         lam[J] = self.sigma + 1.0 / num[converged]
         return J
 
-    def _spring_stage(self, J, q, C, S, gz, k, branch, stage, size, lam, Y, DY) -> None:
+    def _spring_stage(self, J, q, C, S, gz, k, branch, stage, lam, Y, DY) -> None:
         """RitzSolver._spring_reduced for the constraints J at size q (k known), as one stack; the
         converged are done, with lambda_m(k) in lam and y, y' in Y, DY."""
         if not J.size:
@@ -358,7 +357,7 @@ class RitzSpace:
         converged = ((residual <= self.eigen_tol * np.abs(num))
                      & (derivative_residual <= self.derivative_tol * np.abs(num) * np.linalg.norm(dy, axis=1)))
         J, y, dy = J[converged], y[converged], dy[converged]
-        stage[J], size[J] = 2, q
+        stage[J] = 2
         lam[J] = self.sigma + 1.0 / num[converged]
         Y[J] = 0.0
         DY[J] = 0.0
