@@ -181,12 +181,18 @@ def stiffness_sweep(ops: Operators, row: int, stiffnesses, branch: int = 1) -> n
 def dbf_columns(ops: Operators, row: int, modes, stiffness="auto"):
     """(Re d, Im d, k, k_auto, branch) of the constraint at `row`: d the central difference in k of the
     spring-perturbed complex mode (module docstring). Collective."""
+    return _dbf_state(ops, row, modes, stiffness)[:5]
+
+
+def _dbf_state(ops: Operators, row: int, modes, stiffness="auto"):
+    """dbf_columns and varpi_j(k), the spring-perturbed mode's frequency (rad/s), which the state-space
+    DBF [i varpi d; d] (Eq. 17, state_space.py) needs. Collective."""
     branch, _, _, k_auto = transition(ops, row, modes)
     k = k_auto if stiffness == "auto" else float(stiffness)
     h = CENTRAL_STEP
     vecs = []
     try:
-        _, xr, xi = _spring_mode(ops, row, k, branch)
+        lam, xr, xi = _spring_mode(ops, row, k, branch)
         vecs += [xr, xi]
         ends = []
         for factor in (1 + h, 1 - h):
@@ -201,7 +207,7 @@ def dbf_columns(ops: Operators, row: int, modes, stiffness="auto"):
         di.scale(1.0 / (2 * h * k))
     finally:
         destroy(*vecs)
-    return dr, di, k, k_auto, branch
+    return dr, di, k, k_auto, branch, float(lam.imag)
 
 
 def hat_omega(K_r: np.ndarray, G_r: np.ndarray, re: np.ndarray, im: np.ndarray) -> float:
