@@ -847,3 +847,33 @@ def test_state_space_band_after_impacts_has_the_full_order_and_second_order_stat
         # Measured against the full order 0.10 %, 0.57 %, 1.7 %, 9.0 %; against the second-order form
         # 0.07 %, 0.6 %, 1.1 %, 8.4 % (the peak force of a few impacts is the loosest statistic).
         assert np.all(np.array(rel) < bounds), rel
+
+
+def test_a_state_space_scene_writes_its_form_resumes_from_a_checkpoint_and_refuses_the_c_callbacks(shared_tmp_path):
+    import os
+
+    import h5py
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_checkpoint import interrupted_run
+
+    path = os.path.join(os.path.dirname(__file__), "..", "jobs", "pipe_conveying_fluid.toml")
+    sets = ["basis.gyroscopic_form=state_space", "integrator.t_end=0.03", "basis.estimate=false",
+            "output.checkpoint_dt=0.005"]
+    whole, stopped = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
+    run(load_scene(path, sets), whole, progress=False)
+    interrupted_run(load_scene(path, sets), stopped)
+    summary = run(load_scene(path, sets), stopped, progress=False, resume=True)
+    assert summary["stats"]["final_time"] == pytest.approx(0.03) and summary["stats"]["form"] == "state_space"
+    MPI.COMM_WORLD.Barrier()
+    with h5py.File(whole, "r") as a, h5py.File(stopped, "r") as b:
+        assert a.attrs["reduced_form"] == "state_space" and a["reduced/q"].shape[1] == 2 * (4 + 2)
+        assert np.abs(a["reduced/M"][:] - np.eye(12)).max() < 1e-10          # Psi^T A Psi
+        # the resumed run continues the same steps: the same samples
+        assert np.abs(a["probes/displacement"][:] - b["probes/displacement"][:]).max() <= 1e-12 * np.abs(
+            a["probes/displacement"][:]).max()
+        assert np.array_equal(a["constraints/stats/impacts"][:], b["constraints/stats/impacts"][:])
+    with pytest.raises(InputError, match='callbacks = "c": the C callbacks integrate the second-order form'):
+        run(load_scene(path, sets + ["integrator.callbacks=c"]), str(shared_tmp_path / "c.h5"), progress=False)
+    assert not (shared_tmp_path / "c.h5").exists()
