@@ -38,7 +38,6 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-from mpi4py import MPI
 from petsc4py import PETSc
 
 from .accuracy import captured, exact_flexibility
