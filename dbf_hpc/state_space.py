@@ -244,7 +244,7 @@ class StateSpaceBasis:
 def _basis(ops: Operators, rows, settings: BasisSettings, labels, modes, raw: list | None) -> StateSpaceBasis:
     """The basis from `modes` (stable GyroscopicModes) and the DBFs: computed here (raw None) or the
     given raw DBFs (d_R, d_I, varpi) (a richer basis: no DBF recomputed). Collective."""
-    from .gyroscopic_basis import _dbf_state
+    from .gyroscopic_basis import all_dbfs
     from .enrichment import static_modes
 
     strategy = settings.strategy
@@ -253,7 +253,7 @@ def _basis(ops: Operators, rows, settings: BasisSettings, labels, modes, raw: li
     omega = []
     t1 = time.perf_counter()
     k, k_auto, branch = np.zeros(NL), np.zeros(NL), np.zeros(NL, dtype=np.int64)
-    new_raw, groups, static = [], [], None
+    new_raw, groups, static, dbfs = [], [], None, []
     try:
         for j in range(modes.count):
             w_j = float(modes.omega[j])
@@ -268,12 +268,15 @@ def _basis(ops: Operators, rows, settings: BasisSettings, labels, modes, raw: li
         N = gs_count = len(gs.v)
         if strategy.kind == "static" and NL and raw is None:
             static = static_modes(ops, rows)
+        if strategy.kind == "dbf" and raw is None:
+            dbfs = all_dbfs(ops, rows, modes, strategy.stiffness, settings.groups)
         for j in range(NL):
             if raw is not None:
                 dr, di, varpi = raw[j]
                 dr, di = dr.copy(), di.copy()
             elif strategy.kind == "dbf":
-                dr, di, k[j], k_auto[j], branch[j], varpi = _dbf_state(ops, int(rows[j]), modes, strategy.stiffness)
+                dr, di, k[j], k_auto[j], branch[j], varpi = dbfs[j]
+                dbfs[j] = None
             else:   # a static mode: a real displacement vector at rest (its velocity part is 0)
                 dr = ops.K.createVecRight()
                 static.getColumnVector(j, dr)
@@ -297,7 +300,7 @@ def _basis(ops: Operators, rows, settings: BasisSettings, labels, modes, raw: li
             groups.append((first, len(gs.v) - first))
         gs_count = len(gs.v)
     except Exception:
-        destroy(*gs.v, *gs.w, *[v for d in new_raw for v in d[:2]])
+        destroy(*gs.v, *gs.w, *[v for d in new_raw for v in d[:2]], *[v for d in dbfs if d is not None for v in d[:2]])
         gs.destroy_products()
         destroy(static)
         raise

@@ -877,3 +877,37 @@ def test_a_state_space_scene_writes_its_form_resumes_from_a_checkpoint_and_refus
     with pytest.raises(InputError, match='callbacks = "c": the C callbacks integrate the second-order form'):
         run(load_scene(path, sets + ["integrator.callbacks=c"]), str(shared_tmp_path / "c.h5"), progress=False)
     assert not (shared_tmp_path / "c.h5").exists()
+
+
+def grouped_columns(groups, form):
+    """The basis columns (every rank's rows, velocity then displacement parts in the state-space form)
+    of a band with two stops, the DBFs solved by `groups` constraint groups, and the DBF stiffnesses."""
+    from dbf_hpc import Constraint, FullOrderModel, law
+    from dbf_hpc.basis import BasisSettings, build_basis
+
+    beam = Beam(elements=30, axial_speed=30.0, **BAND)
+    stops = [Constraint(law("deadband", clearance=5e-4, k=1e5), x=x) for x in (0.3, 0.75)]
+    world = MPI.COMM_WORLD
+    with FullOrderModel.build(beam, stops) as fom:
+        basis = build_basis(fom.operators, fom.constraints.flat_rows,
+                            BasisSettings(modes=4, groups=groups, gyroscopic_form=form))
+        if form == "state_space":
+            parts = [np.column_stack([v.getArray() for v in vecs]) for vecs in (basis.velocity, basis.displacement)]
+        else:
+            dense = basis.vectors.getMat()
+            parts = [dense.getDenseArray().copy()]
+            basis.vectors.restoreMat(dense)
+        k, hat = basis.dbf_k.copy(), basis.enrichment_omega.copy()
+        basis.destroy()
+    return np.vstack([np.vstack(world.allgather(p)) for p in parts]), k, hat
+
+
+@pytest.mark.parametrize("form", ["second_order", "state_space"])
+@pytest.mark.parallel
+def test_gyroscopic_dbfs_solved_by_constraint_groups_are_those_solved_on_all_ranks(form):
+    # groups = 2 on 2 ranks: each rank solves one stop's four PEPs alone on its copy of K, M, G
+    together, k1, hat1 = grouped_columns(1, form)
+    apart, k2, hat2 = grouped_columns(2, form)
+    assert_all(together.shape == apart.shape and np.allclose(k1, k2, rtol=1e-8) and np.allclose(hat1, hat2,
+                                                                                                 rtol=1e-8))
+    assert_all(np.abs(together - apart).max() < 1e-8 * np.abs(together).max())
