@@ -35,7 +35,7 @@ reduced model reproduces the N complex modes exactly (and adds N further ones).
   It is omega_j for an exact mode (x^H P(i omega) x = 0) and sqrt(K_r,jj) (Eq. 41) at G = 0.
 
 The derivative is always the central difference (dbf_derivative and dbf_solver are not used: the
-gyroscopic problem has one PEP solve per k); constraints are solved one after another on ops.comm.
+gyroscopic problem has one PEP solve per k); constraints are solved in groups side by side (all_dbfs).
 Four PEP solves per constraint (pinned, k, k (1 +- h)), each with its own MUMPS LU (options prefix
 `dbf_`: -dbf_pep_..., -dbf_st_...). Cached (cache.py: the key holds U, m_t, T or G's bytes through the
 operators' fingerprint; a cached basis must still hold the complex modes' frequencies). Collective on ops.comm.
