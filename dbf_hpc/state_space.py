@@ -584,14 +584,14 @@ class _StateMonitor:
                                   "reduce [integrator] dt or rtol, or set contact = \"implicit\""):
             return
         for _, sample, exact in steps.samples_due(t):
-            state, at = a, t
+            state = a
             if not exact and self.dense:
                 if self.work is None:
                     self.work = y.duplicate()
                 ts.interpolate(sample, self.work)
                 state = self.work.getArray(readonly=True)
             q = state.copy()
-            self.record(sample, q, problem.rate(sample if not exact else at, q))
+            self.record(sample, q, problem.rate(sample, q))   # reduced/qdot: eta' from the equation
         if steps.new_step():
             q = a.copy()
             p = problem.rate(t, q)

@@ -298,7 +298,9 @@ def test_an_axially_moving_beam_needs_w_fixed_at_both_ends():
      "is for kind"),
     ('kind = "beam"\nlength = 1.0\nE = 2e11\nI = 1e-8\nA = 1e-4\nrho = 7800.0\nright = "free"\naxial_speed = 1.0',
      "needs w fixed at both ends"),
-], ids=["speed-on-matrices", "g-on-a-beam", "free-end"])
+    ('kind = "beam"\nlength = 1.0\nE = 2e11\nI = 1e-8\nA = 1e-4\nrho = 7800.0\naxial_speed = 1.0\n\n[basis]\n'
+     'gyroscopic_form = "first_order"', 'gyroscopic_form must be "state_space" or "second_order"'),
+], ids=["speed-on-matrices", "g-on-a-beam", "free-end", "form"])
 def test_scene_keys_of_axial_transport_are_checked_in_one_line(shared_tmp_path, keys, message):
     from dbf_hpc.scene import load_scene
 
