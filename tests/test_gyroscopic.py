@@ -876,6 +876,9 @@ def test_a_state_space_scene_writes_its_form_resumes_from_a_checkpoint_and_refus
         assert np.abs(a["probes/displacement"][:] - b["probes/displacement"][:]).max() <= 1e-12 * np.abs(
             a["probes/displacement"][:]).max()
         assert np.array_equal(a["constraints/stats/impacts"][:], b["constraints/stats/impacts"][:])
+    from dbf_hpc.report import describe
+
+    assert any("2 DBFs; state space: 12 real states" in line for line in describe(whole))
     with pytest.raises(InputError, match='callbacks = "c": the C callbacks integrate the second-order form'):
         run(load_scene(path, sets + ["integrator.callbacks=c"]), str(shared_tmp_path / "c.h5"), progress=False)
     assert not (shared_tmp_path / "c.h5").exists()
