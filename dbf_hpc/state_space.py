@@ -10,7 +10,8 @@ State x = [w_t; w] (Eq. 4), A x' + B x = [f; 0] with
   (gyroscopic.py): psi^R = [-omega phi^I; phi^R], psi^I = [omega phi^R; phi^I].
 - State DBFs (Eqs. 13-17): the derivative in k of the spring-perturbed complex state mode,
   Psi_{j,k} = [i varpi_j phi_{j,k}; phi_{j,k}] (the varpi_{,k} terms dropped as in the paper), phi_{j,k}
-  the central difference of gyroscopic_basis.dbf_columns.
+  the central difference of gyroscopic_basis.dbf_columns. A static mode psi gives [0; psi] and
+  [varpi psi; 0] (varpi its Rayleigh quotient), as a real DBF does.
 - Real basis: the real and imaginary parts of each complex state vector, Gram-Schmidt (Eqs. 18-19)
   in the A inner product <A a, b> = a_v^T M b_v + a_w^T K b_w, each column normalized (Eq. 11), so
   Psi^T A Psi = I. Distributed: each column is a pair of PETSc Vecs (velocity part, displacement part)
@@ -265,7 +266,7 @@ def _basis(ops: Operators, rows, settings: BasisSettings, labels, modes, raw: li
                         omega.append(w_j)
             finally:
                 destroy(*parts[0], *parts[1])
-        N = gs_count = len(gs.v)
+        N = len(gs.v)
         if strategy.kind == "static" and NL and raw is None:
             static = static_modes(ops, rows)
         if strategy.kind == "dbf" and raw is None:
@@ -277,14 +278,19 @@ def _basis(ops: Operators, rows, settings: BasisSettings, labels, modes, raw: li
             elif strategy.kind == "dbf":
                 dr, di, k[j], k_auto[j], branch[j], varpi = dbfs[j]
                 dbfs[j] = None
-            else:   # a static mode: a real displacement vector at rest (its velocity part is 0)
+            else:   # a static mode psi: the state vectors [0; psi] and [varpi psi; 0] as a real DBF's
                 dr = ops.K.createVecRight()
                 static.getColumnVector(j, dr)
                 di = dr.duplicate()
                 di.zeroEntries()
-                varpi = 0.0
+                Kd = dr.duplicate()
+                ops.K.mult(dr, Kd)
+                stiffness = dr.dot(Kd)
+                ops.M.mult(dr, Kd)
+                varpi = float(np.sqrt(max(stiffness, 0.0) / Kd.dot(dr)))   # its Rayleigh quotient (any > 0 spans)
+                Kd.destroy()
             new_raw.append((dr, di, varpi))
-            parts = _state_parts(dr, di, varpi) if varpi else ((di.copy(), dr.copy()),)
+            parts = _state_parts(dr, di, varpi)
             try:
                 scale = np.sqrt(sum(gs.norm(*p) ** 2 for p in parts))
                 first = len(gs.v)

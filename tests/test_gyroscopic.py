@@ -709,6 +709,10 @@ def test_state_space_basis_is_orthonormal_in_a_and_holds_the_complex_modes_exact
     assert np.allclose(pairs, exact, rtol=1e-10) and np.array_equal(info["omega"], np.repeat(exact, 2))
     # Eq. 20 for the two DBFs: a frequency between the free and the (much higher) pinned ones.
     assert np.all(info["enrichment_omega"] > exact[0]) and info["enrichment_omega"].size == 4
+    # a static mode psi = K^-1 g enters as [0; psi] and [varpi psi; 0], as a real DBF does
+    with band_fom(damping=0.0) as fom:
+        static, (Sv, Sw), _ = state_reduced(fom, modes=6, enrichment="static")
+    assert static.size == 16 and np.abs(Sv.T @ M @ Sv + Sw.T @ K @ Sw - np.eye(16)).max() < 1e-10
 
 
 def state_columns(comm):
