@@ -42,6 +42,9 @@ class Reductor:
         """Project the full-order model onto the basis. With field, also the basis at the field
         points, for snapshots. Collective."""
         fom, basis = self.fom, self.basis()
+        if getattr(basis, "form", "") == "state_space":   # the paper's first-order form (state_space.py)
+            from .state_space import reduce_state_space
+            return reduce_state_space(fom, basis, self._field() if field else None)
         ops = fom.operators
         K, M = basis.project(ops.K), basis.project(ops.M)
         structure = self._clean_projection(basis, K, M) if ops.G is None else {}
