@@ -45,7 +45,7 @@ LINEAR_WINDOW = 0.1
 
 def exact_flexibility(ops, rows) -> np.ndarray:
     """f_exact_j = g_j^T K^-1 g_j (m/N) of every constraint row: one Cholesky factorization of K and
-    one solve per constraint (enrichment.static_modes, options prefix static_). NaN for all when K is
+    its solves, a block of unit loads at a time (enrichment.static_modes, options prefix static_). NaN for all when K is
     singular (rigid-body modes, or a solve that fails: the indicator never stops a basis that can be
     built). Collective on ops.comm."""
     from .enrichment import static_modes

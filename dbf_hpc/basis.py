@@ -47,6 +47,7 @@ class BasisSettings:
     groups: int = 0                     # constraint groups; 0: min(ranks, constraints)
     enrichment: str = "dbf"             # "dbf" | "static" | "none" (enrichment.py)
     dbf_solver: str = "ritz"            # "ritz" | "shared" (one factorization per group) | "factor" (three per constraint)
+    gyroscopic_form: str = "second_order"   # a gyroscopic structure's reduced model: "second_order" | "state_space"
 
     @property
     def strategy(self) -> Enrichment:
@@ -240,6 +241,10 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     or none), M-orthonormalized. With a gyroscopic G, the real basis of the complex modes and DBFs
     (gyroscopic_basis.py). Collective on ops.comm."""
     if ops.G is not None:
+        from .state_space import build_state_space_basis, check_form
+        check_form(settings.gyroscopic_form)
+        if settings.gyroscopic_form == "state_space":
+            return build_state_space_basis(ops, rows, settings, labels)
         from .gyroscopic_basis import build_gyroscopic_basis
         return build_gyroscopic_basis(ops, rows, settings, labels)
     strategy = settings.strategy
@@ -282,6 +287,9 @@ def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None) -
     reduced models measures what the missing modes change (the error estimate, accuracy.py). No
     enrichment is recomputed; the indicator is carried over (f_exact) and recomputed (captured).
     Collective on ops.comm."""
+    if getattr(basis, "form", "") == "state_space":
+        from .state_space import richer_state_space_basis
+        return richer_state_space_basis(ops, basis, modes)
     if ops.G is not None:
         from .gyroscopic_basis import richer_gyroscopic_basis
         return richer_gyroscopic_basis(ops, basis, modes)

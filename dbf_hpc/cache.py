@@ -10,7 +10,10 @@ the stored constraint rows must match what is asked, and the basis must still be
 V^T M V = I, and diag(V^T K V) = omega^2 for the modes and hat-omega^2 for the other columns, on the
 operators at hand. Anything else (stale,
 corrupt, unreadable) is reported and rebuilt, never used. The key holds the kind of enrichment and
-only the settings and solver options that kind uses.
+only the settings and solver options that kind uses. A gyroscopic basis in the second-order form
+(gyroscopic_basis.py) is cached too: its file adds the complex-mode count and the columns of each
+constraint, and on load its reduced model must still have the stored complex frequencies; the
+state-space basis (state_space.py) is not cached.
 
 All functions are collective on ops.comm.
 """
@@ -45,10 +48,13 @@ def solver_options(prefixes=("modes_", "dbf_")) -> dict:
     return {k: v for k, v in sorted(PETSc.Options().getAll().items()) if k.startswith(prefixes)}
 
 
-def basis_key(fingerprint: dict, rows, settings: BasisSettings) -> str:
-    """sha256 of everything that determines the basis (the options only of the solvers its kind uses)."""
-    content = {"algorithm": ALGORITHM, "operators": fingerprint, "rows": [int(r) for r in rows],
-               "settings": settings.key(), "options": solver_options(settings.strategy.solver_prefixes)}
+def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool = False) -> str:
+    """sha256 of everything that determines the basis (the options only of the solvers its kind uses).
+    A gyroscopic basis (second-order form) has its own algorithm name: its operators' fingerprint
+    already holds U, m_t and T (a beam) or G's bytes (matrices)."""
+    content = {"algorithm": ALGORITHM + ("-gyroscopic" if gyroscopic else ""), "operators": fingerprint,
+               "rows": [int(r) for r in rows], "settings": settings.key(),
+               "options": solver_options(settings.strategy.solver_prefixes)}
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -77,6 +83,10 @@ def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
             V = f.create_dataset("V", shape=(n, basis.size), dtype="f8")
             for name in ARRAYS:
                 f.create_dataset(name, data=np.asarray(getattr(basis, name)))
+            if basis.complex_modes:   # a gyroscopic basis: Re and Im columns (gyroscopic_basis.py)
+                f.attrs["complex_modes"] = basis.complex_modes
+                f.create_dataset("constraint_columns", data=np.asarray(basis.stats["constraint_columns"],
+                                                                       dtype=np.int64))
             f.attrs["key"] = key
             f.attrs["settings"] = json.dumps(basis.settings.key(), default=str)
             f.attrs["dbf_hpc_version"] = __version__
@@ -126,8 +136,18 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings):
             enriched = settings.strategy.count(len(rows))
             if not np.array_equal(arrays["constraint_rows"], rows):
                 return "holds other constraint rows (corrupt)", {}, None
-            if (arrays["enrichment_omega"].size != enriched
-                    or f["V"].shape != (ops.size, arrays["omega"].size + enriched)
+            columns = enriched
+            if ops.G is not None:   # one or two real columns per constraint
+                if "constraint_columns" not in f or "complex_modes" not in f.attrs:
+                    return "has the wrong shape", {}, None
+                arrays["constraint_columns"] = f["constraint_columns"][...]
+                arrays["complex_modes"] = int(f.attrs["complex_modes"])
+                counts = arrays["constraint_columns"]
+                columns = int(counts.sum())
+                if counts.size != enriched or np.any((counts < 1) | (counts > 2)):
+                    return "has the wrong shape", {}, None
+            if (arrays["enrichment_omega"].size != columns
+                    or f["V"].shape != (ops.size, arrays["omega"].size + columns)
                     or any(arrays[name].size != enriched for name in ("dbf_k", "dbf_k_auto", "dbf_branch"))
                     or arrays["flexibility_exact"].size != len(rows)):
                 return "has the wrong shape", {}, None
@@ -156,20 +176,37 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows) -> 
         template.array[:] = block[:, j]
         V.insertVec(j, template)
     template.destroy()
-    basis = ReducedBasis(vectors=V, settings=settings, stats={"cache": "hit", "cache_file": path},
-                         **{name: arrays[name] for name in ARRAYS})
+    stats = {"cache": "hit", "cache_file": path}
+    if ops.G is not None:
+        stats.update(complex_modes=arrays["complex_modes"], constraint_columns=arrays["constraint_columns"].tolist())
+    basis = ReducedBasis(vectors=V, settings=settings, stats=stats, **{name: arrays[name] for name in ARRAYS})
     G, Kr = basis.project(ops.M), basis.project(ops.K)
     N = basis.mode_count
     basis.set_flexibility(arrays["flexibility_exact"], Kr)
-    ok = (np.all(np.isfinite(G)) and np.abs(G - np.eye(r)).max() < VERIFY_TOL
-          and np.allclose(np.diag(Kr)[:N], basis.omega**2, rtol=VERIFY_TOL * 100)
-          and np.allclose(np.diag(Kr)[N:], basis.enrichment_omega**2, rtol=VERIFY_TOL * 100)
+    if ops.G is None:
+        frequencies = (np.allclose(np.diag(Kr)[:N], basis.omega**2, rtol=VERIFY_TOL * 100)
+                       and np.allclose(np.diag(Kr)[N:], basis.enrichment_omega**2, rtol=VERIFY_TOL * 100))
+    else:
+        frequencies = _holds_complex_modes(Kr, basis.project(ops.G), basis.omega)
+    ok = (np.all(np.isfinite(G)) and np.abs(G - np.eye(r)).max() < VERIFY_TOL and frequencies
           and _flexibility_plausible(basis.flexibility_captured))
     if not ok:
         _say(ops.comm, f"basis cache {path} does not match the operators (corrupt or stale); rebuilding it")
         basis.destroy()
         return None
     return basis
+
+
+def _holds_complex_modes(K_r: np.ndarray, G_r: np.ndarray, omega: np.ndarray) -> bool:
+    """A gyroscopic basis holds Re and Im of its complex modes, so its reduced model q'' + G_r q' +
+    K_r q = 0 has their frequencies exactly (gyroscopic_basis.py): each stored omega_j must be one of
+    the reduced eigenfrequencies on the operators at hand. Not collective."""
+    r = K_r.shape[0]
+    if not (np.all(np.isfinite(K_r)) and np.all(np.isfinite(G_r))):
+        return False
+    lam = np.linalg.eigvals(np.block([[np.zeros((r, r)), np.eye(r)], [-K_r, -G_r]]))
+    found = lam.imag[lam.imag > 0]
+    return bool(found.size and all(np.min(np.abs(found - w)) <= VERIFY_TOL * 100 * w for w in np.unique(omega)))
 
 
 def _flexibility_plausible(values: np.ndarray) -> bool:
@@ -204,11 +241,13 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
     """The basis from the cache when a valid one exists, else built (and cached if cache_dir). A
     cache that cannot be written is a warning (every rank agrees), never an error. Collective."""
     rows = np.asarray(rows, dtype=np.int64)
-    if not cache_dir or ops.G is not None:   # a gyroscopic basis is not cached (gyroscopic_basis.py)
+    gyroscopic = ops.G is not None
+    # the state-space basis (state_space.py) is not cached; a gyroscopic second-order one is
+    if not cache_dir or (gyroscopic and settings.gyroscopic_form != "second_order"):
         basis = build_basis(ops, rows, settings, labels)
         basis.stats["cache"] = "off"
         return basis
-    key = basis_key(fingerprint, rows, settings)
+    key = basis_key(fingerprint, rows, settings, gyroscopic)
     path = cache_path(cache_dir, key)
     exists = ops.comm.tompi4py().bcast(os.path.exists(path) if ops.comm.rank == 0 else None, root=0)
     if exists:

@@ -90,17 +90,37 @@ def cluster_participation(participation: np.ndarray, eigenvalues: np.ndarray | N
     return float(participation[cluster].sum()) if cluster.size else 0.0
 
 
+def branches(participation: np.ndarray, eigenvalues: np.ndarray | None = None):
+    """branch_of and cluster_participation of many constraints at once: participation (N_L, N), the
+    same eigenvalues for all; returns (branches (N_L,), cluster participations (N_L,))."""
+    participation = np.atleast_2d(np.asarray(participation, dtype=float))
+    count, n = participation.shape
+    if not n or not count:
+        return np.zeros(count, dtype=np.int64), np.zeros(count)
+    starts = _cluster_starts(n, eigenvalues)
+    sums = np.add.reduceat(participation, starts[:-1], axis=1)
+    largest = sums.max(axis=1)
+    moving = largest > 0
+    first = np.argmax(sums > PARTICIPATION_TOL * largest[:, None], axis=1)
+    return (np.where(moving, starts[first + 1], 0).astype(np.int64),
+            np.where(moving, sums[np.arange(count), first], 0.0))
+
+
+def _cluster_starts(n: int, eigenvalues: np.ndarray | None) -> np.ndarray:
+    """The first index of each cluster of reference eigenvalues (within CLUSTER_TOL), then n."""
+    if eigenvalues is None:
+        return np.arange(n + 1)
+    lam = np.asarray(eigenvalues, dtype=float)
+    scale = np.maximum(np.abs(lam[1:]), np.abs(lam[:-1]))
+    split = np.flatnonzero(np.diff(lam) > CLUSTER_TOL * np.where(scale > 0, scale, 1.0)) + 1
+    return np.concatenate(([0], split, [n]))
+
+
 def _cluster_of(participation: np.ndarray, eigenvalues: np.ndarray | None) -> np.ndarray:
     """0-based indices of the lowest (cluster of) reference mode(s) that moves at the constraint."""
     participation = np.asarray(participation, dtype=float)
     n = participation.size
-    if eigenvalues is None:
-        starts = np.arange(n + 1)
-    else:
-        lam = np.asarray(eigenvalues, dtype=float)
-        scale = np.maximum(np.abs(lam[1:]), np.abs(lam[:-1]))
-        split = np.flatnonzero(np.diff(lam) > CLUSTER_TOL * np.where(scale > 0, scale, 1.0)) + 1
-        starts = np.concatenate(([0], split, [n]))
+    starts = _cluster_starts(n, eigenvalues)
     sums = np.add.reduceat(participation, starts[:-1]) if n else np.zeros(0)
     if not n or sums.max() <= 0:
         return np.zeros(0, dtype=int)

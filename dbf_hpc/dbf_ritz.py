@@ -36,11 +36,18 @@ the eigen-residual and the derivative's backward error are checked on the full o
 factored path. A stage that does not converge within P_MAX vectors, or fails a check, falls back to
 the shared path (dbf_shared.SharedSolver) for the rest of that constraint (counters).
 
-In blocks: the first PREFETCH Krylov vectors of PREFETCH_BLOCK constraints at a time are made by
-RitzSpace.prefetch with one multi-right-hand-side solve per step (MatMatSolve) and the same
-Gram-Schmidt on the block; each RitzSolver takes its own and solves singly only beyond them. The
-DBFs are those of one constraint at a time (to round-off); a block solve costs a fraction of as many
-single solves with MUMPS (docs/benchmarks.md).
+In blocks (the default for the analytic derivative: RitzSpace.sources, PREFETCH_BLOCK constraints
+at a time): every step above for all the block's constraints together. Per Krylov step one
+multi-right-hand-side solve (MatMatSolve), the same CGS2 and one M product (MatMatMult) for the
+constraints still unconverged; the small problems of all of them as one stack (numpy's batched
+eigh); then phi = V y and d = V y' of the block with M phi and M d from M V, one K product
+(MatMatMult) for the eigen-residuals and the derivatives' backward errors, normalization and the
+sign in one pass. Each constraint's V, coefficients and decisions are those it makes alone, so the
+DBFs are those of one constraint at a time (to round-off, 1e-14-1e-12; tests at 1e-10). A
+constraint with no moving mode, an invariant V, no convergence within P_MAX vectors or a failed
+check is left to the one-at-a-time path (RitzSolver), which repeats its steps and takes the same
+fallback. The central-difference derivative goes one at a time, its first PREFETCH Krylov vectors
+made in blocks by RitzSpace.prefetch.
 
 Collective on the group's communicator; the options of the shared factorization apply
 (-dbf_shared_pc_factor_mat_solver_type ...).
@@ -65,11 +72,12 @@ BREAKDOWN = 1e-10          # a Krylov vector this small after orthogonalization:
 # solve with many right-hand sides costs a fraction of as many single solves (MUMPS on the 104 040-DOF
 # solid: 0.27 s a solve alone, 0.044 s each in a block of 50). A DBF uses 3-4 vectors (docs/benchmarks.md).
 PREFETCH = 4               # vectors per constraint made in blocks (at most P_MAX)
-PREFETCH_BLOCK = 64        # constraints per block (memory: 2 PREFETCH local rows of each)
+PREFETCH_BLOCK = 64        # constraints per block (memory: ~2 P_MAX + 6 local rows of each)
+BLOCK_SOURCES = True       # the analytic DBFs of a block at once (RitzSpace.sources); False: one at a time
 
-# Work done by this process on the Ritz path (tests and benchmarks read it): constraints served,
-# Krylov vectors made, stages handed to the shared path.
-counters = {"constraints": 0, "vectors": 0, "fallbacks": 0}
+# Work done by this process on the Ritz path (tests and benchmarks read it): constraints served (of
+# them by RitzSpace.sources: "in blocks"), Krylov vectors made, stages handed to the shared path.
+counters = {"constraints": 0, "in blocks": 0, "vectors": 0, "fallbacks": 0}
 
 
 class RitzSpace:
@@ -169,6 +177,207 @@ class RitzSpace:
             rhs = np.asfortranarray(b)
         self.prefetched.update(steps)
 
+    def sources(self, rows, reference_eigenvalues: np.ndarray, participation: np.ndarray, stiffness="auto"):
+        """The DBF sources (analytic derivative) of the constraints at `rows` together, as a block
+        (module docstring, "In blocks"): per Krylov step one multi-right-hand-side solve, Gram-Schmidt
+        and M products for the constraints still unconverged, the small eigenproblems of all of them
+        as one stack, then the checks on the full operators with one K product for the block. The
+        arithmetic of RitzSolver and dbf.dbf_source constraint by constraint, so the same DBFs to
+        round-off. A constraint with no moving mode, an invariant V, no convergence within P_MAX
+        vectors or a failed check is not served: the caller gives it to the one-at-a-time path
+        (RitzSolver), which repeats these steps and takes the same fallback.
+
+        Returns (positions served (indices into rows), their branch, k, k_auto, lambda, and the
+        derivatives' local rows (n_local x served)). Collective on the group; every decision is rank
+        0's (broadcast)."""
+        from .dbf import auto_stiffness, branches
+        rows = np.asarray(rows, dtype=np.int64)
+        L, n, comm = rows.size, len(self.Phi), self.comm
+        M = self.ops.M
+        lo, hi = M.getOwnershipRange()
+        nloc = hi - lo
+        participation = np.asarray(participation, dtype=float).reshape(L, -1)
+        reference = np.asarray(reference_eigenvalues, dtype=float)
+        # rigid-body eigenvalues are exactly 0 (dbf.dbf_source)
+        reference = np.where(np.arange(reference.size) < self.ops.rigid_modes, 0.0, reference)
+        branch, cluster = branches(participation, reference)
+        width = n + P_MAX + 1
+        mine = (rows >= lo) & (rows < hi)
+        H = np.zeros((L, width))                       # g^T V per constraint
+        H[mine, :n] = self.Phi_local[:, rows[mine] - lo].T
+        H[:, :n] = _sum(comm, H[:, :n])
+        C = np.zeros((L, width, width))
+        C[:, :n, :n] = self.T0
+        S, gz = np.zeros((L, width)), np.zeros(L)
+        # stage: 0 pinned, 1 spring-perturbed, 2 done, -1 not served (the one-at-a-time path)
+        stage = np.where(branch > 0, 0, -1)
+        k, k_auto, lam = np.zeros(L), np.zeros(L), np.zeros(L)
+        Y, DY = np.zeros((L, width)), np.zeros((L, width))
+        steps = []            # per Krylov step: (constraints, their vectors' local rows, M times them)
+        for p in range(P_MAX):
+            act = np.flatnonzero((stage == 0) | (stage == 1))
+            if not act.size:
+                break
+            La = act.size
+            if p == 0:
+                rhs = np.zeros((nloc, La), order="F")
+                here = mine[act]
+                rhs[rows[act][here] - lo, np.flatnonzero(here)] = 1.0
+            else:
+                rhs = _columns(steps[-1], act, 2)
+            a = self.factor.solve_block(rhs)       # A^-1 g, then A^-1 M v_p
+            local = np.flatnonzero(mine[act])
+            at = np.zeros(La)
+            at[local] = a[rows[act][local] - lo, local]
+            if p == 0:
+                gz_step = _sum(comm, at)            # g^T A^-1 g
+            previous = [(_columns(step, act, 1), _columns(step, act, 2)) for step in steps]
+            coefficients = np.zeros((n + p, La))
+            for _ in range(2):                 # classical Gram-Schmidt, twice, in the M inner product
+                c = np.empty((n + p, La))
+                c[:n] = self.MPhi_local @ a
+                for j, (_, Mv) in enumerate(previous):
+                    c[n + j] = np.einsum("ij,ij->j", Mv, a)
+                c = _sum(comm, c)
+                # in place, the Krylov part column by column (each constraint its own vectors)
+                _subtract(a, self.Phi_local, c[:n], [v for v, _ in previous], c[n:])
+                coefficients += c
+            b = _mult_block(M, a)
+            at = np.zeros(La)                  # (a new array: _sum on one rank returns its argument)
+            at[local] = a[rows[act][local] - lo, local]
+            norm2, gx = _sum(comm, np.vstack([np.einsum("ij,ij->j", a, b), at]))
+            columns = np.vstack([coefficients, np.sqrt(np.maximum(norm2, 0.0))])
+            if comm.size > 1:       # every rank the same small problems and decisions: rank 0's numbers
+                columns, gz_step, gx = comm.bcast((columns, gz_step if p == 0 else None, gx), root=0)
+            norm = columns[-1]
+            before = np.hypot(np.linalg.norm(columns[:-1], axis=0), norm)   # the M-norm before Gram-Schmidt
+            counters["vectors"] += La
+            q = n + p
+            if p == 0:
+                gz[act] = gz_step
+                S[act, :q + 1] = columns.T
+            else:
+                C[act, :q + 1, q - 1] = columns.T
+            ok = norm > BREAKDOWN * before
+            stage[act[~ok]] = -1               # V invariant: the one-at-a-time path's special case
+            scale = np.where(ok, norm, 1.0)
+            a /= scale
+            b /= scale
+            H[act, q] = gx / scale
+            steps.append((act, a, b))
+            # the small problems on V[:, :q] (q = n + p: the newest vector closes them)
+            moved = self._pinned_stage(np.flatnonzero(stage == 0), q, C, S, gz, branch, stage, lam)
+            for j in moved:                    # mu_m known: the stiffness (dbf.dbf_source)
+                k_auto[j] = auto_stiffness(lam[j], reference[branch[j] - 1], cluster[j])
+                k[j] = k_auto[j] if stiffness == "auto" else float(stiffness)
+            self._spring_stage(np.flatnonzero(stage == 1), q, C, S, gz, k, branch, stage, lam, Y, DY)
+            if p + 1 >= P_MAX:
+                stage[(stage == 0) | (stage == 1)] = -1      # P_MAX reached: the shared path
+        done = np.flatnonzero(stage == 2)
+        empty = (done, branch[done], k[done], k_auto[done], lam[done], np.zeros((nloc, done.size), order="F"))
+        if not done.size:
+            return empty
+        # phi = V y and d = V y' of the converged constraints as one block [phi d], and M [phi d] from
+        # M V, as the one-at-a-time path (a MatMatMult with M instead gained nothing measurable)
+        owners, coefficients = np.concatenate([done, done]), np.vstack([Y[done], DY[done]])
+        XD, MXD = self._combine(owners, coefficients, steps, n, 1), self._combine(owners, coefficients, steps, n, 2)
+        KXD = _mult_block(self.ops.K, XD)
+        nd = done.size
+        X, D, MX, MD = XD[:, :nd], XD[:, nd:], MXD[:, :nd], MXD[:, nd:]
+        kd, lamd = k[done], lam[done]
+        gphi = np.einsum("ij,ij->i", H[done], Y[done])           # g^T phi
+        gd = np.einsum("ij,ij->i", H[done], DY[done])            # g^T d
+        here = np.flatnonzero(mine[done])
+        at_rows = rows[done][here] - lo
+        R = KXD[:, :nd]                                           # (K + k g g^T - lambda M) phi
+        R -= lamd * MX
+        R[at_rows, here] += kd[here] * gphi[here]
+        # the derivative equation's residual: (K + k g g^T - lambda M) d - rhs,
+        # rhs = (g^T phi)^2 M phi - (g^T phi) g
+        rhs = gphi**2 * MX
+        rhs[at_rows, here] -= gphi[here]
+        RD = KXD[:, nd:]
+        RD -= lamd * MD
+        RD -= rhs
+        RD[at_rows, here] += kd[here] * gd[here]
+        ramp = 1.0 + (np.arange(lo, hi) + 0.5) / M.getSize()[0]
+        sums = _sum(comm, np.vstack([np.einsum("ij,ij->j", R, R), np.einsum("ij,ij->j", X, X),
+                                     np.einsum("ij,ij->j", X, MX), ramp @ X, np.einsum("ij,ij->j", RD, RD),
+                                     np.einsum("ij,ij->j", D, D), np.einsum("ij,ij->j", rhs, rhs)]))
+        r2, x2, mass, ramp_x, rd2, d2, rhs2 = sums
+        bound = self.K_norm + np.abs(kd) + np.abs(lamd) * self.M_norm
+        residual = np.sqrt(r2) / (bound * np.sqrt(x2))
+        backward = np.sqrt(rd2) / (bound * np.sqrt(d2) + np.sqrt(rhs2))
+        accepted = (residual < RESIDUAL_TOL) & (mass > 0) & (backward < DERIVATIVE_BACKWARD_TOL)
+        if comm.size > 1:
+            accepted, ramp_x = comm.bcast((accepted, ramp_x), root=0)
+        # the package's sign convention for phi (modes.normalize), the derivative aligned with it
+        D *= np.where(ramp_x >= 0, 1.0, -1.0)
+        served = done[accepted]
+        counters["constraints"] += served.size
+        counters["in blocks"] += served.size
+        return (served, branch[served], k[served], k_auto[served], lam[served], D[:, accepted])
+
+    def _pinned_stage(self, J, q, C, S, gz, branch, stage, lam) -> np.ndarray:
+        """RitzSolver._pinned_reduced for the constraints J at size q, as one stack; the converged move
+        to the spring-perturbed stage with mu_m in lam (returned: those)."""
+        if not J.size:
+            return J
+        nu, W, beta_row = _reduced_stack(C[J], S[J], 1.0 / gz[J], q)
+        m = branch[J] - 1
+        y = W[np.arange(J.size), :, m]
+        num = nu[np.arange(J.size), m]
+        converged = np.abs(np.einsum("ij,ij->i", beta_row, y)) <= self.eigen_tol * np.abs(num)
+        J = J[converged]
+        stage[J] = 1
+        lam[J] = self.sigma + 1.0 / num[converged]
+        return J
+
+    def _spring_stage(self, J, q, C, S, gz, k, branch, stage, lam, Y, DY) -> None:
+        """RitzSolver._spring_reduced for the constraints J at size q (k known), as one stack; the
+        converged are done, with lambda_m(k) in lam and y, y' in Y, DY."""
+        if not J.size:
+            return
+        kJ, gzJ = k[J], gz[J]
+        c = kJ / (1.0 + kJ * gzJ)
+        dc = 1.0 / (1.0 + kJ * gzJ) ** 2
+        nu, W, beta_row = _reduced_stack(C[J], S[J], c, q)
+        idx, m = np.arange(J.size), branch[J] - 1
+        y = W[idx, :, m]
+        num = nu[idx, m]
+        s = S[J, :q]
+        sy = np.einsum("ij,ij->i", s, y)
+        gaps = num[:, None] - nu
+        gaps[idx, m] = 1.0
+        coefficients = np.einsum("ikj,ik->ij", W, (-dc * sy)[:, None] * s) / gaps
+        coefficients[idx, m] = 0.0
+        dy = np.einsum("ijk,ik->ij", W, coefficients)
+        residual = np.abs(np.einsum("ij,ij->i", beta_row, y))
+        derivative_residual = np.abs(np.einsum("ij,ij->i", beta_row, dy) - dc * S[J, q] * sy)
+        converged = ((residual <= self.eigen_tol * np.abs(num))
+                     & (derivative_residual <= self.derivative_tol * np.abs(num) * np.linalg.norm(dy, axis=1)))
+        J, y, dy = J[converged], y[converged], dy[converged]
+        stage[J] = 2
+        lam[J] = self.sigma + 1.0 / num[converged]
+        Y[J] = 0.0
+        DY[J] = 0.0
+        Y[J, :q], DY[J, :q] = y, dy
+
+    def _combine(self, owners, coefficients, steps, n: int, which: int = 1) -> np.ndarray:
+        """V_j y_i for coefficient rows y_i (coefficients: m x width) of the constraints j = owners[i]
+        (which = 1), or M V_j y_i (which = 2): local rows, n_local x m. The modes' part as one
+        product, the Krylov vectors column by column (each its own)."""
+        base = self.Phi_local if which == 1 else self.MPhi_local
+        columns = coefficients[:, :n] @ base       # m x n_local, row-major: out (column-major) is its transpose
+        out = columns.T
+        for p, step in enumerate(steps):
+            have, block = step[0], step[which].T
+            position = np.minimum(np.searchsorted(have, owners), have.size - 1)
+            d = coefficients[:, n + p]
+            for i in np.flatnonzero((have[position] == owners) & (d != 0.0)):
+                columns[i] += d[i] * block[position[i]]
+        return out
+
     def destroy(self) -> None:
         destroy(*self.Phi, *self.MPhi)
         self.Phi, self.MPhi = [], []
@@ -185,6 +394,39 @@ class _Prefetched:
         self.column, self.gz, self.h, self.v, self.Mv = column, gz, h, v, Mv
 
 
+def _columns(step, wanted: np.ndarray, which: int) -> np.ndarray:
+    """The columns of a Krylov step (RitzSpace.sources: (constraints, V rows, M V rows)) for the
+    constraints `wanted` (a subset of the step's, both ascending): a view when they are all."""
+    have, block = step[0], step[which]
+    if have.size == wanted.size:
+        return block
+    return np.asfortranarray(block[:, np.searchsorted(have, wanted)])
+
+
+def _subtract(a: np.ndarray, Phi: np.ndarray, c: np.ndarray, vectors: list, d: np.ndarray) -> None:
+    """a -= Phi^T c + sum_k vectors[k] * d[k] in place (a, vectors[k]: n_local x L column-major; Phi:
+    N x n_local; c: N x L; d: len(vectors) x L): the Krylov part column by column (each a scaled
+    vector of its own; a whole-block product would sweep memory three times). Zero coefficients
+    are skipped."""
+    if Phi.shape[0]:
+        a -= Phi.T @ c
+    columns = a.T                      # rows of the transpose: the columns, contiguous
+    for v, dk in zip(vectors, d):
+        vt = v.T
+        for j in np.flatnonzero(dk):
+            columns[j] -= dk[j] * vt[j]
+
+
+def _reduced_stack(C: np.ndarray, S: np.ndarray, c: np.ndarray, q: int):
+    """RitzSolver._reduced for a stack of constraints: nu (descending), W, and the residual rows."""
+    T = C[:, :q, :q]
+    s = S[:, :q]
+    nu, W = np.linalg.eigh(0.5 * (T + T.transpose(0, 2, 1)) - c[:, None, None] * (s[:, :, None] * s[:, None, :]))
+    nu, W = nu[:, ::-1], W[:, :, ::-1]
+    beta_row = C[:, q, :q] - (c * S[:, q])[:, None] * s
+    return nu, W, beta_row
+
+
 def _at(a: np.ndarray, local, L: int) -> np.ndarray:
     """a[i_j, j] for the constraints j whose row i_j is on this rank, 0 elsewhere (length L)."""
     out = np.zeros(L)
@@ -193,18 +435,21 @@ def _at(a: np.ndarray, local, L: int) -> np.ndarray:
     return out
 
 
-def _mult_block(M: PETSc.Mat, a: np.ndarray) -> np.ndarray:
-    """M a for a block of local rows a (columns: vectors), as numpy local rows. Collective."""
-    x, y = M.createVecRight(), M.createVecLeft()
-    out = np.empty_like(a)
+def _mult_block(A: PETSc.Mat, a: np.ndarray) -> np.ndarray:
+    """A a for a block of local rows a (columns: vectors), as numpy local rows: one MatMatMult with
+    a dense view of a. Collective."""
+    n_local, L = a.shape
+    if not L:
+        return np.zeros_like(a)
+    a = np.asfortranarray(a, dtype=float)
+    B = PETSc.Mat().createDense(((n_local, A.getSize()[1]), (PETSc.DECIDE, L)), array=a, comm=A.getComm())
+    C = None
     try:
-        for j in range(a.shape[1]):
-            x.array = a[:, j]
-            M.mult(x, y)
-            out[:, j] = y.array_r
+        B.assemble()
+        C = A.matMult(B)
+        return np.array(C.getDenseArray(), order="F")
     finally:
-        destroy(x, y)
-    return out
+        destroy(B, C)
 
 
 class RitzSolver:

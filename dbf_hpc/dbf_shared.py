@@ -97,19 +97,17 @@ class SharedFactor:
         n_local, L = b.shape
         N = self.A.getSize()[0]
         comm = self.ops.comm
-        B = PETSc.Mat().createDense(((n_local, N), (PETSc.DECIDE, L)), comm=comm)
-        X = PETSc.Mat().createDense(((n_local, N), (PETSc.DECIDE, L)), comm=comm)
+        # B and X are views of numpy blocks (column-major): no copies in or out
+        b = np.asfortranarray(b, dtype=float)
+        out = np.empty((n_local, L), order="F")
+        B = PETSc.Mat().createDense(((n_local, N), (PETSc.DECIDE, L)), array=b, comm=comm)
+        X = PETSc.Mat().createDense(((n_local, N), (PETSc.DECIDE, L)), array=out, comm=comm)
         try:
-            B.setUp()
-            X.setUp()
-            B.getDenseArray()[:] = b
             B.assemble()
             X.assemble()
             try:
                 self.ksp.getPC().getFactorMatrix().matSolve(B, X)
-                out = np.array(X.getDenseArray(), order="F")
             except PETSc.Error:   # the same decision on every rank: the factor's type
-                out = np.empty_like(b, order="F")
                 x, y = self.A.createVecRight(), self.A.createVecLeft()
                 try:
                     for j in range(L):

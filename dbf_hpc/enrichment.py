@@ -9,13 +9,15 @@ key, the name of its columns, and its warnings.
   each group gets its own copy of K and M and takes every groups-th constraint; the derivatives are
   gathered into one distributed matrix. solver "ritz" (the default): each group factors
   K - sigma M once and every constraint is a Rayleigh-Ritz problem on the reference modes plus a
-  few Krylov vectors on g with it (dbf_ritz.py; ~3 solves per constraint); "shared": the same
+  few Krylov vectors on g with it (dbf_ritz.py; ~3 solves per constraint, a block of constraints at
+  a time: multi-right-hand-side solves, batched small eigenproblems); "shared": the same
   factorization, Krylov-Schur eigensolves and GMRES per constraint (dbf_shared.py, ~28 solves; the
   ritz path's fallback); "factor": three factorizations per constraint (dbf.py, the
   paper-faithful comparator). Options prefix `dbf_`.
 - StaticEnrichment ("static"): the static attachment mode K^-1 g_j (the static correction of
   industrial codes, e.g. code_aster's static modes): one Cholesky factorization of K (MUMPS,
-  options prefix `static_`) and one solve per constraint. K must be regular.
+  options prefix `static_`) and one multi-right-hand-side solve per STATIC_BLOCK constraints. K must
+  be regular.
 - NoEnrichment ("none"): the reference modes alone (plain modal truncation).
 "static" and "none" are comparators for accuracy studies, with everything else the same.
 
@@ -29,6 +31,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .dbf import STIFFNESS_RANGE, dbf_source, participation
+from . import dbf_ritz
 from .dbf_ritz import PREFETCH_BLOCK, RitzSolver, RitzSpace, reference_vectors
 from .dbf_shared import SharedFactor, SharedSolver
 from .errors import InputError, SolverError
@@ -37,6 +40,7 @@ from .operators import Operators
 from .petsctools import destroy, direct_solver, unit_vector
 
 STATIC_BACKWARD_TOL = 1e-10  # normwise backward error of K psi = g (a backward-stable solve gives ~1e-16)
+STATIC_BLOCK = 64            # unit loads per multi-right-hand-side solve (memory: 3 local rows of each)
 
 
 @dataclass(frozen=True)
@@ -210,16 +214,28 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
         if factor is not None and settings.solver == "ritz":
             space, group_modes = RitzSpace(factor, group_modes), []
         destroy(*group_modes)
-        mine = list(range(color, rows.size, n_groups))
-        for position, j in enumerate(mine):
-            if space is not None and position % PREFETCH_BLOCK == 0:
-                space.prefetch(rows[mine[position:position + PREFETCH_BLOCK]])
-            src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
-            lo, hi = src.derivative.getOwnershipRange()
-            gathered.setValues(np.arange(lo, hi, dtype=PETSc.IntType), [j], src.derivative.array_r.reshape(-1, 1))
-            if is_leader:
-                k[j], k_auto[j], branch[j] = src.stiffness, src.transition, src.branch
-            src.derivative.destroy()
+        mine = np.arange(color, rows.size, n_groups)
+        lo, hi = group_ops.K.getOwnershipRange()
+        local_rows = np.arange(lo, hi, dtype=PETSc.IntType)
+        # the analytic derivative on the ritz path: a block of constraints at a time (RitzSpace.sources)
+        blocks = space is not None and settings.derivative == "analytic" and dbf_ritz.BLOCK_SOURCES
+        for start in range(0, mine.size, PREFETCH_BLOCK):
+            chunk = mine[start:start + PREFETCH_BLOCK]
+            served = np.zeros(0, dtype=np.int64)
+            if blocks:
+                served, b, kj, kj_auto, _, d = space.sources(rows[chunk], lam, part[chunk], settings.stiffness)
+                if served.size:
+                    gathered.setValues(local_rows, chunk[served].astype(PETSc.IntType), np.ascontiguousarray(d))
+                    if is_leader:
+                        k[chunk[served]], k_auto[chunk[served]], branch[chunk[served]] = kj, kj_auto, b
+            elif space is not None:
+                space.prefetch(rows[chunk])
+            for j in np.delete(chunk, served):    # one at a time (and the block's unserved)
+                src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
+                gathered.setValues(local_rows, [j], src.derivative.array_r.reshape(-1, 1))
+                if is_leader:
+                    k[j], k_auto[j], branch[j] = src.stiffness, src.transition, src.branch
+                src.derivative.destroy()
         gathered.assemble()
     except Exception:
         gathered.destroy()
@@ -247,7 +263,10 @@ def _dbf_source(ops: Operators, row: int, lam, part, settings: DbfEnrichment, fa
 def static_modes(ops: Operators, rows: np.ndarray, prefix: str = "static_") -> PETSc.Mat:
     """The static attachment modes psi_j = K^-1 g_j of all constraints (the deflection under a unit
     load at row j), as the columns of an n x N_L dense Mat on ops.comm: one Cholesky factorization
-    of K (MUMPS), one solve per constraint. K must be regular. Collective."""
+    of K (MUMPS), then STATIC_BLOCK unit loads at a time in one multi-right-hand-side solve
+    (MatMatSolve: MUMPS solves a block at a fraction of the cost of as many single solves) with one
+    K product for their backward errors; a factor without MatMatSolve, or a column that fails its
+    check, is solved singly (and refused if it fails again). K must be regular. Collective."""
     StaticEnrichment().check(ops)
     ksp = direct_solver(PETSc.KSP().create(comm=ops.comm), PETSc.PC.Type.CHOLESKY)
     ksp.setOperators(ops.K)
@@ -257,9 +276,23 @@ def static_modes(ops: Operators, rows: np.ndarray, prefix: str = "static_") -> P
     K_norm = ops.K.norm(PETSc.NormType.FROBENIUS)
     psi, residual = ops.K.createVecRight(), ops.K.createVecLeft()
     lo, hi = psi.getOwnershipRange()
+    local_rows = np.arange(lo, hi, dtype=PETSc.IntType)
+    rows = np.asarray(rows, dtype=np.int64)
     try:
-        for j, row in enumerate(rows):
-            g = unit_vector(residual, int(row))
+        single = list(range(rows.size))
+        factor = _static_factor(ksp) if rows.size else None
+        if factor is not None:
+            single = []
+            for start in range(0, rows.size, STATIC_BLOCK):
+                chunk = np.arange(start, min(start + STATIC_BLOCK, rows.size))
+                block, ok = _static_block(ops, factor, rows[chunk], K_norm)
+                if ok.any():
+                    gathered.setValues(local_rows, chunk[ok].astype(PETSc.IntType),
+                                       np.ascontiguousarray(block[:, ok]))
+                single.extend(chunk[~ok])
+        for j in single:
+            row = int(rows[j])
+            g = unit_vector(residual, row)
             try:
                 ksp.solve(g, psi)
                 solved = ksp.getConvergedReason() >= 0
@@ -274,7 +307,7 @@ def static_modes(ops: Operators, rows: np.ndarray, prefix: str = "static_") -> P
                 raise SolverError(f"the static mode of the constraint at row {row} failed (K psi = g not solved: "
                                   f"K is singular or nearly so); support the structure or use [basis] "
                                   f"enrichment = \"dbf\"")
-            gathered.setValues(np.arange(lo, hi, dtype=PETSc.IntType), [j], psi.array_r.reshape(-1, 1))
+            gathered.setValues(local_rows, [j], psi.array_r.reshape(-1, 1))
         gathered.assemble()
     except Exception:
         gathered.destroy()
@@ -282,3 +315,48 @@ def static_modes(ops: Operators, rows: np.ndarray, prefix: str = "static_") -> P
     finally:
         destroy(ksp, psi, residual)
     return gathered
+
+
+def _static_factor(ksp: PETSc.KSP):
+    """The factored K of a direct `ksp` for MatMatSolve, or None (not a factorization, or the set-up
+    failed: the single solves then report the row). A factorization that failed quietly gives
+    columns that fail their check. Collective."""
+    try:
+        ksp.setUp()
+        if ksp.getPC().getType() not in (PETSc.PC.Type.CHOLESKY, PETSc.PC.Type.LU):
+            return None
+        return ksp.getPC().getFactorMatrix()
+    except PETSc.Error:
+        return None
+
+
+def _static_block(ops: Operators, factor: PETSc.Mat, rows: np.ndarray, K_norm: float):
+    """(psi's local rows for the unit loads at `rows`, n_local x L; which passed the backward-error
+    check, the same on every rank): one MatMatSolve and one K product. Collective."""
+    K, comm = ops.K, ops.comm.tompi4py()
+    lo, hi = K.getOwnershipRange()
+    N, L = K.getSize()[0], rows.size
+    b = np.zeros((hi - lo, L), order="F")
+    mine = (rows >= lo) & (rows < hi)
+    b[rows[mine] - lo, np.flatnonzero(mine)] = 1.0
+    x = np.zeros((hi - lo, L), order="F")
+    B = PETSc.Mat().createDense(((hi - lo, N), (PETSc.DECIDE, L)), array=b, comm=ops.comm)
+    X = PETSc.Mat().createDense(((hi - lo, N), (PETSc.DECIDE, L)), array=x, comm=ops.comm)
+    KX = None
+    try:
+        B.assemble()
+        X.assemble()
+        try:
+            factor.matSolve(B, X)
+        except PETSc.Error:   # no MatMatSolve for this factor: every column singly
+            return x, np.zeros(L, dtype=bool)
+        KX = K.matMult(X)
+        r = KX.getDenseArray() - b
+        sums = np.vstack([np.einsum("ij,ij->j", r, r), np.einsum("ij,ij->j", x, x)])
+        if comm.size > 1:
+            sums = comm.allreduce(sums)
+        with np.errstate(invalid="ignore"):
+            ok = np.sqrt(sums[0]) / (K_norm * np.sqrt(sums[1]) + 1.0) < STATIC_BACKWARD_TOL
+        return x, comm.bcast(ok, root=0)
+    finally:
+        destroy(B, X, KX)

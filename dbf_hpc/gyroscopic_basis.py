@@ -35,9 +35,10 @@ reduced model reproduces the N complex modes exactly (and adds N further ones).
   It is omega_j for an exact mode (x^H P(i omega) x = 0) and sqrt(K_r,jj) (Eq. 41) at G = 0.
 
 The derivative is always the central difference (dbf_derivative and dbf_solver are not used: the
-gyroscopic problem has one PEP solve per k); constraints are solved one after another on ops.comm.
+gyroscopic problem has one PEP solve per k); constraints are solved in groups side by side (all_dbfs).
 Four PEP solves per constraint (pinned, k, k (1 +- h)), each with its own MUMPS LU (options prefix
-`dbf_`: -dbf_pep_..., -dbf_st_...). Not cached (basis.stats["cache"] = "off"). Collective on ops.comm.
+`dbf_`: -dbf_pep_..., -dbf_st_...). Cached (cache.py: the key holds U, m_t, T or G's bytes through the
+operators' fingerprint; a cached basis must still hold the complex modes' frequencies). Collective on ops.comm.
 """
 from __future__ import annotations
 
@@ -149,6 +150,18 @@ def transition(ops: Operators, row: int, modes) -> tuple:
     """(branch, omega_m, varpi_m, k_auto) of the constraint at `row`: the eigen-branch followed (the
     lowest mode that moves there, dbf.branch_of), its frequency without and with the DOF pinned, and
     the corner of Fig. 2 in omega^2 (module docstring). Collective."""
+    branch, omega, slope = _branch_slope(ops, row, modes)
+    # omega^2 rises by 2 omega slope k at first order; the corner of Fig. 2 in omega^2 (dbf.py)
+    pinned = _pinned_frequency(ops, row, branch)
+    return branch, omega, pinned, _corner(omega, pinned, slope)
+
+
+def _corner(omega: float, pinned: float, slope: float) -> float:
+    return max(pinned**2 - omega**2, 0.0) / (2 * omega * slope)
+
+
+def _branch_slope(ops: Operators, row: int, modes) -> tuple:
+    """(branch, omega_m, d omega/dk) of the constraint at `row` from the reference modes. Collective."""
     lam = modes.omega ** 2
     part = np.array([values_at(a, [row])[0] ** 2 + values_at(b, [row])[0] ** 2
                      for a, b in zip(modes.real, modes.imag)])
@@ -162,9 +175,7 @@ def transition(ops: Operators, row: int, modes) -> tuple:
     if not slope > 0:
         raise SolverError(f"the gyroscopic DBF at row {row}: mode {branch} does not stiffen under a spring "
                           f"(d omega/dk = {slope:.3g}); give [basis] dbf_stiffness as a number")
-    # omega^2 rises by 2 omega slope k at first order; the corner of Fig. 2 in omega^2 (dbf.py)
-    pinned = _pinned_frequency(ops, row, branch)
-    return branch, omega, pinned, max(pinned**2 - omega**2, 0.0) / (2 * omega * slope)
+    return branch, float(omega), float(slope)
 
 
 def stiffness_sweep(ops: Operators, row: int, stiffnesses, branch: int = 1) -> np.ndarray:
@@ -181,12 +192,24 @@ def stiffness_sweep(ops: Operators, row: int, stiffnesses, branch: int = 1) -> n
 def dbf_columns(ops: Operators, row: int, modes, stiffness="auto"):
     """(Re d, Im d, k, k_auto, branch) of the constraint at `row`: d the central difference in k of the
     spring-perturbed complex mode (module docstring). Collective."""
-    branch, _, _, k_auto = transition(ops, row, modes)
+    return _dbf_state(ops, row, modes, stiffness)[:5]
+
+
+def _dbf_state(ops: Operators, row: int, modes, stiffness="auto", reference=None):
+    """dbf_columns and varpi_j(k), the spring-perturbed mode's frequency (rad/s), which the state-space
+    DBF [i varpi d; d] (Eq. 17, state_space.py) needs. `reference`: (branch, omega, slope) from
+    _branch_slope, when the modes live on another communicator (groups; modes is then unused).
+    Collective on ops.comm."""
+    if reference is None:
+        branch, _, _, k_auto = transition(ops, row, modes)
+    else:
+        branch, omega, slope = reference
+        k_auto = _corner(omega, _pinned_frequency(ops, row, branch), slope)
     k = k_auto if stiffness == "auto" else float(stiffness)
     h = CENTRAL_STEP
     vecs = []
     try:
-        _, xr, xi = _spring_mode(ops, row, k, branch)
+        lam, xr, xi = _spring_mode(ops, row, k, branch)
         vecs += [xr, xi]
         ends = []
         for factor in (1 + h, 1 - h):
@@ -201,7 +224,56 @@ def dbf_columns(ops: Operators, row: int, modes, stiffness="auto"):
         di.scale(1.0 / (2 * h * k))
     finally:
         destroy(*vecs)
-    return dr, di, k, k_auto, branch
+    return dr, di, k, k_auto, branch, float(lam.imag)
+
+
+def all_dbfs(ops: Operators, rows: np.ndarray, modes, stiffness="auto", groups: int = 0) -> list:
+    """(Re d, Im d, k, k_auto, branch, varpi) of every constraint (d, varpi as in _dbf_state; the Vecs
+    on ops.comm, the caller's). The constraints are solved by groups side by side as the real DBFs
+    (enrichment.py): COMM_WORLD split into `groups` (0: one per rank, at most one per constraint),
+    each with its own copy of K, M, G taking every groups-th constraint (four PEP solves each); the
+    branch, omega and slope come from the reference modes on ops.comm first. Collective."""
+    from .enrichment import _dense_columns, _free_group, _group_operators, constraint_groups
+
+    world = ops.comm.tompi4py()
+    NL = rows.size
+    n_groups = constraint_groups(world.size, NL, groups) if NL else 1
+    if n_groups == 1:
+        return [_dbf_state(ops, int(r), modes, stiffness) for r in rows]
+    reference = [_branch_slope(ops, int(r), modes) for r in rows]
+    color = world.rank * n_groups // world.size
+    group, group_ops = _group_operators(ops, n_groups)
+    group_ops.G = ops.G.getRedundantMatrix(n_groups, group_ops.comm)
+    gathered = _dense_columns(ops, 2 * NL)
+    scalars = np.zeros((NL, 4))   # k, k_auto, branch, varpi
+    try:
+        for j in range(color, NL, n_groups):
+            dr, di, k, k_auto, branch, varpi = _dbf_state(group_ops, int(rows[j]), None, stiffness, reference[j])
+            lo, hi = dr.getOwnershipRange()
+            index = np.arange(lo, hi, dtype=PETSc.IntType)
+            gathered.setValues(index, [2 * j], dr.array_r.reshape(-1, 1))
+            gathered.setValues(index, [2 * j + 1], di.array_r.reshape(-1, 1))
+            destroy(dr, di)
+            if group.rank == 0:
+                scalars[j] = k, k_auto, branch, varpi
+        gathered.assemble()
+    except Exception:
+        gathered.destroy()
+        raise
+    finally:
+        _free_group(group, group_ops)   # destroys the group's K, M and G
+    scalars = world.allreduce(scalars)
+    out = []
+    try:
+        for j in range(NL):
+            dr, di = ops.K.createVecRight(), ops.K.createVecRight()
+            gathered.getColumnVector(2 * j, dr)
+            gathered.getColumnVector(2 * j + 1, di)
+            k, k_auto, branch, varpi = scalars[j]
+            out.append((dr, di, float(k), float(k_auto), int(branch), float(varpi)))
+    finally:
+        gathered.destroy()
+    return out
 
 
 def hat_omega(K_r: np.ndarray, G_r: np.ndarray, re: np.ndarray, im: np.ndarray) -> float:
@@ -287,15 +359,17 @@ def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = Basis
     NL = rows.size if strategy.kind != "none" else 0
     builder = _Builder(ops, 2 * modes.count + 2 * NL)
     k, k_auto, branch = np.zeros(NL), np.zeros(NL), np.zeros(NL, dtype=np.int64)
-    groups, static = [], None
+    groups, static, dbfs = [], None, []
     try:
         omega = _add_modes(builder, ops, modes)
         N = builder.kept
         if strategy.kind == "static" and NL:
             static = static_modes(ops, rows)
+        dbfs = all_dbfs(ops, rows, modes, strategy.stiffness, settings.groups) if strategy.kind == "dbf" else []
         for j in range(NL):
             if strategy.kind == "dbf":
-                dr, di, k[j], k_auto[j], branch[j] = dbf_columns(ops, int(rows[j]), modes, strategy.stiffness)
+                dr, di, k[j], k_auto[j], branch[j], _ = dbfs[j]
+                dbfs[j] = None
                 parts = [dr, di]
             else:
                 parts = [ops.K.createVecRight()]
@@ -321,7 +395,7 @@ def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = Basis
         builder.V.destroy()
         raise
     finally:
-        destroy(static)
+        destroy(static, *[v for d in dbfs if d is not None for v in d[:2]])
         modes.destroy()
     basis = ReducedBasis(vectors=V, omega=np.array(omega), enrichment_omega=np.zeros(V.getSizes()[1] - N), dbf_k=k,
                          dbf_branch=branch, constraint_rows=rows, dbf_k_auto=k_auto, settings=settings)

@@ -153,31 +153,67 @@ class OutputLock:
         self.held = False
 
 
+class _Blocks:
+    """Samples buffered as blocks of rows (a list of chunks, one array per series in each): a block of
+    samples costs no copy until the series are assembled, once (the C callbacks hand over hundreds
+    of samples at a time, and at small r the copies, not the arithmetic, are the cost)."""
+
+    def __init__(self, shapes: dict):
+        self.shapes = shapes
+        self.chunks = []
+        self.pending = 0
+
+    def append(self, **values) -> None:
+        self.chunks.append({name: np.array(values[name], dtype=float).reshape((1, *shape))
+                            for name, shape in self.shapes.items()})
+        self.pending += 1
+
+    def append_rows(self, **blocks) -> None:
+        """Several samples at once: each value has one row per sample. The arrays are kept, not
+        copied: the caller hands them over."""
+        count = len(blocks[layout.TIME])
+        self.chunks.append({name: np.asarray(blocks[name], dtype=float).reshape((count, *shape))
+                            for name, shape in self.shapes.items()})
+        self.pending += count
+
+    def series(self, name: str) -> np.ndarray:
+        """The buffered samples of one series as one new array."""
+        if not self.chunks:
+            return np.zeros((0, *self.shapes[name]))
+        return np.concatenate([chunk[name] for chunk in self.chunks])
+
+    def clear(self) -> None:
+        self.chunks, self.pending = [], 0
+
+
 class MemoryWriter:
     """Samples kept in memory, for runs from Python (OutputWriter's interface without a file)."""
 
     def __init__(self, constraint_shape: tuple, n_probes: int, r: int):
         self.shapes = series_shapes(constraint_shape, n_probes, r)
-        self.buffer = {name: [] for name in self.shapes}
-        self.count = 0
+        self.blocks = _Blocks(self.shapes)
+
+    @property
+    def count(self) -> int:
+        return self.blocks.pending
+
+    @property
+    def pending(self) -> int:
+        """Samples not yet written: none (memory is where they go)."""
+        return 0
 
     def append(self, **values) -> None:
-        for name, buffer in self.buffer.items():
-            buffer.append(np.asarray(values[name], dtype=float).reshape(self.shapes[name]))
-        self.count += 1
+        self.blocks.append(**values)
 
     def append_rows(self, **blocks) -> None:
-        """Several samples at once: each value has one row per sample."""
-        count = len(blocks[layout.TIME])
-        for name, buffer in self.buffer.items():
-            buffer.extend(np.asarray(blocks[name], dtype=float).reshape((count, *self.shapes[name])))
-        self.count += count
+        self.blocks.append_rows(**blocks)
 
     def flush(self) -> None:
         pass
 
     def series_data(self, name: str) -> np.ndarray:
-        return np.array(self.buffer[name], dtype=float).reshape((self.count, *self.shapes[name]))
+        """A new array of the series' samples so far."""
+        return self.blocks.series(name)
 
 
 class OutputWriter:
@@ -200,32 +236,34 @@ class OutputWriter:
                 self.series[name] = self.file.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape),
                                                              chunks=(BLOCK, *shape), dtype="f8")
         self.shapes = shapes
-        self.buffer = {name: [] for name in self.series}
+        self.blocks = _Blocks({name: shapes[name] for name in self.series})
         self.count = 0
         self.parked = False
 
+    @property
+    def pending(self) -> int:
+        """Samples buffered, not yet written."""
+        return self.blocks.pending
+
     def append(self, **values) -> None:
-        for name, buffer in self.buffer.items():
-            buffer.append(values[name])
-        if len(self.buffer[layout.TIME]) >= BLOCK:
+        self.blocks.append(**values)
+        if self.blocks.pending >= BLOCK:
             self.flush()
 
     def append_rows(self, **blocks) -> None:
         """Several samples at once: each value has one row per sample."""
-        for name, buffer in self.buffer.items():
-            buffer.extend(blocks[name])
-        if len(self.buffer[layout.TIME]) >= BLOCK:
+        self.blocks.append_rows(**blocks)
+        if self.blocks.pending >= BLOCK:
             self.flush()
 
     def flush(self) -> None:
-        n = len(self.buffer[layout.TIME])
+        n = self.blocks.pending
         if not n:
             return
         for name, dataset in self.series.items():
-            block = np.asarray(self.buffer[name], dtype=float).reshape((n, *dataset.shape[1:]))
             dataset.resize(self.count + n, axis=0)
-            dataset[self.count:] = block
-            self.buffer[name].clear()
+            dataset[self.count:] = self.blocks.series(name)
+        self.blocks.clear()
         self.count += n
         self.file.flush()
 
@@ -251,7 +289,7 @@ class OutputWriter:
         except Exception:
             self.file.close()
             raise
-        self.buffer = {name: [] for name in self.series}
+        self.blocks = _Blocks({name: self.file[name].shape[1:] for name in self.series})
         self.count = samples
         self.parked = False
         return self
@@ -291,4 +329,4 @@ class OutputWriter:
             self.file.close()
         except WRITE_ERRORS:  # the run already failed; keep its error, not this one
             park(self, self.file, self.series)
-            self.series, self.buffer, self.parked = {}, {}, True
+            self.series, self.blocks, self.parked = {}, _Blocks({}), True

@@ -178,8 +178,8 @@ class ReducedRecorder(SampleRecorder):
         [t, q (r), q' (r), z, v, force, peak (N_L d each), probe (P)], the same values `record` gives
         (the peak already includes the steps before each sample, and is reset after it)."""
         r, n, m = self.model.size, self.peak.size, rows.shape[0]
-        cut = np.cumsum([1, r, r, n, n, n, n])
-        t, q, p, z, v, force, peak, probe = np.split(rows, cut, axis=1)
+        cut = np.cumsum([0, 1, r, r, n, n, n, n]).tolist() + [rows.shape[1]]
+        t, q, p, z, v, force, peak, probe = (rows[:, a:b] for a, b in zip(cut[:-1], cut[1:]))
         for i in self.snapshot_samples.intersection(range(self.index, self.index + m)):
             self.snapshot_q[i] = q[i - self.index].copy()
         self.index += m

@@ -61,7 +61,9 @@ def _run_lines(path: str, f) -> list:
         if "basis_complex_modes" in f.attrs:   # gyroscopic: Re and Im columns (gyroscopic_basis.py)
             lines.append(f"  basis: {int(f.attrs['basis_complex_modes'])} complex modes ({omega[0]:.4g} ... "
                          f"{omega[-1]:.4g} Hz), {f[layout.BASIS_DBF_K].size if kind != 'none' else 0} {extra}; "
-                         f"Re and Im: {omega.size + enriched} real columns")
+                         + (f"state space: {omega.size + enriched} real states (A-orthonormal)"
+                            if f.attrs.get("reduced_form") == "state_space" else
+                            f"Re and Im: {omega.size + enriched} real columns"))
         else:
             lines.append(f"  basis: {omega.size} reference modes ({omega[0]:.4g} ... {omega[-1]:.4g} Hz), "
                          f"{enriched} {extra}")

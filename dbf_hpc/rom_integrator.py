@@ -215,6 +215,9 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
     `resume` (from a checkpoint taken at the end of a step: t, dt, steps, next_sample, q, p and the
     failure counts so far) continues exactly where that step ended: same steps, same answer.
     Progress lines go to say(line) when given. Returns solver statistics. Runs on COMM_SELF."""
+    if getattr(model, "form", "") == "state_space":   # a gyroscopic structure's first-order form
+        from .state_space import integrate_state_space
+        return integrate_state_space(model, settings, record, on_step, say, resume, recorder=recorder, due=due)
     if (record is None) == (recorder is None):
         raise TypeError("integrate_reduced takes either record or recorder")
     if recorder is not None:

@@ -108,6 +108,11 @@ def _gyroscopic_checks(scene: Scene, fom, method: str) -> None:
     if method == "rom" and scene.estimate_settings().tolerance is not None:
         raise InputError("[basis] tolerance: the tolerance mode is not available for a gyroscopic structure; give "
                          "[basis] modes")
+    if method == "rom" and scene["basis"]["gyroscopic_form"] == "state_space" and \
+            scene.integrator_settings().callbacks == "c":
+        raise InputError('[integrator] callbacks = "c": the C callbacks integrate the second-order form; the '
+                         'state-space form ([basis] gyroscopic_form = "state_space") runs the Python callbacks: use '
+                         'callbacks = "auto" or "python"')
 
 
 def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str) -> dict:
@@ -185,6 +190,8 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> N
     f = basis.omega / (2 * np.pi)
     modes = f"{basis.complex_modes} complex modes" if basis.complex_modes else f"{basis.mode_count} modes"
     columns = f", Re and Im: {basis.size} real columns" if basis.complex_modes else ""
+    if getattr(basis, "form", "") == "state_space":
+        columns = f", Re and Im of the state vectors: {basis.size} real states, A-orthonormal"
     _say(say, f"basis: {modes} ({f[0]:.4g} ... {f[-1]:.4g} Hz) {extra} ({seconds:.2f} s, "
               f"cache {basis.stats.get('cache')}{columns})")
     warnings = basis.warnings(labels)
@@ -233,6 +240,10 @@ def run_identity(scene: Scene, basis_key: dict, ranks: int, method: str) -> dict
     friction = any(c.law.kind == "friction" for c in scene.constraints)
     callbacks = (effective_callbacks(scene.integrator_settings().callbacks, dimension, matrix, friction)
                  if method == "rom" else None)
+    s = scene["structure"]
+    if callbacks and scene["basis"]["gyroscopic_form"] == "state_space" and (s.get("axial_speed") or
+                                                                            s.get("gyroscopic")):
+        callbacks = "python"   # the state-space form has no C callbacks (state_space.py)
     return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], structure=basis_key,
                     options=PETSc.Options().getAll(), ranks=ranks, method=method, callbacks=callbacks)
 
@@ -409,7 +420,7 @@ def _left_behind(message: str, writer, checkpoint: Checkpoint | None) -> str:
     before its second sample leaves nothing (its one sample is the initial state)."""
     if writer is None:
         return message
-    samples = writer.count + len(writer.buffer.get(layout.TIME, ()))
+    samples = writer.count + writer.pending
     writer.abort()
     if samples <= 1 and not (checkpoint is not None and os.path.exists(checkpoint.path)):
         if os.path.exists(writer.partial) and not writer.parked:
@@ -544,8 +555,12 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                          layout.REDUCED_M: model.M, layout.REDUCED_K: model.K,
                          layout.REDUCED_B: model.B, layout.REDUCED_D: model.damping})
         attrs["basis_enrichment"] = info["enrichment"]
+        for key in ("mass_orthonormality_defect", "mode_coupling_defect"):
+            if key in info:
+                attrs[f"basis_{key}"] = float(info[key])
         if info.get("complex_modes"):   # a gyroscopic basis: Re and Im columns of each complex mode and DBF
             attrs["basis_complex_modes"] = int(info["complex_modes"])
+            attrs["reduced_form"] = info.get("form", "second_order")
     writer.finish(
         datasets=datasets,
         dataset_attrs={f"{layout.CONSTRAINT_STATS}/{k}": {"unit": UNITS[k], "description": DESCRIPTIONS[k]}

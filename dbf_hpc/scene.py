@@ -131,7 +131,7 @@ class Scene:
         return BasisSettings(modes=b["modes"], max_frequency_hz=b["max_frequency_hz"],
                              dbf_stiffness=b["dbf_stiffness"], dbf_derivative=b["dbf_derivative"],
                              groups=b["groups"], enrichment=b["enrichment"],
-                             dbf_solver=b["dbf_solver"])
+                             dbf_solver=b["dbf_solver"], gyroscopic_form=b["gyroscopic_form"])
 
     def estimate_settings(self) -> EstimateSettings:
         b = self["basis"]
@@ -452,6 +452,9 @@ def _check_basis(b: dict, where: str) -> None:
         raise InputError(f"{where}: dbf_derivative must be \"analytic\" or \"central\", got {b['dbf_derivative']!r}")
     if b["dbf_solver"] not in DBF_SOLVERS:
         raise InputError(f"{where}: dbf_solver must be \"ritz\", \"shared\" or \"factor\", got {b['dbf_solver']!r}")
+    if b["gyroscopic_form"] not in ("state_space", "second_order"):
+        raise InputError(f"{where}: gyroscopic_form must be \"state_space\" or \"second_order\", got "
+                         f"{b['gyroscopic_form']!r}")
     if b["groups"] < 0:
         raise InputError(f"{where}: groups must be 0 (automatic) or a positive count, got {b['groups']}")
     if b["enrichment"] not in ENRICHMENTS:

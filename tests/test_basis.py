@@ -6,6 +6,7 @@ import pytest
 from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
+from dbf_hpc import enrichment
 from dbf_hpc.basis import BasisSettings, build_basis
 from dbf_hpc.enrichment import constraint_groups, static_modes
 from dbf_hpc.errors import InputError, SolverError
@@ -179,6 +180,33 @@ def test_static_mode_is_the_beam_deflection_under_a_unit_point_load():
         assert np.abs(w - exact).max() < 1e-8 * np.abs(exact).max(), f"point load at {a}"
     for obj in (raw, psi, Kpsi):
         obj.destroy()
+    ops.destroy()
+
+
+def test_static_modes_solved_in_blocks_are_those_solved_one_at_a_time(monkeypatch):
+    # Blocks of 2 unit loads for 3 constraints (one MatMatSolve each, a second block of one) against
+    # one KSP solve per constraint (a factor without MatMatSolve).
+    ops = assemble_beam(Beam(**TABLE1, elements=50), points=[0.2, 0.5, 0.7])
+    rows = np.array([ops.mesh.w_row(x) for x in (0.2, 0.5, 0.7)])
+    monkeypatch.setattr(enrichment, "STATIC_BLOCK", 2)
+    blocks = static_modes(ops, rows)
+    monkeypatch.setattr(enrichment, "_static_factor", lambda ksp: None)
+    single = static_modes(ops, rows)
+    a, b = blocks.getDenseArray(), single.getDenseArray()
+    assert_all(np.abs(a - b).max() <= 1e-12 * np.abs(b).max())
+    assert_all(np.abs(b).max() > 0)
+    for m in (blocks, single):
+        m.destroy()
+    ops.destroy()
+
+
+def test_a_static_mode_failing_its_backward_error_check_is_refused_naming_its_row(monkeypatch):
+    # Neither the block nor the single solve passes a zero tolerance: the first row is named.
+    ops = assemble_beam(Beam(**TABLE1, elements=50), points=[0.3, 0.7])
+    rows = np.array([ops.mesh.w_row(x) for x in (0.3, 0.7)])
+    monkeypatch.setattr(enrichment, "STATIC_BACKWARD_TOL", 0.0)
+    with pytest.raises(SolverError, match=f"static mode of the constraint at row {rows[0]} failed"):
+        static_modes(ops, rows)
     ops.destroy()
 
 

@@ -162,3 +162,57 @@ def test_a_cache_directory_that_cannot_be_made_is_a_warning_on_every_rank_not_a_
         pytest.skip("root may write anywhere")
     _, solves, state = obtain(scene(), target)
     assert solves > 0 and state == "unwritable"
+
+
+def gyroscopic_basis(cache_dir, speed=30.0, form="second_order", tension=2000.0):
+    """(V gathered, eigen-solves on the busiest rank, cache state, the file's path) of a moving band's basis."""
+    from dbf_hpc import Beam, Constraint, FullOrderModel, law
+    from dbf_hpc.basis import BasisSettings
+    from test_gyroscopic import BAND
+
+    beam = Beam(elements=40, axial_speed=speed, **{**BAND, "tension": tension})
+    stops = [Constraint(law("deadband", clearance=5e-4, k=1e5), x=x) for x in (0.3, 0.75)]
+    with FullOrderModel.build(beam, stops) as fom, Reductor(fom, BasisSettings(modes=4, gyroscopic_form=form),
+                                                             str(cache_dir)) as reductor:
+        before = counters["eigen_solves"]
+        basis = reductor.basis()
+        solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
+        if form == "state_space":
+            return None, solves, basis.stats.get("cache"), None
+        dense = basis.vectors.getMat()
+        V = np.vstack(MPI.COMM_WORLD.allgather(dense.getDenseArray().copy()))
+        basis.vectors.restoreMat(dense)
+        assert basis.complex_modes == 4 and len(basis.stats["constraint_columns"]) == 2
+        return V, solves, basis.stats.get("cache"), basis.stats.get("cache_file")
+
+
+def test_a_gyroscopic_basis_is_cached_and_its_speed_is_part_of_the_key(shared_tmp_path):
+    V, solves, state, path = gyroscopic_basis(shared_tmp_path)
+    assert solves > 0 and state == "stored"
+    again, solves, state, _ = gyroscopic_basis(shared_tmp_path)
+    assert solves == 0 and state == "hit" and np.array_equal(V, again)
+    # U enters the key through the beam's fingerprint: another speed is another basis
+    _, solves, state, other = gyroscopic_basis(shared_tmp_path, speed=31.0)
+    assert solves > 0 and state == "stored" and other != path
+    # the paper's state-space form is not cached
+    _, solves, state, _ = gyroscopic_basis(shared_tmp_path, form="state_space")
+    assert solves > 0 and state == "off"
+
+
+def test_a_gyroscopic_basis_of_another_speed_under_this_key_is_detected_and_rebuilt(shared_tmp_path):
+    # 20 m/s under 1883 N has the 30 m/s band's K (T - m_t U^2 the same, m_t = rho A = 0.234 kg/m) and M:
+    # only G = 2 m_t U differs, so V^T M V = I and the flexibility still hold for the other file's V, but
+    # its reduced model no longer has the stored complex frequencies
+    _, _, _, path = gyroscopic_basis(shared_tmp_path, speed=30.0)
+    slow = dict(speed=20.0, tension=2000.0 - 7800.0 * 3e-5 * (30.0**2 - 20.0**2))
+    reference, _, _, other = gyroscopic_basis(shared_tmp_path / "b", **slow)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(other, "r") as f:
+            key = f.attrs["key"]
+        os.replace(path, other)
+        with h5py.File(other, "r+") as f:
+            f.attrs["key"] = key
+    MPI.COMM_WORLD.Barrier()
+    rebuilt, solves, state, _ = gyroscopic_basis(shared_tmp_path / "b", **slow)
+    assert solves > 0 and state == "stored"
+    assert np.abs(rebuilt - reference).max() < 1e-10 * np.abs(reference).max()

@@ -410,6 +410,7 @@ def test_ritz_path_made_in_blocks_gives_the_dbfs_of_one_constraint_at_a_time(pap
     ops, modes, _ = paper
     rows = np.array([ops.mesh.w_row(x) for x in (0.1, ELL, 0.5, 0.8)])
     monkeypatch.setattr(enrichment, "PREFETCH_BLOCK", 3)
+    monkeypatch.setattr(dbf_ritz, "BLOCK_SOURCES", False)   # prefetch, then RitzSolver per constraint
     before = dbf_shared.counters["solves"]
     blocks = DbfEnrichment(groups=groups, solver="ritz").columns(ops, rows, modes)
     mine = rows.size // MPI.COMM_WORLD.size if groups == 0 else rows.size   # this rank's group's constraints
@@ -422,3 +423,77 @@ def test_ritz_path_made_in_blocks_gives_the_dbfs_of_one_constraint_at_a_time(pap
     assert np.max(np.abs(a - b)) < 1e-10 * np.max(np.abs(b)), np.max(np.abs(a - b)) / np.max(np.abs(b))
     for c in (blocks, single):
         c.matrix.destroy()
+
+
+def one_at_a_time_and_blocks(ops, modes, rows, monkeypatch, groups=0, stiffness="auto"):
+    """(blocks, single, their counters): the ritz path's EnrichmentColumns with RitzSpace.sources
+    over blocks of 3 constraints, and with one RitzSolver per constraint making its own vectors; the
+    dbf_ritz.counters of each run on this rank."""
+    monkeypatch.setattr(enrichment, "PREFETCH_BLOCK", 3)
+    rows = np.asarray(rows)
+    before = dict(dbf_ritz.counters)
+    blocks = DbfEnrichment(groups=groups, solver="ritz", stiffness=stiffness).columns(ops, rows, modes)
+    middle = dict(dbf_ritz.counters)
+    with monkeypatch.context() as m:
+        m.setattr(dbf_ritz, "BLOCK_SOURCES", False)
+        m.setattr(dbf_ritz, "PREFETCH", 0)
+        single = DbfEnrichment(groups=groups, solver="ritz", stiffness=stiffness).columns(ops, rows, modes)
+    return blocks, single, [{key: b[key] - a[key] for key in a} for a, b in ((before, middle),
+                                                                            (middle, dict(dbf_ritz.counters)))]
+
+
+def assert_same_ritz_dbfs(ops, blocks, single):
+    assert np.all(blocks.branch == single.branch)
+    assert np.allclose(blocks.k_auto, single.k_auto, rtol=1e-10, atol=0)
+    assert np.allclose(blocks.k, single.k, rtol=1e-10, atol=0)
+    a, b = normalized_columns(ops, blocks), normalized_columns(ops, single)
+    assert np.max(np.abs(a - b)) < 1e-10 * np.max(np.abs(b)), np.max(np.abs(a - b)) / np.max(np.abs(b))
+    for c in (blocks, single):
+        c.matrix.destroy()
+
+
+@pytest.mark.parametrize("stiffness", ["auto", 0.5])
+@pytest.mark.parametrize("groups", [0, 1])
+def test_ritz_dbfs_of_a_block_of_constraints_are_those_of_one_constraint_at_a_time(paper, monkeypatch, groups,
+                                                                                  stiffness):
+    # RitzSpace.sources: Krylov steps, small eigenproblems and checks for a block of constraints at
+    # once (blocks of 3 for 5 rows: a second, shorter block; the constraints converge after different
+    # numbers of vectors, l = 0.5 and 0.25 at nodes of modes 2 and 4): the DBFs of one at a time.
+    # With k = 0.5 N/m (10x k_auto) one stage does not converge within P_MAX vectors: the block
+    # leaves that constraint to the one-at-a-time path, which falls back as without blocks.
+    ops, modes, _ = paper
+    rows = np.array([ops.mesh.w_row(x) for x in (0.1, ELL, 0.5, 0.8, 0.9)])
+    blocks, single, (in_blocks, alone) = one_at_a_time_and_blocks(ops, modes, rows, monkeypatch, groups, stiffness)
+    mine = len(range(MPI.COMM_WORLD.rank, rows.size, MPI.COMM_WORLD.size)) if groups == 0 else rows.size
+    fallbacks = MPI.COMM_WORLD.allreduce(alone["fallbacks"])
+    assert (fallbacks > 0) == (stiffness != "auto"), fallbacks
+    assert_all(in_blocks["fallbacks"] == alone["fallbacks"] and in_blocks["in blocks"] == mine - alone["fallbacks"]
+               and in_blocks["constraints"] == mine and alone["in blocks"] == 0, f"{in_blocks}, {alone} ({mine})")
+    assert_same_ritz_dbfs(ops, blocks, single)
+
+
+def test_ritz_dbfs_in_blocks_on_a_free_free_beam_follow_the_moved_rigid_body_mode(monkeypatch):
+    # Two rigid-body modes (branch 2) and sigma below zero: the same DBFs in blocks as one at a time.
+    positions = (0.0, 0.25, 0.5, 0.9)
+    ops = assemble_beam(Beam(**TABLE1, elements=100, left="free", right="free"), points=list(positions))
+    modes = reference_modes(ops, count=6)
+    blocks, single, (in_blocks, _) = one_at_a_time_and_blocks(ops, modes, [ops.mesh.w_row(x) for x in positions],
+                                                              monkeypatch)
+    assert np.all(blocks.branch == 2)
+    assert_all(in_blocks["in blocks"] == len(range(MPI.COMM_WORLD.rank, 4, MPI.COMM_WORLD.size)), in_blocks)
+    assert_same_ritz_dbfs(ops, blocks, single)
+    modes.destroy()
+    ops.destroy()
+
+
+def test_a_ritz_pair_that_fails_the_check_on_the_full_operators_is_solved_on_the_shared_path(paper, monkeypatch):
+    # No eigen-residual passes a zero tolerance: the block serves no constraint, each goes one at a
+    # time, fails the same check there and falls back to the shared path: the factored path's DBFs.
+    ops, modes, _ = paper
+    monkeypatch.setattr(dbf_ritz, "RESIDUAL_TOL", 0.0)
+    rows = [ops.mesh.w_row(x) for x in (0.1, ELL, 0.5)]
+    before = dict(dbf_ritz.counters)
+    ritz, factor = both_paths(ops, modes, rows, groups=1, path="ritz")
+    made = {key: dbf_ritz.counters[key] - before[key] for key in before}
+    assert made["in blocks"] == 0 and made["fallbacks"] == len(rows), made
+    assert_same_dbfs(ops, ritz, factor)

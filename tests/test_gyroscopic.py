@@ -298,7 +298,9 @@ def test_an_axially_moving_beam_needs_w_fixed_at_both_ends():
      "is for kind"),
     ('kind = "beam"\nlength = 1.0\nE = 2e11\nI = 1e-8\nA = 1e-4\nrho = 7800.0\nright = "free"\naxial_speed = 1.0',
      "needs w fixed at both ends"),
-], ids=["speed-on-matrices", "g-on-a-beam", "free-end"])
+    ('kind = "beam"\nlength = 1.0\nE = 2e11\nI = 1e-8\nA = 1e-4\nrho = 7800.0\naxial_speed = 1.0\n\n[basis]\n'
+     'gyroscopic_form = "first_order"', 'gyroscopic_form must be "state_space" or "second_order"'),
+], ids=["speed-on-matrices", "g-on-a-beam", "free-end", "form"])
 def test_scene_keys_of_axial_transport_are_checked_in_one_line(shared_tmp_path, keys, message):
     from dbf_hpc.scene import load_scene
 
@@ -655,3 +657,266 @@ def test_gyroscopic_fig_2_runs_from_the_free_to_the_pinned_complex_frequency_wit
     # The corner of Fig. 2: at k_auto omega^2 has made about half its way (measured 0.545).
     share = (omega[2] ** 2 - free**2) / (pinned**2 - free**2)
     assert 0.3 < share < 0.7
+
+
+# The paper's first-order (state-space) reduced model, [basis] gyroscopic_form = "state_space"
+# (state_space.py, Eqs. 4-21): x = [w_t; w] = Psi eta, Psi^T A Psi = I, eta' = -B_r eta + Psi_v^T f.
+
+
+def gathered(mat):
+    """A distributed PETSc AIJ matrix as a dense numpy array on every rank."""
+    indptr, indices, values = mat.getValuesCSR()
+    lo, hi = mat.getOwnershipRange()
+    local = scipy.sparse.csr_matrix((values, indices, indptr), shape=(hi - lo, mat.getSize()[1])).toarray()
+    return np.vstack(MPI.COMM_WORLD.allgather(local)) if mat.getComm().getSize() > 1 else local
+
+
+def state_reduced(fom, modes=6, **keys):
+    """(state-space model, (Psi_v, Psi_w) gathered on every rank, basis info) with the cache off."""
+    from dbf_hpc import BasisSettings, Reductor
+
+    with Reductor(fom, BasisSettings(modes=modes, gyroscopic_form="state_space", **keys)) as reductor:
+        model = reductor.reduce()
+        basis = reductor.basis()
+        world = fom.comm.tompi4py()
+        parts = tuple(np.vstack(world.allgather(np.column_stack([v.getArray() for v in vecs])))
+                      for vecs in (basis.velocity, basis.displacement))
+        info = {"omega": basis.omega.copy(), "enrichment_omega": basis.enrichment_omega.copy(),
+                "modes": basis.mode_count, "complex_modes": basis.complex_modes}
+    return model, parts, info
+
+
+def test_state_space_basis_is_orthonormal_in_a_and_holds_the_complex_modes_exactly():
+    with band_fom(damping=0.0) as fom:
+        model, (Pv, Pw), info = state_reduced(fom, modes=6)
+        M, K, G = (gathered(A) for A in (fom.operators.M, fom.operators.K, fom.operators.G))
+        modes = gyroscopic_modes(fom.operators, count=6)
+        exact = modes.omega.copy()
+        modes.destroy()
+    # Independent of the code's own projections: Psi^T A Psi from the assembled M and K (Eq. 9).
+    A_r = Pv.T @ M @ Pv + Pw.T @ K @ Pw
+    assert_all(model.size == 2 * (6 + 2) == A_r.shape[0] and np.abs(A_r - np.eye(model.size)).max() < 1e-10)
+    # B = [[G, K], [-K, 0]] (Eq. 10) is skew, and so is B_r; its eigenvalues are +-i omega_j of the
+    # exact complex modes (the real and imaginary parts of each complex state mode span an invariant plane).
+    B_r = Pv.T @ G @ Pv + Pv.T @ K @ Pw - Pw.T @ K @ Pv
+    assert np.abs(B_r - model.B_state).max() < 1e-9 * np.abs(B_r).max()
+    assert np.abs(B_r + B_r.T).max() < 1e-12 * np.abs(B_r).max()
+    lam = np.linalg.eigvals(-model.B_state)
+    found = np.sort(lam[lam.imag > 0].imag)
+    assert np.max(np.min(np.abs(found[:, None] / exact[None, :] - 1), axis=0)) < 1e-10
+    # Eq. 11: <B psi_m^R, psi_m^I> = omega_m for each mode's pair of columns (psi^R first).
+    pairs = np.array([B_r[2 * j + 1, 2 * j] for j in range(6)])
+    assert np.allclose(pairs, exact, rtol=1e-10) and np.array_equal(info["omega"], np.repeat(exact, 2))
+    # Eq. 20 for the two DBFs: a frequency between the free and the (much higher) pinned ones.
+    assert np.all(info["enrichment_omega"] > exact[0]) and info["enrichment_omega"].size == 4
+    # a static mode psi = K^-1 g enters as [0; psi] and [varpi psi; 0], as a real DBF does
+    with band_fom(damping=0.0) as fom:
+        static, (Sv, Sw), _ = state_reduced(fom, modes=6, enrichment="static")
+    assert static.size == 16 and np.abs(Sv.T @ M @ Sv + Sw.T @ K @ Sw - np.eye(16)).max() < 1e-10
+
+
+def state_columns(comm):
+    from dbf_hpc import Constraint, FullOrderModel, law
+    from dbf_hpc.basis import BasisSettings, build_basis
+
+    beam = Beam(elements=30, axial_speed=30.0, **BAND)
+    stop = Constraint(law("deadband", clearance=5e-4, k=1e5), x=0.3)
+    with FullOrderModel.build(beam, [stop], comm=comm) as fom:
+        basis = build_basis(fom.operators, fom.constraints.flat_rows,
+                            BasisSettings(modes=4, gyroscopic_form="state_space"))
+        local = np.vstack([np.column_stack([v.getArray() for v in vecs]) for vecs in (basis.velocity,
+                                                                                       basis.displacement)])
+        size = comm.getSize()
+        basis.destroy()
+    # (velocity rows of every rank, then displacement rows of every rank)
+    blocks = comm.tompi4py().allgather(local)
+    half = [b.shape[0] // 2 for b in blocks]
+    return np.vstack([b[:h] for b, h in zip(blocks, half)] + [b[h:] for b, h in zip(blocks, half)]), size
+
+
+@pytest.mark.parametrize("ranks", [2])
+@pytest.mark.parallel
+def test_the_state_space_basis_on_two_ranks_is_the_basis_on_one(ranks):
+    one, _ = state_columns(PETSc.COMM_SELF)
+    two, size = state_columns(PETSc.COMM_WORLD)
+    assert_all(size == 2 and one.shape == two.shape == (one.shape[0], 2 * (4 + 1)))
+    assert_all(np.abs(one - two).max() < 1e-8 * np.abs(one).max())
+
+
+@pytest.mark.parametrize("mode", [1, 3])
+def test_state_space_free_vibration_from_a_complex_mode_is_the_exact_travelling_mode(mode):
+    from dbf_hpc import InitialState, IntegratorSettings, simulate_reduced
+
+    with band_fom(stops=False, excitation=False, damping=0.0, initial=InitialState(mode=mode, amplitude=1e-3)) as fom:
+        model, _, _ = state_reduced(fom, modes=4)
+        modes = gyroscopic_modes(fom.operators, count=mode)
+        omega = modes.omega[mode - 1]
+        modes.destroy()
+    T = 2 * np.pi / omega
+    # ARKIMEX 4 (the Python callbacks: 1280 steps for 5 periods at rtol 1e-10, against 8259 with type 3 at 1e-9)
+    result = simulate_reduced(model, IntegratorSettings(t_end=10 * T, rtol=1e-10, atol=1e-14, sample_dt=T / 50,
+                                                        scheme="4"))
+    t, w = result.time, result.probes[:, 0]
+    # eta(0) = Psi^T A x(0) is exact (x(0) is the state mode's real part): w(x_p, t) = a cos + b sin at
+    # omega_mode, no other mode excited.
+    basis = np.column_stack([np.cos(omega * t), np.sin(omega * t)])
+    fit = np.linalg.lstsq(basis, w, rcond=None)[0]
+    assert np.abs(basis @ fit - w).max() < 1e-6 * np.abs(w).max()
+    assert abs(fit[0] - w[0]) < 1e-7 * np.abs(w).max()
+    assert result.solver["form"] == "state_space" and result.q.shape[1] == 8
+
+
+def test_state_space_model_keeps_its_energy_without_damping_since_g_does_no_work():
+    from dbf_hpc import IntegratorSettings, simulate_reduced
+
+    with band_fom(stops=False, excitation=False, damping=0.0) as fom:
+        model, _, _ = state_reduced(fom, modes=4)
+    eta0 = 1e-3 * np.random.default_rng(3).standard_normal(model.size)
+    result = simulate_reduced(model.with_case(q0=eta0), IntegratorSettings(t_end=0.1, rtol=1e-10, atol=1e-14,
+                                                                           sample_dt=1e-4, scheme="4"))
+    # (w_t^T M w_t + w^T K w) / 2 = |eta|^2 / 2 with Psi^T A Psi = I; eta^T B_r eta = 0 for a skew B_r.
+    energy = np.array([model.energy(q) for q in result.q])
+    assert np.abs(model.B_state).max() > 0 and np.abs(energy / energy[0] - 1).max() < 2e-7
+    # reduced/qdot is eta' = -B_r eta: orthogonal to eta (no power)
+    assert np.abs(np.einsum("ij,ij->i", result.q, result.qdot)).max() < 1e-9 * np.abs(result.q).max() * np.abs(
+        result.qdot).max() * model.size
+    with band_fom(stops=False, excitation=False, damping=20.0) as fom:
+        damped, _, _ = state_reduced(fom, modes=4)
+    lost = simulate_reduced(damped.with_case(q0=eta0), IntegratorSettings(t_end=0.1, rtol=1e-8, scheme="4"))
+    assert damped.energy(lost.q[-1]) < 0.5 * energy[0]   # the test can fail: damping does work
+
+
+def test_state_space_model_at_zero_speed_is_the_non_gyroscopic_model_step_for_step():
+    from dbf_hpc import BasisSettings, IntegratorSettings, Reductor, simulate_reduced
+
+    models = []
+    for zero_g in (False, True):
+        with band_fom(speed=0.0) as fom:
+            if zero_g:   # the state-space path with G = 0
+                fom.operators.G = fom.operators.K.duplicate(copy=False)
+                fom.operators.G.zeroEntries()
+            with Reductor(fom, BasisSettings(modes=6, dbf_derivative="central", gyroscopic_form="state_space")) as r:
+                models.append(r.reduce())
+    plain, state = models
+    assert plain.size == 8 and state.size == 16 and state.form == "state_space"
+    # At G = 0 the state vectors [0; phi], [omega phi; 0], [0; d], [varpi d; 0] span [V; 0] + [0; V] of the
+    # second-order basis V = [phi, d]: the Galerkin equations are M_r a' + C_r a + K_r b = f_r, b' = a, the
+    # same model in other coordinates. A Runge-Kutta method is invariant under a linear change of
+    # coordinates, so with the same fixed steps the two agree to round-off (and the DBFs' 1e-9).
+    settings = IntegratorSettings(t_end=0.05, dt=1e-5, adaptive=False, sample_dt=1e-4)
+    ra, rb = simulate_reduced(plain, settings), simulate_reduced(state, settings)
+    clear = np.all(np.abs(ra.displacement) < [3e-4, 5e-4], axis=1)
+    first = int(np.argmin(clear))
+    difference = np.abs(ra.displacement - rb.displacement).max(axis=1) / np.abs(ra.displacement).max()
+    # Measured 3.3e-12 before the first contact, 4.7e-9 through 29 impacts over 0.1 s.
+    assert 50 < first < clear.size and difference[:first].max() < 1e-10 and difference.max() < 1e-7
+    assert np.array_equal(ra.statistics["impacts"], rb.statistics["impacts"]) and ra.statistics["impacts"].sum() > 5
+
+
+def state_runs(t_end, modes_list):
+    """(full-order, {modes: (state-space, second-order)}) results of the band against its stops."""
+    from dbf_hpc import BasisSettings, IntegratorSettings, Reductor, simulate_full, simulate_reduced
+
+    models = {}
+    with band_fom(comm=PETSc.COMM_SELF) as fom:
+        for modes in modes_list:
+            for form in ("state_space", "second_order"):
+                with Reductor(fom, BasisSettings(modes=modes, gyroscopic_form=form)) as reductor:
+                    models[modes, form] = reductor.reduce()
+        full = simulate_full(fom, IntegratorSettings(t_end=t_end, dt=2e-5, sample_dt=1e-4))
+    settings = IntegratorSettings(t_end=t_end, rtol=1e-8, sample_dt=1e-4)
+    return full, {key: simulate_reduced(model, settings) for key, model in models.items()}
+
+
+def test_state_space_band_matches_the_full_order_reference_up_to_the_first_impact():
+    full, runs = state_runs(0.01, (8, 16))
+    clear = np.all(np.abs(full.displacement) < [3e-4, 5e-4], axis=1)
+    before = slice(0, int(np.argmin(clear)))
+    assert 50 < before.stop < clear.size
+    error = {key: np.abs(r.displacement[before] - full.displacement[before]).max()
+             / np.abs(full.displacement[before]).max() for key, r in runs.items()}
+    # Measured: state space 1.9e-3 (8 modes, 20 states), 2.3e-4 (16 modes, 36 states); second order 6.2e-4
+    # (8 modes, 40 states), 1.0e-4 (16 modes, 72 states). Per state the first-order form is the more
+    # accurate; for the same [basis] modes the second-order form (twice the states) is.
+    assert error[16, "state_space"] < error[8, "state_space"] < 3e-3 and error[16, "state_space"] < 4e-4
+    assert error[16, "state_space"] < error[8, "second_order"]
+
+
+def test_state_space_band_after_impacts_has_the_full_order_and_second_order_statistics():
+    full, runs = state_runs(0.05, (16,))   # state space: 13.6 s (Python callbacks), second order 0.5 s
+    state, second = runs[16, "state_space"], runs[16, "second_order"]
+    assert np.all(full.statistics["impacts"] >= 4) and state.solver["form"] == "state_space"
+    for other, bounds in ((full, (0.01, 0.02, 0.05, 0.15)), (second, (0.01, 0.02, 0.05, 0.15))):
+        a, b = state.statistics, other.statistics
+        rel = [np.abs(a[name] / b[name] - 1).max()
+               for name in ("displacement_rms", "force_rms", "contact_fraction", "force_peak")]
+        # Measured against the full order 0.10 %, 0.57 %, 1.7 %, 9.0 %; against the second-order form
+        # 0.07 %, 0.6 %, 1.1 %, 8.4 % (the peak force of a few impacts is the loosest statistic).
+        assert np.all(np.array(rel) < bounds), rel
+
+
+def test_a_state_space_scene_writes_its_form_resumes_from_a_checkpoint_and_refuses_the_c_callbacks(shared_tmp_path):
+    import os
+
+    import h5py
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_checkpoint import interrupted_run
+
+    path = os.path.join(os.path.dirname(__file__), "..", "jobs", "pipe_conveying_fluid.toml")
+    sets = ["basis.gyroscopic_form=state_space", "integrator.t_end=0.03", "basis.estimate=false",
+            "output.checkpoint_dt=0.005"]
+    whole, stopped = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
+    run(load_scene(path, sets), whole, progress=False)
+    interrupted_run(load_scene(path, sets), stopped)
+    summary = run(load_scene(path, sets), stopped, progress=False, resume=True)
+    assert summary["stats"]["final_time"] == pytest.approx(0.03) and summary["stats"]["form"] == "state_space"
+    MPI.COMM_WORLD.Barrier()
+    with h5py.File(whole, "r") as a, h5py.File(stopped, "r") as b:
+        assert a.attrs["reduced_form"] == "state_space" and a["reduced/q"].shape[1] == 2 * (4 + 2)
+        assert np.abs(a["reduced/M"][:] - np.eye(12)).max() < 1e-10          # Psi^T A Psi
+        # the resumed run continues the same steps: the same samples
+        assert np.abs(a["probes/displacement"][:] - b["probes/displacement"][:]).max() <= 1e-12 * np.abs(
+            a["probes/displacement"][:]).max()
+        assert np.array_equal(a["constraints/stats/impacts"][:], b["constraints/stats/impacts"][:])
+    from dbf_hpc.report import describe
+
+    assert any("2 DBFs; state space: 12 real states" in line for line in describe(whole))
+    with pytest.raises(InputError, match='callbacks = "c": the C callbacks integrate the second-order form'):
+        run(load_scene(path, sets + ["integrator.callbacks=c"]), str(shared_tmp_path / "c.h5"), progress=False)
+    assert not (shared_tmp_path / "c.h5").exists()
+
+
+def grouped_columns(groups, form):
+    """The basis columns (every rank's rows, velocity then displacement parts in the state-space form)
+    of a band with two stops, the DBFs solved by `groups` constraint groups, and the DBF stiffnesses."""
+    from dbf_hpc import Constraint, FullOrderModel, law
+    from dbf_hpc.basis import BasisSettings, build_basis
+
+    beam = Beam(elements=30, axial_speed=30.0, **BAND)
+    stops = [Constraint(law("deadband", clearance=5e-4, k=1e5), x=x) for x in (0.3, 0.75)]
+    world = MPI.COMM_WORLD
+    with FullOrderModel.build(beam, stops) as fom:
+        basis = build_basis(fom.operators, fom.constraints.flat_rows,
+                            BasisSettings(modes=4, groups=groups, gyroscopic_form=form))
+        if form == "state_space":
+            parts = [np.column_stack([v.getArray() for v in vecs]) for vecs in (basis.velocity, basis.displacement)]
+        else:
+            dense = basis.vectors.getMat()
+            parts = [dense.getDenseArray().copy()]
+            basis.vectors.restoreMat(dense)
+        k, hat = basis.dbf_k.copy(), basis.enrichment_omega.copy()
+        basis.destroy()
+    return np.vstack([np.vstack(world.allgather(p)) for p in parts]), k, hat
+
+
+@pytest.mark.parametrize("form", ["second_order", "state_space"])
+@pytest.mark.parallel
+def test_gyroscopic_dbfs_solved_by_constraint_groups_are_those_solved_on_all_ranks(form):
+    # groups = 2 on 2 ranks: each rank solves one stop's four PEPs alone on its copy of K, M, G
+    together, k1, hat1 = grouped_columns(1, form)
+    apart, k2, hat2 = grouped_columns(2, form)
+    assert_all(together.shape == apart.shape and np.allclose(k1, k2, rtol=1e-8) and np.allclose(hat1, hat2,
+                                                                                                 rtol=1e-8))
+    assert_all(np.abs(together - apart).max() < 1e-8 * np.abs(together).max())

@@ -12,6 +12,9 @@ STOP = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
 
 
 def test_reduced_operators_are_the_projections_and_the_mass_is_the_identity():
+    # K_r is V^T K V except on the reference modes' block, which is diag(omega^2) (their Rayleigh
+    # quotients; the projection's couplings there are the eigensolver's residual, below 1e-8 of
+    # sqrt(K_ii K_jj)); M_r = I exactly (the projection's |V^T M V - I| is below 1e-8)
     damping = Damping(rayleigh_alpha=0.3, rayleigh_beta=2e-5)
     with FullOrderModel.build(BEAM, [STOP], BaseMotion(5e-3, 1.0), damping, probes=[0.5]) as fom, \
             Reductor(fom, BasisSettings(modes=6)) as reductor:
@@ -21,8 +24,15 @@ def test_reduced_operators_are_the_projections_and_the_mass_is_the_identity():
         B = basis.rows(fom.constraints.flat_rows)
         probe = basis.rows([fom.operators.mesh.w_row(0.5)])
     assert rom.size == 7
-    assert np.abs(rom.M - np.eye(7)).max() < 1e-12                    # V^T M V = I (Eq. 40)
-    np.testing.assert_array_equal(rom.K, K)                            # not symmetrized
+    np.testing.assert_array_equal(rom.M, np.eye(7))                   # V^T M V = I (Eq. 40)
+    assert 0 <= rom.basis_info["mass_orthonormality_defect"] < 1e-12
+    modes = np.diag(np.diag(K)[:6])
+    d = np.sqrt(np.diag(K)[:6])
+    assert np.abs(K[:6, :6] - modes).max() <= 1e-8 * np.outer(d, d).min()
+    np.testing.assert_array_equal(rom.K[:6, :6], modes)                 # diag(omega^2) on the modes
+    np.testing.assert_allclose(np.diag(rom.K)[:6], rom.basis_info["omega"] ** 2, rtol=1e-8)
+    np.testing.assert_array_equal(rom.K[6:], K[6:])                     # the DBF's rows and column:
+    np.testing.assert_array_equal(rom.K[:, 6:], K[:, 6:])               # the projection, not symmetrized
     np.testing.assert_allclose(rom.C, 0.3 * rom.M + 2e-5 * rom.K, rtol=1e-14)   # Rayleigh projects exactly
     np.testing.assert_array_equal(rom.B, B)
     np.testing.assert_array_equal(rom.probe_B, probe)
@@ -49,3 +59,20 @@ def test_an_initial_mode_shape_starts_at_the_requested_peak_displacement():
         rom = reductor.reduce(field=True)
     w = rom.field.at(rom.q0, 0.0)
     assert_all(abs(np.abs(w).max() - 1e-3) < 1e-15 and np.count_nonzero(rom.q0) == 1)
+
+
+def test_projection_defects_above_the_tolerance_are_kept_as_projected():
+    # a reduced model is cleaned only of the eigensolver's and Gram-Schmidt's residuals, never of a
+    # real coupling: a 1e-6 mode-mode coupling and a 1e-6 mass defect stay
+    from dbf_hpc.reductor import PROJECTION_TOL
+
+    with FullOrderModel.build(BEAM, [STOP]) as fom, Reductor(fom, BasisSettings(modes=4)) as reductor:
+        basis = reductor.basis()
+        K, M = basis.project(fom.operators.K), basis.project(fom.operators.M)
+    K[0, 1] = K[1, 0] = 1e-6 * np.sqrt(K[0, 0] * K[1, 1])
+    M[2, 2] += 1e-6
+    K0, M0 = K.copy(), M.copy()
+    defects = Reductor._clean_projection(basis, K, M)
+    assert defects["mode_coupling_defect"] > PROJECTION_TOL and defects["mass_orthonormality_defect"] > PROJECTION_TOL
+    np.testing.assert_array_equal(K, K0)
+    np.testing.assert_array_equal(M, M0)

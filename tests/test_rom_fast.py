@@ -88,14 +88,19 @@ def test_laws_in_c_give_the_bits_of_laws_py_over_random_and_edge_states(paper, d
 
 
 @needs_c
-def test_the_c_jacobian_is_the_python_jacobian_and_its_structured_inverse_is_exact(four):
+@pytest.mark.parametrize("arrow", [True, False])
+def test_the_c_jacobian_is_the_python_jacobian_and_its_structured_inverse_is_exact(four, arrow):
     # Four constraints of the paper's beam, some in contact, Hunt-Crossley damping so that dN/dv
-    # enters too; the MatShell's product against the Python dense Jacobian, and J (J^-1 x) = x.
+    # enters too; the MatShell's product against the Python dense Jacobian, and J (J^-1 x) = x, with
+    # the arrow factor (the reference modes' diagonal block bordered by the 4 DBFs) and the dense one.
     model = four[0]
     laws = ConstraintLaws([law("hertz", clearance=1e-3, k=1e9, damping="hunt_crossley", alpha=0.3)] * 4)
     model = model.with_case(constraints=model.constraints.with_laws(laws))
     r = model.size
     python, fast = ReducedProblem(model, True), _problem(model)
+    assert fast.arrow_modes == model.basis_info["omega"].size   # the modes' block is diagonal
+    fast.arrow_modes = arrow
+    assert (fast.arrow_modes > 0) == arrow
     ts = PETSc.TS().create(PETSc.COMM_SELF)
     ts.setType("arkimex")
     y, ydot = PETSc.Vec().createSeq(2 * r, comm=PETSc.COMM_SELF), PETSc.Vec().createSeq(2 * r, comm=PETSc.COMM_SELF)

@@ -42,6 +42,12 @@ cdef extern from "rom_core.h":
         PetscReal *Ds
         PetscReal *Ks
         int sym_ok, m_identity
+        PetscInt am
+        PetscReal *ad
+        PetscReal *A12
+        PetscReal *SL
+        PetscReal *SU
+        int arrow_ok
         PetscReal *rc
         PetscReal *base_load
         PetscReal *force_shape
@@ -155,6 +161,22 @@ cdef extern from "rom_core.h":
 LAW_CODE = {"deadband": 0, "power": 0, "hertz": 0, "linear": 1, "cubic": 1, "table": 2, "friction": 3}
 ACCUMULATED = ("impacts", "contact_time", "run", "duration_max", "f2", "z2", "power", "force_peak",
                "displacement_peak")
+ARROW_MIN = 4   # the fewest diagonal leading rows worth the arrow factor
+
+
+def arrow_size(*matrices) -> int:
+    """The largest m such that every matrix's leading m x m block is diagonal (exact zeros off the
+    diagonal: reductor._clean_projection makes them so on the reference modes), 0 below ARROW_MIN."""
+    m = matrices[0].shape[0]
+    for A in matrices:
+        off = np.asarray(A)[:m, :m] != 0
+        np.fill_diagonal(off, False)
+        coupled = (np.tril(off) | np.triu(off).T).any(axis=1)   # row i coupled to a row j < i
+        if coupled.any():
+            m = int(np.argmax(coupled))
+    return m if m >= ARROW_MIN else 0
+
+
 SYMMETRY_TOL = 1e-10   # relative asymmetry of K, D up to which the symmetric part is factored (Cholesky)
 USER_ERROR = 83   # PETSC_ERR_USER: a Python exception in the monitor, re-raised after TSSolve
 
@@ -196,6 +218,7 @@ cdef class Problem:
     cdef public object nonfinite
     cdef bint resumed_first
     cdef long since_report
+    cdef PetscInt arrow_found
 
     def __cinit__(self):
         memset(&self.c, 0, sizeof(RomCtx))
@@ -258,9 +281,9 @@ cdef class Problem:
             c.X = self.dptr(np.zeros(f.count))
             # equally spaced in k (Deodatis' frequencies): Horner's rule instead of a cosine per term, the
             # same sum to round-off (the phase error of w0 + k dw against omega_mk is ~1e-16 omega_mk t)
-            K = f.omega.shape[1]
-            dw = (f.omega[0, -1] - f.omega[0, 0]) / (K - 1) if K > 1 else 0.0
-            if K > 1 and np.allclose(f.omega, f.omega[:, :1] + dw * np.arange(K), rtol=1e-13, atol=0.0):
+            nk = f.omega.shape[1]
+            dw = (f.omega[0, -1] - f.omega[0, 0]) / (nk - 1) if nk > 1 else 0.0
+            if nk > 1 and np.allclose(f.omega, f.omega[:, :1] + dw * np.arange(nk), rtol=1e-13, atol=0.0):
                 c.hist_horner, c.hist_dw = 1, dw
                 A = f.amplitude * np.exp(1j * f.phase)
                 c.hist_w0, c.hist_re, c.hist_im = self.dptr(f.omega[:, 0]), self.dptr(A.real.T), self.dptr(A.imag.T)
@@ -286,6 +309,10 @@ cdef class Problem:
         c.L, c.U, c.AinvB = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * n))
         c.Cap, c.Mcap = self.dptr(np.zeros(n * n)), self.dptr(np.zeros(n * n))
         c.piv, c.lpiv, c.act = self.iptr(np.zeros(n)), self.iptr(np.zeros(r)), self.iptr(np.zeros(n))
+        c.am = self.arrow_found = arrow_size(K, D, Mo, Do, Ko)
+        c.ad, c.A12 = self.dptr(np.zeros(r)), self.dptr(np.zeros(r * r))
+        c.SL, c.SU = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r))
+        c.arrow_ok = 0
         ids = np.full(n * n + n, -1, dtype=np.int_)
         self.keep.append(ids)
         c.col_id = <long *><size_t>ids.ctypes.data
@@ -393,6 +420,15 @@ cdef class Problem:
         def __get__(self):
             return bool(self.c.sym_ok)
 
+    property arrow_modes:
+        """The diagonal leading rows the stage solve's arrow factor uses (0: the dense factor). Set
+        it to False to force the dense factor, to True for the arrow one where the model has it."""
+        def __get__(self):
+            return int(self.c.am) if self.c.sym_ok else 0
+        def __set__(self, value):
+            self.c.am = self.arrow_found if value else 0
+            self.c.fact_shift = -1.0
+
     @property
     def counters(self):
         c = self.c
@@ -485,9 +521,10 @@ cdef class Problem:
     def sync(self):
         """Hand the samples taken so far and the accumulator's scalars to the Python objects."""
         cdef RomCtx *c = &self.c
-        if c.nrows:
-            rows = self.rows_arr[:c.nrows].copy()
-            c.nrows = 0
+        if c.nrows:   # the buffer itself is handed over (the writer keeps views of it): a new one for C
+            rows = self.rows_arr[:c.nrows]
+            self.rows_arr = np.empty_like(self.rows_arr)
+            c.rows, c.nrows = <PetscReal *><size_t>self.rows_arr.ctypes.data, 0
             if self.recorder is not None:
                 self.recorder.record_rows(rows)
             else:

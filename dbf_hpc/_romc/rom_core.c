@@ -217,6 +217,26 @@ static inline void matvec_add(const PetscReal *AT, PetscInt r, const PetscReal *
   }
 }
 
+/* y += A x for an arrow A (c->am > 0: its leading am x am block diagonal), given by AT as above:
+   the same sums in the same order as matvec_add without the block's zeros */
+static inline void arrow_matvec_add(const PetscReal *AT, PetscInt r, PetscInt am, const PetscReal *x, PetscReal *y)
+{
+  for (PetscInt j = 0; j < am; j++) {
+    const PetscReal *col = AT + j * r, xj = x[j];
+    y[j] += col[j] * xj;
+    for (PetscInt i = am; i < r; i++) y[i] += col[i] * xj;
+  }
+  for (PetscInt j = am; j < r; j++) {
+    const PetscReal *col = AT + j * r, xj = x[j];
+    for (PetscInt i = 0; i < r; i++) y[i] += col[i] * xj;
+  }
+}
+static inline void mv_add(const RomCtx *c, const PetscReal *AT, const PetscReal *x, PetscReal *y)
+{
+  if (c->am) arrow_matvec_add(AT, c->r, c->am, x, y);
+  else matvec_add(AT, c->r, x, y);
+}
+
 /* out += sign * Bt^T N */
 static inline void add_BtN(const RomCtx *c, const PetscReal *N, PetscReal sign, PetscReal *out)
 {
@@ -241,8 +261,8 @@ PetscErrorCode RomIFunction(TS ts, PetscReal t, Vec U, Vec Udot, Vec F, void *ct
   const PetscReal *q = u, *p = u + r, *qd = ud, *pd = ud + r;
   PetscReal *fq = f, *fp = f + r;
   for (PetscInt i = 0; i < r; i++) { fq[i] = qd[i] - p[i]; fp[i] = pd[i]; }
-  if (!c->d_zero) matvec_add(c->DT, r, p, fp);
-  matvec_add(c->KT, r, q, fp);
+  if (!c->d_zero) mv_add(c, c->DT, p, fp);
+  mv_add(c, c->KT, q, fp);
   if (c->implicit_contact) {
     constraint_state(c, t, q, p, c->z, c->v);
     RomLaws(c, c->z, c->v, c->N, NULL, NULL, 0);
@@ -401,10 +421,61 @@ static void lu_solve(const PetscReal *a, PetscInt n, const PetscInt *piv, PetscR
   for (PetscInt i = 0; i < n; i++) { PetscReal s = x[i]; for (PetscInt k = 0; k < i; k++) s -= a[i * n + k] * x[k]; x[i] = s; }
   for (PetscInt i = n - 1; i >= 0; i--) { PetscReal s = x[i]; for (PetscInt k = i + 1; k < n; k++) s -= a[i * n + k] * x[k]; x[i] = s / a[i * n + i]; }
 }
+/* A x = b in place for the arrow factor: z2 = S^-1 (b2 - A21 Ad^-1 b1), z1 = Ad^-1 (b1 - A12 z2) */
+static void arrow_solve(const RomCtx *c, PetscReal *x)
+{
+  const PetscInt am = c->am, l = c->r - am;
+  PetscReal *x2 = x + am;
+  for (PetscInt i = 0; i < am; i++) {
+    const PetscReal yi = x[i] / c->ad[i], *a = c->A12 + i * l;
+    x[i] = yi;
+    for (PetscInt k = 0; k < l; k++) x2[k] -= a[k] * yi;
+  }
+  chol_solve(c->SL, c->SU, l, x2);
+  for (PetscInt i = 0; i < am; i++) {
+    const PetscReal *a = c->A12 + i * l;
+    PetscReal s = 0.0;
+    for (PetscInt k = 0; k < l; k++) s += a[k] * x2[k];
+    x[i] -= s / c->ad[i];
+  }
+}
 static inline void solveA(const RomCtx *c, PetscReal *x)
 {
-  if (c->chol_ok) chol_solve(c->L, c->U, c->r, x);
+  if (c->arrow_ok) arrow_solve(c, x);
+  else if (c->chol_ok) chol_solve(c->L, c->U, c->r, x);
   else lu_solve(c->L, c->r, c->lpiv, x);
+}
+
+/* the arrow factor of the symmetric parts (see RomCtx.am); 1 if a pivot is not positive */
+static int arrow_factor(RomCtx *c, PetscReal shift)
+{
+  const PetscInt r = c->r, am = c->am, l = r - am;
+  const PetscReal s2 = shift * shift;
+  for (PetscInt i = 0; i < am; i++) {
+    const PetscReal d = c->Ks[i * r + i] + shift * c->Ds[i * r + i] + s2 * c->Ms[i * r + i];
+    if (!(d > 0)) return 1;
+    c->ad[i] = d;
+    PetscReal *a = c->A12 + i * l;
+    for (PetscInt k = 0; k < l; k++) {   /* row am + k, column i: the lower triangle of the symmetric parts */
+      const PetscInt e = (am + k) * r + i;
+      a[k] = c->Ks[e] + shift * c->Ds[e] + s2 * c->Ms[e];
+    }
+  }
+  PetscReal *S = c->SL;
+  for (PetscInt k = 0; k < l; k++)
+    for (PetscInt m = 0; m <= k; m++) {
+      const PetscInt e = (am + k) * r + am + m;
+      S[k * l + m] = c->Ks[e] + shift * c->Ds[e] + s2 * c->Ms[e];
+    }
+  for (PetscInt i = 0; i < am; i++) {   /* S -= A21 Ad^-1 A12, row by row of the border */
+    const PetscReal *a = c->A12 + i * l, inv = 1.0 / c->ad[i];
+    for (PetscInt k = 0; k < l; k++) {
+      const PetscReal f = a[k] * inv;
+      PetscReal *Sk = S + k * l;
+      for (PetscInt m = 0; m <= k; m++) Sk[m] -= f * a[m];
+    }
+  }
+  return cholesky(S, c->SU, c->tmp2, l);
 }
 
 /* A(shift) = shift^2 M + shift D + K with the model's own (symmetric) M_r, D, K: Cholesky of its
@@ -418,6 +489,12 @@ static PetscErrorCode factor(RomCtx *c, PetscReal shift)
   c->n_fact++;
   c->fact_id++;   /* invalidates the cached columns A^-1 B_l^T and capacitance entries */
   c->chol_ok = c->sym_ok;
+  c->arrow_ok = c->sym_ok && c->am > 0;
+  if (c->arrow_ok && arrow_factor(c, shift)) c->arrow_ok = 0;
+  if (c->arrow_ok) {
+    c->fact_shift = shift;
+    PetscFunctionReturn(0);
+  }
   if (c->chol_ok) {
     for (PetscInt i = 0; i < r; i++)
       for (PetscInt j = 0; j <= i; j++) c->L[i * r + j] = c->Ks[i * r + j] + shift * c->Ds[i * r + j] + s2 * c->Ms[i * r + j];
@@ -513,9 +590,9 @@ PetscErrorCode RomApplyInverse(RomCtx *c, Vec X, Vec Y)
   if (c->m_identity) for (PetscInt i = 0; i < r; i++) dq[i] = b[i] + s * a[i];
   else {
     for (PetscInt i = 0; i < r; i++) { w[i] = b[i] + s * a[i]; dq[i] = 0.0; }
-    matvec_add(c->MoT, r, w, dq);
+    mv_add(c, c->MoT, w, dq);
   }
-  if (!c->d_zero) matvec_add(c->DoT, r, a, dq);
+  if (!c->d_zero) mv_add(c, c->DoT, a, dq);
   if (c->implicit_contact && c->has_nv) { /* - B^T N_v B a, block by block */
     for (PetscInt l = 0; l < c->ncon; l++) {
       const PetscReal *nv = c->NvJ + l * dd;

@@ -50,6 +50,11 @@ typedef struct {
   /* the exact structured solve: A(shift) = shift^2 I + shift D + K factored once per shift */
   PetscReal fact_shift, *L, *U, *AinvB, *Cap, *Mcap; PetscInt *piv, *lpiv, *act, nact; int chol_ok;
   long fact_id, *col_id, *cap_id;
+  /* the arrow structure (reductor._clean_projection): the leading am x am blocks of K, D (and of M_r,
+     K_r, C_r) are diagonal, so A(shift) is a diagonal mode block bordered by l = r - am enrichment
+     columns; factored as ad (am) and the Cholesky of the l x l Schur complement (SL, SU), A12 the
+     border (am x l, row-major). am = 0: dense. arrow_ok: the current factor is the arrow one. */
+  PetscInt am; PetscReal *ad, *A12, *SL, *SU; int arrow_ok;
   int linear_shortcut;
   Vec snes_dy;
   /* counters */
