@@ -54,6 +54,7 @@ cdef extern from "rom_core.h":
         PetscReal *probe_B
         PetscReal *probe_r
         int d_zero
+        int d_diag, do_diag
         PetscReal sup_a, sup_w, sup_ph, force_a, force_w, force_ph
         PetscInt nrand
         PetscReal *rand_amp
@@ -269,6 +270,8 @@ cdef class Problem:
         c.nprobe = model.probe_B.shape[0]
         c.probe_B, c.probe_r = self.dptr(model.probe_B), self.dptr(model.probe_r)
         c.d_zero = int(not np.any(D))
+        diagonal = lambda A: not np.any(A - np.diag(np.diag(A)))
+        c.d_diag, c.do_diag = int(diagonal(D)), int(diagonal(Do))
         two_pi = 2 * np.pi
         s = model.support
         c.sup_a, c.sup_w, c.sup_ph = s.amplitude, two_pi * s.frequency_hz, s.phase

@@ -231,6 +231,11 @@ static inline void arrow_matvec_add(const PetscReal *AT, PetscInt r, PetscInt am
     for (PetscInt i = 0; i < r; i++) y[i] += col[i] * xj;
   }
 }
+/* y += A x for a diagonal A (given by AT as above): the same sums without the zeros */
+static inline void diag_add(const PetscReal *AT, PetscInt r, const PetscReal *x, PetscReal *y)
+{
+  for (PetscInt i = 0; i < r; i++) y[i] += AT[i * r + i] * x[i];
+}
 static inline void mv_add(const RomCtx *c, const PetscReal *AT, const PetscReal *x, PetscReal *y)
 {
   if (c->am) arrow_matvec_add(AT, c->r, c->am, x, y);
@@ -261,7 +266,8 @@ PetscErrorCode RomIFunction(TS ts, PetscReal t, Vec U, Vec Udot, Vec F, void *ct
   const PetscReal *q = u, *p = u + r, *qd = ud, *pd = ud + r;
   PetscReal *fq = f, *fp = f + r;
   for (PetscInt i = 0; i < r; i++) { fq[i] = qd[i] - p[i]; fp[i] = pd[i]; }
-  if (!c->d_zero) mv_add(c, c->DT, p, fp);
+  if (c->d_diag) { if (!c->d_zero) diag_add(c->DT, r, p, fp); }
+  else mv_add(c, c->DT, p, fp);
   mv_add(c, c->KT, q, fp);
   if (c->implicit_contact) {
     constraint_state(c, t, q, p, c->z, c->v);
@@ -592,7 +598,8 @@ PetscErrorCode RomApplyInverse(RomCtx *c, Vec X, Vec Y)
     for (PetscInt i = 0; i < r; i++) { w[i] = b[i] + s * a[i]; dq[i] = 0.0; }
     mv_add(c, c->MoT, w, dq);
   }
-  if (!c->d_zero) mv_add(c, c->DoT, a, dq);
+  if (c->do_diag) { if (!c->d_zero) diag_add(c->DoT, r, a, dq); }
+  else mv_add(c, c->DoT, a, dq);
   if (c->implicit_contact && c->has_nv) { /* - B^T N_v B a, block by block */
     for (PetscInt l = 0; l < c->ncon; l++) {
       const PetscReal *nv = c->NvJ + l * dd;

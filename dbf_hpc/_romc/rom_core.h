@@ -28,6 +28,7 @@ typedef struct {
   PetscReal *rc, *base_load, *force_shape; /* nl, r, r */
   PetscReal *probe_B, *probe_r;            /* nprobe*r, nprobe */
   int d_zero;                              /* D == 0 exactly */
+  int d_diag, do_diag;                     /* D, resp. the model's own D (Do), diagonal exactly (modal damping) */
   /* excitation: Omega = sup_a sin(sup_w t + sup_ph); F = force_a sin(force_w t + force_ph), or the random sum */
   PetscReal sup_a, sup_w, sup_ph, force_a, force_w, force_ph;
   PetscInt nrand; PetscReal *rand_amp, *rand_omega, *rand_phase;
