@@ -157,6 +157,7 @@ class ReducedRecorder(SampleRecorder):
         super().__init__(writer, model.constraints)
         self.model = model
         self.snapshot_samples = set(int(i) for i in snapshot_samples)
+        self._snapshot_sorted = np.array(sorted(self.snapshot_samples), dtype=np.int64)
         self.snapshot_q = {}
         self.index = 0
         self.final = (model.q0.copy(), model.p0.copy())
@@ -178,9 +179,12 @@ class ReducedRecorder(SampleRecorder):
         [t, q (r), q' (r), z, v, force, peak (N_L d each), probe (P)], the same values `record` gives
         (the peak already includes the steps before each sample, and is reset after it)."""
         r, n, m = self.model.size, self.peak.size, rows.shape[0]
-        cut = np.cumsum([0, 1, r, r, n, n, n, n]).tolist() + [rows.shape[1]]
-        t, q, p, z, v, force, peak, probe = (rows[:, a:b] for a, b in zip(cut[:-1], cut[1:]))
-        for i in self.snapshot_samples.intersection(range(self.index, self.index + m)):
+        edges = [0, 1, 1 + r, 1 + 2 * r, 1 + 2 * r + n, 1 + 2 * r + 2 * n, 1 + 2 * r + 3 * n, 1 + 2 * r + 4 * n,
+                 rows.shape[1]]
+        t, q, p, z, v, force, peak, probe = (rows[:, a:b] for a, b in zip(edges[:-1], edges[1:]))
+        due = self._snapshot_sorted
+        lo, hi = np.searchsorted(due, [self.index, self.index + m])
+        for i in due[lo:hi].tolist():
             self.snapshot_q[i] = q[i - self.index].copy()
         self.index += m
         self.writer.append_rows(**{layout.TIME: t[:, 0], layout.CONSTRAINT_DISPLACEMENT: z,
