@@ -88,9 +88,12 @@ class Reductor:
         the defects found (basis_info)."""
         m = basis.mode_count
         defect_M = float(np.abs(M - np.eye(M.shape[0])).max(initial=0.0))
-        d = np.sqrt(np.abs(np.diag(K)[:m]))
-        scale = np.outer(d, d)
+        diagonal = np.abs(np.diag(K)[:m])
+        # a rigid-body mode's K_ii is round-off: measured against the round-off of the largest, so that
+        # its couplings count as large (kept) unless they are round-off too; never a unit-dependent floor
+        d = np.sqrt(np.maximum(diagonal, np.finfo(float).eps * diagonal.max(initial=0.0)))
         off = K[:m, :m] - np.diag(np.diag(K)[:m])
+        scale = np.outer(d, d)
         defect_K = float((np.abs(off) / np.where(scale > 0, scale, 1.0)).max(initial=0.0))
         if defect_M <= PROJECTION_TOL:
             M[...] = np.eye(M.shape[0])
