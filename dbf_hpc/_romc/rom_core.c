@@ -949,7 +949,7 @@ PetscErrorCode RomSetPCShell(RomCtx *c, PC pc)
   PetscCall(PCSetType(pc, PCSHELL));
   PetscCall(PCShellSetContext(pc, c));
   PetscCall(PCShellSetApply(pc, RomPCApply));
-  PetscCall(PCShellSetName(pc, "dbf_hpc reduced model: exact solve (Cholesky of shift^2 I + shift D + K, Woodbury on the active constraints)"));
+  PetscCall(PCShellSetName(pc, "dbf_hpc reduced model: exact solve (Cholesky of shift^2 M + shift D + K, of its arrow structure when it has one; Woodbury on the active constraints)"));
   PetscFunctionReturn(0);
 }
 PetscErrorCode RomSetSNESShell(RomCtx *c, SNES snes)
