@@ -833,6 +833,32 @@ PetscErrorCode RomTakeSamples(RomCtx *c, TS ts, PetscReal t, Vec U, PetscInt *ta
   PetscFunctionReturn(0);
 }
 
+/* one constraint's (or support's) step in stats.ImpactAccumulator.add: the trapezoid sums over the
+   step of length 2 half, the impacts, the contact runs, and the values kept for the next step */
+static inline void accumulate(RomCtx *c, PetscInt j, int contact, PetscReal half, PetscReal f2, PetscReal z2, PetscReal pw_)
+{
+  PetscReal *pc = c->acc_prev, *pf = pc + c->nl, *pz = pf + c->nl, *pw = pz + c->nl;   /* rows of the Python side's (4, nl) array */
+  const PetscReal cn = contact ? 1.0 : 0.0;
+  if (!c->acc_started) {
+    c->acc_impacts[j] += contact;
+  } else {
+    const PetscReal cp = pc[j];
+    c->acc_contact_time[j] += half * (cp + cn);
+    c->acc_f2[j] += half * (pf[j] + f2);
+    c->acc_z2[j] += half * (pz[j] + z2);
+    c->acc_power[j] += half * (pw[j] + pw_);
+    c->acc_run[j] += half * cp;
+    const int ended = (cp > 0) && !contact;
+    if (ended) {
+      if (c->acc_run[j] > c->acc_duration_max[j] || isnan(c->acc_run[j])) c->acc_duration_max[j] = c->acc_run[j];
+      c->acc_run[j] = 0.0;
+    }
+    c->acc_impacts[j] += contact && (cp == 0);
+    c->acc_run[j] += half * cn;
+  }
+  pc[j] = cn; pf[j] = f2; pz[j] = z2; pw[j] = pw_;
+}
+
 /* stats.ImpactAccumulator.add and SampleRecorder._track_peak for the state at the end of a step, operation
    by operation as in Python (so a checkpoint taken on either side continues on the other) */
 /* the same for supports of two directions (recorder.SampleRecorder.step with laws.PlanarLaws.radial):
@@ -842,7 +868,6 @@ static void step_statistics_planar(RomCtx *c, PetscReal t, const PetscReal *u)
 {
   const PetscInt nc = c->ncon;
   PetscReal *z = c->z, *v = c->v, *N = c->N;
-  PetscReal *pc = c->acc_prev, *pf = pc + c->nl, *pz = pf + c->nl, *pw = pz + c->nl;   /* rows of the Python side's (4, nl) array */
   constraint_state(c, t, u, u + c->r, z, v);
   RomLaws(c, z, v, N, NULL, NULL, 0);
   const PetscReal half = c->acc_started ? 0.5 * (t - c->acc_t_prev) : 0.0;
@@ -854,30 +879,13 @@ static void step_statistics_planar(RomCtx *c, PetscReal t, const PetscReal *u)
     const PetscReal vt = fabs(n[0] * wj[1] - n[1] * wj[0]), f = hypot(fj[0], fj[1]);
     const PetscReal fn = fabs(fj[0] * n[0] + fj[1] * n[1]);
     const int contact = gap > c->pl_gap[j];
-    const PetscReal cn = contact ? 1.0 : 0.0, f2 = f * f, z2 = r * r, pw_ = fn * fabs(vn), work = fn * vt;
+    const PetscReal f2 = f * f, z2 = r * r, pw_ = fn * fabs(vn), work = fn * vt;
     if (c->acc_started) c->acc_work[j] += half * (c->acc_work_prev[j] + work);
     c->acc_work_prev[j] = work;
     const PetscReal af = fabs(f), az = fabs(r);
     if (af > c->acc_force_peak[j] || isnan(af)) c->acc_force_peak[j] = af;
     if (az > c->acc_displacement_peak[j] || isnan(az)) c->acc_displacement_peak[j] = az;
-    if (!c->acc_started) {
-      c->acc_impacts[j] += contact;
-    } else {
-      const PetscReal cp = pc[j];
-      c->acc_contact_time[j] += half * (cp + cn);
-      c->acc_f2[j] += half * (pf[j] + f2);
-      c->acc_z2[j] += half * (pz[j] + z2);
-      c->acc_power[j] += half * (pw[j] + pw_);
-      c->acc_run[j] += half * cp;
-      const int ended = (cp > 0) && !contact;
-      if (ended) {
-        if (c->acc_run[j] > c->acc_duration_max[j] || isnan(c->acc_run[j])) c->acc_duration_max[j] = c->acc_run[j];
-        c->acc_run[j] = 0.0;
-      }
-      c->acc_impacts[j] += contact && (cp == 0);
-      c->acc_run[j] += half * cn;
-    }
-    pc[j] = cn; pf[j] = f2; pz[j] = z2; pw[j] = pw_;
+    accumulate(c, j, contact, half, f2, z2, pw_);
   }
   if (!c->acc_started) { c->acc_t0 = t; c->acc_started = 1; }
   c->acc_t_prev = t;
@@ -889,35 +897,17 @@ void RomStepStatistics(RomCtx *c, PetscReal t, const PetscReal *u)
   const PetscInt nl = c->nl;
   if (c->dim == 2 && nl) { step_statistics_planar(c, t, u); return; }
   PetscReal *z = c->z, *v = c->v, *N = c->N;
-  PetscReal *pc = c->acc_prev, *pf = pc + nl, *pz = pf + nl, *pw = pz + nl;
   if (!nl) { c->acc_t0 = c->acc_started ? c->acc_t0 : t; c->acc_t_prev = t; c->acc_started = 1; return; }
   constraint_state(c, t, u, u + c->r, z, v);
   RomLaws(c, z, v, N, NULL, NULL, 0);
   const PetscReal half = c->acc_started ? 0.5 * (t - c->acc_t_prev) : 0.0;
   for (PetscInt j = 0; j < nl; j++) {
     const int contact = N[j] != 0;
-    const PetscReal cn = contact ? 1.0 : 0.0, f2 = N[j] * N[j], z2 = z[j] * z[j], pw_ = fabs(N[j] * v[j]);
+    const PetscReal f2 = N[j] * N[j], z2 = z[j] * z[j], pw_ = fabs(N[j] * v[j]);
     const PetscReal aN = fabs(N[j]), az = fabs(z[j]);
     if (aN > c->acc_force_peak[j] || isnan(aN)) c->acc_force_peak[j] = aN;
     if (az > c->acc_displacement_peak[j] || isnan(az)) c->acc_displacement_peak[j] = az;
-    if (!c->acc_started) {
-      c->acc_impacts[j] += contact;
-    } else {
-      const PetscReal cp = pc[j];
-      c->acc_contact_time[j] += half * (cp + cn);
-      c->acc_f2[j] += half * (pf[j] + f2);
-      c->acc_z2[j] += half * (pz[j] + z2);
-      c->acc_power[j] += half * (pw[j] + pw_);
-      c->acc_run[j] += half * cp;
-      const int ended = (cp > 0) && !contact;
-      if (ended) {
-        if (c->acc_run[j] > c->acc_duration_max[j] || isnan(c->acc_run[j])) c->acc_duration_max[j] = c->acc_run[j];
-        c->acc_run[j] = 0.0;
-      }
-      c->acc_impacts[j] += contact && (cp == 0);
-      c->acc_run[j] += half * cn;
-    }
-    pc[j] = cn; pf[j] = f2; pz[j] = z2; pw[j] = pw_;
+    accumulate(c, j, contact, half, f2, z2, pw_);
   }
   if (!c->acc_started) { c->acc_t0 = t; c->acc_started = 1; }
   c->acc_t_prev = t;
