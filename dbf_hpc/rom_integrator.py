@@ -111,6 +111,15 @@ class ReducedProblem:
         self.force_shape, self.base_load = solve(model.force_shape), solve(model.base_load)
         self.eye = np.eye(r)
 
+    def coordinates(self, t, state, copy: bool = True):
+        """(q, q') of a state vector's array (copies, or views with copy=False)."""
+        q, p = state[: self.r], state[self.r:]
+        return (q.copy(), p.copy()) if copy else (q, p)
+
+    def commit(self, t, q, p) -> None:
+        """The laws' state after an accepted step."""
+        self.model.constraints.commit(*self.model.constraint_state(t, q, p))
+
     def split(self, y):
         a = y.getArray(readonly=True)
         return a[: self.r], a[self.r:]
@@ -168,15 +177,17 @@ class ReducedProblem:
 
 
 class _Monitor:
-    """Samples (dense output, or the steps that land on them), the per-step hook, the law state."""
+    """Samples (dense output, or the steps that land on them), the per-step hook, the law state. The
+    problem says what (q, p) a state is (`coordinates`) and keeps the laws' state (`commit`): a
+    ReducedProblem, or state_space.StateSpaceProblem (q = eta, p = eta')."""
 
-    def __init__(self, problem: ReducedProblem, steps: StepMonitor, record, on_step, dense: bool, recorder=None):
+    def __init__(self, problem, steps: StepMonitor, record, on_step, dense: bool, recorder=None):
         self.problem, self.steps, self.record, self.on_step, self.dense = problem, steps, record, on_step, dense
         self.recorder = recorder
         self.work = None
 
     def __call__(self, ts, step, t, y):
-        steps, r = self.steps, self.problem.r
+        steps, problem = self.steps, self.problem
         if steps.failure:
             return
         a = y.getArray(readonly=True)
@@ -190,11 +201,10 @@ class _Monitor:
                     self.work = y.duplicate()
                 ts.interpolate(sample, self.work)
                 state = self.work.getArray(readonly=True)
-            self.record(sample, state[:r].copy(), state[r:].copy())
+            self.record(sample, *problem.coordinates(sample, state))
         if steps.new_step():
-            q, p = a[:r], a[r:]
-            model = self.problem.model
-            model.constraints.commit(*model.constraint_state(t, q, p))
+            q, p = problem.coordinates(t, a, copy=False)
+            problem.commit(t, q, p)
             if self.recorder is not None:
                 self.recorder.on_step(t, q, p)
             if self.on_step is not None:

@@ -532,6 +532,15 @@ class StateSpaceProblem:
         m = self.model
         return applied(self.force_shape, m.force.value(t)) - self.base_load * m.support.acceleration(t)
 
+    def coordinates(self, t, state, copy: bool = True):
+        """(eta, eta') of a state vector's array (rom_integrator._Monitor): eta' from the equation."""
+        q = state.copy()
+        return q, self.rate(t, q)
+
+    def commit(self, t, q, p) -> None:
+        """The laws' state after an accepted step."""
+        self.model.constraints.commit(*self.model.constraint_state(t, q))
+
     def rate(self, t, q) -> np.ndarray:
         out = -self.Bs @ q + self.forcing(t)
         if self.model.B.shape[0]:
@@ -573,51 +582,12 @@ class StateSpaceProblem:
             out += self.contact(t, y.getArray(readonly=True))
 
 
-class _StateMonitor:
-    """Samples (dense output or steps landing on them) with q = eta, p = eta'; the per-step hook."""
-
-    def __init__(self, problem: StateSpaceProblem, steps, record, on_step, dense: bool, recorder=None):
-        self.problem, self.steps, self.record, self.on_step, self.dense = problem, steps, record, on_step, dense
-        self.recorder = recorder
-        self.work = None
-
-    def __call__(self, ts, step, t, y):
-        steps, problem = self.steps, self.problem
-        if steps.failure:
-            return
-        a = y.getArray(readonly=True)
-        if not steps.check_finite(ts, step, t, float(np.sum(np.abs(a))),
-                                  "reduce [integrator] dt or rtol, or set contact = \"implicit\""):
-            return
-        for _, sample, exact in steps.samples_due(t):
-            state = a
-            if not exact and self.dense:
-                if self.work is None:
-                    self.work = y.duplicate()
-                ts.interpolate(sample, self.work)
-                state = self.work.getArray(readonly=True)
-            q = state.copy()
-            self.record(sample, q, problem.rate(sample, q))   # reduced/qdot: eta' from the equation
-        if steps.new_step():
-            q = a.copy()
-            p = problem.rate(t, q)
-            model = problem.model
-            model.constraints.commit(*model.constraint_state(t, q))
-            if self.recorder is not None:
-                self.recorder.on_step(t, q, p)
-            if self.on_step is not None:
-                stop = self.on_step(ts, t, q, p)
-                if stop:
-                    steps.stop(ts, t, stop)
-        steps.report(step, t)
-
-
 def integrate_state_space(model: StateSpaceModel, settings, record=None, on_step=None, say=None,
                           resume: dict | None = None, *, recorder=None, due=None) -> dict:
     """rom_integrator.integrate_reduced for a StateSpaceModel (same arguments, same statistics): PETSc
     TS ARKIMEX on y = eta with the Python callbacks (callbacks = "c" is refused: the C core integrates
     the second-order form). Runs on COMM_SELF."""
-    from .rom_integrator import PREFIX, WHAT
+    from .rom_integrator import PREFIX, WHAT, _Monitor
     from .timestepping import ADAPT_DEFAULTS, NO_DENSE_OUTPUT, StepMonitor, check_outcome, configure, solve
 
     if (record is None) == (recorder is None):
@@ -655,7 +625,7 @@ def integrate_state_space(model: StateSpaceModel, settings, record=None, on_step
         if not dense:
             ts.setTimeSpan(np.concatenate([[resume["t"]], times[first:]]) if resume else times)
         steps = StepMonitor(times, first, resumed=bool(resume), say=say)
-        monitor = _StateMonitor(problem, steps, record, on_step, dense, recorder)
+        monitor = _Monitor(problem, steps, record, on_step, dense, recorder)
         ts.setMonitor(monitor)
         # the second-order integrator's defaults (rom_integrator.py says why)
         defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic"}
