@@ -19,6 +19,10 @@ reference modes, the wall time of
     DBF factor    DbfEnrichment(solver="factor").columns: three factorizations per constraint
                   (dbf.py), the paper-faithful comparator
 all measured in the same process, after a warm-up on a small beam; each the fastest of --repeat.
+"peak" is the largest resident set (VmHWM, reset before each measurement through
+/proc/self/clear_refs) of any rank while the limit (block) or the ritz path ran: what the process
+held then, the structure and its modes included. The single-solve MUMPS limit is timed only up to
+--single-max constraints (on the solid a single solve takes ~0.3 s).
 With --structure solid the structure is the 3-D hexahedral bar of scripts/solid3d.py (104 040 DOFs,
 20 reference modes; its matrices are generated into --solid when missing) with N_L stops on the z
 DOFs of its top face, spread evenly; the factored path runs there only up to --factor-max.
@@ -90,6 +94,27 @@ def limit(ops, rows, solver_type: str, block: bool = False) -> float:
     return elapsed
 
 
+def reset_peak() -> None:
+    """Start a new peak resident set for this process (Linux >= 4.0; elsewhere the peak since start)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+
+
+def peak_mb() -> float:
+    """This process's peak resident set since the last reset_peak, in MB (VmHWM; 0 if unknown)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
 def worker(args) -> None:
     """Run the measurements on this process's COMM_WORLD; one JSON line per N_L on rank 0."""
     import numpy as np
@@ -114,6 +139,12 @@ def worker(args) -> None:
             out.destroy()
         return comm.tompi4py().allreduce(best, op=MPI.MAX)
 
+    def peak(fn):
+        """(fn(), the largest peak resident set of any rank while it ran, MB)."""
+        reset_peak()
+        out = fn()
+        return out, comm.tompi4py().allreduce(peak_mb(), op=MPI.MAX)
+
     def structure(elements: int, n_l: int, solid: bool):
         """(ops, constraint rows, reference modes) of the beam or the solid."""
         if solid:
@@ -133,9 +164,11 @@ def worker(args) -> None:
 
     def run(elements: int, n_l: int, paths, solid: bool = False) -> dict:
         ops, rows, modes = structure(elements, n_l, solid)
+        limit_block, peak_limit = peak(lambda: min(limit(ops, rows, "mumps", block=True) for _ in range(args.repeat)))
         record = dict(n_l=n_l, dofs=ops.size, ranks=comm.getSize(),
-                      limit=min(limit(ops, rows, "mumps") for _ in range(args.repeat)),
-                      limit_block=min(limit(ops, rows, "mumps", block=True) for _ in range(args.repeat)),
+                      limit=min(limit(ops, rows, "mumps") for _ in range(args.repeat))
+                      if n_l <= args.single_max else None,
+                      limit_block=limit_block, peak_limit=peak_limit,
                       # PETSc's own Cholesky only where the package uses it (a banded matrix on one rank;
                       # on the 3-D solid it did not finish in minutes)
                       limit_petsc=min(limit(ops, rows, "petsc") for _ in range(args.repeat))
@@ -143,7 +176,8 @@ def worker(args) -> None:
                       static=timed(lambda: static_modes(ops, rows)))
         for path in paths:
             solves, fallbacks = dbf_shared.counters["solves"], dbf_ritz.counters["fallbacks"]
-            record[path] = timed(lambda: DbfEnrichment(solver=path).columns(ops, rows, modes).matrix)
+            record[path], record[f"peak_{path}"] = peak(
+                lambda: timed(lambda: DbfEnrichment(solver=path).columns(ops, rows, modes).matrix))
             if path in ("shared", "ritz"):   # solves per DBF, the ritz path's per-group ones included
                 record[f"solves_{path}"] = (dbf_shared.counters["solves"] - solves) / (args.repeat * max(n_l, 1))
             if path == "ritz":
@@ -171,7 +205,7 @@ def launch(args, ranks: int) -> list[dict]:
     """Start this script as a worker on `ranks` ranks and collect its JSON lines."""
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--elements", str(args.elements),
            "--constraints", args.constraints, "--repeat", str(args.repeat), "--factor-max", str(args.factor_max),
-           "--shared-max", str(args.shared_max), "--structure", args.structure, "--solid", args.solid]
+           "--shared-max", str(args.shared_max), "--single-max", str(args.single_max), "--structure", args.structure, "--solid", args.solid]
     if ranks > 1:  # -m mpi4py: an exception on one rank aborts both instead of hanging the other
         cmd = ["mpirun", "-n", str(ranks), sys.executable, "-m", "mpi4py"] + cmd[1:]
     print(f"running: {' '.join(cmd)}", file=sys.stderr, flush=True)
@@ -189,19 +223,20 @@ def table(records: list[dict]) -> str:
 
     lines = ["| N_L | DOFs | ranks | limit (s) | limit, block (s) | limit, PETSc (s) | static (s) | DBF ritz (s) "
              "| DBF shared (s) | DBF factor (s) | solves per DBF: ritz, shared | ritz fallbacks | ritz / limit "
-             "| ritz / limit block | ritz / limit PETSc | shared / limit | shared / limit PETSc | factor / limit |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| ritz / limit block | ritz / limit PETSc | shared / limit | shared / limit PETSc | factor / limit "
+             "| peak per rank (MB): limit block, ritz |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in sorted(records, key=lambda r: (r["n_l"], r["ranks"])):
         f, shared = r.get("factor"), r.get("shared")
         solves_shared = "-" if shared is None else f"{r['solves_shared']:.0f}"
-        lines.append(f"| {r['n_l']} | {r['dofs']} | {r['ranks']} | {s(r['limit'])} | {s(r.get('limit_block'))} "
+        lines.append(f"| {r['n_l']} | {r['dofs']} | {r['ranks']} | {s(r.get('limit'))} | {s(r.get('limit_block'))} "
                      f"| {s(r['limit_petsc'])} "
                      f"| {s(r['static'])} | {s(r['ritz'])} | {s(shared)} | {s(f)} "
                      f"| {r['solves_ritz']:.1f}, {solves_shared} | {r['fallbacks']:.0f} "
-                     f"| {ratio(r['ritz'], r['limit'])} | {ratio(r['ritz'], r.get('limit_block'))} "
+                     f"| {ratio(r['ritz'], r.get('limit'))} | {ratio(r['ritz'], r.get('limit_block'))} "
                      f"| {ratio(r['ritz'], r['limit_petsc'])} "
-                     f"| {ratio(shared, r['limit'])} | {ratio(shared, r['limit_petsc'])} "
-                     f"| {ratio(f, r['limit'])} |")
+                     f"| {ratio(shared, r.get('limit'))} | {ratio(shared, r['limit_petsc'])} "
+                     f"| {ratio(f, r.get('limit'))} | {r['peak_limit']:.0f}, {r['peak_ritz']:.0f} |")
     return "\n".join(lines)
 
 
@@ -209,12 +244,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--elements", type=int, default=None,
                         help="beam elements (free DOFs ~ 2 x elements; default 5000, --quick 200)")
-    parser.add_argument("--constraints", default=None, help="comma-separated N_L (default 1,10,100)")
+    parser.add_argument("--constraints", default=None, help="comma-separated N_L (default 1,10,100,1000)")
     parser.add_argument("--ranks", default="1", help="comma-separated rank counts (default 1)")
     parser.add_argument("--repeat", type=int, default=1, help="measurements per configuration; the fastest is kept")
     parser.add_argument("--factor-max", type=int, default=100,
                         help="time the factored DBF path only up to this N_L (it costs ~0.4 s per constraint)")
     parser.add_argument("--shared-max", type=int, default=100, help="time the shared DBF path only up to this N_L")
+    parser.add_argument("--single-max", type=int, default=100,
+                        help="time the single-solve MUMPS limit only up to this N_L (the block limit always)")
     parser.add_argument("--structure", choices=("beam", "solid"), default="beam")
     parser.add_argument("--solid", default="/tmp/dbf_hpc_solid3d", help="the solid's matrices (generated if missing)")
     parser.add_argument("--quick", action="store_true", help="small sizes for a smoke run")
@@ -222,7 +259,7 @@ def main() -> None:
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     args.elements = args.elements or (200 if args.quick else 5000)
-    args.constraints = args.constraints or ("1,10" if args.quick else "1,10,100")
+    args.constraints = args.constraints or ("1,10" if args.quick else "1,10,100,1000")
     if args.worker:
         worker(args)
         return
