@@ -44,11 +44,11 @@ def c_extensions():
     from setuptools import Extension
     library = "petsc_real" if os.path.exists(os.path.join(lib, "libpetsc_real.so")) else "petsc"
     here = "dbf_hpc/_romc"
-    ext = Extension("dbf_hpc._romc.core", [f"{here}/core.pyx", f"{here}/rom_core.c"],
+    ext = Extension("dbf_hpc._romc.core", [f"{here}/core.pyx", f"{here}/rom_core.c", f"{here}/ritz_kernels.c"],
                     include_dirs=[here, petsc4py.get_include(), numpy.get_include()] + include,
                     library_dirs=[lib], runtime_library_dirs=[lib], libraries=[library],
-                    depends=[f"{here}/rom_core.h"],
-                    extra_compile_args=["-O3", "-Wno-unused-function", "-Werror=implicit-function-declaration"])
+                    depends=[f"{here}/rom_core.h", f"{here}/ritz_kernels.h"],
+                    extra_compile_args=["-O3", "-fopenmp-simd", "-Wno-unused-function", "-Werror=implicit-function-declaration"])
     return cythonize([ext], language_level=3, quiet=True)
 
 

@@ -57,6 +57,7 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
+from . import _romc
 from .dbf import DERIVATIVE_BACKWARD_TOL, EIGEN_TOL
 from .dbf_shared import SharedFactor, SharedSolver
 from .modes import normalize
@@ -74,6 +75,10 @@ BREAKDOWN = 1e-10          # a Krylov vector this small after orthogonalization:
 PREFETCH = 4               # vectors per constraint made in blocks (at most P_MAX)
 PREFETCH_BLOCK = 64        # constraints per block (memory: ~2 P_MAX + 6 local rows of each)
 BLOCK_SOURCES = True       # the analytic DBFs of a block at once (RitzSpace.sources); False: one at a time
+
+# The column kernels of the blocks (dbf_hpc/_romc/ritz_kernels.c) when the C extension is built; numpy
+# otherwise (tests switch between them)
+_kernels = _romc.core
 
 # Work done by this process on the Ritz path (tests and benchmarks read it): constraints served (of
 # them by RitzSpace.sources: "in blocks"), Krylov vectors made, stages handed to the shared path.
@@ -231,16 +236,11 @@ class RitzSpace:
             at[local] = a[rows[act][local] - lo, local]
             if p == 0:
                 gz_step = _sum(comm, at)            # g^T A^-1 g
-            previous = [(_columns(step, act, 1), _columns(step, act, 2)) for step in steps]
+            columns = _StepColumns(steps, act)
             coefficients = np.zeros((n + p, La))
             for _ in range(2):                 # classical Gram-Schmidt, twice, in the M inner product
-                c = np.empty((n + p, La))
-                c[:n] = self.MPhi_local @ a
-                for j, (_, Mv) in enumerate(previous):
-                    c[n + j] = np.einsum("ij,ij->j", Mv, a)
-                c = _sum(comm, c)
-                # in place, the Krylov part column by column (each constraint its own vectors)
-                _subtract(a, self.Phi_local, c[:n], [v for v, _ in previous], c[n:])
+                c = _sum(comm, columns.dots(self.MPhi_local, a))
+                columns.subtract(self.Phi_local, c, a)   # in place, each constraint its own vectors
                 coefficients += c
             b = _mult_block(M, a)
             at = np.zeros(La)                  # (a new array: _sum on one rank returns its argument)
@@ -287,24 +287,10 @@ class RitzSpace:
         kd, lamd = k[done], lam[done]
         gphi = np.einsum("ij,ij->i", H[done], Y[done])           # g^T phi
         gd = np.einsum("ij,ij->i", H[done], DY[done])            # g^T d
-        here = np.flatnonzero(mine[done])
-        at_rows = rows[done][here] - lo
-        R = KXD[:, :nd]                                           # (K + k g g^T - lambda M) phi
-        R -= lamd * MX
-        R[at_rows, here] += kd[here] * gphi[here]
-        # the derivative equation's residual: (K + k g g^T - lambda M) d - rhs,
-        # rhs = (g^T phi)^2 M phi - (g^T phi) g
-        rhs = gphi**2 * MX
-        rhs[at_rows, here] -= gphi[here]
-        RD = KXD[:, nd:]
-        RD -= lamd * MD
-        RD -= rhs
-        RD[at_rows, here] += kd[here] * gd[here]
         ramp = 1.0 + (np.arange(lo, hi) + 0.5) / M.getSize()[0]
-        sums = _sum(comm, np.vstack([np.einsum("ij,ij->j", R, R), np.einsum("ij,ij->j", X, X),
-                                     np.einsum("ij,ij->j", X, MX), ramp @ X, np.einsum("ij,ij->j", RD, RD),
-                                     np.einsum("ij,ij->j", D, D), np.einsum("ij,ij->j", rhs, rhs)]))
-        r2, x2, mass, ramp_x, rd2, d2, rhs2 = sums
+        grow = np.where(mine[done], rows[done] - lo, -1)
+        r2, x2, mass, ramp_x, rd2, d2, rhs2 = _sum(comm, _check_sums(X, D, MX, MD, KXD[:, :nd], KXD[:, nd:], lamd,
+                                                                      kd, gphi, gd, grow, ramp))
         bound = self.K_norm + np.abs(kd) + np.abs(lamd) * self.M_norm
         residual = np.sqrt(r2) / (bound * np.sqrt(x2))
         backward = np.sqrt(rd2) / (bound * np.sqrt(d2) + np.sqrt(rhs2))
@@ -368,6 +354,10 @@ class RitzSpace:
         (which = 1), or M V_j y_i (which = 2): local rows, n_local x m. The modes' part as one
         product, the Krylov vectors column by column (each its own)."""
         base = self.Phi_local if which == 1 else self.MPhi_local
+        if _kernels is not None:
+            pos = np.array([_positions(step[0], owners) for step in steps], dtype=np.int_).reshape(len(steps), owners.size)
+            return _kernels.ritz_columns_combine(base, [step[which] for step in steps], pos,
+                                                 np.ascontiguousarray(coefficients[:, :n + len(steps)]))
         columns = coefficients[:, :n] @ base       # m x n_local, row-major: out (column-major) is its transpose
         out = columns.T
         for p, step in enumerate(steps):
@@ -401,6 +391,64 @@ def _columns(step, wanted: np.ndarray, which: int) -> np.ndarray:
     if have.size == wanted.size:
         return block
     return np.asfortranarray(block[:, np.searchsorted(have, wanted)])
+
+
+def _positions(have: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """The position of each of `wanted` in the ascending `have`, -1 where absent."""
+    position = np.minimum(np.searchsorted(have, wanted), max(have.size - 1, 0))
+    return np.where(have[position] == wanted, position, -1) if have.size else np.full(wanted.size, -1)
+
+
+class _StepColumns:
+    """The earlier Krylov steps' vectors of the constraints `act` (RitzSpace.sources: each constraint
+    its own), for one step's classical Gram-Schmidt: local dot products and the subtraction, column by
+    column in C (dbf_hpc/_romc/ritz_kernels.c, a column and its vectors in cache) or, without the
+    extension, with numpy (the same arithmetic up to the order of the sums)."""
+
+    def __init__(self, steps: list, act: np.ndarray):
+        self.steps, self.act = steps, act
+        if _kernels is not None:
+            self.pos = np.array([np.searchsorted(step[0], act) for step in steps], dtype=np.int_).reshape(len(steps), act.size)
+        else:
+            self.previous = [(_columns(step, act, 1), _columns(step, act, 2)) for step in steps]
+
+    def dots(self, MPhi: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """The local M-inner products of a's columns with the modes and their own earlier vectors."""
+        if _kernels is not None:
+            return _kernels.ritz_columns_dots(MPhi, [step[2] for step in self.steps], self.pos, a)
+        c = np.empty((MPhi.shape[0] + len(self.previous), a.shape[1]))
+        c[:MPhi.shape[0]] = MPhi @ a
+        for j, (_, Mv) in enumerate(self.previous):
+            c[MPhi.shape[0] + j] = np.einsum("ij,ij->j", Mv, a)
+        return c
+
+    def subtract(self, Phi: np.ndarray, c: np.ndarray, a: np.ndarray) -> None:
+        """a -= [Phi^T, own vectors] c in place."""
+        if _kernels is not None:
+            _kernels.ritz_columns_subtract(Phi, [step[1] for step in self.steps], self.pos, c, a)
+        else:
+            _subtract(a, Phi, c[:Phi.shape[0]], [v for v, _ in self.previous], c[Phi.shape[0]:])
+
+
+def _check_sums(X, D, MX, MD, KX, KD, lam, k, gphi, gd, grow, ramp) -> np.ndarray:
+    """The local sums of RitzSpace.sources' checks, 7 x columns: |r|^2, |phi|^2, phi^T M phi,
+    ramp^T phi, |r_d|^2, |d|^2, |rhs|^2 with r = (K + k g g^T - lambda M) phi the eigen-residual and
+    r_d = (K + k g g^T - lambda M) d - rhs, rhs = (g^T phi)^2 M phi - (g^T phi) g, the derivative
+    equation's residual; grow: each constraint's local row of g, -1 when on another rank. In C when
+    built (no temporaries), else numpy."""
+    if _kernels is not None:
+        return _kernels.ritz_columns_check_sums(X, D, MX, MD, KX, KD, lam, k, gphi, gd, grow, ramp)
+    here = np.flatnonzero(grow >= 0)
+    at_rows = grow[here]
+    R = KX - lam * MX
+    R[at_rows, here] += k[here] * gphi[here]
+    rhs = gphi**2 * MX
+    rhs[at_rows, here] -= gphi[here]
+    RD = KD - lam * MD - rhs
+    RD[at_rows, here] += k[here] * gd[here]
+    return np.vstack([np.einsum("ij,ij->j", R, R), np.einsum("ij,ij->j", X, X), np.einsum("ij,ij->j", X, MX),
+                      ramp @ X, np.einsum("ij,ij->j", RD, RD), np.einsum("ij,ij->j", D, D),
+                      np.einsum("ij,ij->j", rhs, rhs)])
 
 
 def _subtract(a: np.ndarray, Phi: np.ndarray, c: np.ndarray, vectors: list, d: np.ndarray) -> None:
@@ -442,12 +490,14 @@ def _mult_block(A: PETSc.Mat, a: np.ndarray) -> np.ndarray:
     if not L:
         return np.zeros_like(a)
     a = np.asfortranarray(a, dtype=float)
+    out = np.empty((A.getLocalSize()[0], L), order="F")
     B = PETSc.Mat().createDense(((n_local, A.getSize()[1]), (PETSc.DECIDE, L)), array=a, comm=A.getComm())
-    C = None
+    C = PETSc.Mat().createDense(((out.shape[0], A.getSize()[0]), (PETSc.DECIDE, L)), array=out, comm=A.getComm())
     try:
         B.assemble()
-        C = A.matMult(B)
-        return np.array(C.getDenseArray(), order="F")
+        C.assemble()
+        A.matMult(B, C)     # into out: a dense product reuses the given matrix (no copy out)
+        return out
     finally:
         destroy(B, C)
 

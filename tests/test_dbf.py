@@ -497,3 +497,69 @@ def test_a_ritz_pair_that_fails_the_check_on_the_full_operators_is_solved_on_the
     made = {key: dbf_ritz.counters[key] - before[key] for key in before}
     assert made["in blocks"] == 0 and made["fallbacks"] == len(rows), made
     assert_same_dbfs(ops, ritz, factor)
+
+
+ritz_kernels = pytest.mark.skipif(dbf_ritz._kernels is None, reason="the C extension is not built")
+
+
+@ritz_kernels
+def test_ritz_column_kernels_equal_their_numpy_arithmetic():
+    # Gram-Schmidt dots and subtraction, the combination V y and the checks' sums of
+    # dbf_hpc/_romc/ritz_kernels.c against numpy on random blocks: each column its own earlier vectors
+    # (a subset of the constraints still active), a constraint whose g lies on another rank (-1), and
+    # a constraint row where the spring term cancels most of K phi (the sums must not subtract there).
+    k_ = dbf_ritz._kernels
+    rng = np.random.default_rng(5)
+    nloc, n = 57, 5
+    Phi = rng.standard_normal((n, nloc))
+    have = [np.array([0, 1, 2, 3, 4]), np.array([0, 2, 3, 4]), np.array([2, 4])]
+    V = [np.asfortranarray(rng.standard_normal((nloc, h.size))) for h in have]
+    act = np.array([2, 4])
+    pos = np.array([np.searchsorted(h, act) for h in have])
+    a = np.asfortranarray(rng.standard_normal((nloc, act.size)))
+    c = k_.ritz_columns_dots(Phi, V, pos, a)
+    expected = np.vstack([Phi @ a] + [np.einsum("ij,ij->j", v[:, p], a) for v, p in zip(V, pos)])
+    assert np.allclose(c, expected, rtol=1e-13, atol=1e-13)
+    b = a.copy(order="F")
+    k_.ritz_columns_subtract(Phi, V, pos, c, b)
+    assert np.allclose(b, a - Phi.T @ c[:n] - sum(v[:, p] * ck for v, p, ck in zip(V, pos, c[n:])), atol=1e-12)
+    owners = np.array([4, 0, 2])
+    y = rng.standard_normal((owners.size, n + len(V) + 2))
+    where = np.array([dbf_ritz._positions(h, owners) for h in have])
+    out = k_.ritz_columns_combine(Phi, V, where, y)
+    for j, o in enumerate(owners):
+        ref = Phi.T @ y[j, :n] + sum(v[:, p[j]] * y[j, n + i] for i, (v, p) in enumerate(zip(V, where)) if p[j] >= 0)
+        assert np.allclose(out[:, j], ref, atol=1e-12)
+    assert np.all(where[2] == [1, -1, 0])
+    X, D, MX, MD = (np.asfortranarray(rng.standard_normal((nloc, 3))) for _ in range(4))
+    KX, KD = np.asfortranarray(rng.standard_normal((nloc, 3))), np.asfortranarray(rng.standard_normal((nloc, 3)))
+    lam, k, gphi, gd = rng.random(3) + 1, rng.random(3) * 1e6, rng.random(3), rng.random(3)
+    grow = np.array([3, -1, 10])
+    KX[10, 2] = lam[2] * MX[10, 2] - k[2] * gphi[2] + 1e-9      # nearly cancelled by the spring
+    ramp = 1.0 + np.arange(nloc) / nloc
+    with_c = k_.ritz_columns_check_sums(X, D, MX, MD, KX, KD, lam, k, gphi, gd, grow, ramp)
+    monkey = dbf_ritz._kernels
+    try:
+        dbf_ritz._kernels = None
+        with_numpy = dbf_ritz._check_sums(X, D, MX, MD, KX, KD, lam, k, gphi, gd, grow, ramp)
+    finally:
+        dbf_ritz._kernels = monkey
+    assert np.allclose(with_c, with_numpy, rtol=1e-12, atol=0)
+
+
+@ritz_kernels
+@pytest.mark.parametrize("groups", [0, 1])
+def test_ritz_dbfs_in_blocks_are_the_same_with_the_c_kernels_and_numpy(paper, monkeypatch, groups):
+    # The column kernels change only the order of the sums: the same branches, stiffnesses and DBFs.
+    ops, modes, _ = paper
+    rows = np.array([ops.mesh.w_row(x) for x in (0.1, ELL, 0.5, 0.8, 0.9)])
+    monkeypatch.setattr(enrichment, "PREFETCH_BLOCK", 3)
+    with_c = DbfEnrichment(groups=groups, solver="ritz").columns(ops, rows, modes)
+    monkeypatch.setattr(dbf_ritz, "_kernels", None)
+    with_numpy = DbfEnrichment(groups=groups, solver="ritz").columns(ops, rows, modes)
+    assert np.all(with_c.branch == with_numpy.branch)
+    assert np.allclose(with_c.k, with_numpy.k, rtol=1e-12, atol=0)
+    a, b = normalized_columns(ops, with_c), normalized_columns(ops, with_numpy)
+    assert np.max(np.abs(a - b)) < 1e-12 * np.max(np.abs(b)), np.max(np.abs(a - b)) / np.max(np.abs(b))
+    for c in (with_c, with_numpy):
+        c.matrix.destroy()

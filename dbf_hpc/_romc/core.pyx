@@ -584,3 +584,135 @@ cdef class Problem:
             VecRestoreArrayRead(u, &a)
         return 0
 
+
+
+# --- the Rayleigh-Ritz DBF path's column kernels (ritz_kernels.c; dbf_ritz.RitzSpace.sources) ---
+
+cdef extern from "ritz_kernels.h":
+    void ritz_dots(long nloc, long ncol, long n, const double *Phi, long p, const double **V, const long *pos,
+                   const double *a, double *c) nogil
+    void ritz_subtract(long nloc, long ncol, long n, const double *Phi, long p, const double **V,
+                       const long *pos, const double *c, double *a) nogil
+    void ritz_combine(long nloc, long ncol, long n, const double *Phi, long p, const double **V,
+                      const long *pos, const double *y, long width, double *out) nogil
+    void ritz_check_sums(long nloc, long ncol, const double *X, const double *D, const double *MX,
+                         const double *MD, const double *KX, const double *KD, const double *lam,
+                         const double *k, const double *gx, const double *gd, const long *grow,
+                         const double *ramp, double *sums) nogil
+
+from libc.stdlib cimport malloc, free
+
+
+cdef class _Columns:
+    """The modes (n x n_local, row-major), the Krylov steps' blocks (n_local x columns, column-major)
+    as C pointers, and pos (steps x ncol): column j's position in each step's block (-1: none)."""
+    cdef const double **blocks
+    cdef const double *phi
+    cdef const long *pos
+    cdef long n, nloc, p, ncol
+    cdef list keep
+
+    def __cinit__(self, Phi, list blocks, pos, long nloc, long ncol):
+        Phi = np.ascontiguousarray(Phi, dtype=np.float64)
+        pos = np.ascontiguousarray(pos, dtype=np.int_).reshape(len(blocks), ncol)
+        self.keep = [Phi, pos]
+        self.n, self.nloc, self.p, self.ncol = Phi.shape[0], nloc, len(blocks), ncol
+        if Phi.shape[1] != nloc:
+            raise ValueError("the modes' local rows differ from the columns'")
+        self.blocks = <const double **> malloc((self.p + 1) * sizeof(double *))
+        cdef double[:, ::1] phi = Phi
+        cdef long[:, ::1] ps = pos
+        self.phi = &phi[0, 0] if Phi.size else NULL
+        self.pos = &ps[0, 0] if pos.size else NULL
+        cdef double[::1, :] b
+        for i, block in enumerate(blocks):
+            if not block.flags.f_contiguous or block.dtype != np.float64 or block.shape[0] != nloc:
+                raise ValueError("a Krylov block is not n_local x columns, column-major, float64")
+            b = block
+            self.keep.append(block)
+            self.blocks[i] = &b[0, 0] if block.size else NULL
+
+    def __dealloc__(self):
+        free(self.blocks)
+
+
+cdef double *_fortran(a, long nloc, long ncol) except NULL:
+    if a.shape != (nloc, ncol) or not a.flags.f_contiguous or a.dtype != np.float64:
+        raise ValueError("expected an n_local x columns column-major float64 block")
+    cdef double[::1, :] v = a
+    return &v[0, 0]
+
+
+def ritz_columns_dots(Phi, list blocks, pos, a):
+    """c = [Phi a_j; V_k(j) . a_j] per column j of a (ritz_kernels.h: ritz_dots); local sums."""
+    cdef long nloc = a.shape[0], ncol = a.shape[1]
+    cdef _Columns cols = _Columns(Phi, blocks, pos, nloc, ncol)
+    c = np.zeros((cols.n + cols.p, ncol))
+    if nloc == 0 or ncol == 0:
+        return c
+    cdef double[:, ::1] cv = c
+    cdef double *ap = _fortran(a, nloc, ncol)
+    with nogil:
+        ritz_dots(nloc, ncol, cols.n, cols.phi, cols.p, cols.blocks, cols.pos, ap, &cv[0, 0])
+    return c
+
+
+def ritz_columns_subtract(Phi, list blocks, pos, c, a):
+    """a_j -= Phi^T c[:n, j] + sum_k V_k(j) c[n + k, j] in place (ritz_kernels.h: ritz_subtract)."""
+    cdef long nloc = a.shape[0], ncol = a.shape[1]
+    cdef _Columns cols = _Columns(Phi, blocks, pos, nloc, ncol)
+    if nloc == 0 or ncol == 0:
+        return
+    c = np.ascontiguousarray(c, dtype=np.float64)
+    if c.shape != (cols.n + cols.p, ncol):
+        raise ValueError("the coefficients are not (modes + steps) x columns")
+    cdef double[:, ::1] cv = c
+    cdef double *ap = _fortran(a, nloc, ncol)
+    with nogil:
+        ritz_subtract(nloc, ncol, cols.n, cols.phi, cols.p, cols.blocks, cols.pos, &cv[0, 0], ap)
+
+
+def ritz_columns_combine(Phi, list blocks, pos, y):
+    """out_j = Phi^T y[j, :n] + sum_k V_k(j) y[j, n + k]: n_local x rows(y), column-major
+    (ritz_kernels.h: ritz_combine)."""
+    cdef long nloc = Phi.shape[1], ncol = y.shape[0]
+    cdef _Columns cols = _Columns(Phi, blocks, pos, nloc, ncol)
+    out = np.zeros((nloc, ncol), order="F")
+    if nloc == 0 or ncol == 0:
+        return out
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    if y.shape[1] < cols.n + cols.p:
+        raise ValueError("y has fewer columns than modes + steps")
+    cdef double[:, ::1] yv = y
+    cdef double *op = _fortran(out, nloc, ncol)
+    with nogil:
+        ritz_combine(nloc, ncol, cols.n, cols.phi, cols.p, cols.blocks, cols.pos, &yv[0, 0], yv.shape[1], op)
+    return out
+
+
+def ritz_columns_check_sums(X, D, MX, MD, KX, KD, lam, k, gx, gd, grow, ramp):
+    """The 7 x columns local sums of RitzSpace.sources' checks (ritz_kernels.h: ritz_check_sums)."""
+    cdef long nloc = X.shape[0], ncol = X.shape[1]
+    sums = np.zeros((7, ncol))
+    if nloc == 0 or ncol == 0:
+        return sums
+    cdef double *xp = _fortran(X, nloc, ncol)
+    cdef double *dp = _fortran(D, nloc, ncol)
+    cdef double *mxp = _fortran(MX, nloc, ncol)
+    cdef double *mdp = _fortran(MD, nloc, ncol)
+    cdef double *kxp = _fortran(KX, nloc, ncol)
+    cdef double *kdp = _fortran(KD, nloc, ncol)
+    cdef double[::1] lv = np.ascontiguousarray(lam, dtype=np.float64)
+    cdef double[::1] kv = np.ascontiguousarray(k, dtype=np.float64)
+    cdef double[::1] gxv = np.ascontiguousarray(gx, dtype=np.float64)
+    cdef double[::1] gdv = np.ascontiguousarray(gd, dtype=np.float64)
+    cdef long[::1] gr = np.ascontiguousarray(grow, dtype=np.int_)
+    cdef double[::1] rp = np.ascontiguousarray(ramp, dtype=np.float64)
+    if lv.shape[0] != ncol or kv.shape[0] != ncol or gxv.shape[0] != ncol or gdv.shape[0] != ncol \
+            or gr.shape[0] != ncol or rp.shape[0] != nloc:
+        raise ValueError("lam, k, gx, gd, grow need one entry per column, ramp one per local row")
+    cdef double[:, ::1] sv = sums
+    with nogil:
+        ritz_check_sums(nloc, ncol, xp, dp, mxp, mdp, kxp, kdp, &lv[0], &kv[0], &gxv[0], &gdv[0], &gr[0],
+                        &rp[0], &sv[0, 0])
+    return sums
