@@ -205,7 +205,8 @@ def launch(args, ranks: int) -> list[dict]:
     """Start this script as a worker on `ranks` ranks and collect its JSON lines."""
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--elements", str(args.elements),
            "--constraints", args.constraints, "--repeat", str(args.repeat), "--factor-max", str(args.factor_max),
-           "--shared-max", str(args.shared_max), "--single-max", str(args.single_max), "--structure", args.structure, "--solid", args.solid]
+           "--shared-max", str(args.shared_max), "--single-max", str(args.single_max), "--structure", args.structure,
+           "--solid", args.solid]
     if ranks > 1:  # -m mpi4py: an exception on one rank aborts both instead of hanging the other
         cmd = ["mpirun", "-n", str(ranks), sys.executable, "-m", "mpi4py"] + cmd[1:]
     print(f"running: {' '.join(cmd)}", file=sys.stderr, flush=True)

@@ -920,3 +920,94 @@ def test_gyroscopic_dbfs_solved_by_constraint_groups_are_those_solved_on_all_ran
     assert_all(together.shape == apart.shape and np.allclose(k1, k2, rtol=1e-8) and np.allclose(hat1, hat2,
                                                                                                  rtol=1e-8))
     assert_all(np.abs(together - apart).max() < 1e-8 * np.abs(together).max())
+
+
+PIPE_2D = """
+[structure]
+kind = "beam"
+length = 1.5
+elements = 60
+E = 2e11
+I = 9.6268e-9
+A = 1.44513e-4
+rho = 10247.0
+left = "pinned"
+right = "pinned"
+transported_mass = 0.34636
+axial_speed = 78.0
+planes = 2
+
+[excitation]
+kind = "turbulence"
+psd = 50.0
+band = [0.0, 100.0]
+correlation_length = 0.1
+span = [0.2, 1.3]
+components = 32
+seed = 3
+
+[[constraint]]
+x = 0.5
+law = "circular"
+clearance = 2e-4
+k = 1e6
+mu = 0.3
+
+[[constraint]]
+x = 1.0
+law = "circular"
+clearance = 2e-4
+k = 1e6
+mu = 0.3
+
+[damping]
+rayleigh_alpha = 2.0
+
+[basis]
+modes = 8
+estimate = false
+
+[integrator]
+t_end = 0.01
+
+[output]
+file = "pipe2d.h5"
+probes = [0.75]
+"""
+
+
+def test_state_space_form_with_two_direction_friction_supports_under_turbulence_follows_the_full_order(
+        shared_tmp_path):
+    # The pipe conveying fluid at half its divergence speed in two planes, on two round holes with
+    # friction, driven by the turbulence load: the state-space form (Python callbacks) and the
+    # second-order form (C callbacks) against the full-order reference over the first 10 ms, in
+    # which both holes are hit (first contact at 3.5 ms). Measured: 1.8 % and 0.6 % of the largest
+    # probe displacement; a 2-D law applied in the wrong plane or with the wrong sign is O(1).
+    import h5py
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    scene_file = shared_tmp_path / "pipe2d.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        scene_file.write_text(PIPE_2D)
+    MPI.COMM_WORLD.Barrier()
+    outputs = {}
+    for name, sets, method in (("full", [], "full"), ("second_order", [], "rom"),
+                               ("state_space", ["basis.gyroscopic_form=state_space"], "rom")):
+        outputs[name] = str(shared_tmp_path / f"{name}.h5")
+        run(load_scene(str(scene_file), sets), outputs[name], progress=False, method=method)
+    MPI.COMM_WORLD.Barrier()
+    probes, impacts = {}, {}
+    for name, out in outputs.items():
+        with h5py.File(out, "r") as h:
+            probes[name] = h["probes/displacement"][:]
+            impacts[name] = h["constraints/stats/impacts"][:]
+            if name == "state_space":
+                assert h.attrs["reduced_form"] == "state_space"
+    scale = np.abs(probes["full"]).max()
+    assert probes["full"].shape == probes["state_space"].shape and probes["full"].shape[1:] == (1, 2)
+    assert np.abs(probes["second_order"] - probes["full"]).max() < 0.015 * scale
+    assert np.abs(probes["state_space"] - probes["full"]).max() < 0.03 * scale
+    for name in outputs:
+        assert np.all(impacts[name] >= 1), (name, impacts[name])
