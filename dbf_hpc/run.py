@@ -331,8 +331,10 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         raise kind(_left_behind(str(exc), writer, checkpoint)) from None
     stats.update(extra_stats or {})
     try:
-        estimate = _estimate(estimator, writer, settings, timings, say)
-        long_run = _estimate_statistics(estimator, estimate, writer, model.constraints, settings, timings)
+        with _stop_on_sigterm(estimator is not None, "stopped by a termination signal during the error estimates, "
+                              "after the integration; rerun with --resume to finish from the last checkpoint"):
+            estimate = _estimate(estimator, writer, settings, timings, say)
+            long_run = _estimate_statistics(estimator, estimate, writer, model.constraints, settings, timings)
     except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
         raise type(exc)(_left_behind(str(exc), writer, checkpoint)) from None
     t = time.perf_counter()
@@ -491,6 +493,25 @@ def _interrupt_on_sigterm(stepper):
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def _stop_on_sigterm(active: bool, message: str):
+    """While the block runs (rank 0's error estimates after its integration, when active), SIGTERM
+    stops it with errors.Interrupted(message) instead of the command's message for a job that has
+    not integrated yet."""
+    def handler(signum, frame):
+        raise Interrupted(message)
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler) if active else None
+    except ValueError:  # not the main thread: leave signals alone
+        previous = None
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def sample_work_rate_ci95(writer, constraints) -> np.ndarray:

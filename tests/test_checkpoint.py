@@ -142,3 +142,35 @@ checkpoint_dt = 0.05
     MPI.COMM_WORLD.Barrier()
     with pytest.raises(InputError, match="structure differ"):
         run(load_scene(scene, sets), out, progress=False, resume=True)
+
+
+def test_sigterm_during_the_error_estimate_says_so_and_a_resume_finishes_the_run(shared_tmp_path, monkeypatch):
+    # A batch system's time limit can fall after the integration, in the a-posteriori estimate (the
+    # statistics' estimate of a long run costs about what the run did). The one line says where the
+    # run stopped and that --resume finishes it (not "before the integration began; nothing was
+    # written"); the partial output and the checkpoint stay, and the resumed output is the
+    # uninterrupted run's.
+    from dbf_hpc import run as run_module
+
+    sets = ["integrator.t_end=0.05", "output.checkpoint_dt=0.01", f"basis.cache={shared_tmp_path / 'cache'}"]
+    whole, out = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
+    run(load_scene(PAPER, sets), whole, progress=False)
+    original = run_module._estimate
+
+    def terminated(*args, **kwargs):   # rank 0 only: the estimate is rank 0's
+        os.kill(os.getpid(), signal.SIGTERM)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(run_module, "_estimate", terminated)
+    with pytest.raises(SolverError, match="during the error estimates, after the integration; rerun with --resume "
+                                          r"to finish from the last checkpoint \(samples so far in .*partial"):
+        run(load_scene(PAPER, sets), out, progress=False)
+    monkeypatch.setattr(run_module, "_estimate", original)
+    assert_all(not os.path.exists(out) and os.path.exists(out + ".partial") and os.path.exists(out + ".checkpoint"))
+    summary = resume(sets, out)
+    assert summary["stats"]["final_time"] == pytest.approx(0.05) and "estimated_error" in summary
+    MPI.COMM_WORLD.Barrier()
+    with h5py.File(whole) as a, h5py.File(out) as b:
+        assert bool(b.attrs["complete"]) and a["time"].shape == b["time"].shape
+        assert np.array_equal(a["constraints/displacement"][:], b["constraints/displacement"][:])
+        assert a.attrs["estimated_error"] == b.attrs["estimated_error"]
