@@ -37,6 +37,23 @@ static void add_modes(long len, long n, long nloc, const double *Phi, const doub
     }
 }
 
+/* y[0:len] += sum_k V_k(j)[r0:r0 + len] w[k * stride] for the column's own Krylov vectors (posj[k * ncol]:
+ * its column in step k's block, -1 none; zero coefficients skipped) */
+static void add_own(long len, long p, const double *const *V, const long *posj, long ncol, long nloc, long r0,
+                    const double *w, long stride, double *restrict y)
+{
+    for (long k = 0; k < p; k++) {
+        long q = posj[k * ncol];
+        double ck = w[k * stride];
+        if (q < 0 || ck == 0.0)
+            continue;
+        const double *restrict v = V[k] + q * nloc + r0;
+#pragma omp simd
+        for (long r = 0; r < len; r++)
+            y[r] += v[r] * ck;
+    }
+}
+
 void ritz_dots(long nloc, long ncol, long n, const double *Phi, long p, const double *const *V,
                const long *pos, const double *a, double *c)
 {
@@ -86,16 +103,7 @@ void ritz_subtract(long nloc, long ncol, long n, const double *Phi, long p, cons
             for (long r = 0; r < len; r++)
                 acc[r] = 0.0;
             add_modes(len, n, nloc, Phi + r0, c + j, ncol, acc);
-            for (long k = 0; k < p; k++) {
-                long q = pos[k * ncol + j];
-                double ck = c[(n + k) * ncol + j];
-                if (q < 0 || ck == 0.0)
-                    continue;
-                const double *restrict v = V[k] + q * nloc + r0;
-#pragma omp simd
-                for (long r = 0; r < len; r++)
-                    acc[r] += v[r] * ck;
-            }
+            add_own(len, p, V, pos + j, ncol, nloc, r0, c + n * ncol + j, ncol, acc);
 #pragma omp simd
             for (long r = 0; r < len; r++)
                 x[r] -= acc[r];
@@ -114,16 +122,7 @@ void ritz_combine(long nloc, long ncol, long n, const double *Phi, long p, const
             for (long r = 0; r < len; r++)
                 o[r] = 0.0;
             add_modes(len, n, nloc, Phi + r0, yj, 1, o);
-            for (long k = 0; k < p; k++) {
-                long q = pos[k * ncol + j];
-                double ck = yj[n + k];
-                if (q < 0 || ck == 0.0)
-                    continue;
-                const double *restrict v = V[k] + q * nloc + r0;
-#pragma omp simd
-                for (long r = 0; r < len; r++)
-                    o[r] += v[r] * ck;
-            }
+            add_own(len, p, V, pos + j, ncol, nloc, r0, yj + n, 1, o);
         }
     }
 }
