@@ -411,7 +411,7 @@ class _StepColumns:
     extension, with numpy (the same arithmetic up to the order of the sums)."""
 
     def __init__(self, steps: list, act: np.ndarray):
-        self.steps, self.act = steps, act
+        self.steps = steps
         if _kernels is not None:
             self.pos = np.array([np.searchsorted(step[0], act) for step in steps],
                                 dtype=np.int_).reshape(len(steps), act.size)

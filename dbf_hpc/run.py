@@ -477,6 +477,20 @@ class Checkpointing:
 
 
 @contextlib.contextmanager
+def _on_sigterm(handler):
+    """SIGTERM calls handler(signum, frame) while the block runs (None: leave it as it is); the
+    previous handler comes back after. Not in the main thread, signals are left alone."""
+    try:
+        previous = signal.signal(signal.SIGTERM, handler) if handler is not None else None
+    except ValueError:  # not the main thread
+        previous = None
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
 def _interrupt_on_sigterm(stepper):
     """While integrating, SIGTERM (a batch system's time limit) asks rank 0 to checkpoint at the end
     of the current step and stop; the other ranks ignore it and wait for rank 0's word."""
@@ -484,18 +498,9 @@ def _interrupt_on_sigterm(stepper):
         if stepper is not None:
             stepper.interrupted = True
 
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread: leave signals alone
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    return _on_sigterm(handler)
 
 
-@contextlib.contextmanager
 def _stop_on_sigterm(active: bool, message: str):
     """While the block runs (rank 0's error estimates after its integration, when active), SIGTERM
     stops it with errors.Interrupted(message) instead of the command's message for a job that has
@@ -503,15 +508,7 @@ def _stop_on_sigterm(active: bool, message: str):
     def handler(signum, frame):
         raise Interrupted(message)
 
-    try:
-        previous = signal.signal(signal.SIGTERM, handler) if active else None
-    except ValueError:  # not the main thread: leave signals alone
-        previous = None
-    try:
-        yield
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+    return _on_sigterm(handler if active else None)
 
 
 def sample_work_rate_ci95(writer, constraints) -> np.ndarray:
