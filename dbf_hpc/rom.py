@@ -50,8 +50,9 @@ class ReducedModel:
 
     basis_info   what the output records about the basis: omega, enrichment_omega, dbf_k (arrays)
                  and enrichment (its kind)
-    r_q          V^T M r: the influence vector in basis coordinates (zeros without support motion),
-                 to keep the total state continuous when the support motion jumps (sweep.py)
+    r_q          V^T M r: the influence vector projected onto the basis (zeros without support
+                 motion), to keep the total state continuous when the support motion jumps
+                 (support_jump, sweep.py)
     field        what reconstructs snapshots (ReducedField, only when asked for), field_points where
                  the field's values are (operators.PointValues, for the output's geometry)
     """
@@ -107,6 +108,15 @@ class ReducedModel:
         """Kinetic plus strain energy of the linear part, (p^T M p + q^T K q) / 2, J (relative
         coordinates; the laws' potential is ConstraintSet's)."""
         return 0.5 * (p @ self.M @ p + q @ self.K @ q)
+
+    def support_jump(self, value: float, rate: float) -> tuple:
+        """(dq, dp) that keep the total displacement and velocity continuous when the support's
+        motion jumps by value (m) and rate (m/s) at a case boundary (a sweep's continuation): the
+        relative state takes -r times the jump, r as the basis holds it (M_r^-1 V^T M r)."""
+        if self.r_q is None or not np.any(self.r_q):
+            return np.zeros(self.size), np.zeros(self.size)
+        r = np.linalg.solve(self.M, self.r_q)
+        return r * value, r * rate
 
     def with_case(self, constraints: ConstraintSet | None = None, support: Harmonic | None = None, force=None,
                   q0=None, p0=None) -> "ReducedModel":

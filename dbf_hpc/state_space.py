@@ -205,6 +205,10 @@ class StateSpaceBasis:
         """Psi_v^T vec: a load projected onto the basis (Eq. 4's right side [f; 0]). Collective."""
         return self.comm.tompi4py().allreduce(_local(self.velocity).T @ vec.getArray(readonly=True))
 
+    def displacement_dot(self, vec: PETSc.Vec) -> np.ndarray:
+        """Psi_w^T vec. Collective."""
+        return self.comm.tompi4py().allreduce(_local(self.displacement).T @ vec.getArray(readonly=True))
+
     def velocity_dot_rows(self, rows: np.ndarray) -> np.ndarray:
         """Psi_v^T W for W given by this rank's rows: (n, m). Collective."""
         return self.comm.tompi4py().allreduce(_local(self.velocity).T @ rows)
@@ -394,7 +398,8 @@ class StateSpaceModel:
     probe_B: np.ndarray
     probe_r: np.ndarray
     basis_info: dict
-    r_q: Optional[np.ndarray] = None
+    r_rate: Optional[np.ndarray] = None    # A_r^-1 Psi_v^T M r: a jump of the support's rate in eta
+    r_value: Optional[np.ndarray] = None   # A_r^-1 Psi_w^T K r: a jump of its displacement
     field: Optional[ReducedField] = None
     field_points: Optional[object] = None
     probe_shape: Optional[tuple] = None
@@ -443,6 +448,13 @@ class StateSpaceModel:
             out += self.B_velocity.T @ self.constraints.force(*self.constraint_state(t, q))
         return out if np.array_equal(self.A, np.eye(self.size)) else np.linalg.solve(self.A, out)
 
+    def support_jump(self, value: float, rate: float) -> tuple:
+        """ReducedModel.support_jump for eta: the relative state x = [u'; u] takes -[r rate; r value],
+        projected as the initial state is (eta = A_r^-1 Psi^T A x); eta' is not a state (zeros)."""
+        if self.r_rate is None:
+            return np.zeros(self.size), np.zeros(self.size)
+        return self.r_rate * rate + self.r_value * value, np.zeros(self.size)
+
     def with_case(self, constraints=None, support=None, force=None, q0=None, p0=None) -> "StateSpaceModel":
         changes = {name: value for name, value in (("constraints", constraints), ("support", support),
                                                    ("force", force), ("q0", q0), ("p0", p0)) if value is not None}
@@ -473,6 +485,14 @@ def reduce_state_space(fom, basis: StateSpaceBasis, field: ReducedField | None =
         force_shape = basis.velocity_dot_rows(fom.force_matrix.rows)
     else:
         force_shape = np.zeros(n)
+    r_rate = r_value = None
+    if fom.moving_support:      # the influence r in eta, as rate and as displacement (support_jump)
+        Mr, Kr = ops.influence.duplicate(), ops.influence.duplicate()
+        ops.M.mult(ops.influence, Mr)
+        ops.K.mult(ops.influence, Kr)
+        r_rate = np.linalg.solve(A_r, basis.velocity_dot(Mr))
+        r_value = np.linalg.solve(A_r, basis.displacement_dot(Kr))
+        destroy(Mr, Kr)
     q0 = np.zeros(n)
     if fom.initial.amplitude:   # eta(0) = Psi^T A x(0), x(0) = [u'(0); u(0)]
         u, v = fom.initial_state()
@@ -498,7 +518,7 @@ def reduce_state_space(fom, basis: StateSpaceBasis, field: ReducedField | None =
                            r_c=fom.influence_at(rows), base_load=base_load, force_shape=force_shape,
                            constraints=fom.constraints, support=fom.support, force=fom.force, q0=q0, p0=np.zeros(n),
                            probe_B=at(fom.probes), probe_r=fom.support_share(fom.probes), basis_info=info,
-                           r_q=np.zeros(n), field=field, field_points=ops.field_map(), probe_shape=fom.probes.shape)
+                           r_rate=r_rate, r_value=r_value, field=field, field_points=ops.field_map(), probe_shape=fom.probes.shape)
 
 
 # ---------------------------------------------------------------------------------------------------

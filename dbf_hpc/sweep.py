@@ -258,8 +258,8 @@ def _continued(model, scene, previous: dict | None):
         force = Harmonic(force.amplitude, force.frequency_hz, phase)
     q, p = (np.asarray(a, dtype=float) for a in previous["final_state"])
     old_value, old_rate = previous["final_support"]
-    q = q + model.r_q * (old_value - support.value(0.0))
-    p = p + model.r_q * (old_rate - support.rate(0.0))
+    dq, dp = model.support_jump(old_value - support.value(0.0), old_rate - support.rate(0.0))
+    q, p = q + dq, p + dp
     return model.with_case(constraints=model.constraints.with_laws(laws), support=support, force=force, q0=q, p0=p)
 
 
