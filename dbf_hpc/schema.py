@@ -47,7 +47,10 @@ SECTIONS = {
         "mass": Key((str,), None, "", "matrices: M, as stiffness (required)"),
         "damping": Key((str,), None, "", "matrices: a damping matrix C (optional)"),
         "gyroscopic": Key((str,), None, "", "matrices: a skew-symmetric gyroscopic matrix G (optional): "
-                                            "M u'' + (C + G) u' + K u = f"),
+                                            "M u'' + (C + G) u' + K u = f. Under base excitation the support's "
+                                            "velocity loads neither C nor G (the load is -base_mass_load Omega''): "
+                                            "right when the whole structure's G r is 0, e.g. a rotor's base in "
+                                            "translation"),
         "influence": Key((str,), None, "", "matrices: r, the displacement under a unit support motion (.npy, .txt, "
                                            ".mtx or PETSc binary; needed for base excitation)"),
         "base_mass_load": Key((str,), None, "", "matrices: M_(free, all) r_all with the coupling to the moving "
