@@ -8,7 +8,8 @@ per constraint, or the modes alone for enrichment = "none"). It is written under
 and renamed when complete, so a crash never leaves a file that looks usable. On load, the key and
 the stored constraint rows must match what is asked, and the basis must still be what it claims:
 V^T M V = I, and diag(V^T K V) = omega^2 for the modes and hat-omega^2 for the other columns, on the
-operators at hand. Anything else (stale,
+operators at hand; what those cannot check (k_j, k_auto, the branches, f_exact) carries a sha256
+written with it (a file without one, from an older version, is rebuilt). Anything else (stale,
 corrupt, unreadable) is reported and rebuilt, never used. The key holds the kind of enrichment and
 only the settings and solver options that kind uses. A gyroscopic basis in the second-order form
 (gyroscopic_basis.py) is cached too: its file adds the complex-mode count and the columns of each
@@ -58,6 +59,17 @@ def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def _digest(arrays: dict) -> str:
+    """sha256 of the small arrays a cache file carries (V is checked on load against the operators:
+    V^T M V = I and its frequencies; these are not, so they carry a checksum)."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        value = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{value.dtype.str}|{value.shape}|".encode())
+        h.update(value.tobytes())
+    return h.hexdigest()
+
+
 def _say(comm, message: str) -> None:
     PETSc.Sys.Print(f"dbf-hpc: {message}", comm=comm)
 
@@ -81,12 +93,15 @@ def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
             check_free_space(path, 8.0 * n * basis.size, "basis cache")
             f = h5py.File(tmp, "w")
             V = f.create_dataset("V", shape=(n, basis.size), dtype="f8")
-            for name in ARRAYS:
-                f.create_dataset(name, data=np.asarray(getattr(basis, name)))
+            arrays = {name: np.asarray(getattr(basis, name)) for name in ARRAYS}
             if basis.complex_modes:   # a gyroscopic basis: Re and Im columns (gyroscopic_basis.py)
+                arrays["constraint_columns"] = np.asarray(basis.stats["constraint_columns"], dtype=np.int64)
+                arrays["complex_modes"] = np.int64(basis.complex_modes)
                 f.attrs["complex_modes"] = basis.complex_modes
-                f.create_dataset("constraint_columns", data=np.asarray(basis.stats["constraint_columns"],
-                                                                       dtype=np.int64))
+            for name, value in arrays.items():
+                if name != "complex_modes":
+                    f.create_dataset(name, data=value)
+            f.attrs["arrays_sha256"] = _digest(arrays)
             f.attrs["key"] = key
             f.attrs["settings"] = json.dumps(basis.settings.key(), default=str)
             f.attrs["dbf_hpc_version"] = __version__
@@ -146,6 +161,11 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings):
                 columns = int(counts.sum())
                 if counts.size != enriched or np.any((counts < 1) | (counts > 2)):
                     return "has the wrong shape", {}, None
+            stored = dict(arrays)
+            if "complex_modes" in stored:
+                stored["complex_modes"] = np.int64(stored["complex_modes"])
+            if f.attrs.get("arrays_sha256") != _digest(stored):
+                return "fails its checksum (corrupt, or written by an older version)", {}, None
             if (arrays["enrichment_omega"].size != columns
                     or f["V"].shape != (ops.size, arrays["omega"].size + columns)
                     or any(arrays[name].size != enriched for name in ("dbf_k", "dbf_k_auto", "dbf_branch"))

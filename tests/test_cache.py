@@ -148,6 +148,22 @@ def test_stored_constraint_rows_that_differ_from_the_scene_are_detected_and_rebu
     assert np.allclose(rebuilt, reference, rtol=1e-10)
 
 
+@pytest.mark.parametrize("name", ["dbf_k", "dbf_k_auto", "dbf_branch", "flexibility_exact", "enrichment_omega"])
+def test_a_stored_value_the_operators_cannot_check_is_covered_by_a_checksum(shared_tmp_path, name):
+    # Red team: k_j scaled by 10 (or f_exact by 2) in a cache file was a hit, and the output reported
+    # the wrong k_j (and a false flexibility warning): V^T M V and the frequencies do not see them.
+    reference = summary(scene(), shared_tmp_path)
+    path = _cache_file(shared_tmp_path)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(path, "r+") as f:
+            f[name][...] = f[name][...] * 2
+    MPI.COMM_WORLD.Barrier()
+    size, Kr, B, omega, k, solves, state = summary(scene(), shared_tmp_path)
+    assert solves > 0 and state == "stored"
+    assert np.allclose(k, reference[4], rtol=1e-10) and np.allclose(omega, reference[3], rtol=1e-10)
+    assert summary(scene(), shared_tmp_path)[6] == "hit"    # the rebuilt file is whole again
+
+
 @pytest.mark.parametrize("blocker", ["file", "read-only"])
 def test_a_cache_directory_that_cannot_be_made_is_a_warning_on_every_rank_not_a_hang(shared_tmp_path, blocker):
     cache = shared_tmp_path / "cache"
