@@ -17,7 +17,8 @@ Each case is the base scene with its values set (as `--set section.key=value`). 
 the cases along that axis form chains, one per direction and per combination of the other axes:
 each case starts from the previous one's final physical state (a stepped sine: the excitation
 continues its phase, and the total displacement and velocity are continuous); the summary gets a
-`sweep_direction` column.
+`sweep_direction` column. The continuation axis must keep the reduced coordinates' meaning (not a
+structure, basis or constraint-position value: refused before any work).
 
 How it runs (collective on COMM_WORLD):
 1. Every case's scene is validated before any work: a bad value stops the sweep at once.
@@ -26,9 +27,10 @@ How it runs (collective on COMM_WORLD):
    cannot be built fails its cases, recorded with the error; the others go on.
 3. The cases (chains) are dealt round-robin to the ranks; each rank integrates its cases alone.
 4. Each finished case leaves a small result file (`OUT.cases/case-NNNNN.json`, written atomically)
-   with the identity of the case (its validated scene and the bytes of the files it reads): a
-   rerun skips the cases that are done and still the same, and reruns the others. SIGTERM stops
-   every rank at its next step (a running case is checkpointed); rerun the same command to go on.
+   with the identity of the case (its validated scene, the bytes of the files it reads, and in a
+   chain its predecessors' identities): a rerun skips the cases that are done and still the same,
+   and reruns the others. SIGTERM stops every rank at its next step (a running case is
+   checkpointed); rerun the same command to go on.
 5. Rank 0 writes the summary. The summary is locked while a sweep runs: a second sweep on the
    same output is refused.
 
@@ -149,18 +151,26 @@ def load_sweep(path: str, overrides=()) -> dict:
         raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\"")
     cases, chains = _expand(path, axes, listed, continuation, directions)
     parameters = list(dict.fromkeys(name for case in cases for name in case))
-    sets = []
+    sets, coordinates = [], []
     for i, case in enumerate(cases):
         own = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
         for text in own:
             parse_override(text)
         try:
-            if load_scene(scene, [*overrides, *own])["basis"]["tolerance"] is not None:
+            loaded = load_scene(scene, [*overrides, *own])
+            if loaded["basis"]["tolerance"] is not None:
                 raise InputError("[basis] tolerance is for runs; a sweep's cases share bases of a given size "
                                  "(set basis.modes, e.g. to what `dbf-hpc run` picked)")
         except InputError as e:
             raise InputError(f"{path}: case {i + 1} ({', '.join(own)}): {e}") from None
         sets.append([*overrides, *own])
+        coordinates.append(_coordinates_key(loaded))
+    for chain in chains:
+        if len({coordinates[i] for i in chain}) > 1:
+            raise InputError(f"{path}: continuation '{continuation}' changes the reduced model's coordinates along "
+                             f"a chain (its structure, basis, constraint positions or moving support), so a final "
+                             f"state cannot start the next case; make it an ordinary axis, or continue along an "
+                             f"excitation, law, damping or integrator value")
     return {"scene": scene, "output": output, "keep_outputs": keep, "cases": sets, "values": cases,
             "parameters": parameters, "chains": chains}
 
@@ -200,7 +210,7 @@ def _scene_files(scene) -> list:
 
 def _identities(sweep: dict) -> list:
     """Per case, the sha256 of what its result depends on: the validated scene and the bytes of every
-    file it reads (hashed once, on rank 0). Collective."""
+    file it reads (hashed once, on rank 0), and in a continuation chain its predecessors'. Collective."""
     scenes = [load_scene(sweep["scene"], sets) for sets in sweep["cases"]]
     files = sorted({path for scene in scenes for path in _scene_files(scene)})
     digests = {path: file_digest(path, PETSc.COMM_WORLD) for path in files}
@@ -209,7 +219,20 @@ def _identities(sweep: dict) -> list:
         content = [scene.sections, [repr(c) for c in scene.constraints],
                    {path: digests[path] for path in _scene_files(scene)}]
         out.append(hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest())
+    # a case of a chain starts from its predecessor's final state: its identity holds the chain's
+    for chain in sweep["chains"]:
+        for before, index in zip(chain, chain[1:]):
+            out[index] = hashlib.sha256((out[before] + out[index]).encode()).hexdigest()
     return out
+
+
+def _coordinates_key(scene) -> str:
+    """What the reduced coordinates q mean: the basis (structure, [basis], constraint positions) and
+    the relative coordinates' moving support. A continuation chain must keep it."""
+    parts = {"structure": scene["structure"], "basis": scene["basis"],
+             "support": [scene["excitation"]["kind"], scene["excitation"]["end"]],
+             "constraints": [(c.x, c.dof) for c in scene.constraints]}
+    return json.dumps(parts, sort_keys=True, default=str)
 
 
 def _model_key(scene) -> str:

@@ -105,6 +105,46 @@ def test_continuation_sweeps_up_and_down_each_case_starting_from_the_last(shared
         assert [json.loads(v) for v in f["cases/parameters/sweep_direction"][:]] == ["up", "up", "down", "down"]
 
 
+def test_changing_an_earlier_step_of_a_stepped_sine_reruns_every_step_after_it(shared_tmp_path):
+    # Red team: a case's identity held its own scene only, so after the first frequency changed the
+    # later steps were kept, although they had started from the old first step's final state.
+    body = ('continuation = "excitation.frequency_hz"\ndirections = ["up"]\n[axes]\n'
+            '"excitation.frequency_hz" = [{first}, 1.1]\n"integrator.t_end" = [0.3]\n')
+    path = write_sweep(shared_tmp_path, body.format(first=0.9))
+    folder = run_sweep(path, progress=False)["output"] + ".cases"
+    old = json.load(open(os.path.join(folder, "case-00001.json")))
+    path = write_sweep(shared_tmp_path, body.format(first=0.8))
+    run_sweep(path, progress=False)
+    new = json.load(open(os.path.join(folder, "case-00001.json")))
+    fresh_folder = shared_tmp_path / "fresh"
+    if MPI.COMM_WORLD.rank == 0:
+        fresh_folder.mkdir()
+    MPI.COMM_WORLD.Barrier()
+    fresh_path = write_sweep(fresh_folder, body.format(first=0.8))
+    fresh = json.load(open(os.path.join(run_sweep(fresh_path, progress=False)["output"] + ".cases",
+                                        "case-00001.json")))
+    assert new["identity"] != old["identity"] and new["continued"]
+    assert not np.allclose(new["final_state"][0], old["final_state"][0]), "the step after the change was kept"
+    np.testing.assert_allclose(new["final_state"][0], fresh["final_state"][0], rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("axis,values", [("basis.modes", "[4, 6]"), ("constraint.x", "[0.25, 0.3]"),
+                                         ("structure.elements", "[40, 50]")])
+def test_a_continuation_that_changes_the_reduced_coordinates_is_refused_before_any_work(shared_tmp_path, axis,
+                                                                                       values):
+    # Red team: continuation = "basis.modes" crashed (12 states into 16); across gyroscopic forms or
+    # axial speeds the final state of one basis started a case of another and reported nonsense.
+    path = write_sweep(shared_tmp_path, f'continuation = "{axis}"\n[axes]\n"{axis}" = {values}\n')
+    with pytest.raises(InputError, match=f"continuation '{axis}' changes the reduced model's coordinates"):
+        load_sweep(path)
+
+
+def test_a_continuation_along_a_law_or_damping_value_is_accepted(shared_tmp_path):
+    for axis, values in (("constraint.clearance", "[2e-3, 2.5e-3]"), ("damping.zeta", "[0.01, 0.02]")):
+        path = write_sweep(shared_tmp_path, f'continuation = "{axis}"\n[axes]\n"{axis}" = {values}\n')
+        assert load_sweep(path)["chains"] == [[0, 1], [2, 3]]
+
+
 def _copy_scene(folder, name="base.toml", replace=None):
     path = folder / name
     if MPI.COMM_WORLD.rank == 0:
