@@ -81,7 +81,7 @@ class Checkpoint:
         different = [part for part in sorted(set(stored) | set(self.identity))
                      if stored.get(part) != self.identity.get(part)]
         if different:
-            verb = "differs" if len(different) == 1 else "differ"
+            verb = "differs" if len(different) == 1 and not different[0].endswith("s") else "differ"  # options, ranks
             raise InputError(f"{self.path} was written by a different scene or setup ({', '.join(different)} "
                              f"{verb}); remove it or rerun without --resume")
         if _checksum(state, stored) != checksum:
