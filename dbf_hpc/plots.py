@@ -291,8 +291,10 @@ def _sweep_figure(folder, name, others, data, written) -> None:
         ax.set_xlabel(f"{name} [{unit}]" if unit else name)
     handles, labels = axes[0, 0].get_legend_handles_labels()
     unique = dict(zip(labels, handles))
-    rows = int(np.ceil(len(unique) / 4))
-    fig.legend(unique.values(), unique.keys(), loc="lower center", ncol=min(4, len(unique)), fontsize=7)
+    # as many columns as the longest label lets fit across the figure (~160 characters at this size)
+    ncol = max(1, min(4, len(unique), 160 // (max((len(k) for k in unique), default=1) + 8)))
+    rows = int(np.ceil(len(unique) / ncol))
+    fig.legend(unique.values(), unique.keys(), loc="lower center", ncol=ncol, fontsize=7)
     fig.suptitle(f"Sweep over {name}: {int(ok.sum())} of {ok.size} cases ran"
                  + (f", {int((~ok).sum())} failed (red crosses)" if (~ok).any() else ""))
     fig.tight_layout(rect=(0, 0.035 * rows + 0.01, 1, 1))
