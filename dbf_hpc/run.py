@@ -123,6 +123,10 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
                   f"{comm.getSize()} rank(s)")
         if fom.operators.G is not None:
             _gyroscopic_checks(scene, fom, method)
+        elif scene["basis"]["gyroscopic_form"] == "state_space" and method == "rom":
+            PETSc.Sys.Print('dbf-hpc: warning: [basis] gyroscopic_form = "state_space" is for gyroscopic structures '
+                            '(axial_speed, or a matrices G); this one has no G, so its reduced model is the usual '
+                            'second-order one', comm=comm)
         if method == "full":
             return _run_full(scene, fom, path, settings, timings, say, resume)
         t, solves = time.perf_counter(), counters["eigen_solves"]

@@ -448,11 +448,14 @@ def test_info_reads_statistics_a_sweep_summary_and_a_partial_run(tmp_path):
 def test_unused_petsc_options_and_suspicious_units_draw_warnings(tmp_path):
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "w.h5"), "--set", "integrator.t_end=0.2", "--set",
                   "basis.cache=off", "--set", "structure.E=117", "--set", "constraint.clearance=2.5",
+                  "--set", 'basis.gyroscopic_form="state_space"',
                   "-rom_ts_arkimex_typ", "4", "-ts_arkimex_type", "4")
     assert out.returncode == 0, out.stderr
     for expected in ("PETSc option -rom_ts_arkimex_typ was not used", "PETSc option -ts_arkimex_type was not used",
                      "the lowest elastic frequency is 8.61e-06 Hz", "never reached its stop",
-                     "basis: 6 modes (8.606e-06 ... "):
+                     "basis: 6 modes (8.606e-06 ... ",
+                     # a form the structure cannot take (red team: it was silently not used)
+                     'gyroscopic_form = "state_space" is for gyroscopic structures'):
         assert expected in out.stdout, (expected, out.stdout)
 
 
