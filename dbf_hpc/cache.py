@@ -31,6 +31,7 @@ from slepc4py import SLEPc
 
 from . import __version__
 from .basis import BasisSettings, ReducedBasis, build_basis
+from .checkpoint import arrays_sha256
 from .errors import WRITE_ERRORS, InputError, park, write_failure
 from .output import check_free_space
 from .operators import Operators
@@ -57,17 +58,6 @@ def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool
                "rows": [int(r) for r in rows], "settings": settings.key(),
                "options": solver_options(settings.strategy.solver_prefixes)}
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
-
-
-def _digest(arrays: dict) -> str:
-    """sha256 of the small arrays a cache file carries (V is checked on load against the operators:
-    V^T M V = I and its frequencies; these are not, so they carry a checksum)."""
-    h = hashlib.sha256()
-    for name in sorted(arrays):
-        value = np.ascontiguousarray(arrays[name])
-        h.update(f"{name}|{value.dtype.str}|{value.shape}|".encode())
-        h.update(value.tobytes())
-    return h.hexdigest()
 
 
 def _say(comm, message: str) -> None:
@@ -101,7 +91,8 @@ def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
             for name, value in arrays.items():
                 if name != "complex_modes":
                     f.create_dataset(name, data=value)
-            f.attrs["arrays_sha256"] = _digest(arrays)
+            # V is checked on load against the operators (V^T M V = I, its frequencies); these are not
+            f.attrs["arrays_sha256"] = arrays_sha256(arrays)
             f.attrs["key"] = key
             f.attrs["settings"] = json.dumps(basis.settings.key(), default=str)
             f.attrs["dbf_hpc_version"] = __version__
@@ -164,7 +155,7 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings):
             stored = dict(arrays)
             if "complex_modes" in stored:
                 stored["complex_modes"] = np.int64(stored["complex_modes"])
-            if f.attrs.get("arrays_sha256") != _digest(stored):
+            if f.attrs.get("arrays_sha256") != arrays_sha256(stored):
                 return "fails its checksum (corrupt, or written by an older version)", {}, None
             if (arrays["enrichment_omega"].size != columns
                     or f["V"].shape != (ops.size, arrays["omega"].size + columns)

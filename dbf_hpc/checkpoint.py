@@ -31,13 +31,18 @@ def identity(**parts) -> dict:
             for name, value in parts.items()}
 
 
-def _checksum(datasets: dict, ident: dict) -> str:
-    h = hashlib.sha256(json.dumps(ident, sort_keys=True).encode())
-    for name in sorted(datasets):
-        value = np.ascontiguousarray(datasets[name])
+def arrays_sha256(arrays: dict, salt: bytes = b"") -> str:
+    """sha256 of named arrays (each name, dtype, shape and bytes, in name order) after `salt`."""
+    h = hashlib.sha256(salt)
+    for name in sorted(arrays):
+        value = np.ascontiguousarray(arrays[name])
         h.update(f"{name}|{value.dtype.str}|{value.shape}|".encode())
         h.update(value.tobytes())
     return h.hexdigest()
+
+
+def _checksum(datasets: dict, ident: dict) -> str:
+    return arrays_sha256(datasets, json.dumps(ident, sort_keys=True).encode())
 
 
 class Checkpoint:
