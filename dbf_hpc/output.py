@@ -8,6 +8,7 @@ touches an existing OUT.h5 (a successful rerun replaces it).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import socket
@@ -237,6 +238,7 @@ class OutputWriter:
                                                              chunks=(BLOCK, *shape), dtype="f8")
         self.shapes = shapes
         self.blocks = _Blocks({name: shapes[name] for name in self.series})
+        self.hashes = {name: hashlib.sha256() for name in self.series}
         self.count = 0
         self.parked = False
 
@@ -261,21 +263,33 @@ class OutputWriter:
         if not n:
             return
         for name, dataset in self.series.items():
+            block = np.ascontiguousarray(self.blocks.series(name), dtype=np.float64)
             dataset.resize(self.count + n, axis=0)
-            dataset[self.count:] = self.blocks.series(name)
+            dataset[self.count:] = block
+            self.hashes[name].update(block.tobytes())
         self.blocks.clear()
         self.count += n
         self.file.flush()
 
+    def digest(self) -> np.ndarray:
+        """sha256 of the samples written so far (not those buffered), as 32 bytes: a checkpoint keeps
+        it, so that a resume continues these samples and no others."""
+        h = hashlib.sha256()
+        for name in sorted(self.hashes):
+            h.update(name.encode() + self.hashes[name].digest())
+        return np.frombuffer(h.digest(), dtype=np.uint8).copy()
+
     @classmethod
-    def reopen(cls, path: str, samples: int) -> "OutputWriter":
-        """Continue a .partial file from a checkpoint: keep its first `samples` samples."""
+    def reopen(cls, path: str, samples: int, digest) -> "OutputWriter":
+        """Continue a .partial file from a checkpoint: keep its first `samples` samples, which must be
+        those the checkpoint's run wrote (`digest`, OutputWriter.digest), not another run's or edited
+        ones."""
         self = cls.__new__(cls)
         self.path, self.partial = path, f"{path}.partial"
         self.file = h5py.File(self.partial, "r+")
         try:
             if self.file.attrs.get("complete", True):
-                raise KeyError("not an incomplete dbf-hpc output")
+                raise ValueError("not an incomplete dbf-hpc output")
             self.series, self.empty = {}, []
             for name in layout.SERIES:
                 if name not in self.file:  # zero-width series are only written at the end
@@ -283,14 +297,21 @@ class OutputWriter:
                     continue
                 dataset = self.file[name]
                 if dataset.shape[0] < samples:
-                    raise KeyError(f"{name} holds {dataset.shape[0]} samples, the checkpoint {samples}")
+                    raise ValueError(f"{name} holds {dataset.shape[0]} samples, the checkpoint {samples}")
                 dataset.resize(samples, axis=0)
                 self.series[name] = dataset
+            self.hashes = {name: hashlib.sha256() for name in self.series}
+            for name, dataset in self.series.items():
+                for lo in range(0, samples, 64 * BLOCK):
+                    block = dataset[lo:min(lo + 64 * BLOCK, samples)]
+                    self.hashes[name].update(np.ascontiguousarray(block, dtype=np.float64).tobytes())
+            self.count = samples
+            if digest is None or not np.array_equal(self.digest(), np.asarray(digest, dtype=np.uint8)):
+                raise ValueError("its samples are not those its checkpoint's run wrote (another run's, or edited)")
         except Exception:
             self.file.close()
             raise
         self.blocks = _Blocks({name: self.file[name].shape[1:] for name in self.series})
-        self.count = samples
         self.parked = False
         return self
 

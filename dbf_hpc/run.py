@@ -311,7 +311,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
                               model.constraints.count * model.constraints.dimension, model.probe_B.shape[0],
                               model.size, output.snapshots, field)
         check_free_space(path, needed + 8.0 * (2 * model.size + 64))   # the output and its checkpoint
-        writer = (_reopen(path, int(state["samples"])) if state else
+        writer = (_reopen(path, state) if state else
                   OutputWriter(path, model.constraints.shape, model.probe_sample_shape, model.size))
         recorder = ReducedRecorder(writer, model, _snapshot_samples(output.snapshots, settings.sample_times))
         if state:
@@ -414,10 +414,10 @@ def _first_contact(writer, times: np.ndarray, block: int = 1 << 16):
     return None
 
 
-def _reopen(path: str, samples: int) -> OutputWriter:
+def _reopen(path: str, state: dict) -> OutputWriter:
     try:
-        return OutputWriter.reopen(path, samples)
-    except (OSError, KeyError) as e:
+        return OutputWriter.reopen(path, int(state["samples"]), state.get("samples_sha256"))
+    except (OSError, KeyError, ValueError) as e:
         raise InputError(f"{path}.partial cannot be resumed ({e}); rerun without --resume") from None
 
 
@@ -475,6 +475,7 @@ class Checkpointing:
         wall = self.base["wall"] + time.perf_counter() - self.clock
         self.checkpoint.write({"t": t, "dt": ts.getTimeStep(), "steps": ts.getStepNumber(), "q": q, "p": p,
                                "samples": self.recorder.writer.count,
+                               "samples_sha256": self.recorder.writer.digest(),
                                "rejected": self.base["rejected"] + ts.getStepRejections(),
                                "snes_failures": self.base["snes_failures"] + ts.getSNESFailures(), "wall": wall,
                                **self.recorder.state()})
@@ -627,7 +628,8 @@ class FullCheckpointing:
         self.recorder.writer.flush()
         index = sorted(self.snaps)
         width = len(self.snaps[index[0]]) if index else 0
-        self.checkpoint.write({**state, "samples": self.recorder.writer.count, "next_checkpoint": self.next,
+        self.checkpoint.write({**state, "samples": self.recorder.writer.count,
+                               "samples_sha256": self.recorder.writer.digest(), "next_checkpoint": self.next,
                                "wall": self.wall + time.perf_counter() - self.clock,
                                "snapshot_index": np.array(index, dtype=np.int64),
                                "snapshot_w": np.array([self.snaps[i] for i in index]).reshape(len(index), width),
@@ -665,7 +667,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
             check_free_space(path, output_bytes(samples_left, constraints.count * constraints.dimension,
                                                 fom.probes.count, 0,
                                                 output.snapshots, field.count) + 8.0 * 3 * fom.size)
-            writer = (_reopen(path, int(state["samples"])) if state else
+            writer = (_reopen(path, state) if state else
                       OutputWriter(path, constraints.shape, fom.probes.shape, 0))
             recorder = FullRecorder(writer, constraints, observation)
             if state:

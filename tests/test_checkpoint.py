@@ -90,6 +90,18 @@ def test_a_changed_scene_or_changed_petsc_options_are_refused_naming_what_differ
         options.delValue("rom_snes_rtol")
 
 
+def test_samples_in_the_partial_output_that_the_checkpoint_did_not_save_are_refused(stopped):
+    # Red team: the checkpoint was checked, the samples already in OUT.h5.partial only counted, so
+    # another run's .partial (or an edited sample) went into the finished file under this scene.
+    sets, out, _ = stopped
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(out + ".partial", "r+") as f:
+            f["constraints/displacement"][3, 0] += 1e-3
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="cannot be resumed \\(its samples are not those its checkpoint's run"):
+        resume(sets, out)
+
+
 def test_the_untouched_checkpoint_resumes_to_the_end(stopped):
     sets, out, checkpoint = stopped
     summary = resume(sets, out)
