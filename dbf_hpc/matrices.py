@@ -45,15 +45,18 @@ def _check_finite(what: str, path: str, A) -> None:
 
 
 def _read_matrix_market(path: str, what: str):
-    """(shape, rows, cols, values, symmetric) of a coordinate Matrix Market file, 0-based."""
+    """(shape, rows, cols, values, symmetry) of a coordinate Matrix Market file, 0-based; symmetry is
+    "general", "symmetric" or "skew-symmetric" (one triangle stored). Duplicate entries, and both
+    triangles under a symmetric header, are refused: readers differ on them (summed or not)."""
     with open(path, encoding="ascii", errors="replace") as f:
         header = f.readline().lower().split()
         if len(header) < 5 or header[0] != "%%matrixmarket" or header[1] != "matrix":
             raise InputError(f"{what} file {path!r} is not a Matrix Market matrix")
         layout, field, symmetry = header[2], header[3], header[4]
-        if layout != "coordinate" or field not in ("real", "integer") or symmetry not in ("general", "symmetric"):
-            raise InputError(f"{what} file {path!r}: only real coordinate general/symmetric Matrix Market "
-                             f"is supported, got {layout} {field} {symmetry}")
+        if (layout != "coordinate" or field not in ("real", "integer")
+                or symmetry not in ("general", "symmetric", "skew-symmetric")):
+            raise InputError(f"{what} file {path!r}: only real coordinate general, symmetric or skew-symmetric "
+                             f"Matrix Market is supported, got {layout} {field} {symmetry}")
         line = f.readline()
         while line.startswith("%"):
             line = f.readline()
@@ -72,7 +75,20 @@ def _read_matrix_market(path: str, what: str):
     rows, cols, values = data[:, 0].astype(np.int64) - 1, data[:, 1].astype(np.int64) - 1, data[:, 2]
     if nnz and (rows.min() < 0 or cols.min() < 0 or rows.max() >= nrows or cols.max() >= ncols):
         raise InputError(f"{what} file {path!r} has an entry outside its {nrows} x {ncols} size")
-    return (nrows, ncols), rows, cols, values, symmetry == "symmetric"
+    keys = np.sort(rows * ncols + cols)
+    repeated = keys[1:][keys[1:] == keys[:-1]]
+    if repeated.size:
+        i, j = divmod(int(repeated[0]), ncols)
+        raise InputError(f"{what} file {path!r} lists {repeated.size} entr{'y' if repeated.size == 1 else 'ies'} "
+                         f"twice (e.g. row {i + 1}, column {j + 1}): readers differ on whether to sum them; write "
+                         f"each entry once")
+    if symmetry != "general" and np.any(rows < cols) and np.any(rows > cols):
+        raise InputError(f"{what} file {path!r} has a {symmetry} header but entries on both sides of the "
+                         f"diagonal: such a file stores one triangle (the other is implied); write it as general "
+                         f"or keep one triangle")
+    if symmetry == "skew-symmetric" and np.any((rows == cols) & (values != 0)):
+        raise InputError(f"{what} file {path!r} is skew-symmetric but has a non-zero diagonal entry")
+    return (nrows, ncols), rows, cols, values, symmetry
 
 
 def _check_index_range(path: str, what: str, size: int, nnz: int) -> None:
@@ -90,13 +106,14 @@ def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
     comm = comm or PETSc.COMM_WORLD
     _readable(path, what)
     if path.endswith(".mtx"):
-        shape, rows, cols, values, symmetric = _read_matrix_market(path, what)
+        shape, rows, cols, values, symmetry = _read_matrix_market(path, what)
         if shape[0] != shape[1]:
             raise InputError(f"{what} file {path!r} is {shape[0]} x {shape[1]}, not square")
-        if symmetric:
+        if symmetry != "general":   # the other triangle, mirrored (negated for skew-symmetric)
             off = rows != cols
+            sign = -1.0 if symmetry == "skew-symmetric" else 1.0
             rows, cols, values = (np.concatenate([rows, cols[off]]), np.concatenate([cols, rows[off]]),
-                                  np.concatenate([values, values[off]]))
+                                  np.concatenate([values, sign * values[off]]))
         start, end = owned_rows(shape[0], comm)
         mine = (rows >= start) & (rows < end)
         return aij_from_owned_triplets(comm, shape[0], rows[mine], cols[mine], values[mine])

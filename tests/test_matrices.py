@@ -116,6 +116,41 @@ def test_malformed_matrix_market_is_an_error(shared_tmp_path, content, message):
         load_matrix(str(path))
 
 
+@pytest.mark.parametrize("content,message", [
+    # red team: both triangles under a symmetric header were mirrored again, doubling the off-diagonal
+    ("%%MatrixMarket matrix coordinate real symmetric\n2 2 4\n1 1 2.0\n2 1 -1.0\n1 2 -1.0\n2 2 2.0\n",
+     "symmetric header but entries on both sides of the diagonal"),
+    # ... and a repeated entry was summed
+    ("%%MatrixMarket matrix coordinate real general\n2 2 3\n1 1 2.0\n1 1 2.0\n2 2 1.0\n",
+     "lists 1 entry twice \\(e.g. row 1, column 1\\)"),
+    ("%%MatrixMarket matrix coordinate real skew-symmetric\n2 2 2\n1 1 1.0\n2 1 1.0\n", "non-zero diagonal")])
+def test_a_matrix_market_file_readers_disagree_on_is_refused(shared_tmp_path, content, message):
+    path = shared_tmp_path / "ambiguous.mtx"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(content)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=message):
+        load_matrix(str(path))
+
+
+def test_one_triangle_of_a_symmetric_or_skew_symmetric_file_is_the_whole_matrix(shared_tmp_path):
+    G = np.array([[0.0, 1.5, 0.0], [-1.5, 0.0, -2.0], [0.0, 2.0, 0.0]])
+    K = np.array([[4.0, -1.0, 0.0], [-1.0, 4.0, -1.0], [0.0, -1.0, 4.0]])
+    files = {"G.mtx": ("skew-symmetric", G, np.tril), "K.mtx": ("symmetric", K, np.tril),
+             "Ku.mtx": ("symmetric", K, np.triu)}
+    if MPI.COMM_WORLD.rank == 0:
+        for name, (symmetry, A, triangle) in files.items():
+            T = scipy.sparse.coo_matrix(triangle(A, -1 if symmetry == "skew-symmetric" and triangle is np.tril else 0))
+            lines = [f"%%MatrixMarket matrix coordinate real {symmetry}", f"3 3 {T.nnz}"]
+            lines += [f"{i + 1} {j + 1} {v!r}" for i, j, v in zip(T.row, T.col, T.data)]
+            (shared_tmp_path / name).write_text("\n".join(lines) + "\n")
+    MPI.COMM_WORLD.Barrier()
+    for name, (_, A, _) in files.items():
+        mat = load_matrix(str(shared_tmp_path / name))
+        np.testing.assert_array_equal(to_scipy(mat).toarray(), A)
+        mat.destroy()
+
+
 def test_missing_or_foreign_files_are_errors(shared_tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         load_matrix(str(shared_tmp_path / "nothing.bin"), what="stiffness")
