@@ -283,9 +283,15 @@ def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
     if bad or node.min(initial=0) < 0 or node.max(initial=0) >= xyz.shape[0]:
         raise InputError(f"dofs file {dofs!r}: nodes must be 0 to {xyz.shape[0] - 1} and directions one of "
                          f"{', '.join(COMPONENTS)}" + (f" (got {bad[0]!r})" if bad else ""))
+    component = np.array([COMPONENTS.index(d) for d in names], dtype=np.int64)
+    keys, first = np.unique(node * len(COMPONENTS) + component, return_index=True)
+    if keys.size != n:     # one DOF's value would be shown for another's (red team)
+        twice = np.setdiff1d(np.arange(n), first)[0]
+        raise InputError(f"dofs file {dofs!r}: DOF {twice} (row {twice + 1}) repeats node {node[twice]} "
+                         f"{names[twice]}, which an earlier row already has; each node and direction is one DOF")
     coordinates = np.zeros((xyz.shape[0], 3))
     coordinates[:, :xyz.shape[1]] = xyz
-    return coordinates, node, np.array([COMPONENTS.index(d) for d in names])
+    return coordinates, node, component
 
 
 def file_digest(path: str, comm) -> str:

@@ -151,6 +151,19 @@ def test_one_triangle_of_a_symmetric_or_skew_symmetric_file_is_the_whole_matrix(
         mat.destroy()
 
 
+def test_a_node_map_that_gives_two_dofs_one_node_and_direction_is_refused(shared_tmp_path):
+    # Red team: the later DOF's value was drawn at that node and the earlier one's was lost
+    paths = {name: str(shared_tmp_path / name) for name in ("K.mtx", "M.mtx", "nodes.txt", "dofs.txt")}
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths["K.mtx"], scipy.sparse.diags([2.0, 3.0, 4.0]).tocsr())
+        scipy.io.mmwrite(paths["M.mtx"], scipy.sparse.identity(3, format="csr"))
+        np.savetxt(paths["nodes.txt"], [[0.0], [1.0]])
+        open(paths["dofs.txt"], "w").write("0 y\n1 y\n1 Y\n")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="DOF 2 \\(row 3\\) repeats node 1 y"):
+        load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["nodes.txt"], dofs=paths["dofs.txt"]))
+
+
 def test_missing_or_foreign_files_are_errors(shared_tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         load_matrix(str(shared_tmp_path / "nothing.bin"), what="stiffness")
