@@ -22,6 +22,9 @@ import time
 
 from . import __version__
 
+# the first line of a `stiffness -o` table (a rerun replaces only such a file)
+STIFFNESS_HEADER = "# k [N/m],omega [rad/s],f [Hz]"
+
 _PETSC_OPTION = re.compile(r"^-[A-Za-z]\w+")
 _NUMBER = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
 
@@ -294,8 +297,28 @@ def _check_shapes_path(path: str, scene) -> None:
 
     if not path.endswith(".xdmf"):
         raise InputError(f"--xdmf {path!r}: give a name ending in .xdmf (its data go to the .h5 of the same name)")
-    check_output_path(os.path.splitext(path)[0] + ".h5", scene.inputs())
+    check_output_path(os.path.splitext(path)[0] + ".h5", scene.inputs(), replaceable=_is_shapes_file)
     check_output_path(path, scene.inputs(), replaceable=xdmf.is_dbf_xdmf)
+
+
+def _is_shapes_file(path: str) -> bool:
+    """Whether `path` is the HDF5 file of an earlier `basis --xdmf` (not a run's output: red team)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return "dbf_hpc_version" in f.attrs and "shapes" in f and "time" not in f
+    except (OSError, ValueError):
+        return False
+
+
+def _is_stiffness_table(path: str) -> bool:
+    """Whether `path` is a table an earlier `stiffness -o` wrote (its first line)."""
+    try:
+        with open(path, encoding="ascii", errors="replace") as f:
+            return f.readline().startswith(STIFFNESS_HEADER)
+    except OSError:
+        return False
 
 
 def _write_shapes(path: str, fom, reductor, basis) -> None:
@@ -391,9 +414,10 @@ def _stiffness(args) -> int:
     if not 1 <= args.constraint <= len(scene.constraints):
         raise InputError(f"--constraint {args.constraint}: the scene has {len(scene.constraints)} constraint(s)")
     ks = parse_stiffnesses(args.k)
-    for path in (args.output, args.plot):
+    from .plots import is_dbf_png
+    for path, own in ((args.output, _is_stiffness_table), (args.plot, is_dbf_png)):
         if path:
-            check_output_path(path, scene.inputs(), replaceable=False)
+            check_output_path(path, scene.inputs(), replaceable=own)
     basis = scene["basis"]
     with scene.full_order_model(PETSc.COMM_WORLD) as fom:
         ops = fom.operators
@@ -422,7 +446,7 @@ def _stiffness(args) -> int:
         if args.output:
             _write_atomically(args.output, lambda f: np.savetxt(
                 f, np.column_stack([ks, omega, omega / (2 * np.pi)]), delimiter=",",
-                header=f"k [N/m],omega [rad/s],f [Hz]   (spring at {label}; auto k = {k_auto:.6g} N/m)"))
+                header=f"{STIFFNESS_HEADER[2:]}   (spring at {label}; auto k = {k_auto:.6g} N/m)"))
             print(f"wrote {args.output}")
         if args.plot:
             from .plots import plot_stiffness_sweep

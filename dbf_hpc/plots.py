@@ -8,6 +8,7 @@ import os
 import numpy as np
 
 from . import layout
+from .errors import InputError
 from .schema import unit_of
 
 
@@ -20,12 +21,25 @@ def _pyplot():
     return plt
 
 
+def is_dbf_png(path: str) -> bool:
+    """Whether `path` is a PNG dbf-hpc drew (its Software text chunk): a plot replaces only those."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return head.startswith(b"\x89PNG") and b"Software\x00dbf-hpc" in head
+
+
 def _save(fig, target: str, written: list, layout_done: bool = False) -> None:
     plt = _pyplot()
+    if os.path.exists(target) and not is_dbf_png(target):
+        plt.close(fig)
+        raise InputError(f"{target!r} exists and is not a dbf-hpc plot: remove it or draw into another directory")
     tmp = f"{target}.tmp-{os.getpid()}.png"
     if not layout_done:
         fig.tight_layout()
-    fig.savefig(tmp)
+    fig.savefig(tmp, metadata={"Software": "dbf-hpc"})
     plt.close(fig)
     os.replace(tmp, target)
     written.append(target)

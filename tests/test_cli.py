@@ -483,6 +483,33 @@ def _one_line(out):
     return out.returncode == 1 and len(lines) == 1 and lines[0].startswith("dbf-hpc: error:")
 
 
+def test_a_table_figure_or_shapes_file_replaces_only_its_own_kind(tmp_path):
+    # Red team: stiffness -o / --plot overwrote any file (a finished run's .h5 became a CSV), plot -d
+    # replaced foreign PNGs, and basis --xdmf run.xdmf replaced the run's output run.h5.
+    run_out = tmp_path / "run.h5"
+    assert dbf_hpc("run", PAPER, "-o", str(run_out), *SHORT).returncode == 0
+    before = run_out.read_bytes()
+    foreign = tmp_path / "mine.png"
+    foreign.write_bytes(b"\x89PNG not a dbf-hpc figure")
+    for args in (("stiffness", PAPER, "--k", "1,10", "-o", str(run_out)),
+                 ("stiffness", PAPER, "--k", "1,10", "--plot", str(foreign)),
+                 ("basis", PAPER, "--xdmf", str(tmp_path / "run.xdmf"))):
+        out = dbf_hpc(*args)
+        assert _one_line(out) and "exists and is not" in out.stderr, (args, out.stderr)
+    assert run_out.read_bytes() == before and foreign.read_bytes() == b"\x89PNG not a dbf-hpc figure"
+    figures = tmp_path / "figs"
+    figures.mkdir()
+    (figures / "probes.png").write_bytes(b"\x89PNG mine")
+    out = dbf_hpc("plot", str(run_out), "-d", str(figures), ranks=1)
+    assert _one_line(out) and "is not a dbf-hpc plot" in out.stderr
+    assert (figures / "probes.png").read_bytes() == b"\x89PNG mine"
+    for _ in range(2):       # its own files are replaced by a rerun
+        out = dbf_hpc("stiffness", PAPER, "--k", "1,10", "-o", str(tmp_path / "k.csv"), "--plot", str(tmp_path / "k.png"))
+        assert out.returncode == 0, out.stderr
+        out = dbf_hpc("plot", str(run_out), "-d", str(tmp_path / "own"), ranks=1)
+        assert out.returncode == 0, out.stderr
+
+
 def test_the_paraview_file_beside_an_output_never_replaces_what_dbf_hpc_did_not_write(tmp_path):
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "run.xdmf"), *SHORT)
     assert _one_line(out) and "ends in .xdmf" in out.stderr and not os.listdir(tmp_path)
