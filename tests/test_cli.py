@@ -459,6 +459,19 @@ def test_unused_petsc_options_and_suspicious_units_draw_warnings(tmp_path):
         assert expected in out.stdout, (expected, out.stdout)
 
 
+def test_a_fixed_step_that_does_not_resolve_the_impacts_draws_a_warning_and_one_that_does_not(tmp_path):
+    # Red team: at k = 1e12 N/m the full-order peak force was k times a penetration set by dt (96 kN at
+    # dt = 1e-5 s, 3 kN at 5e-7 s) with no word. The paper beam's chatter lasts ~15 us an impact.
+    common = ("run", PAPER, "--method", "full", "--set", "integrator.t_end=0.25")
+    coarse = dbf_hpc(*common, "-o", str(tmp_path / "coarse.h5"), "--set", "constraint.k_minus=1e12",
+                     "--set", "constraint.k_plus=1e12", ranks=1)
+    assert coarse.returncode == 0, coarse.stderr
+    assert "the impacts of constraint 1 at x = 0.25 m last 1 fixed steps" in coarse.stdout, coarse.stdout
+    fine = dbf_hpc(*common, "-o", str(tmp_path / "fine.h5"), "--set", "integrator.dt=2e-6", "--set",
+                   "output.sample_dt=2e-6", ranks=1)
+    assert fine.returncode == 0 and "fixed steps" not in fine.stdout, fine.stdout   # 7.6 steps an impact
+
+
 def test_the_installed_command_works_without_an_activated_venv(tmp_path):
     # A Jupyter kernel or `.venv/bin/dbf-hpc` from a plain shell: no PETSC_DIR, no SLEPC_DIR.
     command = os.path.join(os.path.dirname(sys.executable), "dbf-hpc")
