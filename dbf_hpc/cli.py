@@ -137,7 +137,16 @@ def _cache(args) -> int:
 
     from . import cache
 
+    from .errors import InputError
+
+    if args.older_than is not None and not (args.older_than >= 0 and args.older_than != float("inf")):
+        raise InputError(f"--older-than {args.older_than:g}: give a finite number of days >= 0")
+    if args.dir is not None and not args.dir.strip():
+        raise InputError("--dir '': give the cache directory (or leave --dir out for the default)")
     folder = os.path.expanduser(args.dir or cache.DEFAULT_DIR)
+    if args.dir is not None and not os.path.isdir(folder):
+        raise InputError(f"--dir {args.dir!r}: " + ("is not a directory" if os.path.exists(folder) else
+                                                    "no such directory"))
     if MPI.COMM_WORLD.rank:
         return 0
     if args.action == "clear":

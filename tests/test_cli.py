@@ -472,6 +472,20 @@ def test_a_fixed_step_that_does_not_resolve_the_impacts_draws_a_warning_and_one_
     assert fine.returncode == 0 and "fixed steps" not in fine.stdout, fine.stdout   # 7.6 steps an impact
 
 
+def test_cache_commands_refuse_a_bad_age_or_directory_and_clear_an_empty_one(tmp_path):
+    # Red team: --older-than -1 (or nan) cleared every basis; a missing --dir listed "0 file(s)"
+    (tmp_path / "file").write_text("x")
+    for args, message in ((("clear", "--older-than", "-1"), "--older-than -1: give a finite number"),
+                          (("clear", "--older-than", "nan"), "--older-than nan"),
+                          (("list", "--dir", str(tmp_path / "missing")), "no such directory"),
+                          (("clear", "--dir", str(tmp_path / "file")), "is not a directory"),
+                          (("list", "--dir", ""), "give the cache directory")):
+        out = dbf_hpc("cache", *args, ranks=1)
+        assert _one_line(out) and message in out.stderr, (args, out.stderr)
+    out = dbf_hpc("cache", "clear", "--dir", str(tmp_path), "--older-than", "0", ranks=1)
+    assert out.returncode == 0 and "removed 0 file(s)" in out.stdout and (tmp_path / "file").exists()
+
+
 def test_the_installed_command_works_without_an_activated_venv(tmp_path):
     # A Jupyter kernel or `.venv/bin/dbf-hpc` from a plain shell: no PETSC_DIR, no SLEPC_DIR.
     command = os.path.join(os.path.dirname(sys.executable), "dbf-hpc")
