@@ -105,9 +105,10 @@ def scene_text(top: list, stops: int, surface: list | None = None) -> str:
     with `surface`, over all the top face's z DOFs off the clamp) (0.2 mm clearance, 1e7 N/m), a 1 kN
     force at 60 Hz at the tip (below the first bending mode, 81.8 Hz), 1 % modal damping."""
     where, places = ("top face", surface) if surface is not None else ("top centre line", top)
-    if not 1 <= stops <= len(places):
-        raise SystemExit(f"solid3d: --stops must be from 1 to {len(places)} (the nodes of the {where})")
     first = 0 if surface is not None else len(places) // 6
+    if not 1 <= stops <= len(places) - first:   # more would put two stops on one node (silently fewer)
+        raise SystemExit(f"solid3d: --stops must be from 1 to {len(places) - first} (the nodes of the {where}"
+                         + (" off its first sixth" if first else "") + ")")
     picks = np.unique(np.linspace(first, len(places) - 1, stops).round().astype(int))
     lines = ["# A steel bar (1 m x 0.1 m x 0.1 m, trilinear hexahedra) clamped at x = 0, in a guide channel:",
              f"# {picks.size} stops on the z DOFs of its {where}, driven at the tip. Written by",
@@ -137,7 +138,12 @@ def main(argv=None) -> int:
     nx, ny, nz = args.elements
     if min(args.elements) < 1 or ny % 2:
         parser.error("--elements: NX, NY, NZ >= 1 and NY even (the top centre line runs through nodes at y = W/2)")
-    K, M, node = assemble(nx, ny, nz)
+    top = top_z_dofs(nx, ny, nz)
+    scene = scene_text(top, args.stops, top_surface_z_dofs(nx, ny, nz) if args.surface else None)  # checks --stops
+    try:
+        K, M, node = assemble(nx, ny, nz)
+    except MemoryError:
+        raise SystemExit(f"solid3d: not enough memory to assemble {nx} x {ny} x {nz} elements; use fewer") from None
     n_nodes = (nx + 1) * (ny + 1) * (nz + 1)
     clamped = np.zeros(n_nodes, dtype=bool)
     clamped[[node(0, j, k) for j in range(ny + 1) for k in range(nz + 1)]] = True
@@ -154,7 +160,6 @@ def main(argv=None) -> int:
         P.view(viewer)
         viewer.destroy()
         P.destroy()
-    top = top_z_dofs(nx, ny, nz)
     info = {"dofs": int(free_dofs.size), "elements": [nx, ny, nz], "size_m": [LENGTH, WIDTH, HEIGHT],
             "top_z": top, "tip_z": top[-1], "material": {"E": E, "nu": NU, "rho": RHO}}
     with open(os.path.join(args.out, "dofs.json"), "w") as f:
@@ -164,8 +169,10 @@ def main(argv=None) -> int:
     np.savetxt(os.path.join(args.out, "nodes.txt"), coordinates, fmt="%.9g")
     with open(os.path.join(args.out, "dofs.txt"), "w") as f:
         f.writelines(f"{dof // 3} {'xyz'[dof % 3]}\n" for dof in free_dofs)
-    with open(os.path.join(args.out, "scene.toml"), "w") as f:
-        f.write(scene_text(top, args.stops, top_surface_z_dofs(nx, ny, nz) if args.surface else None))
+    tmp = os.path.join(args.out, f"scene.toml.tmp-{os.getpid()}")
+    with open(tmp, "w") as f:
+        f.write(scene)
+    os.replace(tmp, os.path.join(args.out, "scene.toml"))
     print(f"{args.out}: {free_dofs.size} free DOFs, K nnz {K.nnz}")
     return 0
 

@@ -87,3 +87,18 @@ def load_scene_text(text):
     import tomllib
 
     return tomllib.loads(text)
+
+
+def test_more_stops_than_the_line_has_nodes_is_refused_before_any_file_is_written(shared_tmp_path):
+    # Red team: 5 stops on a 4-node line wrote K and M, then failed with scene.toml left empty (an
+    # earlier one clobbered); 8 on 7 places gave 7 stops without a word.
+    if MPI.COMM_WORLD.rank == 0:
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+        for elements, stops, most in (("4", 5, 4), ("8", 8, 7)):
+            folder = shared_tmp_path / f"s{elements}"
+            done = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "solid3d.py"), str(folder),
+                                   "--elements", elements, "2", "2", "--stops", str(stops)], capture_output=True,
+                                  text=True, env=env)
+            assert done.returncode == 1 and f"--stops must be from 1 to {most}" in done.stderr, done.stderr
+            assert not folder.exists()
+    MPI.COMM_WORLD.Barrier()
