@@ -313,9 +313,12 @@ def trust_check(ops: Operators, values, estimate, residual, prefix: str = "modes
                          f"coarser model (or raise -{prefix}trust_tol)")
     j = int(np.argmax(residual))
     if residual[j] > np.sqrt(tol):
+        singular = (", or K is singular (rigid-body modes: a structure not fully supported, whose factorization "
+                    "at 0 is garbage): apply the supports to K and M" if ops.mesh is None and not ops.rigid_modes
+                    else "")
         raise SolverError(f"reference modes: eigenpair {j + 1} has relative residual {residual[j]:.1e} "
                           f"> {np.sqrt(tol):.1e}: the eigensolver's answer is not an eigenpair of (K, M); "
-                          f"check the -{prefix}st_ solver options (an exact factorization is needed)")
+                          f"check the -{prefix}st_ solver options (an exact factorization is needed){singular}")
 
 
 def _element_limit(ops: Operators, count: int, estimate: float, tol: float, prefix: str) -> int:

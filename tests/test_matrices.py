@@ -245,3 +245,21 @@ def test_a_free_floating_matrix_model_is_said_to_have_rigid_body_modes(shared_tm
     with pytest.raises(InputError, match="K is singular: .* rigid-body modes"):
         reference_modes(loaded, count=4)
     loaded.destroy()
+
+
+def test_a_free_floating_matrix_model_is_refused_naming_a_singular_k(shared_tmp_path):
+    # Red team: a spring chain without supports drew only "check the -modes_st_ solver options"
+    n = 20
+    K = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tolil()
+    K[0, 0] = K[n - 1, n - 1] = 1.0                    # K 1 = 0: the chain translates freely
+    paths = [str(shared_tmp_path / name) for name in ("K.mtx", "M.mtx")]
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths[0], 1e5 * K.tocsr(), precision=17)
+        scipy.io.mmwrite(paths[1], scipy.sparse.identity(n, format="csr"))
+    MPI.COMM_WORLD.Barrier()
+    ops = load_operators(MatrixFiles(*paths))
+    try:
+        with pytest.raises(DbfError, match="K is singular"):
+            reference_modes(ops, count=4)
+    finally:
+        ops.destroy()
