@@ -401,13 +401,16 @@ def parse_stiffnesses(text: str):
     try:
         if ":" in text:
             start, stop, count = text.split(":")
-            values = np.logspace(np.log10(float(start)), np.log10(float(stop)), int(count))
+            ends = np.array([float(start), float(stop)])
+            if not np.all(np.isfinite(ends) & (ends > 0)):   # before log10 (numpy would warn first)
+                raise InputError(f"--k {text!r}: stiffnesses must be positive and finite")
+            values = np.logspace(np.log10(ends[0]), np.log10(ends[1]), int(count))
         else:
             values = np.array([float(v) for v in text.split(",")])
     except ValueError:
         raise InputError(f"--k {text!r}: expected a comma list or START:STOP:COUNT") from None
-    if values.size == 0 or not np.all(values > 0):
-        raise InputError(f"--k {text!r}: stiffnesses must be positive")
+    if values.size == 0 or not np.all(np.isfinite(values) & (values > 0)):
+        raise InputError(f"--k {text!r}: stiffnesses must be positive and finite")
     return values
 
 

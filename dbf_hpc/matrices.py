@@ -30,7 +30,7 @@ SYMMETRY_TOL = 1e-10
 
 def _readable(path: str, what: str) -> None:
     if not os.path.isfile(path):
-        raise InputError(f"{what} file {path!r} does not exist")
+        raise InputError(f"{what} file {path!r} " + ("is a directory" if os.path.isdir(path) else "does not exist"))
     if not os.access(path, os.R_OK):
         raise InputError(f"{what} file {path!r} is not readable")
     if os.path.getsize(path) == 0 and not path.endswith(".mtx"):   # (an empty .mtx has no header: said so)
@@ -333,6 +333,14 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
             skew = asymmetry(A) if A is not None else 0.0
             if skew > SYMMETRY_TOL:
                 raise InputError(f"{name} matrix {path!r} is not symmetric (||A - A^T|| / ||A|| = {skew:.3g})")
+        if ops.C is not None:   # a damping matrix is positive semi-definite: its diagonal is >= 0
+            diagonal = ops.C.getDiagonal()
+            lowest = diagonal.min()
+            scale = diagonal.norm(PETSc.NormType.NORM_INFINITY)
+            diagonal.destroy()
+            if lowest[1] < -1e-12 * scale:
+                raise InputError(f"damping matrix {files.damping!r} has a negative diagonal entry ({lowest[1]:.3g} in "
+                                 f"row {lowest[0]}): damping must dissipate (C positive semi-definite)")
         if ops.G is not None:
             _check_finite("gyroscopic", files.gyroscopic, ops.G)
             skew = asymmetry(ops.G, skew=True)

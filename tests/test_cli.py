@@ -67,6 +67,8 @@ def test_stiffness_sweep_writes_data_and_figure(tmp_path):
     (("modes", PAPER, "--set", "structure.E=-5"), "E must be positive"),
     (("stiffness", PAPER, "--constraint", "3"), "the scene has 1 constraint"),
     (("stiffness", PAPER, "-o", "/nonexistent/dir/sweep.csv"), "does not exist"),
+    (("stiffness", PAPER, "--k", "0:1e6:5"), "must be positive and finite"),   # not six numpy warnings first
+    (("stiffness", PAPER, "--k", "1,inf"), "must be positive and finite"),
 ])
 def test_bad_input_is_one_line_and_a_non_zero_exit(args, message):
     out = dbf_hpc(*args)

@@ -263,3 +263,17 @@ def test_a_free_floating_matrix_model_is_refused_naming_a_singular_k(shared_tmp_
             reference_modes(ops, count=4)
     finally:
         ops.destroy()
+
+
+def test_a_damping_matrix_that_adds_energy_or_a_directory_given_as_a_file_is_refused(shared_tmp_path):
+    # Red team: C = -I was accepted (rayleigh_alpha < 0 is refused); a directory "did not exist"
+    paths = {name: str(shared_tmp_path / name) for name in ("K.mtx", "M.mtx", "C.mtx")}
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths["K.mtx"], scipy.sparse.diags([2.0, 3.0, 4.0]).tocsr())
+        scipy.io.mmwrite(paths["M.mtx"], scipy.sparse.identity(3, format="csr"))
+        scipy.io.mmwrite(paths["C.mtx"], scipy.sparse.diags([0.1, -0.2, 0.1]).tocsr())
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="negative diagonal entry \\(-0.2 in row 1\\)"):
+        load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], damping=paths["C.mtx"]))
+    with pytest.raises(InputError, match="stiffness file .* is a directory"):
+        load_operators(MatrixFiles(str(shared_tmp_path), paths["M.mtx"]))
