@@ -26,7 +26,8 @@ def open_output(path: str):
     elif os.path.isfile(path + ".partial"):
         target = path + ".partial"
     else:
-        raise InputError(f"{path!r} does not exist")
+        raise InputError(f"{path!r} " + ("is a directory: give a dbf-hpc output file" if os.path.isdir(path)
+                                         else "does not exist"))
     try:
         f = h5py.File(target, "r")
     except OSError:
