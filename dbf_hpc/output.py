@@ -306,7 +306,9 @@ class OutputWriter:
                     block = dataset[lo:min(lo + 64 * BLOCK, samples)]
                     self.hashes[name].update(np.ascontiguousarray(block, dtype=np.float64).tobytes())
             self.count = samples
-            if digest is None or not np.array_equal(self.digest(), np.asarray(digest, dtype=np.uint8)):
+            if digest is None:
+                raise ValueError("its checkpoint was written by an older dbf-hpc, without the samples' checksum")
+            if not np.array_equal(self.digest(), np.asarray(digest, dtype=np.uint8)):
                 raise ValueError("its samples are not those its checkpoint's run wrote (another run's, or edited)")
         except Exception:
             self.file.close()
