@@ -235,9 +235,9 @@ def _warn_unresolved(summary: dict, constraints, dt: float, comm, also: str = ""
     for j, (impacts, duration) in enumerate(zip(stats["impacts"], stats["impact_duration_mean"])):
         if impacts > 0 and duration < STEPS_PER_IMPACT * dt:
             PETSc.Sys.Print(f"dbf-hpc: warning: the impacts of constraint {j + 1} at {constraints[j].label} last "
-                            f"{duration / dt:.2g} fixed steps on average ({duration:.3g} s at dt = {dt:.3g} s): the step does not resolve them, so "
-                            f"contact forces and times depend on dt; reduce [integrator] dt (5 to 10 steps an "
-                            f"impact){also}", comm=comm)
+                            f"{duration / dt:.2g} fixed steps on average ({duration:.3g} s at dt = {dt:.3g} s): the "
+                            f"step does not resolve them, so contact forces and times depend on dt; reduce "
+                            f"[integrator] dt (5 to 10 steps an impact){also}", comm=comm)
 
 
 def _warn_idle(summary: dict, constraints, comm) -> None:

@@ -518,7 +518,8 @@ def reduce_state_space(fom, basis: StateSpaceBasis, field: ReducedField | None =
                            r_c=fom.influence_at(rows), base_load=base_load, force_shape=force_shape,
                            constraints=fom.constraints, support=fom.support, force=fom.force, q0=q0, p0=np.zeros(n),
                            probe_B=at(fom.probes), probe_r=fom.support_share(fom.probes), basis_info=info,
-                           r_rate=r_rate, r_value=r_value, field=field, field_points=ops.field_map(), probe_shape=fom.probes.shape)
+                           r_rate=r_rate, r_value=r_value, field=field, field_points=ops.field_map(),
+                           probe_shape=fom.probes.shape)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -533,7 +533,8 @@ def test_a_table_figure_or_shapes_file_replaces_only_its_own_kind(tmp_path):
     assert _one_line(out) and "is not a dbf-hpc plot" in out.stderr
     assert (figures / "probes.png").read_bytes() == b"\x89PNG mine"
     for _ in range(2):       # its own files are replaced by a rerun
-        out = dbf_hpc("stiffness", PAPER, "--k", "1,10", "-o", str(tmp_path / "k.csv"), "--plot", str(tmp_path / "k.png"))
+        out = dbf_hpc("stiffness", PAPER, "--k", "1,10", "-o", str(tmp_path / "k.csv"), "--plot",
+                      str(tmp_path / "k.png"))
         assert out.returncode == 0, out.stderr
         out = dbf_hpc("plot", str(run_out), "-d", str(tmp_path / "own"), ranks=1)
         assert out.returncode == 0, out.stderr
