@@ -10,7 +10,8 @@
 
 PETSc/SLEPc options (single dash, e.g. -modes_eps_tol 1e-12 -log_view) go after the scene; each
 solver reads its own prefix (modes_, dbf_, static_, rom_, full_). Exit status: 0 on success, 1 on an
-error the user can act on (one line on stderr), 70 on an internal error."""
+error the user can act on (one line on stderr), 2 on a malformed command line (one line on stderr),
+70 on an internal error."""
 from __future__ import annotations
 
 import argparse
@@ -47,8 +48,22 @@ def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     return ours, petsc
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the package's error contract: a malformed command line is one line on stderr,
+    `dbf-hpc: error: ...` naming the command and where its usage is, exit status 2; no usage block.
+    It runs before MPI starts, so the launcher's rank variable decides who prints (rank 0 only)."""
+
+    def error(self, message):
+        rank = next((os.environ[v] for v in ("OMPI_COMM_WORLD_RANK", "PMIX_RANK", "PMI_RANK") if v in os.environ), "0")
+        if rank == "0":
+            command = self.prog.split(" ", 1)[1] if " " in self.prog else None
+            where = f"{command}: " if command else ""
+            print(f"dbf-hpc: error: {where}{message} (see {self.prog} --help)", file=sys.stderr, flush=True)
+        sys.exit(2)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="dbf-hpc",
         description="Discontinuous basis functions (Brake & Segalman 2011) for structures with many "
                     "discrete nonlinear constraints, on PETSc/SLEPc. Run it under MPI: "

@@ -31,6 +31,17 @@ def test_help_works_under_mpirun():
     assert "modes" in out.stdout and "basis" in out.stdout and "stiffness" in out.stdout
 
 
+@pytest.mark.parametrize("argv", [[], ["bogus"], ["run"], ["run", PAPER, "--method", "xyz"],
+                                  ["cache", "clear", "--older-than", "abc"], ["plot"]])
+def test_a_malformed_command_line_is_one_error_line_from_one_rank(argv):
+    """argparse's own contract prints a usage block, on every rank; ours is one line, exit status 2."""
+    out = dbf_hpc(*argv)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2, out.stderr
+    assert len(lines) == 1 and lines[0].startswith("dbf-hpc: error: ") and "--help" in lines[0], out.stderr
+    assert "usage" not in out.stdout + out.stderr and "Traceback" not in out.stderr
+
+
 def test_modes_of_the_paper_beam_are_the_euler_bernoulli_frequencies():
     out = dbf_hpc("modes", PAPER, "--set", "basis.modes=4", "-modes_eps_tol", "1e-12")
     assert out.returncode == 0, out.stderr
