@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 
 import h5py
 import numpy as np
@@ -278,24 +279,38 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
 DEFAULT_DIR = "~/.cache/dbf_hpc"
 
 
+# The names save() gives: basis-<20 hex of the key>.h5, and its temporary basis-....h5.tmp-<pid>
+_NAME = re.compile(r"^basis-([0-9a-f]{20})\.h5(\.tmp-\d+)?$")
+# A temporary file untouched this long is a killed job's (a write of 10^5 x 1000 columns takes seconds);
+# a younger one may be another job's write in progress, and is kept
+STALE_TEMPORARY_S = 600.0
+
+
 def entries(cache_dir: str) -> list:
-    """The bases cached in `cache_dir`: path, size (bytes), modified (time), and what each holds
-    (settings, dbf-hpc version, shape), or the problem reading it. Not collective."""
+    """The files of the cache in `cache_dir`: path, size (bytes), modified (time), and what each holds
+    (settings, dbf-hpc version, shape), or the problem reading it ("problem"; "foreign": a file named
+    like a basis that save() did not write, which clear() never removes). Files not named as save()
+    names them are not listed. Not collective."""
     out = []
     if not os.path.isdir(cache_dir):
         return out
     for name in sorted(os.listdir(cache_dir)):
-        if not name.startswith("basis-"):
-            continue
+        match = _NAME.match(name)
         path = os.path.join(cache_dir, name)
+        if not match or not os.path.isfile(path):
+            continue
         entry = {"path": path, "size": os.path.getsize(path), "modified": os.path.getmtime(path)}
-        if ".tmp-" in name:
-            entry["problem"] = "a temporary file left by a killed job"
+        if match.group(2):
+            entry["problem"] = "a temporary file left by a killed job (or being written)"
         else:
             try:
                 with h5py.File(path, "r") as f:
-                    entry.update(settings=f.attrs.get("settings", ""), version=f.attrs.get("dbf_hpc_version", "?"),
-                                 shape=f["V"].shape)
+                    key = f.attrs.get("key", "")
+                    if not (isinstance(key, str) and key[:20] == match.group(1) and "V" in f):
+                        entry.update(problem="not a basis this cache wrote: kept", foreign=True)
+                    else:
+                        entry.update(settings=f.attrs.get("settings", ""),
+                                     version=f.attrs.get("dbf_hpc_version", "?"), shape=f["V"].shape)
             except (OSError, KeyError):
                 entry["problem"] = "unreadable"
         out.append(entry)
@@ -303,14 +318,25 @@ def entries(cache_dir: str) -> list:
 
 
 def clear(cache_dir: str, older_than_days: float | None = None) -> tuple[int, int]:
-    """Remove cached bases (those not used for older_than_days, if given) and stray temporary files:
-    (files removed, bytes freed). Not collective."""
+    """Remove cached bases (those not used for older_than_days, if given), unreadable ones and
+    temporary files left by killed jobs (untouched for STALE_TEMPORARY_S): (files removed, bytes
+    freed). Only files named as save() names them, and never a readable file save() did not write.
+    Not collective."""
     import time
 
     removed = freed = 0
     for entry in entries(cache_dir):
-        age_days = (time.time() - entry["modified"]) / 86400
-        if older_than_days is None or age_days > older_than_days or "problem" in entry:
-            os.remove(entry["path"])
+        age_s = time.time() - entry["modified"]
+        if entry.get("foreign"):
+            continue
+        if ".tmp-" in entry["path"]:
+            stale = age_s > STALE_TEMPORARY_S
+        else:
+            stale = older_than_days is None or age_s / 86400 > older_than_days or "problem" in entry
+        if stale:
+            try:
+                os.remove(entry["path"])
+            except FileNotFoundError:   # another clear, or the writer's rename, got there first
+                continue
             removed, freed = removed + 1, freed + entry["size"]
     return removed, freed

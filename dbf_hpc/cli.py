@@ -137,7 +137,10 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("-o", "--output", metavar="CSV", help="write k, omega, f to this CSV file")
     sweep.add_argument("--plot", metavar="PNG", help="write the Fig. 2 plot to this PNG file")
     cache = sub.add_parser("cache", help="list or clear the basis cache",
-                           description="List the cached bases (what each holds, its size and age) or remove them.")
+                           description="List the cached bases (what each holds, its size and age) or remove them. Only the "
+                                      "files the cache wrote are touched; a temporary file is removed "
+                                      "when untouched for 10 minutes (younger, another job may be "
+                                      "writing it).")
     cache.add_argument("action", choices=("list", "clear"))
     cache.add_argument("--dir", default=None, help="the cache directory (default ~/.cache/dbf_hpc, as scenes use)")
     cache.add_argument("--older-than", type=float, metavar="DAYS", help="clear only bases unused for this many days")

@@ -499,6 +499,29 @@ def test_cache_commands_refuse_a_bad_age_or_directory_and_clear_an_empty_one(tmp
     assert out.returncode == 0 and "removed 0 file(s)" in out.stdout and (tmp_path / "file").exists()
 
 
+def test_cache_clear_removes_only_the_files_the_cache_wrote(tmp_path):
+    # Red team: `cache clear` removed any basis-* file, a user's own among them, and a temporary file
+    # another job was still writing.
+    import h5py
+
+    out = dbf_hpc("basis", PAPER, "--set", "basis.modes=2", "--set", f"basis.cache={tmp_path}", ranks=1)
+    assert out.returncode == 0, out.stderr
+    (cached,) = [p for p in tmp_path.iterdir() if p.suffix == ".h5"]
+    (tmp_path / "basis-notes.txt").write_text("mine")
+    with h5py.File(tmp_path / "basis-0123456789abcdef0123.h5", "w") as f:   # named like one, not ours
+        f["V"] = np.zeros((3, 1))
+    stale, fresh = tmp_path / f"{cached.name}.tmp-11", tmp_path / f"{cached.name}.tmp-12"
+    stale.write_bytes(b"x")
+    fresh.write_bytes(b"x")
+    os.utime(stale, (1e9, 1e9))
+    listed = dbf_hpc("cache", "list", "--dir", str(tmp_path), ranks=1)
+    assert listed.returncode == 0 and "4 file(s)" in listed.stdout and "not a basis this cache wrote" in listed.stdout
+    out = dbf_hpc("cache", "clear", "--dir", str(tmp_path), ranks=1)
+    assert out.returncode == 0 and "removed 2 file(s)" in out.stdout, out.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["basis-0123456789abcdef0123.h5", "basis-notes.txt",
+                                                                 fresh.name])
+
+
 def test_the_installed_command_works_without_an_activated_venv(tmp_path):
     # A Jupyter kernel or `.venv/bin/dbf-hpc` from a plain shell: no PETSC_DIR, no SLEPC_DIR.
     command = os.path.join(os.path.dirname(sys.executable), "dbf-hpc")
