@@ -206,6 +206,11 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows) -> 
         _say(ops.comm, f"basis cache {path} does not match the operators (corrupt or stale); rebuilding it")
         basis.destroy()
         return None
+    if world.rank == 0:
+        try:   # its modification time is its last use, what `cache clear --older-than` reads
+            os.utime(path)
+        except OSError:   # a read-only cache serves all the same
+            pass
     return basis
 
 
