@@ -1,5 +1,7 @@
 """Accuracy control (accuracy.py): the a-priori indicator (captured static flexibility) with every
 basis, the a-posteriori estimate with every reduced run, and the tolerance mode."""
+import math
+
 import numpy as np
 import pytest
 
@@ -59,7 +61,17 @@ def test_the_tolerance_modes_next_candidate_follows_the_power_law_of_the_estimat
     assert next_modes([(4, 0.08), (8, 0.02), (16, 0.025)], 0.015) == 22
 
 
-def test_basis_flexibility_of_a_singular_reduced_stiffness_is_undefined():
+def test_the_power_law_of_the_estimates_says_where_a_tolerance_is_reached():
+    from dbf_hpc.accuracy import modes_needed
+
+    n, p = modes_needed([(8, 0.08), (16, 0.02)], 0.01)
+    assert n == pytest.approx(16 * np.sqrt(2)) and p == pytest.approx(2)
+    assert modes_needed([(8, 0.02), (16, 0.03)], 0.01) is None          # not falling: no law
+    assert modes_needed([(16, 0.02), (16, 0.01)], 0.01) is None         # one size: no law
+    assert modes_needed([(8, 1.0), (16, 0.5)], 1e-300)[0] < math.inf    # far beyond: large, finite
+
+
+
     assert np.all(np.isnan(basis_flexibility(np.zeros((2, 2)), np.eye(2))))
 
 
@@ -170,6 +182,23 @@ def test_a_tolerance_that_cannot_be_met_is_one_line_and_no_file(tmp_path):
     lines = done.stderr.strip().splitlines()
     assert done.returncode != 0 and len(lines) == 1, done.stderr
     assert lines[0].startswith("dbf-hpc: error: [basis] tolerance = 0.0001 cannot be met") and "reached" in lines[0]
+    assert not any(p.name.startswith("never") for p in tmp_path.iterdir())
+
+
+@pytest.mark.launcher
+def test_a_tolerance_out_of_the_estimates_reach_is_refused_from_their_trend(tmp_path):
+    # 1e-9 on the paper's beam: 6, 12, 24 modes estimate 13.7 %, 3.8 %, 3.2 %, a law near N^-1 that
+    # reaches 7.5e-10 only near 1e8 modes. It tried 48 and 96 modes (minutes) before refusing.
+    from test_cli import PAPER, dbf_hpc
+
+    out = tmp_path / "never.h5"
+    done = dbf_hpc("run", PAPER, "-o", str(out), "-q", "--set=basis.cache=off", "--set=integrator.t_end=0.2",
+                   "--set=basis.tolerance=1e-9", ranks=2)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and len(lines) == 1, done.stderr
+    assert lines[0].startswith("dbf-hpc: error: [basis] tolerance = 1e-09 cannot be met within 99 modes: "
+                               "reached 6 modes"), lines[0]
+    assert "24 modes" in lines[0] and "48 modes" not in lines[0] and "falling like N^-" in lines[0], lines[0]
     assert not any(p.name.startswith("never") for p in tmp_path.iterdir())
 
 
