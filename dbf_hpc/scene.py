@@ -218,17 +218,35 @@ def load_scene(path: str, overrides=()) -> Scene:
     return dataclasses.replace(validate(data, path, text), overrides=tuple(overrides))
 
 
+# A value on both sides and its two one-sided keys (the law takes one or the other)
+TWO_SIDED = {"k": ("k_minus", "k_plus"), "clearance": ("clearance_minus", "clearance_plus")}
+
+
+def _set_constraint_key(c: dict, key: str, value) -> None:
+    """An override of one constraint's key: k (clearance) replaces a scene's k_minus and k_plus
+    (clearance_minus, clearance_plus); one side over a scene's k keeps k on the other side."""
+    for both, sides in TWO_SIDED.items():
+        if key == both:
+            for side in sides:
+                c.pop(side, None)
+        elif key in sides and both in c:
+            kept = c.pop(both)
+            for side in sides:
+                c.setdefault(side, kept)
+    c[key] = value
+
+
 def _override_constraints(constraints, key: str, value, item: str) -> None:
     """constraint.key sets every constraint; constraint.N.key the N-th (from 1)."""
     index, dot, rest = key.partition(".")
     if not dot:
         for c in constraints:
-            c[key] = value
+            _set_constraint_key(c, key, value)
         return
     if not index.isdigit() or not 1 <= int(index) <= len(constraints):
         raise InputError(f"--set {item!r}: constraint.N.key needs N from 1 to {len(constraints)} (the scene's "
                          f"constraints), or constraint.key for all of them")
-    constraints[int(index) - 1][rest] = value
+    _set_constraint_key(constraints[int(index) - 1], rest, value)
 
 
 def _check_type(where: str, key: str, value, types) -> None:

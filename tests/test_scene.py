@@ -141,6 +141,20 @@ def test_set_can_target_one_constraint_by_its_number():
         load_scene(os.path.join(ROOT, "jobs", "paper_beam_4.toml"), ["constraint.5.clearance=1e-3"])
 
 
+def test_set_k_is_the_stiffness_on_both_sides_and_one_side_keeps_the_other():
+    # New-user pass: README's `--set constraint.2.k=1e5` was refused on every paper-beam scene, whose
+    # stops give k_minus and k_plus ("give either k or k_minus/k_plus, not both").
+    path = os.path.join(ROOT, "jobs", "paper_beam_4.toml")
+    s = load_scene(path, ["constraint.2.k=1e5"])
+    assert (s.constraints[1].law.k_minus, s.constraints[1].law.k_plus) == (1e5, 1e5)
+    assert s.constraints[0].law.k_plus == 1e6
+    s = load_scene(path, ["constraint.k=2e5", "constraint.1.k_plus=3e5", "constraint.clearance_minus=1e-3"])
+    assert [(c.law.k_minus, c.law.k_plus) for c in s.constraints[:2]] == [(2e5, 3e5), (2e5, 2e5)]
+    assert s.constraints[0].law.clearance_minus == 1e-3 and s.constraints[0].law.clearance_plus == 2.5e-3
+    s = load_scene(path, ["constraint.clearance_plus=4e-3", "constraint.clearance=1e-3"])
+    assert (s.constraints[0].law.clearance_minus, s.constraints[0].law.clearance_plus) == (1e-3, 1e-3)
+
+
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
 def test_a_number_that_is_not_finite_is_refused(value):
     with pytest.raises(InputError, match="must be finite"):
