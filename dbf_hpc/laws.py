@@ -204,10 +204,10 @@ def law(kind: str = "deadband", **keys) -> Law:
     return law_from_dict(None, {"law": kind, **keys})
 
 
-def law_from_dict(index: int | None, d: dict):
-    """The Law of constraint `index` (as the user counts them) from its [[constraint]] table,
-    without its position key. Every error names the constraint and the key."""
-    where = f"constraint {index}" if index is not None else "law"
+def law_from_dict(index: int | str | None, d: dict):
+    """The Law of constraint `index` (as the user counts them, or the words that name it) from its
+    [[constraint]] table, without its position key. Every error names the constraint and the key."""
+    where = index if isinstance(index, str) else f"constraint {index}" if index is not None else "law"
     if d.get("law") in LAWS_2D:
         return circular_from_dict(where, d)
     _check_values(where, d)
@@ -243,7 +243,7 @@ def _check_values(where: str, d: dict) -> None:
     """Known keys, each of the right type and range."""
     for key in d:
         if key in KEYS_2D and key not in KEYS:
-            raise InputError(f"{where}: {key} applies only to a circular law (law = \"circular\")")
+            raise InputError(f"{where}: {key} applies only to a flat_bar law (law = \"flat_bar\")")
         if key in ("mu", "v_reg", "normal_force") and d.get("law") != "friction":
             raise InputError(f"{where}: {key} applies to law = \"friction\" (and mu, v_reg to circular, flat_bar)")
         if key not in KEYS:

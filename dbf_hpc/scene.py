@@ -22,7 +22,8 @@ from .accuracy import EstimateSettings
 from .errors import InputError
 from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce, Turbulence
 from .fom import FullOrderModel, InitialState
-from .laws import law_from_dict
+from .laws import KEYS as LAW_KEYS
+from .laws import KEYS_2D, law_from_dict
 from .matrices import MatrixFiles
 from .schema import NUMBER, SECTIONS, valid_keys
 from .structure import BOUNDARIES, Beam
@@ -352,7 +353,12 @@ def _constraints(raw, path: str, at: _Positions, kind: str) -> tuple:
         if at.key not in c:
             raise InputError(f"{where}: {at.key} is required")
         at.check(where, c[at.key])
-        law = law_from_dict(i + 1, {k: v for k, v in c.items() if k not in (at.key, "wear_coefficient")})
+        known = (at.key, *LAW_KEYS, *(k for k in KEYS_2D if k not in LAW_KEYS), "wear_coefficient")
+        for key in c:
+            if key not in known:
+                raise InputError(f"{where}: unknown key {key!r} (keys: {', '.join(known)}; docs/scene.md says which "
+                                 f"law takes which)")
+        law = law_from_dict(where, {k: v for k, v in c.items() if k not in (at.key, "wear_coefficient")})
         wear = c.get("wear_coefficient")
         if wear is not None:
             if getattr(law, "dimension", 1) != 2:

@@ -61,7 +61,7 @@ def test_defaults_fill_every_section():
     ({"constraint": [{"law": "deadband", "k": 1e6}]}, "x is required"),
     ({"constraint": [{"x": 0.25, "law": "deadband", "k": 1e6}, {"x": 0.25, "law": "linear", "k": 1.0}]},
      "constraints 1 and 2 are both at x = 0.25 m"),
-    ({"constraint": [{"x": 0.25, "law": "stick", "k": 1e6}]}, "constraint 1"),
+    ({"constraint": [{"x": 0.25, "law": "stick", "k": 1e6}]}, r"\[\[constraint\]\] 1: law must be one of"),
     ({"output": {"probes": [-0.1]}}, "not on the beam"),
     ({"excitation": {"kind": "force", "frequency_hz": 1.0}}, "needs its position"),
     ({"excitation": {"kind": "quake"}}, "kind must be"),
