@@ -33,7 +33,7 @@ from slepc4py import SLEPc
 from . import __version__
 from .basis import BasisSettings, ReducedBasis, build_basis
 from .checkpoint import arrays_sha256
-from .errors import WRITE_ERRORS, InputError, park, write_failure
+from .errors import LOCK_HINT, WRITE_ERRORS, InputError, park, refused_lock, write_failure
 from .output import check_free_space
 from .operators import Operators
 
@@ -165,7 +165,7 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings):
                 return "has the wrong shape", {}, None
             return None, arrays, f["V"][lo:hi, :]
     except (OSError, KeyError, ValueError) as e:
-        return f"cannot be read ({type(e).__name__})", {}, None
+        return f"cannot be read ({LOCK_HINT if refused_lock(e) else type(e).__name__})", {}, None
 
 
 def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows) -> ReducedBasis | None:

@@ -559,8 +559,27 @@ def _terminated(signum, frame):
                       "to start again (the basis cache keeps what was finished)")
 
 
+def _quiet_write_failures(unraisable) -> None:
+    """sys.unraisablehook: after a write failed (a full disk), h5py frees each of its objects with the
+    same error, printed as "Exception ignored" with a traceback (thousands, measured). The failure
+    itself is reported once, as the command's error line; anything else goes to the default hook."""
+    if not _is_write_failure(unraisable.exc_value):
+        sys.__unraisablehook__(unraisable)
+
+
+def _quiet_write_failures_printed(kind, value, tb) -> None:
+    """sys.excepthook: Cython prints the same errors of h5py's deallocations through it first."""
+    if not _is_write_failure(value):
+        sys.__excepthook__(kind, value, tb)
+
+
+def _is_write_failure(exc) -> bool:
+    return isinstance(exc, RuntimeError) and "write failed" in str(exc)
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    sys.unraisablehook, sys.excepthook = _quiet_write_failures, _quiet_write_failures_printed
     ours, petsc_options = split_petsc_options(argv)
     args = build_parser().parse_args(ours)
 

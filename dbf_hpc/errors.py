@@ -26,8 +26,21 @@ class Interrupted(SolverError):
 WRITE_ERRORS = (OSError, RuntimeError)
 
 
+# HDF5 locks the files it opens; where the file system refuses locks (some NFS and Lustre mounts)
+# every open fails with ENOLCK, which read as "not an HDF5 file" (red team)
+LOCK_HINT = ("the file system refuses HDF5's file locks: set HDF5_USE_FILE_LOCKING=FALSE in the environment "
+             "(dbf-hpc's own .lock files still keep two jobs off one output)")
+
+
+def refused_lock(exc: Exception) -> bool:
+    """Whether an HDF5 open failed because the file system refused its lock."""
+    return "unable to lock file" in str(exc)
+
+
 def write_failure(exc: Exception) -> str:
     """One line saying why a write failed."""
+    if refused_lock(exc):
+        return LOCK_HINT
     text = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
     return "No space left on device" if "errno = 28" in text or "No space left" in text else text.splitlines()[0]
 

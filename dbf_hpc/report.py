@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 
 from . import layout
-from .errors import InputError
+from .errors import LOCK_HINT, InputError, refused_lock
 
 # The impact statistics a tube-vibration engineer reads first, with how to print them.
 HEADLINE = (("impacts", "{:.0f} impacts"), ("impact_rate", "{:.3g}/s"), ("contact_fraction", "in contact {:.2%}"),
@@ -30,8 +30,9 @@ def open_output(path: str):
                                          else "does not exist"))
     try:
         f = h5py.File(target, "r")
-    except OSError:
-        raise InputError(f"{target!r} is not an HDF5 file") from None
+    except OSError as e:
+        raise InputError(f"cannot open {target!r}: {LOCK_HINT}" if refused_lock(e) else
+                         f"{target!r} is not an HDF5 file") from None
     if layout.TIME not in f and "cases" not in f:
         f.close()
         raise InputError(f"{target!r} is not a dbf-hpc output")
@@ -43,9 +44,12 @@ def describe(path: str) -> list:
     f, complete = open_output(path)
     run = path[:-len(".partial")] if path.endswith(".partial") else path   # its checkpoint is run.checkpoint
     with f:
-        if "cases" in f:
-            return _sweep_lines(path, f)
-        return _run_lines(path, f) if complete else _partial_lines(run, f)
+        try:
+            if "cases" in f:
+                return _sweep_lines(path, f)
+            return _run_lines(path, f) if complete else _partial_lines(run, f)
+        except RuntimeError as e:   # HDF5's metadata damaged, e.g. by a write that failed on a full disk
+            raise InputError(f"{f.filename!r} is damaged ({str(e).splitlines()[0]})") from None
 
 
 def _run_lines(path: str, f) -> list:

@@ -377,7 +377,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     timings["snapshots"] = time.perf_counter() - t
     summary = finish(scene, recorder, stats, timings, ranks, "rom", model.field_points, snap_t, snap_w, model,
                      {**(estimate.attrs() if estimate else {}), **(long_run.attrs() if long_run else {})},
-                     long_run.datasets(layout.STATISTICS_ERROR) if long_run else None)
+                     long_run.datasets(layout.STATISTICS_ERROR) if long_run else None, checkpoint)
     if estimate:
         summary["estimated_error"], summary["estimated_error_window"] = estimate.value, estimate.window
     if long_run:
@@ -448,8 +448,9 @@ def _first_contact(writer, times: np.ndarray, block: int = 1 << 16):
 def _reopen(path: str, state: dict) -> OutputWriter:
     try:
         return OutputWriter.reopen(path, int(state["samples"]), state.get("samples_sha256"))
-    except (OSError, KeyError, ValueError) as e:
-        raise InputError(f"{path}.partial cannot be resumed ({e}); rerun without --resume") from None
+    except (OSError, KeyError, ValueError, RuntimeError) as e:   # RuntimeError: metadata a failed write damaged
+        raise InputError(f"{path}.partial cannot be resumed ({str(e).splitlines()[0]}); rerun without "
+                         f"--resume") from None
 
 
 def _left_behind(message: str, writer, checkpoint: Checkpoint | None) -> str:
@@ -570,10 +571,10 @@ def _initial_text(init) -> str:
 
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
            field, snap_t, snap_w, model: ReducedModel | None = None, extra_attrs: dict | None = None,
-           extra_datasets: dict | None = None) -> dict:
+           extra_datasets: dict | None = None, checkpoint: Checkpoint | None = None) -> dict:
     """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
     snapshots, an XDMF file beside it for ParaView), and return the run's summary. `field` is the
-    PointValues the snapshots are taken at."""
+    PointValues the snapshots are taken at; `checkpoint` the run's (a failed write names it)."""
     timings["total"] = sum(timings.values())
     constraints, output, init = recorder.constraints, scene.output(), scene.initial()
     snap_w = np.asarray(snap_w, dtype=float).reshape(np.size(snap_t), field.count)
@@ -615,6 +616,34 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
         if info.get("complex_modes"):   # a gyroscopic basis: Re and Im columns of each complex mode and DBF
             attrs["basis_complex_modes"] = int(info["complex_modes"])
             attrs["reduced_form"] = info.get("form", "second_order")
+    # A termination signal while the fixed data is written waits for it (a few seconds): stopped
+    # halfway, the .partial held datasets a resume would write again (red team). A write that fails
+    # (a full disk) is one line; h5py reports some as KeyError or ValueError ("Unable to ...").
+    deferred = []
+    try:
+        with _on_sigterm(lambda signum, frame: deferred.append(signum)):
+            _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs)
+    except (*WRITE_ERRORS, KeyError, ValueError) as exc:
+        if isinstance(exc, (KeyError, ValueError)) and "Unable to" not in str(exc):
+            raise
+        resume = " with --resume (it says if the failed write damaged the .partial)" if checkpoint is not None else ""
+        raise SolverError(_left_behind(f"cannot finish {writer.path}: {write_failure(exc)}; free some space, then "
+                                       f"rerun{resume}", writer, checkpoint)) from None
+    if deferred:
+        print(f"dbf-hpc: warning: a termination signal came while {writer.path} was written; it was finished first",
+              flush=True)
+    if snap_t.size:
+        sidecar = xdmf.sidecar(writer.path)
+        try:
+            xdmf.write(sidecar, writer.path, "snapshots", geometry[0], geometry[1].shape[0], snap_t)
+        except OSError as exc:
+            raise SolverError(f"wrote {writer.path}, but not its ParaView file {sidecar}: "
+                              f"{write_failure(exc)}") from None
+    return {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
+            "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
+
+
+def _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs) -> None:
     writer.finish(
         datasets=datasets,
         dataset_attrs={f"{layout.CONSTRAINT_STATS}/{k}": {"unit": UNITS[k], "description": DESCRIPTIONS[k]}
@@ -626,11 +655,6 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                "mpi_ranks": ranks, "solver_stats": json.dumps(stats), "wall_times": json.dumps(timings),
                "initial_state": _initial_text(init),
                **attrs})
-    if snap_t.size:
-        xdmf.write(xdmf.sidecar(writer.path), writer.path, "snapshots", geometry[0],
-                   geometry[1].shape[0], snap_t)
-    return {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
-            "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
 
 
 class FullCheckpointing:
@@ -736,7 +760,8 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     if world.rank == 0:
         snap_t = settings.sample_times[sorted(snaps)] if snaps else np.zeros(0)
         snap_w = np.array([snaps[i] for i in sorted(snaps)]).reshape(snap_t.size, field.positions.size)
-        summary = finish(scene, recorder, stats, timings, world.size, "full", field, snap_t, snap_w)
+        summary = finish(scene, recorder, stats, timings, world.size, "full", field, snap_t, snap_w,
+                         checkpoint=checkpoint)
         checkpoint.remove()
         summary_path = summary["path"]
         _say(say, f"done: {stats['steps']} steps ({stats['factorizations']} factorization(s), {stats['contact_steps']} "

@@ -111,6 +111,22 @@ def test_the_untouched_checkpoint_resumes_to_the_end(stopped):
         assert_all(f["time"].shape == (10001,) and bool(f.attrs["complete"]))
 
 
+def test_what_a_finish_stopped_halfway_wrote_is_written_again_on_resume(stopped):
+    # Red team: a full disk (or, before, SIGTERM) stopped the final write halfway; the .partial kept
+    # the fixed datasets written so far and --resume failed on "name already exists".
+    sets, out, _ = stopped
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(out + ".partial", "r+") as f:
+            f["constraints/position"] = [9.0]
+            f["snapshots/displacement/000000"] = np.zeros((2, 3))
+    MPI.COMM_WORLD.Barrier()
+    summary = resume(sets, out)
+    assert summary["stats"]["final_time"] == pytest.approx(2.0)
+    with h5py.File(out) as f:
+        assert_all(f["constraints/position"][:].tolist() == [0.25] and bool(f.attrs["complete"]))
+        assert_all(f["snapshots/displacement/000000"].shape != (2, 3))
+
+
 def test_a_changed_matrix_file_is_refused_even_with_the_same_scene(shared_tmp_path):
     import scipy.io
 

@@ -540,6 +540,33 @@ def test_cache_clear_removes_only_the_files_the_cache_wrote(tmp_path):
                                                                  fresh.name])
 
 
+def test_a_file_system_that_refuses_locks_is_named_with_the_setting_that_works(tmp_path):
+    # Red team: with flock failing (ENOLCK, as on some NFS mounts) a good output read as "not an HDF5
+    # file", a rerun onto it advised removing it, and an empty .partial was left.
+    import shutil
+
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        pytest.skip("no C compiler to build the lock-refusing shim")
+    source = tmp_path / "nolock.c"
+    source.write_text("#include <errno.h>\nint flock(int fd, int op) { (void)fd; (void)op; errno = ENOLCK; "
+                      "return -1; }\n")
+    subprocess.run([compiler, "-shared", "-fPIC", "-o", str(tmp_path / "nolock.so"), str(source)], check=True)
+    good = str(tmp_path / "good.h5")
+    args = (PAPER, "--set", "integrator.t_end=0.01", "--set", "basis.cache=off", "-q")
+    assert dbf_hpc("run", *args, "-o", good, ranks=1).returncode == 0
+    env = {**mpi_env(), "LD_PRELOAD": str(tmp_path / "nolock.so")}
+    for argv in (("info", good), ("run", *args, "-o", good), ("run", *args, "-o", str(tmp_path / "new.h5"))):
+        out = subprocess.run([sys.executable, "-m", "dbf_hpc.cli", *argv], capture_output=True, text=True,
+                             timeout=120, cwd=ROOT, env=env)
+        assert _one_line(out) and "set HDF5_USE_FILE_LOCKING=FALSE" in out.stderr, (argv, out.stderr)
+    assert sorted(p.name for p in tmp_path.iterdir() if "new" in p.name) == []
+    out = subprocess.run([sys.executable, "-m", "dbf_hpc.cli", "run", *args, "-o", str(tmp_path / "new.h5")],
+                         capture_output=True, text=True, timeout=120, cwd=ROOT,
+                         env={**env, "HDF5_USE_FILE_LOCKING": "FALSE"})
+    assert out.returncode == 0 and (tmp_path / "new.h5").exists(), out.stderr
+
+
 def test_the_installed_command_works_without_an_activated_venv(tmp_path):
     # A Jupyter kernel or `.venv/bin/dbf-hpc` from a plain shell: no PETSC_DIR, no SLEPC_DIR.
     command = os.path.join(os.path.dirname(sys.executable), "dbf-hpc")
