@@ -241,7 +241,12 @@ def _plot(args) -> int:
 def _sweep(args) -> int:
     from .sweep import run_sweep
 
-    run_sweep(args.sweep, progress=not args.quiet, overrides=args.set)
+    from .errors import SolverError
+
+    result = run_sweep(args.sweep, progress=not args.quiet, overrides=args.set)
+    if result["failed"]:   # the summary holds them; a batch job should not read as a success
+        raise SolverError(f"{result['failed']} of {result['cases']} cases failed: their errors are in "
+                          f"{result['output']} (dbf-hpc info); rerunning the sweep retries them")
     return 0
 
 
@@ -356,19 +361,18 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
     from petsc4py import PETSc
 
     from . import xdmf
+    from .errors import replacing
 
     h5 = os.path.splitext(path)[0] + ".h5"
     values = reductor.field_values()
     if PETSc.COMM_WORLD.getRank() == 0:
         geometry = fom.operators.field_map().geometry()
-        tmp = f"{h5}.tmp-{os.getpid()}"
-        with h5py.File(tmp, "w") as f:
+        with replacing(h5) as tmp, h5py.File(tmp, "w") as f:
             for name, data in {**xdmf.geometry_datasets(geometry, "shapes"),
                                **xdmf.node_vectors(geometry, values.T, "shapes", "shape")}.items():
                 f.create_dataset(name, data=data)
             f["shapes/omega"] = np.concatenate([basis.omega, basis.enrichment_omega])
             f.attrs["dbf_hpc_version"] = __version__
-        os.replace(tmp, h5)
         xdmf.write(path, h5, "shapes", geometry[0], geometry[1].shape[0], np.arange(1, values.shape[1] + 1), "shape")
         print(f"wrote {path} and {h5} ({values.shape[1]} shapes)")
 
@@ -509,10 +513,10 @@ def _real_sweep(ops, row: int, basis, ks, constraint: int) -> tuple:
 
 
 def _write_atomically(path: str, write) -> None:
-    tmp = f"{path}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
+    from .errors import replacing
+
+    with replacing(path) as tmp, open(tmp, "w") as f:
         write(f)
-    os.replace(tmp, path)
 
 
 def _finish(comm, failure: str | None) -> int:

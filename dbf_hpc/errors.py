@@ -3,6 +3,8 @@
 Each carries one line for the user: what is wrong and what to change. The command prints that line
 and exits non-zero; anything else is a bug and ends the whole MPI job.
 """
+import contextlib
+import os
 
 
 class DbfError(Exception):
@@ -43,6 +45,25 @@ def write_failure(exc: Exception) -> str:
         return LOCK_HINT
     text = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
     return "No space left on device" if "errno = 28" in text or "No space left" in text else text.splitlines()[0]
+
+
+@contextlib.contextmanager
+def replacing(path: str, suffix: str = ""):
+    """A temporary path beside `path` (ending in `suffix`) to write; when the block ends it replaces
+    `path` by an atomic rename. On a failure the temporary file is removed, and a write error (a full
+    disk, a read-only directory) becomes one DbfError naming `path` and the cause."""
+    tmp = f"{path}.tmp-{os.getpid()}{suffix}"
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException as e:
+        try:
+            os.remove(tmp)
+        except OSError:
+            pass
+        if isinstance(e, OSError):
+            raise DbfError(f"cannot write {path}: {write_failure(e)}") from None
+        raise
 
 
 def petsc_failure(exc: Exception) -> str:

@@ -8,7 +8,7 @@ import os
 import numpy as np
 
 from . import layout
-from .errors import InputError
+from .errors import InputError, replacing
 from .schema import unit_of
 
 
@@ -36,12 +36,13 @@ def _save(fig, target: str, written: list, layout_done: bool = False) -> None:
     if os.path.exists(target) and not is_dbf_png(target):
         plt.close(fig)
         raise InputError(f"{target!r} exists and is not a dbf-hpc plot: remove it or draw into another directory")
-    tmp = f"{target}.tmp-{os.getpid()}.png"
     if not layout_done:
         fig.tight_layout()
-    fig.savefig(tmp, metadata={"Software": "dbf-hpc"})
-    plt.close(fig)
-    os.replace(tmp, target)
+    try:
+        with replacing(target, ".png") as tmp:
+            fig.savefig(tmp, metadata={"Software": "dbf-hpc"})
+    finally:
+        plt.close(fig)
     written.append(target)
 
 

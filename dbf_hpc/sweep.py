@@ -54,7 +54,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
-from .errors import DbfError, InputError, Interrupted
+from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, replacing, write_failure
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path
@@ -190,18 +190,18 @@ def _case_file(folder: str, index: int) -> str:
 
 
 def _write_json(path: str, content: dict) -> None:
-    tmp = f"{path}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
+    with replacing(path) as tmp, open(tmp, "w") as f:
         json.dump(content, f)
-    os.replace(tmp, path)
 
 
 def _read_json(path: str) -> dict | None:
+    """A case's record, or None when it is missing or not one (truncated, edited)."""
     try:
         with open(path) as f:
-            return json.load(f)
+            record = json.load(f)
     except (OSError, ValueError):
         return None
+    return record if isinstance(record, dict) else None
 
 
 def _scene_files(scene) -> list:
@@ -353,8 +353,9 @@ def _drop_stale_checkpoint(case_out: str, ident: dict) -> None:
                 os.remove(leftover)
 
 
-def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, stop, say) -> int:
-    """This rank's chains; returns how many cases it ran. Stops at SIGTERM (Interrupted)."""
+def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, stop, tell) -> int:
+    """This rank's chains; returns how many cases it ran; tell(line) reports each case (from any
+    rank). Stops at SIGTERM (Interrupted)."""
     done = 0
     for chain in mine:
         previous = None
@@ -370,7 +371,7 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
             _write_json(_case_file(folder, index), record)
             previous = record if record["status"] == "ok" else None
             done += 1
-            say(f"  case {index + 1}: {record['status']}")
+            tell(f"  case {index + 1}: {record['status']}")
     return done
 
 
@@ -402,8 +403,12 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
 def _sweep(sweep, folder, output, world, say, progress) -> dict:
     n = len(sweep["cases"])
     identities = _identities(sweep)
-    pending = [i for i in range(n) if (_read_json(_case_file(folder, i)) or {}).get("identity") != identities[i]]
-    say(f"dbf-hpc sweep: {n} cases, {n - len(pending)} already done, {len(pending)} to run on {world.size} rank(s)")
+    records = [_read_json(_case_file(folder, i)) or {} for i in range(n)]
+    # a failed case is retried: its cause may have been the machine's (a full disk), since mended
+    pending = [i for i in range(n) if records[i].get("identity") != identities[i] or records[i].get("status") != "ok"]
+    retried = sum(records[i].get("identity") == identities[i] for i in pending)
+    say(f"dbf-hpc sweep: {n} cases, {n - len(pending)} already done, {len(pending)} to run on {world.size} rank(s)"
+        + (f" ({retried} failed before: retried)" if retried else ""))
     base = load_scene(sweep["scene"], sweep["cases"][0])
     cache_dir = base.cache_dir() or os.path.join(folder, "basis-cache")
     models = _prepare_models(sweep, pending, cache_dir, say)
@@ -412,7 +417,8 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     stopped = None
     with _Stop() as stop:
         try:
-            _run_chains(sweep, mine, set(pending), folder, cache_dir, models, identities, stop, say)
+            tell = (lambda m: print(m, flush=True)) if progress else (lambda m: None)   # every rank's cases
+            _run_chains(sweep, mine, set(pending), folder, cache_dir, models, identities, stop, tell)
         except Interrupted:
             stopped = True
     stopped = world.allreduce(bool(stopped), op=MPI.LOR)
@@ -420,12 +426,20 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
         done = sum(1 for i in range(n) if (_read_json(_case_file(folder, i)) or {}).get("identity") == identities[i])
         raise Interrupted(f"sweep stopped by a termination signal with {done} of {n} cases done; rerun the same "
                           f"command to continue (finished cases are kept, a running one resumes from its checkpoint)")
-    failed = 0
+    failed = problem = None
     if world.rank == 0:
-        failed = _write_summary(sweep, folder, output)
-        if progress:
+        try:
+            failed = _write_summary(sweep, folder, output)
+        except WRITE_ERRORS as e:   # every rank hears of it (the case files stay: a rerun only writes this)
+            if os.path.exists(f"{output}.partial"):
+                os.remove(f"{output}.partial")
+            problem = f"cannot write the sweep summary {output}: {write_failure(e)}; the cases are kept in {folder}"
+        if progress and problem is None:
             print(f"dbf-hpc sweep: wrote {output} ({n} cases, {failed} failed)", flush=True)
-    return world.bcast({"output": output, "cases": n, "failed": failed}, root=0)
+    failed, problem = world.bcast((failed, problem), root=0)
+    if problem:
+        raise DbfError(problem)
+    return {"output": output, "cases": n, "failed": failed}
 
 
 def _units(f, parameters) -> None:

@@ -9,6 +9,8 @@ import os
 
 import numpy as np
 
+from .errors import replacing
+
 
 def node_vectors(geometry: tuple, values: np.ndarray, prefix: str, name: str = "displacement") -> dict:
     """The datasets `{prefix}/{name}/NNNNNN` (nodes x 3), one per row of values at the field points
@@ -90,7 +92,5 @@ def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, na
     text = (f'<?xml version="1.0" ?>\n{MARK}\n<Xdmf Version="3.0"><Domain>'
             f'<Grid Name="{name}" GridType="Collection" CollectionType="Temporal">\n'
             + "\n".join(grids) + "\n</Grid></Domain></Xdmf>\n")
-    tmp = f"{path}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
+    with replacing(path) as tmp, open(tmp, "w") as f:
         f.write(text)
-    os.replace(tmp, path)

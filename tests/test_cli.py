@@ -567,6 +567,18 @@ def test_a_file_system_that_refuses_locks_is_named_with_the_setting_that_works(t
     assert out.returncode == 0 and (tmp_path / "new.h5").exists(), out.stderr
 
 
+def test_a_sweep_with_a_failed_case_writes_its_summary_and_exits_non_zero(tmp_path):
+    # A batch job's sweep with failed cases read as a success (exit 0).
+    sweep = tmp_path / "sweep.toml"
+    sweep.write_text(f'scene = "{PAPER}"\noutput = "s.h5"\n[[case]]\n"integrator.t_end" = 0.02\n'
+                     f'[[case]]\n"integrator.t_end" = 0.02\n"integrator.scheme" = "ars443"\n')
+    out = dbf_hpc("sweep", str(sweep), "-q")
+    assert _one_line(out) and "1 of 2 cases failed" in out.stderr and "retries them" in out.stderr, out.stderr
+    assert (tmp_path / "s.h5").exists()
+    info = dbf_hpc("info", str(tmp_path / "s.h5"), ranks=1)
+    assert info.returncode == 0 and "ars443" in info.stdout, info.stdout
+
+
 def test_the_installed_command_works_without_an_activated_venv(tmp_path):
     # A Jupyter kernel or `.venv/bin/dbf-hpc` from a plain shell: no PETSC_DIR, no SLEPC_DIR.
     command = os.path.join(os.path.dirname(sys.executable), "dbf-hpc")

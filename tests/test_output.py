@@ -97,3 +97,22 @@ def test_the_output_reference_in_docs_is_generated_from_the_layout_and_up_to_dat
 
     with open(os.path.join(ROOT, "docs", "outputs.md")) as f:
         assert f.read() == reference(), "regenerate it: python -m dbf_hpc.layout > docs/outputs.md"
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_temporary_one(tmp_path):
+    # The writers of tables, figures, XDMF files and sweep records (errors.replacing): a full disk
+    # was an internal error that left NAME.tmp-PID beside the file.
+    import errno
+
+    from dbf_hpc.errors import DbfError, replacing
+
+    target = tmp_path / "table.csv"
+    target.write_text("old")
+    with pytest.raises(DbfError, match=f"cannot write {target}: No space left on device"):
+        with replacing(str(target)) as tmp:
+            open(tmp, "w").write("half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
+    with replacing(str(target)) as tmp:
+        open(tmp, "w").write("new")
+    assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]

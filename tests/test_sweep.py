@@ -75,6 +75,31 @@ def test_rerunning_a_killed_sweep_skips_the_finished_cases(shared_tmp_path):
         assert json.load(f)["status"] == "ok"
 
 
+def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_record(shared_tmp_path):
+    # Red team: cases that failed on a full disk stayed failed after the disk was freed ("6 already
+    # done"), and a case file holding valid JSON that is not a record was an internal error.
+    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1, 1.3]\n'
+                                        '"integrator.t_end" = [0.05]\n')
+    first = run_sweep(path, progress=False)
+    folder = first["output"] + ".cases"
+    files = [os.path.join(folder, f"case-{i:05d}.json") for i in range(3)]
+    kept = os.path.getmtime(files[2])
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        with open(files[0]) as f:
+            record = json.load(f)
+        record.update(status="failed", error="cannot write case-00000.h5: No space left on device")
+        with open(files[0], "w") as f:
+            json.dump(record, f)
+        with open(files[1], "w") as f:
+            json.dump([1, 2], f)
+    MPI.COMM_WORLD.Barrier()
+    second = run_sweep(path, progress=False)
+    assert second["failed"] == 0
+    statuses = [json.load(open(name))["status"] for name in files]
+    assert_all(statuses == ["ok"] * 3 and os.path.getmtime(files[2]) == kept, "only the two bad ones rerun")
+
+
 def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
     path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [1e-3, -1]\n"basis.mode" = [3]\n')
     with pytest.raises(InputError, match="case 1 .*unknown key 'mode' in \\[basis\\]"):
