@@ -110,12 +110,13 @@ class OutputLock:
 
     def acquire(self) -> None:
         owner = f"{socket.gethostname()} {os.getpid()}\n"
-        for _ in range(2):
+        for _ in range(3):
             try:
                 fd = os.open(self.lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
-                if self._stale():
-                    os.remove(self.lock)
+                stale = self._stale()
+                if stale:
+                    self._take_over(stale)
                     continue
                 raise InputError(f"{self.what} {self.path!r} is being written by another job ({self._holder()}); "
                                  f"wait for it, or remove {self.lock} if that job is gone") from None
@@ -139,28 +140,52 @@ class OutputLock:
         except (OSError, ValueError):
             return "unknown job"
 
-    def _stale(self) -> bool:
-        """The lock's job is gone: it ran on this host and its process no longer exists (or is a
-        zombie, which a killed job's rank can stay as where nothing reaps it)."""
+    def _stale(self) -> str | None:
+        """The lock's content when its job is gone: it ran on this host and its process no longer
+        exists (or is a zombie, which a killed job's rank can stay as where nothing reaps it)."""
         try:
             with open(self.lock) as f:
-                host, pid = f.read().split()
+                text = f.read()
+            host, pid = text.split()
             if host != socket.gethostname():
-                return False
+                return None
             os.kill(int(pid), 0)
         except ProcessLookupError:
-            return True
+            return text
         except (OSError, ValueError):
-            return False
+            return None
         try:
             with open(f"/proc/{int(pid)}/stat") as f:
-                return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+                return text if f.read().rsplit(")", 1)[1].split()[0] == "Z" else None
         except (OSError, IndexError):
-            return False
+            return None
+
+    def _take_over(self, stale: str) -> None:
+        """Remove the stale lock whose content is `stale`, and only it. Two jobs may find it stale at
+        once: the first moves it aside (an atomic rename) and makes its own; the second then moves
+        aside the first's live lock, sees that it is not the stale one, and puts it back (red team:
+        removing by name, both jobs held the lock once in 40 tries)."""
+        aside = f"{self.lock}.stale-{socket.gethostname()}-{os.getpid()}"
+        try:
+            os.rename(self.lock, aside)
+        except FileNotFoundError:   # another job moved it first
+            return
+        try:
+            with open(aside) as f:
+                moved = f.read()
+            if moved != stale:
+                os.link(aside, self.lock)   # a live lock: back in place (fails if yet another was made)
+        except OSError:
+            pass
+        finally:
+            os.remove(aside)
 
     def release(self) -> None:
-        if self.held and os.path.exists(self.lock):
-            os.remove(self.lock)
+        if self.held:
+            try:
+                os.remove(self.lock)
+            except FileNotFoundError:
+                pass
         self.held = False
 
 

@@ -116,3 +116,27 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary_one(tmp_path):
     with replacing(str(target)) as tmp:
         open(tmp, "w").write("new")
     assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
+
+
+def test_a_job_that_found_a_lock_stale_leaves_the_live_lock_another_job_took_meanwhile(tmp_path):
+    # Red team: two jobs found a dead job's lock stale at once; the second removed the lock the first
+    # had just made, and both wrote the output (once in 40 tries).
+    import socket
+
+    from dbf_hpc.output import OutputLock
+
+    path = str(tmp_path / "out.h5")
+    dead = f"{socket.gethostname()} 999999\n"
+    with open(path + ".lock", "w") as f:
+        f.write(dead)
+    first, second = OutputLock(path), OutputLock(path)
+    seen_by_second = second._stale()
+    assert seen_by_second == dead
+    first.acquire()                       # took the dead job's lock over
+    second._take_over(seen_by_second)     # the second job acts on what it saw before
+    with open(path + ".lock") as f:
+        assert f.read() == f"{socket.gethostname()} {os.getpid()}\n"
+    with pytest.raises(InputError, match="is being written by another job"):
+        second.acquire()
+    first.release()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
