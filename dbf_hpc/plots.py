@@ -69,7 +69,9 @@ def parse_window(text: str | None):
 
     if not text:
         return None
-    start, _, end = text.partition(":")
+    start, colon, end = text.partition(":")
+    if not colon:   # "5" alone read as "from 5 s on" (new-user pass): say which end is meant
+        raise InputError(f"--window {text!r}: give T0:T1 in seconds, e.g. {text}: (from {text} s) or :{text} (to it)")
     try:
         window = (float(start) if start else -np.inf, float(end) if end else np.inf)
     except ValueError:

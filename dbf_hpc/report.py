@@ -116,7 +116,7 @@ def _statistics_error_lines(f) -> list:
 def _constraint_lines(f, partial: bool = False) -> list:
     z, force = f[layout.CONSTRAINT_DISPLACEMENT][:], f[layout.CONSTRAINT_FORCE_PEAK][:]
     # a .partial has no positions yet (written at the end): constraints by number only
-    where = ([f" at {x:g}" for x in f[layout.CONSTRAINT_POSITION][:]] if layout.CONSTRAINT_POSITION in f
+    where = ([_at(f, x) for x in f[layout.CONSTRAINT_POSITION][:]] if layout.CONSTRAINT_POSITION in f
              else [""] * z.shape[1])
     stats = f.get(layout.CONSTRAINT_STATS)
     lines = []
@@ -134,14 +134,23 @@ def _constraint_lines(f, partial: bool = False) -> list:
     return lines
 
 
+def _at(f, position) -> str:
+    """Where a constraint or probe is, in words: x on a beam (m), else the DOF."""
+    try:
+        beam = json.loads(f.attrs.get("scene_effective", "{}")).get("structure", {}).get("kind", "beam") == "beam"
+    except (TypeError, ValueError):
+        beam = True
+    return f" at {position:g} m" if beam else f" at DOF {int(position)}"
+
+
 def _probe_lines(f) -> list:
     if layout.PROBE_DISPLACEMENT not in f or not f[layout.PROBE_DISPLACEMENT].shape[1]:
         return []
     w = f[layout.PROBE_DISPLACEMENT][:]
     positions = f[layout.PROBE_POSITION][:] if layout.PROBE_POSITION in f else np.arange(w.shape[1])
     if w.ndim == 3:   # (y, z) at each probe
-        return [f"  probe at {x:g}: peak |(y, z)| {np.hypot(*w[:, p].T).max():.6g} m" for p, x in enumerate(positions)]
-    return [f"  probe at {x:g}: peak |w| {np.abs(w[:, p]).max():.6g} m" for p, x in enumerate(positions)]
+        return [f"  probe{_at(f, x)}: peak |(y, z)| {np.hypot(*w[:, p].T).max():.6g} m" for p, x in enumerate(positions)]
+    return [f"  probe{_at(f, x)}: peak |w| {np.abs(w[:, p]).max():.6g} m" for p, x in enumerate(positions)]
 
 
 def _partial_lines(path: str, f) -> list:

@@ -68,11 +68,12 @@ UNITS = {
 }
 
 DESCRIPTIONS = {
-    "impacts": "number of impacts (maximal runs of consecutive contact samples; runs cut by the record count)",
+    "impacts": "number of impacts (maximal runs of consecutive contact points, the integrator's steps; runs cut by "
+               "the record count)",
     "impact_rate": "impacts per second: impacts / (t_end - t_start)",
-    "contact_fraction": "fraction of the run time in contact (trapezoid sample weights)",
-    "impact_duration_mean": "mean impact duration, resolution about one sample interval (0 if no impact)",
-    "impact_duration_max": "longest impact duration, resolution about one sample interval (0 if no impact)",
+    "contact_fraction": "fraction of the run time in contact (trapezoid weights of the integrator's steps)",
+    "impact_duration_mean": "mean impact duration, resolved by the integrator's steps (0 if no impact)",
+    "impact_duration_max": "longest impact duration, resolved by the integrator's steps (0 if no impact)",
     "force_peak": "peak constraint force magnitude max |F|",
     "force_rms": "RMS constraint force over the whole run (time-weighted)",
     "force_rms_contact": "RMS constraint force over the time in contact only (0 if never in contact)",

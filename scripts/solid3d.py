@@ -117,7 +117,8 @@ def scene_text(top: list, stops: int, surface: list | None = None) -> str:
              'nodes = "nodes.txt"', 'dofs = "dofs.txt"', "",
              "[excitation]", 'kind = "force"', f"dof = {top[-1]}", "amplitude = 1000.0      # N",
              "frequency_hz = 60.0", "", "[basis]", "modes = 20", "", "[damping]", "zeta = 0.01", "",
-             "[integrator]", "t_end = 0.2", "", "[output]", "sample_dt = 1e-4", f"probes = [{top[-1]}]",
+             "[integrator]", "t_end = 0.2", "", "[output]", 'file = "solid.h5"', "sample_dt = 1e-4",
+             f"probes = [{top[-1]}]",
              "snapshots = 10", ""]
     for i in picks:
         lines += ["[[constraint]]", f"dof = {places[i]}", 'law = "deadband"', "clearance = 2e-4       # m",
