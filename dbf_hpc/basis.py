@@ -22,7 +22,7 @@ from slepc4py import SLEPc
 
 from .accuracy import basis_flexibility, captured, exact_flexibility
 from .enrichment import STRATEGIES, DbfEnrichment, Enrichment
-from .errors import InputError, SolverError
+from .errors import InputError, SolverError, check_number
 from .modes import bv_rows, normalize, reference_modes
 from .operators import Operators
 from .petsctools import destroy
@@ -48,6 +48,19 @@ class BasisSettings:
     enrichment: str = "dbf"             # "dbf" | "static" | "none" (enrichment.py)
     dbf_solver: str = "ritz"            # "ritz" | "shared" (one factorization per group) | "factor" (three per constraint)
     gyroscopic_form: str = "second_order"   # a gyroscopic structure's reduced model: "second_order" | "state_space"
+
+    def __post_init__(self):
+        if self.modes is not None:
+            object.__setattr__(self, "modes", check_number("BasisSettings modes", self.modes, 0, integer=True))
+        if self.max_frequency_hz is not None:
+            object.__setattr__(self, "max_frequency_hz", check_number("BasisSettings max_frequency_hz",
+                                                                      self.max_frequency_hz, 0.0, above=True))
+        if self.modes is None and self.max_frequency_hz is None:
+            raise InputError("BasisSettings: give modes or max_frequency_hz")
+        object.__setattr__(self, "groups", check_number("BasisSettings groups", self.groups, 0, integer=True))
+        if self.dbf_stiffness != "auto":
+            object.__setattr__(self, "dbf_stiffness", check_number("BasisSettings dbf_stiffness (N/m, or \"auto\")",
+                                                                   self.dbf_stiffness, 0.0, above=True))
 
     @property
     def strategy(self) -> Enrichment:

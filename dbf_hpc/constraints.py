@@ -20,6 +20,7 @@ from typing import Optional
 
 import numpy as np
 
+from .errors import InputError, check_number
 from .laws import ConstraintLaws, Law
 
 
@@ -33,6 +34,21 @@ class Constraint:
     x: Optional[float] = None
     dof: Optional[int] = None
     wear_coefficient: Optional[float] = None
+
+    def __post_init__(self):
+        from .laws import CircularLaw
+
+        if not isinstance(self.law, (Law, CircularLaw)):
+            raise InputError(f"Constraint law: give law(kind, ...) (dbf_hpc.law), got {self.law!r}")
+        if (self.x is None) == (self.dof is None):
+            raise InputError("Constraint: give its place, one of x (m, on a beam) or dof (a matrix model)")
+        if self.x is not None:
+            object.__setattr__(self, "x", check_number("Constraint x", self.x))
+        else:
+            object.__setattr__(self, "dof", check_number("Constraint dof", self.dof, 0, integer=True))
+        if self.wear_coefficient is not None:
+            object.__setattr__(self, "wear_coefficient",
+                               check_number("Constraint wear_coefficient", self.wear_coefficient, 0.0))
 
     @property
     def label(self) -> str:

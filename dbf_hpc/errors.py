@@ -28,6 +28,22 @@ class Interrupted(SolverError):
 WRITE_ERRORS = (OSError, RuntimeError)
 
 
+def check_number(where: str, value, minimum: float | None = None, above: bool = False, integer: bool = False):
+    """`value` as a float (an int with integer=True), or one InputError naming `where` (e.g.
+    "IntegratorSettings t_end"): a finite number (not a bool or a string), at least `minimum` (above
+    it, with above=True). The Python API's dataclasses check what they are given with it; scenes are
+    checked before they reach them."""
+    import math
+    import numbers
+
+    kind = numbers.Integral if integer else numbers.Real
+    if isinstance(value, bool) or not isinstance(value, kind) or not math.isfinite(value):
+        raise InputError(f"{where} must be {'an integer' if integer else 'a finite number'}, got {value!r}")
+    if minimum is not None and (value <= minimum if above else value < minimum):
+        raise InputError(f"{where} must be {'above' if above else 'at least'} {minimum:g}, got {value!r}")
+    return int(value) if integer else float(value)
+
+
 # HDF5 locks the files it opens; where the file system refuses locks (some NFS and Lustre mounts)
 # every open fails with ENOLCK, which read as "not an HDF5 file" (red team)
 LOCK_HINT = ("the file system refuses HDF5's file locks: set HDF5_USE_FILE_LOCKING=FALSE in the environment "

@@ -61,6 +61,14 @@ class NoExcitation:
     kind = "none"
 
 
+def _harmonic_numbers(excitation, name: str) -> None:
+    """The amplitude and frequency of a harmonic excitation as numbers (the Python API's edge)."""
+    from .errors import check_number
+
+    object.__setattr__(excitation, "amplitude", check_number(f"{name} amplitude", excitation.amplitude))
+    object.__setattr__(excitation, "frequency_hz", check_number(f"{name} frequency_hz", excitation.frequency_hz, 0.0))
+
+
 @dataclass(frozen=True)
 class BaseMotion:
     """The transverse support at `end` ("left" or "right" of a beam; the influence vector of a
@@ -72,6 +80,9 @@ class BaseMotion:
     end: str = "left"
     direction: tuple = (1.0, 0.0)
     kind = "base"
+
+    def __post_init__(self):
+        _harmonic_numbers(self, "BaseMotion")
 
     def support(self) -> Harmonic:
         return Harmonic(self.amplitude, self.frequency_hz)
@@ -88,6 +99,9 @@ class PointForce:
     dof: Optional[int] = None
     direction: tuple = (1.0, 0.0)
     kind = "force"
+
+    def __post_init__(self):
+        _harmonic_numbers(self, "PointForce")
 
     def history(self) -> Harmonic:
         return Harmonic(self.amplitude, self.frequency_hz)

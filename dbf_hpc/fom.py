@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from petsc4py import PETSc
 
-from .constraints import ConstraintSet
+from .constraints import Constraint, ConstraintSet
 from .damping import Damping
 from .errors import InputError
 from .excitation import CorrelatedProcess, NoExcitation, coherence_factor, time_functions
@@ -81,6 +81,9 @@ class FullOrderModel:
         constraints (Constraint descriptions), loads and probes on them. Collective on comm
         (default COMM_WORLD). Bad placements are InputErrors, and nothing is leaked."""
         comm = comm or PETSc.COMM_WORLD
+        if isinstance(constraints, Constraint) or not isinstance(constraints, (list, tuple)):
+            raise InputError(f"FullOrderModel.build: give the constraints as a list of Constraint, got "
+                             f"{type(constraints).__name__}")
         constraints = tuple(constraints)
         planes = structure.planes if isinstance(structure, Beam) else 1
         _check_dimensions(constraints, planes)

@@ -27,6 +27,10 @@ class Reductor:
     def __init__(self, fom: FullOrderModel, settings: BasisSettings = BasisSettings(), cache_dir: str | None = None,
                  basis: ReducedBasis | None = None):
         """With `basis`, that basis (already built, e.g. basis.richer_basis; the reductor owns it)."""
+        if not isinstance(fom, FullOrderModel):
+            raise InputError(f"Reductor reduces a FullOrderModel (FullOrderModel.build), got {type(fom).__name__}")
+        if not isinstance(settings, BasisSettings):
+            raise InputError(f"Reductor settings: give BasisSettings(...), got {settings!r}")
         self.fom, self.settings, self.cache_dir = fom, settings, cache_dir
         self._basis = basis
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
 from .fom import FullOrderModel, Observation
 from .fom_integrator import integrate_full
 from .output import MemoryWriter
@@ -29,6 +30,10 @@ def _snapshot_samples(count: int, times: np.ndarray) -> np.ndarray:
 def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
     """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Not collective."""
+    _check_settings(settings)
+    if isinstance(model, FullOrderModel) or not hasattr(model, "probe_sample_shape"):
+        raise InputError(f"simulate_reduced integrates a reduced model (Reductor(...).reduce()), got "
+                         f"{type(model).__name__}; simulate_full integrates a FullOrderModel")
     writer = MemoryWriter(model.constraints.shape, model.probe_sample_shape, model.size)
     recorder = ReducedRecorder(writer, model, _snapshot_samples(snapshots, settings.sample_times))
     stats = integrate_reduced(model, settings, say=say, recorder=recorder)
@@ -40,8 +45,16 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
 def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -> Result:
     """Integrate the full-order model (fom_integrator.py) and return the same Result as
     simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""
+    _check_settings(settings)
+    if not isinstance(fom, FullOrderModel):
+        raise InputError(f"simulate_full integrates a FullOrderModel (FullOrderModel.build), got {type(fom).__name__}")
     world = fom.comm.tompi4py()
     observation = Observation(fom)
     recorder = FullRecorder(MemoryWriter(fom.constraints.shape, fom.probes.shape, 0), fom.constraints, observation)
     stats = integrate_full(fom, settings, observation.rows, recorder.block, say=say)
     return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)
+
+
+def _check_settings(settings) -> None:
+    if not isinstance(settings, IntegratorSettings):
+        raise InputError(f"give IntegratorSettings(t_end=..., ...), got {settings!r}")

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from petsc4py import PETSc
 
-from .errors import InputError, SolverError
+from .errors import InputError, SolverError, check_number
 from .petsctools import options_defaults
 
 ARKIMEX_TYPES = ("1bee", "a2", "l2", "ars122", "2c", "2d", "2e", "prssp2", "3", "bpr3", "ars443", "4", "5")
@@ -52,7 +52,14 @@ class IntegratorSettings:
     callbacks: str = "auto"
 
     def __post_init__(self):
+        for name in ("t_end", "dt", "sample_dt", "atol"):
+            object.__setattr__(self, name, check_number(f"IntegratorSettings {name}", getattr(self, name), 0.0,
+                                                        above=True))
+        object.__setattr__(self, "rtol", check_number("IntegratorSettings rtol", self.rtol))   # its range: below
         object.__setattr__(self, "scheme", str(self.scheme).lower())
+        if self.t_end / self.sample_dt > MAX_SAMPLES:   # before the sample times are made (memory)
+            raise InputError(f"[output] sample_dt = {self.sample_dt:g} s gives {self.t_end / self.sample_dt:.2g} "
+                             f"samples over t_end = {self.t_end:g} s, more than {MAX_SAMPLES:g}: sample less often")
         if not RTOL_FLOOR <= self.rtol < 1:
             raise InputError(f"[integrator] rtol = {self.rtol:g} cannot be met in double precision: give a value "
                              f"from {RTOL_FLOOR:g} to 1")
@@ -73,7 +80,8 @@ class IntegratorSettings:
 def check_work(settings: IntegratorSettings, fastest_hz: float, adaptive: bool) -> None:
     """An InputError, before any work, for a run that cannot finish in reasonable time: a fixed step
     takes t_end / dt steps; an adaptive one at least STEPS_PER_PERIOD per period of the fastest
-    forcing. Either must stay below MAX_STEPS."""
+    forcing. Either must stay below MAX_STEPS. (The sample count, at most MAX_SAMPLES, the settings
+    check themselves.)"""
     steps = settings.t_end / settings.dt if not adaptive else settings.t_end * fastest_hz * STEPS_PER_PERIOD
     if steps > MAX_STEPS:
         cause = (f"a fixed step of {settings.dt:g} s" if not adaptive else
@@ -81,10 +89,6 @@ def check_work(settings: IntegratorSettings, fastest_hz: float, adaptive: bool) 
         raise InputError(f"the run would take at least {steps:.2g} steps ({cause} over t_end = {settings.t_end:g} s), "
                          f"more than the {MAX_STEPS:g} a run may take: shorten t_end, lengthen dt, or check the "
                          f"excitation frequency")
-    samples = settings.t_end / settings.sample_dt
-    if samples > MAX_SAMPLES:
-        raise InputError(f"[output] sample_dt = {settings.sample_dt:g} s gives {samples:.2g} samples over t_end = "
-                         f"{settings.t_end:g} s, more than {MAX_SAMPLES:g}: sample less often")
 
 
 def sample_times(t_end: float, sample_dt: float) -> np.ndarray:

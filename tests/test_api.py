@@ -54,3 +54,41 @@ def test_the_example_objects_agree_with_the_full_order_model_before_the_first_im
     # and the full model's time step.
     assert_all(np.abs(w - w_truth).max() < 1e-3 * np.abs(w_truth).max())
     assert_all(result.q.shape == (101, rom.size) and truth.q.shape == (101, 0))
+
+
+@pytest.mark.parametrize("make,message", [
+    (lambda api: api.Constraint("deadband", x=0.25), "Constraint law: give law"),
+    (lambda api: api.Constraint(api.law("deadband", clearance=1e-3, k=1e6)), "give its place"),
+    (lambda api: api.BasisSettings(modes="6"), "BasisSettings modes must be an integer"),
+    (lambda api: api.IntegratorSettings(t_end=-1), "IntegratorSettings t_end must be above 0"),
+    (lambda api: api.IntegratorSettings(t_end=1e3, sample_dt=1e-9), "1e\\+12 samples"),
+    (lambda api: api.BaseMotion(amplitude="5e-3", frequency_hz=1.0), "BaseMotion amplitude must be a finite"),
+    (lambda api: api.Reductor(6), "Reductor reduces a FullOrderModel"),
+    (lambda api: api.simulate_reduced(None, {"t_end": 0.01}), "give IntegratorSettings"),
+])
+def test_the_python_api_refuses_a_wrong_value_where_it_is_given(make, message):
+    # New-user pass: these failed later as TypeError, IndexError, AttributeError or a 7 TiB MemoryError.
+    import dbf_hpc
+
+    with pytest.raises(dbf_hpc.InputError, match=message):
+        make(dbf_hpc)
+
+
+def test_the_models_are_refused_by_the_simulation_of_the_other_kind():
+    from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, FullOrderModel, InputError, IntegratorSettings,
+                         Reductor, law, simulate_full, simulate_reduced)
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    stop = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
+    with pytest.raises(InputError, match="a list of Constraint"):
+        FullOrderModel.build(beam, stop, BaseMotion(amplitude=5e-3, frequency_hz=1.0))
+    settings = IntegratorSettings(t_end=0.01)
+    with FullOrderModel.build(beam, [stop], BaseMotion(amplitude=5e-3, frequency_hz=1.0)) as fom:
+        with pytest.raises(InputError, match="Reductor settings: give BasisSettings"):
+            Reductor(fom, 6)
+        with pytest.raises(InputError, match="simulate_reduced integrates a reduced model"):
+            simulate_reduced(fom, settings)
+        with Reductor(fom, BasisSettings(modes=4)) as reductor:
+            rom = reductor.reduce()
+        with pytest.raises(InputError, match="simulate_full integrates a FullOrderModel"):
+            simulate_full(rom, settings)
