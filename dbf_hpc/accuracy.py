@@ -156,10 +156,12 @@ def first_contact(times: np.ndarray, force_peak: np.ndarray) -> float | None:
 def estimate_window(times: np.ndarray, t_contact: float | None, t_end: float, window: float | None = None) -> float:
     """The sample time that ends the estimate's window: the given window, else twice the time of the
     first contact (so the window holds the first impacts and what follows them for as long again),
-    else LINEAR_WINDOW t_end without contact (or with contact from the start); never beyond t_end
-    and never before the second sample. Not collective."""
+    else LINEAR_WINDOW t_end without contact (or with contact from the start: in the first sample
+    interval, as an interference fit has it; twice that was a window of two samples, new-user
+    pass); never beyond t_end and never before the second sample. Not collective."""
     if window is None:
-        window = 2 * t_contact if t_contact else LINEAR_WINDOW * t_end
+        from_start = t_contact is not None and times.size > 1 and t_contact <= times[1]
+        window = 2 * t_contact if t_contact and not from_start else LINEAR_WINDOW * t_end
     k = int(np.searchsorted(times, min(window, t_end) * (1 - 1e-12)))
     return float(times[min(max(k, 1), times.size - 1)])
 

@@ -61,6 +61,17 @@ def test_the_tolerance_modes_next_candidate_follows_the_power_law_of_the_estimat
     assert next_modes([(4, 0.08), (8, 0.02), (16, 0.025)], 0.015) == 22
 
 
+def test_the_estimate_window_holds_the_first_impacts_or_a_tenth_of_the_run():
+    from dbf_hpc.accuracy import LINEAR_WINDOW, estimate_window
+
+    times = np.linspace(0.0, 1.0, 10001)
+    assert estimate_window(times, 0.3, 1.0) == pytest.approx(0.6)            # twice the first contact
+    assert estimate_window(times, None, 1.0) == pytest.approx(LINEAR_WINDOW)  # no contact
+    # An interference fit touches in the first interval: not a window of two samples
+    assert estimate_window(times, times[1], 1.0) == pytest.approx(LINEAR_WINDOW)
+    assert estimate_window(times, 0.3, 1.0, window=0.05) == pytest.approx(0.05)
+
+
 def test_the_power_law_of_the_estimates_says_where_a_tolerance_is_reached():
     from dbf_hpc.accuracy import modes_needed
 
