@@ -387,15 +387,24 @@ class OutputWriter:
             self.file.attrs[key] = value if isinstance(value, (str, int, float, bool, np.number)) else json.dumps(value)
         self.file.attrs["dbf_hpc_version"] = __version__
         self.file.attrs["complete"] = True
-        self.file.close()
+        try:
+            self.file.close()
+        except WRITE_ERRORS:   # a full disk at the last flush: a second close crashed HDF5 (signal 11)
+            self._park()
+            raise
         os.replace(self.partial, self.path)
+
+    def _park(self) -> None:
+        park(self, self.file, self.series)
+        self.series, self.blocks, self.parked = {}, _Blocks({}), True
 
     def abort(self) -> None:
         """Close after a failure, leaving only the .partial file (it says complete = False). If the
         file cannot be closed (a full disk), its objects are parked (errors.park)."""
+        if self.parked:
+            return
         try:
             self.flush()
             self.file.close()
         except WRITE_ERRORS:  # the run already failed; keep its error, not this one
-            park(self, self.file, self.series)
-            self.series, self.blocks, self.parked = {}, _Blocks({}), True
+            self._park()

@@ -23,7 +23,7 @@ from .errors import InputError
 from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce, Turbulence
 from .fom import FullOrderModel, InitialState
 from .laws import KEYS as LAW_KEYS
-from .laws import KEYS_2D, law_from_dict
+from .laws import KEYS_2D, LAWS_2D, law_from_dict
 from .matrices import MatrixFiles
 from .schema import NUMBER, SECTIONS, valid_keys
 from .structure import BOUNDARIES, Beam
@@ -210,23 +210,32 @@ def load_scene(path: str, overrides=()) -> Scene:
         data = tomllib.loads(text)
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
         raise InputError(f"{path}: not valid TOML: {e}") from None
+    given = {}
     for item in overrides:
         section, key, value = parse_override(item)
         if section == "constraint":
-            _override_constraints(data.get("constraint", []), key, value, item)
+            _override_constraints(data.get("constraint", []), key, value, item, given)
         else:
             data.setdefault(section, {})[key] = value
     return dataclasses.replace(validate(data, path, text), overrides=tuple(overrides))
 
 
-# A value on both sides and its two one-sided keys (the law takes one or the other)
-TWO_SIDED = {"k": ("k_minus", "k_plus"), "clearance": ("clearance_minus", "clearance_plus")}
+# A value on both sides and its two one-sided keys (a 1-D law takes one or the other)
+TWO_SIDED = {"k": ("k_minus", "k_plus"), "clearance": ("clearance_minus", "clearance_plus"),
+             "exponent": ("exponent_minus", "exponent_plus")}
 
 
-def _set_constraint_key(c: dict, key: str, value) -> None:
-    """An override of one constraint's key: k (clearance) replaces a scene's k_minus and k_plus
-    (clearance_minus, clearance_plus); one side over a scene's k keeps k on the other side."""
+def _set_constraint_key(c: dict, key: str, value, given: set, item: str) -> None:
+    """An override of one constraint's key (`given`: the keys earlier overrides set on it): k
+    (clearance, exponent) replaces a scene's k_minus and k_plus; one side over a scene's k keeps k
+    on the other side (1-D laws; a 2-D law has no sides). A side after k refines it; k after a side
+    would discard that side, and is refused."""
     for both, sides in TWO_SIDED.items():
+        if key == both and given & set(sides):
+            raise InputError(f"--set {item!r} would discard the {'/'.join(sorted(given & set(sides)))} given before "
+                             f"it for the same constraint: give {both} first, then the side that differs")
+        if c.get("law") in LAWS_2D:
+            continue
         if key == both:
             for side in sides:
                 c.pop(side, None)
@@ -235,19 +244,21 @@ def _set_constraint_key(c: dict, key: str, value) -> None:
             for side in sides:
                 c.setdefault(side, kept)
     c[key] = value
+    given.add(key)
 
 
-def _override_constraints(constraints, key: str, value, item: str) -> None:
-    """constraint.key sets every constraint; constraint.N.key the N-th (from 1)."""
+def _override_constraints(constraints, key: str, value, item: str, given: dict) -> None:
+    """constraint.key sets every constraint; constraint.N.key the N-th (from 1). `given` maps a
+    constraint's number to the keys set on it so far."""
     index, dot, rest = key.partition(".")
     if not dot:
-        for c in constraints:
-            _set_constraint_key(c, key, value)
+        for i, c in enumerate(constraints):
+            _set_constraint_key(c, key, value, given.setdefault(i, set()), item)
         return
     if not index.isdigit() or not 1 <= int(index) <= len(constraints):
         raise InputError(f"--set {item!r}: constraint.N.key needs N from 1 to {len(constraints)} (the scene's "
                          f"constraints), or constraint.key for all of them")
-    _set_constraint_key(constraints[int(index) - 1], rest, value)
+    _set_constraint_key(constraints[int(index) - 1], rest, value, given.setdefault(int(index) - 1, set()), item)
 
 
 def _check_type(where: str, key: str, value, types) -> None:

@@ -230,9 +230,9 @@ def reference() -> str:
              "that this file is up to date. A scene is TOML with SI units. Relative paths are taken relative to "
              "the scene file's folder. DOFs count from 0. Any value can be overridden on the command line with "
              "`--set section.key=value` (TOML syntax; `--set constraint.key=value` sets every constraint, "
-             "`--set constraint.2.key=value` the second one; `k` or `clearance` set that way replaces the "
-             "scene's `k_minus`/`k_plus` or `clearance_minus`/`clearance_plus`, and one side set over a "
-             "scene's `k` keeps `k` on the other).", ""]
+             "`--set constraint.2.key=value` the second one; `k`, `clearance` or `exponent` set that way "
+             "replaces the scene's two sides (`k_minus`/`k_plus`, ...), one side set over a scene's `k` keeps "
+             "`k` on the other, and a side given after `k` refines it, while `k` after a side is refused).", ""]
     for section, (doc, keys) in SECTIONS.items():
         lines += [f"## [{section}]", "", doc, "", *_table(keys), ""]
     lines += ["## [[constraint]]", "", CONSTRAINT[0] + " Keys with a side (`clearance`, `k`, `exponent`) also "

@@ -54,7 +54,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
-from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, replacing, write_failure
+from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, park, replacing, write_failure
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path
@@ -194,6 +194,11 @@ def _write_json(path: str, content: dict) -> None:
         json.dump(content, f)
 
 
+# What a case's record holds (_run_one), and what a finished one adds: a file without them is rerun
+RECORD_KEYS = ("index", "identity", "parameters", "continued", "status", "wall_time")
+RECORD_KEYS_OK = ("stats", "probe_peak", "solver", "final_state", "final_time", "final_phase", "final_support")
+
+
 def _read_json(path: str) -> dict | None:
     """A case's record, or None when it is missing or not one (truncated, edited)."""
     try:
@@ -201,7 +206,11 @@ def _read_json(path: str) -> dict | None:
             record = json.load(f)
     except (OSError, ValueError):
         return None
-    return record if isinstance(record, dict) else None
+    if not isinstance(record, dict) or any(key not in record for key in RECORD_KEYS):
+        return None
+    if record["status"] == "ok" and any(key not in record for key in RECORD_KEYS_OK):
+        return None
+    return record
 
 
 def _scene_files(scene) -> list:
@@ -335,6 +344,8 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
         raise
     except DbfError as e:
         record.update(status="failed", error=str(e))
+    except OSError as e:   # the case's own files (a directory in the way, a full disk): a failed case, retried
+        record.update(status="failed", error=f"{case_out}: {write_failure(e)}")
     record["wall_time"] = time.perf_counter() - t
     if not sweep["keep_outputs"]:
         for leftover in (case_out, f"{case_out}.partial", f"{case_out}.checkpoint", os.path.splitext(case_out)[0] + ".xdmf"):
@@ -405,8 +416,14 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     identities = _identities(sweep)
     records = [_read_json(_case_file(folder, i)) or {} for i in range(n)]
     # a failed case is retried: its cause may have been the machine's (a full disk), since mended
-    pending = [i for i in range(n) if records[i].get("identity") != identities[i] or records[i].get("status") != "ok"]
+    pending = {i for i in range(n) if records[i].get("identity") != identities[i] or records[i].get("status") != "ok"}
     retried = sum(records[i].get("identity") == identities[i] for i in pending)
+    for chain in sweep["chains"]:   # a step rerun starts the steps after it anew (they began from rest before)
+        for k, index in enumerate(chain):
+            if index in pending:
+                pending.update(chain[k:])
+                break
+    pending = sorted(pending)
     say(f"dbf-hpc sweep: {n} cases, {n - len(pending)} already done, {len(pending)} to run on {world.size} rank(s)"
         + (f" ({retried} failed before: retried)" if retried else ""))
     base = load_scene(sweep["scene"], sweep["cases"][0])
@@ -423,7 +440,8 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
             stopped = True
     stopped = world.allreduce(bool(stopped), op=MPI.LOR)
     if stopped:
-        done = sum(1 for i in range(n) if (_read_json(_case_file(folder, i)) or {}).get("identity") == identities[i])
+        done = sum(1 for i in range(n) if (_read_json(_case_file(folder, i)) or {}).get("identity") == identities[i]
+                   and _read_json(_case_file(folder, i))["status"] == "ok")
         raise Interrupted(f"sweep stopped by a termination signal with {done} of {n} cases done; rerun the same "
                           f"command to continue (finished cases are kept, a running one resumes from its checkpoint)")
     failed = problem = None
@@ -465,37 +483,42 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
     width = max((len(r.get("stats", {}).get("impacts", [])) for r in records), default=0)
     probes = max((len(r.get("probe_peak", [])) for r in records), default=0)
     tmp = f"{output}.partial"
-    with h5py.File(tmp, "w") as f:
-        f.attrs["sweep"] = json.dumps({"scene": sweep["scene"], "parameters": sweep["parameters"]})
-        for name in sweep["parameters"]:
-            values = [r["parameters"].get(name) for r in records]
-            if all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in values):
-                # NaN where a listed case leaves the base scene's value
-                f.create_dataset(f"cases/parameters/{name}",
-                                 data=np.array([np.nan if v is None else v for v in values], dtype=float))
-            else:
-                f.create_dataset(f"cases/parameters/{name}", data=[json.dumps(v) for v in values])
-        f.create_dataset("cases/status", data=[r["status"] for r in records])
-        f.create_dataset("cases/error", data=[r.get("error", "") for r in records])
-        f.create_dataset("cases/wall_time", data=[r["wall_time"] for r in records])
-        # supports of two directions add the work rate (and what follows from it) to the 1-D statistics
-        names = [*STATISTICS, *(k for k in STATISTICS_2D if k not in STATISTICS
-                                and any(k in r.get("stats", {}) for r in records))]
-        for name in names:
-            table = np.full((n, width), np.nan)
+    f = None
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["sweep"] = json.dumps({"scene": sweep["scene"], "parameters": sweep["parameters"]})
+            for name in sweep["parameters"]:
+                values = [r["parameters"].get(name) for r in records]
+                if all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in values):
+                    # NaN where a listed case leaves the base scene's value
+                    f.create_dataset(f"cases/parameters/{name}",
+                                     data=np.array([np.nan if v is None else v for v in values], dtype=float))
+                else:
+                    f.create_dataset(f"cases/parameters/{name}", data=[json.dumps(v) for v in values])
+            f.create_dataset("cases/status", data=[r["status"] for r in records])
+            f.create_dataset("cases/error", data=[r.get("error", "") for r in records])
+            f.create_dataset("cases/wall_time", data=[r["wall_time"] for r in records])
+            # supports of two directions add the work rate (and what follows from it) to the 1-D statistics
+            names = [*STATISTICS, *(k for k in STATISTICS_2D if k not in STATISTICS
+                                    and any(k in r.get("stats", {}) for r in records))]
+            for name in names:
+                table = np.full((n, width), np.nan)
+                for i, r in enumerate(records):
+                    values = r.get("stats", {}).get(name, [])
+                    table[i, :len(values)] = values
+                f.create_dataset(f"cases/stats/{name}", data=table)
+            peaks = np.full((n, probes), np.nan)
             for i, r in enumerate(records):
-                values = r.get("stats", {}).get(name, [])
-                table[i, :len(values)] = values
-            f.create_dataset(f"cases/stats/{name}", data=table)
-        peaks = np.full((n, probes), np.nan)
-        for i, r in enumerate(records):
-            peak = np.asarray(r.get("probe_peak", []), dtype=float)
-            if peak.ndim == 2:   # two planes: (y, z) peaks per probe; the summary keeps the larger
-                peak = peak.max(axis=1)
-            peaks[i, :peak.size] = peak
-        f.create_dataset("cases/probe_peak", data=peaks)
-        _units(f, sweep["parameters"])
-        f.attrs["dbf_hpc_version"] = __version__
-        f.attrs["complete"] = True
+                peak = np.asarray(r.get("probe_peak", []), dtype=float)
+                if peak.ndim == 2:   # two planes: (y, z) peaks per probe; the summary keeps the larger
+                    peak = peak.max(axis=1)
+                peaks[i, :peak.size] = peak
+            f.create_dataset("cases/probe_peak", data=peaks)
+            _units(f, sweep["parameters"])
+            f.attrs["dbf_hpc_version"] = __version__
+            f.attrs["complete"] = True
+    except WRITE_ERRORS:
+        park(f)   # freed after a failed flush, the file crashed HDF5 (signal 11)
+        raise
     os.replace(tmp, output)
     return sum(r["status"] != "ok" for r in records)

@@ -151,8 +151,11 @@ def test_set_k_is_the_stiffness_on_both_sides_and_one_side_keeps_the_other():
     s = load_scene(path, ["constraint.k=2e5", "constraint.1.k_plus=3e5", "constraint.clearance_minus=1e-3"])
     assert [(c.law.k_minus, c.law.k_plus) for c in s.constraints[:2]] == [(2e5, 3e5), (2e5, 2e5)]
     assert s.constraints[0].law.clearance_minus == 1e-3 and s.constraints[0].law.clearance_plus == 2.5e-3
-    s = load_scene(path, ["constraint.clearance_plus=4e-3", "constraint.clearance=1e-3"])
-    assert (s.constraints[0].law.clearance_minus, s.constraints[0].law.clearance_plus) == (1e-3, 1e-3)
+    s = load_scene(path, ["constraint.clearance=1e-3", "constraint.2.clearance_plus=4e-3"])
+    assert [(c.law.clearance_minus, c.law.clearance_plus) for c in s.constraints[:2]] == [(1e-3, 1e-3), (1e-3, 4e-3)]
+    # Red team: a side, then k, silently discarded the side (in a sweep, the case's label said otherwise)
+    with pytest.raises(InputError, match="would discard the k_plus given before it"):
+        load_scene(path, ["constraint.k_plus=1e5", "constraint.k=1e6"])
 
 
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf"])

@@ -100,6 +100,28 @@ def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_recor
     assert_all(statuses == ["ok"] * 3 and os.path.getmtime(files[2]) == kept, "only the two bad ones rerun")
 
 
+def test_a_retried_step_of_a_stepped_sine_reruns_the_steps_after_it(shared_tmp_path):
+    # Red team: when step 2 failed, step 3 ran from rest and was kept as ok after step 2's retry.
+    path = write_sweep(shared_tmp_path, 'continuation = "excitation.frequency_hz"\n[axes]\n'
+                                        '"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.05]\n')
+    first = run_sweep(path, progress=False)
+    folder = first["output"] + ".cases"
+    files = [os.path.join(folder, f"case-{i:05d}.json") for i in range(4)]
+    fresh = [json.load(open(name)) for name in files]
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        failed = dict(fresh[0], status="failed", error="No space left on device")
+        json.dump(failed, open(files[0], "w"))
+        stale = dict(fresh[1], continued=False, stats={k: [v[0] * 2] for k, v in fresh[1]["stats"].items()})
+        json.dump(stale, open(files[1], "w"))   # as if it had run from rest after the failure
+    MPI.COMM_WORLD.Barrier()
+    kept = os.path.getmtime(files[3])
+    run_sweep(path, progress=False)
+    again = [json.load(open(name)) for name in files]
+    assert_all(again[1]["continued"] and again[1]["stats"] == fresh[1]["stats"], "step 2 rerun from step 1")
+    assert_all(os.path.getmtime(files[3]) == kept, "the other chain is kept")
+
+
 def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
     path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [1e-3, -1]\n"basis.mode" = [3]\n')
     with pytest.raises(InputError, match="case 1 .*unknown key 'mode' in \\[basis\\]"):
