@@ -422,10 +422,25 @@ TOLERANCE_RTOL = 1e-2
 # margin, at least GROWTH_MIN and at most GROWTH_MAX times the last (doubling when the estimates
 # do not fall).
 GROWTH_MIN, GROWTH_MAX = 1.25, 2.0
-# Given up early when, through at least TREND_POINTS estimates, the power law needs more than
-# TREND_BEYOND times the largest basis: a tolerance of 1e-9 on the paper's beam (200 DOFs) went on
-# to 48 and 96 modes (27 s and about 2 min a candidate) when 24 modes' law already put it near 4e8.
-TREND_POINTS, TREND_BEYOND = 3, 10.0
+# Given up early when the last TREND_POINTS estimates fall and the power law through them (and the
+# one through all) needs more than TREND_BEYOND times the largest basis: a tolerance of 1e-9 on the
+# paper's beam (200 DOFs) went on to 48 and 96 modes (27 s and about 2 min a candidate) when 24
+# modes' law already put it near 4e8. Only candidates of TREND_MIN_MODES or more count: from 1 mode
+# the estimates rose and fell (0.198, 0.455, 0.194) and their law refused 0.02, which 21 modes meet.
+TREND_POINTS, TREND_BEYOND, TREND_MIN_MODES = 3, 10.0, 4
+
+
+def hopeless(tried: list, target: float, limit: int) -> tuple[float, float] | None:
+    """(N, p) of the power law when the tolerance is out of reach by the rule above, else None. Not
+    collective."""
+    asymptotic = [(m, e) for m, e in tried if m >= TREND_MIN_MODES and math.isfinite(e) and e > 0]
+    last = asymptotic[-TREND_POINTS:]
+    if len(last) < TREND_POINTS or not all(b[1] < a[1] for a, b in zip(last, last[1:])):
+        return None
+    laws = [modes_needed(last, target), modes_needed(asymptotic, target)]
+    if any(law is None or law[0] <= TREND_BEYOND * limit for law in laws):
+        return None
+    return laws[1]
 
 
 def tolerance_rtol(tolerance: float) -> float:
@@ -515,8 +530,8 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
     calibration window is at most TOLERANCE_MARGIN times the tolerance, at the rtol tolerance_rtol
     picks. The calibration window is estimate.window, or the first candidate's (_measure), then the
     same for every candidate. No full-order run. An InputError naming what it reached when the
-    tolerance cannot be met: at the largest basis, or as soon as TREND_POINTS estimates' power law
-    (modes_needed) puts it beyond TREND_BEYOND times that. Collective."""
+    tolerance cannot be met: at the largest basis, or as soon as the estimates' trend puts it beyond
+    reach (hopeless). Collective."""
     tol = estimate.tolerance
     if not fom.constraints.count:
         raise InputError("[basis] tolerance bounds the error in w at the constraints; this scene has none")
@@ -535,9 +550,8 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
             say(f"tolerance {tol:g}: {modes} modes at rtol {settings.rtol:g}: {measured.line()}")
         if measured.value <= TOLERANCE_MARGIN * tol:
             return Pick(modes, settings.rtol, measured, tried, settings.atol)
-        law = modes_needed(tried, TOLERANCE_MARGIN * tol)
-        finite = sum(math.isfinite(e) and e > 0 for _, e in tried)
-        if law is not None and finite >= TREND_POINTS and law[0] > TREND_BEYOND * limit:
+        law = hopeless(tried, TOLERANCE_MARGIN * tol, limit)
+        if law is not None:
             reached = ", ".join(f"{m} modes {e:.3g}" for m, e in tried)
             raise InputError(f"[basis] tolerance = {tol:g} cannot be met within {limit} modes: reached {reached}, "
                              f"falling like N^-{law[1]:.2g}, which reaches {TOLERANCE_MARGIN * tol:.3g} near "

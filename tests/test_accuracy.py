@@ -82,6 +82,17 @@ def test_the_power_law_of_the_estimates_says_where_a_tolerance_is_reached():
     assert modes_needed([(8, 1.0), (16, 0.5)], 1e-300)[0] < math.inf    # far beyond: large, finite
 
 
+def test_only_a_falling_trend_of_enough_modes_gives_a_tolerance_up():
+    from dbf_hpc.accuracy import hopeless
+
+    # The paper's beam at 1e-9 (measured): 6, 12, 24 modes fall, and their law needs ~1e8 modes
+    assert hopeless([(6, 0.137), (12, 0.0379), (24, 0.0318)], 7.5e-10, 99) is not None
+    # From 1 mode (red team): rising and falling, and too few modes to tell; 21 modes meet 0.02
+    assert hopeless([(1, 0.198), (2, 0.455), (4, 0.194)], 0.015, 99) is None
+    assert hopeless([(4, 0.194), (8, 0.25), (16, 0.03)], 0.0075, 99) is None      # not falling throughout
+    assert hopeless([(6, 0.137), (12, 0.0379), (24, 0.0318)], 0.0075, 99) is None  # within reach
+
+
 
     assert np.all(np.isnan(basis_flexibility(np.zeros((2, 2)), np.eye(2))))
 
