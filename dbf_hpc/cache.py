@@ -310,16 +310,31 @@ def entries(cache_dir: str) -> list:
         else:
             try:
                 with h5py.File(path, "r") as f:
-                    key = f.attrs.get("key", "")
-                    if not (isinstance(key, str) and key[:20] == match.group(1) and "V" in f):
+                    key, V = f.attrs.get("key", ""), f.get("V")
+                    if not (isinstance(key, str) and key[:20] == match.group(1) and isinstance(V, h5py.Dataset)
+                            and V.ndim == 2):
                         entry.update(problem="not a basis this cache wrote: kept", foreign=True)
                     else:
                         entry.update(settings=f.attrs.get("settings", ""),
-                                     version=f.attrs.get("dbf_hpc_version", "?"), shape=f["V"].shape)
-            except (OSError, KeyError):
-                entry["problem"] = "unreadable"
+                                     version=f.attrs.get("dbf_hpc_version", "?"), shape=V.shape)
+            except (OSError, KeyError, RuntimeError) as e:
+                if refused_lock(e):      # readable where locks work: never removed for it
+                    entry.update(problem=LOCK_HINT, foreign=True)
+                elif not _is_hdf5(path):
+                    entry.update(problem="not a basis this cache wrote: kept", foreign=True)
+                else:
+                    entry["problem"] = "unreadable (damaged)"
         out.append(entry)
     return out
+
+
+def _is_hdf5(path: str) -> bool:
+    """Whether the file starts with HDF5's signature (a damaged basis does; a user's note does not)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(8) == b"\x89HDF\r\n\x1a\n"
+    except OSError:
+        return False
 
 
 def clear(cache_dir: str, older_than_days: float | None = None) -> tuple[int, int]:

@@ -523,12 +523,16 @@ def test_cache_clear_removes_only_the_files_the_cache_wrote(tmp_path):
     (tmp_path / "basis-notes.txt").write_text("mine")
     with h5py.File(tmp_path / "basis-0123456789abcdef0123.h5", "w") as f:   # named like one, not ours
         f["V"] = np.zeros((3, 1))
+    (tmp_path / "basis-0123456789abcdef4567.h5").write_text("my notes")       # not even HDF5
+    with h5py.File(tmp_path / "basis-0123456789abcdef89ab.h5", "w") as f:    # its key, but V a group
+        f.attrs["key"] = "0123456789abcdef89ab"
+        f.create_group("V")
     stale, fresh = tmp_path / f"{cached.name}.tmp-11", tmp_path / f"{cached.name}.tmp-12"
     stale.write_bytes(b"x")
     fresh.write_bytes(b"x")
     os.utime(stale, (1e9, 1e9))
     listed = dbf_hpc("cache", "list", "--dir", str(tmp_path), ranks=1)
-    assert listed.returncode == 0 and "4 file(s)" in listed.stdout and "not a basis this cache wrote" in listed.stdout
+    assert listed.returncode == 0 and "6 file(s)" in listed.stdout and "not a basis this cache wrote" in listed.stdout
     # A basis used today is not "unused for a day", however long ago it was written
     os.utime(cached, (1e9, 1e9))
     out = dbf_hpc("basis", PAPER, "--set", "basis.modes=2", "--set", f"basis.cache={tmp_path}", ranks=1)
@@ -538,7 +542,8 @@ def test_cache_clear_removes_only_the_files_the_cache_wrote(tmp_path):
     out = dbf_hpc("cache", "clear", "--dir", str(tmp_path), ranks=1)
     assert out.returncode == 0 and "removed 1 file(s)" in out.stdout, out.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["basis-0123456789abcdef0123.h5", "basis-notes.txt",
-                                                                 fresh.name])
+                                                                 "basis-0123456789abcdef4567.h5",
+                                                                 "basis-0123456789abcdef89ab.h5", fresh.name])
 
 
 def test_a_file_system_that_refuses_locks_is_named_with_the_setting_that_works(tmp_path):
