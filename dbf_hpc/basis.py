@@ -58,6 +58,12 @@ class BasisSettings:
         if self.modes is None and self.max_frequency_hz is None:
             raise InputError("BasisSettings: give modes or max_frequency_hz")
         object.__setattr__(self, "groups", check_number("BasisSettings groups", self.groups, 0, integer=True))
+        for name, accepted in (("enrichment", tuple(STRATEGIES)), ("dbf_solver", DBF_SOLVERS),
+                               ("dbf_derivative", ("analytic", "central")),
+                               ("gyroscopic_form", ("second_order", "state_space"))):
+            if getattr(self, name) not in accepted:
+                raise InputError(f"BasisSettings {name} must be one of {', '.join(map(repr, accepted))}, got "
+                                 f"{getattr(self, name)!r}")
         if self.dbf_stiffness != "auto":
             object.__setattr__(self, "dbf_stiffness", check_number("BasisSettings dbf_stiffness (N/m, or \"auto\")",
                                                                    self.dbf_stiffness, 0.0, above=True))

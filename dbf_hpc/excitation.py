@@ -102,6 +102,10 @@ class PointForce:
 
     def __post_init__(self):
         _harmonic_numbers(self, "PointForce")
+        if (self.x is None) == (self.dof is None):
+            from .errors import InputError
+
+            raise InputError("PointForce: give where it acts, one of x (m, on a beam) or dof (a matrix model)")
 
     def history(self) -> Harmonic:
         return Harmonic(self.amplitude, self.frequency_hz)

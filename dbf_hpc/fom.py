@@ -85,6 +85,13 @@ class FullOrderModel:
             raise InputError(f"FullOrderModel.build: give the constraints as a list of Constraint, got "
                              f"{type(constraints).__name__}")
         constraints = tuple(constraints)
+        on_beam = isinstance(structure, Beam)
+        for j, c in enumerate(constraints):
+            if not isinstance(c, Constraint):
+                raise InputError(f"FullOrderModel.build: constraint {j + 1} is a {type(c).__name__}, not a Constraint")
+            if (c.x is None) == on_beam:
+                raise InputError(f"FullOrderModel.build: constraint {j + 1} needs {'x (m)' if on_beam else 'dof'} "
+                                 f"on a {type(structure).__name__}")
         planes = structure.planes if isinstance(structure, Beam) else 1
         _check_dimensions(constraints, planes)
         if isinstance(structure, Beam):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, check_number
 from .fom import FullOrderModel, Observation
 from .fom_integrator import integrate_full
 from .output import MemoryWriter
@@ -31,6 +31,7 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
     """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Not collective."""
     _check_settings(settings)
+    snapshots = check_number("simulate_reduced snapshots", snapshots, 0, integer=True)
     if isinstance(model, FullOrderModel) or not hasattr(model, "probe_sample_shape"):
         raise InputError(f"simulate_reduced integrates a reduced model (Reductor(...).reduce()), got "
                          f"{type(model).__name__}; simulate_full integrates a FullOrderModel")

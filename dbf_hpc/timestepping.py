@@ -57,6 +57,10 @@ class IntegratorSettings:
                                                         above=True))
         object.__setattr__(self, "rtol", check_number("IntegratorSettings rtol", self.rtol))   # its range: below
         object.__setattr__(self, "scheme", str(self.scheme).lower())
+        if not isinstance(self.adaptive, (bool, np.bool_)):
+            raise InputError(f"IntegratorSettings adaptive must be True or False, got {self.adaptive!r}")
+        if self.contact not in ("implicit", "explicit"):
+            raise InputError(f'IntegratorSettings contact must be "implicit" or "explicit", got {self.contact!r}')
         if self.t_end / self.sample_dt > MAX_SAMPLES:   # before the sample times are made (memory)
             raise InputError(f"[output] sample_dt = {self.sample_dt:g} s gives {self.t_end / self.sample_dt:.2g} "
                              f"samples over t_end = {self.t_end:g} s, more than {MAX_SAMPLES:g}: sample less often")

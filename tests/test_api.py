@@ -65,6 +65,10 @@ def test_the_example_objects_agree_with_the_full_order_model_before_the_first_im
     (lambda api: api.BaseMotion(amplitude="5e-3", frequency_hz=1.0), "BaseMotion amplitude must be a finite"),
     (lambda api: api.Reductor(6), "Reductor reduces a FullOrderModel"),
     (lambda api: api.simulate_reduced(None, {"t_end": 0.01}), "give IntegratorSettings"),
+    (lambda api: api.IntegratorSettings(t_end=1, adaptive="no"), "adaptive must be True or False"),
+    (lambda api: api.IntegratorSettings(t_end=1, contact="bogus"), "contact must be"),
+    (lambda api: api.BasisSettings(dbf_derivative="bogus"), "dbf_derivative must be one of"),
+    (lambda api: api.PointForce(amplitude=1.0, frequency_hz=1.0), "PointForce: give where it acts"),
 ])
 def test_the_python_api_refuses_a_wrong_value_where_it_is_given(make, message):
     # New-user pass: these failed later as TypeError, IndexError, AttributeError or a 7 TiB MemoryError.
@@ -82,6 +86,10 @@ def test_the_models_are_refused_by_the_simulation_of_the_other_kind():
     stop = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
     with pytest.raises(InputError, match="a list of Constraint"):
         FullOrderModel.build(beam, stop, BaseMotion(amplitude=5e-3, frequency_hz=1.0))
+    with pytest.raises(InputError, match="constraint 1 is a dict, not a Constraint"):
+        FullOrderModel.build(beam, [{"x": 0.25}], BaseMotion(amplitude=5e-3, frequency_hz=1.0))
+    with pytest.raises(InputError, match="constraint 1 needs x"):
+        FullOrderModel.build(beam, [Constraint(stop.law, dof=5)], BaseMotion(amplitude=5e-3, frequency_hz=1.0))
     settings = IntegratorSettings(t_end=0.01)
     with FullOrderModel.build(beam, [stop], BaseMotion(amplitude=5e-3, frequency_hz=1.0)) as fom:
         with pytest.raises(InputError, match="Reductor settings: give BasisSettings"):
@@ -92,3 +100,5 @@ def test_the_models_are_refused_by_the_simulation_of_the_other_kind():
             rom = reductor.reduce()
         with pytest.raises(InputError, match="simulate_full integrates a FullOrderModel"):
             simulate_full(rom, settings)
+        with pytest.raises(InputError, match="snapshots must be at least 0"):
+            simulate_reduced(rom, settings, snapshots=-1)
