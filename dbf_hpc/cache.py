@@ -34,7 +34,7 @@ from . import __version__
 from .basis import BasisSettings, ReducedBasis, build_basis
 from .checkpoint import arrays_sha256
 from .errors import LOCK_HINT, WRITE_ERRORS, InputError, park, refused_lock, write_failure
-from .output import check_free_space
+from .output import check_free_space, has_hdf5_signature
 from .operators import Operators
 
 # Bump when the construction changes what a basis is (an older file then has another key).
@@ -320,21 +320,12 @@ def entries(cache_dir: str) -> list:
             except (OSError, KeyError, RuntimeError) as e:
                 if refused_lock(e):      # readable where locks work: never removed for it
                     entry.update(problem=LOCK_HINT, foreign=True)
-                elif not _is_hdf5(path):
+                elif not has_hdf5_signature(path):
                     entry.update(problem="not a basis this cache wrote: kept", foreign=True)
                 else:
                     entry["problem"] = "unreadable (damaged)"
         out.append(entry)
     return out
-
-
-def _is_hdf5(path: str) -> bool:
-    """Whether the file starts with HDF5's signature (a damaged basis does; a user's note does not)."""
-    try:
-        with open(path, "rb") as f:
-            return f.read(8) == b"\x89HDF\r\n\x1a\n"
-    except OSError:
-        return False
 
 
 def clear(cache_dir: str, older_than_days: float | None = None) -> tuple[int, int]:

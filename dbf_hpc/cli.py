@@ -531,7 +531,7 @@ def _finish(comm, failure: str | None) -> int:
     deadline = time.monotonic() + 10.0
     while not request.Test():
         if failure and time.monotonic() > deadline:
-            print(f"dbf-hpc: error (rank {comm.rank}): {failure}", file=sys.stderr, flush=True)
+            print(f"dbf-hpc: error: (rank {comm.rank}) {failure}", file=sys.stderr, flush=True)
             comm.Abort(1)
         time.sleep(0.005)
     failures = comm.allgather(failure)

@@ -75,6 +75,15 @@ def output_bytes(samples: int, constraint_values: int, probes: int, r: int, snap
             + snapshots * SNAPSHOT_OVERHEAD_BYTES + 64 * 2**10)
 
 
+def has_hdf5_signature(path: str) -> bool:
+    """Whether the file starts with HDF5's signature: a damaged HDF5 file does, another kind does not."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(8) == b"\x89HDF\r\n\x1a\n"
+    except OSError:
+        return False
+
+
 def is_dbf_output(path: str) -> bool:
     """Whether `path` is an HDF5 file dbf-hpc wrote (a run's output or a sweep summary)."""
     try:

@@ -10,6 +10,7 @@ import numpy as np
 
 from . import layout
 from .errors import LOCK_HINT, InputError, refused_lock
+from .output import has_hdf5_signature
 
 # The impact statistics a tube-vibration engineer reads first, with how to print them.
 HEADLINE = (("impacts", "{:.0f} impacts"), ("impact_rate", "{:.3g}/s"), ("contact_fraction", "in contact {:.2%}"),
@@ -32,6 +33,7 @@ def open_output(path: str):
         f = h5py.File(target, "r")
     except OSError as e:
         raise InputError(f"cannot open {target!r}: {LOCK_HINT}" if refused_lock(e) else
+                         f"{target!r} is damaged ({str(e).splitlines()[0]})" if has_hdf5_signature(target) else
                          f"{target!r} is not an HDF5 file") from None
     if layout.TIME not in f and "cases" not in f:
         f.close()
@@ -48,7 +50,7 @@ def describe(path: str) -> list:
             if "cases" in f:
                 return _sweep_lines(path, f)
             return _run_lines(path, f) if complete else _partial_lines(run, f)
-        except RuntimeError as e:   # HDF5's metadata damaged, e.g. by a write that failed on a full disk
+        except (RuntimeError, KeyError) as e:   # HDF5's metadata damaged (a write that failed on a full disk)
             raise InputError(f"{f.filename!r} is damaged ({str(e).splitlines()[0]})") from None
 
 

@@ -242,8 +242,9 @@ def _warn_unresolved(summary: dict, constraints, dt: float, comm, also: str = ""
 
 # A stop is suspected of a clearance in the wrong unit when the motion there stays below this fraction of
 # the clearance (mm given as m is 1000 times too far). A stop merely not reached (an idle support plate of
-# a tube, a short run) is physics, and the warning fired for the shipped 2-D tube six times.
-IDLE_FRACTION = 0.05
+# a tube, a short run: 4.7 % of it after 5 ms of the paper's beam) is physics, and the warning fired for
+# the shipped 2-D tube six times.
+IDLE_FRACTION = 0.01
 
 
 def _warn_idle(summary: dict, constraints, comm) -> None:
@@ -253,7 +254,12 @@ def _warn_idle(summary: dict, constraints, comm) -> None:
     for j, constraint in enumerate(constraints):
         law = constraint.law
         if law.kind in ("deadband", "power", "hertz", "circular", "flat_bar") and stats and stats["impacts"][j] == 0:
-            gap = min(law.clearance_minus, law.clearance_plus)
+            # the sides that have a stop (a one-sided stop's other side has k = 0)
+            ks = (law.k_minus, law.k_plus) if hasattr(law, "k_minus") else (law.k, law.k)
+            gaps = [c for c, k in zip((law.clearance_minus, law.clearance_plus), ks) if k > 0]
+            if not gaps:
+                continue
+            gap = min(gaps)
             if not stats["displacement_peak"][j] < IDLE_FRACTION * gap:
                 continue
             PETSc.Sys.Print(f"dbf-hpc: warning: constraint {j + 1} at {constraint.label} never reached its stop "
