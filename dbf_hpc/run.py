@@ -29,7 +29,8 @@ from .fom import Observation
 from .fom_integrator import integrate_full
 from .fom_integrator import options as full_options
 from .modes import counters
-from .output import OutputLock, OutputWriter, check_free_space, check_output_path, output_bytes
+from .output import (SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space, check_output_path,
+                     free_bytes, output_bytes)
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
@@ -625,6 +626,15 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     # A termination signal while the fixed data is written waits for it (a few seconds): stopped
     # halfway, the .partial held datasets a resume would write again (red team). A write that fails
     # (a full disk) is one line; h5py reports some as KeyError or ValueError ("Unable to ...").
+    # The disk may have filled since the run began: a final write that fails leaves HDF5's metadata
+    # damaged (the .partial then cannot be resumed), so its room is checked first
+    needed = sum(np.asarray(v).nbytes for v in datasets.values()) + snap_t.size * SNAPSHOT_OVERHEAD_BYTES + 2**16
+    free = free_bytes(os.path.dirname(os.path.abspath(writer.partial)))
+    if free < 1.1 * needed + 2**20:
+        resume = "rerun with --resume" if checkpoint is not None else "rerun"
+        raise SolverError(_left_behind(f"cannot finish {writer.path}: its final data needs about "
+                                       f"{needed / 2**20:.3g} MiB and its disk has {free / 2**20:.3g} MiB free; free "
+                                       f"some space, then {resume}", writer, checkpoint)) from None
     deferred = []
     try:
         with _on_sigterm(lambda signum, frame: deferred.append(signum)):
