@@ -75,14 +75,18 @@ def test_rerunning_a_killed_sweep_skips_the_finished_cases(shared_tmp_path):
         assert json.load(f)["status"] == "ok"
 
 
+def _swept(folder, body: str, count: int):
+    """A sweep file of `body` run once: its path and its cases' record files."""
+    path = write_sweep(folder, body)
+    output = run_sweep(path, progress=False)["output"]
+    return path, [os.path.join(output + ".cases", f"case-{i:05d}.json") for i in range(count)]
+
+
 def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_record(shared_tmp_path):
     # Red team: cases that failed on a full disk stayed failed after the disk was freed ("6 already
     # done"), and a case file holding valid JSON that is not a record was an internal error.
-    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1, 1.3]\n'
-                                        '"integrator.t_end" = [0.05]\n')
-    first = run_sweep(path, progress=False)
-    folder = first["output"] + ".cases"
-    files = [os.path.join(folder, f"case-{i:05d}.json") for i in range(3)]
+    path, files = _swept(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1, 1.3]\n'
+                                          '"integrator.t_end" = [0.05]\n', 3)
     kept = os.path.getmtime(files[2])
     MPI.COMM_WORLD.Barrier()
     if MPI.COMM_WORLD.rank == 0:
@@ -102,11 +106,8 @@ def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_recor
 
 def test_a_retried_step_of_a_stepped_sine_reruns_the_steps_after_it(shared_tmp_path):
     # Red team: when step 2 failed, step 3 ran from rest and was kept as ok after step 2's retry.
-    path = write_sweep(shared_tmp_path, 'continuation = "excitation.frequency_hz"\n[axes]\n'
-                                        '"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.05]\n')
-    first = run_sweep(path, progress=False)
-    folder = first["output"] + ".cases"
-    files = [os.path.join(folder, f"case-{i:05d}.json") for i in range(4)]
+    path, files = _swept(shared_tmp_path, 'continuation = "excitation.frequency_hz"\n[axes]\n'
+                                          '"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.05]\n', 4)
     fresh = [json.load(open(name)) for name in files]
     MPI.COMM_WORLD.Barrier()
     if MPI.COMM_WORLD.rank == 0:
