@@ -623,9 +623,6 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
         if info.get("complex_modes"):   # a gyroscopic basis: Re and Im columns of each complex mode and DBF
             attrs["basis_complex_modes"] = int(info["complex_modes"])
             attrs["reduced_form"] = info.get("form", "second_order")
-    # A termination signal while the fixed data is written waits for it (a few seconds): stopped
-    # halfway, the .partial held datasets a resume would write again (red team). A write that fails
-    # (a full disk) is one line; h5py reports some as KeyError or ValueError ("Unable to ...").
     # The disk may have filled since the run began: a final write that fails leaves HDF5's metadata
     # damaged (the .partial then cannot be resumed), so its room is checked first
     needed = sum(np.asarray(v).nbytes for v in datasets.values()) + snap_t.size * SNAPSHOT_OVERHEAD_BYTES + 2**16
@@ -635,6 +632,9 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
         raise SolverError(_left_behind(f"cannot finish {writer.path}: its final data needs about "
                                        f"{needed / 2**20:.3g} MiB and its disk has {free / 2**20:.3g} MiB free; free "
                                        f"some space, then {resume}", writer, checkpoint)) from None
+    # A termination signal while the fixed data is written waits for it (a few seconds): stopped
+    # halfway, the .partial held datasets a resume would write again (red team). A write that fails
+    # all the same is one line; h5py reports some as KeyError or ValueError ("Unable to ...").
     deferred = []
     try:
         with _on_sigterm(lambda signum, frame: deferred.append(signum)):

@@ -440,8 +440,8 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
             stopped = True
     stopped = world.allreduce(bool(stopped), op=MPI.LOR)
     if stopped:
-        done = sum(1 for i in range(n) if (_read_json(_case_file(folder, i)) or {}).get("identity") == identities[i]
-                   and _read_json(_case_file(folder, i))["status"] == "ok")
+        finished = [_read_json(_case_file(folder, i)) or {} for i in range(n)]
+        done = sum(r.get("identity") == identities[i] and r.get("status") == "ok" for i, r in enumerate(finished))
         raise Interrupted(f"sweep stopped by a termination signal with {done} of {n} cases done; rerun the same "
                           f"command to continue (finished cases are kept, a running one resumes from its checkpoint)")
     failed = problem = None
