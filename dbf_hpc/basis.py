@@ -62,8 +62,8 @@ class BasisSettings:
                                ("dbf_derivative", ("analytic", "central")),
                                ("gyroscopic_form", ("second_order", "state_space"))):
             if getattr(self, name) not in accepted:
-                raise InputError(f"BasisSettings {name} must be one of {', '.join(map(repr, accepted))}, got "
-                                 f"{getattr(self, name)!r}")
+                quoted = ", ".join(f'"{a}"' for a in accepted)
+                raise InputError(f"BasisSettings {name} must be one of {quoted}, got {getattr(self, name)!r}")
         if self.dbf_stiffness != "auto":
             object.__setattr__(self, "dbf_stiffness", check_number("BasisSettings dbf_stiffness (N/m, or \"auto\")",
                                                                    self.dbf_stiffness, 0.0, above=True))
