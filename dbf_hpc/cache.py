@@ -306,7 +306,7 @@ def entries(cache_dir: str) -> list:
             continue
         entry = {"path": path, "size": os.path.getsize(path), "modified": os.path.getmtime(path)}
         if match.group(2):
-            entry["problem"] = "a temporary file left by a killed job (or being written)"
+            entry.update(problem="a temporary file left by a killed job (or being written)", temporary=True)
         else:
             try:
                 with h5py.File(path, "r") as f:
@@ -340,7 +340,7 @@ def clear(cache_dir: str, older_than_days: float | None = None) -> tuple[int, in
         age_s = time.time() - entry["modified"]
         if entry.get("foreign"):
             continue
-        if ".tmp-" in entry["path"]:
+        if entry.get("temporary"):
             stale = age_s > STALE_TEMPORARY_S
         else:
             stale = older_than_days is None or age_s / 86400 > older_than_days or "problem" in entry

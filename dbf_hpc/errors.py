@@ -4,6 +4,8 @@ Each carries one line for the user: what is wrong and what to change. The comman
 and exits non-zero; anything else is a bug and ends the whole MPI job.
 """
 import contextlib
+import math
+import numbers
 import os
 
 
@@ -33,9 +35,6 @@ def check_number(where: str, value, minimum: float | None = None, above: bool = 
     "IntegratorSettings t_end"): a finite number (not a bool or a string), at least `minimum` (above
     it, with above=True). The Python API's dataclasses check what they are given with it; scenes are
     checked before they reach them."""
-    import math
-    import numbers
-
     kind = numbers.Integral if integer else numbers.Real
     if isinstance(value, bool) or not isinstance(value, kind) or not math.isfinite(value):
         raise InputError(f"{where} must be {'an integer' if integer else 'a finite number'}, got {value!r}")
