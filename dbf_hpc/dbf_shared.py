@@ -44,13 +44,14 @@ EIGEN_NCV = 4            # Krylov-Schur subspace beyond the branch index: conver
                          # (m + 8 took 12 solves per eigenproblem on the 10^4-DOF beam, m + 4 takes 10)
 
 # On a one-rank group whose K - sigma M keeps its fill small in the natural ordering (a beam):
-# PETSc's own sparse Cholesky (nested-dissection ordering). A MUMPS solve costs ~6.5 ms on the
+# PETSc's own sparse Cholesky in that ordering (no fill on a band; on the 10^4-DOF beam it factors in
+# 1.8 ms against 8.5 ms in nested dissection, and solves as fast). A MUMPS solve costs ~6.5 ms on the
 # 10^4-DOF beam whatever the arithmetic (its per-call overhead), PETSc's 0.4 ms, and each constraint
 # makes several solves (docs/design.md). A 3-D mesh (the 104 040-DOF solid: bench_basis with 10 and
 # 100 constraints had not finished after 13 min with PETSc's own, 7 min with MUMPS) and groups of
 # several ranks use MUMPS;
 # -dbf_shared_pc_factor_mat_solver_type chooses either everywhere.
-FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "nd"}
+FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "natural"}
 
 # Work done by this process on the shared path (tests and benchmarks read it).
 counters = {"factorizations": 0, "solves": 0}

@@ -9,7 +9,8 @@ reference modes, the wall time of
                   with one column per constraint from a factored operator can cost
     limit, block  the same factorization and all N_L right-hand sides in one MatMatSolve (MUMPS solves
                   a block at a fraction of the cost of as many single solves)
-    limit, PETSc  the same with PETSc's own Cholesky (the shared DBF path's solver on one rank)
+    limit, PETSc  the same with PETSc's own Cholesky in the natural ordering (no fill on a band: the
+                  shared DBF path's solver on one rank)
     static        the static attachment modes (enrichment.static_modes: the limit plus the
                   backward-error checks and the gathered matrix)
     DBF ritz      DbfEnrichment(solver="ritz").columns: the same factorization, Rayleigh-Ritz on
@@ -57,13 +58,13 @@ def limit(ops, rows, solver_type: str, block: bool = False) -> float:
     """Seconds for one Cholesky of K (solver_type) and one solve per constraint row; block: all the
     rows' right-hand sides in one MatMatSolve. Collective."""
     from petsc4py import PETSc
-    from dbf_hpc.petsctools import destroy, direct_solver, unit_vector
+    from dbf_hpc.petsctools import destroy, direct_solver, natural_fill_is_small, unit_vector
 
     t0 = time.perf_counter()
     ksp = direct_solver(PETSc.KSP().create(comm=ops.comm), PETSc.PC.Type.CHOLESKY)
     ksp.getPC().setFactorSolverType(solver_type)
-    if solver_type == "petsc":
-        ksp.getPC().setFactorOrdering("nd")
+    if solver_type == "petsc":   # the faster ordering: no fill on a band, nested dissection otherwise
+        ksp.getPC().setFactorOrdering("natural" if natural_fill_is_small(ops.K) else "nd")
     ksp.setOperators(ops.K)
     if block:
         ksp.setUp()
