@@ -48,18 +48,37 @@ def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
     return ours, petsc
 
 
+def _launcher_rank() -> str:
+    """This process's rank as the MPI launcher set it ("0" without a launcher): the command line is
+    parsed before MPI starts."""
+    return next((os.environ[v] for v in ("OMPI_COMM_WORLD_RANK", "PMIX_RANK", "PMI_RANK") if v in os.environ), "0")
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with the package's error contract: a malformed command line is one line on stderr,
     `dbf-hpc: error: ...` naming the command and where its usage is, exit status 2; no usage block.
-    It runs before MPI starts, so the launcher's rank variable decides who prints (rank 0 only)."""
+    It runs before MPI starts, so the launcher's rank variable decides who prints (rank 0 only: also
+    --help and --version)."""
+
+    commands: dict = {}   # build_parser: the subcommands' parsers by name
 
     def error(self, message):
-        rank = next((os.environ[v] for v in ("OMPI_COMM_WORLD_RANK", "PMIX_RANK", "PMI_RANK") if v in os.environ), "0")
-        if rank == "0":
+        if _launcher_rank() == "0":
             command = self.prog.split(" ", 1)[1] if " " in self.prog else None
             where = f"{command}: " if command else ""
             print(f"dbf-hpc: error: {where}{message} (see {self.prog} --help)", file=sys.stderr, flush=True)
         sys.exit(2)
+
+    def _print_message(self, message, file=None):
+        if _launcher_rank() == "0":
+            super()._print_message(message, file)
+
+    def parse_args(self, args=None, namespace=None):
+        # argparse reports leftover words at the top level; the subcommand's parser names itself
+        args, extra = self.parse_known_args(args, namespace)
+        if extra:
+            self.commands.get(getattr(args, "command", None), self).error(f"unrecognized arguments: {' '.join(extra)}")
+        return args
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -76,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
                "reference). The scene format: docs/scene.md.")
     parser.add_argument("--version", action="version", version=f"dbf-hpc {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser.commands = sub.choices    # filled as the subcommands are added
     def command(name, func, help, description):
         p = sub.add_parser(name, help=help, description=description)
         p.add_argument("scene", help="scene file (TOML)")

@@ -8,6 +8,8 @@ import sys
 import numpy as np
 import pytest
 
+from dbf_hpc import __version__ as dbf_hpc_version
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAPER = os.path.join(ROOT, "jobs", "paper_beam.toml")
 pytestmark = pytest.mark.launcher
@@ -25,10 +27,18 @@ def dbf_hpc(*args, ranks=2, timeout=120):
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=mpi_env())
 
 
-def test_help_works_under_mpirun():
+def test_help_and_version_print_once_under_mpirun():
     out = dbf_hpc("--help")
-    assert out.returncode == 0 and out.stdout.count("usage: dbf-hpc") == 2   # printed by each rank
+    assert out.returncode == 0 and out.stdout.count("usage: dbf-hpc") == 1, out.stdout   # rank 0 only
     assert "modes" in out.stdout and "basis" in out.stdout and "stiffness" in out.stdout
+    out = dbf_hpc("--version")
+    assert out.returncode == 0 and out.stdout.splitlines() == [f"dbf-hpc {dbf_hpc_version}"], out.stdout
+
+
+def test_a_word_the_command_does_not_take_is_named_with_that_command():
+    out = dbf_hpc("run", PAPER, "--bogus")
+    assert out.returncode == 2 and out.stderr.strip() == (
+        "dbf-hpc: error: run: unrecognized arguments: --bogus (see dbf-hpc run --help)"), out.stderr
 
 
 @pytest.mark.parametrize("argv", [[], ["bogus"], ["run"], ["run", PAPER, "--method", "xyz"],
