@@ -105,7 +105,9 @@ def plot_run(path: str, folder: str, window=None) -> list:
     w at each probe; snapshots.png: the field at the snapshot times with the constraints and their
     deadbands (Figs. 6, 9, 11, 13). On a beam of two planes also orbits.png: each support's path z
     against y inside its gap (the clearance circle of a round hole, the two lines of flat bars).
-    `window` (t0, t1) limits the time histories, phase diagrams and orbits.
+    `window` (t0, t1) limits the time histories, phase diagrams, forces, probes and orbits; their
+    files then carry the window's sample span (time_histories_9-10s.png), so that they never replace
+    the whole run's figures. snapshots.png does not depend on the window.
     """
     import h5py
 
@@ -118,10 +120,15 @@ def plot_run(path: str, folder: str, window=None) -> list:
                                                        layout.CONSTRAINT_FORCE_PEAK, layout.PROBE_DISPLACEMENT)}
         gaps = (f[layout.CONSTRAINT_CLEARANCE_MINUS][:], f[layout.CONSTRAINT_CLEARANCE_PLUS][:])
         span = f"t = {t[keep][0]:g} ... {t[keep][-1]:g} s" if keep.any() else "no samples"
+        tag = f"_{t[keep][0]:g}-{t[keep][-1]:g}s" if window and keep.any() else ""
+
+        def name(stem: str) -> str:
+            return os.path.join(folder, f"{stem}{tag}.png")
+
         if positions.size:
-            _constraint_figures(folder, t[keep], positions, series, gaps, span, written)
+            _constraint_figures(name, t[keep], positions, series, gaps, span, written)
             if series[layout.CONSTRAINT_DISPLACEMENT].ndim == 3:
-                _orbit_figure(folder, positions, series[layout.CONSTRAINT_DISPLACEMENT], _laws(f), span, written)
+                _orbit_figure(name, positions, series[layout.CONSTRAINT_DISPLACEMENT], _laws(f), span, written)
         probes = f[layout.PROBE_POSITION][:] if layout.PROBE_POSITION in f else np.zeros(0)
         if probes.size:
             fig, axes = _panels(probes.size)
@@ -131,13 +138,13 @@ def plot_run(path: str, folder: str, window=None) -> list:
                 ax.grid(alpha=0.3)
             axes[-1].set_xlabel("time t [s]")
             fig.suptitle(f"Displacement at the probes ({span})")
-            _save(fig, os.path.join(folder, "probes.png"), written)
+            _save(fig, name("probes"), written)
         if f[layout.SNAPSHOT_W].shape[0]:
             _snapshot_figure(folder, f, positions, gaps, written)
     return written
 
 
-def _constraint_figures(folder, t, positions, series, gaps, span, written) -> None:
+def _constraint_figures(name, t, positions, series, gaps, span, written) -> None:
     z, v = series[layout.CONSTRAINT_DISPLACEMENT], series[layout.CONSTRAINT_VELOCITY]
     force = series[layout.CONSTRAINT_FORCE_PEAK]
     fig, axes = _panels(positions.size)
@@ -149,7 +156,7 @@ def _constraint_figures(folder, t, positions, series, gaps, span, written) -> No
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time t [s]")
     fig.suptitle(f"Displacement at the constraints (dashed: clearance; {span})")
-    _save(fig, os.path.join(folder, "time_histories.png"), written)
+    _save(fig, name("time_histories"), written)
 
     plt = _pyplot()
     columns = min(positions.size, 3)
@@ -164,7 +171,7 @@ def _constraint_figures(folder, t, positions, series, gaps, span, written) -> No
         ax.set_title(_where(positions[j]), fontsize=9)
         ax.grid(alpha=0.3)
     fig.suptitle(f"Phase diagrams at the constraints ({span})")
-    _save(fig, os.path.join(folder, "phase.png"), written)
+    _save(fig, name("phase"), written)
 
     fig, axes = _panels(positions.size)
     for j, ax in enumerate(axes):
@@ -173,7 +180,7 @@ def _constraint_figures(folder, t, positions, series, gaps, span, written) -> No
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time t [s]")
     fig.suptitle(f"Constraint force, the peak over each sample interval ({span})")
-    _save(fig, os.path.join(folder, "forces.png"), written)
+    _save(fig, name("forces"), written)
 
 
 def _laws(f) -> list:
@@ -184,7 +191,7 @@ def _laws(f) -> list:
         return []
 
 
-def _orbit_figure(folder, positions, u, laws, span, written) -> None:
+def _orbit_figure(name, positions, u, laws, span, written) -> None:
     """orbits.png: z against y (mm) at each support of two directions, with its gap drawn."""
     plt = _pyplot()
     n = positions.size
@@ -217,7 +224,7 @@ def _orbit_figure(folder, positions, u, laws, span, written) -> None:
         ax.set_title(f"{_where(positions[j])}: {gap}", fontsize=8)
         ax.grid(alpha=0.3)
     fig.suptitle(f"Orbits of the tube in its supports ({span})")
-    _save(fig, os.path.join(folder, "orbits.png"), written)
+    _save(fig, name("orbits"), written)
 
 
 def _snapshot_figure(folder, f, positions, gaps, written) -> None:

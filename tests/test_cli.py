@@ -716,3 +716,17 @@ def test_a_plot_window_without_samples_is_refused(tmp_path):
     for window in ("0.1:0.05", "5:6", "nan:1", "a:b", "0.01"):   # "0.01": which end?
         out = dbf_hpc("plot", str(tmp_path / "w.h5"), "-d", str(tmp_path / "figs"), "--window", window, ranks=1)
         assert _one_line(out), (window, out.stderr)
+
+
+def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp_path):
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "w.h5"), *SHORT)
+    assert out.returncode == 0, out.stderr
+    figs = tmp_path / "figs"
+    assert dbf_hpc("plot", str(tmp_path / "w.h5"), "-d", str(figs), ranks=1).returncode == 0
+    whole = (figs / "time_histories.png").read_bytes()
+    out = dbf_hpc("plot", str(tmp_path / "w.h5"), "-d", str(figs), "--window", "0.005:", ranks=1)
+    assert out.returncode == 0, out.stderr
+    windowed = sorted(p.name for p in figs.glob("*-*s.png"))
+    assert {"time_histories_0.005-0.01s.png", "phase_0.005-0.01s.png", "forces_0.005-0.01s.png"} <= set(windowed), \
+        windowed
+    assert (figs / "time_histories.png").read_bytes() == whole
