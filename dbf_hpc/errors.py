@@ -17,6 +17,11 @@ class InputError(DbfError):
     """Bad input: a scene, a matrix file, an option."""
 
 
+class Unresumable(InputError):
+    """A checkpoint that is valid for this run, but whose .partial output cannot be continued (a
+    failed write damaged it, or its samples are not the checkpoint's): only a fresh start helps."""
+
+
 class SolverError(DbfError):
     """A numerical failure: non-convergence, breakdown, a diverged step."""
 

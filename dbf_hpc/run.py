@@ -24,7 +24,8 @@ from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, estimate_window, 
                        is_long, nested_estimate, pick_basis, reused_estimate, statistics_estimate, statistics_window)
 from .basis import richer_basis
 from .checkpoint import Checkpoint, identity
-from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, petsc_failure, write_failure
+from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, petsc_failure,
+                     write_failure)
 from .fom import Observation
 from .fom_integrator import integrate_full
 from .fom_integrator import options as full_options
@@ -456,8 +457,8 @@ def _reopen(path: str, state: dict) -> OutputWriter:
     try:
         return OutputWriter.reopen(path, int(state["samples"]), state.get("samples_sha256"))
     except (OSError, KeyError, ValueError, RuntimeError) as e:   # RuntimeError: metadata a failed write damaged
-        raise InputError(f"{path}.partial cannot be resumed ({str(e).splitlines()[0]}); rerun without "
-                         f"--resume") from None
+        raise Unresumable(f"{path}.partial cannot be resumed ({str(e).splitlines()[0]}); rerun without "
+                          f"--resume") from None
 
 
 def _left_behind(message: str, writer, checkpoint: Checkpoint | None) -> str:

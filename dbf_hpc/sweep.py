@@ -54,7 +54,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
-from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, park, replacing, write_failure
+from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing, write_failure
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path
@@ -336,7 +336,11 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
             raise DbfError(built)
         model = _continued(built, scene, previous)
         _drop_stale_checkpoint(case_out, {"case": identity})
-        summary = run_case(scene, model, case_out, resume=True, ident={"case": identity})
+        try:
+            summary = run_case(scene, model, case_out, resume=True, ident={"case": identity})
+        except Unresumable:   # a valid checkpoint, a .partial that cannot continue: the case starts again
+            _remove(f"{case_out}.partial", f"{case_out}.checkpoint")
+            summary = run_case(scene, model, case_out, resume=True, ident={"case": identity})
         record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
                       solver=summary["stats"], final_state=summary["final_state"],
                       **_final_excitation(model, scene.integrator_settings().t_end))
@@ -348,9 +352,7 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
         record.update(status="failed", error=f"{case_out}: {write_failure(e)}")
     record["wall_time"] = time.perf_counter() - t
     if not sweep["keep_outputs"]:
-        for leftover in (case_out, f"{case_out}.partial", f"{case_out}.checkpoint", os.path.splitext(case_out)[0] + ".xdmf"):
-            if os.path.exists(leftover):
-                os.remove(leftover)
+        _remove(case_out, f"{case_out}.partial", f"{case_out}.checkpoint", os.path.splitext(case_out)[0] + ".xdmf")
     return record
 
 
@@ -359,9 +361,13 @@ def _drop_stale_checkpoint(case_out: str, ident: dict) -> None:
     try:
         Checkpoint(f"{case_out}.checkpoint", ident).read()
     except InputError:
-        for leftover in (f"{case_out}.partial", f"{case_out}.checkpoint"):
-            if os.path.exists(leftover):
-                os.remove(leftover)
+        _remove(f"{case_out}.partial", f"{case_out}.checkpoint")
+
+
+def _remove(*paths: str) -> None:
+    for path in paths:
+        if os.path.exists(path):
+            os.remove(path)
 
 
 def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, stop, tell) -> int:

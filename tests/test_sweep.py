@@ -445,3 +445,41 @@ def test_a_two_plane_tube_sweep_over_clearance_and_turbulence_level_records_work
         written = plot_sweep(result["output"], str(shared_tmp_path))
         assert len(written) == 2 and all(os.path.getsize(p) > 10000 for p in written)
     assert_all(True)
+
+
+def test_a_case_whose_partial_output_cannot_continue_starts_again_instead_of_failing_on_every_rerun(shared_tmp_path):
+    # A sweep user cannot "rerun without --resume": a case with a valid checkpoint and a damaged
+    # .partial failed again on every rerun.
+    import signal
+    import threading
+    import time
+
+    from dbf_hpc.errors import Interrupted
+
+    size = MPI.COMM_WORLD.size   # one case a rank, each stopped after its first checkpoint
+    frequencies = ", ".join(f"{1.0 + 0.05 * i}" for i in range(size))
+    path = write_sweep(shared_tmp_path, f'[axes]\n"excitation.frequency_hz" = [{frequencies}]\n'
+                                        '"integrator.t_end" = [2.0]\n"output.checkpoint_dt" = [0.05]\n')
+    folder = shared_tmp_path / "summary.h5.cases"
+
+    def terminate():
+        while len(list(folder.glob("case-*.h5.checkpoint"))) < size:
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=terminate, daemon=True).start()   # every rank: a batch system signals all
+    with pytest.raises(Interrupted):
+        run_sweep(path, progress=False)
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        partials = sorted(folder.glob("case-*.h5.partial"))
+        assert len(partials) == size
+        for partial in partials:
+            with h5py.File(partial, "r+") as f:   # a sample the checkpoint did not save
+                f["constraints/displacement"][3, 0] += 1e-3
+    MPI.COMM_WORLD.Barrier()
+    result = run_sweep(path, progress=False)
+    assert result["failed"] == 0
+    with h5py.File(result["output"]) as f:
+        assert all(s.decode() == "ok" for s in f["cases/status"][:])
+        assert np.all(np.abs(f["cases/stats/displacement_peak"][:, 0] / 2.5e-3 - 1) < 0.05)
