@@ -217,7 +217,22 @@ def load_scene(path: str, overrides=()) -> Scene:
             _override_constraints(data.get("constraint", []), key, value, item, given)
         else:
             data.setdefault(section, {})[key] = value
+    for i, keys in given.items():
+        _check_one_unit_of_k(data["constraint"][i], i, keys)
     return dataclasses.replace(validate(data, path, text), overrides=tuple(overrides))
+
+
+def _check_one_unit_of_k(c: dict, index: int, given: set) -> None:
+    """A k set on the command line for both sides of a law whose sides have different exponents would
+    carry two units (N/m^p on each side): refused (Eq. 42's 0.1 N/m^3 became 1e6 N/m^3 silently)."""
+    if "k" not in given or "k" not in c or c.get("law") in LAWS_2D:
+        return
+    p = [c.get(side, c.get("exponent")) for side in TWO_SIDED["exponent"]]
+    if all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in p) and p[0] != p[1]:
+        unit = ["N/m" if e == 1 else f"N/m^{e:g}" for e in p]
+        raise InputError(f"--set constraint.k: constraint {index + 1}'s sides have the exponents {p[0]:g} and "
+                         f"{p[1]:g}, so one k would be in {unit[0]} below and {unit[1]} above; set k_minus and "
+                         f"k_plus (or one exponent for both)")
 
 
 # A value on both sides and its two one-sided keys (a 1-D law takes one or the other)

@@ -158,6 +158,19 @@ def test_set_k_is_the_stiffness_on_both_sides_and_one_side_keeps_the_other():
         load_scene(path, ["constraint.k_plus=1e5", "constraint.k=1e6"])
 
 
+def test_set_k_on_sides_of_different_exponents_is_refused_as_it_would_carry_two_units():
+    # Red team: on Eq. 42 (0.1 N/m^3 below, 1e6 N/m above) `--set constraint.k=1e6` made the cubic side
+    # 1e6 N/m^3, with no word.
+    path = os.path.join(ROOT, "jobs", "paper_beam_eq42.toml")
+    with pytest.raises(InputError, match="exponents 3 and 1, so one k would be in N/m\\^3 below and N/m above"):
+        load_scene(path, ["constraint.k=1e6"])
+    for sets in (["constraint.exponent=1", "constraint.k=1e6"], ["constraint.k=1e6", "constraint.exponent=1"]):
+        law = load_scene(path, sets).constraints[0].law
+        assert (law.k_minus, law.k_plus, law.exponent_minus, law.exponent_plus) == (1e6, 1e6, 1.0, 1.0)
+    law = load_scene(path, ["constraint.k=1e6", "constraint.k_minus=0.2"]).constraints[0].law
+    assert (law.k_minus, law.k_plus) == (0.2, 1e6)
+
+
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
 def test_a_number_that_is_not_finite_is_refused(value):
     with pytest.raises(InputError, match="must be finite"):
