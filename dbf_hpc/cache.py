@@ -33,7 +33,7 @@ from slepc4py import SLEPc
 from . import __version__
 from .basis import BasisSettings, ReducedBasis, build_basis
 from .checkpoint import arrays_sha256
-from .errors import LOCK_HINT, WRITE_ERRORS, InputError, park, refused_lock, write_failure
+from .errors import LOCK_HINT, WRITE_ERRORS, InputError, park, refused_lock, warn, write_failure
 from .output import check_free_space, has_hdf5_signature
 from .operators import Operators
 
@@ -274,7 +274,7 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
     basis = build_basis(ops, rows, settings, labels)
     error = _prepare_directory(cache_dir, ops.comm) or save(basis, path, key, ops.comm)
     if error:
-        _say(ops.comm, f"warning: cannot write the basis cache in {cache_dir}: {error}")
+        warn(f"cannot write the basis cache in {cache_dir}: {error}", ops.comm)
         basis.stats["cache"] = "unwritable"
     else:
         basis.stats.update(cache="stored", cache_file=path)

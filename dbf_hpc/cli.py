@@ -398,7 +398,10 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
 
 
 def _print_basis(say, basis, labels) -> None:
+    from petsc4py import PETSc
+
     from .accuracy import flexibility_warning
+    from .errors import warn
 
     import numpy as np
 
@@ -425,9 +428,9 @@ def _print_basis(say, basis, labels) -> None:
             say(f"{j + 1:>6} {labels[j]:>14} {flex[j]:>10.6f} {basis.flexibility_exact[j]:>14.6g}")
         low = flexibility_warning(flex, labels)
         if low:
-            say(f"dbf-hpc: warning: {low}")
+            warn(low, PETSc.COMM_WORLD)
     for warning in basis.warnings(labels):
-        say(f"dbf-hpc: warning: {warning}")
+        warn(warning, PETSc.COMM_WORLD)
     name = basis.settings.strategy.column_name
     for key, what in (("time_modes", "modes"), ("time_enrichment", f"{name}s" if name else None),
                       ("time_orthogonalization", "orthogonalization")):
@@ -565,13 +568,12 @@ def _finish(comm, failure: str | None) -> int:
 
 def _warn_unused(petsc_options, comm) -> None:
     """One warning per PETSc option no solver read (collective)."""
+    from .errors import warn
     from .petsctools import unused_options
 
-    from petsc4py import PETSc
-
     for name in unused_options([t for t in petsc_options if t.startswith("-") and not _NUMBER.match(t)], comm):
-        PETSc.Sys.Print(f"dbf-hpc: warning: PETSc option {name} was not used: a misspelling, or a solver this command "
-                    f"does not run (prefixes: modes_, dbf_, static_, rom_, full_)", comm=comm)
+        warn(f"PETSc option {name} was not used: a misspelling, or a solver this command does not run (prefixes: "
+             f"modes_, dbf_, static_, rom_, full_)", comm)
 
 
 def _terminated(signum, frame):

@@ -7,6 +7,7 @@ import contextlib
 import math
 import numbers
 import os
+import sys
 
 
 class DbfError(Exception):
@@ -33,6 +34,15 @@ class Interrupted(SolverError):
 # What writing a file can raise: the OS's errors, and h5py's RuntimeError when HDF5 cannot flush (a
 # full disk shows as "errno = 28, error message = 'No space left on device'" inside it).
 WRITE_ERRORS = (OSError, RuntimeError)
+
+
+def warn(message: str, comm) -> None:
+    """`dbf-hpc: warning: message` on stderr, from rank 0 of `comm` (petsc4py or mpi4py); stdout
+    keeps the progress and the results. Not collective: every rank calls it on the same path."""
+    rank = comm.getRank() if hasattr(comm, "getRank") else comm.rank
+    if rank == 0:
+        sys.stdout.flush()   # after the progress lines already printed
+        print(f"dbf-hpc: warning: {message}", file=sys.stderr, flush=True)
 
 
 def check_number(where: str, value, minimum: float | None = None, above: bool = False, integer: bool = False):

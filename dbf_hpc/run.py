@@ -25,7 +25,7 @@ from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, estimate_window, 
 from .basis import richer_basis
 from .checkpoint import Checkpoint, identity
 from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, petsc_failure,
-                     write_failure)
+                     warn, write_failure)
 from .fom import Observation
 from .fom_integrator import integrate_full
 from .fom_integrator import options as full_options
@@ -129,9 +129,8 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         if fom.operators.G is not None:
             _gyroscopic_checks(scene, fom, method)
         elif scene["basis"]["gyroscopic_form"] == "state_space" and method == "rom":
-            PETSc.Sys.Print('dbf-hpc: warning: [basis] gyroscopic_form = "state_space" is for gyroscopic structures '
-                            '(axial_speed, or a matrices G); this one has no G, so its reduced model is the usual '
-                            'second-order one', comm=comm)
+            warn('[basis] gyroscopic_form = "state_space" is for gyroscopic structures (axial_speed, or a '
+                 'matrices G); this one has no G, so its reduced model is the usual second-order one', comm)
         if method == "full":
             return _run_full(scene, fom, path, settings, timings, say, resume)
         t, solves = time.perf_counter(), counters["eigen_solves"]
@@ -220,7 +219,7 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> N
         warnings.append(f"the excitation ({forcing_hz:g} Hz) lies above the highest reference mode ({f[-1]:.4g} Hz): "
                         f"the basis cannot follow it; add modes (basis.modes or basis.max_frequency_hz)")
     for warning in warnings:
-        PETSc.Sys.Print(f"dbf-hpc: warning: {warning}", comm=comm)
+        warn(warning, comm)
 
 
 STEPS_PER_IMPACT = 3   # fewer on average, at a fixed step: contact forces and times depend on dt
@@ -236,10 +235,9 @@ def _warn_unresolved(summary: dict, constraints, dt: float, comm, also: str = ""
         return
     for j, (impacts, duration) in enumerate(zip(stats["impacts"], stats["impact_duration_mean"])):
         if impacts > 0 and duration < STEPS_PER_IMPACT * dt:
-            PETSc.Sys.Print(f"dbf-hpc: warning: the impacts of constraint {j + 1} at {constraints[j].label} last "
-                            f"{duration / dt:.2g} fixed steps on average ({duration:.3g} s at dt = {dt:.3g} s): the "
-                            f"step does not resolve them, so contact forces and times depend on dt; reduce "
-                            f"[integrator] dt (5 to 10 steps an impact){also}", comm=comm)
+            warn(f"the impacts of constraint {j + 1} at {constraints[j].label} last {duration / dt:.2g} fixed steps "
+                 f"on average ({duration:.3g} s at dt = {dt:.3g} s): the step does not resolve them, so contact forces "
+                 f"and times depend on dt; reduce [integrator] dt (5 to 10 steps an impact){also}", comm)
 
 
 # A stop is suspected of a clearance in the wrong unit when the motion there stays below this fraction of
@@ -264,9 +262,8 @@ def _warn_idle(summary: dict, constraints, comm) -> None:
             gap = min(gaps)
             if not stats["displacement_peak"][j] < IDLE_FRACTION * gap:
                 continue
-            PETSc.Sys.Print(f"dbf-hpc: warning: constraint {j + 1} at {constraint.label} never reached its stop "
-                            f"(max |w| {stats['displacement_peak'][j]:.3g} m, clearance {gap:.3g} m): check the "
-                            f"clearance's unit (m)", comm=comm)
+            warn(f"constraint {j + 1} at {constraint.label} never reached its stop (max |w| "
+                 f"{stats['displacement_peak'][j]:.3g} m, clearance {gap:.3g} m): check the clearance's unit (m)", comm)
 
 
 def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:

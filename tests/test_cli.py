@@ -430,7 +430,7 @@ def test_a_disk_too_small_or_filling_up_is_one_line_never_a_crash(small_disk):
     (small_disk / "filler").write_bytes(b"\0" * (2 * 2**20))
     cache = dbf_hpc("basis", PAPER, "--set", "structure.elements=400", "--set", "basis.modes=60",
                     "--set", f"basis.cache={small_disk / 'cache'}")
-    assert cache.returncode == 0 and "cannot write the basis cache" in cache.stdout, cache.stdout + cache.stderr
+    assert cache.returncode == 0 and "dbf-hpc: warning: cannot write the basis cache" in cache.stderr, cache.stderr
     (small_disk / "filler").unlink()
     # The Python callbacks keep the run going for several seconds (the C ones take 0.5 s): time for
     # another job to fill the disk while the samples stream out. No snapshots: with them the run
@@ -477,10 +477,11 @@ def test_unused_petsc_options_and_suspicious_units_draw_warnings(tmp_path):
     assert out.returncode == 0, out.stderr
     for expected in ("PETSc option -rom_ts_arkimex_typ was not used", "PETSc option -ts_arkimex_type was not used",
                      "the lowest elastic frequency is 8.61e-06 Hz", "never reached its stop",
-                     "basis: 6 modes (8.606e-06 ... ",
                      # a form the structure cannot take (red team: it was silently not used)
                      'gyroscopic_form = "state_space" is for gyroscopic structures'):
-        assert expected in out.stdout, (expected, out.stdout)
+        assert expected in out.stderr, (expected, out.stderr)   # warnings on stderr, results on stdout
+    assert all(line.startswith("dbf-hpc: warning: ") for line in out.stderr.splitlines()), out.stderr
+    assert "basis: 6 modes (8.606e-06 ... " in out.stdout and "warning" not in out.stdout, out.stdout
 
 
 def test_a_stop_not_reached_by_a_near_miss_draws_no_unit_warning(tmp_path):
@@ -488,7 +489,7 @@ def test_a_stop_not_reached_by_a_near_miss_draws_no_unit_warning(tmp_path):
     # clearance's unit" there (and at the 2-D tube's idle plates) is a false alarm.
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "near.h5"), "--set", "integrator.t_end=0.1", "--set",
                   "basis.cache=off", ranks=1)
-    assert out.returncode == 0 and "never reached" not in out.stdout, out.stdout
+    assert out.returncode == 0 and "never reached" not in out.stdout + out.stderr, out.stderr
     import h5py
 
     with h5py.File(tmp_path / "near.h5", "r") as f:
@@ -502,10 +503,10 @@ def test_a_fixed_step_that_does_not_resolve_the_impacts_draws_a_warning_and_one_
     coarse = dbf_hpc(*common, "-o", str(tmp_path / "coarse.h5"), "--set", "constraint.k_minus=1e12",
                      "--set", "constraint.k_plus=1e12", ranks=1)
     assert coarse.returncode == 0, coarse.stderr
-    assert "the impacts of constraint 1 at x = 0.25 m last 1 fixed steps" in coarse.stdout, coarse.stdout
+    assert "the impacts of constraint 1 at x = 0.25 m last 1 fixed steps" in coarse.stderr, coarse.stderr
     fine = dbf_hpc(*common, "-o", str(tmp_path / "fine.h5"), "--set", "integrator.dt=2e-6", "--set",
                    "output.sample_dt=2e-6", ranks=1)
-    assert fine.returncode == 0 and "fixed steps" not in fine.stdout, fine.stdout   # 7.6 steps an impact
+    assert fine.returncode == 0 and "fixed steps" not in fine.stdout + fine.stderr, fine.stderr   # 7.6 steps an impact
 
 
 def test_cache_commands_refuse_a_bad_age_or_directory_and_clear_an_empty_one(tmp_path):
