@@ -12,6 +12,7 @@ import contextlib
 import json
 import os
 import signal
+import sys
 import time
 
 import numpy as np
@@ -645,7 +646,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
                                        f"rerun{resume}", writer, checkpoint)) from None
     if deferred:
         print(f"dbf-hpc: warning: a termination signal came while {writer.path} was written; it was finished first",
-              flush=True)
+              file=sys.stderr, flush=True)
     if snap_t.size:
         sidecar = xdmf.sidecar(writer.path)
         try:
