@@ -68,8 +68,10 @@ from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, STATISTICS, STATISTICS_2D, U
 SWEEP_KEYS = {"scene", "output", "keep_outputs", "axes", "case", "continuation", "directions"}
 DIRECTION = "sweep_direction"
 # What a reduced model depends on: everything but the laws, the excitation history and the integrator.
+# The excitation's place and direction shape its load vector (a force, a random load, the support
+# motion's influence on a beam of two planes); its time history is the case's own.
 MODEL_KEYS = {"structure": None, "basis": None, "damping": None, "initial": None,
-              "excitation": ("kind", "end", "x", "dof", "span"), "output": ("probes",)}
+              "excitation": ("kind", "end", "x", "dof", "span", "direction"), "output": ("probes",)}
 # Turbulence's histories and load matrix are made with the full-order model: all of it is the model's.
 TURBULENCE_KEYS = ("psd", "band", "seed", "components", "correlation_length", "spectrum", "corner_hz", "slope")
 
@@ -239,7 +241,7 @@ def _coordinates_key(scene) -> str:
     """What the reduced coordinates q mean: the basis (structure, [basis], constraint positions) and
     the relative coordinates' moving support. A continuation chain must keep it."""
     parts = {"structure": scene["structure"], "basis": scene["basis"],
-             "support": [scene["excitation"]["kind"], scene["excitation"]["end"]],
+             "support": [scene["excitation"]["kind"], scene["excitation"]["end"], scene["excitation"]["direction"]],
              "constraints": [(c.x, c.dof) for c in scene.constraints]}
     return json.dumps(parts, sort_keys=True, default=str)
 

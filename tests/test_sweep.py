@@ -483,3 +483,25 @@ def test_a_case_whose_partial_output_cannot_continue_starts_again_instead_of_fai
     with h5py.File(result["output"]) as f:
         assert all(s.decode() == "ok" for s in f["cases/status"][:])
         assert np.all(np.abs(f["cases/stats/displacement_peak"][:, 0] / 2.5e-3 - 1) < 0.05)
+
+
+def test_cases_that_differ_in_the_load_direction_get_their_own_load(shared_tmp_path):
+    # Red team: excitation.direction was not part of the model key, so both cases ran the first
+    # case's load (55 impacts each); a force along z slides parallel to flats across y: no impact.
+    scene = shared_tmp_path / "tube2.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        scene.write_text('[structure]\nkind = "beam"\nlength = 1.0\nelements = 30\nE = 2e11\nI = 1e-9\nA = 1e-4\n'
+                         'rho = 8000.0\nplanes = 2\n[excitation]\nkind = "force"\nx = 0.5\namplitude = 50.0\n'
+                         'frequency_hz = 20.0\ndirection = [1.0, 0.0]\n[[constraint]]\nx = 0.3\nlaw = "flat_bar"\n'
+                         'clearance = 1e-4\nk = 1e6\n[basis]\nmodes = 4\nestimate = false\n'
+                         f'cache = "{shared_tmp_path / "cache"}"\n[integrator]\nt_end = 0.2\n')
+    path = shared_tmp_path / "directions.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(f'scene = "{scene}"\noutput = "directions.h5"\n[[case]]\n"excitation.direction" = [1.0, 0.0]\n'
+                        '[[case]]\n"excitation.direction" = [0.0, 1.0]\n')
+    MPI.COMM_WORLD.Barrier()
+    result = run_sweep(str(path), progress=False)
+    assert result["failed"] == 0
+    with h5py.File(result["output"]) as f:
+        impacts = f["cases/stats/impacts"][:, 0]
+    assert impacts[0] > 10 and impacts[1] == 0, impacts
