@@ -347,24 +347,26 @@ class OutputWriter:
                 dataset = self.file[name]
                 if dataset.shape[0] < samples:
                     raise ValueError(f"{name} holds {dataset.shape[0]} samples, the checkpoint {samples}")
-                dataset.resize(samples, axis=0)
                 self.series[name] = dataset
-            # what a finish stopped halfway wrote (a full disk): the resumed finish writes it again
-            written = []
-            self.file.visititems(lambda name, obj: written.append(name)
-                                 if isinstance(obj, h5py.Dataset) and name not in self.series else None)
-            for name in written:
-                del self.file[name]
+            if digest is None:
+                raise ValueError("its checkpoint was written by an older dbf-hpc, without the samples' checksum")
+            # checked before anything is cut: a refused resume leaves the .partial as it was (red team)
             self.hashes = {name: hashlib.sha256() for name in self.series}
             for name, dataset in self.series.items():
                 for lo in range(0, samples, 64 * BLOCK):
                     block = dataset[lo:min(lo + 64 * BLOCK, samples)]
                     self.hashes[name].update(np.ascontiguousarray(block, dtype=np.float64).tobytes())
             self.count = samples
-            if digest is None:
-                raise ValueError("its checkpoint was written by an older dbf-hpc, without the samples' checksum")
             if not np.array_equal(self.digest(), np.asarray(digest, dtype=np.uint8)):
                 raise ValueError("its samples are not those its checkpoint's run wrote (another run's, or edited)")
+            for dataset in self.series.values():
+                dataset.resize(samples, axis=0)
+            # what a finish stopped halfway wrote (a full disk): the resumed finish writes it again
+            written = []
+            self.file.visititems(lambda name, obj: written.append(name)
+                                 if isinstance(obj, h5py.Dataset) and name not in self.series else None)
+            for name in written:
+                del self.file[name]
         except Exception:
             self.file.close()
             raise
