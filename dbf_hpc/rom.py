@@ -43,6 +43,13 @@ class ReducedField:
         return self.V @ q + self.support * omega
 
 
+def digest_of(**arrays) -> str:
+    """sha256 of the named arrays that are not None (a model's coordinates_digest)."""
+    from .checkpoint import arrays_sha256
+
+    return arrays_sha256({name: value for name, value in arrays.items() if value is not None})
+
+
 @dataclass(frozen=True)
 class ReducedModel:
     """Everything the integrator and the output need, as dense numpy arrays (r = basis size,
@@ -77,6 +84,15 @@ class ReducedModel:
     field: Optional[ReducedField] = None
     field_points: Optional[object] = None
     probe_shape: Optional[tuple] = None
+
+    def coordinates_digest(self) -> str:
+        """sha256 of what the reduced coordinates q mean: the reduced mass and stiffness (and G), the
+        basis at the constraints, probes and field points, and the influence on the basis. Two models
+        with one digest map a state q to the same physical state; a basis rebuilt with a repeated
+        frequency's modes in another orientation (another rank layout) has the same cache key but not
+        the same digest. Damping, laws and loads are not part of it: a continuation may change them."""
+        return digest_of(M=self.M, K=self.K, B=self.B, probe_B=self.probe_B, r_q=self.r_q, G=self.G,
+                         field_V=getattr(self.field, "V", None))
 
     @property
     def probe_sample_shape(self) -> tuple:

@@ -19,7 +19,7 @@ import numpy as np
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
-from . import layout, xdmf
+from . import __version__, layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
 from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, estimate_window, first_contact, flexibility_warning,
                        is_long, nested_estimate, pick_basis, reused_estimate, statistics_estimate, statistics_window)
@@ -163,7 +163,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
                 timings["estimate_basis"] = time.perf_counter() - t
     if initial_state is not None:
         model = _continue_from(model, initial_state)
-    ident = run_identity(scene, basis_key, comm.getSize(), "rom")
+    ident = run_identity(scene, basis_key, comm, "rom", model.coordinates_digest())
     return _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident,
                         {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state},
                         (rich, window, estimate.statistics_window) if rich is not None and initial_state is None
@@ -274,8 +274,12 @@ def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
     return model.with_case(q0=q, p0=p)
 
 
-def run_identity(scene: Scene, basis_key: dict, ranks: int, method: str) -> dict:
-    """What a checkpoint must match to be resumed: every part that changes the result."""
+def run_identity(scene: Scene, basis_key: dict, comm, method: str, coordinates: str | None = None) -> dict:
+    """What a checkpoint must match to be resumed: every part that changes the result: the scene, the
+    bytes of every file it reads, the operators and basis, the PETSc options, the rank count, the
+    method, the callbacks, the package version, and (reduced) what the coordinates q mean
+    (ReducedModel.coordinates_digest: a basis rebuilt in another orientation of a repeated frequency
+    holds the same key, not the same q). Collective."""
     dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
     matrix = scene["excitation"]["kind"] == "turbulence"   # a load matrix: the Python callbacks
     friction = any(c.law.kind == "friction" for c in scene.constraints)
@@ -285,8 +289,9 @@ def run_identity(scene: Scene, basis_key: dict, ranks: int, method: str) -> dict
     if callbacks and scene["basis"]["gyroscopic_form"] == "state_space" and (s.get("axial_speed") or
                                                                             s.get("gyroscopic")):
         callbacks = "python"   # the state-space form has no C callbacks (state_space.py)
-    return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], structure=basis_key,
-                    options=PETSc.Options().getAll(), ranks=ranks, method=method, callbacks=callbacks)
+    return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], files=scene.file_digests(comm),
+                    structure=basis_key, coordinates=coordinates, options=PETSc.Options().getAll(),
+                    ranks=comm.getSize(), method=method, callbacks=callbacks, version=__version__)
 
 
 def wait_for_rank0(world) -> None:
@@ -321,7 +326,7 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
         wait_for_rank0(world)
     failure = world.bcast(failure, root=0)
     if failure:
-        kinds = {kind.__name__: kind for kind in (InputError, SolverError, Interrupted)}
+        kinds = {kind.__name__: kind for kind in (InputError, Unresumable, SolverError, Interrupted)}
         raise kinds.get(failure[0], DbfError)(failure[1])
     return world.bcast(summary, root=0)
 
@@ -723,7 +728,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     output = scene.output()
     snap_index = _snapshot_samples(output.snapshots, settings.sample_times)
     field_support = fom.field_support()
-    checkpoint = Checkpoint(f"{path}.checkpoint", run_identity(scene, {"fingerprint": fom.fingerprint}, world.size,
+    checkpoint = Checkpoint(f"{path}.checkpoint", run_identity(scene, {"fingerprint": fom.fingerprint}, fom.comm,
                                                                 "full"))
     recorder = control = state = None
     snaps, opened = {}, None

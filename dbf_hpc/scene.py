@@ -175,6 +175,13 @@ class Scene:
                       if s[key]]
         return files
 
+    def file_digests(self, comm) -> dict:
+        """{path: sha256 of its bytes} of every file this scene reads besides itself (its matrix files,
+        damping, influence, node map ...): a result depends on their contents. Collective."""
+        from .matrices import file_digest
+
+        return {path: file_digest(path, comm) for what, path in self.inputs() if what != "scene"}
+
     def cache_dir(self):
         """The basis cache directory, or None when the scene turns caching off."""
         cache = self["basis"]["cache"]

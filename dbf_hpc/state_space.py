@@ -48,7 +48,7 @@ from .errors import InputError, SolverError
 from .excitation import Harmonic
 from .operators import Operators
 from .petsctools import destroy
-from .rom import ReducedField, applied
+from .rom import ReducedField, applied, digest_of
 
 # A real column below this fraction of its complex vector's A-norm is left out (gyroscopic_basis.DROP_TOL).
 DROP_TOL = 1e-6
@@ -405,6 +405,11 @@ class StateSpaceModel:
     probe_shape: Optional[tuple] = None
     G = None
     form = "state_space"
+
+    def coordinates_digest(self) -> str:
+        """What the reduced coordinates eta mean (ReducedModel.coordinates_digest)."""
+        return digest_of(A=self.A, B_state=self.B_state, B=self.B, B_velocity=self.B_velocity, probe_B=self.probe_B,
+                         r_rate=self.r_rate, r_value=self.r_value, field_V=getattr(self.field, "V", None))
 
     @property
     def probe_sample_shape(self) -> tuple:

@@ -198,7 +198,8 @@ def _write_json(path: str, content: dict) -> None:
 
 # What a case's record holds (_run_one), and what a finished one adds: a file without them is rerun
 RECORD_KEYS = ("index", "identity", "parameters", "continued", "status", "wall_time")
-RECORD_KEYS_OK = ("stats", "probe_peak", "solver", "final_state", "final_time", "final_phase", "final_support")
+RECORD_KEYS_OK = ("stats", "probe_peak", "solver", "final_state", "final_time", "final_phase", "final_support",
+                  "coordinates")
 
 
 def _read_json(path: str) -> dict | None:
@@ -220,15 +221,17 @@ def _scene_files(scene) -> list:
 
 
 def _identities(sweep: dict) -> list:
-    """Per case, the sha256 of what its result depends on: the validated scene and the bytes of every
-    file it reads (hashed once, on rank 0), and in a continuation chain its predecessors'. Collective."""
+    """Per case, the sha256 of what its result depends on: the validated scene, the bytes of every
+    file it reads (hashed once, on rank 0), the PETSc options, the package version, and in a
+    continuation chain its predecessors'. Collective."""
     scenes = [load_scene(sweep["scene"], sets) for sets in sweep["cases"]]
     files = sorted({path for scene in scenes for path in _scene_files(scene)})
     digests = {path: file_digest(path, PETSc.COMM_WORLD) for path in files}
+    options = PETSc.Options().getAll()
     out = []
     for scene in scenes:
         content = [scene.sections, [repr(c) for c in scene.constraints],
-                   {path: digests[path] for path in _scene_files(scene)}]
+                   {path: digests[path] for path in _scene_files(scene)}, options, __version__]
         out.append(hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest())
     # a case of a chain starts from its predecessor's final state: its identity holds the chain's
     for chain in sweep["chains"]:
@@ -256,10 +259,10 @@ def _model_key(scene) -> str:
     return json.dumps(parts, sort_keys=True, default=str)
 
 
-def _prepare_models(sweep: dict, pending: list, cache_dir: str, say) -> dict:
+def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | None = None) -> dict:
     """Each distinct reduced model of the pending cases, built once on COMM_WORLD (model key ->
-    (model, field positions) or the error that stopped it). Collective."""
-    models = {}
+    the model, or the error that stopped it), added to `models`. Collective."""
+    models = {} if models is None else models
     for index in pending:
         scene = load_scene(sweep["scene"], sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"])
         key = _model_key(scene)
@@ -273,6 +276,24 @@ def _prepare_models(sweep: dict, pending: list, cache_dir: str, say) -> dict:
             models[key] = str(e)
     say(f"reduced models ready: {len(models)}")
     return models
+
+
+def _stale_chains(sweep, records, pending: set, models: dict, cache_dir: str) -> set:
+    """The cases of every chain whose next step would continue from a finished step's final state q
+    in a basis that is not the one q was computed in (ReducedModel.coordinates_digest: the cache
+    cleared and the basis rebuilt on another rank layout turns a repeated frequency's modes). Not
+    collective; every rank finds the same, from the same records."""
+    stale = set()
+    for chain in sweep["chains"]:
+        for before, index in zip(chain, chain[1:]):
+            if before in pending or index not in pending:
+                continue
+            scene = load_scene(sweep["scene"], sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"])
+            built = models.get(_model_key(scene))
+            if not isinstance(built, str) and records[before].get("coordinates") != built.coordinates_digest():
+                stale.update(chain)
+                break
+    return stale
 
 
 def _continued(model, scene, previous: dict | None):
@@ -345,6 +366,7 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
             summary = run_case(scene, model, case_out, resume=True, ident={"case": identity})
         record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
                       solver=summary["stats"], final_state=summary["final_state"],
+                      coordinates=model.coordinates_digest(),
                       **_final_excitation(model, scene.integrator_settings().t_end))
     except Interrupted:
         raise
@@ -437,6 +459,12 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     base = load_scene(sweep["scene"], sweep["cases"][0])
     cache_dir = base.cache_dir() or os.path.join(folder, "basis-cache")
     models = _prepare_models(sweep, pending, cache_dir, say)
+    stale = _stale_chains(sweep, records, set(pending), models, cache_dir)
+    if stale:
+        say(f"  {len(stale - set(pending))} finished case(s) rerun: the basis of their chain was rebuilt, and the "
+            f"state a finished step ends in means another state in it")
+        pending = sorted(set(pending) | stale)
+        _prepare_models(sweep, pending, cache_dir, say, models)
     chains = [c for c in sweep["chains"] if any(i in pending for i in c)]
     mine = chains[world.rank::world.size]
     stopped = None

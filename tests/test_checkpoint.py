@@ -94,12 +94,21 @@ def test_samples_in_the_partial_output_that_the_checkpoint_did_not_save_are_refu
     # Red team: the checkpoint was checked, the samples already in OUT.h5.partial only counted, so
     # another run's .partial (or an edited sample) went into the finished file under this scene.
     sets, out, _ = stopped
+    from dbf_hpc import layout
+
     if MPI.COMM_WORLD.rank == 0:
         with h5py.File(out + ".partial", "r+") as f:
             f["constraints/displacement"][3, 0] += 1e-3
+            for name in layout.SERIES:   # and samples past the checkpoint's, as another run's file has
+                if name in f:
+                    f[name].resize(f[name].shape[0] + 5, axis=0)
     MPI.COMM_WORLD.Barrier()
+    with h5py.File(out + ".partial", "r") as f:
+        before = {name: f[name].shape for name in ("time", "constraints/displacement")}
     with pytest.raises(InputError, match="cannot be resumed \\(its samples are not those its checkpoint's run"):
         resume(sets, out)
+    with h5py.File(out + ".partial", "r") as f:   # red team: the refusal cut the samples past the checkpoint's
+        assert {name: f[name].shape for name in before} == before
 
 
 def test_the_untouched_checkpoint_resumes_to_the_end(stopped):
@@ -202,3 +211,32 @@ def test_sigterm_during_the_error_estimate_says_so_and_a_resume_finishes_the_run
         assert bool(b.attrs["complete"]) and a["time"].shape == b["time"].shape
         assert np.array_equal(a["constraints/displacement"][:], b["constraints/displacement"][:])
         assert a.attrs["estimated_error"] == b.attrs["estimated_error"]
+
+
+def test_a_changed_damping_file_of_a_matrices_structure_is_refused_naming_the_files(shared_tmp_path):
+    # Red team: the resume identity held the matrix files' K and M (the basis cache's fingerprint) but
+    # not the damping file's bytes: the resumed output was half one damping, half the other.
+    import scipy.io
+    import scipy.sparse
+
+    n = 60
+    K = scipy.sparse.diags([-1e4 * np.ones(n - 1), 2e4 * np.ones(n), -1e4 * np.ones(n - 1)], [-1, 0, 1])
+    names = {name: str(shared_tmp_path / name) for name in ("K.mtx", "M.mtx", "C.mtx", "chain.toml")}
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(names["K.mtx"], K.tocoo(), precision=17)
+        scipy.io.mmwrite(names["M.mtx"], scipy.sparse.identity(n, format="coo") * 0.01, precision=17)
+        scipy.io.mmwrite(names["C.mtx"], (2e-3 * K).tocoo(), precision=17)
+        with open(names["chain.toml"], "w") as f:
+            f.write('[structure]\nkind = "matrices"\nstiffness = "K.mtx"\nmass = "M.mtx"\ndamping = "C.mtx"\n'
+                    '[excitation]\nkind = "force"\ndof = 10\namplitude = 5.0\nfrequency_hz = 3.0\n'
+                    '[[constraint]]\ndof = 30\nclearance = 1e-4\nk = 1e5\n[basis]\nmodes = 6\nestimate = false\n'
+                    f'cache = "{shared_tmp_path / "cache"}"\n[integrator]\nt_end = 20.0\n[output]\n'
+                    'checkpoint_dt = 0.05\n')
+    MPI.COMM_WORLD.Barrier()
+    out = str(shared_tmp_path / "chain.h5")
+    interrupted_run(load_scene(names["chain.toml"]), out)
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(names["C.mtx"], (2e-2 * K).tocoo(), precision=17)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="written by a different scene or setup \\(files differ"):
+        run(load_scene(names["chain.toml"]), out, progress=False, resume=True)

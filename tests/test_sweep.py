@@ -505,3 +505,21 @@ def test_cases_that_differ_in_the_load_direction_get_their_own_load(shared_tmp_p
     with h5py.File(result["output"]) as f:
         impacts = f["cases/stats/impacts"][:, 0]
     assert impacts[0] > 10 and impacts[1] == 0, impacts
+
+
+def test_a_step_is_not_continued_from_a_state_computed_in_another_basis(shared_tmp_path):
+    # Red team: a rebuilt basis (cache cleared, another rank layout) can turn a repeated frequency's
+    # modes; a step continuing from its predecessor's stored q then starts in another physical state.
+    # Here the predecessor's record says it was computed in another basis: its chain runs again.
+    path, files = _swept(shared_tmp_path, 'continuation = "excitation.frequency_hz"\ndirections = ["up"]\n[axes]\n'
+                                          '"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.05]\n', 2)
+    fresh = [json.load(open(name)) for name in files]
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        json.dump(dict(fresh[0], coordinates="0" * 64), open(files[0], "w"))
+        os.remove(files[1])          # killed before step 2 ran
+    MPI.COMM_WORLD.Barrier()
+    run_sweep(path, progress=False)
+    again = [json.load(open(name)) for name in files]
+    assert_all(again[0]["coordinates"] == fresh[0]["coordinates"], "step 1 ran again in the basis of now")
+    assert_all(again[1]["continued"] and again[1]["stats"] == fresh[1]["stats"])
