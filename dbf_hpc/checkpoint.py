@@ -87,8 +87,10 @@ class Checkpoint:
                      if stored.get(part) != self.identity.get(part)]
         if different:
             verb = "differs" if len(different) == 1 and not different[0].endswith("s") else "differ"  # options, ranks
+            why = ("; the basis was rebuilt since (the cache cleared, another rank count), and the state it "
+                   "holds is another state in the new one" if "coordinates" in different else "")
             raise InputError(f"{self.path} was written by a different scene or setup ({', '.join(different)} "
-                             f"{verb}); remove it or rerun without --resume")
+                             f"{verb}{why}); remove it or rerun without --resume")
         if _checksum(state, stored) != checksum:
             raise InputError(f"{self.path} is corrupt (its checksum does not match its data); remove it to start "
                              f"again from t = 0")

@@ -731,3 +731,28 @@ def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp
     assert {"time_histories_0.005-0.01s.png", "phase_0.005-0.01s.png", "forces_0.005-0.01s.png"} <= set(windowed), \
         windowed
     assert (figs / "time_histories.png").read_bytes() == whole
+
+
+def test_a_checkpoint_is_not_resumed_in_a_basis_rebuilt_with_its_repeated_modes_turned(tmp_path):
+    # Red team: a tube's modes come in pairs of one frequency; the pair's orientation depends on the
+    # rank layout. A run on 1 rank used a basis cached by a 2-rank run; after the cache was cleared
+    # the resume rebuilt it on 1 rank and continued q in it: the motion moved into the other plane.
+    import signal
+
+    scene = tmp_path / "pair.toml"
+    scene.write_text('[structure]\nkind = "beam"\nlength = 1.0\nelements = 30\nE = 2e11\nI = 1e-9\nA = 1e-4\n'
+                     'rho = 8000.0\nplanes = 2\n[[constraint]]\nx = 0.3\nlaw = "circular"\nclearance = 1.0\n'
+                     'k = 1e6\n[initial]\nmode = 4\namplitude = 1e-4\ndirection = [1.0, 0.0]\n[basis]\nmodes = 10\n'
+                     f'estimate = false\ncache = "{tmp_path / "cache"}"\n[integrator]\nt_end = 100.0\n[output]\n'
+                     'sample_dt = 1e-3\ncheckpoint_dt = 0.5\n')
+    seed = dbf_hpc("run", str(scene), "-q", "-o", str(tmp_path / "seed.h5"), "--set", "integrator.t_end=0.01")
+    assert seed.returncode == 0, seed.stderr
+    target = tmp_path / "pair.h5"
+    process = subprocess.Popen(["mpirun", "-n", "1", sys.executable, "-m", "dbf_hpc.cli", "run", str(scene), "-q",
+                                "-o", str(target)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               cwd=ROOT, env=mpi_env(), start_new_session=True)   # the 2-rank basis, cached
+    _wait_for(f"{target}.checkpoint", process)
+    _kill_group(process, signal.SIGTERM)
+    assert dbf_hpc("cache", "clear", "--dir", str(tmp_path / "cache"), ranks=1).returncode == 0
+    out = dbf_hpc("run", str(scene), "-q", "-o", str(target), "--resume", ranks=1)
+    assert _one_line(out) and "(coordinates differ; the basis was rebuilt since" in out.stderr, out.stderr
