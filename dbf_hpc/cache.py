@@ -52,10 +52,12 @@ def solver_options(prefixes=("modes_", "dbf_")) -> dict:
 
 
 def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool = False) -> str:
-    """sha256 of everything that determines the basis (the options only of the solvers its kind uses).
+    """sha256 of everything that determines the basis (the options only of the solvers its kind uses),
+    and the package version (a release may build it otherwise without a new ALGORITHM).
     A gyroscopic basis (second-order form) has its own algorithm name: its operators' fingerprint
     already holds U, m_t and T (a beam) or G's bytes (matrices)."""
-    content = {"algorithm": ALGORITHM + ("-gyroscopic" if gyroscopic else ""), "operators": fingerprint,
+    content = {"algorithm": ALGORITHM + ("-gyroscopic" if gyroscopic else ""), "version": __version__,
+               "operators": fingerprint,
                "rows": [int(r) for r in rows], "settings": settings.key(),
                "options": solver_options(settings.strategy.solver_prefixes)}
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()

@@ -25,7 +25,7 @@ SECTIONS = {
                                         'from files)'),
         "length": Key(NUMBER, None, "m", "beam: length (required)"),
         "elements": Key((int,), 100, "", "beam: target number of elements (a node is added at every constraint, "
-                                         "probe, force and support)"),
+                                         "force, loaded span's end and support; probes are interpolated)"),
         "E": Key(NUMBER, None, "Pa", "beam: Young's modulus (required)"),
         "I": Key(NUMBER, None, "m^4", "beam: second moment of area (required)"),
         "A": Key(NUMBER, None, "m^2", "beam: cross-section area (required)"),

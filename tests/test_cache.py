@@ -66,6 +66,17 @@ def test_changing_what_determines_the_basis_rebuilds_it(shared_tmp_path, change)
     assert solves > 0 and state == "stored"
 
 
+def test_a_basis_another_dbf_hpc_version_wrote_is_not_reused(shared_tmp_path, monkeypatch):
+    # Red team: the version was in no key; a release that builds the basis otherwise (without a new
+    # ALGORITHM) would have read the old files.
+    import dbf_hpc.cache
+
+    obtain(scene(), shared_tmp_path)
+    monkeypatch.setattr(dbf_hpc.cache, "__version__", "9.9.9")
+    _, solves, state = obtain(scene(), shared_tmp_path)
+    assert solves > 0 and state == "stored"
+
+
 def _cache_file(directory):
     files = MPI.COMM_WORLD.bcast(sorted(glob.glob(str(directory / "basis-*.h5"))), root=0)
     assert len(files) == 1
