@@ -137,6 +137,9 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         t, solves = time.perf_counter(), counters["eigen_solves"]
         estimate, pick = scene.estimate_settings(), None
         if estimate.tolerance is not None:
+            if _zeta_per_vector(fom):
+                raise InputError("[damping] zeta gives one ratio per basis vector, but [basis] tolerance picks the "
+                                 "number of modes: give one zeta for all, or Rayleigh damping")
             pick = pick_basis(fom, scene.basis_settings(), scene.cache_dir(), settings, estimate, comm, say)
             scene = scene.with_values("basis", modes=pick.modes, max_frequency_hz=None)
             scene = scene.with_values("integrator", rtol=pick.rtol, atol=pick.atol)
@@ -174,6 +177,9 @@ def rich_model(fom, basis):
     """The reduced model of the estimate's richer basis (accuracy.RICH_MODES times the modes, the same
     enrichment columns), or the reason it cannot be made (a string). Collective."""
     labels = list(fom.constraints.labels)
+    if _zeta_per_vector(fom):
+        return ("no richer model: [damping] zeta gives one ratio per basis vector, none for the richer basis's "
+                "extra modes (one zeta for all, or Rayleigh damping, has an estimate)")
     try:
         # a gyroscopic basis has two columns (Re, Im) per complex mode: twice the complex modes
         rich = richer_basis(fom.operators, basis, RICH_MODES * basis.stats.get("complex_modes", basis.mode_count),
@@ -182,6 +188,12 @@ def rich_model(fom, basis):
         return f"no richer basis: {e}"
     with Reductor(fom, rich.settings, basis=rich) as reductor:
         return reductor.reduce()
+
+
+def _zeta_per_vector(fom) -> bool:
+    """Whether the modal damping gives a ratio per basis vector (a list), which fits one basis size only."""
+    damping = fom.damping
+    return damping is not None and damping.kind == "modal" and np.atleast_1d(damping.zeta).size > 1
 
 
 def _say(say, message: str) -> None:

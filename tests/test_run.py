@@ -224,3 +224,17 @@ dofs = "dofs.txt"
         for name in ("b", "m"):
             text = open(shared_tmp_path / f"{name}.xdmf").read()
             assert text.count('<Grid Name="displacement ') == 5 and f"{name}.h5:/snapshots/points" in text
+
+
+def test_a_damping_ratio_per_basis_vector_runs_with_its_estimate_explained_and_tolerance_refuses_it(shared_tmp_path):
+    # Red team: 7 ratios for 6 modes + 1 DBF ended the run with "7 ratios for 13 basis vectors" (the
+    # estimate's richer basis); the ratios only fit the user's basis.
+    zeta = "damping.zeta=[0.01, 0.05, 0.02, 0.02, 0.02, 0.02, 0.3]"
+    _, f, summary = paper_run(shared_tmp_path, zeta, "integrator.t_end=0.05")
+    assert np.isnan(summary["estimated_error"])
+    if f is not None:
+        assert "one ratio per basis vector" in f.attrs["estimated_error_note"]
+        np.testing.assert_allclose(np.diag(f["reduced/D"][:])[:2] / (2 * f["basis/omega"][:2]), [0.01, 0.05])
+        f.close()
+    with pytest.raises(InputError, match="tolerance picks the number of modes"):
+        paper_run(shared_tmp_path, zeta, "basis.tolerance=0.05", name="tol.h5")
