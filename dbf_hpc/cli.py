@@ -612,6 +612,8 @@ def main(argv=None) -> int:
     from . import _petsc
 
     _petsc.init(petsc_options)
+    # `dbf-hpc info OUT.h5 | head` ends quietly, as other commands do, not in PETSc's signal handler
+    signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     from mpi4py import MPI
     from petsc4py import PETSc
 

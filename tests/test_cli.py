@@ -756,3 +756,11 @@ def test_a_checkpoint_is_not_resumed_in_a_basis_rebuilt_with_its_repeated_modes_
     assert dbf_hpc("cache", "clear", "--dir", str(tmp_path / "cache"), ranks=1).returncode == 0
     out = dbf_hpc("run", str(scene), "-q", "-o", str(target), "--resume", ranks=1)
     assert _one_line(out) and "(coordinates differ; the basis was rebuilt since" in out.stderr, out.stderr
+
+
+def test_a_report_piped_into_head_ends_quietly(tmp_path):
+    # Red team: `dbf-hpc modes ... | head -1` ended in PETSc's signal handler (SIGPIPE) with its
+    # debugger advice and an MPI_ABORT notice.
+    cmd = f"{sys.executable} -m dbf_hpc.cli modes {PAPER} | head -1"
+    out = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=120, cwd=ROOT, env=mpi_env())
+    assert out.stdout.startswith("dbf-hpc ") and out.stderr == "", out.stderr
