@@ -95,6 +95,28 @@ def is_dbf_output(path: str) -> bool:
         return False
 
 
+def _ours_or_damaged(path: str, ours) -> bool:
+    """Whether `path` is an HDF5 file whose root attributes `ours` accepts, or a damaged HDF5 file
+    (a write that failed on a full disk): dbf-hpc may replace it. Another kind of file is not ours."""
+    try:
+        with h5py.File(path, "r") as f:
+            return bool(ours(f.attrs))
+    except (OSError, ValueError) as e:
+        if refused_lock(e):
+            raise InputError(f"cannot open {path!r}: {LOCK_HINT}") from None
+        return has_hdf5_signature(path)
+
+
+def is_dbf_partial(path: str) -> bool:
+    """Whether `path` can be a run's unfinished output (OUT.h5.partial) dbf-hpc wrote."""
+    return _ours_or_damaged(path, lambda attrs: "complete" in attrs or "dbf_hpc_version" in attrs)
+
+
+def is_dbf_checkpoint(path: str) -> bool:
+    """Whether `path` can be a checkpoint (OUT.h5.checkpoint) dbf-hpc wrote."""
+    return _ours_or_damaged(path, lambda attrs: str(attrs.get("format", "")).startswith("dbf-hpc-checkpoint"))
+
+
 def series_shapes(constraint_shape: tuple, n_probes: int, r: int) -> dict:
     """The shape of one sample of each series (constraint_shape: (N_L,) or (N_L, d); n_probes: P,
     or the shape (P, 2) of the probes of a beam of two planes)."""

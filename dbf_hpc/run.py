@@ -32,7 +32,7 @@ from .fom_integrator import integrate_full
 from .fom_integrator import options as full_options
 from .modes import counters
 from .output import (SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space, check_output_path,
-                     free_bytes, output_bytes)
+                     free_bytes, is_dbf_checkpoint, is_dbf_partial, output_bytes)
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
@@ -42,11 +42,17 @@ from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
 from .timestepping import check_work
 
 
-def output_path(scene: Scene, override: str | None) -> str:
+def output_path(scene: Scene, override: str | None, resume: bool = False) -> str:
+    """The run's output file, refused before any work when it, or the .partial and .checkpoint the
+    run writes and removes beside it, exists and is not dbf-hpc's (red team: a file named like them
+    was replaced or deleted). A resume reads the checkpoint, and refuses a foreign one itself."""
     path = override or scene.output().file
     if not path:
         raise InputError("no output file: give [output] file in the scene or -o OUT.h5")
     check_output_path(path, scene.inputs())
+    check_output_path(f"{path}.partial", scene.inputs(), replaceable=is_dbf_partial)
+    if not resume:
+        check_output_path(f"{path}.checkpoint", scene.inputs(), replaceable=is_dbf_checkpoint)
     if scene.output().snapshots:
         xdmf.check_sidecar(path, scene.inputs())
     return path
@@ -86,7 +92,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         raise InputError("--method full starts from [initial] (or resumes from its checkpoint), not from a reduced state")
     comm = comm or PETSc.COMM_WORLD
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else None
-    path = output_path(scene, out)
+    path = output_path(scene, out, resume)
     settings = scene.integrator_settings()
     check_work(settings, scene.fastest_forcing_hz(), adaptive=settings.adaptive and method == "rom")
     with claimed(path, comm):

@@ -131,6 +131,26 @@ def test_failed_run_leaves_no_output_and_never_clobbers(shared_tmp_path):
     assert_all(not os.path.exists(str(target) + ".partial"))
 
 
+@pytest.mark.parametrize("suffix", [".partial", ".checkpoint"])
+def test_a_file_named_like_the_runs_partial_output_or_checkpoint_is_never_replaced(shared_tmp_path, suffix):
+    # Red team: `echo precious > x.h5.partial` was overwritten by the run, a y.h5.checkpoint deleted at its end.
+    target = shared_tmp_path / f"x{suffix}.h5"
+    other = shared_tmp_path / f"x{suffix}.h5{suffix}"
+    if MPI.COMM_WORLD.rank == 0:
+        other.write_bytes(b"precious")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=f"{suffix}' exists and is not a dbf-hpc output"):
+        paper_run(shared_tmp_path, "integrator.t_end=0.01", name=target.name)
+    assert_all(other.read_bytes() == b"precious" and not target.exists())
+    if MPI.COMM_WORLD.rank == 0:   # a damaged HDF5 file under that name (a full disk) is the run's own
+        other.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\0" * 100)
+    MPI.COMM_WORLD.Barrier()
+    _, f, _ = paper_run(shared_tmp_path, "integrator.t_end=0.01", name=target.name)
+    if f is not None:
+        f.close()
+    assert_all(target.exists() and not other.exists())
+
+
 def test_a_fixed_step_longer_than_the_sample_interval_runs(shared_tmp_path):
     # 0.01 s sampled every 1 us with a fixed 0.1 ms step: 100 steps, samples from the dense output.
     _, f, summary = paper_run(shared_tmp_path, "integrator.adaptive=false", "integrator.t_end=0.01",
