@@ -214,6 +214,19 @@ class _Monitor:
         steps.report(step, t)
 
 
+# The C context's counters, in the order a checkpoint stores them (c_counters), and the TS attribute
+# under which the checkpoints find the context
+C_COUNTERS = ("snes_solves", "newton", "ifunction", "ijacobian", "rhsfunction", "exact_solves", "factorizations",
+              "matmult", "linear_shortcuts")
+C_CONTEXT = "dbf_hpc_c_context"
+
+
+def c_counters(ts) -> np.ndarray | None:
+    """The C callbacks' counters of this TS's integration so far (C_COUNTERS order), or None."""
+    fast = ts.getAttr(C_CONTEXT)
+    return None if fast is None else np.array([fast.counters[name] for name in C_COUNTERS], dtype=np.int64)
+
+
 def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=None, on_step=None, say=None,
                       resume: dict | None = None, *, recorder=None, due=None) -> dict:
     """Integrate from t = 0 (model.q0, model.p0) to t_end, calling record(t, q, p) at every sample
@@ -259,6 +272,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
             ksp.getPC().setType(PETSc.PC.Type.LU)
         else:
             fast = core.Problem(model, problem, implicit)
+            ts.setAttr(C_CONTEXT, fast)   # the checkpoints read its counters (run.Checkpointing)
             J = fast.shell_matrix()
             fast.attach(ts, F, G, J, True)
             fast.set_pcshell(ksp.getPC())
@@ -322,9 +336,11 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
                  "adaptive": settings.adaptive, "contact": settings.contact,
                  "callbacks": "python" if fast is None else "c",
                  "newton": "petsc" if fast is None or not c_newton else "c"}
-        stats["newton_iterations"] = ts.getSNESIterations()
-        if fast is not None:
-            stats["c_counters"] = fast.counters
+        stats["newton_iterations"] = ts.getSNESIterations() + int(before.get("newton_iterations", 0))
+        if fast is not None:   # a resumed run's whole, as the other counts
+            done = before.get("c_counters")
+            stats["c_counters"] = {name: value + (int(done[C_COUNTERS.index(name)]) if done is not None else 0)
+                                   for name, value in fast.counters.items()}
         reason = ts.getConvergedReason()
     finally:
         destroy(ts, y, F, G, J, work, monitor.work if monitor is not None else None)

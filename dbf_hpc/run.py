@@ -36,7 +36,7 @@ from .output import (SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_fr
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
-from .rom_integrator import effective_callbacks, integrate_reduced
+from .rom_integrator import c_counters, effective_callbacks, integrate_reduced
 from .scene import Scene
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
 from .timestepping import check_work
@@ -507,13 +507,16 @@ class Checkpointing:
         self.interrupted = False
         self.start = None
         self.next = interval
-        self.base = {"rejected": 0, "snes_failures": 0, "wall": 0.0}
+        self.base = {"rejected": 0, "snes_failures": 0, "wall": 0.0, "newton_iterations": 0}
+        self.base_c = None   # the C callbacks' counters before this part (rom_integrator.C_COUNTERS)
         if state:
             self.base = {name: float(state[name]) for name in self.base}
+            self.base_c = np.array(state["c_counters"]) if "c_counters" in state else None
             self.start = {"t": float(state["t"]), "dt": float(state["dt"]), "steps": int(state["steps"]),
                           "next_sample": int(state["samples"]), "q": np.array(state["q"]),
                           "p": np.array(state["p"]), "rejected": int(self.base["rejected"]),
-                          "snes_failures": int(self.base["snes_failures"]), "wall": self.base["wall"]}
+                          "snes_failures": int(self.base["snes_failures"]), "wall": self.base["wall"],
+                          "newton_iterations": int(self.base["newton_iterations"]), "c_counters": self.base_c}
             self.next = float(state["t"]) + interval
         self.clock = time.perf_counter()
 
@@ -534,12 +537,16 @@ class Checkpointing:
     def save(self, ts, t, q, p) -> None:
         self.recorder.writer.flush()
         wall = self.base["wall"] + time.perf_counter() - self.clock
+        counts = c_counters(ts)
+        if counts is not None and self.base_c is not None:
+            counts = counts + self.base_c
         self.checkpoint.write({"t": t, "dt": ts.getTimeStep(), "steps": ts.getStepNumber(), "q": q, "p": p,
                                "samples": self.recorder.writer.count,
                                "samples_sha256": self.recorder.writer.digest(),
                                "rejected": self.base["rejected"] + ts.getStepRejections(),
                                "snes_failures": self.base["snes_failures"] + ts.getSNESFailures(), "wall": wall,
-                               **self.recorder.state()})
+                               "newton_iterations": self.base["newton_iterations"] + ts.getSNESIterations(),
+                               **({} if counts is None else {"c_counters": counts}), **self.recorder.state()})
 
 
 @contextlib.contextmanager

@@ -666,7 +666,7 @@ def integrate_state_space(model: StateSpaceModel, settings, record=None, on_step
                  "scheme": ts.getARKIMEXType(), "final_time": ts.getTime(),
                  "adaptive": settings.adaptive, "contact": settings.contact,
                  "callbacks": "python", "newton": "petsc", "form": "state_space",
-                 "newton_iterations": ts.getSNESIterations()}
+                 "newton_iterations": ts.getSNESIterations() + int(before.get("newton_iterations", 0))}
         reason = ts.getConvergedReason()
     finally:
         destroy(ts, y, F, G, J, monitor.work if monitor is not None else None)

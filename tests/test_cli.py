@@ -1,5 +1,6 @@
 """The dbf-hpc command as users run it: under mpirun -n 2, one clear line and a non-zero exit on
 bad input, never a traceback. These tests start their own mpirun (serial pass only)."""
+import json
 import os
 import re
 import subprocess
@@ -267,6 +268,10 @@ def test_a_killed_run_resumes_from_its_checkpoint_to_the_uninterrupted_result(tm
         for name in ("time", "constraints/displacement", "constraints/force_peak", "reduced/q", "snapshots/w",
                      "constraints/stats/impacts", "constraints/stats/force_rms"):
             np.testing.assert_allclose(b[name][:], a[name][:], rtol=1e-12, atol=1e-15, err_msg=name)
+        # red team: the Newton and C-callback counts were the resumed part's, the step counts the whole run's
+        counts = [{k: v for k, v in json.loads(f.attrs["solver_stats"]).items()
+                   if k in ("steps", "rejected_steps", "newton_iterations", "c_counters")} for f in (a, b)]
+        assert counts[0] == counts[1] and counts[0]["newton_iterations"] > 0, counts
 
 
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGTERM", "SIGKILL before the first checkpoint"])
