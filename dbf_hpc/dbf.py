@@ -79,14 +79,14 @@ def branch_of(participation: np.ndarray, eigenvalues: np.ndarray | None = None) 
     them, so the branch is the cluster's last index (and its participation the cluster's sum,
     cluster_participation). Following the first index would follow an unmoved mode (k_auto = 0, a
     zero DBF)."""
-    cluster = _cluster_of(participation, eigenvalues)
+    cluster = cluster_of(participation, eigenvalues)
     return int(cluster[-1]) + 1 if cluster.size else 0
 
 
 def cluster_participation(participation: np.ndarray, eigenvalues: np.ndarray | None = None) -> float:
     """(g^T P g) over the eigenspace of the branch followed (branch_of): the slope of lambda_m(k) at
     k = 0, whatever basis the eigensolver chose inside a repeated eigenvalue."""
-    cluster = _cluster_of(participation, eigenvalues)
+    cluster = cluster_of(participation, eigenvalues)
     return float(participation[cluster].sum()) if cluster.size else 0.0
 
 
@@ -116,7 +116,7 @@ def _cluster_starts(n: int, eigenvalues: np.ndarray | None) -> np.ndarray:
     return np.concatenate(([0], split, [n]))
 
 
-def _cluster_of(participation: np.ndarray, eigenvalues: np.ndarray | None) -> np.ndarray:
+def cluster_of(participation: np.ndarray, eigenvalues: np.ndarray | None) -> np.ndarray:
     """0-based indices of the lowest (cluster of) reference mode(s) that moves at the constraint."""
     participation = np.asarray(participation, dtype=float)
     n = participation.size
