@@ -53,7 +53,9 @@ class Damping:
         omega = np.asarray(omega, dtype=float)
         if self.kind == "rayleigh":
             return self.rayleigh_alpha + self.rayleigh_beta * omega**2
-        return 2.0 * self.ratios(omega.size) * omega
+        ratios = self.ratios(omega.size)
+        _check_repeated(ratios, omega)
+        return 2.0 * ratios * omega
 
     def reduced_matrix(self, reduced_stiffness: np.ndarray, reduced_mass: np.ndarray | None = None) -> np.ndarray:
         """C_r for a basis with V^T K V = reduced_stiffness and V^T M V = reduced_mass (I when not
@@ -63,3 +65,19 @@ class Damping:
             Mr = np.eye(Kr.shape[0]) if reduced_mass is None else np.asarray(reduced_mass, dtype=float)
             return self.rayleigh_alpha * Mr + self.rayleigh_beta * Kr
         return np.diag(self.modal_coefficients(np.sqrt(np.clip(np.diag(Kr), 0.0, None))))
+
+
+REPEATED_TOL = 1e-6   # relative: frequencies this close are one repeated frequency (a round tube's pairs)
+
+
+def _check_repeated(ratios: np.ndarray, omega: np.ndarray) -> None:
+    """A repeated frequency's modes are any mix of its eigenspace (a tube's y and z, turned as the
+    eigensolver chose): one ratio each, or the damping depends on the load's direction (red team: zeta
+    on mode 1 damped z and not y)."""
+    order = np.argsort(omega)
+    w, r = omega[order], ratios[order]
+    for i in range(w.size - 1):
+        if abs(w[i + 1] - w[i]) <= REPEATED_TOL * max(abs(w[i + 1]), 1e-300) and r[i + 1] != r[i]:
+            raise InputError(f"damping zeta: basis vectors {order[i] + 1} and {order[i + 1] + 1} share the frequency "
+                             f"{w[i] / (2 * np.pi):.6g} Hz (a repeated mode, any mix of its directions) but have the "
+                             f"ratios {r[i]:g} and {r[i + 1]:g}: give them one ratio")

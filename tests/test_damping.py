@@ -43,3 +43,12 @@ def test_bad_damping_is_a_clear_error(kwargs, word):
 def test_per_vector_ratios_must_match_the_basis_size():
     with pytest.raises(InputError, match="2 ratios for 3 basis vectors"):
         Damping(zeta=(0.01, 0.02)).modal_coefficients(np.ones(3))
+
+
+def test_one_repeated_frequency_takes_one_ratio_as_its_modes_are_any_mix_of_its_directions():
+    # Red team: on a tube of two planes, zeta = [0.05, 0, ...] damped the z mix of mode 1 and not the y.
+    omega = np.array([10.0, 10.0 * (1 + 1e-12), 40.0])
+    with pytest.raises(InputError, match="basis vectors 1 and 2 share the frequency .* give them one ratio"):
+        Damping(zeta=(0.05, 0.0, 0.0)).modal_coefficients(omega)
+    np.testing.assert_allclose(Damping(zeta=(0.05, 0.05, 0.0)).modal_coefficients(omega),
+                               [1.0, 1.0 * (1 + 1e-12), 0.0])
