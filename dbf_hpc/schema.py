@@ -40,7 +40,8 @@ SECTIONS = {
                                                "speed of a pipe conveying fluid); needs w fixed at both ends. Adds "
                                                "the gyroscopic G = 2 m_t U int N^T N' dx and softens K by m_t U^2"),
         "transported_mass": Key(NUMBER, None, "kg/m", "beam: mass per length moving at axial_speed (default rho A; "
-                                                      "a pipe's fluid mass per length)"),
+                                                      "a pipe's fluid mass per length, which rho A, the whole "
+                                                      "mass per length, includes: at most rho A)"),
         "tension": Key(NUMBER, 0.0, "N", "beam: axial tension T: K += (T - m_t U^2) int N'^T N' dx"),
         "stiffness": Key((str,), None, "", "matrices: K over the free DOFs, Matrix Market (.mtx) or PETSc binary "
                                            "(required)"),

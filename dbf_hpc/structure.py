@@ -84,6 +84,9 @@ class Beam:
         m_t = self.transported_mass
         if m_t is not None and not (isinstance(m_t, (int, float)) and np.isfinite(m_t) and m_t > 0):
             raise InputError(f"beam transported_mass must be a positive number, got {m_t!r}")
+        if m_t is not None and m_t > self.rho * self.A * (1 + 1e-12):
+            raise InputError(f"beam transported_mass {m_t:g} kg/m exceeds rho A = {self.rho * self.A:g} kg/m, the "
+                             f"whole mass per length, which includes it (a pipe: rho A = pipe + fluid)")
         if self.axial_speed and any(W not in BOUNDARIES[getattr(self, end)] for end in ("left", "right")):
             raise InputError(f"an axially moving beam (axial_speed = {self.axial_speed} m/s) needs w fixed at both "
                              f"ends (pinned or clamped), got left = {self.left!r}, right = {self.right!r}: with a free "

@@ -103,7 +103,7 @@ def test_axially_moving_beam_critical_speed_is_rho_a_vc2_equal_t_plus_ei_pi2_ove
 def test_without_transport_the_matrices_are_unchanged_and_there_is_no_g(comm):
     plain = assemble_beam(Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=30))
     zero = assemble_beam(Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=30, axial_speed=0.0, tension=0.0,
-                              transported_mass=2.0))
+                              transported_mass=0.5))   # at most rho A = 0.78 kg/m
     try:
         assert zero.G is None
         for a, b in ((plain.K, zero.K), (plain.M, zero.M)):
@@ -1082,3 +1082,10 @@ def test_a_pipe_in_two_planes_loaded_at_45_degrees_moves_radially_with_no_work_r
             assert np.abs(u[:, 0] - u[:, 1]).max() < 1e-4 * np.abs(u).max()
             assert stats["work_rate"][0] < 1e-5 * stats["impact_power_mean"][0], (stats["work_rate"][0],
                                                                                  stats["impact_power_mean"][0])
+
+
+def test_a_transported_mass_above_the_whole_mass_per_length_is_refused():
+    # Red team: transported_mass = 5 kg/m on a pipe of rho A = 1.48 kg/m ran (frequencies 14 % off):
+    # rho A is the whole mass per length, pipe and fluid, and includes the transported mass.
+    with pytest.raises(InputError, match="transported_mass 5 kg/m exceeds rho A = 1.48.* includes it"):
+        Beam(length=1.5, E=2e11, I=9.6268e-9, A=1.44513e-4, rho=10247.0, axial_speed=10.0, transported_mass=5.0)
