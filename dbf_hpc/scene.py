@@ -217,13 +217,20 @@ def load_scene(path: str, overrides=()) -> Scene:
         data = tomllib.loads(text)
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
         raise InputError(f"{path}: not valid TOML: {e}") from None
-    given = {}
+    given, given_basis = {}, set()
     for item in overrides:
         section, key, value = parse_override(item)
         if section == "constraint":
             _override_constraints(data.get("constraint", []), key, value, item, given)
-        else:
-            data.setdefault(section, {})[key] = value
+            continue
+        target = data.setdefault(section, {})
+        if section == "basis" and isinstance(target, dict):
+            # the two ways to choose the modes: one given on the command line replaces the scene's other
+            other = {"modes": "max_frequency_hz", "max_frequency_hz": "modes"}.get(key)
+            if other and other not in given_basis:
+                target.pop(other, None)
+            given_basis.add(key)
+        target[key] = value
     for i, keys in given.items():
         _check_one_unit_of_k(data["constraint"][i], i, keys)
     return dataclasses.replace(validate(data, path, text), overrides=tuple(overrides))

@@ -235,7 +235,8 @@ def reference() -> str:
              "`--set constraint.2.key=value` the second one; `k`, `clearance` or `exponent` set that way "
              "replaces the scene's two sides (`k_minus`/`k_plus`, ...), one side set over a scene's `k` keeps "
              "`k` on the other, and a side given after `k` refines it, while `k` after a side is refused, "
-             "as is one `k` for sides of different exponents, whose units differ).", ""]
+             "as is one `k` for sides of different exponents, whose units differ; `basis.modes` replaces the "
+             "scene's `max_frequency_hz`, and the other way round).", ""]
     for section, (doc, keys) in SECTIONS.items():
         lines += [f"## [{section}]", "", doc, "", *_table(keys), ""]
     lines += ["## [[constraint]]", "", CONSTRAINT[0] + " Keys with a side (`clearance`, `k`, `exponent`) also "

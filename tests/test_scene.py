@@ -175,3 +175,16 @@ def test_set_k_on_sides_of_different_exponents_is_refused_as_it_would_carry_two_
 def test_a_number_that_is_not_finite_is_refused(value):
     with pytest.raises(InputError, match="must be finite"):
         load_scene(PAPER, [f"excitation.amplitude={value}"])
+
+
+def test_set_modes_replaces_the_scenes_max_frequency_and_the_other_way_round():
+    # Red team: `--set basis.modes=4` on a scene choosing its modes by max_frequency_hz (the 2-D tube)
+    # was refused ("give modes or max_frequency_hz, not both"), though --set overrides a scene value.
+    tube = os.path.join(ROOT, "jobs", "steam_generator_tube_2d.toml")
+    assert load_scene(tube)["basis"]["max_frequency_hz"] is not None
+    s = load_scene(tube, ["basis.modes=4"])
+    assert (s["basis"]["modes"], s["basis"]["max_frequency_hz"]) == (4, None)
+    s = load_scene(PAPER, ["basis.max_frequency_hz=100.0"])
+    assert (s["basis"]["modes"], s["basis"]["max_frequency_hz"]) == (None, 100.0)
+    with pytest.raises(InputError, match="give modes or max_frequency_hz, not both"):
+        load_scene(tube, ["basis.modes=4", "basis.max_frequency_hz=100.0"])
