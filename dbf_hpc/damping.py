@@ -48,23 +48,27 @@ class Damping:
             raise InputError(f"damping zeta has {ratios.size} ratios for {count} basis vectors")
         return ratios
 
-    def modal_coefficients(self, omega: np.ndarray) -> np.ndarray:
-        """c_i in q_i'' + c_i q_i' + omega_i^2 q_i for M-orthonormal modes of frequency omega_i."""
+    def modal_coefficients(self, omega: np.ndarray, modes: int | None = None) -> np.ndarray:
+        """c_i in q_i'' + c_i q_i' + omega_i^2 q_i for M-orthonormal modes of frequency omega_i; the
+        first `modes` (default all) are reference modes, whose repeated frequencies take one ratio."""
         omega = np.asarray(omega, dtype=float)
         if self.kind == "rayleigh":
             return self.rayleigh_alpha + self.rayleigh_beta * omega**2
         ratios = self.ratios(omega.size)
-        _check_repeated(ratios, omega)
+        count = omega.size if modes is None else modes
+        _check_repeated(ratios[:count], omega[:count])
         return 2.0 * ratios * omega
 
-    def reduced_matrix(self, reduced_stiffness: np.ndarray, reduced_mass: np.ndarray | None = None) -> np.ndarray:
+    def reduced_matrix(self, reduced_stiffness: np.ndarray, reduced_mass: np.ndarray | None = None,
+                       modes: int | None = None) -> np.ndarray:
         """C_r for a basis with V^T K V = reduced_stiffness and V^T M V = reduced_mass (I when not
-        given; modal ratios assume it)."""
+        given; modal ratios assume it) whose first `modes` vectors are reference modes (default all):
+        an enrichment column is no mix of a repeated mode (two at symmetric stops share hat-omega)."""
         Kr = np.asarray(reduced_stiffness, dtype=float)
         if self.kind == "rayleigh":
             Mr = np.eye(Kr.shape[0]) if reduced_mass is None else np.asarray(reduced_mass, dtype=float)
             return self.rayleigh_alpha * Mr + self.rayleigh_beta * Kr
-        return np.diag(self.modal_coefficients(np.sqrt(np.clip(np.diag(Kr), 0.0, None))))
+        return np.diag(self.modal_coefficients(np.sqrt(np.clip(np.diag(Kr), 0.0, None)), modes))
 
 
 REPEATED_TOL = 1e-6   # relative: frequencies this close are one repeated frequency (a round tube's pairs)

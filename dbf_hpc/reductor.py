@@ -52,7 +52,7 @@ class Reductor:
         ops = fom.operators
         K, M = basis.project(ops.K), basis.project(ops.M)
         structure = self._clean_projection(basis, K, M) if ops.G is None else {}
-        C = basis.project(ops.C) if ops.C is not None else fom.damping.reduced_matrix(K, M)
+        C = basis.project(ops.C) if ops.C is not None else fom.damping.reduced_matrix(K, M, basis.mode_count)
         G = basis.project(ops.G) if ops.G is not None else None
         rows = fom.constraints.flat_rows
         base_load = basis.dot(ops.base_mass_load) if fom.moving_support else np.zeros(basis.size)

@@ -52,3 +52,6 @@ def test_one_repeated_frequency_takes_one_ratio_as_its_modes_are_any_mix_of_its_
         Damping(zeta=(0.05, 0.0, 0.0)).modal_coefficients(omega)
     np.testing.assert_allclose(Damping(zeta=(0.05, 0.05, 0.0)).modal_coefficients(omega),
                                [1.0, 1.0 * (1 + 1e-12), 0.0])
+    # enrichment columns are no mix of a repeated mode: two DBFs of symmetric stops share hat-omega
+    np.testing.assert_allclose(Damping(zeta=(0.05, 0.05, 0.0, 0.1)).modal_coefficients(
+        np.array([10.0, 10.0, 40.0, 40.0]), modes=2), [1.0, 1.0, 0.0, 8.0])
