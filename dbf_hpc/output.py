@@ -84,37 +84,34 @@ def has_hdf5_signature(path: str) -> bool:
         return False
 
 
-def is_dbf_output(path: str) -> bool:
-    """Whether `path` is an HDF5 file dbf-hpc wrote (a run's output or a sweep summary)."""
-    try:
-        with h5py.File(path, "r") as f:
-            return "dbf_hpc_version" in f.attrs or "sweep" in f.attrs
-    except (OSError, ValueError) as e:
-        if refused_lock(e):   # not "not ours": that would advise removing a good file
-            raise InputError(f"cannot open {path!r}: {LOCK_HINT}") from None
-        return False
-
-
-def _ours_or_damaged(path: str, ours) -> bool:
-    """Whether `path` is an HDF5 file whose root attributes `ours` accepts, or a damaged HDF5 file
-    (a write that failed on a full disk): dbf-hpc may replace it. Another kind of file is not ours."""
+def _written_by_us(path: str, ours, damaged: bool = False) -> bool:
+    """Whether `path` is an HDF5 file whose root attributes `ours` accepts; with `damaged`, also a
+    damaged HDF5 file (a write that failed on a full disk: a run's own .partial or checkpoint).
+    Another kind of file is not ours. A file system that refuses locks is one line, never "not ours"
+    (that would advise removing a good file)."""
     try:
         with h5py.File(path, "r") as f:
             return bool(ours(f.attrs))
     except (OSError, ValueError) as e:
         if refused_lock(e):
             raise InputError(f"cannot open {path!r}: {LOCK_HINT}") from None
-        return has_hdf5_signature(path)
+        return damaged and has_hdf5_signature(path)
+
+
+def is_dbf_output(path: str) -> bool:
+    """Whether `path` is an HDF5 file dbf-hpc wrote (a run's output or a sweep summary)."""
+    return _written_by_us(path, lambda attrs: "dbf_hpc_version" in attrs or "sweep" in attrs)
 
 
 def is_dbf_partial(path: str) -> bool:
     """Whether `path` can be a run's unfinished output (OUT.h5.partial) dbf-hpc wrote."""
-    return _ours_or_damaged(path, lambda attrs: "complete" in attrs or "dbf_hpc_version" in attrs)
+    return _written_by_us(path, lambda attrs: "complete" in attrs or "dbf_hpc_version" in attrs, damaged=True)
 
 
 def is_dbf_checkpoint(path: str) -> bool:
     """Whether `path` can be a checkpoint (OUT.h5.checkpoint) dbf-hpc wrote."""
-    return _ours_or_damaged(path, lambda attrs: str(attrs.get("format", "")).startswith("dbf-hpc-checkpoint"))
+    return _written_by_us(path, lambda attrs: str(attrs.get("format", "")).startswith("dbf-hpc-checkpoint"),
+                          damaged=True)
 
 
 def series_shapes(constraint_shape: tuple, n_probes: int, r: int) -> dict:

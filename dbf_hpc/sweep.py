@@ -300,8 +300,7 @@ def _continued(model, scene, previous: dict | None):
     """The case's reduced model with its laws and excitation history, started from the previous
     case's final state when it continues a chain (the stepped sine keeps its phase, and the jump of
     r Omega and r Omega' is taken up by q as far as the basis represents r: the total displacement
-    stays continuous to round-off, the velocity to the part of r outside the basis, 4 % at the
-    paper beam's stop from 1.0 to 1.7 Hz)."""
+    stays continuous to round-off, the velocity up to the part of r outside the basis)."""
     support, force = time_functions(scene.excitation())
     if scene["excitation"]["kind"] == "turbulence":
         force = model.force   # its histories came with the model (the model key holds all of turbulence)
