@@ -134,6 +134,7 @@ class Estimate:
     seconds: float = 0.0
     note: str = ""
     reference: np.ndarray | None = None   # the richer run's w over the window (nt x N_L), for reuse
+    reference_time: np.ndarray | None = None   # its sample times (s)
 
     def attrs(self) -> dict:
         """The output's root attributes."""
@@ -214,7 +215,7 @@ def nested_estimate(rich_model, settings, times: np.ndarray, w: np.ndarray, end:
         return Estimate(np.nan, end, time.perf_counter() - start, "the richer run is not sampled alike")
     value = relative_difference(w[:k], result.displacement)
     note = f"against {rich_model.size} basis vectors at rtol {rich_settings(settings, end).rtol:g}"
-    return Estimate(value, end, time.perf_counter() - start, note, result.displacement)
+    return Estimate(value, end, time.perf_counter() - start, note, result.displacement, result.time)
 
 
 def reused_estimate(calibration: Estimate, times: np.ndarray, w: np.ndarray) -> Estimate:
@@ -223,6 +224,9 @@ def reused_estimate(calibration: Estimate, times: np.ndarray, w: np.ndarray) -> 
     k = calibration.reference.shape[0]
     if times.size < k:
         return Estimate(np.nan, calibration.window, 0.0, "the run is shorter than its calibration window")
+    if calibration.reference_time is not None and not np.allclose(
+            times[:k], calibration.reference_time, rtol=0, atol=1e-9 * max(calibration.window, 1e-300)):
+        return Estimate(np.nan, calibration.window, 0.0, "the run is not sampled as its calibration was")
     value = relative_difference(w[:k], calibration.reference)
     return Estimate(value, calibration.window, 0.0, f"{calibration.note}, from the calibration")
 
@@ -493,8 +497,10 @@ class Pick:
 def _measure(fom, basis_settings, cache_dir, settings, window: float | None, comm):
     """One candidate of the tolerance mode: its basis, its richer model, both integrated over the
     window (rank 0). Without a window, the candidate is first integrated over LINEAR_WINDOW t_end,
-    then t_end if it met no contact, and the window is estimate_window's. Returns the estimate (the
-    same on every rank). Collective."""
+    then t_end if it met no contact, and the window is estimate_window's (on to twice the first
+    contact when that is beyond the first probe: cut at the probe, the window held the first impact
+    and little after it). Every end is a sample time of the run to t_end, so that the run can reuse
+    the richer run's samples. Returns the estimate (the same on every rank). Collective."""
     from .reductor import Reductor
     from .run import rich_model, wait_for_rank0
     from .simulate import simulate_reduced
@@ -508,11 +514,16 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
         try:
             if isinstance(rich, str):
                 raise SolverError(rich)
+            grid = settings.sample_times   # every probe ends on the run's own samples: the run reuses its w
             for probe in ((window,) if window else (LINEAR_WINDOW * settings.t_end, settings.t_end)):
+                probe = estimate_window(grid, None, settings.t_end, probe)
                 run = simulate_reduced(model, dataclasses.replace(settings, t_end=probe))
                 contact = first_contact(run.time, run.force_peak)
                 if window or contact is not None:
                     break
+            want = estimate_window(grid, contact, settings.t_end, window)
+            if want > run.time[-1] * (1 + 1e-12):   # twice the first contact is beyond the probe: go on to it
+                run = simulate_reduced(model, dataclasses.replace(settings, t_end=want))
             end = estimate_window(run.time, contact, settings.t_end, window)
             result = nested_estimate(rich, settings, run.time, run.displacement, end)
         except SolverError as e:
