@@ -552,6 +552,11 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
     settings = dataclasses.replace(settings, rtol=rtol, atol=settings.atol * rtol / settings.rtol)
     modes, tried, window = max(int(basis_settings.modes or 4), 1), [], estimate.window
     limit = min(MAX_MODES, (fom.size - fom.constraints.count) // RICH_MODES)
+    if modes > limit:
+        raise InputError(f"[basis] tolerance: the first candidate, [basis] modes = {modes}, is beyond the largest "
+                         f"basis the tolerance mode tries, {limit} modes (at most {MAX_MODES}, and the richer basis "
+                         f"of twice them and the {fom.constraints.count} constraint(s) within the {fom.size} DOFs): "
+                         f"give fewer [basis] modes, or a finer mesh")
     while modes <= limit:
         candidate = dataclasses.replace(basis_settings, modes=modes, max_frequency_hz=None)
         measured = _measure(fom, candidate, cache_dir, settings, window, comm)
@@ -571,7 +576,7 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
         modes = next_modes(tried, TOLERANCE_MARGIN * tol)
         if modes > limit and tried[-1][0] < limit:
             modes = limit         # the largest basis is tried before giving up
-    reached = ", ".join(f"{m} modes {e:.3g}" for m, e in tried) or "no candidate fits the structure"
+    reached = ", ".join(f"{m} modes {e:.3g}" for m, e in tried)
     raise InputError(f"[basis] tolerance = {tol:g} cannot be met within {limit} modes (estimates must reach "
                      f"{TOLERANCE_MARGIN * tol:.3g}): reached {reached}; loosen the tolerance, use a richer "
                      f"enrichment or a finer question (a shorter estimate_window)")

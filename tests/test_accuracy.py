@@ -187,6 +187,16 @@ def test_the_tolerance_modes_calibration_window_holds_twice_the_first_contact_be
     assert math.isfinite(summary["estimated_error"])
 
 
+def test_a_first_candidate_beyond_the_largest_basis_is_refused_by_name(shared_tmp_path):
+    # 100 elements, 200 DOFs: the richer basis of twice the modes fits 99 modes at most. The refusal
+    # said "reached no candidate fits the structure" without naming [basis] modes.
+    from dbf_hpc.errors import InputError
+
+    with pytest.raises(InputError, match=r"\[basis\] modes = 150, is beyond the largest basis .* 99 modes"):
+        _w(shared_tmp_path, "never.h5", "basis.tolerance=0.1", "basis.modes=150")
+    assert not any(p.name.startswith("never") for p in shared_tmp_path.iterdir())
+
+
 def test_a_calibration_sampled_otherwise_than_the_run_gives_no_reused_estimate():
     # The reused estimate compares the run's w with the calibration's richer run sample by sample:
     # samples at other times would compare w at different instants.
