@@ -96,7 +96,8 @@ def _estimate_lines(f) -> list:
     value, window = float(f.attrs["estimated_error"]), float(f.attrs.get("estimated_error_window", np.nan))
     if not np.isfinite(value):
         return [f"  estimated error: not available ({f.attrs.get('estimated_error_note', '')})"]
-    return [f"  estimated error in w at the constraints: {value:.3g} ({value:.2%}) over [0, {window:g}] s "
+    return [f"  estimated error in w at the constraints: {value:.3g} ({value:.2%} of the largest |w| at any "
+            f"constraint) over [0, {window:g}] s "
             f"({f.attrs.get('estimated_error_note', '')})"] + _statistics_error_lines(f)
 
 

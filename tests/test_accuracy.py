@@ -225,6 +225,7 @@ def test_a_cli_run_carries_the_estimate_and_info_prints_it(tmp_path):
         assert f["basis/flexibility_captured"].shape == (1,)
     info = dbf_hpc("info", str(out), ranks=1)
     assert "estimated error in w at the constraints" in info.stdout
+    assert "% of the largest |w| at any constraint) over [0, " in info.stdout   # what the ratio is relative to
     with h5py.File(out, "r") as f:   # t_end 0.2 s within 5 windows of 0.21 s: not a long run
         assert "constraints/stats_error" not in f and "estimated_statistics_window" not in f.attrs
 
