@@ -177,6 +177,14 @@ def rich_settings(settings, window: float):
                                dt=settings.dt if settings.adaptive else settings.dt / 4)
 
 
+def rich_note(rich_model, settings, end: float) -> str:
+    """What the richer run was: its basis vectors, and its rtol, or its fixed step for a run of fixed
+    steps (whose rtol steers nothing). Not collective."""
+    rich = rich_settings(settings, end)
+    how = f"rtol {rich.rtol:g}" if rich.adaptive else f"a fixed step of {rich.dt:g} s"
+    return f"against {rich_model.size} basis vectors at {how}"
+
+
 def relative_difference(w: np.ndarray, w_rich: np.ndarray) -> float:
     """max over constraints and samples of |w - w_rich|, over max |w_rich| at any constraint and
     sample (both nt x N_L; module docstring: why one scale for all constraints). Not collective."""
@@ -214,7 +222,7 @@ def nested_estimate(rich_model, settings, times: np.ndarray, w: np.ndarray, end:
     if k > times.size or not np.allclose(result.time, times[:k], rtol=0, atol=1e-9 * max(end, 1e-300)):
         return Estimate(np.nan, end, time.perf_counter() - start, "the richer run is not sampled alike")
     value = relative_difference(w[:k], result.displacement)
-    note = f"against {rich_model.size} basis vectors at rtol {rich_settings(settings, end).rtol:g}"
+    note = rich_note(rich_model, settings, end)
     return Estimate(value, end, time.perf_counter() - start, note, result.displacement, result.time)
 
 
@@ -403,7 +411,7 @@ def statistics_estimate(rich_model, settings, read, times, end: float, laws=None
         return StatisticsEstimate(end, sampling, reduced, reduced_ci, nan, nan, time.perf_counter() - start,
                                   "the richer run is not sampled alike")
     rich, rich_ci = window_statistics(result.time, result.displacement, result.velocity, result.force, laws)
-    note = f"against {rich_model.size} basis vectors at rtol {rich_settings(settings, end).rtol:g}"
+    note = rich_note(rich_model, settings, end)
     return StatisticsEstimate(float(times[k - 1]), sampling, reduced, reduced_ci, rich, rich_ci,
                               time.perf_counter() - start, note)
 

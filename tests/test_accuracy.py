@@ -197,6 +197,22 @@ def test_a_first_candidate_beyond_the_largest_basis_is_refused_by_name(shared_tm
     assert not any(p.name.startswith("never") for p in shared_tmp_path.iterdir())
 
 
+def test_the_estimate_of_a_fixed_step_run_names_the_richer_runs_step_not_an_rtol_it_never_used(shared_tmp_path):
+    # A run of fixed steps: the richer run takes steps four times shorter; rtol steers neither.
+    import h5py
+    from mpi4py import MPI
+
+    _, summary = _w(shared_tmp_path, "fixed.h5", "integrator.adaptive=false", "integrator.dt=2e-5",
+                    "integrator.t_end=0.05")
+    note = None
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(shared_tmp_path / "fixed.h5", "r") as f:
+            note = f.attrs["estimated_error_note"]
+    note = MPI.COMM_WORLD.bcast(note, root=0)
+    assert note == "against 13 basis vectors at a fixed step of 5e-06 s", note
+    assert math.isfinite(summary["estimated_error"])
+
+
 def test_a_calibration_sampled_otherwise_than_the_run_gives_no_reused_estimate():
     # The reused estimate compares the run's w with the calibration's richer run sample by sample:
     # samples at other times would compare w at different instants.
