@@ -148,6 +148,16 @@ class Estimate:
                 f"[0, {self.window:g}] s ({self.note}; {self.seconds:.2f} s)")
 
 
+def blind_to_contact(estimate: Estimate, t_contact: float | None) -> Estimate:
+    """The estimate with its note saying so when its window ends before the run's first contact (a
+    given estimate_window, or the tolerance mode's): it then measures the motion before any impact,
+    not the impacts, and a small value says nothing about them. Not collective."""
+    if t_contact is None or not t_contact > estimate.window or not math.isfinite(estimate.value):
+        return estimate
+    return dataclasses.replace(estimate, note=f"{estimate.note}; the window ends before the run's first contact at "
+                                              f"{t_contact:g} s: it does not see the impacts")
+
+
 def first_contact(times: np.ndarray, force_peak: np.ndarray) -> float | None:
     """The first sample time whose interval holds a nonzero constraint force, or None."""
     touched = np.flatnonzero(np.any(np.abs(force_peak.reshape(force_peak.shape[0], -1)) > 0, axis=1))

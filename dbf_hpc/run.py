@@ -21,8 +21,9 @@ from slepc4py import SLEPc
 
 from . import __version__, layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
-from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, estimate_window, first_contact, flexibility_warning,
-                       is_long, nested_estimate, pick_basis, reused_estimate, statistics_estimate, statistics_window)
+from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window, first_contact,
+                       flexibility_warning, is_long, nested_estimate, pick_basis, reused_estimate, statistics_estimate,
+                       statistics_window)
 from .basis import richer_basis
 from .checkpoint import Checkpoint, identity
 from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, petsc_failure,
@@ -429,7 +430,8 @@ def _estimate(estimator, writer, settings, timings: dict, say):
     times = writer.series_data(layout.TIME)
     if isinstance(rich, str):
         return Estimate(np.nan, 0.0, 0.0, rich)
-    end = estimate_window(times, _first_contact(writer, times), settings.t_end, window)
+    contact = _first_contact(writer, times)
+    end = estimate_window(times, contact, settings.t_end, window)
     k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
     writer.flush()
     w = writer.series[layout.CONSTRAINT_DISPLACEMENT][:k]
@@ -437,6 +439,7 @@ def _estimate(estimator, writer, settings, timings: dict, say):
         estimate = reused_estimate(rich, times[:k], w)
     else:
         estimate = nested_estimate(rich, settings, times[:k], w, end)
+    estimate = blind_to_contact(estimate, contact)
     timings["estimate"] = estimate.seconds
     _say(say, estimate.line())
     return estimate

@@ -213,6 +213,24 @@ def test_the_estimate_of_a_fixed_step_run_names_the_richer_runs_step_not_an_rtol
     assert math.isfinite(summary["estimated_error"])
 
 
+def test_an_estimate_window_before_the_first_contact_says_it_does_not_see_the_impacts(shared_tmp_path):
+    # The beam first touches its stop near 0.105 s. Over [0, 0.05] s, before it, the estimate measures
+    # the free motion, small whatever the basis does at the impacts (6 modes: 13.6 % over 0.2 s).
+    import h5py
+    from mpi4py import MPI
+
+    _, summary = _w(shared_tmp_path, "early.h5", "basis.estimate_window=0.05")
+    note = None
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(shared_tmp_path / "early.h5", "r") as f:
+            note = f.attrs["estimated_error_note"]
+    note = MPI.COMM_WORLD.bcast(note, root=0)
+    assert summary["estimated_error_window"] == pytest.approx(0.05)
+    assert "the window ends before the run's first contact at 0.105" in note, note
+    _, summary = _w(shared_tmp_path, "late.h5")        # the automatic window holds the first impacts
+    assert summary["estimated_error"] > 0.05
+
+
 def test_a_calibration_sampled_otherwise_than_the_run_gives_no_reused_estimate():
     # The reused estimate compares the run's w with the calibration's richer run sample by sample:
     # samples at other times would compare w at different instants.
