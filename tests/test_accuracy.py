@@ -93,7 +93,8 @@ def test_only_a_falling_trend_of_enough_modes_gives_a_tolerance_up():
     assert hopeless([(6, 0.137), (12, 0.0379), (24, 0.0318)], 0.0075, 99) is None  # within reach
 
 
-
+def test_a_singular_reduced_stiffness_has_no_static_flexibility():
+    # K_r singular (a rigid-body motion in the basis): g^T K_r^-1 g is undefined, NaN, not a number.
     assert np.all(np.isnan(basis_flexibility(np.zeros((2, 2)), np.eye(2))))
 
 
