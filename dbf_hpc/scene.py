@@ -502,7 +502,8 @@ def _check_basis(b: dict, where: str) -> None:
     EstimateSettings(enabled=b["estimate"], window=b["estimate_window"], tolerance=b["tolerance"],
                      statistics_window=b["estimate_statistics_window"])
     if b["tolerance"] is not None and b["max_frequency_hz"] is not None:
-        raise InputError(f"{where}: tolerance picks the number of modes; remove max_frequency_hz")
+        raise InputError(f"{where}: tolerance picks the number of modes; remove max_frequency_hz, or give the "
+                         f"first candidate's modes (--set basis.modes=4 replaces it)")
     if b["modes"] is None and b["max_frequency_hz"] is None:
         b["modes"] = 4 if b["tolerance"] is not None else 6
     if b["modes"] is not None and b["modes"] < 1:

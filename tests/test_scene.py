@@ -188,3 +188,13 @@ def test_set_modes_replaces_the_scenes_max_frequency_and_the_other_way_round():
     assert (s["basis"]["modes"], s["basis"]["max_frequency_hz"]) == (None, 100.0)
     with pytest.raises(InputError, match="give modes or max_frequency_hz, not both"):
         load_scene(tube, ["basis.modes=4", "basis.max_frequency_hz=100.0"])
+
+
+def test_a_tolerance_on_a_scene_choosing_its_modes_by_frequency_says_how_to_replace_it_from_the_command_line():
+    # The shipped tubes set max_frequency_hz; "remove max_frequency_hz" left a --set user no way to do so
+    # (--set cannot remove a key), while --set basis.modes replaces it.
+    tube = os.path.join(ROOT, "jobs", "steam_generator_tube.toml")
+    with pytest.raises(InputError, match=r"remove max_frequency_hz, or .*--set basis.modes=4 replaces it"):
+        load_scene(tube, ["basis.tolerance=0.05"])
+    s = load_scene(tube, ["basis.tolerance=0.05", "basis.modes=4"])
+    assert (s["basis"]["modes"], s["basis"]["max_frequency_hz"], s["basis"]["tolerance"]) == (4, None, 0.05)
