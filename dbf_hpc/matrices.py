@@ -181,10 +181,15 @@ def _load_vector(path: str, template: PETSc.Vec, what: str) -> PETSc.Vec:
             raise InputError(f"{what} file {path!r} has {loaded.getSize()} entries; the matrices have {n} rows")
         _check_finite(what, path, loaded)
         # Reload into the matrices' layout (a loaded Vec takes PETSc's default split, which may differ).
+        # (PETSc refuses a scatter between two parallel layouts with default indices: each rank names
+        # the global rows it owns in the matrices' layout.)
         vec = template.duplicate()
-        scatter = PETSc.Scatter().create(loaded, None, vec, None)
+        start, end = vec.getOwnershipRange()
+        rows = PETSc.IS().createStride(end - start, first=start, step=1, comm=vec.getComm())
+        scatter = PETSc.Scatter().create(loaded, rows, vec, rows)
         scatter.scatter(loaded, vec, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
         scatter.destroy()
+        rows.destroy()
         return vec
     finally:
         loaded.destroy()
