@@ -94,6 +94,8 @@ class FullOrderModel:
                                  f"on a {type(structure).__name__}")
         planes = structure.planes if isinstance(structure, Beam) else 1
         _check_dimensions(constraints, planes)
+        if isinstance(structure, MatrixFiles) and structure.damping and damping.kind != "none":
+            raise InputError(DAMPING_TWICE)
         if isinstance(structure, Beam):
             ops = _beam_operators(structure, constraints, excitation, comm)
             beam = dataclasses.asdict(structure)
@@ -457,6 +459,12 @@ def _beam_operators(beam: Beam, constraints, excitation, comm) -> Operators:
         points.extend(excitation.span)
     return assemble_beam(beam, comm, points=points, base_end=excitation.end if excitation.kind == "base" else None,
                          direction=getattr(excitation, "direction", (1.0, 0.0)))
+
+
+# The reduced and full-order models take the damping matrix and ignore modal or Rayleigh damping beside it.
+DAMPING_TWICE = ("a damping matrix ([structure] damping) and modal or Rayleigh damping ([damping] zeta, "
+                 "rayleigh_alpha, rayleigh_beta) were both given, and only the matrix would act: give one (add "
+                 "alpha M + beta K to the matrix yourself)")
 
 
 def _check_dimensions(constraints, planes: int) -> None:

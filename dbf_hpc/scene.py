@@ -21,7 +21,7 @@ from .damping import Damping
 from .accuracy import EstimateSettings
 from .errors import InputError
 from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce, Turbulence
-from .fom import FullOrderModel, InitialState
+from .fom import DAMPING_TWICE, FullOrderModel, InitialState
 from .laws import KEYS as LAW_KEYS
 from .laws import KEYS_2D, LAWS_2D, law_from_dict
 from .matrices import MatrixFiles
@@ -570,7 +570,8 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
     _check_basis(sections["basis"], f"{path}: [basis]")
     _check_integrator_and_output(sections, path, at)
     scene = Scene(path=path, text=text, sections=sections, constraints=constraints)
-    scene.damping()  # validates the damping section
+    if scene.damping().kind != "none" and not at.beam and s["damping"]:  # (also validates the damping section)
+        raise InputError(f"{path}: {DAMPING_TWICE}")
     if at.beam:
         scene.beam()
     return scene

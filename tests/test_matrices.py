@@ -279,3 +279,21 @@ def test_a_damping_matrix_that_adds_energy_or_a_directory_given_as_a_file_is_ref
         load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], damping=paths["C.mtx"]))
     with pytest.raises(InputError, match="stiffness file .* is a directory"):
         load_operators(MatrixFiles(str(shared_tmp_path), paths["M.mtx"]))
+
+
+def test_a_damping_matrix_beside_modal_damping_is_refused_by_the_full_order_model(shared_tmp_path):
+    # Red team: the reduced model projected C and ignored Damping(zeta=...) given with it.
+    from dbf_hpc.damping import Damping
+    from dbf_hpc.fom import FullOrderModel
+
+    paths = {name: str(shared_tmp_path / name) for name in ("K.mtx", "M.mtx", "C.mtx")}
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths["K.mtx"], scipy.sparse.diags([2.0, 3.0, 4.0]).tocsr())
+        scipy.io.mmwrite(paths["M.mtx"], scipy.sparse.identity(3, format="csr"))
+        scipy.io.mmwrite(paths["C.mtx"], scipy.sparse.diags([0.1, 0.2, 0.1]).tocsr())
+    MPI.COMM_WORLD.Barrier()
+    files = MatrixFiles(paths["K.mtx"], paths["M.mtx"], damping=paths["C.mtx"])
+    with pytest.raises(InputError, match="only the matrix would act"):
+        FullOrderModel.build(files, damping=Damping(zeta=0.02))
+    with FullOrderModel.build(files) as fom:     # the matrix alone is the damping
+        assert to_scipy(fom.damping_matrix()).diagonal().tolist() == [0.1, 0.2, 0.1]

@@ -72,6 +72,17 @@ def test_bad_scenes_are_one_clear_error(data, message):
         scene(**data)
 
 
+@pytest.mark.parametrize("damping", [{"zeta": 0.02}, {"rayleigh_alpha": 1.0}, {"rayleigh_beta": 1e-4}])
+def test_a_damping_matrix_beside_modal_or_rayleigh_damping_is_refused(damping):
+    # Red team: the reduced and full-order models used the matrix and dropped zeta (or alpha, beta)
+    # without a word, so a run had less damping than the scene says.
+    with pytest.raises(InputError, match="a damping matrix .* and modal or Rayleigh damping .* were both given"):
+        validate({"structure": {"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx", "damping": "C.mtx"},
+                  "damping": damping}, "test.toml")
+    s = validate({"structure": {"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx", "damping": "C.mtx"}})
+    assert s.damping().kind == "none" and s.structure().damping.endswith("C.mtx")
+
+
 @pytest.mark.parametrize("change,message", [({"E": -1.0}, "E must be positive"), ({"rho": None}, "rho is required"),
                                             ({"left": "glued"}, "left must be one of"),
                                             ({"kind": "shell"}, "kind must be")])
