@@ -228,6 +228,43 @@ def asymmetry(A: PETSc.Mat, skew: bool = False) -> float:
     return value
 
 
+def _check_dissipative(C: PETSc.Mat, path: str) -> None:
+    """An InputError for a damping matrix that is visibly not positive semi-definite: a negative
+    diagonal entry, or an entry with c_ij^2 > c_ii c_jj (a 2 x 2 principal minor below 0, so
+    C has a negative eigenvalue and the damping feeds energy in). Necessary conditions, checked in
+    O(nnz). Collective."""
+    diagonal = C.getDiagonal()
+    try:
+        lowest = diagonal.min()
+        scale = diagonal.norm(PETSc.NormType.NORM_INFINITY)
+        if lowest[1] < -1e-12 * scale:
+            raise InputError(f"damping matrix {path!r} has a negative diagonal entry ({lowest[1]:.3g} in row "
+                             f"{lowest[0]}): damping must dissipate (C positive semi-definite)")
+        lo, hi = C.getOwnershipRange()
+        indptr, cols, values = C.getValuesCSR()
+        rows = np.repeat(np.arange(lo, hi), np.diff(indptr))
+        needed = np.unique(cols).astype(PETSc.IntType)
+        index = PETSc.IS().createGeneral(needed, comm=PETSc.COMM_SELF)
+        local = PETSc.Vec().createSeq(needed.size, comm=PETSc.COMM_SELF)
+        scatter = PETSc.Scatter().create(diagonal, index, local, None)
+        scatter.scatter(diagonal, local, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+        d_col = local.getArray(readonly=True)[np.searchsorted(needed, cols)]
+        d_row = diagonal.getArray(readonly=True)[rows - lo]
+        scatter.destroy(), index.destroy(), local.destroy()
+        excess = values**2 - np.maximum(d_row, 0.0) * np.maximum(d_col, 0.0)
+        bad = np.flatnonzero(excess > 1e-10 * np.maximum(values**2, 1e-300))
+        first = (int(rows[bad[0]]), int(cols[bad[0]]), float(values[bad[0]]),
+                 float(d_row[bad[0]]), float(d_col[bad[0]])) if bad.size else None
+        found = [f for f in C.getComm().tompi4py().allgather(first) if f is not None]
+    finally:
+        diagonal.destroy()
+    if found:
+        i, j, c, ci, cj = found[0]
+        raise InputError(f"damping matrix {path!r} has |C[{i}, {j}]| = {abs(c):.3g} above sqrt(C[{i}, {i}] "
+                         f"C[{j}, {j}]) = {np.sqrt(max(ci, 0.0) * max(cj, 0.0)):.3g}: C is indefinite and would feed "
+                         f"energy in (damping must dissipate: C positive semi-definite)")
+
+
 @dataclass(frozen=True)
 class MatrixFiles:
     """A structure given as matrix files over its free DOFs (paths as the files system sees them).
@@ -338,14 +375,8 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
             skew = asymmetry(A) if A is not None else 0.0
             if skew > SYMMETRY_TOL:
                 raise InputError(f"{name} matrix {path!r} is not symmetric (||A - A^T|| / ||A|| = {skew:.3g})")
-        if ops.C is not None:   # a damping matrix is positive semi-definite: its diagonal is >= 0
-            diagonal = ops.C.getDiagonal()
-            lowest = diagonal.min()
-            scale = diagonal.norm(PETSc.NormType.NORM_INFINITY)
-            diagonal.destroy()
-            if lowest[1] < -1e-12 * scale:
-                raise InputError(f"damping matrix {files.damping!r} has a negative diagonal entry ({lowest[1]:.3g} in "
-                                 f"row {lowest[0]}): damping must dissipate (C positive semi-definite)")
+        if ops.C is not None:
+            _check_dissipative(ops.C, files.damping)
         if ops.G is not None:
             _check_finite("gyroscopic", files.gyroscopic, ops.G)
             skew = asymmetry(ops.G, skew=True)

@@ -297,3 +297,29 @@ def test_a_damping_matrix_beside_modal_damping_is_refused_by_the_full_order_mode
         FullOrderModel.build(files, damping=Damping(zeta=0.02))
     with FullOrderModel.build(files) as fom:     # the matrix alone is the damping
         assert to_scipy(fom.damping_matrix()).diagonal().tolist() == [0.1, 0.2, 0.1]
+
+
+def test_a_damping_matrix_with_a_negative_eigenvalue_and_a_positive_diagonal_is_refused(shared_tmp_path):
+    # Red team: only C's diagonal was checked, so a C with eigenvalue -4.9 (C[5, 6] = 5 between
+    # diagonal entries of 0.1, the two rows on different ranks with 2) fed energy in without a word.
+    # A dashpot between two DOFs, c [[1, -1], [-1, 1]], is semi-definite at equality and stays accepted.
+    n = 12
+    K = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr() * 1e5
+    dashpot = scipy.sparse.lil_matrix((n, n))
+    dashpot[5, 5] = dashpot[6, 6] = 3.0
+    dashpot[5, 6] = dashpot[6, 5] = -3.0
+    bad = scipy.sparse.identity(n, format="lil") * 0.1
+    bad[5, 6] = bad[6, 5] = 5.0
+    assert np.linalg.eigvalsh(bad.toarray()).min() < -4 and np.linalg.eigvalsh(dashpot.toarray()).min() > -1e-12
+    paths = {name: str(shared_tmp_path / name) for name in ("K.mtx", "M.mtx", "C.mtx", "D.mtx", "R.mtx")}
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths["K.mtx"], K, precision=17)
+        scipy.io.mmwrite(paths["M.mtx"], scipy.sparse.identity(n, format="csr"))
+        scipy.io.mmwrite(paths["C.mtx"], bad.tocsr(), precision=17)
+        scipy.io.mmwrite(paths["D.mtx"], dashpot.tocsr(), precision=17)
+        scipy.io.mmwrite(paths["R.mtx"], 1e-4 * K, precision=17)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="\\|C\\[5, 6\\]\\| = 5 above sqrt\\(C\\[5, 5\\] C\\[6, 6\\]\\) = 0.1: C is indefinite"):
+        load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], damping=paths["C.mtx"]))
+    for name in ("D.mtx", "R.mtx"):
+        load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], damping=paths[name])).destroy()
