@@ -70,6 +70,17 @@ class ModalBasis:
         self.vectors.destroy()
 
 
+def _massless_rows(M: PETSc.Mat) -> int:
+    """How many diagonal entries of M are exactly 0 (massless DOFs, e.g. rotations under a lumped
+    mass): each one is an infinite eigenvalue of (K, M). Collective."""
+    diagonal = M.getDiagonal()
+    try:
+        local = int(np.count_nonzero(diagonal.getArray(readonly=True) == 0.0))
+    finally:
+        diagonal.destroy()
+    return M.getComm().tompi4py().allreduce(local)
+
+
 def shift_below_spectrum(ops: Operators) -> float:
     """The shift-and-invert target sigma below the lowest eigenvalue: 0 for a supported structure
     (K is SPD), -eigen_scale when rigid-body modes make K singular (LowestModes explains the value)."""
@@ -145,6 +156,12 @@ class LowestModes:
         counters["eigen_solves"] += 1
         nconv = eps.getConverged()
         if nconv < nev:
+            _, M = eps.getOperators()
+            n, massless = M.getSize()[0], _massless_rows(M)
+            if massless and nev > n - massless:   # infinite eigenvalues: no iteration finds more
+                raise InputError(f"{what}: {nev} modes asked for, but M has {massless} zero diagonal entries "
+                                 f"(massless DOFs), so (K, M) has at most {n - massless} finite eigenvalues; ask for "
+                                 f"fewer modes (only {nconv} converged)")
             raise SolverError(f"{what}: only {nconv} of {nev} eigenpairs converged; raise "
                               f"-{self.prefix}eps_max_it or loosen -{self.prefix}eps_tol")
         K, _ = eps.getOperators()

@@ -135,3 +135,38 @@ def test_eigenpairs_from_an_inexact_shift_and_invert_are_refused_by_their_residu
             reference_modes(ops, count=4)
     finally:
         options.delValue("modes_st_pc_type")
+
+
+def test_massless_dofs_leave_finitely_many_modes_and_asking_for_more_names_them(shared_tmp_path):
+    # Red team: a lumped M with zero entries (massless DOFs) has fewer finite eigenvalues than DOFs;
+    # asking for more modes said "raise -modes_eps_max_it", which cannot help. The finite ones are the
+    # pencil's (scipy's QZ on the dense matrices, an independent solver).
+    import scipy.io
+    import scipy.linalg
+    import scipy.sparse
+    from mpi4py import MPI
+
+    from dbf_hpc.matrices import MatrixFiles, load_operators
+
+    n = 12
+    K = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr() * 1e5
+    mass = np.linspace(1.0, 2.0, n)
+    mass[[3, 7]] = 0.0
+    paths = [str(shared_tmp_path / name) for name in ("K.mtx", "M.mtx")]
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths[0], K, precision=17)
+        scipy.io.mmwrite(paths[1], scipy.sparse.diags(mass).tocsr(), precision=17)
+    MPI.COMM_WORLD.Barrier()
+    lam = scipy.linalg.eigvals(K.toarray(), np.diag(mass))
+    exact = np.sqrt(np.sort(lam[np.isfinite(lam)].real))
+    assert exact.size == n - 2
+    ops = load_operators(MatrixFiles(*paths))
+    try:
+        modes = reference_modes(ops, count=n - 2)
+        np.testing.assert_allclose(modes.omega, exact, rtol=1e-9)
+        modes.destroy()
+        with pytest.raises(InputError, match="M has 2 zero diagonal entries \\(massless DOFs\\), so \\(K, M\\) has at "
+                                             "most 10 finite eigenvalues; ask for fewer modes"):
+            reference_modes(ops, count=n - 1)
+    finally:
+        ops.destroy()
