@@ -361,6 +361,14 @@ def _check_structure(s: dict, where: str) -> None:
                 raise InputError(f"{where}: {key} (a matrix file) is required for kind = \"matrices\"")
     else:
         raise InputError(f"{where}: kind must be \"beam\" or \"matrices\", got {s['kind']!r}")
+    # Any other key of the other kind would be ignored (a matrix model's supports = [0] pinned nothing)
+    other = "matrices" if s["kind"] == "beam" else "beam"
+    for key, (_, default) in SCHEMA["structure"].items():
+        if SECTIONS["structure"][1][key].doc.startswith(f"{other}:") and s[key] != default:
+            raise InputError(f"{where}: {key} applies to kind = \"{other}\" and would be ignored here" + (
+                "; apply a matrix model's supports to K and M (leave the fixed DOFs out)" if key == "supports" else
+                "; a matrix model's K and M hold its geometry, material and boundary conditions"
+                if other == "beam" else ""))
 
 
 class _Positions:

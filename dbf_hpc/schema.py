@@ -46,7 +46,8 @@ SECTIONS = {
         "stiffness": Key((str,), None, "", "matrices: K over the free DOFs, Matrix Market (.mtx) or PETSc binary "
                                            "(required)"),
         "mass": Key((str,), None, "", "matrices: M, as stiffness (required)"),
-        "damping": Key((str,), None, "", "matrices: a damping matrix C (optional): the whole linear damping, so [damping] is then refused"),
+        "damping": Key((str,), None, "", "matrices: a damping matrix C (optional): the whole linear damping, so "
+                                         "[damping] is then refused"),
         "gyroscopic": Key((str,), None, "", "matrices: a skew-symmetric gyroscopic matrix G (optional): "
                                             "M u'' + (C + G) u' + K u = f. Under base excitation the support's "
                                             "velocity loads neither C nor G (the load is -base_mass_load Omega''): "

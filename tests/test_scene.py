@@ -72,6 +72,21 @@ def test_bad_scenes_are_one_clear_error(data, message):
         scene(**data)
 
 
+@pytest.mark.parametrize("structure,message", [
+    ({"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx", "supports": [0]},
+     "supports applies to kind = \"beam\" and would be ignored here; apply a matrix model's supports to K and M"),
+    ({"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx", "left": "free"}, "left applies to kind = \"beam\""),
+    ({"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx", "E": 2e11}, "E applies to kind = \"beam\""),
+    ({**BEAM, "influence": "r.npy"}, "influence applies to kind = \"matrices\" and would be ignored here"),
+])
+def test_a_key_of_the_other_kind_of_structure_is_refused(structure, message):
+    # Red team: supports = [0] on a matrix model (a DOF the user meant to pin), or a beam's left end,
+    # were accepted and ignored: the run was of a structure other than the scene says.
+    with pytest.raises(InputError, match=message):
+        validate({"structure": structure}, "test.toml")
+    validate({"structure": {"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx", "left": "pinned"}})  # default
+
+
 @pytest.mark.parametrize("damping", [{"zeta": 0.02}, {"rayleigh_alpha": 1.0}, {"rayleigh_beta": 1e-4}])
 def test_a_damping_matrix_beside_modal_or_rayleigh_damping_is_refused(damping):
     # Red team: the reduced and full-order models used the matrix and dropped zeta (or alpha, beta)
