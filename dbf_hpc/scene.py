@@ -470,6 +470,9 @@ def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
             at.check(where, e[at.key])
         if e["kind"] == "base" and not at.beam and s["influence"] is None:
             raise InputError(f"{where}: base excitation of a matrices structure needs [structure] influence")
+        if not at.beam and e["end"] != "left":
+            raise InputError(f"{where}: end applies to a beam and would be ignored here: a matrix model's support "
+                             f"motion is its influence vector ([structure] influence)")
 
 
 def _check_initial(i: dict, s: dict, where: str) -> None:

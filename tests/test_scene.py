@@ -87,6 +87,15 @@ def test_a_key_of_the_other_kind_of_structure_is_refused(structure, message):
     validate({"structure": {"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx", "left": "pinned"}})  # default
 
 
+def test_the_moving_end_of_a_matrix_model_is_refused_as_its_influence_vector_says_it():
+    # Red team: end = "right" was accepted and ignored (r decides which support moves).
+    structure = {"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx", "influence": "r.npy"}
+    base = {"kind": "base", "amplitude": 1e-3, "frequency_hz": 5.0}
+    with pytest.raises(InputError, match="end applies to a beam and would be ignored here"):
+        validate({"structure": structure, "excitation": {**base, "end": "right"}}, "test.toml")
+    assert validate({"structure": structure, "excitation": base}).excitation().amplitude == 1e-3
+
+
 @pytest.mark.parametrize("damping", [{"zeta": 0.02}, {"rayleigh_alpha": 1.0}, {"rayleigh_beta": 1e-4}])
 def test_a_damping_matrix_beside_modal_or_rayleigh_damping_is_refused(damping):
     # Red team: the reduced and full-order models used the matrix and dropped zeta (or alpha, beta)
