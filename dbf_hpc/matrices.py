@@ -58,7 +58,7 @@ def _read_matrix_market(path: str, what: str):
             raise InputError(f"{what} file {path!r}: only real coordinate general, symmetric or skew-symmetric "
                              f"Matrix Market is supported, got {layout} {field} {symmetry}")
         line = f.readline()
-        while line.startswith("%"):
+        while line.startswith("%") or (line and not line.strip()):   # comments and blank lines
             line = f.readline()
         try:
             nrows, ncols, nnz = (int(v) for v in line.split())
