@@ -151,7 +151,10 @@ def main(argv=None) -> int:
     free_dofs = np.flatnonzero(~np.repeat(clamped, 3))
     index = -np.ones(3 * n_nodes, dtype=np.int64)
     index[free_dofs] = np.arange(free_dofs.size)
-    os.makedirs(args.out, exist_ok=True)
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as e:     # e.g. OUT is a file
+        raise SystemExit(f"solid3d: cannot make the folder {args.out!r}: {e.strerror}") from None
     for name, A in (("K", K), ("M", M)):
         A = A[free_dofs][:, free_dofs].tocsr()
         A.sort_indices()

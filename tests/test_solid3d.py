@@ -102,3 +102,16 @@ def test_more_stops_than_the_line_has_nodes_is_refused_before_any_file_is_writte
             assert done.returncode == 1 and f"--stops must be from 1 to {most}" in done.stderr, done.stderr
             assert not folder.exists()
     MPI.COMM_WORLD.Barrier()
+
+
+def test_an_output_folder_that_is_a_file_is_one_line_and_leaves_the_file(shared_tmp_path):
+    # Red team: OUT naming an existing file ended in a FileExistsError traceback.
+    if MPI.COMM_WORLD.rank == 0:
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+        taken = shared_tmp_path / "taken"
+        taken.write_text("mine")
+        done = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "solid3d.py"), str(taken),
+                               "--elements", "4", "2", "2", "--stops", "2"], capture_output=True, text=True, env=env)
+        assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+        assert done.stderr.strip().startswith("solid3d: cannot make the folder") and taken.read_text() == "mine"
+    MPI.COMM_WORLD.Barrier()
