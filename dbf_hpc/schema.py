@@ -44,7 +44,8 @@ SECTIONS = {
                                                       "mass per length, includes: at most rho A)"),
         "tension": Key(NUMBER, 0.0, "N", "beam: axial tension T: K += (T - m_t U^2) int N'^T N' dx"),
         "stiffness": Key((str,), None, "", "matrices: K over the free DOFs, Matrix Market (.mtx) or PETSc binary "
-                                           "(required)"),
+                                           "(required); in SI units, N/m, as M in kg: the outputs' units, the "
+                                           "absolute tolerances and the friction's regularization speed are SI"),
         "mass": Key((str,), None, "", "matrices: M, as stiffness (required)"),
         "damping": Key((str,), None, "", "matrices: a damping matrix C (optional): the whole linear damping, so "
                                          "[damping] is then refused"),
