@@ -31,8 +31,8 @@ import numpy as np
 from .errors import InputError, Interrupted, SolverError
 
 # Below this captured flexibility at some constraint a run prints a warning. Measured on the paper's
-# beam (1 and 9 stops): modes alone capture 0.979 to 0.996 at N = 4 (errors of 15 to 35 % in w),
-# 0.999 at N = 10, every DBF or static basis 1 - 2e-7 or closer; the tube's 16 modes alone 0.9947.
+# beam (1 and 9 stops; docs/accuracy.md): modes alone capture 0.979 to 0.996 at N = 4 (errors of 25 to
+# 118 % in w), 0.9998 at N = 10, every DBF or static basis 1 - 2e-7 or closer; the tube's 16 modes alone 0.9947.
 # The indicator is necessary, not sufficient: the a-posteriori estimate is the measure of error.
 FLEXIBILITY_WARN = 0.99
 # The richer basis of the estimate: this many times the reference modes, rtol this many times tighter
