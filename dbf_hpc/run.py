@@ -428,8 +428,10 @@ def _estimate(estimator, writer, settings, timings: dict, say):
         return None
     rich, window, _ = estimator
     times = writer.series_data(layout.TIME)
-    if isinstance(rich, str):
-        return Estimate(np.nan, 0.0, 0.0, rich)
+    if isinstance(rich, str):   # why there is no richer model: said like an estimate, not only stored
+        estimate = Estimate(np.nan, 0.0, 0.0, rich)
+        _say(say, estimate.line())
+        return estimate
     contact = _first_contact(writer, times)
     end = estimate_window(times, contact, settings.t_end, window)
     k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))

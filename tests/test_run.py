@@ -258,3 +258,14 @@ def test_a_damping_ratio_per_basis_vector_runs_with_its_estimate_explained_and_t
         f.close()
     with pytest.raises(InputError, match="tolerance picks the number of modes"):
         paper_run(shared_tmp_path, zeta, "basis.tolerance=0.05", name="tol.h5")
+
+
+def test_a_run_without_a_richer_model_says_why_it_has_no_estimate(shared_tmp_path, capsys):
+    # Red team: the reason was stored (estimated_error_note) but the run's log said nothing of the
+    # estimate (here: damping ratios for the user's basis only, which the richer basis cannot take).
+    s = load_scene(PAPER, ["basis.cache=off", "damping.zeta=[0.01, 0.05, 0.02, 0.02, 0.02, 0.02, 0.3]",
+                           "integrator.t_end=0.02"])
+    summary = run(s, str(shared_tmp_path / "coarse.h5"), progress=True)
+    assert np.isnan(summary["estimated_error"])
+    if MPI.COMM_WORLD.rank == 0:
+        assert "estimated error: not available (" in capsys.readouterr().out
