@@ -64,7 +64,7 @@ class FullOrderModel:
                  probes: PointValues, initial: InitialState, fingerprint: dict,
                  force_row: int | None = None, force_load: PETSc.Vec | None = None,
                  force_matrix: "MatrixLoad | None" = None):
-        self.operators, self.constraints, self.excitation = operators, constraints, excitation
+        self._operators, self.constraints, self.excitation = operators, constraints, excitation
         self.damping, self.initial, self.fingerprint = damping, initial, fingerprint
         self.probes = probes
         self.force_row, self.force_load, self.force_matrix = force_row, force_load, force_matrix
@@ -150,6 +150,15 @@ class FullOrderModel:
             raise
 
     # -- what the integrators and the reductor read -------------------------------------------
+    @property
+    def operators(self) -> Operators:
+        """The distributed operators; an InputError once the model is destroyed (its PETSc objects are
+        gone: using them would crash the process). Not collective."""
+        if self._operators is None:
+            raise InputError("this FullOrderModel was destroyed (its with block has closed, or destroy() was "
+                             "called): use it inside the with block, or build it again")
+        return self._operators
+
     @property
     def comm(self):
         return self.operators.comm
@@ -276,12 +285,18 @@ class FullOrderModel:
         return u
 
     def destroy(self) -> None:
+        """Free the PETSc objects (a second call does nothing); the model cannot be used after it.
+        Collective."""
+        if self._operators is None:
+            return
         destroy(self._C, self._CG, self.force_load)
         if self.force_matrix is not None:
             self.force_matrix.destroy()
-        self.operators.destroy()
+        self._operators.destroy()
+        self._operators = self._C = self._CG = self.force_load = self.force_matrix = None
 
     def __enter__(self):
+        self.operators   # a destroyed model is refused here, not at its first use
         return self
 
     def __exit__(self, *exc):

@@ -31,6 +31,7 @@ class Reductor:
             raise InputError(f"Reductor reduces a FullOrderModel (FullOrderModel.build), got {type(fom).__name__}")
         if not isinstance(settings, BasisSettings):
             raise InputError(f"Reductor settings: give BasisSettings(...), got {settings!r}")
+        fom.operators   # an InputError for a destroyed model
         self.fom, self.settings, self.cache_dir = fom, settings, cache_dir
         self._basis = basis
 

@@ -102,3 +102,24 @@ def test_the_models_are_refused_by_the_simulation_of_the_other_kind():
             simulate_full(rom, settings)
         with pytest.raises(InputError, match="snapshots must be at least 0"):
             simulate_reduced(rom, settings, snapshots=-1)
+
+
+def test_a_full_order_model_used_after_its_with_block_is_refused_and_its_reduced_model_lives_on():
+    # New-user pass: a Reductor or simulate_full on a closed model touched freed PETSc objects: SEGV.
+    from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, FullOrderModel, InputError, IntegratorSettings,
+                         Reductor, law, simulate_full, simulate_reduced)
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    stop = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
+    with FullOrderModel.build(beam, [stop], BaseMotion(amplitude=5e-3, frequency_hz=1.0)) as fom:
+        reductor = Reductor(fom, BasisSettings(modes=4))
+        with reductor:
+            rom = reductor.reduce()
+    settings = IntegratorSettings(t_end=0.01, dt=1e-5, adaptive=False)
+    for use in (lambda: Reductor(fom, BasisSettings(modes=4)), lambda: reductor.reduce(),
+                lambda: simulate_full(fom, settings), lambda: fom.__enter__(), lambda: fom.size):
+        with pytest.raises(InputError, match="FullOrderModel was destroyed"):
+            use()
+    fom.destroy()   # a second destroy does nothing
+    # the reduced model holds numpy arrays only: it outlives the full-order model
+    assert_all(simulate_reduced(rom, IntegratorSettings(t_end=0.01, sample_dt=1e-3)).q.shape == (11, rom.size))
