@@ -22,8 +22,9 @@ from petsc4py import PETSc
 
 from .constraints import Constraint, ConstraintSet
 from .damping import Damping
-from .errors import InputError
-from .excitation import CorrelatedProcess, NoExcitation, coherence_factor, time_functions
+from .errors import InputError, check_number
+from .excitation import (BaseMotion, CorrelatedProcess, NoExcitation, PointForce, RandomForce, Turbulence,
+                         coherence_factor, time_functions)
 from .laws import ConstraintLaws, PlanarLaws
 from .matrices import MatrixFiles, load_operators
 from .operators import Operators, PointValues
@@ -44,6 +45,9 @@ class InitialState:
     direction: tuple = (1.0, 0.0)
     velocity: float = 0.0
     velocity_direction: tuple = (0.0, 1.0)
+
+
+EXCITATIONS = (NoExcitation, BaseMotion, PointForce, RandomForce, Turbulence)
 
 
 class FullOrderModel:
@@ -81,6 +85,14 @@ class FullOrderModel:
         constraints (Constraint descriptions), loads and probes on them. Collective on comm
         (default COMM_WORLD). Bad placements are InputErrors, and nothing is leaked."""
         comm = comm or PETSc.COMM_WORLD
+        if not isinstance(structure, (Beam, MatrixFiles)):
+            raise InputError(f"FullOrderModel.build: a structure is a Beam or MatrixFiles, got {type(structure).__name__}")
+        for name, value, kinds in (("excitation", excitation, EXCITATIONS), ("damping", damping, (Damping,)),
+                                   ("initial", initial, (InitialState,))):
+            if not isinstance(value, kinds):
+                raise InputError(f"FullOrderModel.build: {name} must be {' or '.join(k.__name__ for k in kinds)}, "
+                                 f"got {type(value).__name__}")
+        probes = _probe_places(structure, probes)
         if isinstance(constraints, Constraint) or not isinstance(constraints, (list, tuple)):
             raise InputError(f"FullOrderModel.build: give the constraints as a list of Constraint, got "
                              f"{type(constraints).__name__}")
@@ -453,6 +465,25 @@ def field_peak(ops: Operators, u: PETSc.Vec) -> float:
     rows = rows[(rows >= lo) & (rows < hi)]
     local = float(np.abs(u.getArray(readonly=True)[rows - lo]).max(initial=0.0))
     return ops.comm.tompi4py().allreduce(local, op=MPI.MAX)
+
+
+def _probe_places(structure, probes) -> tuple:
+    """The probes as given to build, checked: x in m within a beam (a probe outside it would be
+    extrapolated from the end element's shape functions), or DOF indices of a matrix model (their
+    range is checked against the loaded matrices)."""
+    if isinstance(probes, (str, bytes)) or not np.iterable(probes):
+        probes = (probes,)
+    out = []
+    for p in probes:
+        if isinstance(structure, Beam):
+            x = check_number("FullOrderModel.build probe x (m)", p)
+            if not 0 <= x <= structure.length:
+                raise InputError(f"FullOrderModel.build: probe at x = {x:g} m is outside the beam [0, "
+                                 f"{structure.length:g}] m")
+            out.append(x)
+        else:
+            out.append(check_number("FullOrderModel.build probe dof", p, 0, integer=True))
+    return tuple(out)
 
 
 def _probes(ops: Operators, probes, excitation) -> PointValues:

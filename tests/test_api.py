@@ -123,3 +123,33 @@ def test_a_full_order_model_used_after_its_with_block_is_refused_and_its_reduced
     fom.destroy()   # a second destroy does nothing
     # the reduced model holds numpy arrays only: it outlives the full-order model
     assert_all(simulate_reduced(rom, IntegratorSettings(t_end=0.01, sample_dt=1e-3)).q.shape == (11, rom.size))
+
+
+@pytest.mark.parametrize("change,message", [
+    ({"structure": "beam"}, "a structure is a Beam or MatrixFiles, got str"),
+    ({"excitation": None}, "excitation must be NoExcitation or BaseMotion"),
+    ({"damping": 0.01}, "damping must be Damping, got float"),
+    ({"initial": {"amplitude": 1e-3}}, "initial must be InitialState, got dict"),
+    ({"probes": [1.5]}, "probe at x = 1.5 m is outside the beam \\[0, 1\\] m"),
+    ({"probes": [-0.5]}, "probe at x = -0.5 m is outside the beam"),
+    ({"probes": ["a"]}, "probe x \\(m\\) must be a finite number, got 'a'"),
+])
+def test_full_order_model_build_refuses_a_wrong_argument_by_name(change, message):
+    # New-user pass: these failed deep inside as AttributeError or ValueError, and a probe beyond the
+    # end of the beam was silently extrapolated from the last element's shape functions (a point
+    # off the structure has no displacement).
+    from dbf_hpc import Beam, BaseMotion, Constraint, FullOrderModel, InputError, law
+
+    args = {"structure": Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20),
+            "constraints": [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)],
+            "excitation": BaseMotion(amplitude=5e-3, frequency_hz=1.0), **change}
+    with pytest.raises(InputError, match=message):
+        FullOrderModel.build(**args)
+
+
+def test_a_probe_given_as_one_number_is_one_probe_at_that_x():
+    from dbf_hpc import Beam, BaseMotion, FullOrderModel
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    with FullOrderModel.build(beam, [], BaseMotion(amplitude=5e-3, frequency_hz=1.0), probes=0.5) as fom:
+        assert_all(fom.probes.count == 1 and fom.probes.positions[0] == 0.5)
