@@ -8,6 +8,7 @@ total displacement u + r Omega(t).
 """
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -61,19 +62,62 @@ class NoExcitation:
     kind = "none"
 
 
+def unit_direction(where: str, direction) -> tuple:
+    """(dy, dz) scaled to length 1, or one InputError naming `where`: two finite numbers, not both 0
+    (the magnitude of a motion or force is its amplitude; a scene's direction is scaled the same way)."""
+    from .errors import InputError, check_number
+
+    if isinstance(direction, (str, bytes)) or not np.iterable(direction) or len(direction) != 2:
+        raise InputError(f"{where} must be (dy, dz), two numbers not both 0, got {direction!r}")
+    dy, dz = (check_number(where, value) for value in direction)
+    norm = float(np.hypot(dy, dz))
+    if norm == 0:
+        raise InputError(f"{where} must be (dy, dz), two numbers not both 0, got {direction!r}")
+    if abs(norm - 1.0) <= 1e-12:   # already unit (a scene's, scaled there): kept bit for bit
+        return (dy, dz)
+    return (dy / norm, dz / norm)
+
+
+def _band(name: str, band) -> tuple:
+    """(f_low, f_high) in Hz with 0 <= f_low < f_high, or an InputError."""
+    from .errors import InputError, check_number
+
+    if isinstance(band, (str, bytes)) or not np.iterable(band) or len(band) != 2:
+        raise InputError(f"{name} band must be (f_low, f_high) in Hz, got {band!r}")
+    f_low, f_high = (check_number(f"{name} band", f) for f in band)
+    if not 0 <= f_low < f_high:
+        raise InputError(f"{name} band must be (f_low, f_high) with 0 <= f_low < f_high (Hz), got {band!r}")
+    return (f_low, f_high)
+
+
+def _span(name: str, span) -> tuple:
+    """() (the whole beam) or (x0, x1) in m with x0 < x1 (fom.py checks them against the beam)."""
+    from .errors import InputError, check_number
+
+    if isinstance(span, (str, bytes)) or not np.iterable(span) or len(span) not in (0, 2):
+        raise InputError(f"{name} span must be (x0, x1) in m, or () for the whole beam, got {span!r}")
+    span = tuple(check_number(f"{name} span", x) for x in span)
+    if span and not span[0] < span[1]:
+        raise InputError(f"{name} span must be (x0, x1) with x0 < x1 (m), got {span!r}")
+    return span
+
+
 def _harmonic_numbers(excitation, name: str) -> None:
-    """The amplitude and frequency of a harmonic excitation as numbers (the Python API's edge)."""
+    """The amplitude and frequency of a harmonic excitation as numbers, its direction a unit vector
+    (the Python API's edge)."""
     from .errors import check_number
 
     object.__setattr__(excitation, "amplitude", check_number(f"{name} amplitude", excitation.amplitude))
     object.__setattr__(excitation, "frequency_hz", check_number(f"{name} frequency_hz", excitation.frequency_hz, 0.0))
+    object.__setattr__(excitation, "direction", unit_direction(f"{name} direction", excitation.direction))
 
 
 @dataclass(frozen=True)
 class BaseMotion:
     """The transverse support at `end` ("left" or "right" of a beam; the influence vector of a
     matrix model) moves as amplitude sin(2 pi frequency_hz t) (m); on a beam of two planes along
-    the unit vector `direction` (dy, dz)."""
+    `direction` (dy, dz), scaled to a unit vector (only a beam of two planes takes another than
+    (1, 0))."""
 
     amplitude: float
     frequency_hz: float
@@ -83,6 +127,10 @@ class BaseMotion:
 
     def __post_init__(self):
         _harmonic_numbers(self, "BaseMotion")
+        if self.end not in ("left", "right"):
+            from .errors import InputError
+
+            raise InputError(f'BaseMotion end must be "left" or "right", got {self.end!r}')
 
     def support(self) -> Harmonic:
         return Harmonic(self.amplitude, self.frequency_hz)
@@ -91,7 +139,7 @@ class BaseMotion:
 @dataclass(frozen=True)
 class PointForce:
     """amplitude sin(2 pi frequency_hz t) (N) at x (m, a beam) or at DOF `dof` (a matrix model); on a
-    beam of two planes along the unit vector `direction` (dy, dz)."""
+    beam of two planes along `direction` (dy, dz), scaled to a unit vector."""
 
     amplitude: float
     frequency_hz: float
@@ -125,6 +173,18 @@ class RandomForce:
     direction: tuple = (1.0, 0.0)
     kind = "random"
 
+    def __post_init__(self):
+        """The numbers checked once (the Python API's edge); span () is the whole beam (fom.py)."""
+        from .errors import check_number
+
+        put = object.__setattr__
+        put(self, "psd", check_number("RandomForce psd ((N/m)^2/Hz)", self.psd, 0.0, above=True))
+        put(self, "band", _band("RandomForce", self.band))
+        put(self, "seed", check_number("RandomForce seed", self.seed, 0, integer=True))
+        put(self, "components", check_number("RandomForce components", self.components, 1, integer=True))
+        put(self, "span", _span("RandomForce", self.span))
+        put(self, "direction", unit_direction("RandomForce direction", self.direction))
+
     def history(self) -> RandomProcess:
         return RandomProcess(self.psd, self.band, self.seed, self.components)
 
@@ -154,9 +214,18 @@ class Turbulence:
     kind = "turbulence"
 
     def __post_init__(self):
-        from .errors import InputError
+        from .errors import InputError, check_number
 
-        f_low, f_high = (tuple(self.band) + (None, None))[:2]
+        put = object.__setattr__
+        put(self, "band", _band("turbulence:", self.band))
+        put(self, "span", _span("turbulence:", self.span))
+        for name in ("psd", "correlation_length", "corner_hz", "slope"):   # correlation_length may be inf
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or value != value:
+                raise InputError(f"turbulence: {name} must be a number, got {value!r}")
+        put(self, "seed", check_number("turbulence: seed", self.seed, 0, integer=True))
+        put(self, "components", check_number("turbulence: components", self.components, 1, integer=True))
+        f_low, f_high = self.band
         problems = [(not (self.psd > 0), f"psd must be positive, got {self.psd!r}"),
                     (not (f_low is not None and f_high is not None and 0 <= f_low < f_high),
                      f"band must be (f_low, f_high) with 0 <= f_low < f_high, got {self.band!r}"),

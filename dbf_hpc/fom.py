@@ -24,7 +24,7 @@ from .constraints import Constraint, ConstraintSet
 from .damping import Damping
 from .errors import InputError, check_number
 from .excitation import (BaseMotion, CorrelatedProcess, NoExcitation, PointForce, RandomForce, Turbulence,
-                         coherence_factor, time_functions)
+                         coherence_factor, time_functions, unit_direction)
 from .laws import ConstraintLaws, PlanarLaws
 from .matrices import MatrixFiles, load_operators
 from .operators import Operators, PointValues
@@ -45,6 +45,19 @@ class InitialState:
     direction: tuple = (1.0, 0.0)
     velocity: float = 0.0
     velocity_direction: tuple = (0.0, 1.0)
+
+    def __post_init__(self):
+        """Numbers checked once, the directions scaled to unit vectors (as a scene's are)."""
+        object.__setattr__(self, "mode", check_number("InitialState mode", self.mode, 1, integer=True))
+        for name in ("amplitude", "velocity"):
+            object.__setattr__(self, name, check_number(f"InitialState {name}", getattr(self, name)))
+        for name in ("direction", "velocity_direction"):
+            object.__setattr__(self, name, unit_direction(f"InitialState {name}", getattr(self, name)))
+
+    @property
+    def planar(self) -> bool:
+        """Whether a beam bending in one plane can start so: displaced along y, not moving."""
+        return not self.velocity and self.direction == (1.0, 0.0)
 
 
 EXCITATIONS = (NoExcitation, BaseMotion, PointForce, RandomForce, Turbulence)
@@ -108,6 +121,9 @@ class FullOrderModel:
         _check_dimensions(constraints, planes)
         if isinstance(structure, MatrixFiles) and structure.damping and damping.kind != "none":
             raise InputError(DAMPING_TWICE)
+        if planes == 1 and (getattr(excitation, "direction", (1.0, 0.0)) != (1.0, 0.0) or not initial.planar):
+            raise InputError("FullOrderModel.build: a direction (dy, dz) or an initial velocity applies to a beam of "
+                             "two planes (Beam(planes=2)); this structure moves along one direction only")
         if isinstance(structure, Beam):
             ops = _beam_operators(structure, constraints, excitation, comm)
             beam = dataclasses.asdict(structure)
@@ -147,7 +163,8 @@ class FullOrderModel:
             elif excitation.kind == "force":
                 force_row = _row(ops, excitation.x, excitation.dof, "the force")
             elif excitation.kind == "random":
-                force_load = distributed_load(ops, *excitation.span, direction=excitation.direction)
+                force_load = distributed_load(ops, *(excitation.span or (0.0, structure.length)),
+                                              direction=excitation.direction)
             elif excitation.kind == "turbulence":
                 force_matrix = MatrixLoad.turbulence(ops, excitation)
             if excitation.kind == "base" and ops.influence is None:

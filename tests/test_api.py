@@ -153,3 +153,67 @@ def test_a_probe_given_as_one_number_is_one_probe_at_that_x():
     beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
     with FullOrderModel.build(beam, [], BaseMotion(amplitude=5e-3, frequency_hz=1.0), probes=0.5) as fom:
         assert_all(fom.probes.count == 1 and fom.probes.positions[0] == 0.5)
+
+
+@pytest.mark.parametrize("make,message", [
+    (lambda api: api.BaseMotion(amplitude=1e-3, frequency_hz=1.0, direction=(0.0, 0.0)), "direction must be \\(dy, dz\\)"),
+    (lambda api: api.PointForce(amplitude=1.0, frequency_hz=1.0, x=0.5, direction=(0.0, 0.0, 1.0)),
+     "PointForce direction must be \\(dy, dz\\)"),
+    (lambda api: api.BaseMotion(amplitude=1e-3, frequency_hz=1.0, end="middle"), 'end must be "left" or "right"'),
+    (lambda api: api.InitialState(mode=0, amplitude=1e-3), "InitialState mode must be at least 1"),
+    (lambda api: api.InitialState(amplitude="1e-3"), "InitialState amplitude must be a finite number"),
+    (lambda api: api.InitialState(velocity_direction=(0, 0)), "InitialState velocity_direction must be"),
+    (lambda api: api.RandomForce(psd=-1.0, band=(1.0, 100.0)), "RandomForce psd .* must be above 0"),
+    (lambda api: api.RandomForce(psd=1.0, band=(100.0, 1.0)), "RandomForce band must be .* f_low < f_high"),
+    (lambda api: api.RandomForce(psd=1.0, band=(1.0, 100.0), span=(1.0, 0.0)), "span must be .* x0 < x1"),
+    (lambda api: api.Turbulence(psd="1", band=(1.0, 100.0), correlation_length=0.1), "psd must be a number"),
+])
+def test_excitation_and_initial_state_refuse_a_wrong_value_where_it_is_given(make, message):
+    # New-user pass: a zero direction gave no forcing at all, a reversed span no load, a negative PSD
+    # or reversed band NaN forces (a SolverError at t = 0), a wrong end the right end.
+    import dbf_hpc
+
+    with pytest.raises(dbf_hpc.InputError, match=message):
+        make(dbf_hpc)
+
+
+def test_a_direction_is_only_a_direction_its_magnitude_is_the_amplitude():
+    # New-user pass: direction (3, 4) moved the support, pushed the tube or displaced it 5 times the
+    # amplitude (the docstrings call it a unit vector; a scene's was scaled, a script's was not).
+    from dbf_hpc import BaseMotion, Beam, FullOrderModel, InitialState, PointForce
+
+    assert BaseMotion(amplitude=1e-3, frequency_hz=1.0, direction=(3, 4)).direction == pytest.approx((0.6, 0.8))
+    assert InitialState(amplitude=1e-3, direction=(0, -2)).direction == (0.0, -1.0)
+    tube = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=10, planes=2)
+    norms = []
+    for direction in ((3.0, 4.0), (0.6, 0.8)):
+        with FullOrderModel.build(tube, [], PointForce(amplitude=1.0, frequency_hz=1.0, x=0.5,
+                                                       direction=direction)) as fom:
+            norms.append(fom.force_load.norm())
+    assert_all(abs(norms[0] - 1.0) < 1e-15 and norms[0] == norms[1], "a unit force, whatever the direction's length")
+
+
+def test_a_beam_bending_in_one_plane_refuses_a_direction_or_an_initial_velocity():
+    # New-user pass: both were ignored (the beam moved along y, from rest).
+    from dbf_hpc import BaseMotion, Beam, FullOrderModel, InitialState, InputError
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=10)
+    with pytest.raises(InputError, match="applies to a beam of two planes"):
+        FullOrderModel.build(beam, [], BaseMotion(amplitude=1e-3, frequency_hz=1.0, direction=(0.0, 1.0)))
+    with pytest.raises(InputError, match="applies to a beam of two planes"):
+        FullOrderModel.build(beam, [], initial=InitialState(amplitude=1e-3, velocity=0.1))
+
+
+def test_a_random_force_without_a_span_loads_the_whole_beam():
+    # New-user pass: RandomForce's default span () was a TypeError deep inside build.
+    from dbf_hpc import Beam, FullOrderModel, RandomForce
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=10)
+    loads = []
+    for span in ((), (0.0, 1.0)):
+        with FullOrderModel.build(beam, [], RandomForce(psd=1.0, band=(1.0, 100.0), span=span)) as fom:
+            loads.append(fom.force_load.sum())
+    # the consistent load of a unit load per length over the free DOFs: the total minus the pinned
+    # ends' shares (h / 2 each), h = 0.1 m
+    assert_all(abs(loads[0] - 0.9) < 1e-12 and loads[0] == loads[1])
+
