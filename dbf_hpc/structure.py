@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from petsc4py import PETSc
 
-from .errors import InputError
+from .errors import InputError, check_number
 from .operators import Operators, PointValues
 from .petsctools import aij_from_owned_triplets, destroy, direct_solver, owned_rows
 
@@ -59,18 +59,22 @@ class Beam:
     tension: float = 0.0                     # T, N
 
     def __post_init__(self):
+        """Checked once, the numbers stored as float and int (a numpy scalar or an int length is
+        the same beam, with the same cache key, as a scene's float); a bool is not a number."""
+        put = object.__setattr__
         for name in ("length", "E", "I", "A", "rho"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
-                raise InputError(f"beam {name} must be a positive number, got {value!r}")
-        if not (isinstance(self.elements, int) and self.elements >= 1):
-            raise InputError(f"beam elements must be a positive integer, got {self.elements!r}")
-        if self.planes not in (1, 2):
+            put(self, name, check_number(f"beam {name}", getattr(self, name), 0.0, above=True))
+        put(self, "elements", check_number("beam elements", self.elements, 1, integer=True))
+        if isinstance(self.planes, bool) or self.planes not in (1, 2):
             raise InputError(f"beam planes must be 1 or 2, got {self.planes!r}")
+        put(self, "planes", int(self.planes))
         for end in ("left", "right"):
-            if getattr(self, end) not in BOUNDARIES:
+            if not isinstance(getattr(self, end), str) or getattr(self, end) not in BOUNDARIES:
                 raise InputError(f"beam {end} boundary must be one of {', '.join(BOUNDARIES)}, "
                                  f"got {getattr(self, end)!r}")
+        if isinstance(self.supports, (str, bytes)) or not np.iterable(self.supports):
+            raise InputError(f"beam supports must be a sequence of x (m), got {self.supports!r}")
+        put(self, "supports", tuple(check_number("beam support x (m)", x) for x in self.supports))
         for x in self.supports:
             if not 0 < x < self.length:
                 raise InputError(f"intermediate support at x = {x} m is not inside the beam (0, {self.length})")

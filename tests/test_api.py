@@ -217,3 +217,29 @@ def test_a_random_force_without_a_span_loads_the_whole_beam():
     # ends' shares (h / 2 each), h = 0.1 m
     assert_all(abs(loads[0] - 0.9) < 1e-12 and loads[0] == loads[1])
 
+
+@pytest.mark.parametrize("change,message", [
+    ({"elements": True}, "beam elements must be an integer, got True"),
+    ({"length": True}, "beam length must be a finite number, got True"),
+    ({"length": -1.0}, "beam length must be above 0"),
+    ({"supports": 0.5}, "beam supports must be a sequence of x \\(m\\), got 0.5"),
+    ({"supports": ("a",)}, "beam support x \\(m\\) must be a finite number, got 'a'"),
+])
+def test_a_beam_refuses_a_wrong_value_by_name(change, message):
+    # New-user pass: a bool was a 1-element or 1 m beam, a bare number or a string among the supports
+    # a TypeError.
+    from dbf_hpc import Beam, InputError
+
+    with pytest.raises(InputError, match=message):
+        Beam(**{"length": 1.0, "E": 117e9, "I": 8.78e-16, "A": 2.9e-7, "rho": 11800.0, **change})
+
+
+def test_a_beam_from_numpy_numbers_is_the_beam_from_python_numbers():
+    # New-user pass: elements = np.int64(10) (from np.arange or a sweep) was refused as "must be a
+    # positive integer, got 10"; an int length gave another cache key than the same float length.
+    from dbf_hpc import Beam
+
+    values = {"E": 117e9, "I": 8.78e-16, "A": 2.9e-7, "rho": 11800.0}
+    assert Beam(length=np.float64(1.0), elements=np.int64(10), supports=[np.float64(0.5)], **values) == \
+        Beam(length=1, elements=10, supports=(0.5,), **values)
+    assert type(Beam(length=1, elements=np.int64(10), **values).elements) is int
