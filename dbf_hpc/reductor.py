@@ -9,6 +9,8 @@ on the full-order model's communicator; the reduced model it returns is the same
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from .basis import BasisSettings, ReducedBasis
@@ -32,6 +34,8 @@ class Reductor:
         if not isinstance(settings, BasisSettings):
             raise InputError(f"Reductor settings: give BasisSettings(...), got {settings!r}")
         fom.operators   # an InputError for a destroyed model
+        if cache_dir is not None and not isinstance(cache_dir, (str, os.PathLike)):
+            raise InputError(f"Reductor cache_dir: give a directory path (str) or None, got {cache_dir!r}")
         self.fom, self.settings, self.cache_dir = fom, settings, cache_dir
         self._basis = basis
 

@@ -94,6 +94,8 @@ def test_the_models_are_refused_by_the_simulation_of_the_other_kind():
     with FullOrderModel.build(beam, [stop], BaseMotion(amplitude=5e-3, frequency_hz=1.0)) as fom:
         with pytest.raises(InputError, match="Reductor settings: give BasisSettings"):
             Reductor(fom, 6)
+        with pytest.raises(InputError, match="Reductor cache_dir: give a directory path"):   # a TypeError before
+            Reductor(fom, BasisSettings(modes=4), cache_dir=5)
         with pytest.raises(InputError, match="simulate_reduced integrates a reduced model"):
             simulate_reduced(fom, settings)
         with Reductor(fom, BasisSettings(modes=4)) as reductor:
