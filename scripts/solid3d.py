@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 
 import numpy as np
@@ -155,28 +156,40 @@ def main(argv=None) -> int:
         os.makedirs(args.out, exist_ok=True)
     except OSError as e:     # e.g. OUT is a file
         raise SystemExit(f"solid3d: cannot make the folder {args.out!r}: {e.strerror}") from None
-    for name, A in (("K", K), ("M", M)):
-        A = A[free_dofs][:, free_dofs].tocsr()
-        A.sort_indices()
-        P = PETSc.Mat().createAIJ(size=A.shape, csr=(A.indptr.astype(PETSc.IntType), A.indices.astype(PETSc.IntType),
-                                                     A.data), comm=PETSc.COMM_SELF)
-        viewer = PETSc.Viewer().createBinary(os.path.join(args.out, f"{name}.bin"), "w", comm=PETSc.COMM_SELF)
-        P.view(viewer)
-        viewer.destroy()
-        P.destroy()
-    info = {"dofs": int(free_dofs.size), "elements": [nx, ny, nz], "size_m": [LENGTH, WIDTH, HEIGHT],
-            "top_z": top, "tip_z": top[-1], "material": {"E": E, "nu": NU, "rho": RHO}}
-    with open(os.path.join(args.out, "dofs.json"), "w") as f:
-        json.dump(info, f)
-    coordinates = np.array([(i * LENGTH / nx, j * WIDTH / ny, k * HEIGHT / nz)
-                            for k in range(nz + 1) for j in range(ny + 1) for i in range(nx + 1)])
-    np.savetxt(os.path.join(args.out, "nodes.txt"), coordinates, fmt="%.9g")
-    with open(os.path.join(args.out, "dofs.txt"), "w") as f:
-        f.writelines(f"{dof // 3} {'xyz'[dof % 3]}\n" for dof in free_dofs)
-    tmp = os.path.join(args.out, f"scene.toml.tmp-{os.getpid()}")
-    with open(tmp, "w") as f:
-        f.write(scene)
-    os.replace(tmp, os.path.join(args.out, "scene.toml"))
+    # Every file is written into a temporary folder beside them and then renamed over its old self,
+    # scene.toml last: an interrupted run leaves the earlier set whole, never a half-written matrix.
+    staging = os.path.join(args.out, f".solid3d-{os.getpid()}")
+    os.makedirs(staging)
+    try:
+        for name, A in (("K", K), ("M", M)):
+            A = A[free_dofs][:, free_dofs].tocsr()
+            A.sort_indices()
+            P = PETSc.Mat().createAIJ(size=A.shape, csr=(A.indptr.astype(PETSc.IntType),
+                                                         A.indices.astype(PETSc.IntType), A.data), comm=PETSc.COMM_SELF)
+            viewer = PETSc.Viewer().createBinary(os.path.join(staging, f"{name}.bin"), "w", comm=PETSc.COMM_SELF)
+            P.view(viewer)
+            viewer.destroy()
+            P.destroy()
+        info = {"dofs": int(free_dofs.size), "elements": [nx, ny, nz], "size_m": [LENGTH, WIDTH, HEIGHT],
+                "top_z": top, "tip_z": top[-1], "material": {"E": E, "nu": NU, "rho": RHO}}
+        with open(os.path.join(staging, "dofs.json"), "w") as f:
+            json.dump(info, f)
+        coordinates = np.array([(i * LENGTH / nx, j * WIDTH / ny, k * HEIGHT / nz)
+                                for k in range(nz + 1) for j in range(ny + 1) for i in range(nx + 1)])
+        np.savetxt(os.path.join(staging, "nodes.txt"), coordinates, fmt="%.9g")
+        with open(os.path.join(staging, "dofs.txt"), "w") as f:
+            f.writelines(f"{dof // 3} {'xyz'[dof % 3]}\n" for dof in free_dofs)
+        with open(os.path.join(staging, "scene.toml"), "w") as f:
+            f.write(scene)
+        for name in ("K.bin", "K.bin.info", "M.bin", "M.bin.info", "dofs.json", "nodes.txt", "dofs.txt", "scene.toml"):
+            if os.path.exists(os.path.join(staging, name)):
+                os.replace(os.path.join(staging, name), os.path.join(args.out, name))
+    except (OSError, PETSc.Error) as e:     # e.g. a full disk, while writing the temporary folder
+        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e).splitlines()[0]
+        raise SystemExit(f"solid3d: cannot write into {args.out!r} ({why}): its files were left as they were") \
+            from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     print(f"{args.out}: {free_dofs.size} free DOFs, K nnz {K.nnz}")
     return 0
 

@@ -115,3 +115,27 @@ def test_an_output_folder_that_is_a_file_is_one_line_and_leaves_the_file(shared_
         assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
         assert done.stderr.strip().startswith("solid3d: cannot make the folder") and taken.read_text() == "mine"
     MPI.COMM_WORLD.Barrier()
+
+
+
+def test_a_regeneration_that_cannot_write_leaves_the_earlier_matrices_whole(shared_tmp_path, monkeypatch):
+    # Red team: K.bin and M.bin were written in place, so a failed regeneration (a full disk, a kill)
+    # left a half-written matrix beside the earlier scene. Now the set is written into a temporary
+    # folder and renamed over the old files only once all of it is written. The disk "fills" at the
+    # node table, after both matrices are written.
+    folder = shared_tmp_path / "solid"
+    generate(folder, (4, 2, 2), 2)
+    if MPI.COMM_WORLD.rank == 0:
+        sys.path.insert(0, os.path.join(ROOT, "scripts"))
+        import solid3d
+
+        def full(*args, **kwargs):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(solid3d.np, "savetxt", full)
+        before = {name: (folder / name).read_bytes() for name in ("K.bin", "M.bin", "scene.toml", "dofs.json")}
+        with pytest.raises(SystemExit, match=r"^solid3d: cannot write into .*No space left on device.*left as they were"):
+            solid3d.main([str(folder), "--elements", "8", "2", "2", "--stops", "2"])
+        assert {name: (folder / name).read_bytes() for name in before} == before
+        assert [p.name for p in folder.iterdir() if p.name.startswith(".")] == []   # no temporary folder left
+    MPI.COMM_WORLD.Barrier()
