@@ -468,13 +468,21 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
         _prepare_models(sweep, pending, cache_dir, say, models)
     chains = [c for c in sweep["chains"] if any(i in pending for i in c)]
     mine = chains[world.rank::world.size]
-    stopped = None
+    stopped = unwritten = None
     with _Stop() as stop:
         try:
             tell = (lambda m: print(m, flush=True)) if progress else (lambda m: None)   # every rank's cases
             _run_chains(sweep, mine, set(pending), folder, cache_dir, models, identities, stop, tell)
         except Interrupted:
             stopped = True
+        except DbfError as e:   # a case's record could not be written (a full disk): on this rank only
+            unwritten = str(e)
+    # every rank hears of either (red team: a record that failed on one rank left the other in this
+    # reduction, and the job ended in the command's 10 s timeout and MPI_Abort, the lock left behind)
+    unwritten = next((p for p in world.allgather(unwritten) if p), None)
+    if unwritten:
+        raise DbfError(f"{unwritten}; the cases recorded so far are kept in {folder}: free some space, then rerun "
+                       f"the same command")
     stopped = world.allreduce(bool(stopped), op=MPI.LOR)
     if stopped:
         finished = [_read_json(_case_file(folder, i)) or {} for i in range(n)]

@@ -104,6 +104,38 @@ def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_recor
     assert_all(statuses == ["ok"] * 3 and os.path.getmtime(files[2]) == kept, "only the two bad ones rerun")
 
 
+def test_a_case_record_the_full_disk_refused_on_one_rank_stops_every_rank_with_one_error(shared_tmp_path,
+                                                                                        monkeypatch):
+    # Red team (a 3 MB tmpfs filled just before a case's record): the rank whose record failed left
+    # the sweep while the others waited in its collective end; the job ended only by the command's
+    # 10 s timeout and MPI_Abort, with the summary's lock left behind. Every rank now hears of it.
+    import errno
+
+    from dbf_hpc import sweep as sweep_module
+    from dbf_hpc.errors import DbfError, replacing
+
+    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1, 1.3, 1.5]\n'
+                                        '"integrator.t_end" = [0.05]\n')
+    world = MPI.COMM_WORLD
+
+    def full_disk(record_path, content):
+        with replacing(record_path) as tmp:
+            with open(tmp, "w"):
+                raise OSError(errno.ENOSPC, "No space left on device")
+
+    if world.rank == world.size - 1:   # one rank's disk write fails, the others' succeed
+        monkeypatch.setattr(sweep_module, "_write_json", full_disk)
+    with pytest.raises(DbfError, match="case-0000.\\.json: No space left on device; .*free some space, then rerun"):
+        run_sweep(path, progress=False)
+    summary = shared_tmp_path / "summary.h5"
+    assert_all(not os.path.exists(f"{summary}.lock"), "the lock is released")
+    assert_all(not os.path.exists(summary), "no summary of cases that are not all recorded")
+    assert_all(not [p for p in os.listdir(f"{summary}.cases") if ".tmp-" in p], "no temporary record is left")
+    monkeypatch.undo()
+    result = run_sweep(path, progress=False)
+    assert result["cases"] == 4 and result["failed"] == 0, "a rerun with room records every case"
+
+
 def test_a_retried_step_of_a_stepped_sine_reruns_the_steps_after_it(shared_tmp_path):
     # Red team: when step 2 failed, step 3 ran from rest and was kept as ok after step 2's retry.
     path, files = _swept(shared_tmp_path, 'continuation = "excitation.frequency_hz"\n[axes]\n'
