@@ -19,7 +19,7 @@ import os
 import h5py
 import numpy as np
 
-from .errors import InputError
+from .errors import WRITE_ERRORS, InputError, park
 
 FORMAT = "dbf-hpc-checkpoint-1"
 
@@ -55,14 +55,25 @@ class Checkpoint:
         """Store `state` (name -> array or scalar) atomically."""
         datasets = {name: np.asarray(value) for name, value in state.items()}
         tmp = f"{self.path}.tmp"
-        with h5py.File(tmp, "w") as f:
+        f = None
+        try:
+            f = h5py.File(tmp, "w")
             for name, value in datasets.items():
                 f.create_dataset(name, data=value)
             f.attrs["format"] = FORMAT
             f.attrs["identity"] = json.dumps(self.identity, sort_keys=True)
             f.attrs["checksum"] = _checksum(datasets, self.identity)
-        with open(tmp, "rb") as handle:
-            os.fsync(handle.fileno())
+            f.close()
+            with open(tmp, "rb") as handle:
+                os.fsync(handle.fileno())
+        except WRITE_ERRORS:
+            # Red team (a full disk while a checkpoint was written): closing the file after the failed
+            # write, as `with` did, or freeing it later crashed HDF5 (signal 11); it is kept instead
+            # (errors.park), and the half-written file is removed
+            park(f)
+            if os.path.exists(tmp):
+                os.remove(tmp)
+            raise
         os.replace(tmp, self.path)
 
     def read(self) -> dict | None:

@@ -240,3 +240,65 @@ def test_a_changed_damping_file_of_a_matrices_structure_is_refused_naming_the_fi
     MPI.COMM_WORLD.Barrier()
     with pytest.raises(InputError, match="written by a different scene or setup \\(files differ"):
         run(load_scene(names["chain.toml"]), out, progress=False, resume=True)
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 256 KiB file system of its own (tmpfs), or a skip where this machine cannot mount one."""
+    import subprocess
+
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    yield mount
+    subprocess.run(["umount", str(mount)], capture_output=True)
+
+
+# A checkpoint written on a disk left with `free` bytes, in a process that ends as the command does
+# (without tearing h5py down when a failed write's objects were kept, cli.main)
+_WRITE_ON_FULL_DISK = """
+import os, sys
+import numpy as np
+from dbf_hpc.checkpoint import Checkpoint
+from dbf_hpc.errors import PARKED, WRITE_ERRORS
+disk, free = sys.argv[1], int(sys.argv[2])
+with open(os.path.join(disk, "filler"), "wb") as f:
+    try:
+        f.write(bytes(256 * 1024 - free))
+    except OSError:
+        pass
+state = {**{f"q{i}": np.full(50, float(i)) for i in range(20)}, **{f"impacts/s{i}": np.ones(3) for i in range(10)}}
+try:
+    Checkpoint(os.path.join(disk, "run.h5.checkpoint"), {"scene": "x"}).write(state)
+    print("written", flush=True)
+except WRITE_ERRORS as e:
+    print("refused", flush=True)
+if PARKED:
+    os._exit(0)
+"""
+
+
+@pytest.mark.launcher
+def test_a_checkpoint_the_full_disk_refused_neither_crashes_nor_leaves_a_half_file(tiny_disk):
+    # Red team (a sweep on a 3 MB tmpfs that filled while a case wrote its checkpoint): the `with`
+    # block closed the HDF5 file after its failed write, and closing or freeing it crashed HDF5 at
+    # exit (signal 11, after the error line), and CHECKPOINT.tmp was left on the disk.
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    outcomes = set()
+    for free in range(0, 32 * 1024 + 1, 2048):   # the write fails in the data, the metadata, the close
+        for name in os.listdir(tiny_disk):
+            os.remove(tiny_disk / name)
+        done = subprocess.run([sys.executable, "-c", _WRITE_ON_FULL_DISK, str(tiny_disk), str(free)],
+                              capture_output=True, text=True, env=env, timeout=120)
+        assert done.returncode == 0, f"{free} bytes free: exit {done.returncode}: {done.stderr[-500:]}"
+        outcome = done.stdout.strip()
+        outcomes.add(outcome)
+        left = sorted(os.listdir(tiny_disk))
+        expected = ["filler", "run.h5.checkpoint"] if outcome == "written" else ["filler"]
+        assert left == expected, f"{free} bytes free: {outcome}, left {left}"
+    assert outcomes == {"written", "refused"}, "the disk's room spans a refused and a written checkpoint"
