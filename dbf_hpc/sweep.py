@@ -41,6 +41,7 @@ basis and differ in law and excitation. Estimate a representative case with `dbf
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import itertools
 import json
@@ -57,7 +58,7 @@ from .checkpoint import Checkpoint
 from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing, write_failure
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
-from .output import OutputLock, check_output_path
+from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
 from .run import run_case
 from .scene import load_scene, parse_override
@@ -528,42 +529,52 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
     width = max((len(r.get("stats", {}).get("impacts", [])) for r in records), default=0)
     probes = max((len(r.get("probe_peak", [])) for r in records), default=0)
     tmp = f"{output}.partial"
+    # A write that fails on a full disk crashed HDF5 in its close (signal 11) once a failed case's file
+    # had been kept open in this process (errors.park; red team, a 3 MB tmpfs): the room is checked first
+    needed = 8.0 * n * (len(sweep["parameters"]) + (len(STATISTICS_2D) + 1) * width + probes + 3) + \
+        sum(len(json.dumps(r.get("parameters", {}))) + len(r.get("error", "")) + 16 for r in records) + 2**16
+    free = free_bytes(os.path.dirname(os.path.abspath(output)))
+    if free < 1.1 * needed + 2**20:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
     f = None
     try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["sweep"] = json.dumps({"scene": sweep["scene"], "parameters": sweep["parameters"]})
-            for name in sweep["parameters"]:
-                values = [r["parameters"].get(name) for r in records]
-                if all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in values):
-                    # NaN where a listed case leaves the base scene's value
-                    f.create_dataset(f"cases/parameters/{name}",
-                                     data=np.array([np.nan if v is None else v for v in values], dtype=float))
-                else:
-                    f.create_dataset(f"cases/parameters/{name}", data=[json.dumps(v) for v in values])
-            f.create_dataset("cases/status", data=[r["status"] for r in records])
-            f.create_dataset("cases/error", data=[r.get("error", "") for r in records])
-            f.create_dataset("cases/wall_time", data=[r["wall_time"] for r in records])
-            # supports of two directions add the work rate (and what follows from it) to the 1-D statistics
-            names = [*STATISTICS, *(k for k in STATISTICS_2D if k not in STATISTICS
-                                    and any(k in r.get("stats", {}) for r in records))]
-            for name in names:
-                table = np.full((n, width), np.nan)
-                for i, r in enumerate(records):
-                    values = r.get("stats", {}).get(name, [])
-                    table[i, :len(values)] = values
-                f.create_dataset(f"cases/stats/{name}", data=table)
-            peaks = np.full((n, probes), np.nan)
+        f = h5py.File(tmp, "w")
+        f.attrs["sweep"] = json.dumps({"scene": sweep["scene"], "parameters": sweep["parameters"]})
+        for name in sweep["parameters"]:
+            values = [r["parameters"].get(name) for r in records]
+            if all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in values):
+                # NaN where a listed case leaves the base scene's value
+                f.create_dataset(f"cases/parameters/{name}",
+                                 data=np.array([np.nan if v is None else v for v in values], dtype=float))
+            else:
+                f.create_dataset(f"cases/parameters/{name}", data=[json.dumps(v) for v in values])
+        f.create_dataset("cases/status", data=[r["status"] for r in records])
+        f.create_dataset("cases/error", data=[r.get("error", "") for r in records])
+        f.create_dataset("cases/wall_time", data=[r["wall_time"] for r in records])
+        # supports of two directions add the work rate (and what follows from it) to the 1-D statistics
+        names = [*STATISTICS, *(k for k in STATISTICS_2D if k not in STATISTICS
+                                and any(k in r.get("stats", {}) for r in records))]
+        for name in names:
+            table = np.full((n, width), np.nan)
             for i, r in enumerate(records):
-                peak = np.asarray(r.get("probe_peak", []), dtype=float)
-                if peak.ndim == 2:   # two planes: (y, z) peaks per probe; the summary keeps the larger
-                    peak = peak.max(axis=1)
-                peaks[i, :peak.size] = peak
-            f.create_dataset("cases/probe_peak", data=peaks)
-            _units(f, sweep["parameters"])
-            f.attrs["dbf_hpc_version"] = __version__
-            f.attrs["complete"] = True
+                values = r.get("stats", {}).get(name, [])
+                table[i, :len(values)] = values
+            f.create_dataset(f"cases/stats/{name}", data=table)
+        peaks = np.full((n, probes), np.nan)
+        for i, r in enumerate(records):
+            peak = np.asarray(r.get("probe_peak", []), dtype=float)
+            if peak.ndim == 2:   # two planes: (y, z) peaks per probe; the summary keeps the larger
+                peak = peak.max(axis=1)
+            peaks[i, :peak.size] = peak
+        f.create_dataset("cases/probe_peak", data=peaks)
+        _units(f, sweep["parameters"])
+        f.attrs["dbf_hpc_version"] = __version__
+        f.attrs["complete"] = True
+        f.close()
     except WRITE_ERRORS:
-        park(f)   # freed after a failed flush, the file crashed HDF5 (signal 11)
+        # closed (as `with` did) or freed after a failed write, the file crashed HDF5 (signal 11; red team:
+        # a summary on a disk the failed cases had left a few kB free)
+        park(f)
         raise
     os.replace(tmp, output)
     return sum(r["status"] != "ok" for r in records)

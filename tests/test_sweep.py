@@ -136,6 +136,27 @@ def test_a_case_record_the_full_disk_refused_on_one_rank_stops_every_rank_with_o
     assert result["cases"] == 4 and result["failed"] == 0, "a rerun with room records every case"
 
 
+def test_a_summary_that_would_not_fit_on_the_disk_is_refused_before_hdf5_writes_it(shared_tmp_path, monkeypatch):
+    # Red team (a 3 MB tmpfs filled during a case; the failed cases' removed files left a few kB): the
+    # summary's write failed, and its close crashed HDF5 (signal 11) because the failed case's file
+    # was kept open in the process (errors.park); the .partial and the lock were left behind.
+    from dbf_hpc import sweep as sweep_module
+    from dbf_hpc.errors import DbfError
+
+    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.05]\n')
+    summary = shared_tmp_path / "summary.h5"
+    monkeypatch.setattr(sweep_module, "free_bytes", lambda folder: 200 * 2**10)   # what the disk had left
+    with pytest.raises(DbfError, match="cannot write the sweep summary .*: No space left on device; the cases are kept"):
+        run_sweep(path, progress=False)
+    assert_all(sorted(os.listdir(shared_tmp_path)) == ["summary.h5.cases", "sweep.toml"], "no summary, .partial or lock")
+    records = [str(summary) + f".cases/case-0000{i}.json" for i in range(2)]
+    stamps = [os.path.getmtime(name) for name in records]
+    monkeypatch.undo()
+    result = run_sweep(path, progress=False)
+    assert result["failed"] == 0 and [os.path.getmtime(name) for name in records] == stamps, \
+        "with room, the summary is written from the cases kept"
+
+
 def test_a_retried_step_of_a_stepped_sine_reruns_the_steps_after_it(shared_tmp_path):
     # Red team: when step 2 failed, step 3 ran from rest and was kept as ok after step 2's retry.
     path, files = _swept(shared_tmp_path, 'continuation = "excitation.frequency_hz"\n[axes]\n'
