@@ -265,8 +265,9 @@ def _sweep(args) -> int:
 
     result = run_sweep(args.sweep, progress=not args.quiet, overrides=args.set)
     if result["failed"]:   # the summary holds them; a batch job should not read as a success
-        raise SolverError(f"{result['failed']} of {result['cases']} cases failed: their errors are in "
-                          f"{result['output']} (dbf-hpc info); rerunning the sweep retries them")
+        # the first one's cause in the line (red team: a full disk was only in the summary)
+        raise SolverError(f"{result['failed']} of {result['cases']} cases failed ({result['first_failure']}): their "
+                          f"errors are in {result['output']} (dbf-hpc info); rerunning the sweep retries them")
     return 0
 
 

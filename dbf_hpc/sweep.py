@@ -419,7 +419,8 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
 
 
 def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
-    """Run (or resume) a sweep. Collective on COMM_WORLD. Returns {'output', 'cases', 'failed'}."""
+    """Run (or resume) a sweep. Collective on COMM_WORLD. Returns {'output', 'cases', 'failed',
+    'first_failure'} (the first failed case's number and error, or None)."""
     world = MPI.COMM_WORLD
     sweep = load_sweep(path, overrides)
     output, folder = sweep["output"], sweep["output"] + ".cases"
@@ -503,7 +504,10 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     failed, problem = world.bcast((failed, problem), root=0)
     if problem:
         raise DbfError(problem)
-    return {"output": output, "cases": n, "failed": failed}
+    first = next(((i, r) for i, r in enumerate(_read_json(_case_file(folder, i)) or {} for i in range(n))
+                  if r.get("status") == "failed"), None) if failed else None
+    return {"output": output, "cases": n, "failed": failed,
+            "first_failure": f"case {first[0] + 1}: {first[1].get('error', '')}" if first else None}
 
 
 def _units(f, parameters) -> None:

@@ -43,6 +43,8 @@ def test_sweep_runs_every_case_shares_one_basis_and_records_failures(shared_tmp_
     result = run_sweep(path, progress=False)
     solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
     assert result["cases"] == 6 and result["failed"] == 1
+    # the command's one line names the first failure's cause (red team: "6 of 6 cases failed" hid a full disk)
+    assert result["first_failure"].startswith("case 5: ") and "ars443" in result["first_failure"]
     assert solves <= 3, "laws and frequencies share one basis: modes, pinned, spring (once)"
     with h5py.File(result["output"]) as f:
         status = [s.decode() for s in f["cases/status"][:]]
