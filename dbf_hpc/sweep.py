@@ -221,11 +221,10 @@ def _scene_files(scene) -> list:
     return [path for what, path in scene.inputs() if what != "scene"]
 
 
-def _identities(sweep: dict) -> list:
-    """Per case, the sha256 of what its result depends on: the validated scene, the bytes of every
-    file it reads (hashed once, on rank 0), the PETSc options, the package version, and in a
-    continuation chain its predecessors'. Collective."""
-    scenes = [load_scene(sweep["scene"], sets) for sets in sweep["cases"]]
+def _identities(sweep: dict, scenes: list) -> list:
+    """Per case, the sha256 of what its result depends on: the validated scene (`scenes`, as the
+    cases run it), the bytes of every file it reads (hashed once, on rank 0), the PETSc options, the
+    package version, and in a continuation chain its predecessors'. Collective."""
     files = sorted({path for scene in scenes for path in _scene_files(scene)})
     digests = {path: file_digest(path, PETSc.COMM_WORLD) for path in files}
     options = PETSc.Options().getAll()
@@ -265,7 +264,7 @@ def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | No
     the model, or the error that stopped it), added to `models`. Collective."""
     models = {} if models is None else models
     for index in pending:
-        scene = load_scene(sweep["scene"], sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"])
+        scene = sweep["run_scenes"][index]
         key = _model_key(scene)
         if key in models:
             continue
@@ -289,7 +288,7 @@ def _stale_chains(sweep, records, pending: set, models: dict, cache_dir: str) ->
         for before, index in zip(chain, chain[1:]):
             if before in pending or index not in pending:
                 continue
-            scene = load_scene(sweep["scene"], sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"])
+            scene = sweep["run_scenes"][index]
             built = models.get(_model_key(scene))
             if not isinstance(built, str) and records[before].get("coordinates") != built.coordinates_digest():
                 stale.update(chain)
@@ -355,7 +354,7 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
     t = time.perf_counter()
     case_out = os.path.join(folder, f"case-{index:05d}.h5")
     try:
-        scene = load_scene(sweep["scene"], sweep["cases"][index] + [f"basis.cache={json.dumps(cache_dir)}"])
+        scene = sweep["run_scenes"][index]
         built = models[_model_key(scene)]
         if isinstance(built, str):
             raise DbfError(built)
@@ -446,7 +445,19 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
 
 def _sweep(sweep, folder, output, world, say, progress) -> dict:
     n = len(sweep["cases"])
-    identities = _identities(sweep)
+    # Every case's scene is read once, here, by rank 0 for all: the cases run what their identities
+    # hold (red team: the scene, read again for each case, was edited while the sweep ran; the summary
+    # mixed clearances, and the records, under the old scene's identity, were reused once restored)
+    scenes = problem = None
+    if world.rank == 0:
+        try:
+            scenes = [load_scene(sweep["scene"], sets) for sets in sweep["cases"]]
+        except InputError as e:   # edited since load_sweep checked it
+            problem = str(e)
+    scenes, problem = world.bcast((scenes, problem), root=0)
+    if problem:
+        raise InputError(problem)
+    identities = _identities(sweep, scenes)
     records = [_read_json(_case_file(folder, i)) or {} for i in range(n)]
     # a failed case is retried: its cause may have been the machine's (a full disk), since mended
     pending = {i for i in range(n) if records[i].get("identity") != identities[i] or records[i].get("status") != "ok"}
@@ -459,8 +470,8 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     pending = sorted(pending)
     say(f"dbf-hpc sweep: {n} cases, {n - len(pending)} already done, {len(pending)} to run on {world.size} rank(s)"
         + (f" ({retried} failed before: retried)" if retried else ""))
-    base = load_scene(sweep["scene"], sweep["cases"][0])
-    cache_dir = base.cache_dir() or os.path.join(folder, "basis-cache")
+    cache_dir = scenes[0].cache_dir() or os.path.join(folder, "basis-cache")
+    sweep = {**sweep, "run_scenes": [scene.with_values("basis", cache=cache_dir) for scene in scenes]}
     models = _prepare_models(sweep, pending, cache_dir, say)
     stale = _stale_chains(sweep, records, set(pending), models, cache_dir)
     if stale:

@@ -282,6 +282,41 @@ def test_a_rerun_after_the_base_scene_changed_reruns_every_case_instead_of_repor
     assert np.all(after < 0.05 * before), (before, after)
 
 
+def test_a_scene_edited_while_the_sweep_runs_changes_none_of_its_cases(shared_tmp_path, monkeypatch):
+    # Red team: each case read the base scene again when it ran; edited meanwhile (clearance 2.5 ->
+    # 4 mm), the summary mixed both clearances under one sweep, with exit 0, and the records kept the
+    # identity of the scene as it was: restored, the scene reused results of the other clearance.
+    from dbf_hpc import sweep as sweep_module
+
+    def sweep_of(name):
+        scene = _copy_scene(shared_tmp_path, f"{name}.toml")
+        path = shared_tmp_path / f"{name}-sweep.toml"
+        if MPI.COMM_WORLD.rank == 0:
+            path.write_text(f'scene = "{scene}"\noutput = "{name}.h5"\n' + SMALL)
+        MPI.COMM_WORLD.Barrier()
+        return scene, str(path)
+
+    _, untouched = sweep_of("untouched")
+    with h5py.File(run_sweep(untouched, progress=False)["output"]) as f:
+        expected = f["cases/stats/displacement_peak"][:, 0].copy()
+    scene, edited = sweep_of("edited")
+    prepare = sweep_module._prepare_models
+
+    def edit_after_the_models_are_built(*args, **kwargs):
+        models = prepare(*args, **kwargs)
+        _copy_scene(shared_tmp_path, "edited.toml", replace={"clearance = 2.5e-3": "clearance = 4e-3"})
+        return models
+
+    monkeypatch.setattr(sweep_module, "_prepare_models", edit_after_the_models_are_built)
+    with h5py.File(run_sweep(edited, progress=False)["output"]) as f:
+        got = f["cases/stats/displacement_peak"][:, 0].copy()
+    assert np.array_equal(got, expected), "every case ran the scene as it was when the sweep started"
+    monkeypatch.undo()
+    with h5py.File(run_sweep(edited, progress=False)["output"]) as f:   # the edit now holds: all rerun
+        widened = f["cases/stats/displacement_peak"][:, 0]
+    assert np.all(widened > 1.2 * expected), (expected, widened)
+
+
 def test_a_case_whose_model_cannot_be_built_is_recorded_and_the_others_go_on(shared_tmp_path):
     path = write_sweep(shared_tmp_path, SMALL + '[[case]]\n"basis.modes" = 500\n"integrator.t_end" = 0.3\n')
     result = run_sweep(path, progress=False)
