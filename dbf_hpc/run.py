@@ -686,9 +686,15 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
         sidecar = xdmf.sidecar(writer.path)
         try:
             xdmf.write(sidecar, writer.path, "snapshots", geometry[0], geometry[1].shape[0], snap_t)
-        except OSError as exc:
-            raise SolverError(f"wrote {writer.path}, but not its ParaView file {sidecar}: "
-                              f"{write_failure(exc)}") from None
+        except (OSError, DbfError) as exc:   # errors.replacing: a DbfError naming the file and the cause
+            # Red team (a disk full at the sidecar): the failure read "cannot write OUT.xdmf" only, and the
+            # checkpoint stayed beside the finished output, so --resume refused ("OUT.h5.partial cannot be
+            # resumed"). The output is complete: nothing is left to resume.
+            if checkpoint is not None:
+                checkpoint.remove()
+            cause = write_failure(exc) if isinstance(exc, OSError) else str(exc).rsplit(": ", 1)[-1]
+            raise SolverError(f"wrote {writer.path}, but not its ParaView file {sidecar}: {cause}; free some "
+                              f"space and rerun for it") from None
     return {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
             "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
 

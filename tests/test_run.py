@@ -151,6 +151,33 @@ def test_a_file_named_like_the_runs_partial_output_or_checkpoint_is_never_replac
     assert_all(target.exists() and not other.exists())
 
 
+def test_a_paraview_file_the_full_disk_refused_leaves_the_finished_output_and_nothing_to_resume(shared_tmp_path,
+                                                                                              monkeypatch):
+    # Red team (a 3 MB tmpfs filled just before OUT.xdmf): the error said only "cannot write OUT.xdmf",
+    # and the checkpoint stayed beside the finished OUT.h5, so the --resume the user tried was refused
+    # ("OUT.h5.partial cannot be resumed").
+    import errno
+
+    from dbf_hpc import xdmf
+    from dbf_hpc.errors import SolverError, replacing
+
+    def full_disk(path, *args, **kwargs):
+        with replacing(path) as tmp, open(tmp, "w"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(xdmf, "write", full_disk)
+    out = shared_tmp_path / "out.h5"
+    scene = load_scene(PAPER, ["basis.cache=off", "integrator.t_end=0.2", "output.snapshots=5",
+                               "output.checkpoint_dt=0.05"])
+    with pytest.raises(SolverError, match=f"wrote {out}, but not its ParaView file .*out.xdmf: No space left on "
+                                          f"device; free some space and rerun"):
+        run(scene, str(out), progress=False)
+    assert_all(sorted(os.listdir(shared_tmp_path)) == ["out.h5"], "the output, complete; no checkpoint or temporary")
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(out) as f:
+            assert f.attrs["complete"] and f["snapshots/w"].shape[0] == 5
+
+
 def test_a_fixed_step_longer_than_the_sample_interval_runs(shared_tmp_path):
     # 0.01 s sampled every 1 us with a fixed 0.1 ms step: 100 steps, samples from the dense output.
     _, f, summary = paper_run(shared_tmp_path, "integrator.adaptive=false", "integrator.t_end=0.01",
