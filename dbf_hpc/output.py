@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 from . import __version__, layout
-from .errors import LOCK_HINT, WRITE_ERRORS, InputError, park, refused_lock
+from .errors import LOCK_HINT, PARKED, WRITE_ERRORS, InputError, park, refused_lock
 
 BLOCK = 1024  # samples buffered between writes
 
@@ -428,10 +428,15 @@ class OutputWriter:
         park(self, self.file, self.series)
         self.series, self.blocks, self.parked = {}, _Blocks({}), True
 
-    def abort(self) -> None:
+    def abort(self, failed_write: bool = False) -> None:
         """Close after a failure, leaving only the .partial file (it says complete = False). If the
-        file cannot be closed (a full disk), its objects are parked (errors.park)."""
+        file cannot be closed (a full disk), its objects are parked (errors.park). After a failed
+        write (`failed_write`, or any HDF5 object parked in this process) it is parked, not closed: a
+        close whose flush failed crashed HDF5 then (signal 11; red team, sweeps on a 3 MB tmpfs)."""
         if self.parked:
+            return
+        if failed_write or PARKED:
+            self._park()
             return
         try:
             self.flush()

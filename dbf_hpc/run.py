@@ -390,7 +390,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
                                        writer, checkpoint)) from None
     except WRITE_ERRORS as exc:
         raise SolverError(_left_behind(f"cannot write {path}.partial or its checkpoint: {write_failure(exc)}",
-                                       writer, checkpoint)) from None
+                                       writer, checkpoint, failed_write=True)) from None
     except DbfError as exc:
         kind = Interrupted if stepper is not None and stepper.interrupted else type(exc)
         raise kind(_left_behind(str(exc), writer, checkpoint)) from None
@@ -487,15 +487,16 @@ def _reopen(path: str, state: dict) -> OutputWriter:
                           f"--resume") from None
 
 
-def _left_behind(message: str, writer, checkpoint: Checkpoint | None) -> str:
-    """Close the output after a failure; the message says what is left behind. A run that failed
-    before its second sample leaves nothing (its one sample is the initial state)."""
+def _left_behind(message: str, writer, checkpoint: Checkpoint | None, failed_write: bool = False) -> str:
+    """Close the output after a failure (park it after a failed write: OutputWriter.abort); the
+    message says what is left behind. A run that failed before its second sample leaves nothing (its
+    one sample is the initial state)."""
     if writer is None:
         return message
     samples = writer.count + writer.pending
-    writer.abort()
+    writer.abort(failed_write)
     if samples <= 1 and not (checkpoint is not None and os.path.exists(checkpoint.path)):
-        if os.path.exists(writer.partial) and not writer.parked:
+        if os.path.exists(writer.partial):   # parked, it is never written again (the command ends in os._exit)
             os.remove(writer.partial)
         return message
     if checkpoint is not None and os.path.exists(checkpoint.path):
@@ -678,7 +679,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
             raise
         resume = " with --resume (it says if the failed write damaged the .partial)" if checkpoint is not None else ""
         raise SolverError(_left_behind(f"cannot finish {writer.path}: {write_failure(exc)}; free some space, then "
-                                       f"rerun{resume}", writer, checkpoint)) from None
+                                       f"rerun{resume}", writer, checkpoint, failed_write=True)) from None
     if deferred:
         print(f"dbf-hpc: warning: a termination signal came while {writer.path} was written; it was finished first",
               file=sys.stderr, flush=True)

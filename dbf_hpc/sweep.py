@@ -55,7 +55,8 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
-from .errors import WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing, write_failure
+from .errors import (PARKED, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing,
+                     write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
@@ -378,6 +379,9 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
     record["wall_time"] = time.perf_counter() - t
     if not sweep["keep_outputs"]:
         _remove(case_out, f"{case_out}.partial", f"{case_out}.checkpoint", os.path.splitext(case_out)[0] + ".xdmf")
+        if "error" in record:   # the files run.py's message says are left behind are not (red team)
+            record["error"] = record["error"].split(f" (samples so far in {case_out}")[0].split(
+                f" (the samples up to the failure are in {case_out}")[0]
     return record
 
 
@@ -408,12 +412,18 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
                 continue
             if stop.requested:
                 raise Interrupted("stopped by a termination signal")
+            parked = len(PARKED)
             record = _run_one(sweep, index, folder, cache_dir, models, identities[index],
                               previous if len(chain) > 1 else None)
             _write_json(_case_file(folder, index), record)
             previous = record if record["status"] == "ok" else None
             done += 1
             tell(f"  case {index + 1}: {record['status']}")
+            if len(PARKED) > parked:
+                # an HDF5 write of the case failed (a full disk): its file is kept open (errors.park),
+                # and HDF5 crashed (signal 11) at the next failed write of this process (red team): the
+                # sweep stops on every rank (_sweep)
+                raise DbfError(f"case {index + 1} failed: {record.get('error', '')}")
     return done
 
 
@@ -488,7 +498,7 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
             _run_chains(sweep, mine, set(pending), folder, cache_dir, models, identities, stop, tell)
         except Interrupted:
             stopped = True
-        except DbfError as e:   # a case's record could not be written (a full disk): on this rank only
+        except DbfError as e:   # a case's record, or a case's HDF5 file, could not be written (a full disk)
             unwritten = str(e)
     # every rank hears of either (red team: a record that failed on one rank left the other in this
     # reduction, and the job ended in the command's 10 s timeout and MPI_Abort, the lock left behind)

@@ -140,3 +140,25 @@ def test_a_job_that_found_a_lock_stale_leaves_the_live_lock_another_job_took_mea
         second.acquire()
     first.release()
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_an_output_whose_write_failed_is_kept_open_not_closed(tmp_path):
+    # Red team (sweeps on a 3 MB tmpfs): closing an output after its write failed on the full disk
+    # crashed HDF5 (signal 11) once another failed file was parked in the process; after a failed write
+    # the output is parked (errors.park) and its .partial stays as last flushed.
+    from dbf_hpc.errors import PARKED
+    from dbf_hpc.output import OutputWriter
+
+    writer = OutputWriter(str(tmp_path / "out.h5"), (1,), 1, 0)
+    writer.append(**{"time": 0.0, "constraints/displacement": [0.0], "constraints/velocity": [0.0],
+                     "constraints/force": [0.0], "constraints/force_peak": [0.0], "probes/displacement": [0.0],
+                     "reduced/q": [], "reduced/qdot": []})
+    writer.flush()
+    before = len(PARKED)
+    writer.abort(failed_write=True)
+    try:
+        assert writer.parked and writer.file.id.valid, "parked, never closed"
+        assert any(obj is writer.file for obj in PARKED[before:])
+    finally:
+        writer.file.close()
+        del PARKED[before:]

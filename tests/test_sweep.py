@@ -9,7 +9,7 @@ import pytest
 from mpi4py import MPI
 
 from conftest import assert_all
-from dbf_hpc.errors import InputError
+from dbf_hpc.errors import DbfError, InputError
 from dbf_hpc.modes import counters
 from dbf_hpc.stats import STATISTICS
 from dbf_hpc.sweep import load_sweep, run_sweep
@@ -136,6 +136,51 @@ def test_a_case_record_the_full_disk_refused_on_one_rank_stops_every_rank_with_o
     monkeypatch.undo()
     result = run_sweep(path, progress=False)
     assert result["cases"] == 4 and result["failed"] == 0, "a rerun with room records every case"
+
+
+@pytest.fixture
+def parked_released():
+    """The h5py objects a test's simulated failed write parked (errors.park) are closed after it: a
+    parked object makes every later OutputWriter.abort of the process park too."""
+    from dbf_hpc.errors import PARKED
+
+    before = len(PARKED)
+    yield
+    for obj in PARKED[before:]:
+        if isinstance(obj, h5py.File) and obj.id.valid:
+            obj.close()
+    del PARKED[before:]
+
+
+def test_a_case_whose_hdf5_write_failed_stops_the_sweep_before_another_hdf5_write(shared_tmp_path, monkeypatch,
+                                                                                  parked_released):
+    # Red team (sweeps of the 2-D tube on a 3 MB tmpfs, 3 runs in 6): after a case's HDF5 write failed
+    # on the full disk, the rank's next failed write crashed HDF5 in its close (signal 11): closing the
+    # case's output in OutputWriter.abort, or the next case's checkpoint. The failed file is now kept
+    # open (errors.park) and the sweep stops on every rank; the case's record names no file it removed.
+    from dbf_hpc import output as output_module
+
+    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1, 1.3, 1.5]\n'
+                                        '"integrator.t_end" = [0.05]\n')
+    flush = output_module.OutputWriter.flush
+
+    def full_disk(self):
+        if self.path.endswith("case-00000.h5") and self.count:   # case 1 (rank 0), after its first block
+            raise RuntimeError("Can't write data (file write failed: errno = 28, error message = 'No space left on "
+                               "device')")
+        flush(self)
+
+    monkeypatch.setattr(output_module.OutputWriter, "flush", full_disk)
+    with pytest.raises(DbfError, match="case 1 failed: cannot write .*case-00000.h5.partial or its checkpoint: No "
+                                       "space left on device; the cases recorded so far are kept .* rerun"):
+        run_sweep(path, progress=False)
+    folder = shared_tmp_path / "summary.h5.cases"
+    record = json.load(open(folder / "case-00000.json"))
+    assert record["status"] == "failed" and "samples" not in record["error"], "the removed files are not named"
+    assert_all(not os.path.exists(folder / "case-00002.json"), "rank 0 started no case after the failed write")
+    assert_all(not os.path.exists(shared_tmp_path / "summary.h5"), "no summary after the stop")
+    monkeypatch.undo()
+    assert run_sweep(path, progress=False)["failed"] == 0, "a rerun with room finishes every case"
 
 
 def test_a_summary_that_would_not_fit_on_the_disk_is_refused_before_hdf5_writes_it(shared_tmp_path, monkeypatch):
