@@ -360,12 +360,15 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
         if isinstance(built, str):
             raise DbfError(built)
         model = _continued(built, scene, previous)
-        _drop_stale_checkpoint(case_out, {"case": identity})
+        # what q means is part of it, as in a run's (run.run_identity; red team: a case stopped on 2 ranks
+        # resumed its q in the basis a 1-rank rerun rebuilt, and its statistics were neither run's)
+        ident = {"case": identity, "coordinates": model.coordinates_digest()}
+        _drop_stale_checkpoint(case_out, ident)
         try:
-            summary = run_case(scene, model, case_out, resume=True, ident={"case": identity})
+            summary = run_case(scene, model, case_out, resume=True, ident=ident)
         except Unresumable:   # a valid checkpoint, a .partial that cannot continue: the case starts again
             _remove(f"{case_out}.partial", f"{case_out}.checkpoint")
-            summary = run_case(scene, model, case_out, resume=True, ident={"case": identity})
+            summary = run_case(scene, model, case_out, resume=True, ident=ident)
         record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
                       solver=summary["stats"], final_state=summary["final_state"],
                       coordinates=model.coordinates_digest(),

@@ -362,6 +362,49 @@ def test_a_scene_edited_while_the_sweep_runs_changes_none_of_its_cases(shared_tm
     assert np.all(widened > 1.2 * expected), (expected, widened)
 
 
+@pytest.mark.launcher
+def test_a_case_stopped_on_two_ranks_is_not_continued_in_the_basis_one_rank_rebuilt(tmp_path):
+    # Red team: a case's checkpoint held the case's identity only (no rank count, no meaning of q):
+    # stopped on 2 ranks, the cache cleared, a 1-rank rerun resumed q in the basis it rebuilt, and the
+    # case's statistics were those of neither layout. Its checkpoint is now refused, as a run's is.
+    import shutil
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    body = ('scene = "{scene}"\noutput = "{out}"\n[axes]\n"integrator.t_end" = [150.0]\n"output.sample_dt" = [4e-3]\n'
+            '"output.snapshots" = [0]\n"output.checkpoint_dt" = [5.0]\n"basis.cache" = ["off"]\n')
+    env = {**os.environ, "OMPI_MCA_orte_execute_quiet": "1", "OMPI_MCA_rmaps_base_oversubscribe": "1",
+           "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+    def sweep(name, ranks, wait=True):
+        path = tmp_path / f"{name}.toml"
+        path.write_text(body.format(scene=PAPER, out=f"{name}.h5"))
+        cmd = ["mpirun", "-n", str(ranks), sys.executable, "-m", "dbf_hpc.cli", "sweep", str(path), "-q"]
+        if not wait:
+            return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        with h5py.File(tmp_path / f"{name}.h5") as f:
+            return {name: f[f"cases/stats/{name}"][()] for name in STATISTICS}
+
+    uninterrupted = sweep("reference", 1)
+    checkpoint = tmp_path / "stopped.h5.cases" / "case-00000.h5.checkpoint"
+    job = sweep("stopped", 2, wait=False)
+    deadline = time.monotonic() + 120
+    while not checkpoint.exists():
+        assert job.poll() is None and time.monotonic() < deadline, "the case ended before its first checkpoint"
+        time.sleep(0.02)
+    job.send_signal(signal.SIGTERM)   # mpirun passes it on: the case checkpoints and stops
+    job.communicate(timeout=120)   # (mpirun, stopping, may drop the ranks' last line)
+    assert job.returncode != 0 and checkpoint.exists(), "the case was stopped halfway"
+    shutil.rmtree(tmp_path / "stopped.h5.cases" / "basis-cache")   # the basis is rebuilt on 1 rank
+    finished = sweep("stopped", 1)
+    for name in STATISTICS:
+        assert np.array_equal(finished[name], uninterrupted[name], equal_nan=True), name
+
+
 def test_a_case_whose_model_cannot_be_built_is_recorded_and_the_others_go_on(shared_tmp_path):
     path = write_sweep(shared_tmp_path, SMALL + '[[case]]\n"basis.modes" = 500\n"integrator.t_end" = 0.3\n')
     result = run_sweep(path, progress=False)
