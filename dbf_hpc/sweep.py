@@ -30,7 +30,8 @@ How it runs (collective on COMM_WORLD):
    with the identity of the case (its validated scene, the bytes of the files it reads, and in a
    chain its predecessors' identities): a rerun skips the cases that are done and still the same,
    and reruns the others. SIGTERM stops every rank at its next step (a running case is
-   checkpointed); rerun the same command to go on.
+   checkpointed); rerun the same command to go on. The base scene is read once, at the start.
+   A full disk (a record or a case's HDF5 file that cannot be written) stops every rank.
 5. Rank 0 writes the summary. The summary is locked while a sweep runs: a second sweep on the
    same output is refused.
 
