@@ -408,7 +408,7 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
     rank). Stops at SIGTERM (Interrupted)."""
     done = 0
     for chain in mine:
-        previous = None
+        previous = broken = None
         for index in chain:
             if index not in pending:  # finished before: continue from its final state
                 previous = _read_json(_case_file(folder, index))
@@ -417,10 +417,19 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
             if stop.requested:
                 raise Interrupted("stopped by a termination signal")
             parked = len(PARKED)
-            record = _run_one(sweep, index, folder, cache_dir, models, identities[index],
-                              previous if len(chain) > 1 else None)
+            if broken is not None:
+                # a step continues from the one before it: started from rest instead, it would answer
+                # another question under an "ok" (red team); a rerun retries the chain from the failed step
+                record = {"index": index, "identity": identities[index], "parameters": sweep["values"][index],
+                          "continued": False, "status": "failed", "wall_time": 0.0,
+                          "error": f"not run: case {broken + 1}, the step before it in its continuation chain, failed"}
+            else:
+                record = _run_one(sweep, index, folder, cache_dir, models, identities[index],
+                                  previous if len(chain) > 1 else None)
             _write_json(_case_file(folder, index), record)
             previous = record if record["status"] == "ok" else None
+            if record["status"] != "ok" and len(chain) > 1 and broken is None:
+                broken = index
             done += 1
             tell(f"  case {index + 1}: {record['status']}")
             if len(PARKED) > parked:

@@ -223,6 +223,32 @@ def test_a_retried_step_of_a_stepped_sine_reruns_the_steps_after_it(shared_tmp_p
     assert_all(os.path.getmtime(files[3]) == kept, "the other chain is kept")
 
 
+def test_a_step_after_a_failed_step_of_a_stepped_sine_is_not_run_from_rest(shared_tmp_path, monkeypatch):
+    # Red team: when step 1 of a chain failed (say, a full disk), step 2 ran from rest and was recorded
+    # ok: the response of a start from rest, not of the sweep's continuation, under the sweep's name.
+    from dbf_hpc import sweep as sweep_module
+
+    real = sweep_module._run_one
+
+    def first_fails(sweep, index, *args):
+        record = real(sweep, index, *args)
+        return dict(record, status="failed", error="No space left on device") if index == 0 else record
+
+    monkeypatch.setattr(sweep_module, "_run_one", first_fails)
+    path = write_sweep(shared_tmp_path, 'continuation = "excitation.frequency_hz"\n[axes]\n'
+                                        '"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.05]\n')
+    result = run_sweep(path, progress=False)
+    folder = result["output"] + ".cases"
+    records = [json.load(open(os.path.join(folder, f"case-{i:05d}.json"))) for i in range(4)]
+    assert result["failed"] == 2 and [r["status"] for r in records] == ["failed", "failed", "ok", "ok"]
+    assert records[1]["error"].startswith("not run: case 1, the step before it in its continuation chain, failed")
+    assert records[3]["continued"], "the other chain continues as before"
+    monkeypatch.undo()
+    run_sweep(path, progress=False)
+    again = [json.load(open(os.path.join(folder, f"case-{i:05d}.json"))) for i in range(4)]
+    assert [r["status"] for r in again] == ["ok"] * 4 and again[1]["continued"], "a rerun runs the chain anew"
+
+
 def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
     path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [1e-3, -1]\n"basis.mode" = [3]\n')
     with pytest.raises(InputError, match="case 1 .*unknown key 'mode' in \\[basis\\]"):
