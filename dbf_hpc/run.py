@@ -40,7 +40,7 @@ from .rom import ReducedModel
 from .rom_integrator import c_counters, effective_callbacks, integrate_reduced
 from .scene import Scene
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
-from .timestepping import check_work
+from .timestepping import STEPS_PER_PERIOD, check_work
 
 
 def output_path(scene: Scene, override: str | None, resume: bool = False) -> str:
@@ -96,6 +96,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     path = output_path(scene, out, resume)
     settings = scene.integrator_settings()
     check_work(settings, scene.fastest_forcing_hz(), adaptive=settings.adaptive and method == "rom")
+    if say is not None and (method == "full" or not settings.adaptive):
+        _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
     with claimed(path, comm):
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method)
     if say is not None:
@@ -240,6 +242,18 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> N
                         f"the basis cannot follow it; add modes (basis.modes or basis.max_frequency_hz)")
     for warning in warnings:
         warn(warning, comm)
+
+
+def _warn_coarse_step(settings, fastest_hz: float, comm) -> None:
+    """A warning when a fixed step takes fewer than STEPS_PER_PERIOD steps per period of the fastest
+    forcing (red team: --method full with dt = 0.3 s under a 10 Hz force took one step of 0.05 s and
+    reported a 727 N peak force and 0 impacts, with no word; generalized-alpha is unconditionally
+    stable, so nothing else fails). The scheme's phase error is (omega dt)^2 / 12 per radian."""
+    if fastest_hz > 0 and settings.dt * fastest_hz * STEPS_PER_PERIOD > 1:
+        warn(f"[integrator] dt = {settings.dt:g} s takes {1 / (settings.dt * fastest_hz):.2g} fixed steps per period "
+             f"of the {fastest_hz:g} Hz excitation, fewer than {STEPS_PER_PERIOD}: the step does not resolve the "
+             f"forcing, so the response is wrong; reduce [integrator] dt to at most {1 / (STEPS_PER_PERIOD * fastest_hz):.3g} s",
+             comm)
 
 
 STEPS_PER_IMPACT = 3   # fewer on average, at a fixed step: contact forces and times depend on dt

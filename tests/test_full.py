@@ -211,3 +211,16 @@ def test_every_law_stops_the_full_model_at_its_clearance_kinks_and_force_jumps_i
     assert z.max() < 2.5e-3 * 1.001, "the stop holds the beam at its clearance"
     if law_keys.get("damping") == "linear":
         assert result.solver["contact_fallbacks"] >= 1, "the force jump is met"
+
+
+def test_a_fixed_step_longer_than_a_twentieth_of_the_forcing_period_draws_a_warning(shared_tmp_path, capfd):
+    # Generalized-alpha is unconditionally stable, so a step past the forcing's period fails nowhere:
+    # dt = 0.3 s under a 10 Hz forcing took one step of 0.05 s and wrote a 727 N peak force and 0
+    # impacts with no word. 20 steps a period is the scheme's phase error (omega dt)^2 / 12 < 1 %.
+    for dt, warned in ((0.3, True), (5e-3, False), (1e-5, False)):
+        s = load_scene(PAPER, ["basis.cache=off", "integrator.t_end=0.05", f"integrator.dt={dt}",
+                               "excitation.frequency_hz=10", "output.sample_dt=1e-3"])
+        run(s, str(shared_tmp_path / f"coarse{dt}.h5"), progress=True, method="full")
+        err = capfd.readouterr().err
+        if MPI.COMM_WORLD.rank == 0:
+            assert ("fixed steps per period of the 10 Hz excitation" in err) == warned, (dt, err)
