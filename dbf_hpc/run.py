@@ -262,8 +262,8 @@ STEPS_PER_IMPACT = 3   # fewer on average, at a fixed step: contact forces and t
 def _warn_unresolved(summary: dict, constraints, dt: float, comm, also: str = "") -> None:
     """A warning for each constraint whose impacts last fewer than STEPS_PER_IMPACT fixed steps on
     average (red team: at 1e12 N/m the peak force was k times a penetration set by dt, 96 kN at
-    1e-5 s, 3 kN at 5e-7 s, with no word). Durations are measured on the samples, so a sample
-    interval of several steps hides this."""
+    1e-5 s, 3 kN at 5e-7 s, with no word). Durations are measured on the steps (the recorders'
+    impact statistics), so the sample interval does not hide this."""
     stats = summary.get("constraint_stats", {})
     if not stats:
         return

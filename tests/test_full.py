@@ -224,3 +224,14 @@ def test_a_fixed_step_longer_than_a_twentieth_of_the_forcing_period_draws_a_warn
         err = capfd.readouterr().err
         if MPI.COMM_WORLD.rank == 0:
             assert ("fixed steps per period of the 10 Hz excitation" in err) == warned, (dt, err)
+
+
+def test_unresolved_impacts_warn_whatever_the_sample_interval(shared_tmp_path, capfd):
+    # Impact durations are measured on the steps, not the samples: at k = 1e12 N/m and dt = 1e-5 s an
+    # impact lasts one step, and samples 100 steps apart must not hide it (the docs said they would).
+    s = load_scene(PAPER, ["basis.cache=off", "integrator.t_end=0.12", "integrator.dt=1e-5", "output.sample_dt=1e-3",
+                           "constraint.k_minus=1e12", "constraint.k_plus=1e12"])
+    run(s, str(shared_tmp_path / "sparse_samples.h5"), progress=True, method="full")
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        assert "the impacts of constraint 1 at x = 0.25 m last 1 fixed steps" in err, err
