@@ -4,6 +4,9 @@ Under MPI every rank runs every test. Rules that keep a failure from hanging the
 - assert only on values every rank agrees on, or reduce the condition first (`assert_all`);
 - use `shared_tmp_path` (rank 0's tmp_path) for files all ranks read or write.
 """
+import contextlib
+import subprocess
+
 import pytest
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -83,3 +86,19 @@ def to_numpy(vec):
     scatter.destroy()
     full.destroy()
     return values
+
+
+@contextlib.contextmanager
+def tmpfs_disk(folder, size: str):
+    """A file system of its own (tmpfs of `size`, e.g. "3m") mounted at folder/disk for a real full
+    disk, or a skip where this machine cannot mount one (needs root)."""
+    mount = folder / "disk"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mount)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", str(mount)], capture_output=True)
+

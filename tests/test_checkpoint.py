@@ -13,7 +13,7 @@ import pytest
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from conftest import assert_all
+from conftest import assert_all, tmpfs_disk
 from dbf_hpc.errors import InputError, SolverError
 from dbf_hpc.run import run
 from dbf_hpc.scene import load_scene
@@ -244,16 +244,9 @@ def test_a_changed_damping_file_of_a_matrices_structure_is_refused_naming_the_fi
 
 @pytest.fixture
 def tiny_disk(tmp_path):
-    """A 256 KiB file system of its own (tmpfs), or a skip where this machine cannot mount one."""
-    import subprocess
-
-    mount = tmp_path / "disk"
-    mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)], capture_output=True)
-    if done.returncode != 0:
-        pytest.skip("cannot mount a tmpfs here (needs root)")
-    yield mount
-    subprocess.run(["umount", str(mount)], capture_output=True)
+    """A 256 KiB file system of its own, or a skip."""
+    with tmpfs_disk(tmp_path, "256k") as mount:
+        yield mount
 
 
 # A checkpoint written on a disk left with `free` bytes, in a process that ends as the command does

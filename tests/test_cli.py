@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 
+from conftest import tmpfs_disk
 from dbf_hpc import __version__ as dbf_hpc_version
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -415,14 +416,9 @@ def test_resuming_on_another_number_of_ranks_is_refused(tmp_path):
 
 @pytest.fixture
 def small_disk(tmp_path):
-    """A 3 MiB file system of its own (tmpfs), or a skip where this machine cannot mount one."""
-    mount = tmp_path / "disk"
-    mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mount)], capture_output=True)
-    if done.returncode != 0:
-        pytest.skip("cannot mount a tmpfs here (needs root)")
-    yield mount
-    subprocess.run(["umount", str(mount)], capture_output=True)
+    """A 3 MiB file system of its own, or a skip."""
+    with tmpfs_disk(tmp_path, "3m") as mount:
+        yield mount
 
 
 def test_a_disk_too_small_or_filling_up_is_one_line_never_a_crash(small_disk):
