@@ -248,7 +248,9 @@ def test_a_killed_run_resumes_from_its_checkpoint_to_the_uninterrupted_result(tm
 
     import h5py
 
-    common = ("-q", "--set", "integrator.t_end=5", "--set", "output.checkpoint_dt=0.25",
+    # 20 s simulated: the rest after the first checkpoint (1 s) takes ~1.3 s of wall time, well past the
+    # kill (5 s took 0.33 s on an idle machine, and the run could finish before it was killed)
+    common = ("-q", "--set", "integrator.t_end=20", "--set", "output.checkpoint_dt=1",
               "--set", f"basis.cache={tmp_path}")
     reference = dbf_hpc("run", PAPER, "-o", str(tmp_path / "ref.h5"), *common)
     assert reference.returncode == 0, reference.stderr
@@ -460,8 +462,8 @@ def test_info_reads_statistics_a_sweep_summary_and_a_partial_run(tmp_path):
     assert run.returncode == 0, run.stderr
     info = dbf_hpc("info", str(out), ranks=1)
     assert re.search(r"constraint 1 at 0.25 m: .* \d+ impacts, [\d.]+/s, in contact", info.stdout), info.stdout
-    process = _start("run", PAPER, "-o", str(tmp_path / "p.h5"), "-q", "--set", "integrator.t_end=5",
-                     "--set", "output.checkpoint_dt=0.25", "--set", f"basis.cache={tmp_path}")
+    process = _start("run", PAPER, "-o", str(tmp_path / "p.h5"), "-q", "--set", "integrator.t_end=20",
+                     "--set", "output.checkpoint_dt=1", "--set", f"basis.cache={tmp_path}")   # killed long before its end
     _wait_for(str(tmp_path / "p.h5.checkpoint"), process)
     _kill_group(process, signal.SIGKILL)
     partial = dbf_hpc("info", str(tmp_path / "p.h5"), ranks=1)
