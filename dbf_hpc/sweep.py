@@ -386,6 +386,9 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
         if "error" in record:   # the files run.py's message says are left behind are not (red team)
             record["error"] = record["error"].split(f" (samples so far in {case_out}")[0].split(
                 f" (the samples up to the failure are in {case_out}")[0]
+    if "error" in record:   # a sweep resumes its cases itself: `dbf-hpc sweep` takes no --resume
+        record["error"] = record["error"].replace("rerun with --resume", "rerun the sweep").replace(
+            "rerun without --resume", "rerun the sweep")
     return record
 
 

@@ -249,6 +249,22 @@ def test_a_step_after_a_failed_step_of_a_stepped_sine_is_not_run_from_rest(share
     assert [r["status"] for r in again] == ["ok"] * 4 and again[1]["continued"], "a rerun runs the chain anew"
 
 
+def test_a_failed_case_names_the_sweep_rerun_not_a_resume_flag_the_sweep_does_not_take(shared_tmp_path, monkeypatch):
+    # Red team: a case's error said "rerun with --resume", which `dbf-hpc sweep` does not take (it
+    # resumes its cases itself).
+    from dbf_hpc import sweep as sweep_module
+    from dbf_hpc.errors import SolverError
+
+    def stopped(*args, **kwargs):
+        raise SolverError("cannot finish case.h5: No space left on device; free some space, then rerun with --resume")
+
+    monkeypatch.setattr(sweep_module, "run_case", stopped)
+    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9]\n"integrator.t_end" = [0.05]\n')
+    result = run_sweep(path, progress=False)
+    assert result["failed"] == 1 and "--resume" not in result["first_failure"], result["first_failure"]
+    assert result["first_failure"].endswith("free some space, then rerun the sweep"), result["first_failure"]
+
+
 def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
     path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [1e-3, -1]\n"basis.mode" = [3]\n')
     with pytest.raises(InputError, match="case 1 .*unknown key 'mode' in \\[basis\\]"):
