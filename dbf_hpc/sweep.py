@@ -132,8 +132,8 @@ def _expand(path: str, axes: dict, listed: list, continuation, directions) -> tu
 
 def load_sweep(path: str, overrides=()) -> dict:
     """Read a sweep file: {'scene', 'output', 'keep_outputs', 'cases': [[override, ...], ...],
-    'values', 'parameters', 'chains'}. `overrides` ('section.key=value', --set) apply to every case
-    before its own values. All case scenes are validated here."""
+    'values', 'parameters', 'chains', 'scenes'}. `overrides` ('section.key=value', --set) apply to every
+    case before its own values. All case scenes are validated here, and kept (the cases run them)."""
     data = _read(path)
     folder = os.path.dirname(os.path.abspath(path))
     scene = os.path.join(folder, _typed(path, data, "scene", str, None))
@@ -156,7 +156,7 @@ def load_sweep(path: str, overrides=()) -> dict:
         raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\"")
     cases, chains = _expand(path, axes, listed, continuation, directions)
     parameters = list(dict.fromkeys(name for case in cases for name in case))
-    sets, coordinates = [], []
+    sets, coordinates, scenes = [], [], []
     for i, case in enumerate(cases):
         own = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
         for text in own:
@@ -169,6 +169,7 @@ def load_sweep(path: str, overrides=()) -> dict:
         except InputError as e:
             raise InputError(f"{path}: case {i + 1} ({', '.join(own)}): {e}") from None
         sets.append([*overrides, *own])
+        scenes.append(loaded)
         coordinates.append(_coordinates_key(loaded))
     for chain in chains:
         if len({coordinates[i] for i in chain}) > 1:
@@ -177,7 +178,7 @@ def load_sweep(path: str, overrides=()) -> dict:
                              f"state cannot start the next case; make it an ordinary axis, or continue along an "
                              f"excitation, law, damping or integrator value")
     return {"scene": scene, "output": output, "keep_outputs": keep, "cases": sets, "values": cases,
-            "parameters": parameters, "chains": chains}
+            "parameters": parameters, "chains": chains, "scenes": scenes}
 
 
 def _toml_value(value) -> str:
@@ -471,18 +472,11 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
 
 def _sweep(sweep, folder, output, world, say, progress) -> dict:
     n = len(sweep["cases"])
-    # Every case's scene is read once, here, by rank 0 for all: the cases run what their identities
-    # hold (red team: the scene, read again for each case, was edited while the sweep ran; the summary
-    # mixed clearances, and the records, under the old scene's identity, were reused once restored)
-    scenes = problem = None
-    if world.rank == 0:
-        try:
-            scenes = [load_scene(sweep["scene"], sets) for sets in sweep["cases"]]
-        except InputError as e:   # edited since load_sweep checked it
-            problem = str(e)
-    scenes, problem = world.bcast((scenes, problem), root=0)
-    if problem:
-        raise InputError(problem)
+    # Every case runs the scene load_sweep read and checked, rank 0's for all: the cases run what their
+    # identities hold (red team: the scene, read again for each case, was edited while the sweep ran;
+    # the summary mixed clearances, and the records, under the old scene's identity, were reused once
+    # restored)
+    scenes = world.bcast(sweep["scenes"] if world.rank == 0 else None, root=0)
     identities = _identities(sweep, scenes)
     records = [_read_json(_case_file(folder, i)) or {} for i in range(n)]
     # a failed case is retried: its cause may have been the machine's (a full disk), since mended

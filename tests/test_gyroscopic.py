@@ -922,8 +922,9 @@ def test_gyroscopic_dbfs_solved_by_constraint_groups_are_those_solved_on_all_ran
     assert_all(np.abs(together - apart).max() < 1e-8 * np.abs(together).max())
 
 
-PIPE_2D = """
-[structure]
+# jobs/pipe_conveying_fluid.toml's pipe (pinned-pinned, water at half its divergence speed), the
+# [structure] section of the two-plane scenes below
+PIPE_STRUCTURE = """[structure]
 kind = "beam"
 length = 1.5
 elements = 60
@@ -935,7 +936,9 @@ left = "pinned"
 right = "pinned"
 transported_mass = 0.34636
 axial_speed = 78.0
-planes = 2
+"""
+
+PIPE_2D = "\n" + PIPE_STRUCTURE + """planes = 2
 
 [excitation]
 kind = "turbulence"
@@ -1013,17 +1016,7 @@ def test_state_space_form_with_two_direction_friction_supports_under_turbulence_
         assert np.all(impacts[name] >= 1), (name, impacts[name])
 
 
-PIPE_45 = '''[structure]
-kind = "beam"
-length = 1.5
-elements = 60
-E = 2e11
-I = 9.6268e-9
-A = 1.44513e-4
-rho = 10247.0
-planes = {planes}
-transported_mass = 0.34636
-axial_speed = 78.0
+PIPE_45 = PIPE_STRUCTURE + '''planes = {planes}
 [excitation]
 kind = "force"
 x = 0.3
