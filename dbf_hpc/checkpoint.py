@@ -96,6 +96,8 @@ class Checkpoint:
                              f"--resume") from None
         different = [part for part in sorted(set(stored) | set(self.identity))
                      if stored.get(part) != self.identity.get(part)]
+        if "request" in different:   # the question as asked (run.request_identity): named by the parts it holds
+            different = [part for part in different if part != "request"] or ["scene"]
         if different:
             verb = "differs" if len(different) == 1 and not different[0].endswith("s") else "differ"  # options, ranks
             why = ("; the basis was rebuilt since (the cache cleared, another rank count), and the state it "

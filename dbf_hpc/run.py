@@ -15,6 +15,7 @@ import signal
 import sys
 import time
 
+import h5py
 import numpy as np
 from petsc4py import PETSc
 from slepc4py import SLEPc
@@ -25,7 +26,7 @@ from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, blind_to_contact,
                        flexibility_warning, is_long, nested_estimate, pick_basis, reused_estimate, statistics_estimate,
                        statistics_window)
 from .basis import richer_basis
-from .checkpoint import Checkpoint, identity
+from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, petsc_failure,
                      warn, write_failure)
 from .fom import Observation
@@ -99,7 +100,13 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     if say is not None and (method == "full" or not settings.adaptive):
         _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
     with claimed(path, comm):
-        summary = _run(scene, path, settings, say, comm, initial_state, resume, method)
+        request = request_identity(scene, comm, method, initial_state)
+        done = finished_output(path, identity(request=request), scene, comm) if resume else None
+        if done is not None:   # a requeued batch job whose run had finished: nothing is computed again
+            _say(say, f"{path} is already complete for this scene and setup: nothing to resume (`dbf-hpc info "
+                      f"{path}` shows it; rerun without --resume to compute it again)")
+            return done
+        summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request)
     if say is not None:
         _warn_idle(summary, scene.constraints, comm)
         if method == "full" or not settings.adaptive:
@@ -130,7 +137,8 @@ def _gyroscopic_checks(scene: Scene, fom, method: str) -> None:
                          'callbacks = "auto" or "python"')
 
 
-def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str) -> dict:
+def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str,
+         request: str | None = None) -> dict:
     timings, t = {}, time.perf_counter()
     with scene.full_order_model(comm) as fom:
         timings["operators"] = time.perf_counter() - t
@@ -142,7 +150,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             warn('[basis] gyroscopic_form = "state_space" is for gyroscopic structures (axial_speed, or a '
                  'matrices G); this one has no G, so its reduced model is the usual second-order one', comm)
         if method == "full":
-            return _run_full(scene, fom, path, settings, timings, say, resume)
+            return _run_full(scene, fom, path, settings, timings, say, resume, request)
         t, solves = time.perf_counter(), counters["eigen_solves"]
         estimate, pick = scene.estimate_settings(), None
         if estimate.tolerance is not None:
@@ -175,7 +183,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
                 timings["estimate_basis"] = time.perf_counter() - t
     if initial_state is not None:
         model = _continue_from(model, initial_state)
-    ident = run_identity(scene, basis_key, comm, "rom", model.coordinates_digest())
+    ident = run_identity(scene, basis_key, comm, "rom", model.coordinates_digest(), request)
     return _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident,
                         {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state},
                         (rich, window, estimate.statistics_window) if rich is not None and initial_state is None
@@ -307,12 +315,14 @@ def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
     return model.with_case(q0=q, p0=p)
 
 
-def run_identity(scene: Scene, basis_key: dict, comm, method: str, coordinates: str | None = None) -> dict:
+def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordinates: str | None = None,
+                 request: str | None = None) -> dict:
     """What a checkpoint must match to be resumed: every part that changes the result: the scene, the
     bytes of every file it reads, the operators and basis, the PETSc options, the rank count, the
     method, the callbacks, the package version, and (reduced) what the coordinates q mean
     (ReducedModel.coordinates_digest: a basis rebuilt in another orientation of a repeated frequency
-    holds the same key, not the same q). Collective."""
+    holds the same key, not the same q); with `request` (request_identity), also the question as it
+    was asked. The finished output stores it too (finished_output). Collective."""
     dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
     matrix = scene["excitation"]["kind"] == "turbulence"   # a load matrix: the Python callbacks
     friction = any(c.law.kind == "friction" for c in scene.constraints)
@@ -324,7 +334,65 @@ def run_identity(scene: Scene, basis_key: dict, comm, method: str, coordinates: 
         callbacks = "python"   # the state-space form has no C callbacks (state_space.py)
     return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], files=scene.file_digests(comm),
                     structure=basis_key, coordinates=coordinates, options=PETSc.Options().getAll(),
-                    ranks=comm.getSize(), method=method, callbacks=callbacks, version=__version__)
+                    ranks=comm.getSize(), method=method, callbacks=callbacks, version=__version__,
+                    **({"request": request} if request else {}))
+
+
+def request_identity(scene: Scene, comm, method: str, initial_state=None) -> str:
+    """The question a run answers, known before any work: run_identity's parts without the basis (the
+    scene as given, before the tolerance mode picks its basis; its files; the PETSc options; the rank
+    count; the method; the callbacks; the version) and the initial state given. One sha256. Collective."""
+    parts = run_identity(scene, None, comm, method)
+    if initial_state is not None:
+        parts["initial_state"] = arrays_sha256({"q": np.asarray(initial_state[0], dtype=float),
+                                                "p": np.asarray(initial_state[1], dtype=float)})
+    return identity(request=parts)["request"]
+
+
+def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | None:
+    """The summary of `path` if it is a finished output of this very run, else None: complete, no
+    .partial or checkpoint beside it, its stored run identity equal to `ident` on every part `ident`
+    names, and its ParaView file present when the scene asks for snapshots. The summary is read back
+    from the file (the same keys and values the run returned; "final_state" from its last sample).
+    An output that cannot be read is not finished: the run computes it again. With comm, rank 0
+    reads and every rank gets the answer (collective); without, this rank reads (not collective)."""
+    if comm is not None:
+        world = comm.tompi4py()
+        return world.bcast(finished_output(path, ident, scene) if world.rank == 0 else None, root=0)
+    if not os.path.isfile(path) or os.path.exists(f"{path}.partial") or os.path.exists(f"{path}.checkpoint"):
+        return None
+    if scene.output().snapshots and not os.path.isfile(xdmf.sidecar(path)):
+        return None
+    try:
+        with h5py.File(path, "r") as f:
+            stored = json.loads(f.attrs["run_identity"]) if f.attrs.get("complete") else {}
+            if not ident or any(stored.get(part) != value for part, value in ident.items()):
+                return None
+            return _stored_summary(f, path)
+    except (OSError, KeyError, ValueError, TypeError):
+        return None
+
+
+def _stored_summary(f, path: str) -> dict:
+    """The summary run_case / _run_full returned, from the output they wrote (finish)."""
+    summary = {"path": path, "stats": json.loads(f.attrs["solver_stats"]),
+               "timings": json.loads(f.attrs["wall_times"]), "probe_peak": f[layout.PROBE_PEAK][()].tolist(),
+               "constraint_stats": {k: v[()].tolist() for k, v in f[layout.CONSTRAINT_STATS].items()}}
+    if "estimated_error" in f.attrs:
+        summary["estimated_error"] = float(f.attrs["estimated_error"])
+        summary["estimated_error_window"] = float(f.attrs["estimated_error_window"])
+    if layout.STATISTICS_ERROR in f:
+        group = f[layout.STATISTICS_ERROR]
+        names = [k[:-len("_sampling_ci95")] for k in group if k.endswith("_sampling_ci95")]
+        summary["estimated_statistics"] = {
+            "window": float(f.attrs["estimated_statistics_window"]), "note": str(f.attrs["estimated_statistics_note"]),
+            **{name: {"error": group[name][()].tolist(), "sampling_ci95": group[f"{name}_sampling_ci95"][()].tolist(),
+                      "model": group[f"{name}_model"][()].tolist(),
+                      "reduced_ci95": group[f"{name}_window_reduced_ci95"][()].tolist(),
+                      "rich_ci95": group[f"{name}_window_rich_ci95"][()].tolist()} for name in sorted(names)}}
+    if f.attrs.get("method") == "rom":
+        summary["final_state"] = [f[layout.REDUCED_Q][-1].tolist(), f[layout.REDUCED_QDOT][-1].tolist()]
+    return summary
 
 
 def wait_for_rank0(world) -> None:
@@ -375,6 +443,10 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     settings, output = scene.integrator_settings(), scene.output()
     timings = {} if timings is None else timings
     checkpoint = Checkpoint(f"{path}.checkpoint", ident or {})
+    done = finished_output(path, ident, scene) if resume else None
+    if done is not None:   # a sweep's case that finished before its record was written
+        _say(say, f"{path} is already complete for this case: nothing to resume")
+        return done
     writer = recorder = stepper = None
     try:
         state = checkpoint.read() if resume else None
@@ -687,7 +759,8 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     deferred = []
     try:
         with _on_sigterm(lambda signum, frame: deferred.append(signum)):
-            _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs)
+            _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs,
+                         checkpoint.identity if checkpoint is not None else None)
     except (*WRITE_ERRORS, KeyError, ValueError) as exc:
         if isinstance(exc, (KeyError, ValueError)) and "Unable to" not in str(exc):
             raise
@@ -714,7 +787,8 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
             "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
 
 
-def _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs) -> None:
+def _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs,
+                 identity=None) -> None:
     writer.finish(
         datasets=datasets,
         dataset_attrs={f"{layout.CONSTRAINT_STATS}/{k}": {"unit": UNITS[k], "description": DESCRIPTIONS[k]}
@@ -725,6 +799,7 @@ def _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timin
                "slepc_version": ".".join(map(str, SLEPc.Sys.getVersion())),
                "mpi_ranks": ranks, "solver_stats": json.dumps(stats), "wall_times": json.dumps(timings),
                "initial_state": _initial_text(init),
+               **({"run_identity": json.dumps(identity, sort_keys=True)} if identity else {}),
                **attrs})
 
 
@@ -768,7 +843,8 @@ class FullCheckpointing:
 _RESUME_SCALARS = ("t", "steps", "next_sample", "lam", "pushing", "counters")
 
 
-def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume: bool) -> dict:
+def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume: bool,
+              request: str | None = None) -> dict:
     """The full-order reference on fom.comm, every rank integrating its share of the state; rank 0
     writes the same layout as a reduced run (no basis/ or reduced/ groups) and the checkpoints."""
     world = fom.comm.tompi4py()
@@ -780,7 +856,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     snap_index = _snapshot_samples(output.snapshots, settings.sample_times)
     field_support = fom.field_support()
     checkpoint = Checkpoint(f"{path}.checkpoint", run_identity(scene, {"fingerprint": fom.fingerprint}, fom.comm,
-                                                                "full"))
+                                                                "full", request=request))
     recorder = control = state = None
     snaps, opened = {}, None
     if world.rank == 0:

@@ -295,3 +295,51 @@ def test_a_checkpoint_the_full_disk_refused_neither_crashes_nor_leaves_a_half_fi
         expected = ["filler", "run.h5.checkpoint"] if outcome == "written" else ["filler"]
         assert left == expected, f"{free} bytes free: {outcome}, left {left}"
     assert outcomes == {"written", "refused"}, "the disk's room spans a refused and a written checkpoint"
+
+
+def _same(a: dict, b: dict) -> bool:
+    """Equal summaries, NaN equal to NaN (json writes both as NaN)."""
+    import json
+
+    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+@pytest.mark.parametrize("method", ["rom", "full"])
+def test_a_resume_of_a_finished_run_computes_nothing_and_returns_its_summary(shared_tmp_path, method):
+    # A requeued batch job whose run had finished ran it all again (same result, twice the cost). Its
+    # output is kept untouched now, and the summary read back from it is the one the run returned:
+    # statistics, solver counters, estimates (a long run's statistics' too) and the final state.
+    sets = ["integrator.t_end=1.2" if method == "rom" else "integrator.t_end=0.05", "output.snapshots=3",
+            f"basis.cache={shared_tmp_path / 'cache'}"]
+    out = str(shared_tmp_path / "run.h5")
+    first = run(load_scene(PAPER, sets), out, progress=False, method=method)
+    before = os.stat(out).st_mtime_ns
+    again = run(load_scene(PAPER, sets), out, progress=False, method=method, resume=True)
+    assert_all(os.stat(out).st_mtime_ns == before, "the finished output was written again")
+    assert _same(first, again)
+    if method == "rom":
+        assert {"final_state", "estimated_error", "estimated_statistics"} <= set(again)
+
+
+def test_a_resume_of_a_finished_run_asked_differently_computes_it_again(shared_tmp_path):
+    # What the output answered must be what is asked now: another t_end, another PETSc option, or a
+    # missing ParaView file (a full disk stopped its write) is computed again, never taken as done.
+    sets = ["integrator.t_end=0.1", "output.snapshots=3", f"basis.cache={shared_tmp_path / 'cache'}"]
+    out = str(shared_tmp_path / "run.h5")
+    run(load_scene(PAPER, sets), out, progress=False)
+    summary = run(load_scene(PAPER, ["integrator.t_end=0.2", *sets[1:]]), out, progress=False, resume=True)
+    assert summary["stats"]["final_time"] == pytest.approx(0.2)
+    stamp = os.stat(out).st_mtime_ns
+    PETSc.Options().setValue("rom_snes_rtol", 1e-9)
+    try:
+        run(load_scene(PAPER, ["integrator.t_end=0.2", *sets[1:]]), out, progress=False, resume=True)
+    finally:
+        PETSc.Options().delValue("rom_snes_rtol")
+    assert_all(os.stat(out).st_mtime_ns != stamp, "an output of other PETSc options was kept")
+    stamp = os.stat(out).st_mtime_ns
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        os.remove(str(shared_tmp_path / "run.xdmf"))
+    MPI.COMM_WORLD.Barrier()
+    run(load_scene(PAPER, ["integrator.t_end=0.2", *sets[1:]]), out, progress=False, resume=True)
+    assert_all(os.stat(out).st_mtime_ns != stamp and os.path.exists(str(shared_tmp_path / "run.xdmf")))
