@@ -51,7 +51,7 @@ class BasisSettings:
 
     def __post_init__(self):
         if self.modes is not None:
-            object.__setattr__(self, "modes", check_number("BasisSettings modes", self.modes, 0, integer=True))
+            object.__setattr__(self, "modes", check_number("BasisSettings modes", self.modes, 1, integer=True))
         if self.max_frequency_hz is not None:
             object.__setattr__(self, "max_frequency_hz", check_number("BasisSettings max_frequency_hz",
                                                                       self.max_frequency_hz, 0.0, above=True))

@@ -18,6 +18,7 @@ import hashlib
 from dataclasses import dataclass
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from .constraints import Constraint, ConstraintSet
@@ -96,8 +97,14 @@ class FullOrderModel:
               probes=(), initial: InitialState = InitialState(), comm=None) -> "FullOrderModel":
         """Assemble or load the operators of `structure` (a Beam or MatrixFiles) and place the
         constraints (Constraint descriptions), loads and probes on them. Collective on comm
-        (default COMM_WORLD). Bad placements are InputErrors, and nothing is leaked."""
+        (a petsc4py or mpi4py communicator, default COMM_WORLD). Bad placements are InputErrors,
+        and nothing is leaked."""
         comm = comm or PETSc.COMM_WORLD
+        if isinstance(comm, MPI.Comm):   # an mpi4py communicator: the same, as petsc4py takes it
+            comm = PETSc.Comm(comm)
+        if not isinstance(comm, PETSc.Comm):
+            raise InputError(f"FullOrderModel.build: comm must be a petsc4py Comm (PETSc.COMM_WORLD, or "
+                             f"PETSc.Comm(mpi4py_comm)), got {type(comm).__name__}")
         if not isinstance(structure, (Beam, MatrixFiles)):
             raise InputError(f"FullOrderModel.build: a structure is a Beam or MatrixFiles, got {type(structure).__name__}")
         for name, value, kinds in (("excitation", excitation, EXCITATIONS), ("damping", damping, (Damping,)),
