@@ -27,6 +27,11 @@ class SolverError(DbfError):
     """A numerical failure: non-convergence, breakdown, a diverged step."""
 
 
+class WriteFailed(SolverError):
+    """A write of the output or its checkpoint failed during the integration (a full disk): the file
+    is parked, not closed (errors.park)."""
+
+
 class Interrupted(SolverError):
     """A run stopped by a termination signal after writing its checkpoint: rerun to continue."""
 

@@ -69,7 +69,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from .errors import WRITE_ERRORS, InputError, SolverError, write_failure
+from .errors import WRITE_ERRORS, InputError, SolverError, WriteFailed, write_failure
 from .fom import FullOrderModel
 from .petsctools import destroy, natural_fill_is_small, options_defaults
 from .timestepping import IntegratorSettings, StepMonitor, check_outcome
@@ -1018,7 +1018,7 @@ class _Run:
         if self.world.size > 1:
             action, self.failure = self.world.bcast((action, self.failure), root=0)
         if self.failure:
-            raise SolverError(self.failure)
+            raise WriteFailed(self.failure)
         return action
 
     def _field(self, u) -> np.ndarray | None:

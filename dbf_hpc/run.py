@@ -27,8 +27,8 @@ from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, blind_to_contact,
                        statistics_window)
 from .basis import richer_basis
 from .checkpoint import Checkpoint, arrays_sha256, identity
-from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, petsc_failure,
-                     warn, write_failure)
+from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
+                     petsc_failure, warn, write_failure)
 from .fom import Observation
 from .fom_integrator import integrate_full
 from .fom_integrator import options as full_options
@@ -900,8 +900,9 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     except PETSc.Error as exc:   # an option PETSc refused in the set-up; the ranks fail alike
         raise SolverError(_left_behind(f"the full-order integration: {petsc_failure(exc)}; check the -full_ "
                                        f"options", recorder.writer if recorder else None, checkpoint)) from None
-    except DbfError as exc:
-        raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint)) from None
+    except DbfError as exc:   # a failed write (WriteFailed) parks the .partial: closing it could crash HDF5
+        raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint,
+                                     failed_write=isinstance(exc, WriteFailed))) from None
     timings["integration"] = time.perf_counter() - t + (control.wall if control else 0.0)
     summary = {}
     if world.rank == 0:

@@ -454,6 +454,38 @@ def test_a_disk_too_small_or_filling_up_is_one_line_never_a_crash(small_disk):
     assert not [p for p in os.listdir(small_disk) if ".tmp" in p]
 
 
+def test_a_full_order_run_the_disk_fills_under_stops_in_one_line_and_resumes_to_the_uninterrupted_result(
+        small_disk, tmp_path):
+    # The full-order reference writes from inside its integrator's callbacks; a write the full disk
+    # refused ended the run on both ranks, but closed the .partial (a close after a failed write has
+    # crashed HDF5) instead of parking it as the reduced run does. Either way: one line, exit 1, and a
+    # rerun with room resumes to the uninterrupted run's samples bit for bit.
+    import h5py
+
+    common = ("-q", "--method", "full", "--set", "basis.cache=off", "--set", "integrator.t_end=10",
+              "--set", "output.checkpoint_dt=0.5", "--set", "output.snapshots=0", "--set", "output.sample_dt=0.002")
+    target = small_disk / "out.h5"
+    run = _start("run", PAPER, "-o", str(target), *common)
+    _wait_for(f"{target}.checkpoint", run)
+    with open(small_disk / "filler", "wb") as f:      # another job fills the disk
+        try:
+            while True:
+                f.write(b"\0" * 65536)
+        except OSError:
+            pass
+    _, stderr = run.communicate(timeout=300)
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert run.returncode == 1 and len(lines) == 1 and "No space left on device" in lines[0], stderr
+    (small_disk / "filler").unlink()
+    resumed = dbf_hpc("run", PAPER, "-o", str(target), "--resume", *common)
+    assert resumed.returncode == 0, resumed.stderr
+    whole = dbf_hpc("run", PAPER, "-o", str(tmp_path / "whole.h5"), *common)
+    assert whole.returncode == 0, whole.stderr
+    with h5py.File(target, "r") as a, h5py.File(tmp_path / "whole.h5", "r") as b:
+        for name in ("time", "constraints/displacement", "constraints/force", "probes/displacement"):
+            assert np.array_equal(a[name][()], b[name][()]), name
+
+
 def test_info_reads_statistics_a_sweep_summary_and_a_partial_run(tmp_path):
     import signal
 
