@@ -288,3 +288,84 @@ def test_one_and_two_ranks_agree_before_the_first_impact_with_constraints_on_the
     for ranks in ("2", "2 mumps"):
         error = np.abs(results[ranks].displacement - one).max() / np.abs(one).max()
         assert_all(error < 1e-11, (ranks, error))
+
+
+def test_a_gyroscopic_matrix_model_whose_g_couples_dofs_k_does_not_is_integrated_exactly(shared_tmp_path):
+    # A 3-DOF rotor: K diagonal, G = 300 [[0, 1], [-1, 0]] couples DOFs 0 and 1 outside K's pattern, a
+    # constraint on the uncoupled DOF 2 (never reached), a force on DOF 0. PETSc 3.18's own LU in its
+    # default ordering factored K_eff wrongly (1.5e-4) and the one constraint row's residual check passed:
+    # the reference was 0.4 % off at dt = 1e-4 s and 100 % at 2e-5 s. Independent truth: the linear
+    # ODE M u'' + G u' + K u = e_0 sin(Omega t) by scipy's DOP853 at rtol 1e-11.
+    import h5py
+    import scipy.io
+    import scipy.sparse
+    from scipy.integrate import solve_ivp
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    K = np.diag([1e4, 1.5e4, 2e4])
+    G = np.array([[0.0, 300.0, 0.0], [-300.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    if MPI.COMM_WORLD.rank == 0:
+        for name, mat in (("K", K), ("M", np.eye(3)), ("G", G)):
+            scipy.io.mmwrite(str(shared_tmp_path / f"{name}.mtx"), scipy.sparse.csr_matrix(mat), precision=17,
+                             symmetry="general")
+        (shared_tmp_path / "rotor.toml").write_text("""[structure]
+kind = "matrices"
+stiffness = "K.mtx"
+mass = "M.mtx"
+gyroscopic = "G.mtx"
+[excitation]
+kind = "force"
+dof = 0
+amplitude = 1.0
+frequency_hz = 5.0
+[[constraint]]
+dof = 2
+law = "deadband"
+clearance = 1e-3
+k = 1e3
+[integrator]
+t_end = 0.5
+dt = 2e-5
+[output]
+probes = [0, 1]
+""")
+    MPI.COMM_WORLD.Barrier()
+    out = shared_tmp_path / "rotor.h5"
+    run(load_scene(str(shared_tmp_path / "rotor.toml")), str(out), progress=False, method="full")
+    MPI.COMM_WORLD.Barrier()
+    with h5py.File(out, "r") as f:
+        t, w = f["time"][:], f["probes/displacement"][:]
+    omega = 2 * np.pi * 5.0
+
+    def rate(t, y):
+        return np.concatenate([y[3:], np.array([np.sin(omega * t), 0.0, 0.0]) - K @ y[:3] - G @ y[3:]])
+
+    exact = solve_ivp(rate, (0.0, t[-1]), np.zeros(6), t_eval=t, rtol=1e-11, atol=1e-14, method="DOP853").y[:2].T
+    # Measured: 1.1e-6 of the largest |w| (generalized-alpha's second order at dt = 2e-5 s).
+    assert np.abs(w - exact).max() < 1e-5 * np.abs(exact).max()
+
+
+def test_a_factorization_that_is_wrong_away_from_the_constraint_rows_is_an_error():
+    from dbf_hpc.errors import SolverError
+    from dbf_hpc.fom_integrator import _check_exact_dense
+
+    A = PETSc.Mat().createAIJ((3, 3), nnz=1, comm=PETSc.COMM_SELF)
+    for i, value in enumerate((2.0, 3.0, 4.0)):
+        A.setValue(i, i, value)
+    A.assemble()
+
+    def exact(b, x):
+        x.array[:] = b.array_r / np.array([2.0, 3.0, 4.0])
+
+    def wrong(b, x):   # right on row 0 (a constraint row), 1e-4 off on row 2
+        exact(b, x)
+        x.array[2] *= 1 + 1e-4
+
+    try:
+        _check_exact_dense(A, exact, "test")
+        with pytest.raises(SolverError, match="is not exact: relative residual .* on a load on every DOF"):
+            _check_exact_dense(A, wrong, "test")
+    finally:
+        A.destroy()
