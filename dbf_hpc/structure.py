@@ -81,13 +81,14 @@ class Beam:
         self._check_transport()
 
     def _check_transport(self) -> None:
+        # check_number, as the other numbers: a bool is not a speed (True was taken as 1 m/s), a numpy
+        # integer is one (it was refused), and 78 and 78.0 are the same beam and cache key
+        put = object.__setattr__
         for name in ("axial_speed", "tension"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value)):
-                raise InputError(f"beam {name} must be a number, got {value!r}")
+            put(self, name, check_number(f"beam {name}", getattr(self, name)))
+        if self.transported_mass is not None:
+            put(self, "transported_mass", check_number("beam transported_mass", self.transported_mass, 0.0, above=True))
         m_t = self.transported_mass
-        if m_t is not None and not (isinstance(m_t, (int, float)) and np.isfinite(m_t) and m_t > 0):
-            raise InputError(f"beam transported_mass must be a positive number, got {m_t!r}")
         if m_t is not None and m_t > self.rho * self.A * (1 + 1e-12):
             raise InputError(f"beam transported_mass {m_t:g} kg/m exceeds rho A = {self.rho * self.A:g} kg/m, the "
                              f"whole mass per length, which includes it (a pipe: rho A = pipe + fluid)")

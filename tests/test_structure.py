@@ -209,3 +209,15 @@ def test_a_probe_on_a_support_is_refused():
     mesh = BeamMesh(beam(elements=10, supports=(0.5,)))
     with pytest.raises(InputError, match="on a support"):
         mesh.point_values([0.5])
+
+
+def test_axial_transport_numbers_are_checked_as_the_other_numbers_a_bool_is_no_speed():
+    # axial_speed = True was a beam moving at 1 m/s, a numpy integer speed was refused, and 78 and 78.0
+    # were two beams (two cache keys) of the same physics.
+    base = dict(length=1.0, E=2e11, I=1e-8, A=1e-4, rho=7800.0)
+    for bad in (dict(axial_speed=True), dict(tension=False), dict(transported_mass=True),
+                dict(axial_speed=float("inf")), dict(transported_mass=0.0)):
+        with pytest.raises(InputError, match=f"beam {next(iter(bad))} must be"):
+            Beam(**base, **bad)
+    assert Beam(**base, axial_speed=np.int64(3)).axial_speed == 3.0
+    assert repr(Beam(**base, axial_speed=78, tension=5)) == repr(Beam(**base, axial_speed=78.0, tension=5.0))
