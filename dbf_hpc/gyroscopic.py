@@ -226,6 +226,35 @@ def check_stable(ops: Operators, count: int, speed: str, prefix: str = "modes_")
         modes.destroy()
 
 
+def check_damped_stable(ops: Operators, damped: PETSc.Mat, count: int, speed: str, prefix: str = "modes_") -> None:
+    """An InputError if M u'' + `damped` u' + K u = 0 (damped = C + G) has a growing mode among the
+    `count` of smallest |lambda|: a structure whose K is not positive definite can be held by its
+    gyroscopic forces alone (all undamped lambda = +-i omega, check_stable passes), and damping then
+    destroys that stability (Kelvin-Tait-Chetaev): the run would grow without bound. Collective."""
+    pep = _pep(Operators(comm=ops.comm, K=ops.K, M=ops.M, G=damped), prefix, 1e-12)
+    try:
+        n = ops.size
+        pep.setDimensions(min(2 * count + 2, 2 * n), PETSc.DEFAULT, PETSc.DEFAULT)
+        try:
+            with options_defaults(prefix, FACTOR_DEFAULTS):
+                pep.solve()
+        except PETSc.Error as e:
+            raise SolverError(f"gyroscopic modes with damping: the eigensolver failed (PETSc error {e.ierr}); K may be "
+                              f"singular (the speed is exactly critical): move the axial speed off it") from None
+        worst = None
+        for i in range(pep.getConverged()):
+            lam = complex(pep.getEigenpair(i))
+            if lam.real > UNSTABLE_TOL * abs(lam) and pep.computeError(i, SLEPc.PEP.ErrorType.BACKWARD) <= BACKWARD_TOL:
+                worst = lam if worst is None or lam.real > worst.real else worst
+    finally:
+        pep.destroy()
+    if worst is not None:
+        raise InputError(f"the structure is unstable with its damping at axial speed {speed}: a mode grows (lambda = "
+                         f"{worst.real:.6g} {abs(worst.imag):+.6g}i 1/s, growth rate {worst.real:.6g} 1/s) though the "
+                         f"undamped one does not: K is not positive definite and only the gyroscopic forces held it, "
+                         f"which damping undoes; lower the axial speed (or stiffen K)")
+
+
 def mode_state(ops: Operators, mode: int, prefix: str = "modes_") -> tuple:
     """(u, v): the free vibration of complex mode `mode` (from 1) at t = 0, u = Re x, v = Re(lambda x)
     (x normalized as in normalize_complex; new Vecs, the caller's). Collective."""

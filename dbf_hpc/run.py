@@ -117,13 +117,16 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
 
 def _gyroscopic_checks(scene: Scene, fom, method: str) -> None:
     """A gyroscopic structure (issue 19): refused above its critical speed (an unstable mode among the
-    [basis] modes lowest, or the lowest 8); the reduced model (gyroscopic_basis.py) takes no modal
+    [basis] modes lowest, or the lowest 8, without and with its damping); the reduced model (gyroscopic_basis.py) takes no modal
     damping ratios (its basis vectors are not modes) and no tolerance mode. Collective."""
-    from .gyroscopic import check_stable
+    from .gyroscopic import check_damped_stable, check_stable
 
     s = scene["structure"]
     speed = f"{s['axial_speed']:g} m/s" if scene.is_beam else "of the given gyroscopic matrix"
-    check_stable(fom.operators, scene["basis"]["modes"] or 8, speed)
+    count = scene["basis"]["modes"] or 8
+    check_stable(fom.operators, count, speed)
+    if fom.damping.kind != "modal" and fom.damping_matrix() is not None:   # modal: refused below, or by --method full
+        check_damped_stable(fom.operators, fom.velocity_matrix(), count, speed)
     if method == "rom" and fom.damping.kind == "modal":
         raise InputError("[damping] zeta: modal damping ratios have no meaning for the real basis of a gyroscopic "
                          "structure's complex modes; give Rayleigh coefficients (rayleigh_alpha, rayleigh_beta)")

@@ -1082,3 +1082,56 @@ def test_a_transported_mass_above_the_whole_mass_per_length_is_refused():
     # rho A is the whole mass per length, pipe and fluid, and includes the transported mass.
     with pytest.raises(InputError, match="transported_mass 5 kg/m exceeds rho A = 1.48.* includes it"):
         Beam(length=1.5, E=2e11, I=9.6268e-9, A=1.44513e-4, rho=10247.0, axial_speed=10.0, transported_mass=5.0)
+
+
+def test_damping_destroys_gyroscopic_stabilization_and_the_damped_run_is_refused(shared_tmp_path):
+    # Kelvin-Tait-Chetaev: K = -1e4 I in two DOFs (no static stability), G = 300 J holds them (g^2 > 4 k:
+    # every undamped lambda = +-i omega); any damping makes a mode grow. The undamped check passed and
+    # the damped run grew without bound (0.15 m at 2 s, growth rate 3.37 1/s): now refused in one line,
+    # no file; without damping it runs (the conservative model is stable).
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    K = np.diag([-1e4, -1e4, 2e4])
+    G = np.array([[0.0, 300.0, 0.0], [-300.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    alpha = 20.0
+
+    def max_real(C):   # independent: the companion linearization in numpy
+        return np.linalg.eigvals(np.block([[np.zeros((3, 3)), np.eye(3)], [-K, -(G + C)]])).real.max()
+
+    assert max_real(np.zeros((3, 3))) < 1e-9 and max_real(alpha * np.eye(3)) > 3.0
+    if MPI.COMM_WORLD.rank == 0:
+        for name, mat in (("K", K), ("M", np.eye(3)), ("G", G)):
+            scipy.io.mmwrite(str(shared_tmp_path / f"{name}.mtx"), scipy.sparse.csr_matrix(mat), precision=17,
+                             symmetry="general")
+        for damping in (alpha, 0.0):
+            (shared_tmp_path / f"rotor_{damping:g}.toml").write_text(f"""[structure]
+kind = "matrices"
+stiffness = "K.mtx"
+mass = "M.mtx"
+gyroscopic = "G.mtx"
+[excitation]
+kind = "force"
+dof = 0
+amplitude = 1.0
+frequency_hz = 5.0
+[[constraint]]
+dof = 2
+law = "deadband"
+clearance = 1e-3
+k = 1e3
+[damping]
+rayleigh_alpha = {damping}
+[basis]
+modes = 3
+cache = "off"
+[integrator]
+t_end = 0.01
+""")
+    MPI.COMM_WORLD.Barrier()
+    out = shared_tmp_path / "rotor.h5"
+    for method in ("full", "rom"):
+        with pytest.raises(InputError, match=r"unstable with its damping .* growth rate 3\.374"):
+            run(load_scene(str(shared_tmp_path / f"rotor_{alpha:g}.toml")), str(out), progress=False, method=method)
+        assert not out.exists()
+    assert run(load_scene(str(shared_tmp_path / "rotor_0.toml")), str(out), progress=False, method="full") is not None
