@@ -9,8 +9,10 @@ and renamed when complete, so a crash never leaves a file that looks usable. On 
 the stored constraint rows must match what is asked, and the basis must still be what it claims:
 V^T M V = I, and diag(V^T K V) = omega^2 for the modes and hat-omega^2 for the other columns, on the
 operators at hand; what those cannot check (k_j, k_auto, the branches, f_exact) carries a sha256
-written with it (a file without one, from an older version, is rebuilt). Anything else (stale,
-corrupt, unreadable) is reported and rebuilt, never used. The key holds the kind of enrichment and
+written with it (a file without one, from an older version, is rebuilt). The whole file is sealed
+too: a sha256 of everything after HDF5's user block is written in that block (seal), and checked before
+HDF5 parses the file, since HDF5 crashes the process (a segmentation fault, not an error) on some
+damaged metadata. Anything else (stale, corrupt, unreadable) is reported and rebuilt, never used. The key holds the kind of enrichment and
 only the settings and solver options that kind uses. A gyroscopic basis in the second-order form
 (gyroscopic_basis.py) is cached too: its file adds the complex-mode count and the columns of each
 constraint, and on load its reduced model must still have the stored complex frequencies; the
@@ -42,6 +44,9 @@ from .operators import Operators
 # every constraint (the captured-flexibility indicator, accuracy.py).
 ALGORITHM = "dbf-basis-5"
 VERIFY_TOL = 1e-8
+# HDF5's user block, which the library skips: it holds SEAL and the sha256 of the rest of the file
+USERBLOCK = 512
+SEAL = b"dbf-hpc basis cache sha256 "
 ARRAYS = ("omega", "enrichment_omega", "dbf_k", "dbf_k_auto", "dbf_branch", "constraint_rows", "flexibility_exact")
 
 
@@ -61,6 +66,37 @@ def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool
                "rows": [int(r) for r in rows], "settings": settings.key(),
                "options": solver_options(settings.strategy.solver_prefixes)}
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _user_block(path: str) -> tuple:
+    """(the user block the file holds, the one that seals the bytes after it). Not collective."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        header = handle.read(USERBLOCK)
+        for chunk in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(chunk)
+    return header, (SEAL + digest.hexdigest().encode() + b"\n").ljust(USERBLOCK, b"\0")
+
+
+def seal(path: str) -> None:
+    """Write the sha256 of the file after its user block into that block (save() does it before the
+    rename). Not collective."""
+    _, block = _user_block(path)
+    with open(path, "r+b") as handle:
+        handle.write(block)
+
+
+def seal_problem(path: str) -> str | None:
+    """Why the file's seal does not hold (None if it does), read without HDF5. Not collective."""
+    try:
+        stored, expected = _user_block(path)
+    except OSError as e:
+        return f"cannot be read ({type(e).__name__})"
+    if not stored.startswith(SEAL):
+        return "has no file checksum (written by an older version, or not by this cache)"
+    if stored != expected:
+        return "fails its file checksum (damaged or truncated)"
+    return None
 
 
 def _say(comm, message: str) -> None:
@@ -84,7 +120,7 @@ def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
     if world.rank == 0:
         try:
             check_free_space(path, 8.0 * n * basis.size, "basis cache")
-            f = h5py.File(tmp, "w")
+            f = h5py.File(tmp, "w", userblock_size=USERBLOCK)
             V = f.create_dataset("V", shape=(n, basis.size), dtype="f8")
             arrays = {name: np.asarray(getattr(basis, name)) for name in ARRAYS}
             if basis.complex_modes:   # a gyroscopic basis: Re and Im columns (gyroscopic_basis.py)
@@ -123,6 +159,7 @@ def _close_and_rename(f, V, tmp: str, path: str, error: str | None) -> str | Non
         if f is not None:
             f.close()
         if error is None:
+            seal(tmp)
             with open(tmp, "rb") as handle:
                 os.fsync(handle.fileno())
             os.replace(tmp, path)
@@ -175,7 +212,11 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows) -> 
     None (and a line saying why). Everything it carries is checked against what is asked now: the
     key, the constraint rows, the shapes, V^T M V = I and the frequencies on these operators."""
     world = ops.comm.tompi4py()
-    problem, arrays, block = _read(path, key, ops, np.asarray(rows, dtype=np.int64), settings)
+    # the seal first, on rank 0 alone: HDF5 must not parse a damaged file (it may crash the process)
+    problem = world.bcast(seal_problem(path) if world.rank == 0 else None, root=0)
+    arrays, block = {}, None
+    if not problem:
+        problem, arrays, block = _read(path, key, ops, np.asarray(rows, dtype=np.int64), settings)
     problem = next((p for p in world.allgather(problem) if p), None)
     if problem:
         _say(ops.comm, f"basis cache {path} {problem}; rebuilding it")
@@ -309,6 +350,8 @@ def entries(cache_dir: str) -> list:
         entry = {"path": path, "size": os.path.getsize(path), "modified": os.path.getmtime(path)}
         if match.group(2):
             entry.update(problem="a temporary file left by a killed job (or being written)", temporary=True)
+        elif (seal_problem(path) or "").startswith("fails"):   # never parsed by HDF5 (it may crash)
+            entry["problem"] = "unreadable (damaged)"
         else:
             try:
                 with h5py.File(path, "r") as f:
@@ -322,7 +365,7 @@ def entries(cache_dir: str) -> list:
             except (OSError, KeyError, RuntimeError) as e:
                 if refused_lock(e):      # readable where locks work: never removed for it
                     entry.update(problem=LOCK_HINT, foreign=True)
-                elif not has_hdf5_signature(path):
+                elif not (has_hdf5_signature(path) or seal_problem(path) is None):
                     entry.update(problem="not a basis this cache wrote: kept", foreign=True)
                 else:
                     entry["problem"] = "unreadable (damaged)"

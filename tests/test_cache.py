@@ -10,6 +10,7 @@ import pytest
 from mpi4py import MPI
 
 from conftest import assert_all
+from dbf_hpc.cache import seal
 from dbf_hpc.modes import counters
 from dbf_hpc.reductor import Reductor
 from dbf_hpc.scene import validate
@@ -89,6 +90,7 @@ def test_a_corrupt_basis_is_detected_and_rebuilt(shared_tmp_path):
     if MPI.COMM_WORLD.rank == 0:
         with h5py.File(path, "r+") as f:
             f["V"][5, 2] *= 1.001     # one flipped value: V^T M V is no longer I
+        seal(path)                    # sealed again: the check of V itself is what this is about
     MPI.COMM_WORLD.Barrier()
     rebuilt, solves, state = obtain(scene(), shared_tmp_path)
     assert solves > 0 and state == "stored"
@@ -145,6 +147,53 @@ def test_dbf_settings_do_not_split_the_cache_of_the_other_kinds(shared_tmp_path,
     assert solves > 0 and state == "stored", "for DBFs the stiffness does matter"
 
 
+# Offsets from the HDF5 signature where one flipped bit crashed HDF5 1.10.8 (a segmentation fault)
+# reading this scene's basis file
+CRASHED_HDF5 = (920, 1504)
+
+
+def test_a_damaged_cache_file_is_rebuilt_without_hdf5_parsing_it(shared_tmp_path):
+    # Red team: one flipped bit in a cache file's HDF5 metadata crashed the process (segmentation
+    # fault inside HDF5, not an error): that run, every run of the scene after it, and `cache list` and
+    # `cache clear`, so the file could not even be removed. The file's seal (a sha256 of everything
+    # after HDF5's user block) is checked before HDF5 opens it.
+    from dbf_hpc import cache
+
+    reference, _, _ = obtain(scene(), shared_tmp_path)
+    path = _cache_file(shared_tmp_path)
+    missed = []
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "rb") as f:
+            original = f.read()
+        start = original.find(b"\x89HDF\r\n\x1a\n")
+        for offset in range(0, len(original), 61):    # the user block, HDF5's metadata, V
+            damaged = bytearray(original)
+            damaged[offset] ^= 1 << (offset % 8)
+            with open(path, "wb") as f:
+                f.write(damaged)
+            if cache.seal_problem(path) is None:
+                missed.append(offset)
+        damaged = bytearray(original)
+        for offset in CRASHED_HDF5:
+            damaged[start + offset] ^= 1
+        with open(path, "wb") as f:
+            f.write(damaged)
+        problems = [e.get("problem") for e in cache.entries(str(shared_tmp_path))]
+    else:
+        problems = None
+    assert MPI.COMM_WORLD.bcast((missed, problems), root=0) == ([], ["unreadable (damaged)"])
+    rebuilt, solves, state = obtain(scene(), shared_tmp_path)
+    assert solves > 0 and state == "stored"
+    assert np.allclose(rebuilt, reference, rtol=1e-10)
+    assert obtain(scene(), shared_tmp_path)[2] == "hit"    # the rebuilt file is sealed again
+    cleared = None
+    if MPI.COMM_WORLD.rank == 0:    # a truncated file: listed as damaged, and cleared
+        with open(path, "r+b") as f:
+            f.truncate(len(original) - 8)
+        cleared = cache.clear(str(shared_tmp_path)) == (1, len(original) - 8) and not os.path.exists(path)
+    assert MPI.COMM_WORLD.bcast(cleared, root=0)
+
+
 def test_stored_constraint_rows_that_differ_from_the_scene_are_detected_and_rebuilt(shared_tmp_path):
     # Red team: one flipped bit in the stored rows moved the contact to the next node while the output
     # said x = 0.25. Everything a cached basis carries is checked against what the scene asks for.
@@ -153,6 +202,7 @@ def test_stored_constraint_rows_that_differ_from_the_scene_are_detected_and_rebu
     if MPI.COMM_WORLD.rank == 0:
         with h5py.File(path, "r+") as f:
             f["constraint_rows"][0] += 2          # the next node's w
+        seal(path)                                # a whole file: the rows' own check must see it
     MPI.COMM_WORLD.Barrier()
     rebuilt, solves, state = obtain(scene(), shared_tmp_path)
     assert solves > 0 and state == "stored"
@@ -168,6 +218,7 @@ def test_a_stored_value_the_operators_cannot_check_is_covered_by_a_checksum(shar
     if MPI.COMM_WORLD.rank == 0:
         with h5py.File(path, "r+") as f:
             f[name][...] = f[name][...] * 2
+        seal(path)                                # a whole file: the arrays' checksum must see it
     MPI.COMM_WORLD.Barrier()
     size, Kr, B, omega, k, solves, state = summary(scene(), shared_tmp_path)
     assert solves > 0 and state == "stored"
@@ -239,6 +290,7 @@ def test_a_gyroscopic_basis_of_another_speed_under_this_key_is_detected_and_rebu
         os.replace(path, other)
         with h5py.File(other, "r+") as f:
             f.attrs["key"] = key
+        seal(other)                               # a whole file: the complex frequencies must see it
     MPI.COMM_WORLD.Barrier()
     rebuilt, solves, state, _ = gyroscopic_basis(shared_tmp_path / "b", **slow)
     assert solves > 0 and state == "stored"
