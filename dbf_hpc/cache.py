@@ -5,18 +5,19 @@ conclusion 2).
 A cache file `basis-<key>.h5` holds V (n x r), the frequencies, k_j, the constraint rows, the
 settings and the full key; r is the number of columns actually present (the modes and one column
 per constraint, or the modes alone for enrichment = "none"). It is written under a temporary name
-and renamed when complete, so a crash never leaves a file that looks usable. On load, the key and
-the stored constraint rows must match what is asked, and the basis must still be what it claims:
-V^T M V = I, and diag(V^T K V) = omega^2 for the modes and hat-omega^2 for the other columns, on the
-operators at hand; what those cannot check (k_j, k_auto, the branches, f_exact) carries a sha256
-written with it (a file without one, from an older version, is rebuilt). The whole file is sealed
-too: a sha256 of everything after HDF5's user block is written in that block (seal), and checked before
-HDF5 parses the file, since HDF5 crashes the process (a segmentation fault, not an error) on some
-damaged metadata. Anything else (stale, corrupt, unreadable) is reported and rebuilt, never used. The key holds the kind of enrichment and
-only the settings and solver options that kind uses. A gyroscopic basis in the second-order form
-(gyroscopic_basis.py) is cached too: its file adds the complex-mode count and the columns of each
-constraint, and on load its reduced model must still have the stored complex frequencies; the
-state-space basis (state_space.py) is not cached.
+and renamed when complete, so a crash never leaves a file that looks usable. The whole file is
+sealed: a sha256 of everything after HDF5's user block is written in that block (seal), and checked
+before HDF5 parses the file, since HDF5 crashes the process (a segmentation fault, not an error) on
+some damaged metadata. On load, the key and the stored constraint rows must match what is asked,
+and the basis must still be what it claims: V^T M V = I (to VERIFY_TOL beyond the basis's own
+defect, stored with it: many modes carry SLEPc's, amplified by Gram-Schmidt), and diag(V^T K V) =
+omega^2 for the modes and hat-omega^2 for the other columns, on the operators at hand; what those
+cannot check (k_j, k_auto, the branches, f_exact) carries a sha256 written with it. Anything else
+(stale, corrupt, unreadable, or from an older version) is reported and rebuilt, never used. The key
+holds the kind of enrichment and only the settings and solver options that kind uses. A gyroscopic
+basis in the second-order form (gyroscopic_basis.py) is cached too: its file adds the complex-mode
+count and the columns of each constraint, and on load its reduced model must still have the stored
+complex frequencies; the state-space basis (state_space.py) is not cached.
 
 All functions are collective on ops.comm.
 """
@@ -105,10 +106,11 @@ def _say(comm, message: str) -> None:
 
 
 
-def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
+def save(basis: ReducedBasis, path: str, key: str, comm, defect: float = 0.0) -> str | None:
     """Write the basis to `path` atomically (a temporary file, fsync, then rename), rank 0 writing
-    every rank's rows in turn (memory: one rank's block). Returns None, or why it could not be
-    written (every rank gets the same answer; no temporary file is left). Collective."""
+    every rank's rows in turn (memory: one rank's block). `defect` is the basis's own max|V^T M V - I|
+    (load allows that much plus VERIFY_TOL). Returns None, or why it could not be written (every rank
+    gets the same answer; no temporary file is left). Collective."""
     world = comm.tompi4py()
     dense = basis.vectors.getMat()
     lo, hi = dense.getOwnershipRange()
@@ -133,6 +135,7 @@ def save(basis: ReducedBasis, path: str, key: str, comm) -> str | None:
             # V is checked on load against the operators (V^T M V = I, its frequencies); these are not
             f.attrs["arrays_sha256"] = arrays_sha256(arrays)
             f.attrs["key"] = key
+            f.attrs["orthonormality_defect"] = float(defect)
             f.attrs["settings"] = json.dumps(basis.settings.key(), default=str)
             f.attrs["dbf_hpc_version"] = __version__
         except InputError:
@@ -179,6 +182,9 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings):
             if f.attrs.get("key") != key:
                 return "was made for other operators or settings", {}, None
             arrays = {name: f[name][...] for name in ARRAYS}
+            defect = float(f.attrs["orthonormality_defect"])
+            if not (np.isfinite(defect) and defect >= 0.0):
+                return "has the wrong shape", {}, None
             enriched = settings.strategy.count(len(rows))
             if not np.array_equal(arrays["constraint_rows"], rows):
                 return "holds other constraint rows (corrupt)", {}, None
@@ -202,7 +208,7 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings):
                     or any(arrays[name].size != enriched for name in ("dbf_k", "dbf_k_auto", "dbf_branch"))
                     or arrays["flexibility_exact"].size != len(rows)):
                 return "has the wrong shape", {}, None
-            return None, arrays, f["V"][lo:hi, :]
+            return None, {**arrays, "orthonormality_defect": defect}, f["V"][lo:hi, :]
     except (OSError, KeyError, ValueError) as e:
         return f"cannot be read ({LOCK_HINT if refused_lock(e) else type(e).__name__})", {}, None
 
@@ -243,7 +249,9 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows) -> 
                        and np.allclose(np.diag(Kr)[N:], basis.enrichment_omega**2, rtol=VERIFY_TOL * 100))
     else:
         frequencies = _holds_complex_modes(Kr, basis.project(ops.G), basis.omega)
-    ok = (np.all(np.isfinite(G)) and np.abs(G - np.eye(r)).max() < VERIFY_TOL and frequencies
+    # as M-orthonormal as when it was stored (many modes: SLEPc's own defect, amplified by Gram-Schmidt)
+    ok = (np.all(np.isfinite(G)) and np.abs(G - np.eye(r)).max() < VERIFY_TOL + arrays["orthonormality_defect"]
+          and frequencies
           and _flexibility_plausible(basis.flexibility_captured))
     if not ok:
         _say(ops.comm, f"basis cache {path} does not match the operators (corrupt or stale); rebuilding it")
@@ -315,7 +323,8 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
         if basis is not None:
             return basis
     basis = build_basis(ops, rows, settings, labels)
-    error = _prepare_directory(cache_dir, ops.comm) or save(basis, path, key, ops.comm)
+    defect = float(np.abs(basis.project(ops.M) - np.eye(basis.size)).max(initial=0.0))
+    error = _prepare_directory(cache_dir, ops.comm) or save(basis, path, key, ops.comm, defect)
     if error:
         warn(f"cannot write the basis cache in {cache_dir}: {error}", ops.comm)
         basis.stats["cache"] = "unwritable"
