@@ -386,10 +386,12 @@ def clear(cache_dir: str, older_than_days: float | None = None) -> tuple[int, in
     """Remove cached bases (those not used for older_than_days, if given), unreadable ones and
     temporary files left by killed jobs (untouched for STALE_TEMPORARY_S): (files removed, bytes
     freed). Only files named as save() names them, and never a readable file save() did not write.
-    Not collective."""
+    Not collective. Files it cannot remove (a read-only file system, no permission) are an InputError
+    after the others are removed, saying how many were."""
     import time
 
     removed = freed = 0
+    refused = []
     for entry in entries(cache_dir):
         age_s = time.time() - entry["modified"]
         if entry.get("foreign"):
@@ -403,5 +405,12 @@ def clear(cache_dir: str, older_than_days: float | None = None) -> tuple[int, in
                 os.remove(entry["path"])
             except FileNotFoundError:   # another clear, or the writer's rename, got there first
                 continue
+            except OSError as e:
+                refused.append(write_failure(e))
+                continue
             removed, freed = removed + 1, freed + entry["size"]
+    if refused:
+        raise InputError(f"cannot remove {len(refused)} file(s) of the basis cache in {cache_dir} ({refused[0]}; "
+                         f"removed {removed} file(s), {freed / 2**20:.3g} MiB): check the directory's "
+                         f"permissions and file system")
     return removed, freed

@@ -320,3 +320,23 @@ def test_a_gyroscopic_basis_of_another_speed_under_this_key_is_detected_and_rebu
     rebuilt, solves, state, _ = gyroscopic_basis(shared_tmp_path / "b", **slow)
     assert solves > 0 and state == "stored"
     assert np.abs(rebuilt - reference).max() < 1e-10 * np.abs(reference).max()
+
+
+def test_clear_on_a_read_only_cache_is_one_error_saying_what_it_could_not_remove(tmp_path):
+    # Red team: `dbf-hpc cache clear` on a read-only file system ended in "internal error (OSError)"
+    # at the first file. Not collective: each rank clears a cache of its own.
+    import subprocess
+
+    from conftest import tmpfs_disk
+    from dbf_hpc import cache
+    from dbf_hpc.errors import InputError
+
+    with tmpfs_disk(tmp_path, "1m") as disk:
+        damaged = disk / "basis-0123456789abcdef0123.h5"
+        damaged.write_bytes(b"\x89HDF\r\n\x1a\n damaged")
+        assert [e.get("problem") for e in cache.entries(str(disk))] == ["unreadable (damaged)"]
+        subprocess.run(["mount", "-o", "remount,ro", str(disk)], check=True)
+        with pytest.raises(InputError, match=r"cannot remove 1 file\(s\) of the basis cache .*Read-only file "
+                                             r"system; removed 0 file\(s\)"):
+            cache.clear(str(disk))
+        assert damaged.exists()
