@@ -33,7 +33,7 @@ import numpy as np
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
-from . import __version__
+from . import __version__, sealed
 from .basis import BasisSettings, ReducedBasis, build_basis
 from .checkpoint import arrays_sha256
 from .errors import LOCK_HINT, WRITE_ERRORS, InputError, park, refused_lock, warn, write_failure
@@ -45,9 +45,7 @@ from .operators import Operators
 # every constraint (the captured-flexibility indicator, accuracy.py).
 ALGORITHM = "dbf-basis-5"
 VERIFY_TOL = 1e-8
-# HDF5's user block, which the library skips: it holds SEAL and the sha256 of the rest of the file
-USERBLOCK = 512
-SEAL = b"dbf-hpc basis cache sha256 "
+SEAL = b"dbf-hpc basis cache sha256 "   # the tag of the file's seal (sealed.py)
 ARRAYS = ("omega", "enrichment_omega", "dbf_k", "dbf_k_auto", "dbf_branch", "constraint_rows", "flexibility_exact")
 
 
@@ -69,35 +67,14 @@ def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _user_block(path: str) -> tuple:
-    """(the user block the file holds, the one that seals the bytes after it). Not collective."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        header = handle.read(USERBLOCK)
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return header, (SEAL + digest.hexdigest().encode() + b"\n").ljust(USERBLOCK, b"\0")
-
-
 def seal(path: str) -> None:
-    """Write the sha256 of the file after its user block into that block (save() does it before the
-    rename). Not collective."""
-    _, block = _user_block(path)
-    with open(path, "r+b") as handle:
-        handle.write(block)
+    """Seal a basis file (sealed.py; save() does it before the rename). Not collective."""
+    sealed.seal(path, SEAL)
 
 
 def seal_problem(path: str) -> str | None:
-    """Why the file's seal does not hold (None if it does), read without HDF5. Not collective."""
-    try:
-        stored, expected = _user_block(path)
-    except OSError as e:
-        return f"cannot be read ({type(e).__name__})"
-    if not stored.startswith(SEAL):
-        return "has no file checksum (written by an older version, or not by this cache)"
-    if stored != expected:
-        return "fails its file checksum (damaged or truncated)"
-    return None
+    """Why the basis file's seal does not hold (None if it does), read without HDF5. Not collective."""
+    return sealed.seal_problem(path, SEAL, "this cache")
 
 
 def _say(comm, message: str) -> None:
@@ -122,7 +99,7 @@ def save(basis: ReducedBasis, path: str, key: str, comm, defect: float = 0.0) ->
     if world.rank == 0:
         try:
             check_free_space(path, 8.0 * n * basis.size, "basis cache")
-            f = h5py.File(tmp, "w", userblock_size=USERBLOCK)
+            f = h5py.File(tmp, "w", userblock_size=sealed.USERBLOCK)
             V = f.create_dataset("V", shape=(n, basis.size), dtype="f8")
             arrays = {name: np.asarray(getattr(basis, name)) for name in ARRAYS}
             if basis.complex_modes:   # a gyroscopic basis: Re and Im columns (gyroscopic_basis.py)

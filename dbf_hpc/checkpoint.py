@@ -7,7 +7,9 @@ A checkpoint is an HDF5 file (OUT.h5.checkpoint): data, never code. It holds
 - the identity of the run it belongs to, part by part (the scene, the structure's operators and
   files, the PETSc options, the rank count, the method); a resume that differs in any part is
   refused, naming the part;
-- a sha256 checksum over every dataset and the identity: a flipped bit is refused, never resumed.
+- a sha256 checksum over every dataset and the identity: a flipped bit is refused, never resumed;
+- a seal over the whole file (sealed.py), checked before HDF5 parses it: damaged metadata is the
+  same one-line refusal, not an HDF5 crash or traceback.
 It is written under a temporary name, fsynced and renamed, so a kill never leaves half of one.
 """
 from __future__ import annotations
@@ -19,9 +21,11 @@ import os
 import h5py
 import numpy as np
 
+from . import sealed
 from .errors import WRITE_ERRORS, InputError, park
 
-FORMAT = "dbf-hpc-checkpoint-1"
+FORMAT = "dbf-hpc-checkpoint-2"
+SEAL = b"dbf-hpc checkpoint sha256 "   # the tag of the file's seal (sealed.py)
 
 
 def identity(**parts) -> dict:
@@ -57,13 +61,14 @@ class Checkpoint:
         tmp = f"{self.path}.tmp"
         f = None
         try:
-            f = h5py.File(tmp, "w")
+            f = h5py.File(tmp, "w", userblock_size=sealed.USERBLOCK)
             for name, value in datasets.items():
                 f.create_dataset(name, data=value)
             f.attrs["format"] = FORMAT
             f.attrs["identity"] = json.dumps(self.identity, sort_keys=True)
             f.attrs["checksum"] = _checksum(datasets, self.identity)
             f.close()
+            sealed.seal(tmp, SEAL)
             with open(tmp, "rb") as handle:
                 os.fsync(handle.fileno())
         except WRITE_ERRORS:
@@ -81,6 +86,9 @@ class Checkpoint:
         for one that belongs to another run or is corrupt."""
         if not os.path.exists(self.path):
             return None
+        problem = sealed.seal_problem(self.path, SEAL)   # before HDF5 parses it (it may crash on damage)
+        if problem:
+            raise InputError(f"{self.path} {problem}; remove it or rerun without --resume")
         try:
             with h5py.File(self.path, "r") as f:
                 if f.attrs.get("format") != FORMAT:
@@ -91,7 +99,7 @@ class Checkpoint:
                 f.visititems(lambda name, obj: state.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset)
                              else None)
                 checksum = f.attrs["checksum"]
-        except (OSError, KeyError, ValueError) as e:
+        except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
             raise InputError(f"{self.path} cannot be read ({type(e).__name__}); remove it or rerun without "
                              f"--resume") from None
         different = [part for part in sorted(set(stored) | set(self.identity))

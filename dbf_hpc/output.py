@@ -109,7 +109,16 @@ def is_dbf_partial(path: str) -> bool:
 
 
 def is_dbf_checkpoint(path: str) -> bool:
-    """Whether `path` can be a checkpoint (OUT.h5.checkpoint) dbf-hpc wrote."""
+    """Whether `path` can be a checkpoint (OUT.h5.checkpoint) dbf-hpc wrote: sealed as one (read
+    without HDF5, which may crash on a damaged file), or an older one's attributes."""
+    from .checkpoint import SEAL
+
+    try:
+        with open(path, "rb") as f:
+            if f.read(len(SEAL)) == SEAL:
+                return True
+    except OSError:
+        pass
     return _written_by_us(path, lambda attrs: str(attrs.get("format", "")).startswith("dbf-hpc-checkpoint"),
                           damaged=True)
 

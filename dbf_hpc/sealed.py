@@ -1,0 +1,42 @@
+"""Sealed HDF5 files: a sha256 of everything after HDF5's user block, written into that block, and
+checked before HDF5 parses the file. HDF5 1.10 crashes the process (a segmentation fault) or raises
+assorted errors on some damaged metadata; the files dbf-hpc reads back (the basis cache, checkpoints)
+are checked here first, so a damaged one is a line saying so, never a crash or a traceback.
+
+Write with h5py.File(path, "w", userblock_size=USERBLOCK), close, then seal(path, tag). Not collective.
+"""
+from __future__ import annotations
+
+import hashlib
+
+USERBLOCK = 512   # HDF5's user block, which the library skips: the tag and the sha256 of the rest
+
+
+def _user_block(path: str, tag: bytes) -> tuple:
+    """(the user block the file holds, the one that seals the bytes after it)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        header = handle.read(USERBLOCK)
+        for chunk in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(chunk)
+    return header, (tag + digest.hexdigest().encode() + b"\n").ljust(USERBLOCK, b"\0")
+
+
+def seal(path: str, tag: bytes) -> None:
+    """Write the sha256 of the file after its user block, after `tag`, into that block."""
+    _, block = _user_block(path, tag)
+    with open(path, "r+b") as handle:
+        handle.write(block)
+
+
+def seal_problem(path: str, tag: bytes, writer: str = "dbf-hpc") -> str | None:
+    """Why the file's seal does not hold (None if it does), read without HDF5."""
+    try:
+        stored, expected = _user_block(path, tag)
+    except OSError as e:
+        return f"cannot be read ({type(e).__name__})"
+    if not stored.startswith(tag):
+        return f"has no file checksum (written by an older version, or not by {writer})"
+    if stored != expected:
+        return "fails its file checksum (damaged or truncated)"
+    return None
