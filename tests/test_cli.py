@@ -423,6 +423,19 @@ def small_disk(tmp_path):
         yield mount
 
 
+def _fill_and_expect_one_line(disk, run):
+    """Another job fills the disk under the running `run`, which must end in one line naming it."""
+    with open(disk / "filler", "wb") as f:
+        try:
+            while True:
+                f.write(b"\0" * 65536)
+        except OSError:
+            pass
+    _, stderr = run.communicate(timeout=300)
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert run.returncode == 1 and len(lines) == 1 and "No space left on device" in lines[0], stderr
+
+
 def test_a_disk_too_small_or_filling_up_is_one_line_never_a_crash(small_disk):
     # Red team: a full disk gave tracebacks, then a segfault (exit 139) and a stray temp file.
     import time
@@ -442,15 +455,7 @@ def test_a_disk_too_small_or_filling_up_is_one_line_never_a_crash(small_disk):
                  "--set", "integrator.t_end=3", "--set", "integrator.callbacks=python", "--set", "output.snapshots=0")
     _wait_for(str(small_disk / "out.h5.partial"), run)
     time.sleep(1)
-    with open(small_disk / "filler", "wb") as f:      # another job fills the disk
-        try:
-            while True:
-                f.write(b"\0" * 65536)
-        except OSError:
-            pass
-    _, stderr = run.communicate(timeout=300)
-    lines = [line for line in stderr.splitlines() if line.strip()]
-    assert run.returncode == 1 and len(lines) == 1 and "No space left on device" in lines[0], stderr
+    _fill_and_expect_one_line(small_disk, run)
     assert not [p for p in os.listdir(small_disk) if ".tmp" in p]
 
 
@@ -467,15 +472,7 @@ def test_a_full_order_run_the_disk_fills_under_stops_in_one_line_and_resumes_to_
     target = small_disk / "out.h5"
     run = _start("run", PAPER, "-o", str(target), *common)
     _wait_for(f"{target}.checkpoint", run)
-    with open(small_disk / "filler", "wb") as f:      # another job fills the disk
-        try:
-            while True:
-                f.write(b"\0" * 65536)
-        except OSError:
-            pass
-    _, stderr = run.communicate(timeout=300)
-    lines = [line for line in stderr.splitlines() if line.strip()]
-    assert run.returncode == 1 and len(lines) == 1 and "No space left on device" in lines[0], stderr
+    _fill_and_expect_one_line(small_disk, run)
     (small_disk / "filler").unlink()
     resumed = dbf_hpc("run", PAPER, "-o", str(target), "--resume", *common)
     assert resumed.returncode == 0, resumed.stderr
