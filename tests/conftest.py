@@ -102,3 +102,38 @@ def tmpfs_disk(folder, size: str):
     finally:
         subprocess.run(["umount", str(mount)], capture_output=True)
 
+
+
+ROTOR_SCENE = """[structure]
+kind = "matrices"
+stiffness = "K.mtx"
+mass = "M.mtx"
+gyroscopic = "G.mtx"
+[excitation]
+kind = "force"
+dof = 0
+amplitude = 1.0
+frequency_hz = 5.0
+[[constraint]]
+dof = 2
+law = "deadband"
+clearance = 1e-3
+k = 1e3
+"""
+
+
+def write_rotor(folder, K, G, scenes: dict) -> None:
+    """A 3-DOF rotor (M = I, the given K and gyroscopic G as Matrix Market files) with a 1 N force at
+    5 Hz on DOF 0 and a deadband stop on DOF 2, as scenes `name: extra sections` in `folder`
+    (rank 0 writes; every rank waits)."""
+    import numpy as np
+    import scipy.io
+    import scipy.sparse
+
+    if MPI.COMM_WORLD.rank == 0:
+        for name, mat in (("K", K), ("M", np.eye(3)), ("G", G)):
+            scipy.io.mmwrite(str(folder / f"{name}.mtx"), scipy.sparse.csr_matrix(mat), precision=17,
+                             symmetry="general")
+        for name, extra in scenes.items():
+            (folder / name).write_text(ROTOR_SCENE + extra)
+    MPI.COMM_WORLD.Barrier()

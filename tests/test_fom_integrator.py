@@ -297,41 +297,20 @@ def test_a_gyroscopic_matrix_model_whose_g_couples_dofs_k_does_not_is_integrated
     # the reference was 0.4 % off at dt = 1e-4 s and 100 % at 2e-5 s. Independent truth: the linear
     # ODE M u'' + G u' + K u = e_0 sin(Omega t) by scipy's DOP853 at rtol 1e-11.
     import h5py
-    import scipy.io
-    import scipy.sparse
     from scipy.integrate import solve_ivp
 
+    from conftest import write_rotor
     from dbf_hpc.run import run
     from dbf_hpc.scene import load_scene
 
     K = np.diag([1e4, 1.5e4, 2e4])
     G = np.array([[0.0, 300.0, 0.0], [-300.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    if MPI.COMM_WORLD.rank == 0:
-        for name, mat in (("K", K), ("M", np.eye(3)), ("G", G)):
-            scipy.io.mmwrite(str(shared_tmp_path / f"{name}.mtx"), scipy.sparse.csr_matrix(mat), precision=17,
-                             symmetry="general")
-        (shared_tmp_path / "rotor.toml").write_text("""[structure]
-kind = "matrices"
-stiffness = "K.mtx"
-mass = "M.mtx"
-gyroscopic = "G.mtx"
-[excitation]
-kind = "force"
-dof = 0
-amplitude = 1.0
-frequency_hz = 5.0
-[[constraint]]
-dof = 2
-law = "deadband"
-clearance = 1e-3
-k = 1e3
-[integrator]
+    write_rotor(shared_tmp_path, K, G, {"rotor.toml": """[integrator]
 t_end = 0.5
 dt = 2e-5
 [output]
 probes = [0, 1]
-""")
-    MPI.COMM_WORLD.Barrier()
+"""})
     out = shared_tmp_path / "rotor.h5"
     run(load_scene(str(shared_tmp_path / "rotor.toml")), str(out), progress=False, method="full")
     MPI.COMM_WORLD.Barrier()

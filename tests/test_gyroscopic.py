@@ -9,7 +9,7 @@ import scipy.sparse
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from conftest import assert_all
+from conftest import assert_all, write_rotor
 from dbf_hpc.errors import InputError
 from dbf_hpc.gyroscopic import gyroscopic_modes
 from dbf_hpc.modes import reference_modes
@@ -1100,35 +1100,14 @@ def test_damping_destroys_gyroscopic_stabilization_and_the_damped_run_is_refused
         return np.linalg.eigvals(np.block([[np.zeros((3, 3)), np.eye(3)], [-K, -(G + C)]])).real.max()
 
     assert max_real(np.zeros((3, 3))) < 1e-9 and max_real(alpha * np.eye(3)) > 3.0
-    if MPI.COMM_WORLD.rank == 0:
-        for name, mat in (("K", K), ("M", np.eye(3)), ("G", G)):
-            scipy.io.mmwrite(str(shared_tmp_path / f"{name}.mtx"), scipy.sparse.csr_matrix(mat), precision=17,
-                             symmetry="general")
-        for damping in (alpha, 0.0):
-            (shared_tmp_path / f"rotor_{damping:g}.toml").write_text(f"""[structure]
-kind = "matrices"
-stiffness = "K.mtx"
-mass = "M.mtx"
-gyroscopic = "G.mtx"
-[excitation]
-kind = "force"
-dof = 0
-amplitude = 1.0
-frequency_hz = 5.0
-[[constraint]]
-dof = 2
-law = "deadband"
-clearance = 1e-3
-k = 1e3
-[damping]
+    write_rotor(shared_tmp_path, K, G, {f"rotor_{damping:g}.toml": f"""[damping]
 rayleigh_alpha = {damping}
 [basis]
 modes = 3
 cache = "off"
 [integrator]
 t_end = 0.01
-""")
-    MPI.COMM_WORLD.Barrier()
+""" for damping in (alpha, 0.0)})
     out = shared_tmp_path / "rotor.h5"
     for method in ("full", "rom"):
         with pytest.raises(InputError, match=r"unstable with its damping .* growth rate 3\.374"):
