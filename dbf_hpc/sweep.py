@@ -195,9 +195,15 @@ def _case_file(folder: str, index: int) -> str:
     return os.path.join(folder, f"case-{index:05d}.json")
 
 
+def record_checksum(record: dict) -> str:
+    """sha256 of a case's record without its own "sha256" entry (written with it, checked on read)."""
+    body = {key: value for key, value in record.items() if key != "sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
 def _write_json(path: str, content: dict) -> None:
     with replacing(path) as tmp, open(tmp, "w") as f:
-        json.dump(content, f)
+        json.dump({**content, "sha256": record_checksum(content)}, f)
 
 
 # What a case's record holds (_run_one), and what a finished one adds: a file without them is rerun
@@ -207,13 +213,16 @@ RECORD_KEYS_OK = ("stats", "probe_peak", "solver", "final_state", "final_time", 
 
 
 def _read_json(path: str) -> dict | None:
-    """A case's record, or None when it is missing or not one (truncated, edited)."""
+    """A case's record, or None when it is missing or not one (truncated, edited, a changed digit:
+    its checksum): the case is run again."""
     try:
         with open(path) as f:
             record = json.load(f)
     except (OSError, ValueError):
         return None
     if not isinstance(record, dict) or any(key not in record for key in RECORD_KEYS):
+        return None
+    if record.get("sha256") != record_checksum(record):
         return None
     if record["status"] == "ok" and any(key not in record for key in RECORD_KEYS_OK):
         return None

@@ -77,6 +77,33 @@ def test_rerunning_a_killed_sweep_skips_the_finished_cases(shared_tmp_path):
         assert json.load(f)["status"] == "ok"
 
 
+def _write_record(path: str, record: dict) -> None:
+    """A crafted case record with a valid checksum: what the sweep must see through is its content."""
+    from dbf_hpc.sweep import record_checksum
+
+    with open(path, "w") as f:
+        json.dump({**record, "sha256": record_checksum(record)}, f)
+
+
+def test_a_changed_digit_in_a_finished_case_record_reruns_the_case(shared_tmp_path):
+    # Red team: a record is JSON that passed its shape checks; a changed number (bit rot, an edit) in
+    # its statistics went into the summary as the case's result. Its checksum sends the case to run again.
+    path, files = _swept(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n'
+                                          '"integrator.t_end" = [0.05]\n', 2)
+    fresh = [json.load(open(name)) for name in files]
+    kept = os.path.getmtime(files[1])
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        with open(files[0], "w") as f:
+            json.dump(dict(fresh[0], stats={k: [v[0] * 2] for k, v in fresh[0]["stats"].items()}), f)
+    MPI.COMM_WORLD.Barrier()
+    result = run_sweep(path, progress=False)
+    again = [json.load(open(name)) for name in files]
+    assert_all(again[0]["stats"] == fresh[0]["stats"] and os.path.getmtime(files[1]) == kept)
+    with h5py.File(result["output"]) as f:
+        assert_all(f["cases/stats/displacement_peak"][0, 0] == fresh[0]["stats"]["displacement_peak"][0])
+
+
 def _swept(folder, body: str, count: int):
     """A sweep file of `body` run once: its path and its cases' record files."""
     path = write_sweep(folder, body)
@@ -95,8 +122,7 @@ def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_recor
         with open(files[0]) as f:
             record = json.load(f)
         record.update(status="failed", error="cannot write case-00000.h5: No space left on device")
-        with open(files[0], "w") as f:
-            json.dump(record, f)
+        _write_record(files[0], record)
         with open(files[1], "w") as f:
             json.dump([1, 2], f)
     MPI.COMM_WORLD.Barrier()
@@ -129,6 +155,7 @@ def test_a_case_record_the_full_disk_refused_on_one_rank_stops_every_rank_with_o
         monkeypatch.setattr(sweep_module, "_write_json", full_disk)
     with pytest.raises(DbfError, match="case-0000.\\.json: No space left on device; .*free some space, then rerun"):
         run_sweep(path, progress=False)
+    world.Barrier()   # the failing rank may raise before rank 0 has released the lock in its own exit
     summary = shared_tmp_path / "summary.h5"
     assert_all(not os.path.exists(f"{summary}.lock"), "the lock is released")
     assert_all(not os.path.exists(summary), "no summary of cases that are not all recorded")
@@ -212,9 +239,9 @@ def test_a_retried_step_of_a_stepped_sine_reruns_the_steps_after_it(shared_tmp_p
     MPI.COMM_WORLD.Barrier()
     if MPI.COMM_WORLD.rank == 0:
         failed = dict(fresh[0], status="failed", error="No space left on device")
-        json.dump(failed, open(files[0], "w"))
+        _write_record(files[0], failed)
         stale = dict(fresh[1], continued=False, stats={k: [v[0] * 2] for k, v in fresh[1]["stats"].items()})
-        json.dump(stale, open(files[1], "w"))   # as if it had run from rest after the failure
+        _write_record(files[1], stale)   # as if it had run from rest after the failure
     MPI.COMM_WORLD.Barrier()
     kept = os.path.getmtime(files[3])
     run_sweep(path, progress=False)
@@ -736,7 +763,7 @@ def test_a_step_is_not_continued_from_a_state_computed_in_another_basis(shared_t
     fresh = [json.load(open(name)) for name in files]
     MPI.COMM_WORLD.Barrier()
     if MPI.COMM_WORLD.rank == 0:
-        json.dump(dict(fresh[0], coordinates="0" * 64), open(files[0], "w"))
+        _write_record(files[0], dict(fresh[0], coordinates="0" * 64))
         os.remove(files[1])          # killed before step 2 ran
     MPI.COMM_WORLD.Barrier()
     run_sweep(path, progress=False)
