@@ -631,7 +631,8 @@ class CircularLaw:
 
     kind = "flat_bar": two parallel flats at `angle` (degrees from y) around the tube, a gap c on each
     side along their normal e = (cos angle, sin angle): the same law with r = |u.e|, n = sign(u.e) e
-    (a deadband along e, sliding along the flats)."""
+    (a deadband along e, sliding along the flats). Any finite angle; it is kept modulo 360 deg (exactly,
+    so that a large angle is the direction it names)."""
 
     clearance: float = 0.0
     k: float = 0.0
@@ -654,6 +655,9 @@ class CircularLaw:
             if not (_is_number(value) and math.isfinite(value)):
                 raise InputError(f"{name} must be a finite number, got {value!r}")
             object.__setattr__(self, name, float(value))
+        # the normal's direction modulo a turn, reduced exactly (fmod is exact): radians() of a large angle
+        # rounds away its remainder (1e20 deg gave a normal at 108 deg instead of 280 deg)
+        object.__setattr__(self, "angle", math.fmod(self.angle, 360.0))
         for name in ("clearance", "mu", "c", "alpha"):
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be a non-negative number, got {getattr(self, name)!r}")

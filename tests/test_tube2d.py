@@ -783,3 +783,16 @@ def test_full_and_reduced_tube_in_a_round_hole_and_flat_bars_with_friction_match
         assert np.allclose(result.statistics["work_rate"], work_rate, rtol=3e-3), (name, result.statistics["work_rate"],
                                                                                    work_rate)
         assert result.statistics["impacts"].tolist() == impacts.tolist(), name
+
+
+def test_a_flat_bar_angle_names_its_direction_modulo_a_turn_however_large():
+    # Red team: radians(1e20 deg) rounded away the angle's remainder (1e20 = 280 mod 360): the flats'
+    # normal came out at 108 deg instead of 280 deg, a silently different support.
+    for angle, same in ((1e20, 280.0), (-1e20, -280.0), (720.0 + 30.0, 30.0), (1e17 + 96.0, math.fmod(1e17 + 96.0, 360.0))):
+        a = PlanarLaws([CircularLaw(kind="flat_bar", clearance=1e-3, k=1e5, angle=angle)])
+        b = PlanarLaws([CircularLaw(kind="flat_bar", clearance=1e-3, k=1e5, angle=same)])
+        assert np.allclose(a.e, b.e, rtol=0, atol=1e-15), (angle, a.e, b.e)
+        u = 2e-3 * np.array([math.cos(math.radians(same)), math.sin(math.radians(same))])   # pressed along e
+        assert np.allclose(a.force(u), -1e5 * 1e-3 * u / 2e-3, rtol=1e-12)
+    assert CircularLaw(kind="flat_bar", clearance=1e-3, k=1e5, angle=30.0).angle == 30.0    # kept bit for bit
+    assert law_from_dict(1, {"law": "flat_bar", "clearance": 1e-3, "k": 1e5, "angle": 1e20}).angle == 280.0
