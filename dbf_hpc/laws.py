@@ -73,6 +73,18 @@ def _quoted(names) -> str:
     return ", ".join(f'"{n}"' for n in names)
 
 
+# Coulomb coefficients of real contact pairs are below about 1.5 (clean metals in vacuum reach a few);
+# a larger one is a typo or a unit slip, and its stiff regularized stick crawled at 1e-13 s steps (red team)
+MU_MAX = 10.0
+
+
+def _check_mu(mu: float) -> None:
+    if mu > MU_MAX:
+        raise InputError(f"mu = {mu:g}: a Coulomb friction coefficient above {MU_MAX:g} is no contact pair's (steel on "
+                         f"steel is about 0.2-0.8); give the coefficient itself, or hold the support with a stiff "
+                         f"spring law instead of friction")
+
+
 @dataclass(frozen=True)
 class Law:
     """One constraint's law (see the module docstring). Validated on construction.
@@ -109,6 +121,7 @@ class Law:
             if value != 0 and self.kind != "friction":
                 raise InputError(f"{name} applies only to a friction law (law = \"friction\")")
             put(name, float(value))
+        _check_mu(self.mu)
         if self.kind == "friction" and not (self.v_reg > 0):
             raise InputError(f"v_reg must be a positive number for a friction law, got {self.v_reg!r}")
 
@@ -661,6 +674,7 @@ class CircularLaw:
         for name in ("clearance", "mu", "c", "alpha"):
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be a non-negative number, got {getattr(self, name)!r}")
+        _check_mu(self.mu)
         if not self.k > 0:
             raise InputError(f"k must be a positive number, got {self.k!r}")
         if not self.v_reg > 0:

@@ -189,7 +189,7 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
                                        '(-alpha |N| v)'),
     "c": Key(NUMBER, None, "N s/m", "linear contact damping"),
     "alpha": Key(NUMBER, None, "s/m", "Hunt-Crossley contact damping"),
-    "mu": Key(NUMBER, None, "1", "circular, flat_bar: Coulomb friction coefficient (default 0), "
+    "mu": Key(NUMBER, None, "1", "circular, flat_bar: Coulomb friction coefficient (default 0, at most 10), "
                                  "F_t = -mu k (|u| - c) tanh(v_t / v_reg); friction: N = -mu normal_force "
                                  "tanh(v / v_reg) (required)"),
     "v_reg": Key(NUMBER, None, "m/s", "circular, flat_bar, friction: the sliding speed over which friction is "

@@ -279,6 +279,7 @@ def test_scene_keys_map_to_the_law_fields():
     (dict(k=1, damping="linear"), "c"),
     (dict(k=1, c=3), "c"),
     (dict(k=1, damping="hunt_crossley", alpha=-1), "alpha"),
+    (dict(law="friction", normal_force=10.0, mu=1e30, v_reg=1e-3), "mu"),   # crawled at 1e-13 s steps
 ])
 def test_bad_input_raises_one_line_naming_the_constraint_and_the_key(params, key):
     with pytest.raises(InputError) as info:
@@ -295,3 +296,13 @@ def test_law_dataclass_validates_too():
         Law(kind="spring")
     with pytest.raises(InputError, match="table"):
         Law(kind="table", table=((1.0, 0.0), (0.0, 1.0)))
+
+
+def test_a_two_direction_support_refuses_a_friction_coefficient_no_contact_pair_has():
+    # Red team: mu = 1e30 on the tube's supports ran (its regularized stick at 1e-13 s steps, an ETA of
+    # minutes for 0.1 s); 10 is still accepted (some clean metal pairs exceed 1).
+    from dbf_hpc.laws import CircularLaw
+
+    assert CircularLaw(clearance=2e-4, k=1e6, mu=10.0).mu == 10.0
+    with pytest.raises(InputError, match="mu = 1e\\+30: a Coulomb friction coefficient above 10"):
+        CircularLaw(clearance=2e-4, k=1e6, mu=1e30)
