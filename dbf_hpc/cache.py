@@ -6,7 +6,7 @@ A cache file `basis-<key>.h5` holds V (n x r), the frequencies, k_j, the constra
 settings and the full key; r is the number of columns actually present (the modes and one column
 per constraint, or the modes alone for enrichment = "none"). It is written under a temporary name
 and renamed when complete, so a crash never leaves a file that looks usable. The whole file is
-sealed: a sha256 of everything after HDF5's user block is written in that block (seal), and checked
+sealed: a sha256 of everything after HDF5's user block is written in that block (sealed.py), and checked
 before HDF5 parses the file, since HDF5 crashes the process (a segmentation fault, not an error) on
 some damaged metadata. On load, the key and the stored constraint rows must match what is asked,
 and the basis must still be what it claims: V^T M V = I (to VERIFY_TOL beyond the basis's own

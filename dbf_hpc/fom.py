@@ -103,8 +103,8 @@ class FullOrderModel:
         if isinstance(comm, MPI.Comm):   # an mpi4py communicator: the same, as petsc4py takes it
             comm = PETSc.Comm(comm)
         if not isinstance(comm, PETSc.Comm):
-            raise InputError(f"FullOrderModel.build: comm must be a petsc4py Comm (PETSc.COMM_WORLD, or "
-                             f"PETSc.Comm(mpi4py_comm)), got {type(comm).__name__}")
+            raise InputError(f"FullOrderModel.build: comm must be a petsc4py or mpi4py communicator, got "
+                             f"{type(comm).__name__}")
         if not isinstance(structure, (Beam, MatrixFiles)):
             raise InputError(f"FullOrderModel.build: a structure is a Beam or MatrixFiles, got {type(structure).__name__}")
         for name, value, kinds in (("excitation", excitation, EXCITATIONS), ("damping", damping, (Damping,)),

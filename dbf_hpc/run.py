@@ -117,8 +117,9 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
 
 def _gyroscopic_checks(scene: Scene, fom, method: str) -> None:
     """A gyroscopic structure (issue 19): refused above its critical speed (an unstable mode among the
-    [basis] modes lowest, or the lowest 8, without and with its damping); the reduced model (gyroscopic_basis.py) takes no modal
-    damping ratios (its basis vectors are not modes) and no tolerance mode. Collective."""
+    [basis] modes lowest, or the lowest 8, without and with its damping); the reduced model
+    (gyroscopic_basis.py) takes no modal damping ratios (its basis vectors are not modes) and no
+    tolerance mode. Collective."""
     from .gyroscopic import check_damped_stable, check_stable
 
     s = scene["structure"]
@@ -791,7 +792,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
 
 
 def _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs,
-                 identity=None) -> None:
+                 ident=None) -> None:
     writer.finish(
         datasets=datasets,
         dataset_attrs={f"{layout.CONSTRAINT_STATS}/{k}": {"unit": UNITS[k], "description": DESCRIPTIONS[k]}
@@ -802,7 +803,7 @@ def _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timin
                "slepc_version": ".".join(map(str, SLEPc.Sys.getVersion())),
                "mpi_ranks": ranks, "solver_stats": json.dumps(stats), "wall_times": json.dumps(timings),
                "initial_state": _initial_text(init),
-               **({"run_identity": json.dumps(identity, sort_keys=True)} if identity else {}),
+               **({"run_identity": json.dumps(ident, sort_keys=True)} if ident else {}),
                **attrs})
 
 

@@ -62,7 +62,7 @@ def test_the_example_objects_agree_with_the_full_order_model_before_the_first_im
     (lambda api: api.BasisSettings(modes="6"), "BasisSettings modes must be an integer"),
     (lambda api: api.BasisSettings(modes=0), "BasisSettings modes must be at least 1"),
     (lambda api: api.FullOrderModel.build(api.Beam(length=1.0, E=1e11, I=1e-12, A=1e-6, rho=8e3, elements=4),
-                                          comm=3), "comm must be a petsc4py Comm"),
+                                          comm=3), "comm must be a petsc4py or mpi4py communicator"),
     (lambda api: api.IntegratorSettings(t_end=-1), "IntegratorSettings t_end must be above 0"),
     (lambda api: api.IntegratorSettings(t_end=1e3, sample_dt=1e-9), "1e\\+12 samples"),
     (lambda api: api.BaseMotion(amplitude="5e-3", frequency_hz=1.0), "BaseMotion amplitude must be a finite"),
