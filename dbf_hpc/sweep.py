@@ -156,6 +156,7 @@ def load_sweep(path: str, overrides=()) -> dict:
         raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\"")
     cases, chains = _expand(path, axes, listed, continuation, directions)
     parameters = list(dict.fromkeys(name for case in cases for name in case))
+    _refuse_overridden_overrides(path, overrides, [name for name in parameters if name != DIRECTION])
     sets, coordinates, scenes = [], [], []
     for i, case in enumerate(cases):
         own = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
@@ -179,6 +180,28 @@ def load_sweep(path: str, overrides=()) -> dict:
                              f"excitation, law, damping or integrator value")
     return {"scene": scene, "output": output, "keep_outputs": keep, "cases": sets, "values": cases,
             "parameters": parameters, "chains": chains, "scenes": scenes}
+
+
+def _target(name: str) -> tuple:
+    """(section, key, constraint number or None) of a 'section.key' or 'constraint.J.key' name."""
+    section, _, key = name.partition(".")
+    number, dot, rest = key.partition(".")
+    if section == "constraint" and dot and number.isdigit():
+        return section, rest, int(number)
+    return section, key, None
+
+
+def _refuse_overridden_overrides(path: str, overrides, parameters: list) -> None:
+    """A --set of a value the sweep's cases set themselves: each case's own value is applied after the
+    --set and would replace it in silence (red team: `--set integrator.t_end=0.1` on a sweep whose axes
+    hold integrator.t_end ran every case 20 s), so it is refused before any work."""
+    for text in overrides:
+        section, key, number = _target(text.partition("=")[0].strip())
+        for name in parameters:
+            other = _target(name)
+            if other[:2] == (section, key) and (number is None or other[2] is None or number == other[2]):
+                raise InputError(f"--set {text}: the sweep {path} sets {name} in its cases, which would replace "
+                                 f"this value; change it in the sweep file's [axes] or [[case]] instead")
 
 
 def _toml_value(value) -> str:

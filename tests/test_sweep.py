@@ -298,6 +298,18 @@ def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
         load_sweep(path)
 
 
+@pytest.mark.parametrize("given", ["integrator.t_end=0.1", "constraint.1.clearance=1e-3"])
+def test_a_set_of_a_value_the_cases_set_is_refused_instead_of_silently_replaced(shared_tmp_path, given):
+    # each case's own value is applied after --set: t_end from the axis would run every case 0.5 s
+    # although the command line asked for 0.1 s (red team), so the --set is refused before any work
+    path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [1e-3, 2e-3]\n"integrator.t_end" = [0.5]\n')
+    with pytest.raises(InputError, match=f"--set {given}: the sweep .* sets .* in its cases"):
+        load_sweep(path, [given])
+    # a value no case sets still applies to every case
+    sweep = load_sweep(path, ["constraint.1.k=2e6"])
+    assert [scene.constraints[0].law.k_plus for scene in sweep["scenes"]] == [2e6, 2e6]
+
+
 def test_continuation_sweeps_up_and_down_each_case_starting_from_the_last(shared_tmp_path):
     path = write_sweep(shared_tmp_path, 'continuation = "excitation.frequency_hz"\n[axes]\n'
                                         '"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.4]\n')
