@@ -114,6 +114,35 @@ def test_readme_main_job_runs_the_paper_beam_on_two_ranks(tmp_path):
         assert (figures / name).read_bytes()[:4] == b"\x89PNG"
 
 
+def test_the_slurm_script_requeued_after_its_run_finished_computes_nothing_again(tmp_path):
+    # README: "--resume on a run that had already finished (a requeued batch job) computes nothing
+    # again"; the shipped batch script ran without --resume, so a requeued job (and one resubmitted
+    # after the time limit's checkpoint) started from t = 0 (red team). Run it as Slurm would: from
+    # the submit folder, with stand-ins for scripts/setup, the venv and srun (2 ranks under mpirun).
+    submit = tmp_path / "submit"
+    (submit / "scripts").mkdir(parents=True)
+    (submit / ".venv" / "bin").mkdir(parents=True)
+    (submit / "bin").mkdir()
+    (submit / "scripts" / "setup").write_text("#!/bin/sh\nexit 0\n")
+    (submit / ".venv" / "bin" / "activate").write_text("")
+    (submit / "bin" / "srun").write_text(f'#!/bin/sh\n[ "$1" = dbf-hpc ] || exit 99\nshift\n'
+                                         f'exec mpirun -n 2 {sys.executable} -m dbf_hpc.cli "$@"\n')
+    for stub in ("scripts/setup", "bin/srun"):
+        os.chmod(submit / stub, 0o755)
+    out = tmp_path / "run.h5"
+    env = {**mpi_env(), "SLURM_SUBMIT_DIR": str(submit), "PATH": f"{submit / 'bin'}:{os.environ['PATH']}"}
+    argv = ["bash", os.path.join(ROOT, "jobs", "slurm", "dbf-hpc.sbatch"), PAPER, "-o", str(out),
+            "--set", "integrator.t_end=0.3", "--set", f"basis.cache={tmp_path}"]
+    first = subprocess.run(argv, capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    assert first.returncode == 0 and out.exists(), first.stderr
+    before = os.stat(out)
+    again = subprocess.run(argv, capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    after = os.stat(out)
+    assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns), \
+        "the requeued job computed the finished run again"
+
+
 def test_contact_jacobian_passes_petsc_jacobian_test(tmp_path):
     # A smooth law with a dashpot, so that PETSc's finite differences are themselves accurate (across
     # the kink of a deadband, or near the edge of a Hertz contact, they are not).
