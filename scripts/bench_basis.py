@@ -254,7 +254,8 @@ def main() -> None:
     parser.add_argument("--shared-max", type=int, default=100, help="time the shared DBF path only up to this N_L")
     parser.add_argument("--single-max", type=int, default=100,
                         help="time the single-solve MUMPS limit only up to this N_L (the block limit always)")
-    parser.add_argument("--structure", choices=("beam", "solid"), default="beam")
+    parser.add_argument("--structure", choices=("beam", "solid"), default="beam",
+                        help="the Table 1 beam (default) or the 3-D hexahedral bar of scripts/solid3d.py")
     parser.add_argument("--solid", default="/tmp/dbf_hpc_solid3d", help="the solid's matrices (generated if missing)")
     parser.add_argument("--quick", action="store_true", help="small sizes for a smoke run")
     parser.add_argument("-o", "--output", help="also write the markdown table to this file")

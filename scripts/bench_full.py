@@ -199,11 +199,15 @@ def driver(args) -> int:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("-o", "--output", default="")
-    parser.add_argument("--ranks", default="1,2")
-    parser.add_argument("--cases", default="paper,beam10k,solid3d")
-    parser.add_argument("--solid", default="/tmp/dbf_hpc_solid3d")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("-o", "--output", default="", metavar="OUT.md",
+                        help="also write the table (markdown) here, and the rows beside it (OUT.json)")
+    parser.add_argument("--ranks", default="1,2", help="comma-separated rank counts (default 1,2)")
+    parser.add_argument("--cases", default="paper,beam10k,solid3d",
+                        help="comma-separated cases: paper, paper-mumps, beam10k, solid3d (default "
+                             "paper,beam10k,solid3d)")
+    parser.add_argument("--solid", default="/tmp/dbf_hpc_solid3d",
+                        help="the solid's matrices (generated if missing; default /tmp/dbf_hpc_solid3d)")
     parser.add_argument("--case", default="", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.case:

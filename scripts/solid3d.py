@@ -128,9 +128,11 @@ def scene_text(top: list, stops: int, surface: list | None = None) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("out")
-    parser.add_argument("--elements", type=int, nargs=3, default=(120, 16, 16), metavar=("NX", "NY", "NZ"))
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", metavar="OUT_DIR", help="where to write K.bin, M.bin, nodes.txt, dofs.txt, "
+                        "dofs.json and scene.toml (made if missing)")
+    parser.add_argument("--elements", type=int, nargs=3, default=(120, 16, 16), metavar=("NX", "NY", "NZ"),
+                        help="hexahedra along x, y, z (NY even; default 120 16 16: 104 040 free DOFs)")
     parser.add_argument("--stops", type=int, default=100, help="stops on the top centre line (default 100)")
     parser.add_argument("--surface", action="store_true",
                         help="spread the stops over the whole top face instead (up to NX (NY + 1) of them)")

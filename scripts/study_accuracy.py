@@ -199,7 +199,10 @@ def basis_sets(kind: str, modes: int, n_constraints: int, k_auto: float) -> list
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("-o", "--output", default="study", help="output directory (default study/)")
-    parser.add_argument("--grid", choices=sorted(GRIDS), default="default")
+    parser.add_argument("--grid", choices=sorted(GRIDS), default="default",
+                        help="default: the paper's beam with 1, 4 and 9 stops (docs/accuracy-study); control: "
+                             "the estimate and the tolerance mode, the tube too (docs/accuracy-control); tiny: a "
+                             "smoke run")
     parser.add_argument("--keep", action="store_true", help="keep every case's HDF5 output")
     parser.add_argument("--truths", metavar="E:DT,E:DT",
                         help="the two truth resolutions as elements:step, coarse then fine (default: the grid's, "

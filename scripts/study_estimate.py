@@ -1,6 +1,7 @@
 """The a-posteriori estimate (accuracy.py) against the full-order truth on the paper's beam.
 
     python scripts/study_estimate.py TRUTH_DIR [-o OUT.csv] [--modes 4,6,10,20,40] [--rtol 1e-6,1e-4]
+                                       [--enrichment dbf,none]
 
 TRUTH_DIR holds the full-order truths of scripts/study_accuracy.py (truth-<constraints>-400-2.5e-06-0.2.h5:
 400 elements, 2.5 us steps, 0.2 s, samples every 1e-4 s, made by `study_accuracy.py -o DIR`, in DIR/runs).
@@ -49,12 +50,16 @@ def case(label: int, modes: int, rtol: float, enrichment: str, truth_dir: str, w
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("truth_dir")
-    parser.add_argument("-o", "--output", default="estimate.csv")
-    parser.add_argument("--modes", default="4,6,10,20,40")
-    parser.add_argument("--rtol", default="1e-6,1e-4")
-    parser.add_argument("--enrichment", default="dbf,none")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("truth_dir", metavar="TRUTH_DIR",
+                        help="the folder of the truths: DIR/runs after `study_accuracy.py -o DIR` "
+                             "(truth-<stops>-400-2.5e-06-0.2.h5)")
+    parser.add_argument("-o", "--output", default="estimate.csv", metavar="OUT.csv",
+                        help="the table of cases (default estimate.csv)")
+    parser.add_argument("--modes", default="4,6,10,20,40", help="comma-separated mode counts (default 4,6,10,20,40)")
+    parser.add_argument("--rtol", default="1e-6,1e-4", help="comma-separated rtols (default 1e-6,1e-4)")
+    parser.add_argument("--enrichment", default="dbf,none",
+                        help="comma-separated enrichments: dbf, static, none (default dbf,none)")
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as work:
