@@ -59,3 +59,19 @@ def test_every_script_says_in_its_help_what_it_does_and_what_each_option_takes(n
     undescribed = [option for option, text in options if option not in ("-h",) and not text
                    and not re.search(rf"^  {re.escape(option)}[^\n]*\n {{10,}}\S", out.stdout, re.M)]
     assert not undescribed, f"{name}: options without a help text: {undescribed}"
+
+
+@pytest.mark.parametrize("folder", ["accuracy-study", "accuracy-control"])
+def test_every_file_of_a_study_the_docs_name_is_in_the_repository(folder):
+    # docs/accuracy.md names the study's full output in docs/accuracy-study/, pareto.png among them;
+    # .gitignore's *.png kept that figure out of every commit (red team): a fresh clone lacked it
+    text = " ".join(open(os.path.join(ROOT, "docs", "accuracy.md"), encoding="utf-8").read().split())
+    listing = re.search(rf"`docs/{folder}/`: (.*?)\.\s+[A-Z]", text)
+    assert listing, f"docs/accuracy.md no longer lists what docs/{folder}/ holds"
+    named = set(re.findall(r"`([\w-]+\.\w+)`", listing.group(1))) | set(re.findall(rf"`docs/{folder}/([\w.-]+)`", text))
+    assert len(named) >= 4, named
+    for name in named:
+        path = os.path.join("docs", folder, name)
+        assert os.path.isfile(os.path.join(ROOT, path)), path
+        ignored = subprocess.run(["git", "check-ignore", "-q", path], cwd=ROOT)
+        assert ignored.returncode != 0, f"{path} is ignored by .gitignore: a clone would not have it"
