@@ -2,6 +2,7 @@
 with the impact statistics, resume after a kill, failed cases recorded."""
 import json
 import os
+import re
 
 import h5py
 import numpy as np
@@ -308,6 +309,17 @@ def test_a_set_of_a_value_the_cases_set_is_refused_instead_of_silently_replaced(
     # a value no case sets still applies to every case
     sweep = load_sweep(path, ["constraint.1.k=2e6"])
     assert [scene.constraints[0].law.k_plus for scene in sweep["scenes"]] == [2e6, 2e6]
+
+
+@pytest.mark.parametrize("name", sorted(f for f in os.listdir(os.path.join(ROOT, "jobs")) if f.startswith("sweep_")))
+def test_the_commands_a_shipped_sweep_shows_name_the_summary_it_writes(name):
+    # sweep_steam_generator_2d.toml said `dbf-hpc info steam_generator_2d_sweep.h5` after a sweep run
+    # from the top folder, which writes jobs/steam_generator_2d_sweep.h5 (beside the sweep file)
+    path = os.path.join(ROOT, "jobs", name)
+    comments = "\n".join(line for line in open(path) if line.startswith("#"))
+    shown = re.findall(r"dbf-hpc (?:info|plot) (\S+)", comments)
+    written = os.path.relpath(load_sweep(path)["output"], ROOT)
+    assert all(p == written for p in shown), (shown, written)
 
 
 def test_continuation_sweeps_up_and_down_each_case_starting_from_the_last(shared_tmp_path):
