@@ -151,7 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "The first frequency of the structure with a linear spring of stiffness k at one "
                     "constraint, over a range of k: the curve the DBF stiffness is chosen on (paper Fig. 2). "
                     "Marks the auto stiffness.")
-    sweep.add_argument("--constraint", type=int, default=1, metavar="J", help="constraint number (from 1)")
+    sweep.add_argument("--constraint", type=int, default=1, metavar="J", help="constraint number (from 1); on a beam of two planes its y direction "
+                       "(the planes have the same EI)")
     sweep.add_argument("--k", default="1e-4:1e6:41", metavar="LIST",
                        help="stiffnesses in N/m: a comma list, or START:STOP:COUNT (log-spaced); "
                             "default 1e-4:1e6:41")
@@ -480,7 +481,11 @@ def _stiffness(args) -> int:
     basis = scene["basis"]
     with scene.full_order_model(PETSc.COMM_WORLD) as fom:
         ops = fom.operators
-        row = int(fom.constraints.flat_rows[args.constraint - 1])
+        # the constraint's own row: flat_rows holds a two-plane beam's y and z rows constraint-major, so
+        # its index J - 1 was another constraint's (red team: --constraint 11 swept constraint 6 under
+        # constraint 11's label). Both planes have the same EI: the y row's curve is the z row's.
+        row = int(fom.constraints.rows[args.constraint - 1][0])
+        label = fom.constraints.component_labels[(args.constraint - 1) * fom.constraints.dimension]
         if ops.G is not None:   # complex modes (gyroscopic_basis.py)
             from . import gyroscopic_basis as gb
 
@@ -494,7 +499,6 @@ def _stiffness(args) -> int:
             omega = gb.stiffness_sweep(ops, row, ks, branch)
         else:
             branch, omega_free, mu, k_auto, omega = _real_sweep(ops, row, basis, ks, args.constraint)
-    label = scene.constraints[args.constraint - 1].label
     say = PETSc.Sys.Print
     say(f"omega_{branch}(k) with a spring at {label}: from {omega_free[branch - 1]:.8g} rad/s (no spring) "
         f"to {np.sqrt(mu):.8g} rad/s (pinned); auto stiffness {k_auto:.6g} N/m")

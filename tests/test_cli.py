@@ -84,6 +84,21 @@ def test_stiffness_sweep_writes_data_and_figure(tmp_path):
     assert png.read_bytes()[:4] == b"\x89PNG"
 
 
+def test_stiffness_of_a_two_plane_tube_sweeps_the_constraint_asked_for():
+    # The two planes have the same EI: constraint 11 (x = 8.25 m) of the two-plane tube has the
+    # one-plane tube's pinned frequency and auto stiffness there. It swept constraint 6 (x = 4.5 m)
+    # under constraint 11's label (red team: the index ran over the y and z rows of every constraint).
+    heads = []
+    for scene in ("steam_generator_tube_2d.toml", "steam_generator_tube.toml"):
+        out = dbf_hpc("stiffness", os.path.join(ROOT, "jobs", scene), "--constraint", "11", "--k", "1e2,1e6",
+                      "--set", "structure.elements=100")
+        assert out.returncode == 0, out.stderr
+        heads.append(out.stdout.splitlines()[0])
+    assert "spring at x = 8.25 m (y):" in heads[0] and "spring at x = 8.25 m:" in heads[1], heads
+    pinned = [re.search(r"to (\S+) rad/s \(pinned\); auto stiffness (\S+) N/m", head).groups() for head in heads]
+    np.testing.assert_allclose(np.array(pinned[0], dtype=float), np.array(pinned[1], dtype=float), rtol=1e-6)
+
+
 @pytest.mark.parametrize("args,message", [
     (("modes", "jobs/missing.toml"), "cannot read scene"),
     (("modes", PAPER, "--set", "basis.mode=3"), "unknown key 'mode' in [basis]"),
