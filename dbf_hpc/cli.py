@@ -125,14 +125,18 @@ def build_parser() -> argparse.ArgumentParser:
                        help="override a value of the base scene for every case (repeatable; a value the sweep's "
                             "cases set is refused)")
     sweep.set_defaults(func=_sweep)
-    info = sub.add_parser("info", help="summarize a run's HDF5 output",
+    info = sub.add_parser("info", help="summarize a run's (or a sweep's) HDF5 output",
                           description="Print what a run computed: scene, basis, solver statistics, "
-                                      "and per constraint the extreme displacement and force.")
+                                      "and per constraint the extreme displacement and force. Also a "
+                                      "sweep's summary (each case), and the OUT.h5.partial of a run that "
+                                      "did not finish.")
     info.add_argument("output", metavar="OUT.h5")
     info.set_defaults(func=_info)
-    plot = sub.add_parser("plot", help="the paper's figures for a run, as PNG files",
+    plot = sub.add_parser("plot", help="the paper's figures for a run (or a sweep's), as PNG files",
                           description="Time histories, phase diagrams and forces at each constraint, "
-                                      "and beam snapshots (paper Figs. 4-13).")
+                                      "probes, and beam snapshots (paper Figs. 4-13); on a beam of two "
+                                      "planes also the supports' orbits. For a sweep's summary, the "
+                                      "statistics against each varying parameter.")
     plot.add_argument("output", metavar="OUT.h5")
     plot.add_argument("-d", "--directory", default=".", help="where to write the PNGs (made if missing; default: .)")
     plot.add_argument("--window", metavar="T0:T1", help="time window of the time histories and phase diagrams, "

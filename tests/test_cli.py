@@ -37,6 +37,17 @@ def test_help_and_version_print_once_under_mpirun():
     assert out.returncode == 0 and out.stdout.splitlines() == [f"dbf-hpc {dbf_hpc_version}"], out.stdout
 
 
+def test_the_help_of_info_and_plot_names_the_sweep_summaries_and_partial_runs_they_read():
+    # README: info reads "a run (or a sweep, or a .partial run)", plot draws "the paper's figures, or a
+    # sweep's"; their --help spoke of runs only (red team)
+    from dbf_hpc.cli import build_parser
+
+    parser = build_parser()
+    info, plot = (" ".join(parser.commands[name].format_help().split()) for name in ("info", "plot"))
+    assert "sweep's summary" in info and ".partial" in info, info
+    assert "sweep's summary" in plot and "orbits" in plot, plot
+
+
 def test_a_word_the_command_does_not_take_is_named_with_that_command():
     out = dbf_hpc("run", PAPER, "--bogus")
     assert out.returncode == 2 and out.stderr.strip() == (
