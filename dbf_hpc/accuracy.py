@@ -275,9 +275,13 @@ def is_long(t_end: float, window: float) -> bool:
 
 
 def statistics_window(t_end: float, sample_dt: float, given: float | None = None) -> float:
-    """The end of the statistics window: the given one, else STATISTICS_FRACTION t_end; never beyond
-    t_end nor STATISTICS_MAX_SAMPLES samples of sample_dt. Not collective."""
-    window = given if given is not None else STATISTICS_FRACTION * t_end
+    """The end of the statistics window: the given one, else STATISTICS_FRACTION t_end but at least
+    the 2 BATCHES samples its batch-means intervals need (red team: a 0.05 s run sampled every 1 ms had
+    a 13-sample window and printed every statistic's error as "+- nan"); never beyond t_end nor
+    STATISTICS_MAX_SAMPLES samples of sample_dt. Not collective."""
+    from .stats import BATCHES
+
+    window = given if given is not None else max(STATISTICS_FRACTION * t_end, 2 * BATCHES * sample_dt)
     return min(window, t_end, STATISTICS_MAX_SAMPLES * sample_dt)
 
 

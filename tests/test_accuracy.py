@@ -388,3 +388,35 @@ def test_the_contact_fractions_batch_interval_is_the_batch_means_interval_of_the
     values, ci = window_statistics(t, z, np.gradient(z, t, axis=0), force)
     assert np.allclose(ci["contact_fraction"], batch_means_ci95(t, (force != 0).astype(float)), rtol=1e-12, atol=0)
     assert ci["contact_fraction"][0] > 0 and values["impact_rate"][1] == 0 and ci["impact_rate"][1] == 0
+
+
+def test_a_long_run_sampled_coarsely_gets_a_statistics_window_its_batch_means_can_measure(shared_tmp_path):
+    # 0.2 s sampled every 2 ms is a long run (its pointwise window ~0.02 s); t_end / 4 held 26 samples,
+    # and at 1 ms and 0.05 s (the two-plane tube, red team) 13: fewer than the 2 x 10 batch means need,
+    # so every statistic's error was NaN, printed "+- nan". The window now holds at least 20 samples.
+    from dbf_hpc.accuracy import statistics_window
+    from dbf_hpc.stats import BATCHES
+
+    assert statistics_window(0.05, 1e-3) == pytest.approx(2 * BATCHES * 1e-3)
+    assert statistics_window(2.0, 1e-4) == pytest.approx(0.5)            # t_end / 4 where it holds enough
+    assert statistics_window(0.05, 1e-3, given=0.01) == pytest.approx(0.01)   # the scene's own is kept
+    assert statistics_window(0.015, 1e-3) == pytest.approx(0.015)         # never beyond t_end
+    import h5py
+    from mpi4py import MPI
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_run import ROOT
+
+    path = str(shared_tmp_path / "coarse.h5")
+    summary = run(load_scene(f"{ROOT}/jobs/paper_beam.toml", ["integrator.t_end=0.05", "output.sample_dt=1e-3",
+                                                              "output.snapshots=0",
+                                                              f"basis.cache={shared_tmp_path / 'cache'}"]),
+                  path, progress=False)
+    assert summary["estimated_error_window"] < 0.05 / 5, "a long run: the statistics' estimate is made"
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(path, "r") as f:
+            assert f.attrs["estimated_statistics_window"] >= (2 * BATCHES - 1) * 1e-3
+            errors = {name: f["constraints/stats_error"][name][:] for name in f["constraints/stats_error"]}
+        assert errors and all(np.all(np.isfinite(v)) for v in errors.values()), \
+            [k for k, v in errors.items() if not np.all(np.isfinite(v))]
