@@ -155,8 +155,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "The first frequency of the structure with a linear spring of stiffness k at one "
                     "constraint, over a range of k: the curve the DBF stiffness is chosen on (paper Fig. 2). "
                     "Marks the auto stiffness.")
-    sweep.add_argument("--constraint", type=int, default=1, metavar="J", help="constraint number (from 1); on a beam of two planes its y direction "
-                       "(the planes have the same EI)")
+    sweep.add_argument("--constraint", type=int, default=1, metavar="J",
+                       help="constraint number (from 1); on a beam of two planes its y direction (the planes "
+                            "have the same EI)")
     sweep.add_argument("--k", default="1e-4:1e6:41", metavar="LIST",
                        help="stiffnesses in N/m: a comma list, or START:STOP:COUNT (log-spaced); "
                             "default 1e-4:1e6:41")

@@ -156,7 +156,7 @@ def load_sweep(path: str, overrides=()) -> dict:
         raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\"")
     cases, chains = _expand(path, axes, listed, continuation, directions)
     parameters = list(dict.fromkeys(name for case in cases for name in case))
-    _refuse_overridden_overrides(path, overrides, [name for name in parameters if name != DIRECTION])
+    _refuse_sets_the_cases_replace(path, overrides, [name for name in parameters if name != DIRECTION])
     sets, coordinates, scenes = [], [], []
     for i, case in enumerate(cases):
         own = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
@@ -191,7 +191,7 @@ def _target(name: str) -> tuple:
     return section, key, None
 
 
-def _refuse_overridden_overrides(path: str, overrides, parameters: list) -> None:
+def _refuse_sets_the_cases_replace(path: str, overrides, parameters: list) -> None:
     """A --set of a value the sweep's cases set themselves: each case's own value is applied after the
     --set and would replace it in silence (red team: `--set integrator.t_end=0.1` on a sweep whose axes
     hold integrator.t_end ran every case 20 s), so it is refused before any work."""
