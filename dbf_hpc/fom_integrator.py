@@ -309,13 +309,7 @@ def _check_exact(A: PETSc.Mat, x: PETSc.Vec, row: int, description: str) -> None
         residual = r.norm()
     finally:
         r.destroy()
-    if not math.isfinite(residual):
-        raise SolverError(f"the solve with K_eff = K + s_V C + s_A M ({description}) is not finite: check K, M and C "
-                          f"for entries that are not finite")
-    if not residual <= EXACT_SOLVE:
-        raise SolverError(f"the -{PREFIX} solver ({description}) is not exact: relative residual {residual:.2e} on a "
-                          f"unit load; use a direct factorization (-{PREFIX}ksp_type preonly -{PREFIX}pc_type "
-                          f"cholesky) or an iterative -{PREFIX}ksp_type with -{PREFIX}ksp_rtol 1e-12")
+    _refuse_inexact(residual, description, "a unit load")
 
 
 def _check_exact_dense(A: PETSc.Mat, solve, description: str) -> None:
@@ -333,13 +327,20 @@ def _check_exact_dense(A: PETSc.Mat, solve, description: str) -> None:
         residual = z.norm() / scale if scale > 0 else z.norm()
     finally:
         destroy(z, b, x)
+    _refuse_inexact(residual, description, "a load on every DOF")
+
+
+def _refuse_inexact(residual: float, description: str, load: str) -> None:
+    """A SolverError unless the relative residual of a check solve (on `load`) is finite and at most
+    EXACT_SOLVE. Not collective (every rank has the same residual)."""
     if not math.isfinite(residual):
         raise SolverError(f"the solve with K_eff = K + s_V C + s_A M ({description}) is not finite: check K, M and C "
                           f"for entries that are not finite")
     if not residual <= EXACT_SOLVE:
-        raise SolverError(f"the -{PREFIX} solver ({description}) is not exact: relative residual {residual:.2e} on a "
-                          f"load on every DOF; use a direct factorization (-{PREFIX}ksp_type preonly -{PREFIX}pc_type "
-                          f"lu -{PREFIX}pc_factor_mat_solver_type mumps)")
+        raise SolverError(f"the -{PREFIX} solver ({description}) is not exact: relative residual {residual:.2e} on "
+                          f"{load}; use a direct factorization (-{PREFIX}ksp_type preonly -{PREFIX}pc_type lu "
+                          f"-{PREFIX}pc_factor_mat_solver_type mumps) or an iterative -{PREFIX}ksp_type with "
+                          f"-{PREFIX}ksp_rtol 1e-12")
 
 
 # -- the contact problem on the N_L constraint DOFs ------------------------------------------------

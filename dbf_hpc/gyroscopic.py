@@ -102,16 +102,22 @@ def _pep(ops: Operators, prefix: str, tol: float) -> SLEPc.PEP:
     return pep
 
 
-def _solve(pep: SLEPc.PEP, ops: Operators, nev: int, prefix: str):
-    """(eigenvalues, xr list, xi list) of the converged pairs with Im >= 0 (a real pair: the growing
-    one, +sigma, only), ascending in (Im, |lambda|). Collective."""
+def _pep_solve(pep: SLEPc.PEP, nev: int, prefix: str, what: str) -> None:
+    """Solve for nev eigenpairs with the shift-and-invert defaults (never over the user's options); a
+    failure is one SolverError naming `what`. Collective."""
     pep.setDimensions(nev, PETSc.DEFAULT, PETSc.DEFAULT)
     try:
         with options_defaults(prefix, FACTOR_DEFAULTS):
             pep.solve()
     except PETSc.Error as e:
-        raise SolverError(f"gyroscopic modes: the eigensolver failed (PETSc error {e.ierr}); K may be singular "
-                          f"(the speed is exactly critical): move the axial speed off it") from None
+        raise SolverError(f"{what}: the eigensolver failed (PETSc error {e.ierr}); K may be singular (the speed is "
+                          f"exactly critical): move the axial speed off it") from None
+
+
+def _solve(pep: SLEPc.PEP, ops: Operators, nev: int, prefix: str):
+    """(eigenvalues, xr list, xi list) of the converged pairs with Im >= 0 (a real pair: the growing
+    one, +sigma, only), ascending in (Im, |lambda|). Collective."""
+    _pep_solve(pep, nev, prefix, "gyroscopic modes")
     values, xr, xi = [], [], []
     try:
         for i in range(pep.getConverged()):
@@ -233,14 +239,7 @@ def check_damped_stable(ops: Operators, damped: PETSc.Mat, count: int, speed: st
     destroys that stability (Kelvin-Tait-Chetaev): the run would grow without bound. Collective."""
     pep = _pep(Operators(comm=ops.comm, K=ops.K, M=ops.M, G=damped), prefix, 1e-12)
     try:
-        n = ops.size
-        pep.setDimensions(min(2 * count + 2, 2 * n), PETSc.DEFAULT, PETSc.DEFAULT)
-        try:
-            with options_defaults(prefix, FACTOR_DEFAULTS):
-                pep.solve()
-        except PETSc.Error as e:
-            raise SolverError(f"gyroscopic modes with damping: the eigensolver failed (PETSc error {e.ierr}); K may be "
-                              f"singular (the speed is exactly critical): move the axial speed off it") from None
+        _pep_solve(pep, min(2 * count + 2, 2 * ops.size), prefix, "gyroscopic modes with damping")
         worst = None
         for i in range(pep.getConverged()):
             lam = complex(pep.getEigenpair(i))
