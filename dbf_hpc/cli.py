@@ -357,7 +357,8 @@ def _check_shapes_path(path: str, scene) -> None:
 
     if not path.endswith(".xdmf"):
         raise InputError(f"--xdmf {path!r}: give a name ending in .xdmf (its data go to the .h5 of the same name)")
-    check_output_path(os.path.splitext(path)[0] + ".h5", scene.inputs(), replaceable=_is_shapes_file)
+    check_output_path(os.path.splitext(path)[0] + ".h5", scene.inputs(), replaceable=_is_shapes_file,
+                      kind="the mode shapes of an earlier `dbf-hpc basis --xdmf`")
     check_output_path(path, scene.inputs(), replaceable=xdmf.is_dbf_xdmf)
 
 

@@ -22,11 +22,12 @@ from .errors import LOCK_HINT, PARKED, WRITE_ERRORS, InputError, park, refused_l
 BLOCK = 1024  # samples buffered between writes
 
 
-def check_output_path(path: str, inputs=(), replaceable=None) -> str:
+def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf-hpc output") -> str:
     """Refuse, before any work, an output that cannot or must not be written: a directory, a file in
     a missing or read-only directory, one of the run's inputs ((what, path) pairs), or an existing
     file that `replaceable(path)` (default: is_dbf_output) does not accept: a successful run
-    replaces only its own kind of file. replaceable=False accepts any existing file (CSV, PNG)."""
+    replaces only its own kind of file (`kind`, as the refusal names it). replaceable=False accepts any
+    existing file (CSV, PNG)."""
     folder = os.path.dirname(os.path.abspath(path))
     if os.path.isdir(path):
         raise InputError(f"output {path!r} is a directory: give a file name, e.g. {os.path.join(path, 'out.h5')!r}")
@@ -40,7 +41,7 @@ def check_output_path(path: str, inputs=(), replaceable=None) -> str:
         if source and os.path.exists(source) and os.path.samefile(path, source):
             raise InputError(f"output {path!r} is the {what} this run reads: choose another output name")
     if replaceable is not False and not (replaceable or is_dbf_output)(path):
-        raise InputError(f"output {path!r} exists and is not a dbf-hpc output: remove it or choose another name")
+        raise InputError(f"output {path!r} exists and is not {kind}: remove it or choose another name")
     return path
 
 

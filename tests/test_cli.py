@@ -715,11 +715,12 @@ def test_a_table_figure_or_shapes_file_replaces_only_its_own_kind(tmp_path):
     before = run_out.read_bytes()
     foreign = tmp_path / "mine.png"
     foreign.write_bytes(b"\x89PNG not a dbf-hpc figure")
-    for args in (("stiffness", PAPER, "--k", "1,10", "-o", str(run_out)),
-                 ("stiffness", PAPER, "--k", "1,10", "--plot", str(foreign)),
-                 ("basis", PAPER, "--xdmf", str(tmp_path / "run.xdmf"))):
+    for args, kind in ((("stiffness", PAPER, "--k", "1,10", "-o", str(run_out)), "exists and is not"),
+                       (("stiffness", PAPER, "--k", "1,10", "--plot", str(foreign)), "exists and is not"),
+                       (("basis", PAPER, "--xdmf", str(tmp_path / "run.xdmf")),   # named for what it would replace
+                        "exists and is not the mode shapes of an earlier `dbf-hpc basis --xdmf`")):
         out = dbf_hpc(*args)
-        assert _one_line(out) and "exists and is not" in out.stderr, (args, out.stderr)
+        assert _one_line(out) and kind in out.stderr, (args, out.stderr)
     assert run_out.read_bytes() == before and foreign.read_bytes() == b"\x89PNG not a dbf-hpc figure"
     figures = tmp_path / "figs"
     figures.mkdir()
