@@ -45,6 +45,8 @@ PETSC_CONTROLLER = ["-rom_ts_adapt_safety", "0.9", "-rom_ts_adapt_clip", "0.1,10
 NO_CAP = ["-rom_ts_adapt_dt_max", "1"]
 
 
+TABLES = ("cost", "controller", "accuracy", "sweep")   # what --tables can name
+
 def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
@@ -272,9 +274,13 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-o", "--out", help="also write the tables (markdown) and the rows (JSON, .json) here")
     parser.add_argument("--quick", action="store_true", help="fewer cases, no full-order truth")
-    parser.add_argument("--tables", default="cost,controller,accuracy,sweep",
+    parser.add_argument("--tables", default=",".join(TABLES),
                         help="which tables to measure (comma-separated; default all)")
     args = parser.parse_args(argv)
+    tables = args.tables.split(",")
+    unknown = [t for t in tables if t not in TABLES]
+    if unknown:   # else it measured nothing and said nothing
+        parser.error(f"--tables: {', '.join(unknown)}: choose from {','.join(TABLES)}")
     from dbf_hpc import _petsc
 
     _petsc.init(sys.argv[:1])
@@ -287,7 +293,6 @@ def main(argv=None) -> int:
         return 1
     cache = MPI.COMM_WORLD.bcast(tempfile.mkdtemp(prefix="bench-basis-") if MPI.COMM_WORLD.rank == 0 else None)
     start = time.perf_counter()
-    tables = args.tables.split(",")
     cost = controller = accuracy = sweep = []
     if "cost" in tables:
         log("1. cost per step")

@@ -87,3 +87,8 @@ def test_the_setup_stamp_covers_every_source_of_the_c_extension():
     stamp = re.search(r"want=\$\(cat (.*?)\|\s*sha256sum", open(os.path.join(ROOT, "scripts", "setup")).read(), re.S)
     covered = set(stamp.group(1).replace("\\", " ").split())
     assert {f"dbf_hpc/_romc/{name}" for name in built} <= covered, built - {os.path.basename(c) for c in covered}
+
+
+def test_bench_rom_refuses_a_table_it_does_not_have_instead_of_measuring_nothing():
+    out = script("bench_rom.py", "--tables", "cost,bogus")
+    assert out.returncode == 2 and "--tables: bogus: choose from cost,controller,accuracy,sweep" in out.stderr
