@@ -106,11 +106,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = command("run", _run, "run a scene: basis, reduced nonlinear dynamics, HDF5 output",
                   "Build (or reuse) the basis of modes and DBFs, integrate the reduced nonlinear model "
-                  "with PETSc TS ARKIMEX, and write the HDF5 output.")
+                  "with PETSc TS ARKIMEX, and write the HDF5 output (with --method full: the full-order "
+                  "reference instead, same scene, same output layout).")
     run.add_argument("-o", "--output", metavar="OUT.h5", help="output file (default: the scene's [output] file)")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     run.add_argument("--resume", action="store_true",
-                     help="continue a killed run from its last checkpoint (OUT.h5.checkpoint)")
+                     help="continue a killed run from its last checkpoint (OUT.h5.checkpoint); on an output "
+                          "already finished for this scene and setup, compute nothing again")
     run.add_argument("--method", choices=("rom", "full"), default="rom",
                      help="rom: the reduced model (default); full: the full-order reference, the whole "
                           "finite-element model with generalized-alpha, one factorization and the contact "
