@@ -149,10 +149,12 @@ def _constraint_figures(name, t, positions, series, gaps, span, written) -> None
     force = series[layout.CONSTRAINT_FORCE_PEAK]
     fig, axes = _panels(positions.size)
     for j, ax in enumerate(axes):
-        ax.plot(t, z[:, j] * 1e3, lw=0.8, color="C0")
+        for (values, label), color in zip(_components(z, j), ("C0", "C1")):
+            ax.plot(t, values * 1e3, lw=0.8, color=color, label=label)
         for level in (-gaps[0][j], gaps[1][j]):
             ax.axhline(level * 1e3, color="C3", ls="--", lw=0.8)
         ax.set_ylabel(f"w [mm]\n{_where(positions[j])}")
+        _legend(ax, z)
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time t [s]")
     fig.suptitle(f"Displacement at the constraints (dashed: clearance; {span})")
@@ -165,7 +167,9 @@ def _constraint_figures(name, t, positions, series, gaps, span, written) -> None
     for ax in axes.ravel()[positions.size:]:
         ax.set_visible(False)
     for j, ax in enumerate(axes.ravel()[:positions.size]):
-        ax.plot(z[:, j] * 1e3, v[:, j], lw=0.6, color="C0")
+        for (w, label), (dw, _), color in zip(_components(z, j), _components(v, j), ("C0", "C1")):
+            ax.plot(w * 1e3, dw, lw=0.6, color=color, label=label)
+        _legend(ax, z)
         ax.set_xlabel("w [mm]")
         ax.set_ylabel("dw/dt [m/s]")
         ax.set_title(_where(positions[j]), fontsize=9)
@@ -175,12 +179,25 @@ def _constraint_figures(name, t, positions, series, gaps, span, written) -> None
 
     fig, axes = _panels(positions.size)
     for j, ax in enumerate(axes):
-        ax.plot(t, force[:, j], lw=0.8, color="C2")
+        for (values, label), color in zip(_components(force, j), ("C2", "C1")):
+            ax.plot(t, values, lw=0.8, color=color, label=label)
+        _legend(ax, force)
         ax.set_ylabel(f"N [N]\n{_where(positions[j])}")
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time t [s]")
     fig.suptitle(f"Constraint force, the peak over each sample interval ({span})")
     _save(fig, name("forces"), written)
+
+
+def _components(a: np.ndarray, j: int) -> list:
+    """(values, label) of constraint j's samples: one unlabelled series, or y and z on a beam of two
+    planes (the samples' last axis)."""
+    return [(a[:, j], None)] if a.ndim == 2 else [(a[:, j, 0], "y"), (a[:, j, 1], "z")]
+
+
+def _legend(ax, a: np.ndarray) -> None:
+    if a.ndim == 3:   # y and z: say which is which
+        ax.legend(fontsize=7, loc="upper right")
 
 
 def _laws(f) -> list:

@@ -549,6 +549,18 @@ def test_plot_of_two_planes_draws_each_support_orbit_inside_its_gap(shared_tmp_p
     assert_all(True)
 
 
+def test_a_two_plane_support_is_plotted_as_its_y_and_z_curves_each_named():
+    # Red team: the time histories, phase diagrams and forces of a beam of two planes drew y and z as
+    # two curves both labelled "w"; each is now its own, named, and a beam of one plane has one.
+    from dbf_hpc.plots import _components
+
+    samples = np.arange(24.0).reshape(4, 3, 2)     # 4 samples, 3 supports, (y, z)
+    (y, y_name), (z, z_name) = _components(samples, 1)
+    assert (y_name, z_name) == ("y", "z") and y.tolist() == [2.0, 8.0, 14.0, 20.0] and z.tolist() == [3.0, 9.0, 15.0, 21.0]
+    [(w, w_name)] = _components(samples[:, :, 0], 1)
+    assert w_name is None and w.tolist() == [2.0, 8.0, 14.0, 20.0]
+
+
 def test_wear_volume_is_archard_k_w_times_the_run_time_times_the_work_rate_and_nan_without_k_w():
     from dbf_hpc.stats import wear_volume
 
