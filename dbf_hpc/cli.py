@@ -311,9 +311,24 @@ def _modes(args) -> int:
         if gyroscopic:
             for j in modes.unstable:
                 say(f"UNSTABLE at axial speed {_axial_speed(scene)}: {modes.describe(j)}")
+            if not modes.unstable and fom.damping.kind != "modal" and fom.damping_matrix() is not None:
+                _say_damped_stability(fom, modes.count or 8, scene, say)
         say(f"time: assembly {assembled - start:.3f} s, eigensolve {solved - assembled:.3f} s")
         modes.destroy()
     return 0
+
+
+def _say_damped_stability(fom, count: int, scene, say) -> None:
+    """The gyroscopic modes listed are undamped; `run` also refuses a structure its damping makes
+    unstable (gyroscopic.check_damped_stable): say it here too. Collective."""
+    from .errors import InputError
+    from .gyroscopic import check_damped_stable
+
+    try:
+        check_damped_stable(fom.operators, fom.velocity_matrix(), count, _axial_speed(scene))
+        say("with its damping: no mode grows")
+    except InputError as e:
+        say(f"UNSTABLE {str(e).split('unstable ', 1)[-1]}")
 
 
 def _basis(args) -> int:

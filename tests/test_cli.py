@@ -76,6 +76,21 @@ def test_modes_of_the_paper_beam_are_the_euler_bernoulli_frequencies():
     assert "on 2 rank(s)" in out.stdout
 
 
+def test_modes_of_a_gyroscopic_structure_say_when_its_damping_makes_one_grow(tmp_path):
+    # The listed gyroscopic modes are undamped: a K held only by G (Kelvin-Tait-Chetaev) listed stable
+    # modes while `run` refused the damped structure. `modes` says it too, with the growth rate that
+    # the companion eigenvalues of the same system give (3.374 1/s: tests/test_gyroscopic.py).
+    from conftest import write_rotor
+
+    K, G = np.diag([-1e4, -1e4, 2e4]), np.array([[0.0, 300.0, 0.0], [-300.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    write_rotor(tmp_path, K, G, {f"r{alpha:g}.toml": f"[damping]\nrayleigh_alpha = {alpha}\n[basis]\nmodes = 3\n"
+                                 for alpha in (20.0, 0.0)})
+    out = dbf_hpc("modes", str(tmp_path / "r20.toml"))
+    assert out.returncode == 0 and re.search(r"UNSTABLE with its damping .* growth rate 3\.374", out.stdout), out
+    out = dbf_hpc("modes", str(tmp_path / "r0.toml"))
+    assert out.returncode == 0 and "UNSTABLE" not in out.stdout, out
+
+
 def test_basis_is_cached_and_reused_without_eigen_solves(tmp_path):
     args = ("basis", PAPER, "--set", f"basis.cache={tmp_path}")
     first, second = dbf_hpc(*args), dbf_hpc(*args)
