@@ -86,7 +86,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     final reduced state. initial_state = (q, q') starts from a previous run's final state instead of
     [initial] (continuation in a frequency sweep; the basis must be the same). With resume, a run
     that was killed continues from its last checkpoint (OUT.h5.checkpoint) and ends as an
-    uninterrupted run would. method = "full" integrates the full-order model instead: the reference
+    uninterrupted run would, and a finished output of the same question (finished_output) is kept:
+    its summary is read back and nothing is computed. method = "full" integrates the full-order model instead: the reference
     the reduced model is measured against, same scene, same output layout."""
     if method not in ("rom", "full"):
         raise InputError(f"--method {method!r}: choose rom or full")
