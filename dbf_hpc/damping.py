@@ -6,6 +6,7 @@ DBFs get hat-omega_i, Eq. 41), and Rayleigh damping projects exactly to alpha I 
 """
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,12 +24,19 @@ class Damping:
     rayleigh_beta: float = 0.0
 
     def __post_init__(self):
-        ratios = np.atleast_1d(np.asarray(self.zeta, dtype=float))
-        if ratios.size == 0 or not np.all(np.isfinite(ratios)) or np.any(ratios < 0):
+        """The numbers checked once (the Python API's edge): a string, a bool, None or a nested list
+        is one InputError, not a numpy traceback (red team)."""
+        zeta = self.zeta
+        if isinstance(zeta, (list, tuple, np.ndarray)):
+            ratios = list(np.asarray(zeta, dtype=object).ravel()) if np.ndim(zeta) == 1 else None
+        else:
+            ratios = [zeta]
+        if not ratios or not all(_real(r) and r >= 0 for r in ratios):
             raise InputError(f"damping zeta must be non-negative numbers, got {self.zeta!r}")
+        ratios = np.array(ratios, dtype=float)
         for name in ("rayleigh_alpha", "rayleigh_beta"):
             value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0):
+            if not (_real(value) and value >= 0):
                 raise InputError(f"damping {name} must be a non-negative number, got {value!r}")
         if np.any(ratios > 0) and (self.rayleigh_alpha > 0 or self.rayleigh_beta > 0):
             raise InputError("damping: give modal ratios (zeta) or Rayleigh coefficients, not both")
@@ -69,6 +77,11 @@ class Damping:
             Mr = np.eye(Kr.shape[0]) if reduced_mass is None else np.asarray(reduced_mass, dtype=float)
             return self.rayleigh_alpha * Mr + self.rayleigh_beta * Kr
         return np.diag(self.modal_coefficients(np.sqrt(np.clip(np.diag(Kr), 0.0, None)), modes))
+
+
+def _real(value) -> bool:
+    """A finite real number, not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) and bool(np.isfinite(value))
 
 
 REPEATED_TOL = 1e-6   # relative: frequencies this close are one repeated frequency (a round tube's pairs)

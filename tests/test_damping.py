@@ -55,3 +55,19 @@ def test_one_repeated_frequency_takes_one_ratio_as_its_modes_are_any_mix_of_its_
     # enrichment columns are no mix of a repeated mode: two DBFs of symmetric stops share hat-omega
     np.testing.assert_allclose(Damping(zeta=(0.05, 0.05, 0.0, 0.1)).modal_coefficients(
         np.array([10.0, 10.0, 40.0, 40.0]), modes=2), [1.0, 1.0, 0.0, 8.0])
+
+
+@pytest.mark.parametrize("kwargs", [dict(zeta="a"), dict(zeta=None), dict(zeta=True), dict(zeta=[[0.1]]),
+                                    dict(zeta=()), dict(zeta=(0.01, "b")), dict(zeta=float("inf")),
+                                    dict(rayleigh_alpha="x"), dict(rayleigh_alpha=None), dict(rayleigh_beta=True),
+                                    dict(rayleigh_beta=float("nan"))])
+def test_a_damping_that_is_not_a_non_negative_number_is_one_input_error_not_a_numpy_traceback(kwargs):
+    # a ratio or coefficient is a physical number (1, 1/s, s); a string, a bool or a nested list has no meaning
+    with pytest.raises(InputError, match="damping (zeta|rayleigh_alpha|rayleigh_beta) must be"):
+        Damping(**kwargs)
+
+
+def test_integer_and_numpy_ratios_are_numbers():
+    omega = np.array([2.0, 5.0])
+    np.testing.assert_allclose(Damping(zeta=(1, np.float64(0.5))).modal_coefficients(omega), 2 * np.array([1, 0.5]) * omega)
+    np.testing.assert_allclose(Damping(rayleigh_alpha=np.float32(0.5)).modal_coefficients(omega), 0.5)
