@@ -90,6 +90,25 @@ def _band(name: str, band) -> tuple:
     return (f_low, f_high)
 
 
+# The cosines of one history: each is evaluated at every right-hand side of the integrator, and 8 bytes of
+# each of its four arrays are kept; 2^16 resolve a band to 1e-5 of its width, far finer than any run's
+# frequency resolution 1 / t_end. More would only cost memory and time (red team: components = 1e9 asked
+# for 30 GB and ended in a MemoryError).
+MAX_COMPONENTS = 2 ** 16
+MAX_COSINES = 2 ** 22     # over all the histories of a Turbulence (CorrelatedProcess): 128 MB of arrays
+
+
+def _components(name: str, components) -> int:
+    """components as an int from 1 to MAX_COMPONENTS, or an InputError."""
+    from .errors import InputError, check_number
+
+    components = check_number(f"{name} components", components, 1, integer=True)
+    if components > MAX_COMPONENTS:
+        raise InputError(f"{name} components must be at most {MAX_COMPONENTS} (cosines per history; more resolve "
+                         f"nothing a run can see and cost memory and time), got {components}")
+    return components
+
+
 def _span(name: str, span) -> tuple:
     """() (the whole beam) or (x0, x1) in m with x0 < x1 (fom.py checks them against the beam)."""
     from .errors import InputError, check_number
@@ -181,7 +200,7 @@ class RandomForce:
         put(self, "psd", check_number("RandomForce psd ((N/m)^2/Hz)", self.psd, 0.0, above=True))
         put(self, "band", _band("RandomForce", self.band))
         put(self, "seed", check_number("RandomForce seed", self.seed, 0, integer=True))
-        put(self, "components", check_number("RandomForce components", self.components, 1, integer=True))
+        put(self, "components", _components("RandomForce", self.components))
         put(self, "span", _span("RandomForce", self.span))
         put(self, "direction", unit_direction("RandomForce direction", self.direction))
 
@@ -223,8 +242,10 @@ class Turbulence:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or value != value:
                 raise InputError(f"turbulence: {name} must be a number, got {value!r}")
+            if name != "correlation_length" and not np.isfinite(value):   # an infinite psd is a NaN load
+                raise InputError(f"turbulence: {name} must be finite, got {value!r}")
         put(self, "seed", check_number("turbulence: seed", self.seed, 0, integer=True))
-        put(self, "components", check_number("turbulence: components", self.components, 1, integer=True))
+        put(self, "components", _components("turbulence:", self.components))
         f_low, f_high = self.band
         problems = [(not (self.psd > 0), f"psd must be positive, got {self.psd!r}"),
                     (not (f_low is not None and f_high is not None and 0 <= f_low < f_high),
@@ -291,8 +312,14 @@ class CorrelatedProcess:
     rank makes the same numbers from the same seed."""
 
     def __init__(self, turbulence: Turbulence, count: int):
+        from .errors import InputError
+
         f_low, f_high = turbulence.band
         K = turbulence.components
+        if count * K > MAX_COSINES:
+            raise InputError(f"turbulence: {count} histories (the span's nodes the coherence needs, per plane) of "
+                             f"{K} components are {count * K} cosines at every step, more than {MAX_COSINES}: lower "
+                             f"components, or shorten the span or coarsen its elements")
         df = (f_high - f_low) / K
         shift = (np.arange(count) + 0.5) / count
         self.count = count

@@ -78,7 +78,8 @@ SECTIONS = {
         "band": Key((list,), [], "Hz", "random, turbulence: [f_low, f_high] of the PSD"),
         "seed": Key((int,), 1, "", "random, turbulence: the same seed gives the same history"),
         "components": Key((int,), 256, "", "random, turbulence: cosines of the spectral representation (per "
-                                           "history)"),
+                                           "history), 1 to 65536; turbulence: at most 4194304 over all its "
+                                           "histories"),
         "span": Key((list,), [], "m", "random, turbulence: [x0, x1] loaded, nodes of the mesh (default the whole "
                                       "beam); random: fully correlated"),
         "correlation_length": Key(NUMBER, None, "m", "turbulence: lambda of the coherence exp(-|dx| / lambda) "

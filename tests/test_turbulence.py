@@ -1,6 +1,7 @@
 """Turbulence along a span with partial correlation (issue 18): the spectral representation of a
 random load per unit length with coherence exp(-|dx| / lambda), on the span's nodes, in both planes.
 Each test is named by the physical fact it checks; the targets are the exact PSD and coherence."""
+import math
 import os
 import zlib
 
@@ -12,7 +13,8 @@ from scipy import signal
 
 from dbf_hpc import Beam, BasisSettings, FullOrderModel, IntegratorSettings, Reductor, _romc
 from dbf_hpc.errors import InputError
-from dbf_hpc.excitation import Turbulence
+from dbf_hpc.excitation import MAX_COMPONENTS, MAX_COSINES, CorrelatedProcess, RandomForce, Turbulence
+from dbf_hpc.schema import SECTIONS
 from dbf_hpc.rom_integrator import c_core, effective_callbacks
 from dbf_hpc.scene import load_scene
 from dbf_hpc.structure import distributed_load
@@ -160,6 +162,30 @@ def test_turbulence_descriptions_refuse_bad_values_in_one_line():
         with pytest.raises(InputError, match="turbulence: ") as e:
             Turbulence(**values)
         assert "\n" not in str(e.value)
+
+
+def test_an_infinite_psd_corner_or_slope_is_refused_as_it_would_make_a_nan_load():
+    # only the correlation length may be inf (a fully correlated load); S = inf has no finite variance
+    for bad in (dict(psd=math.inf), dict(spectrum="knee", corner_hz=math.inf, slope=2.0),
+                dict(spectrum="knee", corner_hz=5.0, slope=math.inf)):
+        values = {"psd": 1.0, "band": (0.0, 10.0), "correlation_length": 0.2, **bad}
+        with pytest.raises(InputError, match="turbulence: .* must be finite"):
+            Turbulence(**values)
+    assert Turbulence(1.0, (0.0, 10.0), math.inf).correlation_length == math.inf
+
+
+def test_components_beyond_what_any_run_resolves_are_one_input_error_not_a_memory_error():
+    # 2^16 cosines resolve the band to 1e-5 of its width; 1e9 asked for tens of GB before
+    with pytest.raises(InputError, match="RandomForce components must be at most 65536"):
+        RandomForce(1.0, (0.0, 10.0), components=10**9)
+    with pytest.raises(InputError, match="turbulence: components must be at most 65536"):
+        Turbulence(1.0, (0.0, 10.0), 0.2, components=MAX_COMPONENTS + 1)
+    assert RandomForce(1.0, (0.0, 10.0), components=MAX_COMPONENTS).history().frequency.size == MAX_COMPONENTS
+    # over all the histories of a Turbulence: the short correlation length of a long span needs many
+    with pytest.raises(InputError, match="cosines at every step"):
+        CorrelatedProcess(Turbulence(1.0, (0.0, 10.0), 1e-3, components=MAX_COMPONENTS), MAX_COSINES // MAX_COMPONENTS + 1)
+    for limit in (MAX_COMPONENTS, MAX_COSINES):   # the scene reference says the same limits
+        assert str(limit) in SECTIONS["excitation"][1]["components"].doc
 
 
 def test_c_callbacks_take_a_load_matrix_of_one_or_two_plane_turbulence():
