@@ -297,8 +297,8 @@ def _check_type(where: str, key: str, value, types) -> None:
     if not isinstance(value, types):
         raise InputError(f"{where}: {key} must be {_type_name(types)}, got {value!r}")
     numbers = value if isinstance(value, list) else [value]
-    if key == "correlation_length" and value == math.inf:
-        return   # turbulence: a fully correlated load
+    if key == "correlation_length" and isinstance(value, float) and math.isinf(value):
+        return   # turbulence: inf is a fully correlated load; -inf is refused as not > 0 (_check_turbulence)
     if any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
         raise InputError(f"{where}: {key} must be finite, got {value!r}")
 
@@ -445,6 +445,13 @@ def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
                          f"got {e['kind']!r}")
     if e["kind"] == "turbulence":
         _check_turbulence(e, s, where)
+    else:   # ignored, they would leave a load the scene does not describe (red team: random took lambda = 0.3 m)
+        given = [key for key in ("correlation_length", "corner_hz", "slope") if e[key] is not None]
+        given += ["spectrum"] if e["spectrum"] != "flat" else []
+        if given:
+            raise InputError(f"{where}: {', '.join(given)} {'belongs' if len(given) == 1 else 'belong'} to kind = \"turbulence\" and would be ignored by "
+                             f"kind = {e['kind']!r}" + (" (a fully correlated load of a flat PSD)" if e["kind"] == "random"
+                                                       else "") + ": remove them or set kind = \"turbulence\"")
     if e["kind"] in ("random", "turbulence"):
         if not at.beam:
             raise InputError(f"{where}: {e['kind']} forcing is distributed along a beam; not available for matrices")

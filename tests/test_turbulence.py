@@ -233,9 +233,26 @@ def test_turbulence_scene_takes_an_infinite_correlation_length(shared_tmp_path):
         load_scene(path, ["excitation.psd=inf"])
 
 
+@pytest.mark.parametrize("kind, extra", [("random", "correlation_length = 0.3"), ("random", "correlation_length = inf"),
+                                         ("random", 'spectrum = "knee"\ncorner_hz = 10.0\nslope = 2.0'),
+                                         ("random", "slope = 2.0"), ("none", "correlation_length = 0.3")])
+def test_turbulence_keys_on_another_kind_are_refused_not_ignored(shared_tmp_path, kind, extra):
+    # kind = "random" is fully correlated with a flat PSD: a correlation length or a knee left in the
+    # scene would describe a load that is not the one applied
+    path = os.path.join(shared_tmp_path, f"k{zlib.crc32((kind + extra).encode())}.toml")
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "w") as f:
+            f.write(SCENE.format(extra=extra).replace('kind = "turbulence"', f'kind = "{kind}"'))
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match='belongs? to kind = "turbulence" and would be ignored') as e:
+        load_scene(path)
+    assert "\n" not in str(e.value)
+
+
 @pytest.mark.parametrize("extra, message", [
     ("", "correlation_length"),
     ("correlation_length = 0.0", "correlation_length > 0"),
+    ("correlation_length = -inf", r"correlation_length > 0 \(m; inf for a fully correlated load\), got -inf"),
     ("correlation_length = 0.3\ndirection = [1.0, 0.0]", "remove direction"),
     ("correlation_length = 0.3\nspectrum = \"knee\"", "corner_hz"),
     ("correlation_length = 0.3\nspectrum = \"pink\"", "spectrum"),
