@@ -235,7 +235,7 @@ def test_turbulence_scene_takes_an_infinite_correlation_length(shared_tmp_path):
 
 @pytest.mark.parametrize("kind, extra", [("random", "correlation_length = 0.3"), ("random", "correlation_length = inf"),
                                          ("random", 'spectrum = "knee"\ncorner_hz = 10.0\nslope = 2.0'),
-                                         ("random", "slope = 2.0"), ("none", "correlation_length = 0.3")])
+                                         ("random", "slope = 2.0"), ("base", "correlation_length = 0.3\nfrequency_hz = 5.0")])
 def test_turbulence_keys_on_another_kind_are_refused_not_ignored(shared_tmp_path, kind, extra):
     # kind = "random" is fully correlated with a flat PSD: a correlation length or a knee left in the
     # scene would describe a load that is not the one applied
@@ -247,6 +247,33 @@ def test_turbulence_keys_on_another_kind_are_refused_not_ignored(shared_tmp_path
     with pytest.raises(InputError, match='belongs? to kind = "turbulence" and would be ignored') as e:
         load_scene(path)
     assert "\n" not in str(e.value)
+
+
+def test_free_vibration_of_a_turbulence_scene_is_one_override_away(shared_tmp_path):
+    # --set excitation.kind=none keeps the scene's other excitation keys (they describe no load then)
+    path = os.path.join(shared_tmp_path, "free.toml")
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "w") as f:
+            f.write(SCENE.format(extra='correlation_length = 0.3\nspectrum = "knee"\ncorner_hz = 10.0\nslope = 2.0'))
+    MPI.COMM_WORLD.Barrier()
+    assert load_scene(path, ["excitation.kind=\"none\""]).excitation().kind == "none"
+
+
+@pytest.mark.parametrize("kind, extra, word", [("random", "frequency_hz = 10.0", "frequency_hz"),
+                                               ("turbulence", "correlation_length = 0.3\namplitude = 3.0", "amplitude"),
+                                               ("force", "x = 1.0\nfrequency_hz = 5.0\namplitude = 1.0", "psd, band")])
+def test_harmonic_keys_on_a_random_load_and_spectral_keys_elsewhere_are_refused_not_ignored(shared_tmp_path, kind,
+                                                                                            extra, word):
+    # a random load has no single frequency or amplitude, a harmonic force no PSD: the value would be
+    # silently dropped and the run would describe another load than the scene's (kind = "none" keeps
+    # them: --set excitation.kind=none is the scene's free vibration)
+    path = os.path.join(shared_tmp_path, f"h{zlib.crc32((kind + extra).encode())}.toml")
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "w") as f:
+            f.write(SCENE.format(extra=extra).replace('kind = "turbulence"', f'kind = "{kind}"'))
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=f"{word} ha(s|ve) no meaning for kind = '{kind}' and would be ignored"):
+        load_scene(path)
 
 
 @pytest.mark.parametrize("extra, message", [
