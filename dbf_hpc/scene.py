@@ -438,6 +438,31 @@ def _check_direction(e: dict, s: dict, where: str) -> None:
         raise InputError(f"{where}: direction must be [dy, dz], two numbers not both 0, got {d!r}")
 
 
+def _refuse_ignored_turbulence_keys(e: dict, where: str) -> None:
+    """The turbulence keys on another kind of load: ignored, they would describe a load the run does
+    not apply (red team: kind = "random" with lambda = 0.3 m ran fully correlated)."""
+    given = [key for key in ("correlation_length", "corner_hz", "slope") if e[key] is not None]
+    given += ["spectrum"] if e["spectrum"] != "flat" else []
+    if given:
+        fully = " (a fully correlated load of a flat PSD)" if e["kind"] == "random" else ""
+        verb = "belongs" if len(given) == 1 else "belong"
+        raise InputError(f"{where}: {', '.join(given)} {verb} to kind = \"turbulence\" and would be ignored "
+                         f"by kind = {e['kind']!r}{fully}: remove them or set kind = \"turbulence\"")
+
+
+def _refuse_ignored_load_keys(e: dict, where: str) -> None:
+    """A harmonic load's amplitude or frequency on a random one, or a PSD or band on a harmonic one:
+    ignored, they would describe a load not applied (red team). kind = "none" keeps every key:
+    --set excitation.kind=none turns any scene into its free vibration."""
+    harmonic = [key for key in ("amplitude", "frequency_hz") if e[key]]
+    spectral = [key for key, empty in (("psd", 0.0), ("band", [])) if e[key] != empty]
+    ignored = harmonic if e["kind"] in ("random", "turbulence") else spectral if e["kind"] != "none" else []
+    if ignored:
+        verb, it = ("has", "it") if len(ignored) == 1 else ("have", "them")
+        raise InputError(f"{where}: {', '.join(ignored)} {verb} no meaning for kind = {e['kind']!r} and would be "
+                         f"ignored: remove {it} or set the kind that takes {it}")
+
+
 def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
     _check_direction(e, s, where)
     if e["kind"] not in ("none", "base", "force", "random", "turbulence"):
@@ -445,22 +470,9 @@ def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
                          f"got {e['kind']!r}")
     if e["kind"] == "turbulence":
         _check_turbulence(e, s, where)
-    elif e["kind"] != "none":   # ignored, they would leave a load the scene does not describe (red team: random
-        # took lambda = 0.3 m); "none" keeps them, --set excitation.kind=none being the scene's free vibration
-        given = [key for key in ("correlation_length", "corner_hz", "slope") if e[key] is not None]
-        given += ["spectrum"] if e["spectrum"] != "flat" else []
-        if given:
-            raise InputError(f"{where}: {', '.join(given)} {'belongs' if len(given) == 1 else 'belong'} to kind = \"turbulence\" and would be ignored by "
-                             f"kind = {e['kind']!r}" + (" (a fully correlated load of a flat PSD)" if e["kind"] == "random"
-                                                       else "") + ": remove them or set kind = \"turbulence\"")
-    harmonic = [key for key in ("amplitude", "frequency_hz") if e[key]]
-    spectral = [key for key, empty in (("psd", 0.0), ("band", [])) if e[key] != empty]
-    # ("none" keeps them: --set excitation.kind=none turns any scene into its free vibration)
-    ignored = harmonic if e["kind"] in ("random", "turbulence") else spectral if e["kind"] != "none" else []
-    if ignored:   # as with the turbulence keys: a value the load ignores describes a load not applied (red team)
-        raise InputError(f"{where}: {', '.join(ignored)} {'has' if len(ignored) == 1 else 'have'} no meaning for "
-                         f"kind = {e['kind']!r} and would be ignored: remove {'it' if len(ignored) == 1 else 'them'} "
-                         f"or set the kind that takes {'it' if len(ignored) == 1 else 'them'}")
+    elif e["kind"] != "none":
+        _refuse_ignored_turbulence_keys(e, where)
+    _refuse_ignored_load_keys(e, where)
     if e["kind"] in ("random", "turbulence"):
         if not at.beam:
             raise InputError(f"{where}: {e['kind']} forcing is distributed along a beam; not available for matrices")
