@@ -6,12 +6,11 @@ DBFs get hat-omega_i, Eq. 41), and Rayleigh damping projects exactly to alpha I 
 """
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, is_number
 
 
 @dataclass(frozen=True)
@@ -81,7 +80,7 @@ class Damping:
 
 def _real(value) -> bool:
     """A finite real number, not a bool."""
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) and bool(np.isfinite(value))
+    return is_number(value) and bool(np.isfinite(value))
 
 
 REPEATED_TOL = 1e-6   # relative: frequencies this close are one repeated frequency (a round tube's pairs)

@@ -50,6 +50,11 @@ def warn(message: str, comm) -> None:
         print(f"dbf-hpc: warning: {message}", file=sys.stderr, flush=True)
 
 
+def is_number(value) -> bool:
+    """A real number (numpy's too), not a bool; finite or not."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def check_number(where: str, value, minimum: float | None = None, above: bool = False, integer: bool = False):
     """`value` as a float (an int with integer=True), or one InputError naming `where` (e.g.
     "IntegratorSettings t_end"): a finite number (not a bool or a string), at least `minimum` (above

@@ -37,13 +37,12 @@ constraint), .force_and_jacobian(z, v) for both in one pass, .potential(z), .in_
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, is_number
 
 LAWS = ("deadband", "power", "linear", "cubic", "hertz", "table", "friction")
 CONTACT_DAMPING = ("none", "linear", "hunt_crossley")
@@ -51,10 +50,6 @@ CONTACT_DAMPING = ("none", "linear", "hunt_crossley")
 _TWO_SIDED = ("deadband", "power", "hertz")
 _DEFAULT_EXPONENT = {"hertz": 1.5}
 _NUMBER_FIELDS = ("clearance_minus", "clearance_plus", "k_minus", "k_plus", "k3", "c", "alpha")
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def _check_contact_damping(damping: str, c: float, alpha: float) -> None:
@@ -116,7 +111,7 @@ class Law:
 
         for name in ("normal_force", "mu", "v_reg"):
             value = getattr(self, name)
-            if not (_is_number(value) and math.isfinite(value) and value >= 0):
+            if not (is_number(value) and math.isfinite(value) and value >= 0):
                 raise InputError(f"{name} must be a non-negative finite number, got {value!r}")
             if value != 0 and self.kind != "friction":
                 raise InputError(f"{name} applies only to a friction law (law = \"friction\")")
@@ -131,7 +126,7 @@ class Law:
             raise InputError(f"damping must be one of {_quoted(CONTACT_DAMPING)}, got {self.damping!r}")
         for name in _NUMBER_FIELDS:
             value = getattr(self, name)
-            if not (_is_number(value) and math.isfinite(value)):
+            if not (is_number(value) and math.isfinite(value)):
                 raise InputError(f"{name} must be a finite number, got {value!r}")
             put(name, float(value))
         for name in ("k_minus", "k_plus", "k3", "c", "alpha"):
@@ -143,7 +138,7 @@ class Law:
             value = getattr(self, name)
             if value is None:
                 value = default
-            if not (_is_number(value) and math.isfinite(value) and value >= 1):
+            if not (is_number(value) and math.isfinite(value) and value >= 1):
                 raise InputError(f"{name} must be a number >= 1, got {value!r}")
             if value != 1 and self.kind not in ("power", "hertz"):
                 raise InputError(f"{name} does not apply to a {self.kind} law (it is 1); "
@@ -180,7 +175,7 @@ def _check_table(table) -> tuple:
     points = []
     for point in table:
         if (isinstance(point, (str, bytes)) or not isinstance(point, (list, tuple, np.ndarray))
-                or len(point) != 2 or not all(_is_number(x) and math.isfinite(x) for x in point)):
+                or len(point) != 2 or not all(is_number(x) and math.isfinite(x) for x in point)):
             raise InputError(f"table must be a list of [z, force] pairs of finite numbers, "
                              f"got the point {point!r}")
         points.append((float(point[0]), float(point[1])))
@@ -268,7 +263,7 @@ def _check_values(where: str, d: dict) -> None:
         elif key == "table":
             if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
                 raise InputError(f"{where}: table must be a list of [z, force] pairs, got {value!r}")
-        elif not _is_number(value):
+        elif not is_number(value):
             raise InputError(f"{where}: {key} must be a number, got {value!r}")
         elif not math.isfinite(value):
             raise InputError(f"{where}: {key} must be a finite number, got {value!r}")
@@ -665,7 +660,7 @@ class CircularLaw:
             raise InputError("angle applies only to a flat_bar law")
         for name in ("clearance", "k", "mu", "v_reg", "c", "alpha", "angle"):
             value = getattr(self, name)
-            if not (_is_number(value) and math.isfinite(value)):
+            if not (is_number(value) and math.isfinite(value)):
                 raise InputError(f"{name} must be a finite number, got {value!r}")
             object.__setattr__(self, name, float(value))
         # the normal's direction modulo a turn, reduced exactly (fmod is exact): radians() of a large angle
@@ -698,7 +693,7 @@ def circular_from_dict(where: str, d: dict) -> CircularLaw:
         if key not in KEYS_2D:
             takes = " (a key of the 1-D laws)" if key in KEYS else ""
             raise InputError(f"{where}: {key} does not apply to a circular law{takes} (keys: {', '.join(KEYS_2D)})")
-        if key not in ("law", "damping") and not (_is_number(value) and math.isfinite(value)):
+        if key not in ("law", "damping") and not (is_number(value) and math.isfinite(value)):
             raise InputError(f"{where}: {key} must be a finite number, got {value!r}")
     for key in ("clearance", "k"):
         if key not in d:
