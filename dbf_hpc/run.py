@@ -87,8 +87,9 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     [initial] (continuation in a frequency sweep; the basis must be the same). With resume, a run
     that was killed continues from its last checkpoint (OUT.h5.checkpoint) and ends as an
     uninterrupted run would, and a finished output of the same question (finished_output) is kept:
-    its summary is read back and nothing is computed. method = "full" integrates the full-order model instead: the reference
-    the reduced model is measured against, same scene, same output layout."""
+    its summary is read back and nothing is computed. method = "full" integrates the full-order
+    model instead: the reference the reduced model is measured against, same scene, same output
+    layout."""
     if method not in ("rom", "full"):
         raise InputError(f"--method {method!r}: choose rom or full")
     if method == "full" and initial_state is not None:
@@ -101,13 +102,14 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     if say is not None and (method == "full" or not settings.adaptive):
         _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
     with claimed(path, comm):
-        request = request_identity(scene, comm, method, initial_state)
+        digests = scene.file_digests(comm)   # once: the request and the run's identity hold the same bytes
+        request = request_identity(scene, comm, method, initial_state, digests)
         done = finished_output(path, identity(request=request), scene, comm) if resume else None
         if done is not None:   # a requeued batch job whose run had finished: nothing is computed again
             _say(say, f"{path} is already complete for this scene and setup: nothing to resume (`dbf-hpc info "
                       f"{path}` shows it; rerun without --resume to compute it again)")
             return done
-        summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request)
+        summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
     if say is not None:
         _warn_idle(summary, scene.constraints, comm)
         if method == "full" or not settings.adaptive:
@@ -143,7 +145,7 @@ def _gyroscopic_checks(scene: Scene, fom, method: str) -> None:
 
 
 def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str,
-         request: str | None = None) -> dict:
+         request: str | None = None, digests: dict | None = None) -> dict:
     timings, t = {}, time.perf_counter()
     with scene.full_order_model(comm) as fom:
         timings["operators"] = time.perf_counter() - t
@@ -155,7 +157,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             warn('[basis] gyroscopic_form = "state_space" is for gyroscopic structures (axial_speed, or a '
                  'matrices G); this one has no G, so its reduced model is the usual second-order one', comm)
         if method == "full":
-            return _run_full(scene, fom, path, settings, timings, say, resume, request)
+            return _run_full(scene, fom, path, settings, timings, say, resume, request, digests)
         t, solves = time.perf_counter(), counters["eigen_solves"]
         estimate, pick = scene.estimate_settings(), None
         if estimate.tolerance is not None:
@@ -188,7 +190,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
                 timings["estimate_basis"] = time.perf_counter() - t
     if initial_state is not None:
         model = _continue_from(model, initial_state)
-    ident = run_identity(scene, basis_key, comm, "rom", model.coordinates_digest(), request)
+    ident = run_identity(scene, basis_key, comm, "rom", model.coordinates_digest(), request, digests)
     return _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident,
                         {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state},
                         (rich, window, estimate.statistics_window) if rich is not None and initial_state is None
@@ -265,7 +267,8 @@ def _warn_coarse_step(settings, fastest_hz: float, comm) -> None:
     if fastest_hz > 0 and settings.dt * fastest_hz * STEPS_PER_PERIOD > 1:
         warn(f"[integrator] dt = {settings.dt:g} s takes {1 / (settings.dt * fastest_hz):.2g} fixed steps per period "
              f"of the {fastest_hz:g} Hz excitation, fewer than {STEPS_PER_PERIOD}: the step does not resolve the "
-             f"forcing, so the response is wrong; reduce [integrator] dt to at most {1 / (STEPS_PER_PERIOD * fastest_hz):.3g} s",
+             f"forcing, so the response is wrong; reduce [integrator] dt to at most "
+             f"{1 / (STEPS_PER_PERIOD * fastest_hz):.3g} s",
              comm)
 
 
@@ -321,13 +324,14 @@ def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
 
 
 def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordinates: str | None = None,
-                 request: str | None = None) -> dict:
+                 request: str | None = None, digests: dict | None = None) -> dict:
     """What a checkpoint must match to be resumed: every part that changes the result: the scene, the
     bytes of every file it reads, the operators and basis, the PETSc options, the rank count, the
     method, the callbacks, the package version, and (reduced) what the coordinates q mean
     (ReducedModel.coordinates_digest: a basis rebuilt in another orientation of a repeated frequency
     holds the same key, not the same q); with `request` (request_identity), also the question as it
-    was asked. The finished output stores it too (finished_output). Collective."""
+    was asked. The finished output stores it too (finished_output). `digests`: the scene's
+    file_digests when already made (they are not hashed again). Collective."""
     dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
     matrix = scene["excitation"]["kind"] == "turbulence"   # a load matrix: the Python callbacks
     friction = any(c.law.kind == "friction" for c in scene.constraints)
@@ -337,17 +341,18 @@ def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordi
     if callbacks and scene["basis"]["gyroscopic_form"] == "state_space" and (s.get("axial_speed") or
                                                                             s.get("gyroscopic")):
         callbacks = "python"   # the state-space form has no C callbacks (state_space.py)
-    return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], files=scene.file_digests(comm),
+    files = scene.file_digests(comm) if digests is None else digests
+    return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], files=files,
                     structure=basis_key, coordinates=coordinates, options=PETSc.Options().getAll(),
                     ranks=comm.getSize(), method=method, callbacks=callbacks, version=__version__,
                     **({"request": request} if request else {}))
 
 
-def request_identity(scene: Scene, comm, method: str, initial_state=None) -> str:
+def request_identity(scene: Scene, comm, method: str, initial_state=None, digests: dict | None = None) -> str:
     """The question a run answers, known before any work: run_identity's parts without the basis (the
     scene as given, before the tolerance mode picks its basis; its files; the PETSc options; the rank
     count; the method; the callbacks; the version) and the initial state given. One sha256. Collective."""
-    parts = run_identity(scene, None, comm, method)
+    parts = run_identity(scene, None, comm, method, digests=digests)
     if initial_state is not None:
         parts["initial_state"] = arrays_sha256({"q": np.asarray(initial_state[0], dtype=float),
                                                 "p": np.asarray(initial_state[1], dtype=float)})
@@ -849,7 +854,7 @@ _RESUME_SCALARS = ("t", "steps", "next_sample", "lam", "pushing", "counters")
 
 
 def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume: bool,
-              request: str | None = None) -> dict:
+              request: str | None = None, digests: dict | None = None) -> dict:
     """The full-order reference on fom.comm, every rank integrating its share of the state; rank 0
     writes the same layout as a reduced run (no basis/ or reduced/ groups) and the checkpoints."""
     world = fom.comm.tompi4py()
@@ -861,7 +866,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     snap_index = _snapshot_samples(output.snapshots, settings.sample_times)
     field_support = fom.field_support()
     checkpoint = Checkpoint(f"{path}.checkpoint", run_identity(scene, {"fingerprint": fom.fingerprint}, fom.comm,
-                                                                "full", request=request))
+                                                                "full", request=request, digests=digests))
     recorder = control = state = None
     snaps, opened = {}, None
     if world.rank == 0:

@@ -382,10 +382,14 @@ class _Stop:
             signal.signal(signal.SIGTERM, self.previous)
 
 
+def _record(sweep, index: int, identity: str, continued: bool) -> dict:
+    """What every record of case `index` starts with (RECORD_KEYS but its status and wall time)."""
+    return {"index": index, "identity": identity, "parameters": sweep["values"][index], "continued": continued}
+
+
 def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dict:
     """One case on this rank: its record (status ok or failed), or Interrupted."""
-    record = {"index": index, "identity": identity, "parameters": sweep["values"][index],
-              "continued": previous is not None}
+    record = _record(sweep, index, identity, previous is not None)
     t = time.perf_counter()
     case_out = os.path.join(folder, f"case-{index:05d}.h5")
     try:
@@ -456,8 +460,7 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
             if broken is not None:
                 # a step continues from the one before it: started from rest instead, it would answer
                 # another question under an "ok" (red team); a rerun retries the chain from the failed step
-                record = {"index": index, "identity": identities[index], "parameters": sweep["values"][index],
-                          "continued": False, "status": "failed", "wall_time": 0.0,
+                record = {**_record(sweep, index, identities[index], False), "status": "failed", "wall_time": 0.0,
                           "error": f"not run: case {broken + 1}, the step before it in its continuation chain, failed"}
             else:
                 record = _run_one(sweep, index, folder, cache_dir, models, identities[index],
