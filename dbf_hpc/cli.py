@@ -370,24 +370,13 @@ def _check_shapes_path(path: str, scene) -> None:
     written (new, or dbf-hpc's own files)."""
     from . import xdmf
     from .errors import InputError
-    from .output import check_output_path
+    from .output import check_output_path, is_dbf_shapes
 
     if not path.endswith(".xdmf"):
         raise InputError(f"--xdmf {path!r}: give a name ending in .xdmf (its data go to the .h5 of the same name)")
-    check_output_path(os.path.splitext(path)[0] + ".h5", scene.inputs(), replaceable=_is_shapes_file,
+    check_output_path(os.path.splitext(path)[0] + ".h5", scene.inputs(), replaceable=is_dbf_shapes,
                       kind="the mode shapes of an earlier `dbf-hpc basis --xdmf`")
     check_output_path(path, scene.inputs(), replaceable=xdmf.is_dbf_xdmf)
-
-
-def _is_shapes_file(path: str) -> bool:
-    """Whether `path` is the HDF5 file of an earlier `basis --xdmf` (not a run's output: red team)."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as f:
-            return "dbf_hpc_version" in f.attrs and "shapes" in f and "time" not in f
-    except (OSError, ValueError):
-        return False
 
 
 def _is_stiffness_table(path: str) -> bool:

@@ -41,7 +41,8 @@ def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf
         if source and os.path.exists(source) and os.path.samefile(path, source):
             raise InputError(f"output {path!r} is the {what} this run reads: choose another output name")
     if replaceable is not False and not (replaceable or is_dbf_output)(path):
-        raise InputError(f"output {path!r} exists and is not {kind}: remove it or choose another name")
+        shapes = " (it holds the mode shapes of a `dbf-hpc basis --xdmf`)" if replaceable is None and is_dbf_shapes(path) else ""
+        raise InputError(f"output {path!r} exists and is not {kind}{shapes}: remove it or choose another name")
     return path
 
 
@@ -86,13 +87,13 @@ def has_hdf5_signature(path: str) -> bool:
 
 
 def _written_by_us(path: str, ours, damaged: bool = False) -> bool:
-    """Whether `path` is an HDF5 file whose root attributes `ours` accepts; with `damaged`, also a
+    """Whether `path` is an HDF5 file that `ours` (given the open file) accepts; with `damaged`, also a
     damaged HDF5 file (a write that failed on a full disk: a run's own .partial or checkpoint).
     Another kind of file is not ours. A file system that refuses locks is one line, never "not ours"
     (that would advise removing a good file)."""
     try:
         with h5py.File(path, "r") as f:
-            return bool(ours(f.attrs))
+            return bool(ours(f))
     except (OSError, ValueError) as e:
         if refused_lock(e):
             raise InputError(f"cannot open {path!r}: {LOCK_HINT}") from None
@@ -100,13 +101,24 @@ def _written_by_us(path: str, ours, damaged: bool = False) -> bool:
 
 
 def is_dbf_output(path: str) -> bool:
-    """Whether `path` is an HDF5 file dbf-hpc wrote (a run's output or a sweep summary)."""
-    return _written_by_us(path, lambda attrs: "dbf_hpc_version" in attrs or "sweep" in attrs)
+    """Whether `path` is an HDF5 file dbf-hpc wrote as a run's output or a sweep summary (not the
+    mode shapes of `basis --xdmf`: a run must not replace those)."""
+    return _written_by_us(path, lambda f: ("dbf_hpc_version" in f.attrs or "sweep" in f.attrs)
+                          and not _shapes(f))
+
+
+def is_dbf_shapes(path: str) -> bool:
+    """Whether `path` is the HDF5 file of an earlier `basis --xdmf` (its mode shapes)."""
+    return _written_by_us(path, _shapes)
+
+
+def _shapes(f) -> bool:
+    return "dbf_hpc_version" in f.attrs and "shapes" in f and "time" not in f
 
 
 def is_dbf_partial(path: str) -> bool:
     """Whether `path` can be a run's unfinished output (OUT.h5.partial) dbf-hpc wrote."""
-    return _written_by_us(path, lambda attrs: "complete" in attrs or "dbf_hpc_version" in attrs, damaged=True)
+    return _written_by_us(path, lambda f: "complete" in f.attrs or "dbf_hpc_version" in f.attrs, damaged=True)
 
 
 def is_dbf_checkpoint(path: str) -> bool:
@@ -120,7 +132,7 @@ def is_dbf_checkpoint(path: str) -> bool:
                 return True
     except OSError:
         pass
-    return _written_by_us(path, lambda attrs: str(attrs.get("format", "")).startswith("dbf-hpc-checkpoint"),
+    return _written_by_us(path, lambda f: str(f.attrs.get("format", "")).startswith("dbf-hpc-checkpoint"),
                           damaged=True)
 
 

@@ -36,8 +36,10 @@ def open_output(path: str):
                          f"{target!r} is damaged ({str(e).splitlines()[0]})" if has_hdf5_signature(target) else
                          f"{target!r} is not an HDF5 file") from None
     if layout.TIME not in f and "cases" not in f:
+        shapes = "shapes" in f and "dbf_hpc_version" in f.attrs
         f.close()
-        raise InputError(f"{target!r} is not a dbf-hpc output")
+        raise InputError(f"{target!r} holds the mode shapes of a `dbf-hpc basis --xdmf`, not a run: open its .xdmf "
+                         f"in ParaView" if shapes else f"{target!r} is not a dbf-hpc output")
     return f, bool(f.attrs.get("complete", False)) and not target.endswith(".partial")
 
 

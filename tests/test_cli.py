@@ -765,6 +765,13 @@ def test_the_paraview_file_beside_an_output_never_replaces_what_dbf_hpc_did_not_
     for _ in range(2):      # dbf-hpc's own files are replaced by a rerun
         out = dbf_hpc("basis", PAPER, "--xdmf", str(tmp_path / "shapes.xdmf"))
         assert out.returncode == 0, out.stderr
+    # ... but a run does not replace a basis's shapes (it did: both are dbf-hpc's HDF5 files)
+    shapes = (tmp_path / "shapes.h5").read_bytes(), (tmp_path / "shapes.xdmf").read_bytes()
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "shapes.h5"), *SHORT)
+    assert _one_line(out) and "mode shapes of a `dbf-hpc basis --xdmf`" in out.stderr, out.stderr
+    assert ((tmp_path / "shapes.h5").read_bytes(), (tmp_path / "shapes.xdmf").read_bytes()) == shapes
+    out = dbf_hpc("info", str(tmp_path / "shapes.h5"), ranks=1)
+    assert _one_line(out) and "mode shapes" in out.stderr, out.stderr
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "good.h5"), *SHORT)
     assert out.returncode == 0 and (tmp_path / "good.xdmf").exists()
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "good.h5"), *SHORT)
