@@ -141,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "statistics against each varying parameter.")
     plot.add_argument("output", metavar="OUT.h5")
     plot.add_argument("-d", "--directory", default=".", help="where to write the PNGs (made if missing; default: .)")
-    plot.add_argument("--window", metavar="T0:T1", help="time window of the time histories and phase diagrams, "
+    plot.add_argument("--window", metavar="T0:T1", help="time window of every figure (its samples and snapshots), "
                                                         "in s (either end may be left out, e.g. 9:)")
     plot.set_defaults(func=_plot)
     command("modes", _modes, "the structure's reference modes: a modal summary",

@@ -105,9 +105,9 @@ def plot_run(path: str, folder: str, window=None) -> list:
     w at each probe; snapshots.png: the field at the snapshot times with the constraints and their
     deadbands (Figs. 6, 9, 11, 13). On a beam of two planes also orbits.png: each support's path z
     against y inside its gap (the clearance circle of a round hole, the two lines of flat bars).
-    `window` (t0, t1) limits the time histories, phase diagrams, forces, probes and orbits; their
-    files then carry the window's sample span (time_histories_9-10s.png), so that they never replace
-    the whole run's figures. snapshots.png does not depend on the window.
+    `window` (t0, t1) limits every figure to its samples and snapshots (none in it: no snapshots
+    figure); the files then carry the window's sample span (time_histories_9-10s.png), so that they
+    never replace the whole run's figures.
     """
     import h5py
 
@@ -139,8 +139,10 @@ def plot_run(path: str, folder: str, window=None) -> list:
             axes[-1].set_xlabel("time t [s]")
             fig.suptitle(f"Displacement at the probes ({span})")
             _save(fig, name("probes"), written)
-        if f[layout.SNAPSHOT_W].shape[0]:
-            _snapshot_figure(folder, f, positions, gaps, written)
+        ts = f[layout.SNAPSHOT_TIME][:]
+        chosen = np.flatnonzero((ts >= window[0]) & (ts <= window[1]) if window else np.ones(ts.size, dtype=bool))
+        if chosen.size:
+            _snapshot_figure(name("snapshots"), f, chosen, positions, gaps, written)
     return written
 
 
@@ -244,16 +246,19 @@ def _orbit_figure(name, positions, u, laws, span, written) -> None:
     _save(fig, name("orbits"), written)
 
 
-def _snapshot_figure(folder, f, positions, gaps, written) -> None:
+def _snapshot_figure(target, f, chosen, positions, gaps, written) -> None:
+    """The field at the snapshots `chosen` (indices) into `target`."""
     plt = _pyplot()
-    xs, ws, ts = f[layout.SNAPSHOT_X][:], f[layout.SNAPSHOT_W][:], f[layout.SNAPSHOT_TIME][:]
+    xs, ts = f[layout.SNAPSHOT_X][:], f[layout.SNAPSHOT_TIME][:][chosen]
     kind = f.attrs.get("field_kind", "beam")
     beam = kind == "beam"
     if kind == "nodes":      # a model with a node map: |u| at each node along x (ParaView shows it in 3-D)
         xs = f["snapshots/points"][:, 0]
-        ws = np.array([np.linalg.norm(f[f"snapshots/displacement/{i:06d}"][:], axis=1) for i in range(ts.size)])
+        ws = np.array([np.linalg.norm(f[f"snapshots/displacement/{i:06d}"][:], axis=1) for i in chosen])
         order = np.argsort(xs, kind="stable")
         xs, ws = xs[order], ws[:, order]
+    else:
+        ws = f[layout.SNAPSHOT_W][chosen[0]:chosen[-1] + 1][chosen - chosen[0]]
     fig, ax = plt.subplots(figsize=(7.5, 4.2), dpi=120)
     colors = plt.cm.viridis(np.linspace(0, 1, ws.shape[0]))
     for w, c in zip(ws, colors):
@@ -269,7 +274,7 @@ def _snapshot_figure(folder, f, positions, gaps, written) -> None:
     ax.grid(alpha=0.3)
     sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(ts[0], ts[-1]))
     fig.colorbar(sm, ax=ax, label="t [s]")
-    _save(fig, os.path.join(folder, "snapshots.png"), written)
+    _save(fig, target, written)
 
 
 def _read_sweep(f) -> dict:

@@ -838,8 +838,8 @@ def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp
     out = dbf_hpc("plot", str(tmp_path / "w.h5"), "-d", str(figs), "--window", "0.005:", ranks=1)
     assert out.returncode == 0, out.stderr
     windowed = sorted(p.name for p in figs.glob("*-*s.png"))
-    assert {"time_histories_0.005-0.01s.png", "phase_0.005-0.01s.png", "forces_0.005-0.01s.png"} <= set(windowed), \
-        windowed
+    assert {"time_histories_0.005-0.01s.png", "phase_0.005-0.01s.png", "forces_0.005-0.01s.png",
+            "snapshots_0.005-0.01s.png"} <= set(windowed), windowed    # the snapshots too (they ignored it)
     assert (figs / "time_histories.png").read_bytes() == whole
 
 
