@@ -13,6 +13,11 @@ import numpy as np
 from .errors import InputError, is_number
 
 
+# Above this a modal ratio is a typing error (1e300 overflowed 2 zeta omega and failed in the integrator as
+# "reduce dt"); up to it the overdamped modes integrate (implicitly) and are tested.
+ZETA_MAX = 100.0
+
+
 @dataclass(frozen=True)
 class Damping:
     """zeta: one ratio for every basis vector, or one per basis vector (a tuple). Or Rayleigh
@@ -33,6 +38,9 @@ class Damping:
         if not ratios or not all(_real(r) and r >= 0 for r in ratios):
             raise InputError(f"damping zeta must be non-negative numbers, got {self.zeta!r}")
         ratios = np.array(ratios, dtype=float)
+        if np.any(ratios > ZETA_MAX):
+            raise InputError(f"damping zeta {ratios.max():g} is not a structure's (1 is critical damping; tubes and beams "
+                             f"have 0.001-0.05): give ratios of at most {ZETA_MAX:g}")
         for name in ("rayleigh_alpha", "rayleigh_beta"):
             value = getattr(self, name)
             if not (_real(value) and value >= 0):

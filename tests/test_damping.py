@@ -71,3 +71,11 @@ def test_integer_and_numpy_ratios_are_numbers():
     omega = np.array([2.0, 5.0])
     np.testing.assert_allclose(Damping(zeta=(1, np.float64(0.5))).modal_coefficients(omega), 2 * np.array([1, 0.5]) * omega)
     np.testing.assert_allclose(Damping(rayleigh_alpha=np.float32(0.5)).modal_coefficients(omega), 0.5)
+
+
+def test_a_modal_ratio_far_above_critical_is_refused_at_the_edge_not_as_an_integrator_failure():
+    # Red team: zeta = 1e300 overflowed 2 zeta omega and ended as "integration stopped: reduce dt"
+    for zeta in (1e300, (0.01, 1e3)):
+        with pytest.raises(InputError, match="give ratios of at most 100"):
+            Damping(zeta=zeta)
+    assert Damping(zeta=100.0).kind == "modal"     # strongly overdamped modes stay possible
