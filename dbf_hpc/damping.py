@@ -74,6 +74,23 @@ class Damping:
         _check_repeated(ratios[:count], omega[:count])
         return 2.0 * ratios * omega
 
+    def check_rayleigh(self, omega: np.ndarray) -> None:
+        """An InputError when Rayleigh damping gives a reference mode (omega_i > 0, rad/s) a ratio
+        alpha / (2 omega_i) + beta omega_i / 2 above ZETA_MAX, as a modal ratio would be (alpha or beta
+        of 1e300 overflowed and ended as an integrator failure advising a smaller dt)."""
+        omega = np.asarray(omega, dtype=float)
+        omega = omega[omega > 0]
+        if self.kind != "rayleigh" or not omega.size:
+            return
+        with np.errstate(over="ignore"):
+            ratios = self.rayleigh_alpha / (2 * omega) + self.rayleigh_beta * omega / 2
+        i = int(np.argmax(ratios))
+        if not ratios[i] <= ZETA_MAX:
+            raise InputError(f"damping rayleigh_alpha = {self.rayleigh_alpha:g} 1/s, rayleigh_beta = "
+                             f"{self.rayleigh_beta:g} s give the reference mode of {omega[i] / (2 * np.pi):.4g} Hz a "
+                             f"damping ratio of {ratios[i]:.3g} (1 is critical): give coefficients that keep the "
+                             f"modes' ratios at most {ZETA_MAX:g}")
+
     def reduced_matrix(self, reduced_stiffness: np.ndarray, reduced_mass: np.ndarray | None = None,
                        modes: int | None = None) -> np.ndarray:
         """C_r for a basis with V^T K V = reduced_stiffness and V^T M V = reduced_mass (I when not

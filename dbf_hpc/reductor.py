@@ -57,6 +57,8 @@ class Reductor:
         ops = fom.operators
         K, M = basis.project(ops.K), basis.project(ops.M)
         structure = self._clean_projection(basis, K, M) if ops.G is None else {}
+        if ops.C is None:
+            fom.damping.check_rayleigh(basis.omega)
         C = basis.project(ops.C) if ops.C is not None else fom.damping.reduced_matrix(K, M, basis.mode_count)
         G = basis.project(ops.G) if ops.G is not None else None
         rows = fom.constraints.flat_rows

@@ -79,3 +79,11 @@ def test_a_modal_ratio_far_above_critical_is_refused_at_the_edge_not_as_an_integ
         with pytest.raises(InputError, match="give ratios of at most 100"):
             Damping(zeta=zeta)
     assert Damping(zeta=100.0).kind == "modal"     # strongly overdamped modes stay possible
+
+
+def test_rayleigh_coefficients_that_damp_a_reference_mode_far_above_critical_are_refused():
+    omega = np.array([0.0, 10.0, 1000.0])      # a rigid-body mode takes no ratio
+    Damping(rayleigh_alpha=1000.0, rayleigh_beta=0.1).check_rayleigh(omega)   # ratios 50 and 50: kept
+    for kwargs in (dict(rayleigh_alpha=1e300), dict(rayleigh_beta=1e300), dict(rayleigh_alpha=2001.0)):
+        with pytest.raises(InputError, match="damping ratio of .* at most 100"):
+            Damping(**kwargs).check_rayleigh(omega)
