@@ -12,9 +12,10 @@ constraint is treated explicitly. The Jacobian of F is exact (the laws' derivati
                            [ M_r^-1 (K_r - B^T N_z B)    shift I + M_r^-1 (D - B^T N_v B)  ]
 
 Options prefix `rom_` (-rom_ts_arkimex_type, -rom_ts_adapt_type, -rom_snes_test_jacobian, ...); the
-[integrator] values are set first, so command-line options win. A case runs on one rank
-(COMM_SELF). Samples are taken at fixed times by the TS's dense output (interpolated), or, for the
-types without one, by making steps land on the sample times.
+[integrator] values are set first, so command-line options win, except over what [integrator] alone
+sets (timestepping.SETTINGS_OPTIONS: refused, as the error estimate's richer run derives from it).
+A case runs on one rank (COMM_SELF). Samples are taken at fixed times by the TS's dense output
+(interpolated), or, for the types without one, by making steps land on the sample times.
 
 Two implementations of the same callbacks ([integrator] callbacks, docs/design.md "The reduced
 integrator's fast path"): ReducedProblem and _Monitor below, in Python, are the readable reference;

@@ -140,8 +140,10 @@ SECTIONS = {
         "rayleigh_beta": Key(NUMBER, 0.0, "s", "C = alpha M + beta K"),
     }),
     "integrator": ("Time integration: the reduced model's PETSc TS ARKIMEX (options prefix rom_), the full-order "
-                   "reference's generalized-alpha at the fixed step dt (options prefix full_); command-line options "
-                   "override these.", {
+                   "reference's generalized-alpha at the fixed step dt (options prefix full_). t_end, dt, "
+                   "adaptive, rtol and atol are set here only (-rom_ts_max_time, _dt, _rtol, _atol and a contrary "
+                   "-rom_ts_adapt_type are refused: the error estimate's richer run derives its own from them); "
+                   "-rom_ts_arkimex_type overrides scheme.", {
         "t_end": Key(NUMBER, 1.0, "s", "end of the run"),
         "dt": Key(NUMBER, 1e-4, "s", "the fixed step, or the first step of an adaptive run"),
         "scheme": Key((str, int), "3", "", "the reduced model's ARKIMEX type: 1bee, a2, l2, ars122, 2c, 2d, 2e, "

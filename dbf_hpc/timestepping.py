@@ -31,6 +31,12 @@ CALLBACKS = ("auto", "c", "python")
 # The step controller's defaults for the reduced model (scoped to -rom_, the user's options win):
 # measured in docs/design.md "Rejected steps".
 ADAPT_DEFAULTS = {"ts_adapt_safety": "0.8", "ts_adapt_clip": "0.1,1.5"}
+# TS options that [integrator] sets (option -> its key). The reduced run's error estimate integrates a
+# richer model with settings derived from [integrator] (accuracy.rich_settings: rtol and atol 10 times
+# tighter, a fixed step 4 times shorter): such an option would set the run and the richer run alike,
+# and the stored estimate would claim a tolerance neither had (red team: -rom_ts_rtol 0.1 was
+# estimated "against 13 basis vectors at rtol 1e-07"). They are refused by name (refuse_settings_options).
+SETTINGS_OPTIONS = {"ts_rtol": "rtol", "ts_atol": "atol", "ts_dt": "dt", "ts_max_time": "t_end"}
 
 
 @dataclass(frozen=True)
@@ -102,11 +108,29 @@ def sample_times(t_end: float, sample_dt: float) -> np.ndarray:
     return times if math.isclose(times[-1], t_end) else np.append(times, t_end)
 
 
+def refuse_settings_options(prefix: str, adaptive: bool) -> None:
+    """An InputError naming a -<prefix> option that would override what [integrator] sets (SETTINGS_OPTIONS),
+    or a -<prefix>ts_adapt_type that contradicts [integrator] adaptive ("none" on an adaptive run, a
+    controller on a fixed-step one). Not collective (the options are the same on every rank)."""
+    options = PETSc.Options(prefix)
+    for name, key in SETTINGS_OPTIONS.items():
+        if options.hasName(name):
+            raise InputError(f"-{prefix}{name}: set [integrator] {key} instead (--set integrator.{key}=...); the "
+                             f"option would also override the error estimate's richer run, which is integrated "
+                             f"more accurately than the run, and the estimate would not hold")
+    if options.hasName("ts_adapt_type") and (options.getString("ts_adapt_type") == "none") == adaptive:
+        raise InputError(f"-{prefix}ts_adapt_type {options.getString('ts_adapt_type')}: set [integrator] adaptive = "
+                         f"{'false' if adaptive else 'true'} instead (--set integrator.adaptive=...); the option "
+                         f"would also override the error estimate's richer run, and the estimate would not hold")
+
+
 def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults: dict, adaptive: bool,
               start: dict | None = None) -> None:
     """What every integrator's TS gets: time span, first step, tolerances, the failure policy, the
     Newton tolerances, then the code's defaults (scoped to `prefix`, only where the user set
-    nothing) and the user's options. `start` (t, dt, steps) continues a checkpointed run."""
+    nothing) and the user's options; a user option [integrator] sets is refused
+    (refuse_settings_options). `start` (t, dt, steps) continues a checkpointed run."""
+    refuse_settings_options(prefix, adaptive)
     ts.setTime(start["t"] if start else 0.0)
     ts.setTimeStep(start["dt"] if start else settings.dt)
     if start:

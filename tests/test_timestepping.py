@@ -26,3 +26,49 @@ def test_a_run_that_cannot_finish_is_refused_naming_its_step_count(settings, fas
 def test_the_papers_runs_pass_the_work_check():
     check_work(IntegratorSettings(t_end=10.0, sample_dt=1e-3), 1.0, True)
     check_work(IntegratorSettings(t_end=0.2, dt=2e-6, adaptive=False, sample_dt=1e-4), 1.0, False)
+
+
+@pytest.mark.parametrize("option,value,adaptive,names", [
+    ("ts_rtol", "0.1", True, "set \\[integrator\\] rtol instead"),
+    ("ts_atol", "1", True, "set \\[integrator\\] atol instead"),
+    ("ts_dt", "1e-3", False, "set \\[integrator\\] dt instead"),
+    ("ts_max_time", "5", True, "set \\[integrator\\] t_end instead"),
+    ("ts_adapt_type", "none", True, "set \\[integrator\\] adaptive = false instead"),
+    ("ts_adapt_type", "basic", False, "set \\[integrator\\] adaptive = true instead"),
+])
+def test_an_option_that_would_loosen_the_estimates_richer_run_too_is_refused_by_name(option, value, adaptive, names):
+    # The error estimate's richer run is integrated 10 times tighter (a 4 times shorter fixed step)
+    # than the run, from [integrator]; a -rom_ts_ option would set both runs alike. Red team: with
+    # -rom_ts_rtol 0.1 the stored estimate said "against 13 basis vectors at rtol 1e-07".
+    from petsc4py import PETSc
+
+    from dbf_hpc.timestepping import configure
+
+    options = PETSc.Options()
+    ts = PETSc.TS().create(comm=PETSc.COMM_SELF)
+    options.setValue("rom_" + option, value)
+    try:
+        with pytest.raises(InputError, match=f"-rom_{option}( {value})?: " + names):
+            configure(ts, IntegratorSettings(t_end=1.0, adaptive=adaptive), "rom_", {}, adaptive)
+    finally:
+        options.delValue("rom_" + option)
+        ts.destroy()
+
+
+@pytest.mark.parametrize("adaptive,kind", [(True, "dsp"), (False, "none")])
+def test_a_step_controller_that_agrees_with_integrator_adaptive_is_the_users(adaptive, kind):
+    from petsc4py import PETSc
+
+    from dbf_hpc.timestepping import configure
+
+    options = PETSc.Options()
+    ts = PETSc.TS().create(comm=PETSc.COMM_SELF)
+    ts.setType(PETSc.TS.Type.ARKIMEX)
+    options.setValue("rom_ts_adapt_type", kind)
+    try:
+        configure(ts, IntegratorSettings(t_end=1.0, adaptive=adaptive), "rom_", {"ts_adapt_type": "basic"}, adaptive)
+        assert options.getString("rom_ts_adapt_type") == kind      # the user's, not the code's default
+        assert ts.getTolerances()[0] == 1e-6                        # [integrator] rtol
+    finally:
+        options.delValue("rom_ts_adapt_type")
+        ts.destroy()
