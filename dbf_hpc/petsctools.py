@@ -117,16 +117,22 @@ def _petsc_library():
         return None
 
 
+# Options PETSc reads only in PetscFinalize (after the command asks what was used), or consumes at
+# start-up without marking them used: never "not used" (red team: -options_left and -options_view
+# drew "a misspelling" warnings).
+READ_BY_PETSC_ITSELF = ("-options_left", "-options_view", "-options_file")
+
+
 def unused_options(names, comm) -> list:
     """The options among `names` (as given, e.g. '-rom_ts_arkimex_typ') that no solver on any rank
-    read: a misspelling, or a solver this command does not run. Collective; [] where PETSc cannot
-    tell."""
+    read: a misspelling, or a solver this command does not run (not READ_BY_PETSC_ITSELF).
+    Collective; [] where PETSc cannot tell."""
     import ctypes
 
     from mpi4py import MPI
 
     lib = _petsc_library()
-    names = [n for n in names if n.startswith("-") and len(n) > 1]
+    names = [n for n in names if n.startswith("-") and len(n) > 1 and n not in READ_BY_PETSC_ITSELF]
     used = []
     for name in names:
         flag = ctypes.c_int(1)

@@ -586,6 +586,16 @@ def test_unused_petsc_options_and_suspicious_units_draw_warnings(tmp_path):
     assert "basis: 6 modes (8.606e-06 ... " in out.stdout and "warning" not in out.stdout, out.stdout
 
 
+def test_options_petsc_reads_at_its_finalize_are_not_called_unused_but_a_misspelling_is():
+    # Red team: -options_left and -options_view (read by PetscFinalize, after the command's check)
+    # were reported as "not used: a misspelling"; -options_left's own report must still appear.
+    out = dbf_hpc("modes", PAPER, "-options_left", "-options_view", "-mdoes_eps_tol", "1e-3")
+    assert out.returncode == 0, out.stderr
+    assert "PETSc option -mdoes_eps_tol was not used" in out.stderr, out.stderr
+    assert "-options_left was not used" not in out.stderr and "-options_view was not used" not in out.stderr, out.stderr
+    assert "Option left: name:-mdoes_eps_tol" in out.stdout + out.stderr
+
+
 def test_a_stop_not_reached_by_a_near_miss_draws_no_unit_warning(tmp_path):
     # New-user pass: the paper's beam to 0.1 s comes to 2.37 mm of the 2.5 mm stop; "check the
     # clearance's unit" there (and at the 2-D tube's idle plates) is a false alarm.
