@@ -55,6 +55,15 @@ def solver_options(prefixes=("modes_", "dbf_")) -> dict:
     return {k: v for k, v in sorted(PETSc.Options().getAll().items()) if k.startswith(prefixes)}
 
 
+def _mark_used(options: dict) -> None:
+    """Read each of a cache hit's key options once, so that PETSc counts it used: they found the
+    basis, and the run that built it read them (and warned of any no solver read). Red team: a hit
+    warned that -modes_eps_tol was "not used: a misspelling". Not collective."""
+    database = PETSc.Options()
+    for name in options:
+        database.getString(name, "")
+
+
 def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool = False) -> str:
     """sha256 of everything that determines the basis (the options only of the solvers its kind uses),
     and the package version (a release may build it otherwise without a new ALGORITHM).
@@ -298,6 +307,7 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
     if exists:
         basis = load(path, key, ops, settings, rows)
         if basis is not None:
+            _mark_used(solver_options(settings.strategy.solver_prefixes))
             return basis
     basis = build_basis(ops, rows, settings, labels)
     defect = float(np.abs(basis.project(ops.M) - np.eye(basis.size)).max(initial=0.0))

@@ -101,6 +101,16 @@ def test_basis_is_cached_and_reused_without_eigen_solves(tmp_path):
     assert 0.01 < float(k) < 1.0
 
 
+def test_a_solver_option_that_found_a_cached_basis_is_not_called_unused(tmp_path):
+    # The option is part of the cache key, so the hit used it; red team: the hit warned that
+    # -modes_eps_tol was "not used: a misspelling, or a solver this command does not run".
+    args = ("basis", PAPER, "--set", f"basis.cache={tmp_path}", "-modes_eps_tol", "1e-11")
+    first, second = dbf_hpc(*args), dbf_hpc(*args)
+    assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
+    assert "cache stored" in first.stdout and "cache hit" in second.stdout
+    assert "was not used" not in first.stderr + second.stderr, first.stderr + second.stderr
+
+
 def test_stiffness_sweep_writes_data_and_figure(tmp_path):
     csv, png = tmp_path / "sweep.csv", tmp_path / "fig2.png"
     out = dbf_hpc("stiffness", PAPER, "--k", "1e-3,1e-1,1e3", "-o", str(csv), "--plot", str(png))
