@@ -89,7 +89,9 @@ class SharedFactor:
         self.ksp.solve(x, y)
         counters["solves"] += 1
         if self.ksp.getConvergedReason() < 0:
-            raise SolverError(f"a solve with the shared DBF factorization failed ({self.ksp.getConvergedReason()})")
+            raise SolverError(f"a solve with the shared DBF factorization failed (KSP reason "
+                              f"{self.ksp.getConvergedReason()}); check the -{FACTOR_PREFIX} options (an exact "
+                              f"solve is needed: -{FACTOR_PREFIX}ksp_type preonly -{FACTOR_PREFIX}pc_type cholesky)")
 
     def solve_block(self, b: np.ndarray) -> np.ndarray:
         """A^-1 b for a block of local rows b (n_local x L, one right-hand side per column), as numpy

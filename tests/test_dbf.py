@@ -353,6 +353,22 @@ def test_shared_derivative_refuses_a_krylov_solve_that_does_not_converge(paper):
         options.delValue("dbf_krylov_ksp_max_it")
 
 
+@pytest.mark.parametrize("path", ["shared", "ritz"])
+def test_a_shared_solve_that_is_not_exact_is_refused_naming_its_options(paper, path):
+    # Red team: -dbf_shared_ksp_type cg with Jacobi gave "a solve with the shared DBF factorization
+    # failed (-4)", naming neither the options nor what to change.
+    ops, modes, row = paper
+    options = PETSc.Options()
+    options.setValue("dbf_shared_ksp_type", "cg")
+    options.setValue("dbf_shared_pc_type", "jacobi")
+    try:
+        with pytest.raises(SolverError, match="check the -dbf_shared_ options .*-dbf_shared_ksp_type preonly"):
+            DbfEnrichment(solver=path).columns(ops, np.array([row]), modes)
+    finally:
+        options.delValue("dbf_shared_ksp_type")
+        options.delValue("dbf_shared_pc_type")
+
+
 def test_shared_path_refuses_a_shift_its_factorization_does_not_have(paper):
     ops, modes, row = paper
     options = PETSc.Options()

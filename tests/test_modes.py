@@ -137,6 +137,20 @@ def test_eigenpairs_from_an_inexact_shift_and_invert_are_refused_by_their_residu
         options.delValue("modes_st_pc_type")
 
 
+def test_a_shift_and_invert_solve_that_fails_is_blamed_on_the_modes_options_too(ops):
+    # Red team: -modes_st_ksp_type cg that stopped after 3 iterations was reported as a failure of
+    # M or K alone ("check that M is positive definite ...").
+    options = PETSc.Options()
+    for name, value in (("st_ksp_type", "cg"), ("st_pc_type", "jacobi"), ("st_ksp_max_it", "3")):
+        options.setValue("modes_" + name, value)
+    try:
+        with pytest.raises(SolverError, match="eigensolver failed .*check the -modes_ options"):
+            reference_modes(ops, count=4)
+    finally:
+        for name in ("st_ksp_type", "st_pc_type", "st_ksp_max_it"):
+            options.delValue("modes_" + name)
+
+
 def test_massless_dofs_leave_finitely_many_modes_and_asking_for_more_names_them(shared_tmp_path):
     # Red team: a lumped M with zero entries (massless DOFs) has fewer finite eigenvalues than DOFs;
     # asking for more modes said "raise -modes_eps_max_it", which cannot help. The finite ones are the
