@@ -338,7 +338,8 @@ def trust_check(ops: Operators, values, estimate, residual, prefix: str = "modes
                     else "")
         raise SolverError(f"reference modes: eigenpair {j + 1} has relative residual {residual[j]:.1e} "
                           f"> {np.sqrt(tol):.1e}: the eigensolver's answer is not an eigenpair of (K, M); "
-                          f"check the -{prefix}st_ solver options (an exact factorization is needed){singular}")
+                          f"check -{prefix}eps_tol (a looser stopping test than the default 1e-10) and the "
+                          f"-{prefix}st_ solver options (an exact factorization is needed){singular}")
 
 
 def _element_limit(ops: Operators, count: int, estimate: float, tol: float, prefix: str) -> int:

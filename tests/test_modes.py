@@ -137,6 +137,20 @@ def test_eigenpairs_from_an_inexact_shift_and_invert_are_refused_by_their_residu
         options.delValue("modes_st_pc_type")
 
 
+def test_eigenpairs_of_a_loose_stopping_tolerance_are_refused_naming_it(ops):
+    # Red team: -modes_eps_tol 0.5 (residuals of 0.2) was refused as a fault of the -modes_st_ options.
+    # A subspace of one vector more than asked for keeps SLEPc from converging far beyond the tolerance.
+    options = PETSc.Options()
+    options.setValue("modes_eps_tol", "0.5")
+    options.setValue("modes_eps_ncv", "21")
+    try:
+        with pytest.raises(SolverError, match="relative residual .* check -modes_eps_tol"):
+            reference_modes(ops, count=20)
+    finally:
+        options.delValue("modes_eps_tol")
+        options.delValue("modes_eps_ncv")
+
+
 def test_a_shift_and_invert_solve_that_fails_is_blamed_on_the_modes_options_too(ops):
     # Red team: -modes_st_ksp_type cg that stopped after 3 iterations was reported as a failure of
     # M or K alone ("check that M is positive definite ...").
