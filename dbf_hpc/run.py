@@ -99,7 +99,9 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     path = output_path(scene, out, resume)
     settings = scene.integrator_settings()
     check_work(settings, scene.fastest_forcing_hz(), adaptive=settings.adaptive and method == "rom")
-    if say is not None and (method == "full" or not settings.adaptive):
+    # The warnings below say a result may be wrong: -q (progress=False) silences the progress, not them
+    # (red team: --method full -q at 2.5 steps a period of the forcing wrote a wrong response with no word)
+    if method == "full" or not settings.adaptive:
         _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
     with claimed(path, comm):
         digests = scene.file_digests(comm)   # once: the request and the run's identity hold the same bytes
@@ -110,11 +112,10 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
                       f"{path}` shows it; rerun without --resume to compute it again)")
             return done
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
-    if say is not None:
-        _warn_idle(summary, scene.constraints, comm)
-        if method == "full" or not settings.adaptive:
-            _warn_unresolved(summary, scene.constraints, settings.dt, comm, "" if method == "full" else
-                             ", or set [integrator] adaptive = true")
+    _warn_idle(summary, scene.constraints, comm)
+    if method == "full" or not settings.adaptive:
+        _warn_unresolved(summary, scene.constraints, settings.dt, comm, "" if method == "full" else
+                         ", or set [integrator] adaptive = true")
     return summary
 
 

@@ -226,6 +226,17 @@ def test_a_fixed_step_longer_than_a_twentieth_of_the_forcing_period_draws_a_warn
             assert ("fixed steps per period of the 10 Hz excitation" in err) == warned, (dt, err)
 
 
+def test_a_step_too_coarse_for_the_forcing_warns_also_without_progress_output(shared_tmp_path, capfd):
+    # -q silences the progress lines, not the warning that the response is wrong (red team: --method
+    # full -q at 2.5 steps a period of a 4 kHz force wrote its aliased response with no word).
+    s = load_scene(PAPER, ["basis.cache=off", "integrator.t_end=0.05", "integrator.dt=0.03",
+                           "excitation.frequency_hz=10", "output.sample_dt=1e-3"])
+    run(s, str(shared_tmp_path / "coarse_quiet.h5"), progress=False, method="full")
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        assert "fixed steps per period of the 10 Hz excitation" in err, err
+
+
 def test_unresolved_impacts_warn_whatever_the_sample_interval(shared_tmp_path, capfd):
     # Impact durations are measured on the steps, not the samples: at k = 1e12 N/m and dt = 1e-5 s an
     # impact lasts one step, and samples 100 steps apart must not hide it (the docs said they would).
