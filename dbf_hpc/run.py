@@ -103,6 +103,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     # (red team: --method full -q at 2.5 steps a period of the forcing wrote a wrong response with no word)
     if method == "full" or not settings.adaptive:
         _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
+    _warn_coarse_samples(settings, scene.fastest_forcing_hz(), comm)
     with claimed(path, comm):
         digests = scene.file_digests(comm)   # once: the request and the run's identity hold the same bytes
         request = request_identity(scene, comm, method, initial_state, digests)
@@ -271,6 +272,17 @@ def _warn_coarse_step(settings, fastest_hz: float, comm) -> None:
              f"forcing, so the response is wrong; reduce [integrator] dt to at most "
              f"{1 / (STEPS_PER_PERIOD * fastest_hz):.3g} s",
              comm)
+
+
+def _warn_coarse_samples(settings, fastest_hz: float, comm) -> None:
+    """A warning when the samples are fewer than two per period of the fastest forcing (Nyquist): the
+    sampled series alias the response (red team: a 99 Hz force sampled every 0.01 s wrote a 1 Hz
+    oscillation, and probes/peak, the peak over the samples, missed the response's, with no word)."""
+    if fastest_hz > 0 and 2 * settings.sample_dt * fastest_hz > 1:
+        warn(f"[output] sample_dt = {settings.sample_dt:g} s takes {1 / (settings.sample_dt * fastest_hz):.2g} samples "
+             f"per period of the {fastest_hz:g} Hz excitation, fewer than 2: the sampled series (time, probes, "
+             f"constraints) alias the response and the peaks over the samples miss it; reduce [output] sample_dt to "
+             f"at most {1 / (2 * fastest_hz):.3g} s", comm)
 
 
 STEPS_PER_IMPACT = 3   # fewer on average, at a fixed step: contact forces and times depend on dt

@@ -296,3 +296,15 @@ def test_a_run_without_a_richer_model_says_why_it_has_no_estimate(shared_tmp_pat
     assert np.isnan(summary["estimated_error"])
     if MPI.COMM_WORLD.rank == 0:
         assert "estimated error: not available (" in capsys.readouterr().out
+
+
+def test_samples_fewer_than_two_per_forcing_period_warn_that_the_series_aliases(shared_tmp_path, capfd):
+    # Nyquist: a 99 Hz force sampled every 0.01 s shows as a 1 Hz oscillation, and probes/peak (over
+    # the samples) misses the response's peak; at 4 samples a period the series is not aliased.
+    for sample_dt, warned in ((1e-2, True), (2.5e-3, False)):
+        paper_run(shared_tmp_path, "excitation.frequency_hz=99", "integrator.t_end=0.05",
+                  f"output.sample_dt={sample_dt}", "basis.estimate=false", name=f"alias{sample_dt}.h5")
+        err = capfd.readouterr().err
+        if MPI.COMM_WORLD.rank == 0:
+            assert ("fewer than 2: the sampled series (time, probes, constraints) alias the response" in err) == warned, \
+                (sample_dt, err)
