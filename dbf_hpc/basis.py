@@ -270,6 +270,13 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     modes = reference_modes(ops, count=settings.modes, max_frequency_hz=settings.max_frequency_hz)
     t1 = time.perf_counter()
     N, NL = modes.count, strategy.count(rows.size)
+    if NL and N >= ops.size:
+        # red team: a single-DOF mass-spring with a stop ended in a ZeroDivisionError (2 ranks) or an
+        # eigensolver failure blaming M and K (1 rank) inside the DBF solve
+        destroy(modes)
+        raise InputError(f"the {N} reference modes span all {ops.size} DOFs of the structure: an enrichment column "
+                         f"would depend on them; set [basis] enrichment = \"none\" (the modes are then exact)"
+                         + (" or use fewer modes" if ops.size > 1 else ""))
     V = _basis_vectors(ops, N + NL)
     columns = None
     try:

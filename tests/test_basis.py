@@ -146,6 +146,32 @@ def test_more_basis_vectors_than_the_mesh_can_carry_is_a_breakdown_naming_the_co
     ops.destroy()
 
 
+@pytest.mark.parametrize("kind", ["dbf", "static"])
+def test_a_single_dof_mass_spring_with_a_stop_refuses_enrichment_and_its_one_mode_is_exact(shared_tmp_path, kind):
+    # A mass on a spring (k = 400 N/m, m = 1 kg): its one mode is the whole structure, omega = 20 rad/s.
+    # An enrichment column can only depend on it: one InputError naming the way out, on every rank (red
+    # team: the DBF solve ended in a ZeroDivisionError on 2 ranks, an eigensolver error blaming M on 1).
+    import scipy.io
+    import scipy.sparse
+    from mpi4py import MPI
+
+    from dbf_hpc.matrices import MatrixFiles, load_operators
+
+    K, M = (str(shared_tmp_path / name) for name in ("K1.mtx", "M1.mtx"))
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(K, scipy.sparse.csr_matrix([[400.0]]))
+        scipy.io.mmwrite(M, scipy.sparse.csr_matrix([[1.0]]))
+    MPI.COMM_WORLD.Barrier()
+    ops = load_operators(MatrixFiles(stiffness=K, mass=M))
+    with pytest.raises(InputError, match='span all 1 DOFs of the structure: .* enrichment = "none" \\(the modes are '
+                                         'then exact\\)$'):
+        build_basis(ops, [0], BasisSettings(modes=1, enrichment=kind))
+    basis = build_basis(ops, [0], BasisSettings(modes=1, enrichment="none"))
+    assert abs(basis.omega[0] - 20.0) < 1e-10 * 20.0
+    basis.destroy()
+    ops.destroy()
+
+
 # --- enrichment kinds: the static correction and plain modal truncation, the DBF's comparators ---
 
 def pinned_beam_point_load_deflection(x, a, L, EI):
