@@ -63,13 +63,16 @@ DATASETS = {
                                       "captures, B_j K_r^-1 B_j^T / g_j^T K^-1 g_j (N_L; 1 with static modes, NaN "
                                       "if K is singular)"),
     BASIS_FLEXIBILITY_EXACT: ("m/N", "the full model's static flexibility g_j^T K^-1 g_j at each constraint (N_L)"),
-    REDUCED_Q: ("1", "reduced coordinates q (nt x r; width 0 for a full-order run)"),
-    REDUCED_QDOT: ("1/s", "reduced velocities q' (nt x r; width 0 for a full-order run)"),
+    # V^T M V = I makes V's columns kg^-1/2 (M in kg), so q = V^T M u is m kg^1/2 and B = G^T V is kg^-1/2:
+    # w = B q in m (red team: the outputs said q in 1 and B in m, so q looked like a displacement)
+    REDUCED_Q: ("m kg^(1/2)", "reduced coordinates q of the M-orthonormal basis, u = V q (nt x r; width 0 for a "
+                              "full-order run)"),
+    REDUCED_QDOT: ("m kg^(1/2)/s", "reduced velocities q' (nt x r; width 0 for a full-order run)"),
     REDUCED_M: ("1", "reduced mass V^T M V (r x r; I to round-off)"),
     REDUCED_K: ("1/s^2", "reduced stiffness V^T K V (r x r)"),
     REDUCED_D: ("1/s", "reduced damping C_r (r x r)"),
-    REDUCED_B: ("m", "the basis at the constraint DOFs, B = G^T V (N_L x r; 2 N_L x r, rows y_j, z_j, on a beam "
-                    "of two planes)"),
+    REDUCED_B: ("kg^(-1/2)", "the basis at the constraint DOFs, B = G^T V: w = B q (N_L x r; 2 N_L x r, rows y_j, "
+                             "z_j, on a beam of two planes)"),
     SNAPSHOT_TIME: ("s", "snapshot times (S)"),
     SNAPSHOT_X: ("m or 1", "field points: node x on a beam (twice each, y then z, on a beam of two planes), or DOF index "
                     "(F)"),

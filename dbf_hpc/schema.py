@@ -150,7 +150,9 @@ SECTIONS = {
                                            "prssp2, 3, bpr3, ars443, 4, 5"),
         "adaptive": Key((bool,), True, "", "adaptive steps (error control by rtol, atol) or the fixed step dt"),
         "rtol": Key(NUMBER, 1e-6, "1", "relative tolerance of the adaptive steps"),
-        "atol": Key(NUMBER, 1e-9, "", "absolute tolerance of the adaptive steps (units of q and q')"),
+        "atol": Key(NUMBER, 1e-9, "", "absolute tolerance of the adaptive steps, in the units of the M-orthonormal "
+                                      "q (m kg^(1/2)) and q' (m kg^(1/2)/s): a displacement tolerance times the "
+                                      "square root of the modal mass"),
         "contact": Key((str,), "implicit", "", '"implicit" (with its exact Jacobian) or "explicit" (the paper\'s '
                                                'IMEX split)'),
         "callbacks": Key((str,), "auto", "", 'the reduced model\'s TS callbacks: "c" (compiled, fast), "python" '

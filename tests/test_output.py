@@ -162,3 +162,24 @@ def test_an_output_whose_write_failed_is_kept_open_not_closed(tmp_path):
     finally:
         writer.file.close()
         del PARKED[before:]
+
+
+def test_reduced_coordinates_carry_the_units_of_an_m_orthonormal_basis(shared_tmp_path):
+    # The paper's beam released from 1 mm in its first mode: the M-orthonormal mode is
+    # sqrt(2 / (rho A L)) sin(pi x / L) (kg^-1/2), so q_1(0) = 1 mm sqrt(rho A L / 2) (m kg^1/2) and B at
+    # x = 0.25 m is sqrt(2 / (rho A L)) sin(pi / 4): w = B q in m, not q in 1 and B in m (red team).
+    import h5py
+    import numpy as np
+
+    rhoA, L = 11800 * 2.9e-7, 1.0
+    path = str(shared_tmp_path / "units.h5")
+    run(load_scene(PAPER, SHORT + ["excitation.kind=none", "initial.amplitude=1e-3", "basis.estimate=false"]), path,
+        progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(path, "r") as f:
+            q, B = f["reduced/q"], f["reduced/B"]
+            assert (q.attrs["unit"], f["reduced/qdot"].attrs["unit"], B.attrs["unit"]) == \
+                ("m kg^(1/2)", "m kg^(1/2)/s", "kg^(-1/2)")
+            assert abs(abs(q[0, 0]) - 1e-3 * np.sqrt(rhoA * L / 2)) < 1e-6 * 1e-3 * np.sqrt(rhoA * L / 2)
+            assert abs(abs(B[0, 0]) - np.sqrt(2 / (rhoA * L)) * np.sin(np.pi / 4)) < 1e-4 * np.sqrt(2 / (rhoA * L))
+            assert abs(B[0] @ q[0] - f["constraints/displacement"][0, 0]) < 1e-12
