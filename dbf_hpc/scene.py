@@ -463,6 +463,23 @@ def _refuse_ignored_load_keys(e: dict, where: str) -> None:
                          f"ignored: remove {it} or set the kind that takes {it}")
 
 
+def _refuse_ignored_position_keys(e: dict, where: str, at: _Positions) -> None:
+    """Where a load acts, given to a load that does not take it: x or dof on anything but a force (of
+    the structure's kind), end on anything but support motion. Ignored, they would describe a load not
+    applied (red team: kind = "base" with x = 0.5 ran the support's motion, x read nowhere; end =
+    "right" on a force likewise). kind = "none" keeps every key."""
+    if e["kind"] == "none":
+        return
+    ignored = [key for key in ("x", "dof") if e[key] is not None and (e["kind"] != "force" or key != at.key)]
+    ignored += ["end"] if e["end"] != "left" and e["kind"] != "base" else []
+    if ignored:
+        takes = {"x": "a force on a beam", "dof": "a force on a matrices structure", "end": "base excitation of a beam"}
+        verb = "applies" if len(ignored) == 1 else "apply"
+        raise InputError(f"{where}: {', '.join(ignored)} {verb} to {' and '.join(takes[k] for k in ignored)} and would "
+                         f"be ignored by kind = {e['kind']!r} on a {'beam' if at.beam else 'matrices'} structure: "
+                         f"remove {'it' if len(ignored) == 1 else 'them'}")
+
+
 def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
     _check_direction(e, s, where)
     if e["kind"] not in ("none", "base", "force", "random", "turbulence"):
@@ -473,6 +490,7 @@ def _check_excitation(e: dict, s: dict, where: str, at: _Positions) -> None:
     elif e["kind"] != "none":
         _refuse_ignored_turbulence_keys(e, where)
     _refuse_ignored_load_keys(e, where)
+    _refuse_ignored_position_keys(e, where, at)
     if e["kind"] in ("random", "turbulence"):
         if not at.beam:
             raise InputError(f"{where}: {e['kind']} forcing is distributed along a beam; not available for matrices")

@@ -96,6 +96,24 @@ def test_the_moving_end_of_a_matrix_model_is_refused_as_its_influence_vector_say
     assert validate({"structure": structure, "excitation": base}).excitation().amplitude == 1e-3
 
 
+@pytest.mark.parametrize("excitation,message", [
+    ({"kind": "base", "x": 0.5}, "x applies to a force on a beam and would be ignored by kind = 'base'"),
+    ({"kind": "force", "x": 0.5, "end": "right"}, "end applies to base excitation of a beam and would be ignored"),
+    ({"kind": "force", "dof": 3}, "dof applies to a force on a matrices structure and would be ignored"),
+    ({"kind": "random", "psd": 1.0, "band": [0.0, 10.0], "x": 0.5}, "x applies to a force on a beam"),
+])
+def test_where_a_load_acts_given_to_a_load_that_does_not_take_it_is_refused(excitation, message):
+    # Red team: a base excitation with x = 0.5 m moved the left support (x read nowhere), and a force
+    # with end = "right" acted at its x: the run was of another load than the scene says.
+    harmonic = {"amplitude": 1e-3, "frequency_hz": 5.0} if excitation["kind"] != "random" else {}
+    with pytest.raises(InputError, match=message):
+        validate({"structure": BEAM, "excitation": {**harmonic, **excitation}}, "test.toml")
+    kept = {**harmonic, **excitation, "kind": "none"}   # free vibration keeps every key (--set excitation.kind=none)
+    assert validate({"structure": BEAM, "excitation": kept}).excitation().kind == "none"
+    force = {"kind": "force", "x": 0.5, "amplitude": 1e-3, "frequency_hz": 5.0}
+    assert validate({"structure": BEAM, "excitation": force}).excitation().x == 0.5
+
+
 @pytest.mark.parametrize("damping", [{"zeta": 0.02}, {"rayleigh_alpha": 1.0}, {"rayleigh_beta": 1e-4}])
 def test_a_damping_matrix_beside_modal_or_rayleigh_damping_is_refused(damping):
     # Red team: the reduced and full-order models used the matrix and dropped zeta (or alpha, beta)
