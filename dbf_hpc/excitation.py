@@ -122,12 +122,14 @@ def _span(name: str, span) -> tuple:
 
 
 def _harmonic_numbers(excitation, name: str) -> None:
-    """The amplitude and frequency of a harmonic excitation as numbers, its direction a unit vector
-    (the Python API's edge)."""
+    """The amplitude and frequency of a harmonic excitation as numbers, the frequency above 0 (a sine
+    of 0 Hz is no load at all, whatever its amplitude: a scene refuses it too), its direction a unit
+    vector (the Python API's edge)."""
     from .errors import check_number
 
     object.__setattr__(excitation, "amplitude", check_number(f"{name} amplitude", excitation.amplitude))
-    object.__setattr__(excitation, "frequency_hz", check_number(f"{name} frequency_hz", excitation.frequency_hz, 0.0))
+    object.__setattr__(excitation, "frequency_hz", check_number(f"{name} frequency_hz (Hz; a sine of 0 Hz is no "
+                                                                f"load)", excitation.frequency_hz, 0.0, above=True))
     object.__setattr__(excitation, "direction", unit_direction(f"{name} direction", excitation.direction))
 
 
@@ -168,11 +170,15 @@ class PointForce:
     kind = "force"
 
     def __post_init__(self):
+        from .errors import InputError, check_number
+
         _harmonic_numbers(self, "PointForce")
         if (self.x is None) == (self.dof is None):
-            from .errors import InputError
-
             raise InputError("PointForce: give where it acts, one of x (m, on a beam) or dof (a matrix model)")
+        if self.x is not None:   # red team: x = "a" was a TypeError, x = True a force at 1 m
+            object.__setattr__(self, "x", check_number("PointForce x (m)", self.x))
+        else:
+            object.__setattr__(self, "dof", check_number("PointForce dof", self.dof, 0, integer=True))
 
     def history(self) -> Harmonic:
         return Harmonic(self.amplitude, self.frequency_hz)

@@ -124,6 +124,9 @@ class FullOrderModel:
             if (c.x is None) == on_beam:
                 raise InputError(f"FullOrderModel.build: constraint {j + 1} needs {'x (m)' if on_beam else 'dof'} "
                                  f"on a {type(structure).__name__}")
+        if excitation.kind == "force" and (excitation.x is None) == on_beam:   # a TypeError before (red team)
+            raise InputError(f"FullOrderModel.build: the PointForce needs {'x (m)' if on_beam else 'dof'} on a "
+                             f"{type(structure).__name__}")
         planes = structure.planes if isinstance(structure, Beam) else 1
         _check_dimensions(constraints, planes)
         if isinstance(structure, MatrixFiles) and structure.damping and damping.kind != "none":

@@ -81,6 +81,26 @@ def test_the_python_api_refuses_a_wrong_value_where_it_is_given(make, message):
         make(dbf_hpc)
 
 
+@pytest.mark.parametrize("make,message", [
+    (lambda api: api.PointForce(amplitude=1.0, frequency_hz=0.0, x=0.5), "PointForce frequency_hz .* must be above 0"),
+    (lambda api: api.BaseMotion(amplitude=1e-3, frequency_hz=0.0), "BaseMotion frequency_hz .* must be above 0"),
+    (lambda api: api.PointForce(amplitude=1.0, frequency_hz=5.0, x="0.5"), "PointForce x \\(m\\) must be a finite"),
+    (lambda api: api.PointForce(amplitude=1.0, frequency_hz=5.0, x=True), "PointForce x \\(m\\) must be a finite"),
+    (lambda api: api.PointForce(amplitude=1.0, frequency_hz=5.0, dof=-1), "PointForce dof must be at least 0"),
+    (lambda api: api.FullOrderModel.build(api.Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=4),
+                                          [], api.PointForce(amplitude=1.0, frequency_hz=5.0, dof=3)),
+     "the PointForce needs x \\(m\\) on a Beam"),
+])
+def test_a_harmonic_load_of_no_frequency_or_of_no_place_on_the_structure_is_refused_where_it_is_given(make, message):
+    # sin(2 pi 0 t) = 0: a 0 Hz force or support motion is no load at all, whatever its amplitude (a
+    # scene refuses it; the API ran the structure at rest). x = "0.5" and a dof on a beam were a
+    # TypeError, x = True a force at x = 1 m (red team).
+    import dbf_hpc
+
+    with pytest.raises(dbf_hpc.InputError, match=message):
+        make(dbf_hpc)
+
+
 def test_the_models_are_refused_by_the_simulation_of_the_other_kind():
     from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, FullOrderModel, InputError, IntegratorSettings,
                          Reductor, law, simulate_full, simulate_reduced)
