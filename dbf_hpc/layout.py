@@ -40,7 +40,8 @@ SERIES = (TIME, CONSTRAINT_DISPLACEMENT, CONSTRAINT_VELOCITY, CONSTRAINT_FORCE, 
 
 # name -> (unit, meaning)
 DATASETS = {
-    TIME: ("s", "sample times (nt)"),
+    TIME: ("s", "sample times (nt): 0, sample_dt, 2 sample_dt, ... and t_end, always the last sample (the last "
+                "interval shorter when sample_dt does not divide t_end)"),
     CONSTRAINT_POSITION: ("m or 1", "x of each constraint on a beam, or its DOF (N_L)"),
     CONSTRAINT_CLEARANCE_MINUS: ("m", "clearance below each constraint (N_L)"),
     CONSTRAINT_CLEARANCE_PLUS: ("m", "clearance above each constraint (N_L)"),

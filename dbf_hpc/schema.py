@@ -169,7 +169,9 @@ SECTIONS = {
     }),
     "output": ("What a run writes.", {
         "file": Key((str,), None, "", "the HDF5 output, relative to the scene's folder (or -o)"),
-        "sample_dt": Key(NUMBER, None, "s", "interval of the samples (default t_end / 10000)"),
+        "sample_dt": Key(NUMBER, None, "s", "interval of the samples from t = 0 (default t_end / 10000); t_end is "
+                                            "always the last sample, the last interval shorter when sample_dt does not "
+                                            "divide t_end"),
         "probes": Key((list,), [], "m", "x of the probes on a beam (DOFs for matrices): total displacement there"),
         "snapshots": Key((int,), 0, "", "field snapshots at evenly spaced times"),
         "checkpoint_dt": Key(NUMBER, None, "s", "simulated time between checkpoints (default t_end / 10)"),

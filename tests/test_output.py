@@ -183,3 +183,24 @@ def test_reduced_coordinates_carry_the_units_of_an_m_orthonormal_basis(shared_tm
             assert abs(abs(q[0, 0]) - 1e-3 * np.sqrt(rhoA * L / 2)) < 1e-6 * 1e-3 * np.sqrt(rhoA * L / 2)
             assert abs(abs(B[0, 0]) - np.sqrt(2 / (rhoA * L)) * np.sin(np.pi / 4)) < 1e-4 * np.sqrt(2 / (rhoA * L))
             assert abs(B[0] @ q[0] - f["constraints/displacement"][0, 0]) < 1e-12
+
+
+@pytest.mark.parametrize("method", ["rom", "full"])
+def test_samples_start_at_0_step_by_sample_dt_and_end_at_t_end_with_its_state(shared_tmp_path, method):
+    # sample_dt = 3 ms does not divide t_end = 10 ms: the samples are 0, 3, 6, 9 and 10 ms, the last the state at
+    # t_end. Free vibration in the pinned-pinned mode 3 (1 mm, clear of the 2.5 mm stop): w(0.5, t) =
+    # -1 mm cos(omega_3 t), omega_3 = (3 pi)^2 sqrt(EI / rho A); cos changes by 1.4e-3 from 9 to 10 ms.
+    import h5py
+    import numpy as np
+
+    omega = (3 * np.pi) ** 2 * np.sqrt(117e9 * 8.78e-16 / (11800 * 2.9e-7))
+    path = str(shared_tmp_path / f"times_{method}.h5")
+    run(load_scene(PAPER, SHORT + ["excitation.kind=none", "initial.mode=3", "initial.amplitude=1e-3",
+                                   "output.sample_dt=3e-3", "output.probes=[0.5]", "integrator.dt=1e-5",
+                                   "basis.estimate=false"]), path, progress=False, method=method)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(path, "r") as f:
+            t, w = f["time"][:], f["probes/displacement"][:, 0]
+        np.testing.assert_allclose(t, [0.0, 3e-3, 6e-3, 9e-3, 1e-2], rtol=0, atol=1e-15)
+        exact = 1e-3 * np.cos(omega * t) * np.sign(w[0])
+        assert np.abs(w - exact).max() < 1e-4 * 1e-3, (w, exact)
