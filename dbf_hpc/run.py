@@ -41,7 +41,7 @@ from .rom import ReducedModel
 from .rom_integrator import c_counters, effective_callbacks, integrate_reduced
 from .scene import Scene
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
-from .timestepping import STEPS_PER_PERIOD, check_work
+from .timestepping import STEPS_PER_PERIOD, check_work, refuse_settings_options
 
 
 def output_path(scene: Scene, override: str | None, resume: bool = False) -> str:
@@ -99,6 +99,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     path = output_path(scene, out, resume)
     settings = scene.integrator_settings()
     check_work(settings, scene.fastest_forcing_hz(), adaptive=settings.adaptive and method == "rom")
+    if method == "rom":      # before the basis is built (the integrator checks again)
+        refuse_settings_options("rom_", settings.adaptive)
     # The warnings below say a result may be wrong: -q (progress=False) silences the progress, not them
     # (red team: --method full -q at 2.5 steps a period of the forcing wrote a wrong response with no word)
     if method == "full" or not settings.adaptive:

@@ -820,6 +820,13 @@ def test_an_option_petsc_refuses_is_one_line_and_leaves_no_file(tmp_path):
         assert not list(tmp_path.iterdir()), list(tmp_path.iterdir())
 
 
+def test_an_integrator_option_that_would_void_the_estimate_is_refused_before_the_basis_is_built(tmp_path):
+    # it was refused only when the integrator started, after the basis (minutes on a large model)
+    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "r.h5"), "--set", "integrator.t_end=0.01", "-rom_ts_rtol", "0.1")
+    assert _one_line(out) and "-rom_ts_rtol: set [integrator] rtol instead" in out.stderr, out.stderr
+    assert "basis:" not in out.stdout and not list(tmp_path.iterdir()), out.stdout
+
+
 def test_a_checkpoint_of_the_c_callbacks_is_not_resumed_with_the_python_ones(tmp_path):
     target = tmp_path / "cb.h5"
     common = ("--set", "integrator.t_end=20", "--set", "output.checkpoint_dt=0.01", "-q")
