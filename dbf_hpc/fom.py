@@ -264,6 +264,12 @@ class FullOrderModel:
         """(u(0), u'(0)): initial_displacement() at rest, or on a gyroscopic structure (G set) the
         free vibration of complex mode `initial.mode` (gyroscopic.mode_state), `initial.amplitude` m
         peak in u. New Vecs, the caller's. Collective."""
+        try:
+            return self._initial_state()
+        except InputError as e:   # "number of modes must be between 1 and 80" named no [initial] (red team)
+            raise InputError(f"[initial] mode = {self.initial.mode}: {e}") from None
+
+    def _initial_state(self) -> tuple:
         if self.operators.mesh is not None and self.operators.mesh.planes == 2:
             return self.two_plane_state()
         if self.operators.G is None or not self.initial.amplitude:

@@ -99,6 +99,14 @@ def test_full_method_refuses_modal_damping_in_one_line_and_leaves_no_file(shared
         assert not list(shared_tmp_path.glob("x.h5*")), "no file is left behind"
 
 
+def test_an_initial_mode_the_mesh_does_not_have_is_refused_naming_initial_mode(shared_tmp_path):
+    # it said "number of modes must be between 1 and 200", naming nothing the user wrote (red team)
+    s = load_scene(PAPER, ["basis.cache=off", "excitation.kind=none", "initial.amplitude=1e-3", "initial.mode=500",
+                           "integrator.t_end=0.01"])
+    with pytest.raises(InputError, match=r"^\[initial\] mode = 500: .*between 1 and 200"):
+        run(s, str(shared_tmp_path / "x.h5"), progress=False, method="full")
+
+
 def test_rayleigh_damping_decays_the_full_model_at_the_exact_rate(shared_tmp_path):
     # C = beta K: mode 1 decays as exp(-zeta omega t), zeta = beta omega / 2.
     omega = np.pi ** 2 * np.sqrt(EI / RHOA)
