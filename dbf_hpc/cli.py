@@ -216,9 +216,9 @@ def _axial_speed(scene) -> str:
 
 def _run(args) -> int:
     from .run import run
-    from .scene import load_scene
+    from .scene import load_scene_collective
 
-    scene = load_scene(args.scene, args.set)
+    scene = load_scene_collective(args.scene, args.set)
     run(scene, args.output, progress=not args.quiet, resume=args.resume, method=args.method)
     return 0
 
@@ -285,9 +285,9 @@ def _modes(args) -> int:
 
     from .gyroscopic import gyroscopic_modes
     from .modes import reference_modes
-    from .scene import load_scene
+    from .scene import load_scene_collective
 
-    scene = load_scene(args.scene, args.set)
+    scene = load_scene_collective(args.scene, args.set)
     comm = PETSc.COMM_WORLD
     start = time.perf_counter()
     basis = scene["basis"]
@@ -337,9 +337,9 @@ def _basis(args) -> int:
 
     from .modes import counters
     from .reductor import Reductor
-    from .scene import load_scene
+    from .scene import load_scene_collective
 
-    scene = load_scene(args.scene, args.set)
+    scene = load_scene_collective(args.scene, args.set)
     if args.xdmf:
         _check_shapes_path(args.xdmf, scene)
     comm = PETSc.COMM_WORLD
@@ -480,9 +480,9 @@ def _stiffness(args) -> int:
 
     from .errors import InputError
     from .output import check_output_path
-    from .scene import load_scene
+    from .scene import load_scene_collective
 
-    scene = load_scene(args.scene, args.set)
+    scene = load_scene_collective(args.scene, args.set)
     if not 1 <= args.constraint <= len(scene.constraints):
         raise InputError(f"--constraint {args.constraint}: the scene has {len(scene.constraints)} constraint(s)")
     ks = parse_stiffnesses(args.k)

@@ -205,13 +205,19 @@ def parse_override(text: str) -> tuple[str, str, object]:
     return section, key, value
 
 
-def load_scene(path: str, overrides=()) -> Scene:
-    """Read and validate a scene file; `overrides` are 'section.key=value' strings (--set)."""
+def read_scene_bytes(path: str) -> bytes:
+    """The scene file's bytes, or an InputError naming why they cannot be read."""
     try:
         with open(path, "rb") as f:
-            raw = f.read()
+            return f.read()
     except OSError as e:
         raise InputError(f"cannot read scene {path!r}: {e.strerror}") from None
+
+
+def load_scene(path: str, overrides=(), raw: bytes | None = None) -> Scene:
+    """Read and validate a scene file; `overrides` are 'section.key=value' strings (--set). `raw`:
+    the file's bytes, already read (load_scene_collective)."""
+    raw = read_scene_bytes(path) if raw is None else raw
     try:
         text = raw.decode("utf-8")
         data = tomllib.loads(text)
@@ -234,6 +240,25 @@ def load_scene(path: str, overrides=()) -> Scene:
     for i, keys in given.items():
         _check_one_unit_of_k(data["constraint"][i], i, keys)
     return dataclasses.replace(validate(data, path, text), overrides=tuple(overrides))
+
+
+def load_scene_collective(path: str, overrides=(), comm=None) -> Scene:
+    """load_scene with the file read by rank 0 of `comm` (default COMM_WORLD) and its bytes
+    broadcast: every rank validates the same scene, also when the file is edited while the job
+    starts or is not readable on every node. Collective."""
+    from mpi4py import MPI
+
+    comm = comm or MPI.COMM_WORLD
+    raw = problem = None
+    if comm.rank == 0:
+        try:
+            raw = read_scene_bytes(path)
+        except InputError as e:
+            problem = str(e)
+    raw, problem = comm.bcast((raw, problem), root=0)
+    if problem:
+        raise InputError(problem)
+    return load_scene(path, overrides, raw=raw)
 
 
 def _check_one_unit_of_k(c: dict, index: int, given: set) -> None:

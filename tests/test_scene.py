@@ -251,3 +251,20 @@ def test_a_tolerance_on_a_scene_choosing_its_modes_by_frequency_says_how_to_repl
         load_scene(tube, ["basis.tolerance=0.05"])
     s = load_scene(tube, ["basis.tolerance=0.05", "basis.modes=4"])
     assert (s["basis"]["modes"], s["basis"]["max_frequency_hz"], s["basis"]["tolerance"]) == (4, None, 0.05)
+
+
+def test_every_rank_runs_the_scene_rank_0_read_also_when_another_rank_cannot_read_it(monkeypatch):
+    # Each rank read the file itself: an edit while the job started, or a node that cannot read the
+    # path, gave the ranks different scenes or one rank's error while the others went on
+    from mpi4py import MPI
+
+    from dbf_hpc import scene as scene_module
+
+    comm = MPI.COMM_WORLD
+    if comm.rank:
+        monkeypatch.setattr(scene_module, "read_scene_bytes", lambda path: (_ for _ in ()).throw(
+            InputError(f"cannot read scene {path!r}: No such file or directory")))
+    scene = scene_module.load_scene_collective(PAPER, ["integrator.t_end=0.5"])
+    assert comm.allgather(scene.text) == [scene.text] * comm.size and scene["integrator"]["t_end"] == 0.5
+    with pytest.raises(InputError, match="cannot read scene"):     # rank 0's error is every rank's
+        scene_module.load_scene_collective(os.path.join(ROOT, "jobs", "no_such_scene.toml"))
