@@ -1,5 +1,5 @@
-"""The shared-factorization DBF path ([basis] dbf_solver = "shared", the default; docs/design.md,
-"One factorization per constraint group").
+"""The shared-factorization DBF path ([basis] dbf_solver = "shared", and the fallback of the default
+"ritz" path, dbf_ritz.py; docs/design.md, "One factorization per constraint group").
 
 The factored path (dbf.py, FactorSolver) factors three matrices per constraint: K and M without
 the constraint's row (the pinned mu_m), K + k g g^T - sigma M (the shift-and-invert of Eq. 13/34)
