@@ -49,7 +49,8 @@ Euler half steps whose acceleration, in PETSc 3.18, is twice the backward-differ
 Factorization (options prefix full_): KSP preonly + Cholesky (LU when a gyroscopic G, skew, makes
 K_eff = K + s_V (C + G) + s_A M unsymmetric); on one rank PETSc's own Cholesky or LU in the natural
 ordering when it keeps the fill small (a beam: its solve costs microseconds, MUMPS's hundreds of
-microseconds), MUMPS otherwise and always in parallel. Any -full_ksp_/-full_pc_ option overrides;
+microseconds), MUMPS otherwise; in parallel that Cholesky runs on every rank at once (PCREDUNDANT),
+and an LU is always MUMPS's. Any -full_ksp_/-full_pc_ option overrides;
 every factorization is checked by the residual of its N_L solves and of a load on every DOF, so an
 inexact solver is an error, never a wrong result.
 
