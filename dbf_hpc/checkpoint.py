@@ -11,6 +11,9 @@ A checkpoint is an HDF5 file (OUT.h5.checkpoint): data, never code. It holds
 - a seal over the whole file (sealed.py), checked before HDF5 parses it: damaged metadata is the
   same one-line refusal, not an HDF5 crash or traceback.
 It is written under a temporary name, fsynced and renamed, so a kill never leaves half of one.
+
+Not collective: a Checkpoint is written and read by one rank (rank 0 of a run, or the rank running a
+sweep's case); a run broadcasts what that rank decides (run.py).
 """
 from __future__ import annotations
 

@@ -3,6 +3,8 @@
 The paper's examples are undamped; real tubes have 1-3 % damping. In a reduced basis V with
 V^T M V = I, modal ratios put 2 zeta_i omega_i on the diagonal (omega_i^2 = (V^T K V)_ii, so the
 DBFs get hat-omega_i, Eq. 41), and Rayleigh damping projects exactly to alpha I + beta V^T K V.
+
+Plain values and small numpy matrices: nothing here is collective.
 """
 from __future__ import annotations
 

@@ -5,6 +5,9 @@ what a scene or a Python script asks for. The full-order model turns one into it
 RandomProcess) and, for forces, a load at one DOF or a load vector. In relative coordinates
 (paper Eqs. 26-27) support motion loads the structure with -M r Omega''(t) and the laws act on the
 total displacement u + r Omega(t).
+
+The descriptions and time functions are plain numpy: nothing here is collective (the full-order
+model assembles the loads, fom.py).
 """
 from __future__ import annotations
 

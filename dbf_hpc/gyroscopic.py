@@ -12,6 +12,8 @@ about 0, P(0) = K factored by MUMPS's LU (K may be indefinite): the eigenvalues 
 frequencies and any divergence. Options prefix `modes_` as for the real modes (-modes_pep_tol, ...).
 The problem is scaled (lambda by sqrt(||K|| / ||M||)). Each returned pair is checked: its backward
 error must be below BACKWARD_TOL. With G = 0 the frequencies are the real solver's (modes.py) to 1e-10.
+
+The solves and checks are collective on the operators' communicator.
 """
 from __future__ import annotations
 

@@ -33,6 +33,8 @@ Conventions (shared with the reduced model and the integrators):
 
 Use: ConstraintLaws(laws).force(z, v), .jacobian(z, v) -> (dN/dz, dN/dv) (diagonal, one entry per
 constraint), .force_and_jacobian(z, v) for both in one pass, .potential(z), .in_contact(z).
+
+Pure numpy: nothing here is collective (every rank that integrates evaluates the laws alone).
 """
 from __future__ import annotations
 

@@ -3,6 +3,8 @@
 
 Series (one row per sample) are streamed while a run goes; the rest is written when it ends.
 Shapes: nt samples, N_L constraints, P probes, r basis vectors, F field points, S snapshots.
+
+Names and units only: nothing here is collective.
 """
 from __future__ import annotations
 

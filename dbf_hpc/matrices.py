@@ -8,6 +8,8 @@ Vectors (influence vector, support-motion mass load) may also be *.npy or *.txt 
 
 Every rank reads only its own rows into the distributed matrix; a Matrix Market file is parsed on
 every rank (text is not seekable by row), which is fine for the sizes such files are used for.
+
+Reading is collective on the communicator it is given (default COMM_WORLD).
 """
 from __future__ import annotations
 

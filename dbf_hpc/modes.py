@@ -19,6 +19,8 @@ Each returned eigenpair must have estimate <= TRUST_TOL and relative residual
 ||K x - lambda M x|| / (lambda ||M x||) <= sqrt(TRUST_TOL): the residual catches a solve that is
 wrong for another reason (an inexact shift-and-invert); its floor is the rounding in K x, about the
 estimate, and for a Hermitian pencil the eigenvalue error goes like the residual squared over the gap.
+
+The solves and checks are collective on the operators' communicator.
 """
 from __future__ import annotations
 

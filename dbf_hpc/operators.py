@@ -4,6 +4,9 @@ Whatever made them (the beam model of structure.py, or matrix files through matr
 structure is: distributed K and M (and optionally C, and room for a gyroscopic G) over its free
 DOFs, for base excitation the support-motion influence vector, and a map from DOF values to the
 field a user looks at (w at the nodes of a beam, every DOF of a matrix model).
+
+The Operators hold distributed PETSc objects on their communicator `comm`: freeing them is collective
+on it; PointValues is plain numpy and not collective.
 """
 from __future__ import annotations
 

@@ -13,6 +13,8 @@ projection gives is what is integrated.
 A ReducedModel is small and holds numpy arrays only, the same on every rank: it can be handed to
 any rank (a sweep's cases run side by side) and integrated there (rom_integrator.py). Its field
 part (V at the points a snapshot shows) is present only when snapshots are asked for.
+
+Nothing here is collective: the projection that makes a ReducedModel is (reductor.py).
 """
 from __future__ import annotations
 

@@ -3,6 +3,8 @@
 scene.py validates against it; `reference()` renders it as docs/scene.md (a test checks that the
 file is up to date, so the reference cannot drift from the code); unknown-key errors list the
 valid keys from it.
+
+Data and text only: nothing here is collective.
 """
 from __future__ import annotations
 

@@ -22,6 +22,9 @@ which the same Hermite elements turn into M q'' + G q' + K q = 0 with
     G = 2 m_t U int N^T N' dx  (its skew-symmetric part: exact when w is fixed at both ends)
     K = K_bending + (T - m_t U^2) int N'^T N' dx   (tension stiffens, transport softens).
 With U = 0 there is no G; with U = 0 and T = 0, K is the bending stiffness alone, bit for bit.
+
+Assembly is collective on the communicator it is given (default COMM_WORLD); each rank assembles its
+own rows.
 """
 from __future__ import annotations
 

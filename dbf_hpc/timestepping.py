@@ -6,6 +6,9 @@ Failure policy. Adaptive steps: a failed Newton solve shrinks the step (down to 
 run stops with an error); failures are counted and reported. Fixed steps: retrying the same step
 would loop for ever, so the first failure ends the run with an error. At most 50 rejections in a
 row within one step. A state that is not finite ends the run at once.
+
+The settings and the monitor's bookkeeping are not collective; configure and solve are collective on
+the TS's communicator (COMM_SELF for a reduced case, rom_integrator.py).
 """
 from __future__ import annotations
 
