@@ -1,4 +1,5 @@
-"""Reference modes: K phi = lambda M phi with SLEPc (paper Section 2.1, Eqs. 28-31).
+"""Reference modes: K phi = lambda M phi with SLEPc (paper Section 2.1, Eq. 2;
+the beam's in Section 3.1, Eqs. 28-31).
 
 Generalized Hermitian EPS, shift-and-invert about a target just below the spectrum, factorized by
 MUMPS (Cholesky). Options prefix `modes_` (and `dbf_` for the spring-perturbed problems of dbf.py):
