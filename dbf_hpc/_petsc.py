@@ -4,6 +4,7 @@ The command line calls init(options) before importing any module that imports pe
 Python users need not call anything: the first use of the package's API (dbf_hpc/__init__.py)
 calls init() with no options, so PETSc reads only PETSC_OPTIONS. Either way the Debian paths
 are set when the environment has none, so that slepc4py imports without an activated venv.
+init() is called by every rank (it initializes MPI through petsc4py).
 """
 import os
 import sys

@@ -19,6 +19,9 @@ normalized by the largest motion at any constraint, not by each constraint's own
 steam-generator tube a support plate that barely moves (max |w| half its clearance) had a relative
 error of 173 % by its own peak, which says nothing about the response; the same normalization is the
 accuracy study's error in w (scripts/study_accuracy.py), so estimate and truth are compared alike.
+
+The indicator is collective on the model's communicator (solves with K); the estimate integrates
+reduced models, which are replicated, on the calling rank alone.
 """
 from __future__ import annotations
 

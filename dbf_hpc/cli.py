@@ -11,7 +11,11 @@
 PETSc/SLEPc options (single dash, e.g. -modes_eps_tol 1e-12 -log_view) go after the scene; each
 solver reads its own prefix (modes_, dbf_, static_, rom_, full_). Exit status: 0 on success, 1 on an
 error the user can act on (one line on stderr), 2 on a malformed command line (one line on stderr),
-70 on an internal error."""
+70 on an internal error.
+
+Every rank runs the same command, and every rank takes the same path: the subcommands are
+collective on COMM_WORLD (what only rank 0 writes or prints, it decides for all), and an error on
+one rank is every rank's one line (main, _finish)."""
 from __future__ import annotations
 
 import argparse

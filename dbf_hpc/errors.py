@@ -1,7 +1,8 @@
 """The errors dbf_hpc raises on purpose.
 
 Each carries one line for the user: what is wrong and what to change. The command prints that line
-and exits non-zero; anything else is a bug and ends the whole MPI job.
+and exits non-zero; anything else is a bug and ends the whole MPI job. Nothing here is
+collective: whoever raises makes sure every rank raises the same error on the same path.
 """
 import contextlib
 import math

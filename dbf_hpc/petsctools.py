@@ -4,7 +4,8 @@ scoped option defaults, reading rows of distributed vectors, and freeing what a 
 Conventions (after petsc4py's demos and Firedrake's petsctools): every solver gets its own options
 prefix; the code's defaults are put into the options database only where the user has not set
 them and only for as long as the solver reads them (`options_defaults`); whoever creates a PETSc
-object destroys it, also on error paths (`destroy`).
+object destroys it, also on error paths (`destroy`). Each helper's docstring says whether it is
+collective (on the communicator of the objects it is given).
 """
 from __future__ import annotations
 

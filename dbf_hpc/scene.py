@@ -5,6 +5,10 @@ settings, initial state, output). Nothing below this module reads a scene.
 The sections and keys are the contract of schema.py (rendered as docs/scene.md); an unknown
 section or key is an error that lists the valid ones. Relative paths in a scene (matrix files,
 output) are relative to the scene file's folder.
+
+Reading and validating are local to the calling rank (load_scene); the commands use
+load_scene_collective, which reads the file on rank 0 and broadcasts it. Building the models a
+scene describes (full_order_model) is collective.
 """
 from __future__ import annotations
 
