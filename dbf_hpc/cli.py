@@ -639,10 +639,11 @@ def main(argv=None) -> int:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from .errors import DbfError, petsc_failure
+    from .errors import DbfError, petsc_failure, termination_signals
 
     comm = MPI.COMM_WORLD
-    signal.signal(signal.SIGTERM, _terminated)   # integrations and sweeps install their own while they run
+    for signum in termination_signals():   # SIGTERM, and Ctrl-C; integrations and sweeps install their own
+        signal.signal(signum, _terminated)
     try:
         args.func(args)
         failure = None

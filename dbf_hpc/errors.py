@@ -37,6 +37,18 @@ class Interrupted(SolverError):
     """A run stopped by a termination signal after writing its checkpoint: rerun to continue."""
 
 
+def termination_signals() -> tuple:
+    """The signals that stop a run as a batch system's time limit does (checkpoint, then one line):
+    SIGTERM, and SIGINT (Ctrl-C) unless the process started with it ignored (a background job, as
+    ranks under some launchers are). Red team: Ctrl-C during a run printed a KeyboardInterrupt
+    traceback from the integrator's callback."""
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        return (signal.SIGTERM,)
+    return (signal.SIGTERM, signal.SIGINT)
+
+
 # What writing a file can raise: the OS's errors, and h5py's RuntimeError when HDF5 cannot flush (a
 # full disk shows as "errno = 28, error message = 'No space left on device'" inside it).
 WRITE_ERRORS = (OSError, RuntimeError)

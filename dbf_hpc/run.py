@@ -28,7 +28,7 @@ from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, blind_to_contact,
 from .basis import richer_basis
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
-                     petsc_failure, warn, write_failure)
+                     petsc_failure, termination_signals, warn, write_failure)
 from .fom import Observation
 from .fom_integrator import integrate_full
 from .fom_integrator import options as full_options
@@ -678,17 +678,21 @@ class Checkpointing:
 
 @contextlib.contextmanager
 def _on_sigterm(handler):
-    """SIGTERM calls handler(signum, frame) while the block runs (None: leave it as it is); the
-    previous handler comes back after. Not in the main thread, signals are left alone."""
-    try:
-        previous = signal.signal(signal.SIGTERM, handler) if handler is not None else None
-    except ValueError:  # not the main thread
-        previous = None
+    """SIGTERM (and SIGINT, Ctrl-C: errors.termination_signals) calls handler(signum, frame) while
+    the block runs (None: leave it as it is); the previous handlers come back after. Not in the main
+    thread, signals are left alone."""
+    previous = {}
+    if handler is not None:
+        try:
+            for signum in termination_signals():
+                previous[signum] = signal.signal(signum, handler)
+        except ValueError:  # not the main thread
+            pass
     try:
         yield
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for signum, old in previous.items():
+            signal.signal(signum, old)
 
 
 def _interrupt_on_sigterm(stepper):

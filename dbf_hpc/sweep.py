@@ -57,7 +57,7 @@ from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
 from .errors import (PARKED, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing,
-                     warn, write_failure)
+                     termination_signals, warn, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
@@ -368,18 +368,20 @@ class _Stop:
         self.requested = False
 
     def __enter__(self):
+        self.previous = {}
         try:
-            self.previous = signal.signal(signal.SIGTERM, self._handle)
+            for signum in termination_signals():   # SIGTERM, and Ctrl-C
+                self.previous[signum] = signal.signal(signum, self._handle)
         except ValueError:  # not the main thread
-            self.previous = None
+            pass
         return self
 
     def _handle(self, signum, frame):
         self.requested = True
 
     def __exit__(self, *exc):
-        if self.previous is not None:
-            signal.signal(signal.SIGTERM, self.previous)
+        for signum, previous in self.previous.items():
+            signal.signal(signum, previous)
 
 
 def _record(sweep, index: int, identity: str, continued: bool) -> dict:
