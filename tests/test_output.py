@@ -64,6 +64,21 @@ def test_a_second_job_on_an_output_being_written_is_refused_naming_the_first(sha
     assert_all(os.path.exists(target) and not os.path.exists(target + ".lock"))
 
 
+def test_every_rank_takes_rank_0s_answer_on_the_output_path(shared_tmp_path, monkeypatch):
+    # Red team: each rank checked the output's files itself; when the files changed between the ranks'
+    # looks (another job's .partial closed meanwhile), one rank refused and the other waited in the
+    # next collective call for ever. Rank 0 (which writes) checks; every rank refuses alike.
+    from dbf_hpc import run as run_module
+
+    if MPI.COMM_WORLD.rank == 0:
+        def seen_busy(*args):
+            raise InputError("rank 0 saw the output busy")
+        monkeypatch.setattr(run_module, "output_path", seen_busy)
+    with pytest.raises(InputError, match="rank 0 saw the output busy"):
+        run(load_scene(PAPER, SHORT), str(shared_tmp_path / "agreed.h5"), progress=False)
+    assert_all(not os.path.exists(shared_tmp_path / "agreed.h5.partial"))
+
+
 def test_a_lock_left_by_a_dead_job_on_this_host_is_taken_over(tmp_path):
     target = str(tmp_path / "old.h5")
     dead = 2**22 + 12345                       # above the default pid_max: no such process
