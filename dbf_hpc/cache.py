@@ -36,7 +36,7 @@ from slepc4py import SLEPc
 from . import __version__, sealed
 from .basis import BasisSettings, ReducedBasis, build_basis
 from .checkpoint import arrays_sha256
-from .errors import LOCK_HINT, WRITE_ERRORS, InputError, park, refused_lock, warn, write_failure
+from .errors import WRITE_ERRORS, InputError, lock_problem, park, refused_lock, warn, write_failure
 from .output import check_free_space, has_hdf5_signature
 from .operators import Operators
 
@@ -196,7 +196,7 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings):
                 return "has the wrong shape", {}, None
             return None, {**arrays, "orthonormality_defect": defect}, f["V"][lo:hi, :]
     except (OSError, KeyError, ValueError) as e:
-        return f"cannot be read ({LOCK_HINT if refused_lock(e) else type(e).__name__})", {}, None
+        return f"cannot be read ({lock_problem(e) or type(e).__name__})", {}, None
 
 
 def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows) -> ReducedBasis | None:
@@ -360,7 +360,7 @@ def entries(cache_dir: str) -> list:
                                      version=f.attrs.get("dbf_hpc_version", "?"), shape=V.shape)
             except (OSError, KeyError, RuntimeError) as e:
                 if refused_lock(e):      # readable where locks work: never removed for it
-                    entry.update(problem=LOCK_HINT, foreign=True)
+                    entry.update(problem=lock_problem(e), foreign=True)
                 elif not (has_hdf5_signature(path) or seal_problem(path) is None):
                     entry.update(problem="not a basis this cache wrote: kept", foreign=True)
                 else:

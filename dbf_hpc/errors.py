@@ -87,15 +87,32 @@ LOCK_HINT = ("the file system refuses HDF5's file locks: set HDF5_USE_FILE_LOCKI
              "(dbf-hpc's own .lock files still keep two jobs off one output)")
 
 
+# HDF5's lock refused because another process holds the file open for writing (errno 11, EAGAIN):
+# the locks work. Red team: a second run on an output being written, and `info` on a killed job's
+# .partial while its rank was still exiting, read "the file system refuses HDF5's file locks: set
+# HDF5_USE_FILE_LOCKING=FALSE", advice that lets a reader see a file half written.
+BUSY_HINT = ("another process has it open for writing (a run still going, or a killed run's rank not yet "
+             "ended): wait for it to end, then retry")
+
+
+def lock_problem(exc: Exception) -> str | None:
+    """Why an HDF5 open failed on its file lock (BUSY_HINT or LOCK_HINT), or None if it did not."""
+    text = str(exc)
+    if "unable to lock file" not in text:
+        return None
+    return BUSY_HINT if "errno = 11," in text else LOCK_HINT
+
+
 def refused_lock(exc: Exception) -> bool:
-    """Whether an HDF5 open failed because the file system refused its lock."""
-    return "unable to lock file" in str(exc)
+    """Whether an HDF5 open failed on its file lock: the file system refused it, or another process
+    holds the file (lock_problem says which)."""
+    return lock_problem(exc) is not None
 
 
 def write_failure(exc: Exception) -> str:
     """One line saying why a write failed."""
     if refused_lock(exc):
-        return LOCK_HINT
+        return lock_problem(exc)
     text = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
     return "No space left on device" if "errno = 28" in text or "No space left" in text else text.splitlines()[0]
 

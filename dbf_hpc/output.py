@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 from . import __version__, layout
-from .errors import LOCK_HINT, PARKED, WRITE_ERRORS, InputError, park, refused_lock
+from .errors import PARKED, WRITE_ERRORS, InputError, lock_problem, park
 
 BLOCK = 1024  # samples buffered between writes
 
@@ -95,8 +95,8 @@ def _written_by_us(path: str, ours, damaged: bool = False) -> bool:
         with h5py.File(path, "r") as f:
             return bool(ours(f))
     except (OSError, ValueError) as e:
-        if refused_lock(e):
-            raise InputError(f"cannot open {path!r}: {LOCK_HINT}") from None
+        if lock_problem(e):
+            raise InputError(f"cannot open {path!r}: {lock_problem(e)}") from None
         return damaged and has_hdf5_signature(path)
 
 

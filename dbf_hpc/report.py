@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 
 from . import layout
-from .errors import LOCK_HINT, InputError, refused_lock
+from .errors import InputError, lock_problem
 from .output import has_hdf5_signature
 
 # The impact statistics a tube-vibration engineer reads first, with how to print them.
@@ -32,7 +32,7 @@ def open_output(path: str):
     try:
         f = h5py.File(target, "r")
     except OSError as e:
-        raise InputError(f"cannot open {target!r}: {LOCK_HINT}" if refused_lock(e) else
+        raise InputError(f"cannot open {target!r}: {lock_problem(e)}" if lock_problem(e) else
                          f"{target!r} is damaged ({str(e).splitlines()[0]})" if has_hdf5_signature(target) else
                          f"{target!r} is not an HDF5 file") from None
     if layout.TIME not in f and "cases" not in f:

@@ -64,6 +64,37 @@ def test_a_second_job_on_an_output_being_written_is_refused_naming_the_first(sha
     assert_all(os.path.exists(target) and not os.path.exists(target + ".lock"))
 
 
+def test_an_output_whose_partial_another_process_writes_is_refused_as_busy_not_as_a_lockless_file_system(
+        shared_tmp_path, monkeypatch):
+    # Red team: with HDF5's file locks working, a second run on an output being written (and `info` on
+    # a killed job's .partial while its rank was still exiting) read "the file system refuses HDF5's
+    # file locks: set HDF5_USE_FILE_LOCKING=FALSE": a false cause, and advice that lets a reader see a
+    # file half written. HDF5's lock is held (errno 11): the refusal says another process writes it.
+    import subprocess
+    import sys
+
+    monkeypatch.delenv("HDF5_USE_FILE_LOCKING", raising=False)
+    target = str(shared_tmp_path / "held.h5")
+    holder = None
+    if MPI.COMM_WORLD.rank == 0:
+        holder = subprocess.Popen(
+            [sys.executable, "-c", "import h5py, sys; f = h5py.File(sys.argv[1], 'w'); f.attrs['complete'] = False; "
+             "f.flush(); print('open', flush=True); sys.stdin.read()", target + ".partial"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert holder.stdout.readline().strip() == "open"
+    MPI.COMM_WORLD.Barrier()
+    try:
+        with pytest.raises(InputError) as refused:
+            run(load_scene(PAPER, SHORT), target, progress=False)
+        assert "another process has it open for writing" in str(refused.value), str(refused.value)
+        assert "HDF5_USE_FILE_LOCKING" not in str(refused.value)
+    finally:
+        if holder is not None:
+            holder.communicate("", timeout=60)
+        MPI.COMM_WORLD.Barrier()
+    assert_all(not os.path.exists(target))
+
+
 def test_every_rank_takes_rank_0s_answer_on_the_output_path(shared_tmp_path, monkeypatch):
     # Red team: each rank checked the output's files itself; when the files changed between the ranks'
     # looks (another job's .partial closed meanwhile), one rank refused and the other waited in the
