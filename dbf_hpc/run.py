@@ -128,6 +128,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         request = request_identity(scene, comm, method, initial_state, digests)
         done = finished_output(path, identity(request=request), scene, comm) if resume else None
         if done is not None:   # a requeued batch job whose run had finished: nothing is computed again
+            if comm.getRank() == 0:
+                _drop_leftover_checkpoint(path)
             _say(say, f"{path} is already complete for this scene and setup: nothing to resume (`dbf-hpc info "
                       f"{path}` shows it; rerun without --resume to compute it again)")
             return done
@@ -403,15 +405,17 @@ def request_identity(scene: Scene, comm, method: str, initial_state=None, digest
 
 def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | None:
     """The summary of `path` if it is a finished output of this very run, else None: complete, no
-    .partial or checkpoint beside it, its stored run identity equal to `ident` on every part `ident`
-    names, and its ParaView file present when the scene asks for snapshots. The summary is read back
+    .partial beside it, its stored run identity equal to `ident` on every part `ident` names, and its
+    ParaView file present when the scene asks for snapshots. A checkpoint beside it does not count:
+    without its .partial it cannot be resumed, and a run killed between the output's rename and the
+    checkpoint's removal leaves one (red team: a requeued `--resume` then refused the finished run). The summary is read back
     from the file (the same keys and values the run returned; "final_state" from its last sample).
     An output that cannot be read is not finished: the run computes it again. With comm, rank 0
     reads and every rank gets the answer (collective); without, this rank reads (not collective)."""
     if comm is not None:
         world = comm.tompi4py()
         return world.bcast(finished_output(path, ident, scene) if world.rank == 0 else None, root=0)
-    if not os.path.isfile(path) or os.path.exists(f"{path}.partial") or os.path.exists(f"{path}.checkpoint"):
+    if not os.path.isfile(path) or os.path.exists(f"{path}.partial"):
         return None
     if scene.output().snapshots and not os.path.isfile(xdmf.sidecar(path)):
         return None
@@ -423,6 +427,18 @@ def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | N
             return _stored_summary(f, path)
     except (OSError, KeyError, ValueError, TypeError):
         return None
+
+
+def _drop_leftover_checkpoint(path: str) -> None:
+    """Rank 0: remove the checkpoint beside a finished output, if dbf-hpc's (a kill between the
+    output's rename and the checkpoint's removal leaves it; it cannot be resumed without its
+    .partial). Another file of that name is left alone."""
+    leftover = f"{path}.checkpoint"
+    try:
+        if os.path.isfile(leftover) and not os.path.exists(f"{path}.partial") and is_dbf_checkpoint(leftover):
+            os.remove(leftover)
+    except (OSError, InputError):   # read-only, or unreadable: it does no harm where it is
+        pass
 
 
 def _stored_summary(f, path: str) -> dict:
@@ -618,6 +634,9 @@ def _first_contact(writer, times: np.ndarray, block: int = 1 << 16):
 
 
 def _reopen(path: str, state: dict) -> OutputWriter:
+    if not os.path.isfile(f"{path}.partial"):   # moved or removed, or the run finished into `path`
+        raise Unresumable(f"{path}.partial, the samples its checkpoint continues, is missing: the checkpoint cannot "
+                          f"be resumed; rerun without --resume") from None
     try:
         return OutputWriter.reopen(path, int(state["samples"]), state.get("samples_sha256"))
     except (OSError, KeyError, ValueError, RuntimeError) as e:   # RuntimeError: metadata a failed write damaged

@@ -389,3 +389,32 @@ def test_ctrl_c_checkpoints_and_stops_as_sigterm_does_and_the_resume_is_the_unin
         assert bool(b.attrs["complete"]) and a["time"].shape == b["time"].shape
         for name in ("time", "constraints/displacement", "constraints/force", "reduced/q"):
             assert np.array_equal(a[name][:], b[name][:]), name
+
+
+def test_a_checkpoint_left_beside_a_finished_output_does_not_stop_a_requeued_resume(stopped):
+    # Red team: a kill between the output's rename and the checkpoint's removal (or during the
+    # ParaView file's write) left OUT.h5 complete beside OUT.h5.checkpoint; a requeued --resume then
+    # refused with HDF5's "unable to open file ... .partial" and "rerun without --resume", which
+    # computes the finished run again. The finished output of the same question is the answer, kept
+    # byte for byte, and the checkpoint, which nothing can resume, is removed.
+    sets, out, checkpoint = stopped
+    resume(sets, out)
+    if MPI.COMM_WORLD.rank == 0:
+        shutil.copy(checkpoint + ".good", checkpoint)
+    MPI.COMM_WORLD.Barrier()
+    before = open(out, "rb").read()
+    summary = resume(sets, out)
+    assert summary["stats"]["final_time"] == pytest.approx(2.0)
+    MPI.COMM_WORLD.Barrier()
+    assert_all(open(out, "rb").read() == before and not os.path.exists(checkpoint))
+
+
+def test_a_checkpoint_whose_partial_is_gone_is_refused_naming_the_missing_file(stopped):
+    sets, out, checkpoint = stopped
+    if MPI.COMM_WORLD.rank == 0:
+        os.remove(out + ".partial")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"run\.h5\.partial, the samples its checkpoint continues, is missing: the "
+                                          r"checkpoint cannot be resumed; rerun without --resume$"):
+        resume(sets, out)
+    assert_all(os.path.exists(checkpoint) and not os.path.exists(out))
