@@ -557,11 +557,16 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
         raise type(exc)(_left_behind(str(exc), writer, checkpoint)) from None
     t = time.perf_counter()
-    snap_t, snap_w = recorder.snapshots(settings.sample_times)
-    timings["snapshots"] = time.perf_counter() - t
-    summary = finish(scene, recorder, stats, timings, ranks, "rom", model.field_points, snap_t, snap_w, model,
-                     {**(estimate.attrs() if estimate else {}), **(long_run.attrs() if long_run else {})},
-                     long_run.datasets(layout.STATISTICS_ERROR) if long_run else None, checkpoint)
+    try:
+        with _stop_on_sigterm(True, AFTER_INTEGRATION):
+            snap_t, snap_w = recorder.snapshots(settings.sample_times)
+            timings["snapshots"] = time.perf_counter() - t
+            summary = finish(scene, recorder, stats, timings, ranks, "rom", model.field_points, snap_t, snap_w, model,
+                             {**(estimate.attrs() if estimate else {}), **(long_run.attrs() if long_run else {})},
+                             long_run.datasets(layout.STATISTICS_ERROR) if long_run else None, checkpoint)
+            checkpoint.remove()
+    except Interrupted as exc:
+        raise Interrupted(_left_behind(str(exc), writer, checkpoint)) from None
     if estimate:
         summary["estimated_error"], summary["estimated_error_window"] = estimate.value, estimate.window
     if long_run:
@@ -569,10 +574,16 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         for line in long_run.lines({k: np.asarray(v) for k, v in summary["constraint_stats"].items()}):
             _say(say, line)
     summary["final_state"] = [recorder.final[0].tolist(), recorder.final[1].tolist()]
-    checkpoint.remove()
     _say(say, f"done: {stats['steps']} steps ({stats['rejected_steps']} rejected, {stats['snes_failures']} Newton "
               f"failures) in {timings['integration']:.2f} s; wrote {path}")
     return summary
+
+
+# A termination signal after the integration and its estimates, before the output is written (the
+# samples' statistics, the snapshots): red team, the command's own handler said "before the
+# integration began; nothing was written" while the .partial and the checkpoint stayed.
+AFTER_INTEGRATION = ("stopped by a termination signal after the integration, before its output was written; rerun "
+                     "with --resume to finish from the last checkpoint")
 
 
 def _estimate(estimator, writer, settings, timings: dict, say):
@@ -832,19 +843,30 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     # halfway, the .partial held datasets a resume would write again (red team). A write that fails
     # all the same is one line; h5py reports some as KeyError or ValueError ("Unable to ...").
     deferred = []
+    with _on_sigterm(lambda signum, frame: deferred.append(signum)):
+        _write_output(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs,
+                      checkpoint, snap_t, geometry)
+    if deferred:
+        print(f"dbf-hpc: warning: a termination signal came while {writer.path} was written; it was finished first",
+              file=sys.stderr, flush=True)
+    return {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
+            "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
+
+
+def _write_output(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs, checkpoint,
+                  snap_t, geometry) -> None:
+    """Rank 0, finish's writes: the fixed data and attributes, the rename into place, and the ParaView
+    file beside it (finish defers termination signals for all of it: a signal between the rename and
+    the ParaView file left a complete output without its sidecar, beside its checkpoint; red team)."""
     try:
-        with _on_sigterm(lambda signum, frame: deferred.append(signum)):
-            _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs,
-                         checkpoint.identity if checkpoint is not None else None)
+        _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs,
+                     checkpoint.identity if checkpoint is not None else None)
     except (*WRITE_ERRORS, KeyError, ValueError) as exc:
         if isinstance(exc, (KeyError, ValueError)) and "Unable to" not in str(exc):
             raise
         resume = " with --resume (it says if the failed write damaged the .partial)" if checkpoint is not None else ""
         raise SolverError(_left_behind(f"cannot finish {writer.path}: {write_failure(exc)}; free some space, then "
                                        f"rerun{resume}", writer, checkpoint, failed_write=True)) from None
-    if deferred:
-        print(f"dbf-hpc: warning: a termination signal came while {writer.path} was written; it was finished first",
-              file=sys.stderr, flush=True)
     if snap_t.size:
         sidecar = xdmf.sidecar(writer.path)
         try:
@@ -858,8 +880,6 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
             cause = write_failure(exc) if isinstance(exc, OSError) else str(exc).rsplit(": ", 1)[-1]
             raise SolverError(f"wrote {writer.path}, but not its ParaView file {sidecar}: {cause}; free some "
                               f"space and rerun for it") from None
-    return {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
-            "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
 
 
 def _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs,
@@ -979,14 +999,26 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
         raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint,
                                      failed_write=isinstance(exc, WriteFailed))) from None
     timings["integration"] = time.perf_counter() - t + (control.wall if control else 0.0)
-    summary = {}
-    if world.rank == 0:
-        snap_t = settings.sample_times[sorted(snaps)] if snaps else np.zeros(0)
-        snap_w = np.array([snaps[i] for i in sorted(snaps)]).reshape(snap_t.size, field.positions.size)
-        summary = finish(scene, recorder, stats, timings, world.size, "full", field, snap_t, snap_w,
-                         checkpoint=checkpoint)
-        checkpoint.remove()
-        summary_path = summary["path"]
-        _say(say, f"done: {stats['steps']} steps ({stats['factorizations']} factorization(s), {stats['contact_steps']} "
-                  f"steps with contact) in {timings['integration']:.2f} s; wrote {summary_path}")
-    return world.bcast(summary, root=0)
+    summary, failure = {}, None
+    if world.rank == 0:   # a failed or stopped write is every rank's error (they waited in bcast for ever)
+        try:
+            with _stop_on_sigterm(True, AFTER_INTEGRATION):
+                snap_t = settings.sample_times[sorted(snaps)] if snaps else np.zeros(0)
+                snap_w = np.array([snaps[i] for i in sorted(snaps)]).reshape(snap_t.size, field.positions.size)
+                summary = finish(scene, recorder, stats, timings, world.size, "full", field, snap_t, snap_w,
+                                 checkpoint=checkpoint)
+                checkpoint.remove()
+        except Interrupted as exc:
+            failure = ("Interrupted", _left_behind(str(exc), recorder.writer, checkpoint))
+        except DbfError as exc:
+            failure = (type(exc).__name__, str(exc))
+        if failure is None:
+            _say(say, f"done: {stats['steps']} steps ({stats['factorizations']} factorization(s), "
+                      f"{stats['contact_steps']} steps with contact) in {timings['integration']:.2f} s; wrote "
+                      f"{summary['path']}")
+    with _interrupt_on_sigterm(None):   # the other ranks: a signal now is rank 0's to act on
+        failure, summary = world.bcast((failure, summary), root=0)
+    if failure:
+        kinds = {kind.__name__: kind for kind in (InputError, Unresumable, SolverError, Interrupted)}
+        raise kinds.get(failure[0], DbfError)(failure[1])
+    return summary

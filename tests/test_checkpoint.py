@@ -418,3 +418,70 @@ def test_a_checkpoint_whose_partial_is_gone_is_refused_naming_the_missing_file(s
                                           r"checkpoint cannot be resumed; rerun without --resume$"):
         resume(sets, out)
     assert_all(os.path.exists(checkpoint) and not os.path.exists(out))
+
+
+@pytest.fixture
+def cli_signals():
+    """SIGTERM outside an integration as the command handles it (cli._terminated), for the block."""
+    from dbf_hpc import cli
+
+    previous = signal.signal(signal.SIGTERM, cli._terminated)
+    yield
+    signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate_before(module, name, monkeypatch):
+    """Rank 0 sends itself SIGTERM as `module.name` begins (it runs on rank 0 alone)."""
+    original = getattr(module, name)
+
+    def terminated(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, terminated)
+
+
+@pytest.mark.parametrize("method", ["rom", "full"])
+def test_sigterm_after_the_integration_before_the_output_is_written_says_so_and_resumes(
+        shared_tmp_path, monkeypatch, cli_signals, method):
+    # Red team: a batch system's time limit after the integration, before the output's write (the
+    # snapshots, the samples' statistics), read "stopped ... before the integration began; nothing
+    # was written: rerun to start again" while the .partial and the checkpoint stayed; of a full-order
+    # run, the other ranks waited in a broadcast for ever. The line says where the run stopped and
+    # that --resume finishes it, on every rank, and the resumed output is the uninterrupted run's.
+    from dbf_hpc import run as run_module
+
+    sets = ["integrator.t_end=0.05" if method == "rom" else "integrator.t_end=0.01", "output.checkpoint_dt=0.004",
+            "basis.estimate=false", "output.snapshots=3", f"basis.cache={shared_tmp_path / 'cache'}"]
+    whole, out = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
+    run(load_scene(PAPER, sets), whole, progress=False, method=method)
+    _terminate_before(run_module, "finish", monkeypatch)
+    with pytest.raises(SolverError, match="after the integration, before its output was written; rerun with --resume "
+                                          r"to finish from the last checkpoint \(samples so far in .*partial"):
+        run(load_scene(PAPER, sets), out, progress=False, method=method)
+    monkeypatch.undo()
+    assert_all(not os.path.exists(out) and os.path.exists(out + ".partial") and os.path.exists(out + ".checkpoint"))
+    run(load_scene(PAPER, sets), out, progress=False, method=method, resume=True)
+    MPI.COMM_WORLD.Barrier()
+    with h5py.File(whole) as a, h5py.File(out) as b:
+        assert bool(b.attrs["complete"]) and a["time"].shape == b["time"].shape
+        for name in ("time", "constraints/displacement", "constraints/force", "snapshots/w"):
+            assert np.array_equal(a[name][:], b[name][:]), name
+
+
+def test_sigterm_while_the_paraview_file_is_written_waits_for_it(shared_tmp_path, monkeypatch, cli_signals, capfd):
+    # Red team: a signal between the output's rename and its ParaView file's write read "wrote OUT.h5,
+    # but not its ParaView file: ... nothing was written". The output, renamed, is finished: the
+    # signal waits for its ParaView file (a few milliseconds), and the run ends complete.
+    from dbf_hpc import run as run_module
+
+    sets = ["integrator.t_end=0.05", "basis.estimate=false", "output.snapshots=3",
+            f"basis.cache={shared_tmp_path / 'cache'}"]
+    out = str(shared_tmp_path / "run.h5")
+    _terminate_before(run_module.xdmf, "write", monkeypatch)
+    run(load_scene(PAPER, sets), out, progress=False)
+    monkeypatch.undo()
+    assert_all(os.path.exists(out) and os.path.exists(str(shared_tmp_path / "run.xdmf"))
+               and not os.path.exists(out + ".checkpoint") and not os.path.exists(out + ".partial"))
+    if MPI.COMM_WORLD.rank == 0:
+        assert "a termination signal came while" in capfd.readouterr().err
