@@ -190,6 +190,13 @@ class OutputLock:
         except (OSError, ValueError):
             return "unknown job"
 
+    def live_holder(self) -> str | None:
+        """The job holding the lock ("pid N on HOST") if the lock exists and its job is not known to
+        be gone (on another host it cannot be told), else None. Not collective."""
+        if not os.path.isfile(self.lock) or self._stale():
+            return None
+        return self._holder()
+
     def _stale(self) -> str | None:
         """The lock's content when its job is gone: it ran on this host and its process no longer
         exists (or is a zombie, which a killed job's rank can stay as where nothing reaps it)."""

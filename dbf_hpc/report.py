@@ -10,7 +10,7 @@ import numpy as np
 
 from . import layout
 from .errors import InputError, lock_problem
-from .output import has_hdf5_signature
+from .output import OutputLock, has_hdf5_signature
 
 # The impact statistics a tube-vibration engineer reads first, with how to print them.
 HEADLINE = (("impacts", "{:.0f} impacts"), ("impact_rate", "{:.3g}/s"), ("contact_fraction", "in contact {:.2%}"),
@@ -163,8 +163,13 @@ def _probe_lines(f) -> list:
 
 def _partial_lines(path: str, f) -> list:
     t = f[layout.TIME][:] if layout.TIME in f else np.zeros(0)
-    lines = [f"{path}.partial: INCOMPLETE: the run did not finish ({t.size} samples"
+    # Red team: read while its run was still going (HDF5_USE_FILE_LOCKING=FALSE), a .partial said "a
+    # checkpoint exists: rerun with --resume", which the run's lock then refused
+    holder = OutputLock(path).live_holder()
+    lines = [f"{path}.partial: INCOMPLETE: " + (f"being written by a run now ({holder}; {path}.lock)" if holder else
+                                                "the run did not finish") + f" ({t.size} samples"
              + (f" up to t = {t[-1]:g} s)" if t.size else ")"),
+             f"  wait for that run to end, or remove {path}.lock if it is gone" if holder else
              "  a checkpoint exists: rerun with --resume to continue" if os.path.exists(path + ".checkpoint")
              else "  no checkpoint: a rerun starts from t = 0"]
     if t.size and layout.CONSTRAINT_DISPLACEMENT in f:

@@ -110,6 +110,33 @@ def test_every_rank_takes_rank_0s_answer_on_the_output_path(shared_tmp_path, mon
     assert_all(not os.path.exists(shared_tmp_path / "agreed.h5.partial"))
 
 
+def test_info_on_a_partial_its_run_still_writes_says_so_instead_of_advising_a_resume(tmp_path, monkeypatch):
+    # Red team: with HDF5_USE_FILE_LOCKING=FALSE, `info` on the .partial of a run still going said "a
+    # checkpoint exists: rerun with --resume to continue", which the run's lock refused. A live lock
+    # names the run; once its job is gone, the advice to resume comes back.
+    import h5py
+
+    from dbf_hpc.report import describe
+
+    monkeypatch.setenv("HDF5_USE_FILE_LOCKING", "FALSE")
+    target = str(tmp_path / "going.h5")
+    with h5py.File(target + ".partial", "w") as f:
+        f.create_dataset("time", data=[0.0, 0.1])
+        f.attrs["complete"] = False
+    open(target + ".checkpoint", "w").close()
+    lock = OutputLock(target)
+    lock.acquire()                              # the run (this process: alive)
+    try:
+        lines = describe(target)
+    finally:
+        lock.release()
+    assert f"being written by a run now (pid {os.getpid()} on" in lines[0] and "--resume" not in " ".join(lines)
+    with open(target + ".lock", "w") as f:      # a killed job's lock: no such process
+        f.write(f"{socket.gethostname()} {2**22 + 12345}\n")
+    lines = describe(target)
+    assert "the run did not finish" in lines[0] and "rerun with --resume to continue" in lines[1]
+
+
 def test_a_lock_left_by_a_dead_job_on_this_host_is_taken_over(tmp_path):
     target = str(tmp_path / "old.h5")
     dead = 2**22 + 12345                       # above the default pid_max: no such process
