@@ -111,8 +111,11 @@ class Checkpoint:
             different = [part for part in different if part != "request"] or ["scene"]
         if different:
             verb = "differs" if len(different) == 1 and not different[0].endswith("s") else "differ"  # options, ranks
+            # only when nothing else that changes the basis differs (red team: a changed scene or
+            # structure read as "the cache cleared, another rank count")
             why = ("; the basis was rebuilt since (the cache cleared, another rank count), and the state it "
-                   "holds is another state in the new one" if "coordinates" in different else "")
+                   "holds is another state in the new one" if "coordinates" in different
+                   and set(different) <= {"coordinates", "ranks"} else "")
             raise InputError(f"{self.path} was written by a different scene or setup ({', '.join(different)} "
                              f"{verb}{why}); remove it or rerun without --resume")
         if _checksum(state, stored) != checksum:

@@ -485,3 +485,13 @@ def test_sigterm_while_the_paraview_file_is_written_waits_for_it(shared_tmp_path
                and not os.path.exists(out + ".checkpoint") and not os.path.exists(out + ".partial"))
     if MPI.COMM_WORLD.rank == 0:
         assert "a termination signal came while" in capfd.readouterr().err
+
+
+def test_a_resume_of_another_scene_names_the_scene_not_a_rebuilt_cache(stopped):
+    # Red team: a resume with another probe (or another structure) was refused as "(coordinates, scene
+    # differ; the basis was rebuilt since (the cache cleared, another rank count) ...)": the
+    # explanation of a rebuilt basis belongs to a changed rank count or cache only.
+    sets, out, checkpoint = stopped
+    with pytest.raises(InputError) as refused:
+        resume([*sets, "output.probes=[0.4]"], out)
+    assert "scene" in str(refused.value) and "the cache cleared" not in str(refused.value), str(refused.value)
