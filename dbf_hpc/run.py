@@ -282,22 +282,12 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> N
         warn(warning, comm)
 
 
-def coarse_step(settings, fastest_hz: float) -> bool:
-    """Whether a fixed step takes fewer than STEPS_PER_PERIOD steps a period of the fastest forcing."""
-    return fastest_hz > 0 and settings.dt * fastest_hz * STEPS_PER_PERIOD > 1
-
-
-def coarse_samples(settings, fastest_hz: float) -> bool:
-    """Whether the samples are fewer than two a period of the fastest forcing (Nyquist)."""
-    return fastest_hz > 0 and 2 * settings.sample_dt * fastest_hz > 1
-
-
 def _warn_coarse_step(settings, fastest_hz: float, comm) -> None:
     """A warning when a fixed step takes fewer than STEPS_PER_PERIOD steps per period of the fastest
     forcing (red team: --method full with dt = 0.3 s under a 10 Hz force took one step of 0.05 s and
     reported a 727 N peak force and 0 impacts, with no word; generalized-alpha is unconditionally
     stable, so nothing else fails). The scheme's phase error is (omega dt)^2 / 12 per radian."""
-    if coarse_step(settings, fastest_hz):
+    if fastest_hz > 0 and settings.dt * fastest_hz * STEPS_PER_PERIOD > 1:
         warn(f"[integrator] dt = {settings.dt:g} s takes {1 / (settings.dt * fastest_hz):.2g} fixed steps per period "
              f"of the {fastest_hz:g} Hz excitation, fewer than {STEPS_PER_PERIOD}: the step does not resolve the "
              f"forcing, so the response is wrong; reduce [integrator] dt to at most "
@@ -309,7 +299,7 @@ def _warn_coarse_samples(settings, fastest_hz: float, comm) -> None:
     """A warning when the samples are fewer than two per period of the fastest forcing (Nyquist): the
     sampled series alias the response (red team: a 99 Hz force sampled every 0.01 s wrote a 1 Hz
     oscillation, and probes/peak, the peak over the samples, missed the response's, with no word)."""
-    if coarse_samples(settings, fastest_hz):
+    if fastest_hz > 0 and 2 * settings.sample_dt * fastest_hz > 1:
         warn(f"[output] sample_dt = {settings.sample_dt:g} s takes {1 / (settings.sample_dt * fastest_hz):.2g} samples "
              f"per period of the {fastest_hz:g} Hz excitation, fewer than 2: the sampled series (time, probes, "
              f"constraints) alias the response and the peaks over the samples miss it; reduce [output] sample_dt to "

@@ -57,12 +57,12 @@ from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
 from .errors import (PARKED, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing,
-                     termination_signals, warn, write_failure)
+                     termination_signals, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import STEPS_PER_PERIOD, coarse_samples, coarse_step, run_case
+from .run import run_case
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -481,32 +481,6 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
     return done
 
 
-def _warn_unresolved_forcing(scenes, pending, comm) -> None:
-    """The run's warnings that a fixed step or the samples do not resolve the excitation (run.py),
-    once for the sweep's cases to run, naming them (red team: a frequency sweep at a fixed step gave
-    its upper cases' statistics with no word). Not collective: every rank calls it on the same path."""
-    step, samples = [], []
-    for i in pending:
-        settings, hz = scenes[i].integrator_settings(), scenes[i].fastest_forcing_hz()
-        if not settings.adaptive and coarse_step(settings, hz):
-            step.append((i + 1, hz))
-        if coarse_samples(settings, hz):
-            samples.append((i + 1, hz))
-    if step:
-        warn(f"case(s) {_numbers(step)}: the fixed step [integrator] dt takes fewer than {STEPS_PER_PERIOD} steps a "
-             f"period of the excitation, so their response is wrong; reduce dt to at most "
-             f"{1 / (STEPS_PER_PERIOD * max(hz for _, hz in step)):.3g} s", comm)
-    if samples:
-        warn(f"case(s) {_numbers(samples)}: [output] sample_dt takes fewer than 2 samples a period of the excitation: "
-             f"their sampled series alias the response and the peaks over the samples miss it; reduce sample_dt to "
-             f"at most {1 / (2 * max(hz for _, hz in samples)):.3g} s", comm)
-
-
-def _numbers(cases) -> str:
-    numbers = [str(case) for case, _ in cases]
-    return ", ".join(numbers) if len(numbers) <= 8 else f"{', '.join(numbers[:8])}, ... ({len(numbers)} cases)"
-
-
 def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     """Run (or resume) a sweep. Collective on COMM_WORLD. Returns {'output', 'cases', 'failed',
     'first_failure'} (the first failed case's number and error, or None)."""
@@ -553,7 +527,6 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     pending = sorted(pending)
     say(f"dbf-hpc sweep: {n} cases, {n - len(pending)} already done, {len(pending)} to run on {world.size} rank(s)"
         + (f" ({retried} failed before: retried)" if retried else ""))
-    _warn_unresolved_forcing(scenes, pending, world)
     cache_dir = scenes[0].cache_dir() or os.path.join(folder, "basis-cache")
     sweep = {**sweep, "run_scenes": [scene.with_values("basis", cache=cache_dir) for scene in scenes]}
     models = _prepare_models(sweep, pending, cache_dir, say)

@@ -794,23 +794,3 @@ def test_a_step_is_not_continued_from_a_state_computed_in_another_basis(shared_t
     again = [json.load(open(name)) for name in files]
     assert_all(again[0]["coordinates"] == fresh[0]["coordinates"], "step 1 ran again in the basis of now")
     assert_all(again[1]["continued"] and again[1]["stats"] == fresh[1]["stats"])
-
-
-def test_cases_whose_fixed_step_or_samples_miss_the_excitation_are_named_in_one_warning(shared_tmp_path, capfd):
-    # A run warns that such a response is wrong (run.py); a sweep's cases ran with no word (red team)
-    path = write_sweep(shared_tmp_path, '''
-[axes]
-"excitation.frequency_hz" = [1.0, 30.0, 300.0]
-"integrator.t_end" = [0.02]
-"integrator.adaptive" = [false]
-"integrator.dt" = [2e-3]
-"output.sample_dt" = [2e-3]
-''')
-    run_sweep(path, progress=False)
-    err = capfd.readouterr().err if MPI.COMM_WORLD.rank == 0 else ""
-    if MPI.COMM_WORLD.rank == 0:
-        step = [line for line in err.splitlines() if "fixed step" in line]
-        samples = [line for line in err.splitlines() if "sample_dt takes fewer than 2" in line]
-        assert len(step) == 1 and step[0].startswith("dbf-hpc: warning: case(s) 2, 3:"), err
-        assert "reduce dt to at most 0.000167 s" in step[0], err      # 1 / (20 x 300 Hz)
-        assert len(samples) == 1 and "case(s) 3:" in samples[0], err
