@@ -287,23 +287,38 @@ def _warn_coarse_step(settings, fastest_hz: float, comm) -> None:
     forcing (red team: --method full with dt = 0.3 s under a 10 Hz force took one step of 0.05 s and
     reported a 727 N peak force and 0 impacts, with no word; generalized-alpha is unconditionally
     stable, so nothing else fails). The scheme's phase error is (omega dt)^2 / 12 per radian."""
+    message = coarse_step_warning(settings, fastest_hz)
+    if message:
+        warn(message, comm)
+
+
+def coarse_step_warning(settings, fastest_hz: float) -> str | None:
+    """_warn_coarse_step's message, or None (a sweep warns it for its cases too)."""
     if fastest_hz > 0 and settings.dt * fastest_hz * STEPS_PER_PERIOD > 1:
-        warn(f"[integrator] dt = {settings.dt:g} s takes {1 / (settings.dt * fastest_hz):.2g} fixed steps per period "
-             f"of the {fastest_hz:g} Hz excitation, fewer than {STEPS_PER_PERIOD}: the step does not resolve the "
-             f"forcing, so the response is wrong; reduce [integrator] dt to at most "
-             f"{1 / (STEPS_PER_PERIOD * fastest_hz):.3g} s",
-             comm)
+        return (f"[integrator] dt = {settings.dt:g} s takes {1 / (settings.dt * fastest_hz):.2g} fixed steps per period "
+                f"of the {fastest_hz:g} Hz excitation, fewer than {STEPS_PER_PERIOD}: the step does not resolve the "
+                f"forcing, so the response is wrong; reduce [integrator] dt to at most "
+                f"{1 / (STEPS_PER_PERIOD * fastest_hz):.3g} s")
+    return None
 
 
 def _warn_coarse_samples(settings, fastest_hz: float, comm) -> None:
     """A warning when the samples are fewer than two per period of the fastest forcing (Nyquist): the
     sampled series alias the response (red team: a 99 Hz force sampled every 0.01 s wrote a 1 Hz
     oscillation, and probes/peak, the peak over the samples, missed the response's, with no word)."""
+    message = coarse_samples_warning(settings, fastest_hz)
+    if message:
+        warn(message, comm)
+
+
+def coarse_samples_warning(settings, fastest_hz: float) -> str | None:
+    """_warn_coarse_samples' message, or None (a sweep warns it for its cases too)."""
     if fastest_hz > 0 and 2 * settings.sample_dt * fastest_hz > 1:
-        warn(f"[output] sample_dt = {settings.sample_dt:g} s takes {1 / (settings.sample_dt * fastest_hz):.2g} samples "
-             f"per period of the {fastest_hz:g} Hz excitation, fewer than 2: the sampled series (time, probes, "
-             f"constraints) alias the response and the peaks over the samples miss it; reduce [output] sample_dt to "
-             f"at most {1 / (2 * fastest_hz):.3g} s", comm)
+        return (f"[output] sample_dt = {settings.sample_dt:g} s takes {1 / (settings.sample_dt * fastest_hz):.2g} "
+                f"samples per period of the {fastest_hz:g} Hz excitation, fewer than 2: the sampled series (time, "
+                f"probes, constraints) alias the response and the peaks over the samples miss it; reduce [output] "
+                f"sample_dt to at most {1 / (2 * fastest_hz):.3g} s")
+    return None
 
 
 STEPS_PER_IMPACT = 3   # fewer on average, at a fixed step: contact forces and times depend on dt

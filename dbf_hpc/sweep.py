@@ -21,7 +21,9 @@ continues its phase, and the total displacement and velocity are continuous); th
 structure, basis or constraint-position value: refused before any work).
 
 How it runs (collective on COMM_WORLD):
-1. Every case's scene is validated before any work: a bad value stops the sweep at once.
+1. Every case's scene is validated before any work: a bad value stops the sweep at once, as does a
+   case a run would refuse as endless (timestepping.check_work); a run's warnings before any work
+   (a coarse fixed step or sample interval) are given for the cases they concern.
 2. Each distinct reduced model (cases that differ only in law, excitation history or integrator
    share one) is built once on all ranks; the ranks keep only its small arrays. A model that
    cannot be built fails its cases, recorded with the error; the others go on.
@@ -57,16 +59,17 @@ from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
 from .errors import (PARKED, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing,
-                     termination_signals, write_failure)
+                     termination_signals, warn, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import run_case
+from .run import coarse_samples_warning, coarse_step_warning, run_case
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, STATISTICS, STATISTICS_2D, UNITS_2D as UNITS
+from .timestepping import check_work
 
 SWEEP_KEYS = {"scene", "output", "keep_outputs", "axes", "case", "continuation", "directions"}
 DIRECTION = "sweep_direction"
@@ -157,7 +160,7 @@ def load_sweep(path: str, overrides=()) -> dict:
     cases, chains = _expand(path, axes, listed, continuation, directions)
     parameters = list(dict.fromkeys(name for case in cases for name in case))
     _refuse_sets_the_cases_replace(path, overrides, [name for name in parameters if name != DIRECTION])
-    sets, coordinates, scenes = [], [], []
+    sets, coordinates, scenes, warnings = [], [], [], {}
     for i, case in enumerate(cases):
         own = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
         for text in own:
@@ -167,11 +170,24 @@ def load_sweep(path: str, overrides=()) -> dict:
             if loaded["basis"]["tolerance"] is not None:
                 raise InputError("[basis] tolerance is for runs; a sweep's cases share bases of a given size "
                                  "(set basis.modes, e.g. to what `dbf-hpc run` picked)")
+            # what `dbf-hpc run` refuses before any work, a case too (red team: integrator.t_end = 1e9 or a
+            # 1e9 Hz forcing, refused by a run, integrated on and on in a sweep)
+            settings, fastest = loaded.integrator_settings(), loaded.fastest_forcing_hz()
+            check_work(settings, fastest, adaptive=settings.adaptive)
         except InputError as e:
             raise InputError(f"{path}: case {i + 1} ({', '.join(own)}): {e}") from None
+        # and what a run warns before any work, that its result will be wrong (red team: a fixed dt of 5
+        # steps a period ran every case of a sweep silently, where `dbf-hpc run` said so)
+        for message in (None if settings.adaptive else coarse_step_warning(settings, fastest),
+                        coarse_samples_warning(settings, fastest)):
+            if message:
+                warnings.setdefault(message, []).append(i + 1)
         sets.append([*overrides, *own])
         scenes.append(loaded)
         coordinates.append(_coordinates_key(loaded))
+    for message, numbers in warnings.items():
+        warn(f"{path}: case{'s' if len(numbers) > 1 else ''} {', '.join(map(str, numbers))}: {message}",
+             MPI.COMM_WORLD)
     for chain in chains:
         if len({coordinates[i] for i in chain}) > 1:
             raise InputError(f"{path}: continuation '{continuation}' changes the reduced model's coordinates along "

@@ -299,6 +299,29 @@ def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
         load_sweep(path)
 
 
+@pytest.mark.parametrize("value", ['"integrator.t_end" = [0.5, 1e9]', '"excitation.frequency_hz" = [1.0, 1e9]'])
+def test_a_case_a_run_would_refuse_as_endless_stops_the_sweep_before_any_work(shared_tmp_path, value):
+    # Red team: `dbf-hpc run` refuses 2e10 steps (20 a period of the forcing over t_end) before any work; the same
+    # case in a sweep was integrated on and on, holding its rank and the summary behind it
+    path = write_sweep(shared_tmp_path, f'[axes]\n{value}\n')
+    with pytest.raises(InputError, match="case 2 .*the run would take at least 2e\\+1[01] steps"):
+        load_sweep(path)
+
+
+def test_a_case_whose_fixed_step_cannot_resolve_its_forcing_is_warned_as_a_run_would(shared_tmp_path, capfd):
+    # Red team: at a fixed dt of 10 steps a period of the forcing, `dbf-hpc run` warns that the response is
+    # wrong; a sweep of the same cases ran them without a word
+    path = write_sweep(shared_tmp_path, '[axes]\n"integrator.adaptive" = [false]\n"integrator.dt" = [0.1, 0.001]\n'
+                                        '"excitation.frequency_hz" = [1.0]\n"output.sample_dt" = [0.8]\n')
+    load_sweep(path)
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        assert re.search(r"warning: .*: case 1: \[integrator\] dt = 0.1 s takes 10 fixed steps per period", err), err
+        assert "case 2: [integrator] dt" not in err
+        # the samples alias both cases' response (and their probe peaks): one line names both
+        assert re.search(r"warning: .*: cases 1, 2: \[output\] sample_dt = 0.8 s takes 1.2 samples", err), err
+
+
 @pytest.mark.parametrize("given", ["integrator.t_end=0.1", "constraint.1.clearance=1e-3"])
 def test_a_set_of_a_value_the_cases_set_is_refused_instead_of_silently_replaced(shared_tmp_path, given):
     # each case's own value is applied after --set: t_end from the axis would run every case 0.5 s
