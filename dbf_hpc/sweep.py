@@ -18,7 +18,8 @@ the cases along that axis form chains, one per direction and per combination of 
 each case starts from the previous one's final physical state (a stepped sine: the excitation
 continues its phase, and the total displacement and velocity are continuous); the summary gets a
 `sweep_direction` column. The continuation axis must keep the reduced coordinates' meaning (not a
-structure, basis or constraint-position value: refused before any work).
+structure, basis or constraint-position value: refused before any work), and a numeric one is given
+in increasing order, each value once ("up" runs it as listed, "down" reversed).
 
 How it runs (collective on COMM_WORLD):
 1. Every case's scene is validated before any work: a bad value stops the sweep at once, as does a
@@ -59,7 +60,7 @@ from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
 from .errors import (PARKED, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing,
-                     termination_signals, warn, write_failure)
+                     is_number, termination_signals, warn, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
@@ -160,6 +161,8 @@ def load_sweep(path: str, overrides=()) -> dict:
     cases, chains = _expand(path, axes, listed, continuation, directions)
     parameters = list(dict.fromkeys(name for case in cases for name in case))
     _refuse_sets_the_cases_replace(path, overrides, [name for name in parameters if name != DIRECTION])
+    if continuation is not None:
+        _refuse_unordered_continuation(path, continuation, axes[continuation])
     sets, coordinates, scenes, warnings = [], [], [], {}
     for i, case in enumerate(cases):
         own = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
@@ -196,6 +199,15 @@ def load_sweep(path: str, overrides=()) -> dict:
                              f"excitation, law, damping or integrator value")
     return {"scene": scene, "output": output, "keep_outputs": keep, "cases": sets, "values": cases,
             "parameters": parameters, "chains": chains, "scenes": scenes}
+
+
+def _refuse_unordered_continuation(path: str, name: str, values: list) -> None:
+    """A numeric continuation axis must be strictly increasing: "up" runs its values as listed and
+    "down" in reverse, and the summary's sweep_direction says so (red team: [1.4, 1.2, 1.0] ran
+    down under "up", and [1.0, 1.1, 1.0] ran the same chain twice, once called "down")."""
+    if all(is_number(v) for v in values) and any(b <= a for a, b in zip(values, values[1:])):
+        raise InputError(f"{path}: continuation '{name}' = {values}: give its values in increasing order, each once; "
+                         f"directions = [\"up\", \"down\"] sweeps them up, then down")
 
 
 def _target(name: str) -> tuple:

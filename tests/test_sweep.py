@@ -308,6 +308,21 @@ def test_a_case_a_run_would_refuse_as_endless_stops_the_sweep_before_any_work(sh
         load_sweep(path)
 
 
+@pytest.mark.parametrize("values", ["[1.2, 1.0]", "[1.0, 1.1, 1.0]", "[1.0, 1.0]"])
+def test_a_continuation_axis_not_in_increasing_order_is_refused_as_its_directions_would_be_mislabelled(
+        shared_tmp_path, values):
+    # "up" runs the values as listed and "down" reversed: [1.2, 1.0] ran a falling frequency under "up", the
+    # hysteresis branches of the summary swapped (red team)
+    path = write_sweep(shared_tmp_path, f'continuation = "excitation.frequency_hz"\n[axes]\n'
+                                        f'"excitation.frequency_hz" = {values}\n')
+    with pytest.raises(InputError, match="continuation 'excitation.frequency_hz' .* in increasing order, each once"):
+        load_sweep(path)
+    # a value of a law (not a number) runs in the order given
+    path = write_sweep(shared_tmp_path, 'continuation = "constraint.law"\n[axes]\n"constraint.law" = ["hertz", '
+                                        '"deadband"]\n')
+    assert [v["constraint.law"] for v in load_sweep(path)["values"]] == ["hertz", "deadband", "deadband", "hertz"]
+
+
 def test_a_case_whose_fixed_step_cannot_resolve_its_forcing_is_warned_as_a_run_would(shared_tmp_path, capfd):
     # Red team: at a fixed dt of 10 steps a period of the forcing, `dbf-hpc run` warns that the response is
     # wrong; a sweep of the same cases ran them without a word
