@@ -173,16 +173,20 @@ def load_sweep(path: str, overrides=()) -> dict:
             if loaded["basis"]["tolerance"] is not None:
                 raise InputError("[basis] tolerance is for runs; a sweep's cases share bases of a given size "
                                  "(set basis.modes, e.g. to what `dbf-hpc run` picked)")
+            try:   # integrator settings the integrator refuses fail their case when it runs (recorded)
+                settings, fastest = loaded.integrator_settings(), loaded.fastest_forcing_hz()
+            except InputError:
+                settings = None
             # what `dbf-hpc run` refuses before any work, a case too (red team: integrator.t_end = 1e9 or a
             # 1e9 Hz forcing, refused by a run, integrated on and on in a sweep)
-            settings, fastest = loaded.integrator_settings(), loaded.fastest_forcing_hz()
-            check_work(settings, fastest, adaptive=settings.adaptive)
+            if settings is not None:
+                check_work(settings, fastest, adaptive=settings.adaptive)
         except InputError as e:
             raise InputError(f"{path}: case {i + 1} ({', '.join(own)}): {e}") from None
         # and what a run warns before any work, that its result will be wrong (red team: a fixed dt of 5
         # steps a period ran every case of a sweep silently, where `dbf-hpc run` said so)
-        for message in (None if settings.adaptive else coarse_step_warning(settings, fastest),
-                        coarse_samples_warning(settings, fastest)):
+        for message in ((None if settings is None or settings.adaptive else coarse_step_warning(settings, fastest)),
+                        None if settings is None else coarse_samples_warning(settings, fastest)):
             if message:
                 warnings.setdefault(message, []).append(i + 1)
         sets.append([*overrides, *own])
