@@ -188,6 +188,8 @@ def _sweep_lines(path: str, f) -> list:
     impacts = f["cases/stats/impacts"][:]
     force = f["cases/stats/force_peak"][:]
     columns = {name: f[f"cases/parameters/{name}"][:] for name in names}
+    warned = [w.decode() if isinstance(w, bytes) else w for w in f["cases/warnings"][:]] if "cases/warnings" in f \
+        else [""] * len(status)
     for i, state in enumerate(status):
         values = ", ".join(f"{name.split('.')[-1]} {_value(columns[name][i])}" for name in names
                            if not _missing(columns[name][i]))
@@ -195,6 +197,7 @@ def _sweep_lines(path: str, f) -> list:
             lines.append(f"  case {i + 1} ({values}): max |w| {np.nanmax(peak[i]):.4g} m, "
                          f"{np.nansum(impacts[i]):.0f} impacts, peak force {np.nanmax(force[i]):.4g} N"
                          + _work_summary(f, i))
+            lines += [f"    warning: {w}" for w in warned[i].split("\n") if w]
         else:
             lines.append(f"  case {i + 1} ({values}): FAILED: {errors[i]}")
     return lines

@@ -275,11 +275,20 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float) -> N
     if elastic.size and elastic[0] < SUSPICIOUS_HZ:
         warnings.append(f"the lowest elastic frequency is {elastic[0]:.3g} Hz: check the structure's units (SI: E in "
                         f"Pa, lengths in m, rho in kg/m^3; matrices in N/m and kg)")
-    if forcing_hz > f[-1]:
-        warnings.append(f"the excitation ({forcing_hz:g} Hz) lies above the highest reference mode ({f[-1]:.4g} Hz): "
-                        f"the basis cannot follow it; add modes (basis.modes or basis.max_frequency_hz)")
+    above = forcing_warning(forcing_hz, basis.omega)
+    if above:
+        warnings.append(above)
     for warning in warnings:
         warn(warning, comm)
+
+
+def forcing_warning(forcing_hz: float, omega) -> str | None:
+    """A forcing above the basis' highest reference mode (omega, rad/s), or None."""
+    top = float(np.max(omega)) / (2 * np.pi) if np.size(omega) else 0.0
+    if forcing_hz > top:
+        return (f"the excitation ({forcing_hz:g} Hz) lies above the highest reference mode ({top:.4g} Hz): "
+                f"the basis cannot follow it; add modes (basis.modes or basis.max_frequency_hz)")
+    return None
 
 
 def _warn_coarse_step(settings, fastest_hz: float, comm) -> None:
@@ -329,14 +338,20 @@ def _warn_unresolved(summary: dict, constraints, dt: float, comm, also: str = ""
     average (red team: at 1e12 N/m the peak force was k times a penetration set by dt, 96 kN at
     1e-5 s, 3 kN at 5e-7 s, with no word). Durations are measured on the steps (the recorders'
     impact statistics), so the sample interval does not hide this."""
+    for message in unresolved_warnings(summary, constraints, dt, also):
+        warn(message, comm)
+
+
+def unresolved_warnings(summary: dict, constraints, dt: float, also: str = "") -> list:
+    """_warn_unresolved's messages (a sweep warns them for its cases too)."""
     stats = summary.get("constraint_stats", {})
     if not stats:
-        return
-    for j, (impacts, duration) in enumerate(zip(stats["impacts"], stats["impact_duration_mean"])):
-        if impacts > 0 and duration < STEPS_PER_IMPACT * dt:
-            warn(f"the impacts of constraint {j + 1} at {constraints[j].label} last {duration / dt:.2g} fixed steps "
-                 f"on average ({duration:.3g} s at dt = {dt:.3g} s): the step does not resolve them, so contact forces "
-                 f"and times depend on dt; reduce [integrator] dt (5 to 10 steps an impact){also}", comm)
+        return []
+    return [f"the impacts of constraint {j + 1} at {constraints[j].label} last {duration / dt:.2g} fixed steps "
+            f"on average ({duration:.3g} s at dt = {dt:.3g} s): the step does not resolve them, so contact forces "
+            f"and times depend on dt; reduce [integrator] dt (5 to 10 steps an impact){also}"
+            for j, (impacts, duration) in enumerate(zip(stats["impacts"], stats["impact_duration_mean"]))
+            if impacts > 0 and duration < STEPS_PER_IMPACT * dt]
 
 
 # A stop is suspected of a clearance in the wrong unit when the motion there stays below this fraction of
@@ -349,6 +364,13 @@ IDLE_FRACTION = 0.01
 def _warn_idle(summary: dict, constraints, comm) -> None:
     """A warning for each constraint that never touched its stop and whose motion stayed below
     IDLE_FRACTION of its clearance: often a clearance in the wrong unit."""
+    for message in idle_warnings(summary, constraints):
+        warn(message, comm)
+
+
+def idle_warnings(summary: dict, constraints) -> list:
+    """_warn_idle's messages (a sweep warns them for its cases too)."""
+    out = []
     stats = summary.get("constraint_stats", {})
     for j, constraint in enumerate(constraints):
         law = constraint.law
@@ -361,8 +383,9 @@ def _warn_idle(summary: dict, constraints, comm) -> None:
             gap = min(gaps)
             if not stats["displacement_peak"][j] < IDLE_FRACTION * gap:
                 continue
-            warn(f"constraint {j + 1} at {constraint.label} never reached its stop (max |w| "
-                 f"{stats['displacement_peak'][j]:.3g} m, clearance {gap:.3g} m): check the clearance's unit (m)", comm)
+            out.append(f"constraint {j + 1} at {constraint.label} never reached its stop (max |w| "
+                       f"{stats['displacement_peak'][j]:.3g} m, clearance {gap:.3g} m): check the clearance's unit (m)")
+    return out
 
 
 def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:

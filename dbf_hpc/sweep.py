@@ -51,6 +51,7 @@ import itertools
 import json
 import os
 import signal
+import sys
 import time
 import tomllib
 
@@ -65,7 +66,8 @@ from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import coarse_samples_warning, coarse_step_warning, run_case
+from .run import (coarse_samples_warning, coarse_step_warning, forcing_warning, idle_warnings, run_case,
+                  unresolved_warnings)
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -443,7 +445,7 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
             summary = run_case(scene, model, case_out, resume=True, ident=ident)
         record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
                       solver=summary["stats"], final_state=summary["final_state"],
-                      coordinates=model.coordinates_digest(),
+                      coordinates=model.coordinates_digest(), warnings=_case_warnings(scene, model, summary),
                       **_final_excitation(model, scene.integrator_settings().t_end))
     except Interrupted:
         raise
@@ -461,6 +463,19 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
         record["error"] = record["error"].replace("rerun with --resume", "rerun the sweep").replace(
             "rerun without --resume", "rerun the sweep")
     return record
+
+
+def _case_warnings(scene, model, summary: dict) -> list:
+    """What `dbf-hpc run` warns of the same case, that its result may be wrong (red team: a clearance
+    in mm given as m, a basis below the forcing, impacts a fixed step does not resolve: each run
+    warned, and a sweep of the same cases said nothing): printed by the rank that ran the case, and
+    kept in its record and the summary (cases/warnings)."""
+    settings = scene.integrator_settings()
+    out = idle_warnings(summary, scene.constraints)
+    if not settings.adaptive:
+        out += unresolved_warnings(summary, scene.constraints, settings.dt)
+    above = forcing_warning(scene.fastest_forcing_hz(), model.basis_info.get("omega", ()))
+    return [above, *out] if above else out
 
 
 def _drop_stale_checkpoint(case_out: str, ident: dict) -> None:
@@ -505,6 +520,8 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
                 broken = index
             done += 1
             tell(f"  case {index + 1}: {record['status']}")
+            for message in record.get("warnings", []):   # -q silences the progress, not these
+                print(f"dbf-hpc: warning: case {index + 1}: {message}", file=sys.stderr, flush=True)
             if len(PARKED) > parked:
                 # an HDF5 write of the case failed (a full disk): its file is kept open (errors.park),
                 # and HDF5 crashed (signal 11) at the next failed write of this process (red team): the
@@ -622,6 +639,8 @@ def _units(f, parameters) -> None:
     f["cases/wall_time"].attrs.update(unit="s", description="wall time of the case")
     for name in ("status", "error"):
         f[f"cases/{name}"].attrs.update(unit="", description=f"the case's {name}")
+    f["cases/warnings"].attrs.update(unit="", description="what `dbf-hpc run` warns of the case, that its result may "
+                                                          "be wrong (one line each; empty: none)")
 
 
 def _write_summary(sweep: dict, folder: str, output: str) -> int:
@@ -636,7 +655,8 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
     # A write that fails on a full disk crashed HDF5 in its close (signal 11) once a failed case's file
     # had been kept open in this process (errors.park; red team, a 3 MB tmpfs): the room is checked first
     needed = 8.0 * n * (len(sweep["parameters"]) + (len(STATISTICS_2D) + 1) * width + probes + 3) + \
-        sum(len(json.dumps(r.get("parameters", {}))) + len(r.get("error", "")) + 16 for r in records) + 2**16
+        sum(len(json.dumps(r.get("parameters", {}))) + len(r.get("error", "")) +
+            sum(len(w) + 1 for w in r.get("warnings", [])) + 16 for r in records) + 2**16
     free = free_bytes(os.path.dirname(os.path.abspath(output)))
     if free < 1.1 * needed + 2**20:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -655,6 +675,7 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
         f.create_dataset("cases/status", data=[r["status"] for r in records])
         f.create_dataset("cases/error", data=[r.get("error", "") for r in records])
         f.create_dataset("cases/wall_time", data=[r["wall_time"] for r in records])
+        f.create_dataset("cases/warnings", data=["\n".join(r.get("warnings", [])) for r in records])
         # supports of two directions add the work rate (and what follows from it) to the 1-D statistics
         names = [*STATISTICS, *(k for k in STATISTICS_2D if k not in STATISTICS
                                 and any(k in r.get("stats", {}) for r in records))]

@@ -12,6 +12,7 @@ from mpi4py import MPI
 from conftest import assert_all
 from dbf_hpc.errors import DbfError, InputError
 from dbf_hpc.modes import counters
+from dbf_hpc.report import describe
 from dbf_hpc.stats import STATISTICS
 from dbf_hpc.sweep import load_sweep, run_sweep
 
@@ -704,6 +705,28 @@ def test_a_stepped_sine_on_a_gyroscopic_structure_keeps_it_where_it_was_in_eithe
     assert abs(z1 - z0) < 1e-3 * scale and abs(w1 - w0) < 1e-3 * scale, "the total displacement does not jump"
     support_jump = abs(r_c) * 2e-4 * 2 * np.pi * abs(46.0 - 40.0) * abs(np.cos(2 * np.pi * 40.0 * 0.0193))
     assert abs(v1 - v0) < 0.2 * support_jump, (v1 - v0, support_jump)   # measured 0.041 and 0.038 of it
+
+
+def test_a_case_a_run_would_warn_of_is_warned_and_its_summary_row_says_so(shared_tmp_path, capfd):
+    # Red team: a clearance of 2.5 given for 2.5 mm: the stop is never reached, and `dbf-hpc run` warns of the
+    # clearance's unit; the sweep's summary showed 0 impacts under "ok" without a word, as it did for a basis
+    # below the forcing (the shipped two-plane sweep: 60 Hz turbulence on modes below 40 Hz)
+    path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [2.5e-3, 2.5]\n"integrator.t_end" = [0.3]\n'
+                                        '[[case]]\n"integrator.t_end" = 0.3\n"excitation.frequency_hz" = 200.0\n'
+                                        '"excitation.amplitude" = 1e-6\n"constraint.clearance" = 2.5e-3\n')
+    result = run_sweep(path, progress=False)
+    err = MPI.COMM_WORLD.gather(capfd.readouterr().err, root=0)
+    if MPI.COMM_WORLD.rank == 0:
+        err = "".join(err)
+        assert re.search(r"warning: case 2: constraint 1 at x = 0.25 m never reached its stop .*clearance 2.5 m", err), err
+        assert re.search(r"warning: case 3: the excitation \(200 Hz\) lies above the highest reference mode", err), err
+        assert "case 1:" not in err, err
+        with h5py.File(result["output"]) as f:
+            warned = [w.decode() for w in f["cases/warnings"][:]]
+            assert warned[0] == "" and "never reached its stop" in warned[1] and "above the highest" in warned[2]
+        lines = describe(result["output"])
+        case2 = next(k for k, line in enumerate(lines) if line.startswith("  case 2 "))
+        assert "never reached its stop" in lines[case2 + 1] and lines[case2 + 1].startswith("    warning: ")
 
 
 def test_every_dataset_of_a_summary_carries_its_unit(shared_tmp_path):
