@@ -168,9 +168,12 @@ def load_sweep(path: str, overrides=()) -> dict:
     sets, coordinates, scenes, warnings = [], [], [], {}
     for i, case in enumerate(cases):
         own = [f"{name}={_toml_value(value)}" for name, value in case.items() if name != DIRECTION]
-        for text in own:
-            parse_override(text)
         try:
+            for name in case:   # a [[case]] key: as an axis' (red team: a nested table was named a --set)
+                if name != DIRECTION and "." not in name:
+                    raise InputError(f"'{name}' must be a scene value written section.key")
+            for text in own:
+                parse_override(text)
             loaded = load_scene(scene, [*overrides, *own])
             if loaded["basis"]["tolerance"] is not None:
                 raise InputError("[basis] tolerance is for runs; a sweep's cases share bases of a given size "

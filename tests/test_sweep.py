@@ -300,6 +300,14 @@ def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
         load_sweep(path)
 
 
+def test_a_listed_case_with_a_nested_table_is_refused_naming_the_sweep_not_a_set(shared_tmp_path):
+    # Red team: [[case]] excitation = {frequency_hz = 1.0} was refused as `--set "excitation={...}"`, a flag
+    # the command line did not hold
+    path = write_sweep(shared_tmp_path, '[[case]]\nexcitation = {frequency_hz = 1.0}\n')
+    with pytest.raises(InputError, match=r"sweep.toml: case 1 .*'excitation' must be a scene value written section.key"):
+        load_sweep(path)
+
+
 @pytest.mark.parametrize("value", ['"integrator.t_end" = [0.5, 1e9]', '"excitation.frequency_hz" = [1.0, 1e9]'])
 def test_a_case_a_run_would_refuse_as_endless_stops_the_sweep_before_any_work(shared_tmp_path, value):
     # Red team: `dbf-hpc run` refuses 2e10 steps (20 a period of the forcing over t_end) before any work; the same
