@@ -537,7 +537,17 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     """Run (or resume) a sweep. Collective on COMM_WORLD. Returns {'output', 'cases', 'failed',
     'first_failure'} (the first failed case's number and error, or None)."""
     world = MPI.COMM_WORLD
-    sweep = load_sweep(path, overrides)
+    # rank 0 reads the sweep file and its scenes, every rank runs them: each rank's own read could
+    # differ (a file edited while the job started) or fail alone (a node that cannot read the path)
+    sweep = problem = None
+    if world.rank == 0:
+        try:
+            sweep = load_sweep(path, overrides)
+        except InputError as e:
+            problem = str(e)
+    sweep, problem = world.bcast((sweep, problem), root=0)
+    if problem:
+        raise InputError(problem)
     output, folder = sweep["output"], sweep["output"] + ".cases"
     say = (lambda m: PETSc.Sys.Print(m)) if progress else (lambda m: None)
     lock = OutputLock(output, "sweep summary")

@@ -863,3 +863,16 @@ def test_a_step_is_not_continued_from_a_state_computed_in_another_basis(shared_t
     again = [json.load(open(name)) for name in files]
     assert_all(again[0]["coordinates"] == fresh[0]["coordinates"], "step 1 ran again in the basis of now")
     assert_all(again[1]["continued"] and again[1]["stats"] == fresh[1]["stats"])
+
+
+def test_every_rank_runs_the_sweep_rank_0_read_also_when_another_rank_cannot_read_it(shared_tmp_path, monkeypatch):
+    # Each rank read the sweep file and its scenes itself: an edit while the job started, or a node that
+    # cannot read the path, gave the ranks different cases or one rank's error while the others went on
+    import dbf_hpc.sweep as sweep_module
+
+    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.05]\n')
+    if MPI.COMM_WORLD.rank:
+        monkeypatch.setattr(sweep_module, "load_sweep", lambda *args: (_ for _ in ()).throw(
+            InputError(f"cannot read sweep {path!r}")))
+    result = run_sweep(path, progress=False)
+    assert result["cases"] == 2 and result["failed"] == 0
