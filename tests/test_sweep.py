@@ -718,7 +718,7 @@ def test_a_stepped_sine_on_a_gyroscopic_structure_keeps_it_where_it_was_in_eithe
 def test_a_case_a_run_would_warn_of_is_warned_and_its_summary_row_says_so(shared_tmp_path, capfd):
     # Red team: a clearance of 2.5 given for 2.5 mm: the stop is never reached, and `dbf-hpc run` warns of the
     # clearance's unit; the sweep's summary showed 0 impacts under "ok" without a word, as it did for a basis
-    # below the forcing (the shipped two-plane sweep: 60 Hz turbulence on modes below 40 Hz)
+    # below the forcing (the shipped two-plane sweep had 60 Hz turbulence on modes below 40 Hz)
     path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [2.5e-3, 2.5]\n"integrator.t_end" = [0.3]\n'
                                         '[[case]]\n"integrator.t_end" = 0.3\n"excitation.frequency_hz" = 200.0\n'
                                         '"excitation.amplitude" = 1e-6\n"constraint.clearance" = 2.5e-3\n')
