@@ -315,11 +315,17 @@ def plot_sweep(path: str, folder: str, window=None) -> list:
     return written
 
 
+UNSET = "not set"   # a sweep figure's label for a parameter a listed case leaves at the scene's value
+
+
 def _sweep_figure(folder, name, others, data, written) -> None:
     plt = _pyplot()
     columns, ok = data["columns"], data["ok"]
     x = columns[name]
-    keys = [tuple(columns[n][i] for n in others) for i in range(x.size)]
+    # a listed case that does not set another parameter has NaN there: one key for all of them (NaN
+    # never equals itself, so such a case matched no line and was left out of the figure: red team)
+    keys = [tuple(UNSET if isinstance(v, float) and np.isnan(v) else v for v in (columns[n][i] for n in others))
+            for i in range(x.size)]
     series = list(dict.fromkeys(keys))
     fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), dpi=110, sharex=True)
     colour = iter(plt.cm.tab20(np.linspace(0, 1, 20)))

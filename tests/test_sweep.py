@@ -876,3 +876,23 @@ def test_every_rank_runs_the_sweep_rank_0_read_also_when_another_rank_cannot_rea
             InputError(f"cannot read sweep {path!r}")))
     result = run_sweep(path, progress=False)
     assert result["cases"] == 2 and result["failed"] == 0
+
+
+def test_a_listed_case_that_leaves_another_parameter_unset_is_drawn_in_the_sweep_figure(shared_tmp_path, monkeypatch):
+    # Red team: its NaN in the other parameter's column matched no line (NaN != NaN): the case was
+    # left out of the figure without a word
+    import matplotlib.axes
+
+    from dbf_hpc.plots import plot_sweep
+
+    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n"damping.zeta" = [0.01, 0.02]\n'
+                                        '"integrator.t_end" = [0.05]\n'
+                                        '[[case]]\n"excitation.frequency_hz" = 1.3\n"integrator.t_end" = 0.05\n')
+    result = run_sweep(path, progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        drawn, plot = [], matplotlib.axes.Axes.plot
+        monkeypatch.setattr(matplotlib.axes.Axes, "plot", lambda ax, *a, **k: (drawn.append((a, k)), plot(ax, *a, **k))[1])
+        plot_sweep(result["output"], str(shared_tmp_path))
+        lines = [(np.asarray(a[0]), k["label"]) for a, k in drawn if k.get("label", "").startswith("constraint 1")]
+        assert any(1.3 in x and "zeta not set" in label for x, label in lines), [(list(x), l) for x, l in lines]
+    assert_all(True)
