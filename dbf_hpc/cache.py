@@ -160,11 +160,15 @@ def _close_and_rename(f, V, tmp: str, path: str, error: str | None) -> str | Non
     return error
 
 
-def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings):
-    """(problem or None, the small arrays, this rank's block of V) of a cache file."""
+def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings, checked: bytes):
+    """(problem or None, the small arrays, this rank's block of V) of a cache file whose user block
+    is `checked` (the file rank 0 checked: another job may have stored the entry again since, and
+    each rank would read its own file, a mix of two bases)."""
     lo, hi = ops.K.getOwnershipRange()
     try:
         with h5py.File(path, "r") as f:
+            if sealed.user_block_of_open(f) != checked:
+                return "was stored again by another job while this one read it", {}, None
             if f.attrs.get("key") != key:
                 return "was made for other operators or settings", {}, None
             arrays = {name: f[name][...] for name in ARRAYS}
@@ -205,10 +209,10 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows) -> 
     key, the constraint rows, the shapes, V^T M V = I and the frequencies on these operators."""
     world = ops.comm.tompi4py()
     # the seal first, on rank 0 alone: HDF5 must not parse a damaged file (it may crash the process)
-    problem = world.bcast(seal_problem(path) if world.rank == 0 else None, root=0)
+    problem, checked = world.bcast(sealed.check(path, SEAL, "this cache") if world.rank == 0 else None, root=0)
     arrays, block = {}, None
     if not problem:
-        problem, arrays, block = _read(path, key, ops, np.asarray(rows, dtype=np.int64), settings)
+        problem, arrays, block = _read(path, key, ops, np.asarray(rows, dtype=np.int64), settings, checked)
     problem = next((p for p in world.allgather(problem) if p), None)
     if problem:
         _say(ops.comm, f"basis cache {path} {problem}; rebuilding it")

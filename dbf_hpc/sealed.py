@@ -31,12 +31,26 @@ def seal(path: str, tag: bytes) -> None:
 
 def seal_problem(path: str, tag: bytes, writer: str = "dbf-hpc") -> str | None:
     """Why the file's seal does not hold (None if it does), read without HDF5."""
+    return check(path, tag, writer)[0]
+
+
+def check(path: str, tag: bytes, writer: str = "dbf-hpc") -> tuple:
+    """(seal_problem's answer, the user block read): the block names the file's content, so that
+    whoever opens the path later can tell it is still the file checked (user_block_of_open)."""
     try:
         stored, expected = _user_block(path, tag)
     except OSError as e:
-        return f"cannot be read ({type(e).__name__})"
+        return f"cannot be read ({type(e).__name__})", b""
     if not stored.startswith(tag):
-        return f"has no file checksum (written by an older version, or not by {writer})"
+        return f"has no file checksum (written by an older version, or not by {writer})", stored
     if stored != expected:
-        return "fails its file checksum (damaged or truncated)"
-    return None
+        return "fails its file checksum (damaged or truncated)", stored
+    return None, stored
+
+
+def user_block_of_open(h5file) -> bytes:
+    """The user block of a file h5py holds open (its own descriptor: a path replaced since does not
+    change what it reads)."""
+    import os
+
+    return os.pread(h5file.id.get_vfd_handle(), USERBLOCK, 0)

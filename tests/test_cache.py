@@ -340,3 +340,21 @@ def test_clear_on_a_read_only_cache_is_one_error_saying_what_it_could_not_remove
                                              r"system; removed 0 file\(s\)"):
             cache.clear(str(disk))
         assert damaged.exists()
+
+
+def test_a_cache_file_stored_again_between_the_check_and_the_read_is_rebuilt_not_mixed(shared_tmp_path, monkeypatch):
+    # M-helper's red team: rank 0 checked the seal, then every rank opened the path itself; another job
+    # storing the entry again in between (a repeated mode turned on another rank count) gave the ranks
+    # rows of two bases. What rank 0 checked is now compared with what each rank holds open.
+    from dbf_hpc import sealed
+
+    reference, _, _ = obtain(scene(), shared_tmp_path)
+    check = sealed.check
+    # as if rank 0 had checked another file than the one the ranks then open
+    monkeypatch.setattr(sealed, "check", lambda *a: (check(*a)[0], b"another file's user block"))
+    rebuilt, solves, state = obtain(scene(), shared_tmp_path)
+    assert solves > 0 and state == "stored"
+    assert np.allclose(rebuilt, reference, rtol=1e-10)
+    monkeypatch.undo()
+    _, solves, state = obtain(scene(), shared_tmp_path)      # the file read back as checked: a hit
+    assert solves == 0 and state == "hit"
