@@ -32,8 +32,12 @@ def open_output(path: str):
     try:
         f = h5py.File(target, "r")
     except OSError as e:
+        why = str(e).splitlines()[0]
         raise InputError(f"cannot open {target!r}: {lock_problem(e)}" if lock_problem(e) else
-                         f"{target!r} is damaged ({str(e).splitlines()[0]})" if has_hdf5_signature(target) else
+                         f"{target!r} cannot be read ({why}): a run killed before HDF5 wrote its first samples "
+                         f"leaves it so; rerun the run (`--resume` continues from its checkpoint if one exists)"
+                         if target.endswith(".partial") and has_hdf5_signature(target) else
+                         f"{target!r} is damaged ({why})" if has_hdf5_signature(target) else
                          f"{target!r} is not an HDF5 file") from None
     if layout.TIME not in f and "cases" not in f:
         shapes = "shapes" in f and "dbf_hpc_version" in f.attrs

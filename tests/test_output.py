@@ -277,3 +277,18 @@ def test_samples_start_at_0_step_by_sample_dt_and_end_at_t_end_with_its_state(sh
         np.testing.assert_allclose(t, [0.0, 3e-3, 6e-3, 9e-3, 1e-2], rtol=0, atol=1e-15)
         exact = 1e-3 * np.cos(omega * t) * np.sign(w[0])
         assert np.abs(w - exact).max() < 1e-4 * 1e-3, (w, exact)
+
+
+def test_info_on_a_partial_killed_before_its_first_samples_says_what_left_it_and_what_to_do(tmp_path):
+    # it said only "is damaged (truncated file ...)"
+    import h5py
+    import numpy as np
+
+    from dbf_hpc.report import open_output
+
+    partial = tmp_path / "run.h5.partial"
+    with h5py.File(partial, "w") as f:
+        f["time"] = np.arange(1000.0)
+    partial.write_bytes(partial.read_bytes()[:600])   # HDF5's signature, its data never flushed
+    with pytest.raises(InputError, match=r"cannot be read .*killed before HDF5 wrote its first samples.*rerun"):
+        open_output(str(tmp_path / "run.h5"))
