@@ -38,6 +38,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 PAPER = dict(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0)
+CASES = ("paper", "paper-mumps", "beam10k", "solid3d")   # what --cases can name
 
 
 def _released(fom, shape):
@@ -113,6 +114,16 @@ def build(case: str, solid: str):
     raise SystemExit(f"unknown case {case!r}")
 
 
+def solve_batch(step_seconds: float, comm) -> int:
+    """Solves per timed batch (~0.2 s of them, 1 to 2000), the same on every rank: each solve is
+    collective, and each rank's own loop time (a local clock) gave the ranks different counts, one
+    rank left waiting in a solve the others never made. Collective."""
+    from mpi4py import MPI
+
+    step = comm.allreduce(step_seconds, op=MPI.MAX)
+    return max(1, min(2000, int(0.2 / max(step, 1e-6))))
+
+
 def worker(case: str, solid: str) -> None:
     import numpy as np
     from mpi4py import MPI
@@ -139,7 +150,7 @@ def worker(case: str, solid: str) -> None:
         b, x = X.duplicate(), X.duplicate()
         b.setRandom()
         S.solve(b, x)
-        batch = max(1, min(2000, int(0.2 / max(stats["step_time"] / stats["steps"], 1e-6))))
+        batch = solve_batch(stats["step_time"] / stats["steps"], world)
         times = []
         for _ in range(5):
             world.Barrier()
@@ -213,6 +224,15 @@ def main() -> int:
     if args.case:
         worker(args.case, args.solid)
         return 0
+    try:
+        ranks = [int(r) for r in args.ranks.split(",")]
+    except ValueError:
+        ranks = []
+    if not ranks or min(ranks) < 1:   # mpirun -n 0 ran on every slot, the table naming that count
+        parser.error(f"--ranks {args.ranks!r}: give comma-separated rank counts >= 1, e.g. 1,2")
+    unknown = [c for c in args.cases.split(",") if c not in CASES]
+    if unknown:   # else it was found only after the cases before it had run
+        parser.error(f"--cases: {', '.join(unknown)}: choose from {','.join(CASES)}")
     return driver(args)
 
 

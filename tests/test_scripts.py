@@ -92,3 +92,30 @@ def test_the_setup_stamp_covers_every_source_of_the_c_extension():
 def test_bench_rom_refuses_a_table_it_does_not_have_instead_of_measuring_nothing():
     out = script("bench_rom.py", "--tables", "cost,bogus")
     assert out.returncode == 2 and "--tables: bogus: choose from cost,controller,accuracy,sweep" in out.stderr
+
+
+def test_bench_full_refuses_rank_counts_below_one_and_unknown_cases_before_running_any():
+    # red team: --ranks 0 became `mpirun -n 0`, which ran on every slot and printed a 2-rank row
+    # for a question about 0 ranks; an unknown case was found only after the cases before it ran
+    out = script("bench_full.py", "--ranks", "0", "--cases", "paper", timeout=120)
+    assert out.returncode == 2 and "--ranks '0': give comma-separated rank counts >= 1" in out.stderr
+    assert "Traceback" not in out.stderr
+    out = script("bench_full.py", "--ranks", "x", timeout=120)
+    assert out.returncode == 2 and "--ranks 'x'" in out.stderr and "Traceback" not in out.stderr
+    out = script("bench_full.py", "--ranks", "1", "--cases", "paper,bogus", timeout=120)
+    assert out.returncode == 2 and "--cases: bogus: choose from" in out.stderr and "paper on 1 rank" not in out.stdout
+
+
+def test_bench_full_times_the_same_number_of_collective_solves_on_every_rank():
+    # A solve with the distributed factor is collective: each rank's batch came from its own loop
+    # clock, so two ranks whose step times straddled a batch boundary made different numbers of
+    # solves, and the job hung in the one the other rank never made.
+    code = ("import sys; sys.path.insert(0, 'scripts'); from mpi4py import MPI; import bench_full; "
+            "c = MPI.COMM_WORLD; b = bench_full.solve_batch(1e-3 * (1 + 0.01 * c.rank), c); "
+            "assert c.allgather(b) == [b] * c.size, c.allgather(b); assert b == int(0.2 / 1.01e-3); "
+            "print(f'<same{b}>', flush=True)")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_COMM_WORLD", "PMIX_", "PMI_"))}
+    env.setdefault("OMPI_MCA_rmaps_base_oversubscribe", "1")
+    out = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "mpi4py", "-c", code], capture_output=True,
+                         text=True, timeout=120, cwd=ROOT, env=env)
+    assert out.returncode == 0 and out.stdout.count("<same198>") == 2, out.stdout + out.stderr[-2000:]
