@@ -95,6 +95,19 @@ def limit(ops, rows, solver_type: str, block: bool = False) -> float:
     return elapsed
 
 
+def measured(comm, repeat: int, seconds) -> float:
+    """The fastest of `repeat` calls of seconds() (each returns its own elapsed time on this rank),
+    each started after a barrier, as the slowest rank saw it: the DBF paths are timed so (`timed`),
+    and the limit was rank 0's own clock, without the barrier. Collective."""
+    from mpi4py import MPI
+
+    best = float("inf")
+    for _ in range(repeat):
+        comm.barrier()
+        best = min(best, comm.tompi4py().allreduce(seconds(), op=MPI.MAX))
+    return best
+
+
 def reset_peak() -> None:
     """Start a new peak resident set for this process (Linux >= 4.0; elsewhere the peak since start)."""
     try:
@@ -131,14 +144,13 @@ def worker(args) -> None:
     comm = PETSc.COMM_WORLD
 
     def timed(fn) -> float:
-        best = float("inf")
-        for _ in range(args.repeat):
-            comm.barrier()
+        def once() -> float:
             t0 = time.perf_counter()
             out = fn()
-            best = min(best, time.perf_counter() - t0)
+            elapsed = time.perf_counter() - t0
             out.destroy()
-        return comm.tompi4py().allreduce(best, op=MPI.MAX)
+            return elapsed
+        return measured(comm, args.repeat, once)
 
     def peak(fn):
         """(fn(), the largest peak resident set of any rank while it ran, MB)."""
@@ -163,16 +175,20 @@ def worker(args) -> None:
         rows = np.array([ops.mesh.w_row(x) for x in positions], dtype=np.int64)
         return ops, rows, reference_modes(ops, count=6)
 
+    def limit_timed(*a, **kw) -> float:
+        """The limit measured as `timed` measures the DBF paths: the fastest of --repeat, each
+        started together on every rank and counted until the slowest rank is done."""
+        return measured(comm, args.repeat, lambda: limit(*a, **kw))
+
     def run(elements: int, n_l: int, paths, solid: bool = False) -> dict:
         ops, rows, modes = structure(elements, n_l, solid)
-        limit_block, peak_limit = peak(lambda: min(limit(ops, rows, "mumps", block=True) for _ in range(args.repeat)))
+        limit_block, peak_limit = peak(lambda: limit_timed(ops, rows, "mumps", block=True))
         record = dict(n_l=n_l, dofs=ops.size, ranks=comm.getSize(),
-                      limit=min(limit(ops, rows, "mumps") for _ in range(args.repeat))
-                      if n_l <= args.single_max else None,
+                      limit=limit_timed(ops, rows, "mumps") if n_l <= args.single_max else None,
                       limit_block=limit_block, peak_limit=peak_limit,
                       # PETSc's own Cholesky only where the package uses it (a banded matrix on one rank;
                       # on the 3-D solid it did not finish in minutes)
-                      limit_petsc=min(limit(ops, rows, "petsc") for _ in range(args.repeat))
+                      limit_petsc=limit_timed(ops, rows, "petsc")
                       if comm.getSize() == 1 and natural_fill_is_small(ops.K) else None,
                       static=timed(lambda: static_modes(ops, rows)))
         for path in paths:
@@ -242,6 +258,26 @@ def table(records: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def check_options(parser, args) -> None:
+    """Refuse, in one line, what the workers would have met as a traceback (or measured as
+    something else: --ranks 0 ran on one rank)."""
+    def counts(text: str, name: str, least: int) -> None:
+        try:
+            values = [int(v) for v in text.split(",")]
+        except ValueError:
+            values = []
+        if not values or min(values) < least:
+            parser.error(f"{name} {text!r}: give comma-separated whole numbers >= {least}")
+    counts(args.ranks, "--ranks", 1)
+    counts(args.constraints, "--constraints", 1)
+    for name in ("elements", "repeat"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} {getattr(args, name)}: give a whole number >= 1")
+    for name in ("factor_max", "shared_max", "single_max"):
+        if getattr(args, name) < 0:
+            parser.error(f"--{name.replace('_', '-')} {getattr(args, name)}: give a whole number >= 0")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--elements", type=int, default=None,
@@ -261,8 +297,12 @@ def main() -> None:
     parser.add_argument("-o", "--output", help="also write the markdown table to this file")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    args.elements = args.elements or (200 if args.quick else 5000)
-    args.constraints = args.constraints or ("1,10" if args.quick else "1,10,100,1000")
+    if args.elements is None:   # (`or` made --elements 0 the default size, silently)
+        args.elements = 200 if args.quick else 5000
+    if args.constraints is None:
+        args.constraints = "1,10" if args.quick else "1,10,100,1000"
+    if not args.worker:
+        check_options(parser, args)
     if args.worker:
         worker(args)
         return

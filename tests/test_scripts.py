@@ -119,3 +119,26 @@ def test_bench_full_times_the_same_number_of_collective_solves_on_every_rank():
     out = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "mpi4py", "-c", code], capture_output=True,
                          text=True, timeout=120, cwd=ROOT, env=env)
     assert out.returncode == 0 and out.stdout.count("<same198>") == 2, out.stdout + out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("option", [("--ranks", "0"), ("--ranks", "x"), ("--repeat", "0"), ("--elements", "0"),
+                                    ("--constraints", "0"), ("--constraints", "x"), ("--single-max", "-1")])
+def test_bench_basis_refuses_a_size_it_cannot_measure_in_one_line(option):
+    # red team: --repeat 0, --constraints 0 or x and --ranks x ended in the worker's traceback;
+    # --elements 0 measured the default 200-element beam and --ranks 0 one rank, both silently
+    out = script("bench_basis.py", "--quick", *option, timeout=120)
+    assert out.returncode == 2 and f"{option[0]} " in out.stderr.splitlines()[-1], out.stderr[-2000:]
+    assert "Traceback" not in out.stderr and "running:" not in out.stderr
+
+
+def test_bench_basis_times_the_limit_as_the_dbf_paths_until_the_slowest_rank_is_done():
+    # The DBF paths were timed after a barrier until the slowest rank finished; the limit they are
+    # divided by was rank 0's own clock: on 2 ranks the ratio set the slowest rank against rank 0.
+    code = ("import sys; sys.path.insert(0, 'scripts'); import bench_basis; from petsc4py import PETSc; "
+            "c = PETSc.COMM_WORLD; r = c.getRank(); calls = iter([[0.1, 0.3][r], [0.2, 0.25][r]]); "
+            "t = bench_basis.measured(c, 2, lambda: next(calls)); assert t == 0.25, t; print('<max>', flush=True)")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_COMM_WORLD", "PMIX_", "PMI_"))}
+    env.setdefault("OMPI_MCA_rmaps_base_oversubscribe", "1")
+    out = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "mpi4py", "-c", code], capture_output=True,
+                         text=True, timeout=120, cwd=ROOT, env=env)
+    assert out.returncode == 0 and out.stdout.count("<max>") == 2, out.stdout + out.stderr[-2000:]
