@@ -24,15 +24,39 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from dbf_hpc.accuracy import relative_difference  # noqa: E402
+from dbf_hpc.errors import DbfError  # noqa: E402
 from dbf_hpc.run import run  # noqa: E402
 from dbf_hpc.scene import load_scene  # noqa: E402
 
 SCENES = {1: "paper_beam.toml", 4: "paper_beam_4.toml", 9: "paper_beam_9.toml"}
+T_END, SAMPLE_DT = 0.2, 1e-4   # s: the truths' span and sampling, and every case's
+
+
+def truth_path(truth_dir: str, label: int) -> str:
+    return os.path.join(truth_dir, f"truth-{label}-400-2.5e-06-0.2.h5")
+
+
+def read_truth(truth_dir: str, label: int) -> np.ndarray:
+    """The truth's constraint displacements, once checked to be the truth of this question: the
+    scene's number of stops, sampled every SAMPLE_DT over [0, T_END] (a truth sampled otherwise was
+    compared sample by sample with the run, up to the shorter of the two). Raises ValueError."""
+    path = truth_path(truth_dir, label)
+    try:
+        with h5py.File(path, "r") as f:
+            t, w = f["time"][:], f["constraints/displacement"][:]
+    except (OSError, KeyError) as e:
+        raise ValueError(f"cannot read the truth {path}: {e}; make it with `study_accuracy.py -o DIR` "
+                         f"and give DIR/runs") from None
+    want = np.arange(round(T_END / SAMPLE_DT) + 1) * SAMPLE_DT
+    if t.shape != want.shape or not np.allclose(t, want, rtol=0, atol=1e-9) or w.reshape(t.size, -1).shape[1] != label:
+        raise ValueError(f"{path} is not the truth of {SCENES[label]}: it holds {w.reshape(t.size, -1).shape[1]} "
+                         f"constraint(s) sampled at {t.size} times up to {t[-1] if t.size else 0:g} s, not {label} "
+                         f"every {SAMPLE_DT:g} s over [0, {T_END:g}] s")
+    return w
 
 
 def case(label: int, modes: int, rtol: float, enrichment: str, truth_dir: str, work: str) -> dict:
-    with h5py.File(os.path.join(truth_dir, f"truth-{label}-400-2.5e-06-0.2.h5"), "r") as f:
-        w_truth = f["constraints/displacement"][:]
+    w_truth = read_truth(truth_dir, label)
     scene = load_scene(os.path.join(ROOT, "jobs", SCENES[label]),
                        ["basis.cache=off", f"basis.modes={modes}", f"basis.enrichment={enrichment}",
                         f"integrator.rtol={rtol}", "integrator.t_end=0.2", "output.sample_dt=1e-4",
@@ -41,10 +65,13 @@ def case(label: int, modes: int, rtol: float, enrichment: str, truth_dir: str, w
     summary = run(scene, path, progress=False)
     with h5py.File(path, "r") as f:
         w = f["constraints/displacement"][:]
+    if w.shape != w_truth.shape:
+        raise ValueError(f"the run of {SCENES[label]} gave {w.shape[0]} samples, its truth {w_truth.shape[0]}")
     true = relative_difference(w, w_truth)
     walls = summary["timings"]
     return {"constraints": label, "modes": modes, "enrichment": enrichment, "rtol": rtol,
-            "estimate": summary["estimated_error"], "true": true, "ratio": summary["estimated_error"] / true,
+            "estimate": summary["estimated_error"], "true": true,
+            "ratio": summary["estimated_error"] / true if true > 0 else float("nan"),
             "run_seconds": walls["basis"] + walls["integration"],
             "estimate_seconds": walls.get("estimate_basis", 0.0) + walls.get("estimate", 0.0)}
 
@@ -61,13 +88,32 @@ def main(argv=None) -> int:
     parser.add_argument("--enrichment", default="dbf,none",
                         help="comma-separated enrichments: dbf, static, none (default dbf,none)")
     args = parser.parse_args(argv)
+    try:
+        modes_list = [int(m) for m in args.modes.split(",")]
+        rtols = [float(r) for r in args.rtol.split(",")]
+    except ValueError:
+        modes_list = rtols = []
+    if not modes_list or min(modes_list) < 1 or not rtols or not all(0 < r < 1 for r in rtols):
+        parser.error(f"--modes {args.modes!r} --rtol {args.rtol!r}: give whole numbers >= 1 and tolerances in (0, 1)")
+    enrichments = args.enrichment.split(",")
+    if not set(enrichments) <= {"dbf", "static", "none"}:
+        parser.error(f"--enrichment {args.enrichment!r}: choose from dbf, static, none")
+    for label in SCENES:   # every truth checked before the first case runs
+        try:
+            read_truth(args.truth_dir, label)
+        except ValueError as e:
+            parser.error(str(e))
     rows = []
     with tempfile.TemporaryDirectory() as work:
         for label in SCENES:
-            for enrichment in args.enrichment.split(","):
-                for modes in map(int, args.modes.split(",")):
-                    for rtol in map(float, args.rtol.split(",")):
-                        row = case(label, modes, rtol, enrichment, args.truth_dir, work)
+            for enrichment in enrichments:
+                for modes in modes_list:
+                    for rtol in rtols:
+                        try:
+                            row = case(label, modes, rtol, enrichment, args.truth_dir, work)
+                        except (DbfError, ValueError) as e:
+                            parser.exit(1, f"{parser.prog}: error: {SCENES[label]}, {modes} modes, rtol {rtol:g}, "
+                                           f"{enrichment}: {str(e).splitlines()[0]}\n")
                         rows.append(row)
                         print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
                               flush=True)

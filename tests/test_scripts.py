@@ -142,3 +142,33 @@ def test_bench_basis_times_the_limit_as_the_dbf_paths_until_the_slowest_rank_is_
     out = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "mpi4py", "-c", code], capture_output=True,
                          text=True, timeout=120, cwd=ROOT, env=env)
     assert out.returncode == 0 and out.stdout.count("<max>") == 2, out.stdout + out.stderr[-2000:]
+
+
+def test_study_estimate_refuses_a_truth_that_is_missing_or_not_sampled_as_its_cases(tmp_path):
+    # red team: a missing truth ended in h5py's traceback; a truth sampled every 2e-4 s (or of
+    # another scene) was compared sample by sample with the run up to the shorter of the two: the
+    # "true error" of each estimate set w(t) against w_truth(2 t), silently
+    import h5py
+    import numpy as np
+
+    out = script("study_estimate.py", str(tmp_path), timeout=120)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-2000:]
+    assert "cannot read the truth" in out.stderr.splitlines()[-1] and "truth-1-400" in out.stderr
+    for label in (1, 4, 9):
+        with h5py.File(tmp_path / f"truth-{label}-400-2.5e-06-0.2.h5", "w") as f:
+            f["time"] = np.arange(1001) * 2e-4                 # every 2e-4 s over [0, 0.2] s
+            f["constraints/displacement"] = np.zeros((1001, label))
+    out = script("study_estimate.py", str(tmp_path), "-o", str(tmp_path / "e.csv"), timeout=120)
+    assert out.returncode == 2 and "is not the truth of paper_beam.toml" in out.stderr.splitlines()[-1], out.stderr
+    assert not (tmp_path / "e.csv").exists()
+    with h5py.File(tmp_path / "truth-4-400-2.5e-06-0.2.h5", "w") as f:   # the 1-stop truth under the 4-stop name
+        f["time"] = np.arange(2001) * 1e-4
+        f["constraints/displacement"] = np.zeros((2001, 1))
+    (tmp_path / "truth-1-400-2.5e-06-0.2.h5").unlink()
+    with h5py.File(tmp_path / "truth-1-400-2.5e-06-0.2.h5", "w") as f:
+        f["time"] = np.arange(2001) * 1e-4
+        f["constraints/displacement"] = np.zeros((2001, 1))
+    out = script("study_estimate.py", str(tmp_path), timeout=120)
+    assert out.returncode == 2 and "is not the truth of paper_beam_4.toml" in out.stderr.splitlines()[-1], out.stderr
+    out = script("study_estimate.py", str(tmp_path), "--modes", "0", timeout=120)
+    assert out.returncode == 2 and "--modes '0'" in out.stderr and "Traceback" not in out.stderr
