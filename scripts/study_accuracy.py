@@ -232,8 +232,12 @@ def main(argv=None) -> int:
             grid["truths"] = [(int(e), float(dt)) for e, dt in (pair.split(":") for pair in args.truths.split(","))]
         except ValueError:
             grid["truths"] = []
-        if len(grid["truths"]) != 2:
-            parser.error(f"--truths {args.truths!r}: give two elements:step pairs, e.g. 400:2.5e-6,800:1.25e-6")
+        (e1, dt1), (e2, dt2) = grid["truths"] if len(grid["truths"]) == 2 else ((0, 0.0), (0, 0.0))
+        # (each rank's run of a truth the scene refused ended in a traceback beside the other's barrier)
+        if min(e1, e2) < 1 or not min(dt1, dt2) > 0 or e2 < e1 or dt2 > dt1 or (e1, dt1) == (e2, dt2):
+            parser.error(f"--truths {args.truths!r}: give two elements:step pairs, elements >= 1 and steps > 0, the "
+                         f"second finer (more elements or a smaller step, neither coarser), e.g. "
+                         f"400:2.5e-6,800:1.25e-6")
     out = os.path.abspath(args.output)
     if world.rank == 0:
         os.makedirs(os.path.join(out, "runs"), exist_ok=True)
@@ -263,14 +267,23 @@ def main(argv=None) -> int:
 
     jobs = sorted(((label, elements, dt) for label in grid["scenes"]
                    for elements, dt in of(label, "truths") + of(label, "peers")), key=lambda job: (-job[1], job[2]))
+    failed = None
     for label, elements, dt in jobs[world.rank::world.size]:
         name = truth_name(label, elements, dt)
         if not os.path.exists(name):  # a truth already there is reused: delete it to rerun
-            scene = load_scene(scene_path(label),
-                               common + [f"structure.elements={elements}", f"integrator.dt={dt}",
-                                         f"integrator.t_end={of(label, 't_end')}"])
-            run(scene, name, progress=False, method="full", comm=PETSc.COMM_SELF)
-    world.Barrier()
+            try:
+                scene = load_scene(scene_path(label),
+                                   common + [f"structure.elements={elements}", f"integrator.dt={dt}",
+                                             f"integrator.t_end={of(label, 't_end')}"])
+                run(scene, name, progress=False, method="full", comm=PETSc.COMM_SELF)
+            except DbfError as e:   # every rank stops, not the one alone beside the others' barrier
+                failed = f"the full-order run of {label} ({elements} elements, step {dt:g} s): {str(e).splitlines()[0]}"
+                break
+    failed = next((f for f in world.allgather(failed) if f), None)
+    if failed:
+        if world.rank == 0:
+            print(f"{parser.prog}: error: {failed}", file=sys.stderr, flush=True)
+        return 1
     truths, truth_rows = {}, []
     for label in grid["scenes"]:
         outputs = []

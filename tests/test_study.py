@@ -88,3 +88,17 @@ def test_tiny_study_sets_each_estimate_beside_its_true_error_over_the_trusted_ho
     table = (out / "accuracy.md").read_text()
     assert "estimate within 2x of the true error in" in table and "the tolerance mode met its tolerance in" in table
     assert (out / "estimate.png").stat().st_size > 10000
+
+
+@pytest.mark.parametrize("truths", ["0:1e-5,100:1e-5", "50:-1e-5,100:1e-5", "100:1e-5,50:2e-5", "100:1e-5,100:1e-5",
+                                    "100:1e-5"])
+def test_study_refuses_truths_that_are_not_two_resolutions_the_second_finer(truths, tmp_path):
+    # The trusted horizon is where a truth and a finer one agree: a pair with 0 elements or a
+    # negative step ended in a traceback on the rank that ran it (beside the other rank's barrier),
+    # and a pair whose second is coarser, or the same, judged the truth against itself or worse.
+    done = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "study_accuracy.py"), "--grid", "tiny",
+                           "--truths", truths, "-o", str(tmp_path / "study")], capture_output=True, text=True,
+                          timeout=120, cwd=ROOT)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert f"--truths {truths!r}: give two elements:step pairs" in done.stderr.splitlines()[-1]
+    assert not (tmp_path / "study").exists()
