@@ -155,10 +155,10 @@ class LowestModes:
                 eps.solve()
         except PETSc.Error as e:
             # red team: -modes_st_ksp_type cg was blamed on M and K alone
-            raise SolverError(f"{what}: the eigensolver failed (PETSc error {e.ierr}); check the -{self.prefix} "
-                              f"options (shift-and-invert needs an exact solve: -{self.prefix}st_ksp_type preonly "
-                              f"-{self.prefix}st_pc_type cholesky), that M is positive definite and K symmetric "
-                              f"positive semi-definite") from None
+            raise SolverError(f"{what}: the eigensolver failed (PETSc error {e.ierr}); check that M is positive "
+                              f"definite and K symmetric positive semi-definite, and check the -{self.prefix} options "
+                              f"(shift-and-invert needs an exact solve: -{self.prefix}st_ksp_type preonly "
+                              f"-{self.prefix}st_pc_type cholesky)") from None
         counters["eigen_solves"] += 1
         nconv = eps.getConverged()
         if nconv < nev:

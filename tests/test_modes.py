@@ -157,8 +157,11 @@ def test_a_shift_and_invert_solve_that_fails_is_blamed_on_the_modes_options_too(
     options = PETSc.Options()
     for name, value in (("st_ksp_type", "cg"), ("st_pc_type", "jacobi"), ("st_ksp_max_it", "3")):
         options.setValue("modes_" + name, value)
+    # Whether the inexact solve stops the eigensolver (PETSc's error) or lets it return pairs that are no
+    # eigenpairs (the trust check) differs from one run of the suite to another: either names the options
     try:
-        with pytest.raises(SolverError, match="eigensolver failed .*check the -modes_ options"):
+        with pytest.raises(SolverError, match="eigensolver failed .*check the -modes_ options|"
+                                              "not an eigenpair .*the -modes_st_ solver options"):
             reference_modes(ops, count=4)
     finally:
         for name in ("st_ksp_type", "st_pc_type", "st_ksp_max_it"):
