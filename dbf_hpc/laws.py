@@ -168,6 +168,41 @@ class Law:
         else:
             raise InputError(f"table does not apply to a {kind} law")
         _check_contact_damping(self.damping, self.c, self.alpha)
+        _check_representable(self)
+
+
+_OVERFLOW = "overflows double precision (a value beyond 1.8e308): check its units"
+
+
+def _check_representable(law: "Law") -> None:
+    """The constants the evaluation forms are finite numbers: k p (the slope's factor) on each acting
+    side, the preload k (-clearance)^p and its slope of a negative clearance, every table slope and the
+    table's integral, mu F_n / v_reg of friction. Red team: k = 1e308 with p = 2 gave k p = inf, a NaN
+    slope even in the deadband, and a run that crawled at 1e-13 s; a negative clearance of -1e308 a
+    NaN force; a table step of 1e-320 m an infinite slope."""
+    with np.errstate(all="ignore"):
+        if law.kind in _TWO_SIDED:
+            for side in ("minus", "plus"):
+                k, p, d = (getattr(law, f"{name}_{side}") for name in ("k", "exponent", "clearance"))
+                if k == 0:
+                    continue
+                x = max(-d, 0.0)   # the compression at z = 0 (a negative clearance: a preload)
+                if not (np.isfinite(k * p) and np.isfinite(k * x ** p) and np.isfinite(k * p * x ** (p - 1.0))):
+                    raise InputError(f"k_{side} = {k:g} with exponent_{side} = {p:g} and clearance_{side} = {d:g}: "
+                                     f"the force or its slope {_OVERFLOW}")
+        elif law.kind == "table":
+            points = np.array(law.table, dtype=float)
+            dz, df = np.diff(points[:, 0]), np.diff(points[:, 1])
+            slope = df / dz
+            integral = np.cumsum(0.5 * (points[1:, 1] + points[:-1, 1]) * dz)
+            bad = np.flatnonzero(~(np.isfinite(dz) & np.isfinite(df) & np.isfinite(slope) & np.isfinite(integral)))
+            if bad.size:
+                i = int(bad[0])
+                raise InputError(f"table: the segment from point {i + 1} (z = {points[i, 0]:g} m) to point {i + 2} "
+                                 f"(z = {points[i + 1, 0]:g} m): its slope or the force's integral {_OVERFLOW}")
+        elif law.kind == "friction" and not np.isfinite(law.mu * law.normal_force / law.v_reg):
+            raise InputError(f"mu normal_force / v_reg = {law.mu:g} * {law.normal_force:g} / {law.v_reg:g}, the "
+                             f"friction's slope at rest, {_OVERFLOW}")
 
 
 def _check_table(table) -> tuple:

@@ -306,3 +306,37 @@ def test_a_two_direction_support_refuses_a_friction_coefficient_no_contact_pair_
     assert CircularLaw(clearance=2e-4, k=1e6, mu=10.0).mu == 10.0
     with pytest.raises(InputError, match="mu = 1e\\+30: a Coulomb friction coefficient above 10"):
         CircularLaw(clearance=2e-4, k=1e6, mu=1e30)
+
+
+@pytest.mark.parametrize("params, key", [
+    # k p = inf: the slope's factor was inf, the slope NaN even in the deadband, and a run crawled at 1e-13 s
+    (dict(law="power", clearance=D, k=1e308, exponent=2), "k_minus = 1e+308"),
+    # the preload k (-clearance) = inf: N(0) = inf - inf = NaN
+    (dict(law="deadband", clearance=-1e308, k=1e6), "clearance_minus = -1e+308"),
+    # a table step of 1e-320 m: an infinite slope
+    (dict(law="table", table=[[0.0, 0.0], [1e-320, 1.0]]), "table: the segment from point 1"),
+    # a force range beyond double precision: slope and integral overflow
+    (dict(law="table", table=[[-1e308, 1e308], [1e308, -1e308]]), "table: the segment from point 1"),
+    # mu F_n / v_reg = inf: the friction's slope at rest
+    (dict(law="friction", normal_force=1e308, mu=10.0, v_reg=1e-300), "v_reg"),
+])
+def test_a_law_whose_force_or_slope_overflows_double_precision_is_refused_naming_the_key(params, key):
+    # A finite value for every key is not enough: the constants the evaluation forms must be finite too,
+    # else the force or its slope is NaN or inf where the law is well defined (at z = 0, in free flight)
+    with pytest.raises(InputError) as info:
+        law_from_dict(4, params)
+    message = str(info.value)
+    assert message.startswith("constraint 4: ") and "\n" not in message
+    assert key in message and "overflows double precision" in message
+
+
+def test_large_but_representable_laws_are_accepted_and_evaluate_to_finite_numbers():
+    # the overflow check refuses only what does not fit: stiff laws, long tables, fast friction run
+    laws = [law_from_dict(1, dict(law="power", clearance=D, k=1e300, exponent=3)),
+            law_from_dict(2, dict(law="deadband", clearance=-1e-3, k=1e300)),
+            law_from_dict(3, dict(law="table", table=[[-1e100, 1e100], [1e100, -1e100]])),
+            law_from_dict(4, dict(law="friction", normal_force=1e6, mu=0.5, v_reg=1e-200))]
+    z = np.array([0.0, 0.0, 0.0, 0.0])
+    force, dz, dv = ConstraintLaws(laws).force_and_jacobian(z, np.zeros(4))
+    assert np.all(np.isfinite(force)) and np.all(np.isfinite(dz)) and np.all(np.isfinite(dv))
+    assert force[1] == 0.0 and dz[1] == -2e300   # both preloads of 1e297 N cancel; both sides' slopes add
