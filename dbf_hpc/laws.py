@@ -24,7 +24,10 @@ Conventions (shared with the reduced model and the integrators):
 - Contact damping, added to the elastic force only where in_contact: linear, -c v; Hunt-Crossley,
   -alpha |N_el| v (alpha in s/m). For the two-sided kinds |N_el| is the sum of the magnitudes of the
   two sides' forces (equal to |N_el| unless both sides push at once), so an interference fit still
-  dissipates at its balance point. Either is dissipative: F_d v <= 0.
+  dissipates at its balance point. Either is dissipative: F_d v <= 0. Neither is clipped, so while the
+  constraint separates either can pull (an adhesive force, N of the sign opposite to N_el): linear
+  damping as soon as c |v| > |N_el| (always just before the contact ends, where N_el -> 0),
+  Hunt-Crossley only at separation speeds |v| > 1 / alpha.
 - A two-sided law may have k = 0 on one side: a one-sided stop.
 - friction: Coulomb friction alone against a given normal force F_n (N), regularized over the
   sliding speed v_reg (m/s): N = -mu F_n tanh(v / v_reg), dN/dv = -(mu F_n / v_reg) sech^2(v / v_reg),

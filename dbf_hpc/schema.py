@@ -196,7 +196,9 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
     "k3": Key(NUMBER, None, "N/m^3", "cubic: N = -(k z + k3 z^3)"),
     "table": Key((list,), None, "m, N", "table: [[z, force], ...], piecewise linear"),
     "damping": Key((str,), "none", "", 'contact damping: "none", "linear" (-c v) or "hunt_crossley" '
-                                       '(-alpha |N| v)'),
+                                       '(-alpha |N| v), in contact only, not clipped: while separating, '
+                                       'linear damping pulls where c |v| > |N| and Hunt-Crossley where '
+                                       '|v| > 1 / alpha'),
     "c": Key(NUMBER, None, "N s/m", "linear contact damping"),
     "alpha": Key(NUMBER, None, "s/m", "Hunt-Crossley contact damping"),
     "mu": Key(NUMBER, None, "1", "circular, flat_bar: Coulomb friction coefficient (default 0, at most 10), "

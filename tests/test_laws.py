@@ -340,3 +340,24 @@ def test_large_but_representable_laws_are_accepted_and_evaluate_to_finite_number
     force, dz, dv = ConstraintLaws(laws).force_and_jacobian(z, np.zeros(4))
     assert np.all(np.isfinite(force)) and np.all(np.isfinite(dz)) and np.all(np.isfinite(dv))
     assert force[1] == 0.0 and dz[1] == -2e300   # both preloads of 1e297 N cancel; both sides' slopes add
+
+
+def test_contact_damping_pulls_only_where_documented_while_separating():
+    # Hunt-Crossley N = N_el (1 + alpha v) above the stop: restoring (N <= 0) for separation speeds below
+    # 1 / alpha, adhesive (N > 0) above; linear damping pulls once c |v| exceeds |N_el|. Never while
+    # approaching. docs/method.md and docs/scene.md say so.
+    alpha, c = 0.7, 50.0
+    hc = law_from_dict(1, dict(law="hertz", clearance=D, k=3e9, damping="hunt_crossley", alpha=alpha))
+    z = np.full(3, 1.5 * D)
+    v = np.array([-0.9 / alpha, -1.1 / alpha, 3.0])   # separating slower, faster than 1 / alpha; approaching
+    force = ConstraintLaws([hc] * 3).force(z, v)
+    assert force[0] < 0 and force[1] > 0 and force[2] < 0
+    elastic = ConstraintLaws([hc]).force(z[:1])[0]
+    assert np.allclose(force, elastic * (1 + alpha * v), rtol=1e-14)
+    lin = law_from_dict(1, dict(law="deadband", clearance=D, k=1e6, damping="linear", c=c))
+    n_el = 1e6 * 1e-6   # 1 N at 1 um past the stop
+    force = ConstraintLaws([lin] * 3).force(np.full(3, D + 1e-6), np.array([-0.9, -1.1, 0.5]) * n_el / c)
+    assert force[0] < 0 and force[1] > 0 and force[2] < 0
+    # the same below the stop, mirrored
+    force = ConstraintLaws([hc] * 2).force(np.full(2, -1.5 * D), np.array([0.9, 1.1]) / alpha)
+    assert force[0] > 0 and force[1] < 0
