@@ -54,6 +54,11 @@ CONTACT_DAMPING = ("none", "linear", "hunt_crossley")
 
 _TWO_SIDED = ("deadband", "power", "hertz")
 _DEFAULT_EXPONENT = {"hertz": 1.5}
+
+
+def default_exponent(kind: str) -> float:
+    """The exponent of a side of a `kind` law that gives none: 1.5 for hertz, else 1."""
+    return _DEFAULT_EXPONENT.get(kind, 1.0)
 _NUMBER_FIELDS = ("clearance_minus", "clearance_plus", "k_minus", "k_plus", "k3", "c", "alpha")
 
 

@@ -27,7 +27,7 @@ from .errors import InputError
 from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce, Turbulence
 from .fom import DAMPING_TWICE, FullOrderModel, InitialState
 from .laws import KEYS as LAW_KEYS
-from .laws import KEYS_2D, LAWS_2D, law_from_dict
+from .laws import KEYS_2D, LAWS_2D, default_exponent, law_from_dict
 from .matrices import MatrixFiles
 from .schema import NUMBER, SECTIONS, valid_keys
 from .structure import BOUNDARIES, Beam
@@ -270,7 +270,8 @@ def _check_one_unit_of_k(c: dict, index: int, given: set) -> None:
     carry two units (N/m^p on each side): refused (Eq. 42's 0.1 N/m^3 became 1e6 N/m^3 silently)."""
     if "k" not in given or "k" not in c or c.get("law") in LAWS_2D:
         return
-    p = [c.get(side, c.get("exponent")) for side in TWO_SIDED["exponent"]]
+    # a side without an exponent has its kind's (1; hertz 1.5): Eq. 42 without exponent_plus = 1 was let through
+    p = [c.get(side, c.get("exponent", default_exponent(c.get("law", "deadband")))) for side in TWO_SIDED["exponent"]]
     if all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in p) and p[0] != p[1]:
         unit = ["N/m" if e == 1 else f"N/m^{e:g}" for e in p]
         raise InputError(f"--set constraint.k: constraint {index + 1}'s sides have the exponents {p[0]:g} and "

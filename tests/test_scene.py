@@ -268,3 +268,19 @@ def test_every_rank_runs_the_scene_rank_0_read_also_when_another_rank_cannot_rea
     assert comm.allgather(scene.text) == [scene.text] * comm.size and scene["integrator"]["t_end"] == 0.5
     with pytest.raises(InputError, match="cannot read scene"):     # rank 0's error is every rank's
         scene_module.load_scene_collective(os.path.join(ROOT, "jobs", "no_such_scene.toml"))
+
+
+@pytest.mark.parametrize("kind, above", [("power", "N/m"), ("hertz", "N/m\\^1.5")])
+def test_set_k_is_refused_when_a_side_of_another_exponent_takes_its_kinds_default(tmp_path, kind, above):
+    # Red team: Eq. 42 written without exponent_plus (the power law's default 1) took `--set constraint.k=1e6`
+    # as 1e6 N/m^3 below and 1e6 N/m above: the check read the missing exponent as unknown, not as 1 (1.5
+    # for hertz), and let two units pass
+    with open(os.path.join(ROOT, "jobs", "paper_beam_eq42.toml")) as f:
+        text = f.read().replace("exponent_plus = 1.0\n", "").replace('law = "power"', f'law = "{kind}"')
+    path = tmp_path / "eq42.toml"
+    path.write_text(text)
+    assert load_scene(str(path)).constraints[0].law.exponent_plus == (1.0 if kind == "power" else 1.5)
+    with pytest.raises(InputError, match=f"so one k would be in N/m\\^3 below and {above} above"):
+        load_scene(str(path), ["constraint.k=1e6"])
+    law = load_scene(str(path), ["constraint.exponent=3", "constraint.k=1e6"]).constraints[0].law
+    assert (law.k_minus, law.k_plus, law.exponent_minus, law.exponent_plus) == (1e6, 1e6, 3.0, 3.0)
