@@ -172,7 +172,9 @@ def test_a_paraview_file_the_full_disk_refused_leaves_the_finished_output_and_no
     with pytest.raises(SolverError, match=f"wrote {out}, but not its ParaView file .*out.xdmf: No space left on "
                                           f"device; free some space and rerun"):
         run(scene, str(out), progress=False)
-    assert_all(sorted(os.listdir(shared_tmp_path)) == ["out.h5"], "the output, complete; no checkpoint or temporary")
+    MPI.COMM_WORLD.Barrier()   # rank 0 removes the output's lock after the error has reached every rank
+    left = sorted(os.listdir(shared_tmp_path))
+    assert_all(left == ["out.h5"], f"the output, complete; no checkpoint or temporary: {left}")
     if MPI.COMM_WORLD.rank == 0:
         with h5py.File(out) as f:
             assert f.attrs["complete"] and f["snapshots/w"].shape[0] == 5
