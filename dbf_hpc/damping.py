@@ -41,8 +41,8 @@ class Damping:
             raise InputError(f"damping zeta must be non-negative numbers, got {self.zeta!r}")
         ratios = np.array(ratios, dtype=float)
         if np.any(ratios > ZETA_MAX):
-            raise InputError(f"damping zeta {ratios.max():g} is not a structure's (1 is critical damping; tubes and beams "
-                             f"have 0.001-0.05): give ratios of at most {ZETA_MAX:g}")
+            raise InputError(f"damping zeta {ratios.max():g} is not a structure's (1 is critical damping; tubes "
+                             f"and beams have 0.001-0.05): give ratios of at most {ZETA_MAX:g}")
         for name in ("rayleigh_alpha", "rayleigh_beta"):
             value = getattr(self, name)
             if not (_real(value) and value >= 0):

@@ -41,7 +41,8 @@ def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf
         if source and os.path.exists(source) and os.path.samefile(path, source):
             raise InputError(f"output {path!r} is the {what} this run reads: choose another output name")
     if replaceable is not False and not (replaceable or is_dbf_output)(path):
-        shapes = " (it holds the mode shapes of a `dbf-hpc basis --xdmf`)" if replaceable is None and is_dbf_shapes(path) else ""
+        shapes = (" (it holds the mode shapes of a `dbf-hpc basis --xdmf`)"
+                  if replaceable is None and is_dbf_shapes(path) else "")
         raise InputError(f"output {path!r} exists and is not {kind}{shapes}: remove it or choose another name")
     return path
 

@@ -304,9 +304,9 @@ def _warn_coarse_step(settings, fastest_hz: float, comm) -> None:
 def coarse_step_warning(settings, fastest_hz: float) -> str | None:
     """_warn_coarse_step's message, or None (a sweep warns it for its cases too)."""
     if fastest_hz > 0 and settings.dt * fastest_hz * STEPS_PER_PERIOD > 1:
-        return (f"[integrator] dt = {settings.dt:g} s takes {1 / (settings.dt * fastest_hz):.2g} fixed steps per period "
-                f"of the {fastest_hz:g} Hz excitation, fewer than {STEPS_PER_PERIOD}: the step does not resolve the "
-                f"forcing, so the response is wrong; reduce [integrator] dt to at most "
+        return (f"[integrator] dt = {settings.dt:g} s takes {1 / (settings.dt * fastest_hz):.2g} fixed steps per "
+                f"period of the {fastest_hz:g} Hz excitation, fewer than {STEPS_PER_PERIOD}: the step does not "
+                f"resolve the forcing, so the response is wrong; reduce [integrator] dt to at most "
                 f"{1 / (STEPS_PER_PERIOD * fastest_hz):.3g} s")
     return None
 
@@ -436,9 +436,9 @@ def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | N
     .partial beside it, its stored run identity equal to `ident` on every part `ident` names, and its
     ParaView file present when the scene asks for snapshots. A checkpoint beside it does not count:
     without its .partial it cannot be resumed, and a run killed between the output's rename and the
-    checkpoint's removal leaves one (red team: a requeued `--resume` then refused the finished run). The summary is read back
-    from the file (the same keys and values the run returned; "final_state" from its last sample).
-    An output that cannot be read is not finished: the run computes it again. With comm, rank 0
+    checkpoint's removal leaves one (red team: a requeued `--resume` then refused the finished run).
+    The summary is read back from the file (the same keys and values the run returned; "final_state"
+    from its last sample). An output that cannot be read is not finished: the run computes it again. With comm, rank 0
     reads and every rank gets the answer (collective); without, this rank reads (not collective)."""
     if comm is not None:
         world = comm.tompi4py()

@@ -136,8 +136,9 @@ SECTIONS = {
                                             "basis` builds the first candidate)"),
     }),
     "damping": ("Linear damping of the structure (none by default, as in the paper).", {
-        "zeta": Key((*NUMBER, list), 0.0, "1", "modal damping ratio, 0 to 100, one for all or one per basis vector (a list: "
-                                                "the run then has no error estimate, and [basis] tolerance refuses it)"),
+        "zeta": Key((*NUMBER, list), 0.0, "1", "modal damping ratio, 0 to 100, one for all or one per basis "
+                                                "vector (a list: the run then has no error estimate, and [basis] "
+                                                "tolerance refuses it)"),
         "rayleigh_alpha": Key(NUMBER, 0.0, "1/s", "C = alpha M + beta K"),
         "rayleigh_beta": Key(NUMBER, 0.0, "s", "C = alpha M + beta K"),
     }),
