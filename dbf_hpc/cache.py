@@ -49,10 +49,20 @@ SEAL = b"dbf-hpc basis cache sha256 "   # the tag of the file's seal (sealed.py)
 ARRAYS = ("omega", "enrichment_omega", "dbf_k", "dbf_k_auto", "dbf_branch", "constraint_rows", "flexibility_exact")
 
 
-def solver_options(prefixes=("modes_", "dbf_")) -> dict:
-    """The PETSc options under `prefixes` that can change a basis (those of the solvers it uses)."""
+def solver_options(prefixes=("modes_", "dbf_"), observers: bool = False) -> dict:
+    """The PETSc options under `prefixes` that can change a basis (those of the solvers it uses); with
+    observers, also those that only show a solve (-modes_eps_view, -..._monitor, -..._converged_reason:
+    they change no number, so they are no part of the key; helper L's red team: -modes_eps_view made
+    every run build the basis again)."""
     prefixes = tuple(prefixes)
-    return {k: v for k, v in sorted(PETSc.Options().getAll().items()) if k.startswith(prefixes)}
+    return {k: v for k, v in sorted(PETSc.Options().getAll().items())
+            if k.startswith(prefixes) and (observers or not _observes(k))}
+
+
+def _observes(name: str) -> bool:
+    """Whether a PETSc option only shows a solve (a viewer, a monitor, the converged reason)."""
+    words = name.split("_")
+    return "view" in words or any(w.startswith("monitor") for w in words) or name.endswith("converged_reason")
 
 
 def _mark_used(options: dict) -> None:
@@ -311,7 +321,7 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
     if exists:
         basis = load(path, key, ops, settings, rows)
         if basis is not None:
-            _mark_used(solver_options(settings.strategy.solver_prefixes))
+            _mark_used(solver_options(settings.strategy.solver_prefixes, observers=True))
             return basis
     basis = build_basis(ops, rows, settings, labels)
     defect = float(np.abs(basis.project(ops.M) - np.eye(basis.size)).max(initial=0.0))

@@ -358,3 +358,26 @@ def test_a_cache_file_stored_again_between_the_check_and_the_read_is_rebuilt_not
     monkeypatch.undo()
     _, solves, state = obtain(scene(), shared_tmp_path)      # the file read back as checked: a hit
     assert solves == 0 and state == "hit"
+
+
+def test_an_option_that_only_shows_a_solve_is_no_part_of_the_basis_key(shared_tmp_path):
+    # helper L's red team: -modes_eps_view made every run build the basis again; a tolerance still counts
+    from petsc4py import PETSc
+
+    from dbf_hpc.cache import basis_key
+
+    s = scene()
+    settings, options = s.basis_settings(), PETSc.Options()
+    plain = basis_key({"K": "k"}, [3], settings)
+    for name, value in (("modes_eps_view", ""), ("modes_st_ksp_monitor", ""), ("dbf_eps_converged_reason", ""),
+                        ("modes_eps_view_values", "")):
+        options.setValue(name, value)
+        try:
+            assert basis_key({"K": "k"}, [3], settings) == plain, name
+        finally:
+            options.delValue(name)
+    options.setValue("modes_eps_tol", "1e-12")
+    try:
+        assert basis_key({"K": "k"}, [3], settings) != plain
+    finally:
+        options.delValue("modes_eps_tol")
