@@ -438,8 +438,9 @@ def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | N
     without its .partial it cannot be resumed, and a run killed between the output's rename and the
     checkpoint's removal leaves one (red team: a requeued `--resume` then refused the finished run).
     The summary is read back from the file (the same keys and values the run returned; "final_state"
-    from its last sample). An output that cannot be read is not finished: the run computes it again. With comm, rank 0
-    reads and every rank gets the answer (collective); without, this rank reads (not collective)."""
+    from its last sample). An output that cannot be read is not finished: the run computes it again.
+    With comm, rank 0 reads and every rank gets the answer (collective); without, this rank reads
+    (not collective)."""
     if comm is not None:
         world = comm.tompi4py()
         return world.bcast(finished_output(path, ident, scene) if world.rank == 0 else None, root=0)
