@@ -49,6 +49,24 @@ def termination_signals() -> tuple:
     return (signal.SIGTERM, signal.SIGINT)
 
 
+def decided_on_rank0(comm, decide, *args):
+    """decide(*args) on rank 0 of `comm` (petsc4py or mpi4py), its value given to every rank, or its
+    InputError raised on every rank: a check of files that each rank made itself could differ
+    between the ranks' looks (a file edited or replaced meanwhile, a node that cannot read it), and
+    one rank's refusal left the others waiting in their next collective call. Collective."""
+    world = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+    value = problem = None
+    if world.rank == 0:
+        try:
+            value = decide(*args)
+        except InputError as e:
+            problem = str(e)
+    value, problem = world.bcast((value, problem), root=0)
+    if problem:
+        raise InputError(problem)
+    return value
+
+
 # What writing a file can raise: the OS's errors, and h5py's RuntimeError when HDF5 cannot flush (a
 # full disk shows as "errno = 28, error message = 'No space left on device'" inside it).
 WRITE_ERRORS = (OSError, RuntimeError)

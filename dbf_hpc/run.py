@@ -28,7 +28,7 @@ from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, blind_to_contact,
 from .basis import richer_basis
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
-                     petsc_failure, termination_signals, warn, write_failure)
+                     decided_on_rank0, petsc_failure, termination_signals, warn, write_failure)
 from .fom import Observation
 from .fom_integrator import integrate_full
 from .fom_integrator import options as full_options
@@ -60,36 +60,12 @@ def output_path(scene: Scene, override: str | None, resume: bool = False) -> str
     return path
 
 
-def _agreed_output_path(scene: Scene, out: str | None, resume: bool, comm) -> str:
-    """output_path, checked on rank 0 (which writes the output) and its answer given to every rank.
-    Red team: each rank checked the files itself, and a file that changed between the ranks' looks
-    (another job's .partial closed meanwhile) refused on one rank while the other went on into the
-    next collective call and waited there for ever. Collective."""
-    path, problem = None, None
-    if comm.getRank() == 0:
-        try:
-            path = output_path(scene, out, resume)
-        except InputError as e:
-            problem = str(e)
-    path, problem = comm.tompi4py().bcast((path, problem), root=0)
-    if problem:
-        raise InputError(problem)
-    return path
-
-
 @contextlib.contextmanager
 def claimed(path: str, comm):
     """Rank 0 holds the output's lock (output.OutputLock) for the block; every rank learns at once
     whether it could. Collective."""
-    lock, problem = OutputLock(path), None
-    if comm.getRank() == 0:
-        try:
-            lock.acquire()
-        except InputError as e:
-            problem = str(e)
-    problem = comm.tompi4py().bcast(problem, root=0)
-    if problem:
-        raise InputError(problem)
+    lock = OutputLock(path)
+    decided_on_rank0(comm, lock.acquire)
     try:
         yield
     finally:
@@ -113,7 +89,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         raise InputError("--method full starts from [initial] (or resumes from its checkpoint), not from a reduced state")
     comm = comm or PETSc.COMM_WORLD
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else None
-    path = _agreed_output_path(scene, out, resume, comm)
+    # rank 0 writes the output, so its look at the files decides (red team: each rank looked itself)
+    path = decided_on_rank0(comm, output_path, scene, out, resume)
     settings = scene.integrator_settings()
     check_work(settings, scene.fastest_forcing_hz(), adaptive=settings.adaptive and method == "rom")
     if method == "rom":      # before the basis is built (the integrator checks again)

@@ -252,17 +252,9 @@ def load_scene_collective(path: str, overrides=(), comm=None) -> Scene:
     starts or is not readable on every node. Collective."""
     from mpi4py import MPI
 
-    comm = comm or MPI.COMM_WORLD
-    raw = problem = None
-    if comm.rank == 0:
-        try:
-            raw = read_scene_bytes(path)
-        except InputError as e:
-            problem = str(e)
-    raw, problem = comm.bcast((raw, problem), root=0)
-    if problem:
-        raise InputError(problem)
-    return load_scene(path, overrides, raw=raw)
+    from .errors import decided_on_rank0
+
+    return load_scene(path, overrides, raw=decided_on_rank0(comm or MPI.COMM_WORLD, read_scene_bytes, path))
 
 
 def _check_one_unit_of_k(c: dict, index: int, given: set) -> None:

@@ -61,7 +61,7 @@ from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
 from .errors import (PARKED, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing,
-                     is_number, termination_signals, warn, write_failure)
+                     decided_on_rank0, is_number, termination_signals, warn, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
@@ -539,15 +539,7 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     world = MPI.COMM_WORLD
     # rank 0 reads the sweep file and its scenes, every rank runs them: each rank's own read could
     # differ (a file edited while the job started) or fail alone (a node that cannot read the path)
-    sweep = problem = None
-    if world.rank == 0:
-        try:
-            sweep = load_sweep(path, overrides)
-        except InputError as e:
-            problem = str(e)
-    sweep, problem = world.bcast((sweep, problem), root=0)
-    if problem:
-        raise InputError(problem)
+    sweep = decided_on_rank0(world, load_sweep, path, overrides)
     output, folder = sweep["output"], sweep["output"] + ".cases"
     say = (lambda m: PETSc.Sys.Print(m)) if progress else (lambda m: None)
     lock = OutputLock(output, "sweep summary")
@@ -571,11 +563,11 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
 
 def _sweep(sweep, folder, output, world, say, progress) -> dict:
     n = len(sweep["cases"])
-    # Every case runs the scene load_sweep read and checked, rank 0's for all: the cases run what their
-    # identities hold (red team: the scene, read again for each case, was edited while the sweep ran;
-    # the summary mixed clearances, and the records, under the old scene's identity, were reused once
-    # restored)
-    scenes = world.bcast(sweep["scenes"] if world.rank == 0 else None, root=0)
+    # Every case runs the scene load_sweep read and checked, rank 0's for all (run_sweep): the cases run
+    # what their identities hold (red team: the scene, read again for each case, was edited while the
+    # sweep ran; the summary mixed clearances, and the records, under the old scene's identity, were
+    # reused once restored)
+    scenes = sweep["scenes"]
     identities = _identities(sweep, scenes)
     records = [_read_json(_case_file(folder, i)) or {} for i in range(n)]
     # a failed case is retried: its cause may have been the machine's (a full disk), since mended

@@ -89,6 +89,21 @@ def to_numpy(vec):
 
 
 @contextlib.contextmanager
+def petsc_options(**values):
+    """PETSc options set for the block (name without its dash: value), removed after it."""
+    from petsc4py import PETSc
+
+    options = PETSc.Options()
+    for name, value in values.items():
+        options.setValue(name, value)
+    try:
+        yield
+    finally:
+        for name in values:
+            options.delValue(name)
+
+
+@contextlib.contextmanager
 def tmpfs_disk(folder, size: str):
     """A file system of its own (tmpfs of `size`, e.g. "3m") mounted at folder/disk for a real full
     disk, or a skip where this machine cannot mount one (needs root)."""

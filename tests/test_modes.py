@@ -4,8 +4,8 @@ import re
 
 import numpy as np
 import pytest
-from petsc4py import PETSc
 
+from conftest import petsc_options
 from dbf_hpc.errors import InputError, SolverError
 from dbf_hpc.modes import reference_modes
 from dbf_hpc.structure import Beam, assemble_beam
@@ -41,15 +41,9 @@ def test_modes_are_m_normalized(ops):
 
 
 def test_too_few_converged_pairs_is_an_error_naming_the_option(ops):
-    options = PETSc.Options()
-    options.setValue("modes_eps_max_it", 1)
-    options.setValue("modes_eps_tol", 1e-15)
-    try:
-        with pytest.raises(SolverError, match="eigenpairs converged; raise -modes_eps_max_it"):
-            reference_modes(ops, count=20)
-    finally:
-        options.delValue("modes_eps_max_it")
-        options.delValue("modes_eps_tol")
+    with petsc_options(modes_eps_max_it=1, modes_eps_tol=1e-15), \
+            pytest.raises(SolverError, match="eigenpairs converged; raise -modes_eps_max_it"):
+        reference_modes(ops, count=20)
 
 
 @pytest.mark.parametrize("kwargs,message", [(dict(count=0), "between 1 and"), (dict(max_frequency_hz=1e-3), "no mode below"),
@@ -128,44 +122,28 @@ def test_a_free_free_beam_near_the_limit_keeps_two_rigid_modes_and_the_free_free
 
 
 def test_eigenpairs_from_an_inexact_shift_and_invert_are_refused_by_their_residual(ops):
-    options = PETSc.Options()
-    options.setValue("modes_st_pc_type", "jacobi")     # preonly + Jacobi: not the inverse of K
-    try:
-        with pytest.raises(SolverError, match="relative residual .* not an eigenpair of"):
-            reference_modes(ops, count=4)
-    finally:
-        options.delValue("modes_st_pc_type")
+    with petsc_options(modes_st_pc_type="jacobi"), \
+            pytest.raises(SolverError, match="relative residual .* not an eigenpair of"):   # not K's inverse
+        reference_modes(ops, count=4)
 
 
 def test_eigenpairs_of_a_loose_stopping_tolerance_are_refused_naming_it(ops):
     # Red team: -modes_eps_tol 0.5 (residuals of 0.2) was refused as a fault of the -modes_st_ options.
     # A subspace of one vector more than asked for keeps SLEPc from converging far beyond the tolerance.
-    options = PETSc.Options()
-    options.setValue("modes_eps_tol", "0.5")
-    options.setValue("modes_eps_ncv", "21")
-    try:
-        with pytest.raises(SolverError, match="relative residual .* check -modes_eps_tol"):
-            reference_modes(ops, count=20)
-    finally:
-        options.delValue("modes_eps_tol")
-        options.delValue("modes_eps_ncv")
+    with petsc_options(modes_eps_tol="0.5", modes_eps_ncv="21"), \
+            pytest.raises(SolverError, match="relative residual .* check -modes_eps_tol"):
+        reference_modes(ops, count=20)
 
 
 def test_a_shift_and_invert_solve_that_fails_is_blamed_on_the_modes_options_too(ops):
     # Red team: -modes_st_ksp_type cg that stopped after 3 iterations was reported as a failure of
     # M or K alone ("check that M is positive definite ...").
-    options = PETSc.Options()
-    for name, value in (("st_ksp_type", "cg"), ("st_pc_type", "jacobi"), ("st_ksp_max_it", "3")):
-        options.setValue("modes_" + name, value)
     # Whether the inexact solve stops the eigensolver (PETSc's error) or lets it return pairs that are no
     # eigenpairs (the trust check) differs from one run of the suite to another: either names the options
-    try:
-        with pytest.raises(SolverError, match="eigensolver failed .*check the -modes_ options|"
-                                              "not an eigenpair .*the -modes_st_ solver options"):
-            reference_modes(ops, count=4)
-    finally:
-        for name in ("st_ksp_type", "st_pc_type", "st_ksp_max_it"):
-            options.delValue("modes_" + name)
+    with petsc_options(modes_st_ksp_type="cg", modes_st_pc_type="jacobi", modes_st_ksp_max_it="3"), \
+            pytest.raises(SolverError, match="eigensolver failed .*check the -modes_ options|"
+                                             "not an eigenpair .*the -modes_st_ solver options"):
+        reference_modes(ops, count=4)
 
 
 def test_massless_dofs_leave_finitely_many_modes_and_asking_for_more_names_them(shared_tmp_path):

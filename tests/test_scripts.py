@@ -106,6 +106,14 @@ def test_bench_full_refuses_rank_counts_below_one_and_unknown_cases_before_runni
     assert out.returncode == 2 and "--cases: bogus: choose from" in out.stderr and "paper on 1 rank" not in out.stdout
 
 
+def _on_two_ranks(code: str):
+    """`code` run by python -m mpi4py -c under its own mpirun -n 2 (outside this test's MPI job)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_COMM_WORLD", "PMIX_", "PMI_"))}
+    env.setdefault("OMPI_MCA_rmaps_base_oversubscribe", "1")
+    return subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "mpi4py", "-c", code], capture_output=True,
+                          text=True, timeout=120, cwd=ROOT, env=env)
+
+
 def test_bench_full_times_the_same_number_of_collective_solves_on_every_rank():
     # A solve with the distributed factor is collective: each rank's batch came from its own loop
     # clock, so two ranks whose step times straddled a batch boundary made different numbers of
@@ -114,10 +122,7 @@ def test_bench_full_times_the_same_number_of_collective_solves_on_every_rank():
             "c = MPI.COMM_WORLD; b = bench_full.solve_batch(1e-3 * (1 + 0.01 * c.rank), c); "
             "assert c.allgather(b) == [b] * c.size, c.allgather(b); assert b == int(0.2 / 1.01e-3); "
             "print(f'<same{b}>', flush=True)")
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_COMM_WORLD", "PMIX_", "PMI_"))}
-    env.setdefault("OMPI_MCA_rmaps_base_oversubscribe", "1")
-    out = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "mpi4py", "-c", code], capture_output=True,
-                         text=True, timeout=120, cwd=ROOT, env=env)
+    out = _on_two_ranks(code)
     assert out.returncode == 0 and out.stdout.count("<same198>") == 2, out.stdout + out.stderr[-2000:]
 
 
@@ -137,10 +142,7 @@ def test_bench_basis_times_the_limit_as_the_dbf_paths_until_the_slowest_rank_is_
     code = ("import sys; sys.path.insert(0, 'scripts'); import bench_basis; from petsc4py import PETSc; "
             "c = PETSc.COMM_WORLD; r = c.getRank(); calls = iter([[0.1, 0.3][r], [0.2, 0.25][r]]); "
             "t = bench_basis.measured(c, 2, lambda: next(calls)); assert t == 0.25, t; print('<max>', flush=True)")
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_COMM_WORLD", "PMIX_", "PMI_"))}
-    env.setdefault("OMPI_MCA_rmaps_base_oversubscribe", "1")
-    out = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "mpi4py", "-c", code], capture_output=True,
-                         text=True, timeout=120, cwd=ROOT, env=env)
+    out = _on_two_ranks(code)
     assert out.returncode == 0 and out.stdout.count("<max>") == 2, out.stdout + out.stderr[-2000:]
 
 
