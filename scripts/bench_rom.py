@@ -48,7 +48,11 @@ NO_CAP = ["-rom_ts_adapt_dt_max", "1"]
 TABLES = ("cost", "controller", "accuracy", "sweep")   # what --tables can name
 
 def log(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+    """Progress on stderr, from rank 0 only (every rank runs the same tables)."""
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.rank == 0:
+        print(message, file=sys.stderr, flush=True)
 
 
 def build(path: str, sets: list, cache: str, field: bool = False):
