@@ -51,7 +51,12 @@ EIGEN_NCV = 4            # Krylov-Schur subspace beyond the branch index: conver
 # 100 constraints had not finished after 13 min with PETSc's own, 7 min with MUMPS) and groups of
 # several ranks use MUMPS;
 # -dbf_shared_pc_factor_mat_solver_type chooses either everywhere.
-FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "natural"}
+# PETSc's own factorization calls a pivot below 1e-12 zero (an absolute tolerance, as
+# fom_integrator.factorization says): a soft or small structure in SI units (the paper's beam with
+# E 1e-11 times its own: rotational pivots 4 EI / h ~ 4e-13 N m) gave infinite solves. Only an exact
+# 0 is a zero pivot here (A is SPD; solve_block refuses non-finite values).
+FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "natural",
+                   "pc_factor_zeropivot": "0.0"}
 
 # Work done by this process on the shared path (tests and benchmarks read it).
 counters = {"factorizations": 0, "solves": 0}

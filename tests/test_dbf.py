@@ -579,3 +579,25 @@ def test_ritz_dbfs_in_blocks_are_the_same_with_the_c_kernels_and_numpy(paper, mo
     assert np.max(np.abs(a - b)) < 1e-12 * np.max(np.abs(b)), np.max(np.abs(a - b)) / np.max(np.abs(b))
     for c in (with_c, with_numpy):
         c.matrix.destroy()
+
+
+@pytest.mark.parametrize("path", ["ritz", "shared", "factor"])
+def test_dbf_frequencies_of_a_soft_beam_scale_as_the_square_root_of_e(path):
+    # Similarity: E -> s E leaves every mode shape and scales every frequency by sqrt(s), the DBF's
+    # hat-omega and its transition stiffness k_auto (N/m, like EI / L^3) by sqrt(s) and s. At
+    # s = 1e-12 (a soft or small structure in SI units) the beam's rotational pivots 4 EI / h are
+    # ~4e-13 N m, below PETSc's absolute zero-pivot tolerance (1e-12): the shared factorization's
+    # solves were infinite and the run refused a well-posed beam (red team).
+    from dbf_hpc.basis import BasisSettings, build_basis
+
+    out = []
+    for s in (1.0, 1e-12):
+        ops = assemble_beam(Beam(**{**TABLE1, "E": TABLE1["E"] * s}, elements=100), points=[ELL, 0.6])
+        basis = build_basis(ops, [ops.mesh.w_row(x) for x in (ELL, 0.6)], BasisSettings(modes=6, dbf_solver=path))
+        out.append((basis.omega.copy(), basis.enrichment_omega.copy(), basis.dbf_k_auto.copy()))
+        basis.destroy()
+        ops.destroy()
+    (w1, d1, k1), (w2, d2, k2) = out
+    np.testing.assert_allclose(w2, w1 * 1e-6, rtol=1e-8)
+    np.testing.assert_allclose(d2, d1 * 1e-6, rtol=1e-8)
+    np.testing.assert_allclose(k2, k1 * 1e-12, rtol=1e-6)
