@@ -310,3 +310,26 @@ def test_samples_fewer_than_two_per_forcing_period_warn_that_the_series_aliases(
         if MPI.COMM_WORLD.rank == 0:
             assert ("fewer than 2: the sampled series (time, probes, constraints) alias the response" in err) == warned, \
                 (sample_dt, err)
+
+
+def test_a_free_free_beam_in_si_units_draws_no_unit_warning_from_its_rigid_body_modes(shared_tmp_path, capfd):
+    # A free-free beam has two rigid-body modes at 0 Hz (computed as round-off, 1e-5 Hz here); its
+    # lowest elastic frequency is the first cos-cosh root's (beta L = 4.730), 0.617 Hz for the paper's
+    # beam: the units are right and "check the structure's units" was a false alarm. The same beam with
+    # E in GPa given as Pa still draws it (0.617 Hz sqrt(1e-9) = 1.95e-5 Hz).
+    text = open(PAPER).read().replace('left = "pinned"', 'left = "free"').replace('right = "pinned"', 'right = "free"')
+    text = text[:text.index("[excitation]")] + ('[excitation]\nkind = "force"\nx = 0.5\namplitude = 1e-4\n'
+                                                 'frequency_hz = 1.0\n\n') + text[text.index("[[constraint]]"):]
+    path = shared_tmp_path / "free_free.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(text)
+    MPI.COMM_WORLD.Barrier()
+    for E, warned in ((117e9, False), (117.0, True)):
+        s = load_scene(str(path), ["basis.cache=off", "integrator.t_end=0.01", "basis.estimate=false",
+                                   f"structure.E={E}"])
+        run(s, str(shared_tmp_path / f"free_free{E:g}.h5"), progress=True)
+        captured = capfd.readouterr()
+        if MPI.COMM_WORLD.rank == 0:
+            assert "basis: 6 modes" in captured.out, captured.out
+            assert ("the lowest elastic frequency is" in captured.err) == warned, (E, captured.err)
+            assert not warned or "the lowest elastic frequency is 1.95e-05 Hz" in captured.err, captured.err
