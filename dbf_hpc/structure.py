@@ -241,18 +241,24 @@ def _mesh_nodes(length: float, elements: int, points) -> np.ndarray:
     for p in points:
         if not 0 <= p <= length:
             raise InputError(f"x = {p} m is outside the beam [0, {length}] m")
-    breaks = np.unique(np.concatenate([[0.0, length], np.asarray(points, dtype=float)]))
-    keep = np.concatenate([[True], np.diff(breaks) > POINT_TOL * length])
-    breaks = breaks[keep]
-    breaks[-1] = length
+    kept = []
+    # A point within POINT_TOL of the last point kept is that point; measured from the point kept, not
+    # from its neighbour: a chain of points 0.8e-9 L apart merged into its first, and the third, 1.6e-9 L
+    # from any node, was refused as 'not a node of the beam mesh' (red team)
+    for p in np.unique(np.concatenate([[0.0, length], np.asarray(points, dtype=float)])):
+        if not kept or p - kept[-1] > POINT_TOL * length:
+            kept.append(p)
+    breaks = np.array(kept)
+    breaks[-1] = length   # the end, or a point within POINT_TOL of it
     half = 0.5 * length / elements
     gaps = np.diff(breaks)
     if gaps.size and gaps.min() < half:
         i = int(np.argmin(gaps))
         a, b = breaks[i], breaks[i + 1]
-        what = (f"x = {b:g} m is {b - a:.3g} m from the left end" if i == 0 else
-                f"x = {a:g} m is {b - a:.3g} m from the right end" if i == gaps.size - 1 else
-                f"x = {a:g} m and x = {b:g} m are {b - a:.3g} m apart")
+        # 12 digits: two points 1e-9 m apart read as two numbers, not 'x = 0.25 m and x = 0.25 m'
+        what = (f"x = {b:.12g} m is {b - a:.3g} m from the left end" if i == 0 else
+                f"x = {a:.12g} m is {b - a:.3g} m from the right end" if i == gaps.size - 1 else
+                f"x = {a:.12g} m and x = {b:.12g} m are {b - a:.3g} m apart")
         raise InputError(f"{what}, less than half an element ({half:.3g} m at {elements} elements): "
                          f"make them one point, move them apart, or use at least "
                          f"{int(np.ceil(0.5 * length / (b - a)))} elements")

@@ -221,3 +221,15 @@ def test_axial_transport_numbers_are_checked_as_the_other_numbers_a_bool_is_no_s
             Beam(**base, **bad)
     assert Beam(**base, axial_speed=np.int64(3)).axial_speed == 3.0
     assert repr(Beam(**base, axial_speed=78, tension=5)) == repr(Beam(**base, axial_speed=78.0, tension=5.0))
+
+
+def test_points_within_point_tol_of_each_other_in_a_chain_are_one_node_or_a_gap_that_names_both():
+    # POINT_TOL (1e-9 L) makes two points one node. Measured from the node kept, not from the
+    # neighbour: a chain 0.8 nm apart merged into its first point, and the third, 1.6 nm from any node,
+    # was 'not a node of the beam mesh' (red team); it is a gap, named with digits that tell the two
+    # points apart (they read 'x = 0.25 m and x = 0.25 m').
+    assert BeamMesh(beam(elements=100), [0.25, 0.25 + 0.8e-9]).elements == 100
+    with pytest.raises(InputError, match=r"x = 0.25 m and x = 0.2500000016 m are 1.6e-09 m apart, less than half"):
+        BeamMesh(beam(elements=100), [0.25, 0.25 + 0.8e-9, 0.25 + 1.6e-9])
+    mesh = BeamMesh(beam(elements=100), [1 - 0.4e-9, 1 - 0.8e-9])   # both within 1e-9 L of the end
+    assert mesh.x[-1] == 1.0 and mesh.elements == 100 and mesh.node_at(1 - 0.8e-9) == 100
