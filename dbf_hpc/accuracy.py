@@ -577,6 +577,9 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
     settings = dataclasses.replace(settings, rtol=rtol, atol=settings.atol * rtol / settings.rtol)
     modes, tried, window = max(int(basis_settings.modes or 4), 1), [], estimate.window
     limit = min(MAX_MODES, (fom.size - fom.constraints.count) // RICH_MODES)
+    # a beam of two planes: whole y-z pairs of modes (basis.check_pairs)
+    pairs = getattr(fom.operators.mesh, "planes", 1) if fom.operators.mesh is not None else 1
+    limit -= limit % pairs
     if modes > limit:
         raise InputError(f"[basis] tolerance: the first candidate, [basis] modes = {modes}, is beyond the largest "
                          f"basis the tolerance mode tries, {limit} modes (at most {MAX_MODES}, and the richer basis "
@@ -599,6 +602,7 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
                              f"{law[0]:.2g} modes; loosen the tolerance, use a richer enrichment or a finer "
                              f"question (a shorter estimate_window)")
         modes = next_modes(tried, TOLERANCE_MARGIN * tol)
+        modes += -modes % pairs
         if modes > limit and tried[-1][0] < limit:
             modes = limit         # the largest basis is tried before giving up
     reached = ", ".join(f"{m} modes {e:.3g}" for m, e in tried)

@@ -34,7 +34,7 @@ from petsc4py import PETSc
 from slepc4py import SLEPc
 
 from . import __version__, sealed
-from .basis import BasisSettings, ReducedBasis, build_basis
+from .basis import BasisSettings, ReducedBasis, build_basis, check_pairs
 from .checkpoint import arrays_sha256
 from .errors import WRITE_ERRORS, InputError, lock_problem, park, refused_lock, warn, write_failure
 from .output import check_free_space, has_hdf5_signature
@@ -308,6 +308,7 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
                  labels=None) -> ReducedBasis:
     """The basis from the cache when a valid one exists, else built (and cached if cache_dir). A
     cache that cannot be written is a warning (every rank agrees), never an error. Collective."""
+    check_pairs(ops, settings.modes)   # before a cache hit too: one stored before the check
     rows = np.asarray(rows, dtype=np.int64)
     gyroscopic = ops.G is not None
     # the state-space basis (state_space.py) is not cached; a gyroscopic second-order one is

@@ -94,7 +94,8 @@ SECTIONS = {
                                            "support motion in the y-z plane (normalized; default [1, 0])"),
     }),
     "basis": ("Reference modes and one enrichment column per constraint.", {
-        "modes": Key((int,), None, "", "number of reference modes (6 if neither this nor max_frequency_hz)"),
+        "modes": Key((int,), None, "", "number of reference modes (6 if neither this nor max_frequency_hz); "
+                                       "even on a beam of two planes (its frequencies come in y-z pairs)"),
         "max_frequency_hz": Key(NUMBER, None, "Hz", "every mode below this frequency instead of a count"),
         "enrichment": Key((str,), "dbf", "", '"dbf" (the method), "static" (static attachment modes K^-1 g) or '
                                              '"none" (modes alone); the last two are comparators'),
