@@ -526,6 +526,9 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
     contact when that is beyond the first probe: cut at the probe, the window held the first impact
     and little after it). Every end is a sample time of the run to t_end, so that the run can reuse
     the richer run's samples. Returns the estimate (the same on every rank). Collective."""
+    from petsc4py import PETSc
+
+    from .errors import DbfError, petsc_failure
     from .reductor import Reductor
     from .run import rich_model, wait_for_rank0
     from .simulate import simulate_reduced
@@ -551,12 +554,18 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
                 run = simulate_reduced(model, dataclasses.replace(settings, t_end=want))
             end = estimate_window(run.time, contact, settings.t_end, window)
             result = nested_estimate(rich, settings, run.time, run.displacement, end)
-        except SolverError as e:
-            failure = str(e)
+        # every failure of rank 0's integration is every rank's (red team: a PETSc error, a bad -rom_
+        # option, escaped on rank 0 alone; its Ibarrier at the command's end met the others' in
+        # wait_for_rank0, and the job hung, rank 0 in allgather, the others in this bcast)
+        except DbfError as e:
+            failure = (isinstance(e, InputError), str(e))
+        except PETSc.Error as e:
+            failure = (False, f"the reduced integration: {petsc_failure(e)}; check the -rom_ options")
     wait_for_rank0(world)
     result, failure = world.bcast((result, failure), root=0)
     if failure:
-        raise SolverError(f"[basis] tolerance: the candidate with {basis_settings.modes} modes failed: {failure}")
+        raise (InputError if failure[0] else SolverError)(
+            f"[basis] tolerance: the candidate with {basis_settings.modes} modes failed: {failure[1]}")
     return result
 
 

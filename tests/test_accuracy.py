@@ -283,6 +283,24 @@ def test_a_tolerance_that_cannot_be_met_is_one_line_and_no_file(tmp_path):
 
 
 @pytest.mark.launcher
+def test_a_candidate_whose_integration_petsc_refuses_is_one_line_on_two_ranks_not_a_hang(tmp_path):
+    # Rank 0 integrates each candidate of the tolerance mode; a PETSc error there (a -rom_ option PETSc
+    # refuses) escaped on rank 0 alone, and the job hung until its time limit (red team).
+    from test_cli import PAPER, dbf_hpc
+
+    out = tmp_path / "bad.h5"
+    done = dbf_hpc("run", PAPER, "-o", str(out), "-q", *[f"--set={s}" for s in WINDOW],
+                   "--set=structure.elements=20", "--set=basis.tolerance=0.1", "--set=basis.modes=4",
+                   "-rom_ts_arkimex_type", "bogus", ranks=2)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and len(lines) == 1, done.stderr
+    assert lines[0].startswith("dbf-hpc: error: [basis] tolerance: the candidate with 4 modes failed: the reduced "
+                               "integration: PETSc error 83"), lines[0]
+    assert "-rom_ts_arkimex_type" in lines[0] and "check the -rom_ options" in lines[0], lines[0]
+    assert not any(p.name.startswith("bad") for p in tmp_path.iterdir())
+
+
+@pytest.mark.launcher
 def test_a_tolerance_out_of_the_estimates_reach_is_refused_from_their_trend(tmp_path):
     # 1e-9 on the paper's beam: 6, 12, 24 modes estimate 13.7 %, 3.8 %, 3.2 %, a law near N^-1 that
     # reaches 7.5e-10 only near 1e8 modes. It tried 48 and 96 modes (minutes) before refusing.
