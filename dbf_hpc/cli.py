@@ -567,8 +567,9 @@ def _write_atomically(path: str, write) -> None:
 def _finish(comm, failure: str | None) -> int:
     """The end of every run, on every rank: agree on the outcome, then exit alike.
 
-    All ranks meet in a non-blocking barrier. A rank that succeeded waits as long as it takes (rank 0
-    may still be writing). A rank that failed waits 10 s: if the others do not arrive, they are stuck
+    All ranks meet in a non-blocking barrier on `comm`, a communicator of its own (a duplicate of
+    COMM_WORLD that nothing else uses: a rank waiting in another barrier never meets this one). A rank
+    that succeeded waits as long as it takes (rank 0 may still be writing). A rank that failed waits 10 s: if the others do not arrive, they are stuck
     in a collective call this rank will never make, so it prints its error and aborts the job. When
     all arrive, the first failing rank prints its one line and every rank exits 1.
     """
@@ -642,6 +643,9 @@ def main(argv=None) -> int:
     from .errors import DbfError, petsc_failure, termination_signals
 
     comm = MPI.COMM_WORLD
+    # _finish's own communicator: its barrier on COMM_WORLD met a rank still waiting in one of the
+    # library's (run.wait_for_rank0) after rank 0 failed alone, and the job hung (red team)
+    ending = comm.Dup()
     for signum in termination_signals():   # SIGTERM, and Ctrl-C; integrations and sweeps install their own
         signal.signal(signum, _terminated)
     try:
@@ -664,7 +668,7 @@ def main(argv=None) -> int:
         if comm.size > 1:
             comm.Abort(70)
         return 70
-    code = _finish(comm, failure)
+    code = _finish(ending, failure)
     from .errors import PARKED
 
     if comm.allreduce(len(PARKED), op=MPI.SUM):

@@ -65,6 +65,40 @@ def test_a_malformed_command_line_is_one_error_line_from_one_rank(argv):
     assert "usage" not in out.stdout + out.stderr and "Traceback" not in out.stderr
 
 
+# A command whose rank 0 fails alone while rank 1 waits for it in the library's barrier
+# (run.wait_for_rank0, as a run's integration and the tolerance mode's candidates do)
+_RANK0_FAILS_ALONE = """
+import sys
+from dbf_hpc import cli
+
+def fails_on_rank0(args):
+    from mpi4py import MPI
+    from dbf_hpc.errors import InputError
+    from dbf_hpc.run import wait_for_rank0
+    if MPI.COMM_WORLD.rank == 0:
+        raise InputError("rank 0 alone refused")
+    wait_for_rank0(MPI.COMM_WORLD)
+    MPI.COMM_WORLD.bcast(None, root=0)
+
+cli._info = fails_on_rank0
+sys.exit(cli.main(["info", "x.h5"]))
+"""
+
+
+def test_an_error_on_rank_0_alone_while_rank_1_waits_in_a_barrier_ends_the_job_with_its_line(tmp_path):
+    # The command's end met rank 1's barrier in run.wait_for_rank0 (both are barriers on COMM_WORLD),
+    # then rank 0 waited in allgather and rank 1 in bcast: the job hung (red team). Now rank 0's
+    # barrier is on a communicator of its own: it finds rank 1 absent, prints its line and aborts.
+    script = tmp_path / "rank0_fails.py"
+    script.write_text(_RANK0_FAILS_ALONE)
+    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=120, cwd=ROOT, env=env)
+    lines = [line for line in out.stderr.splitlines() if line.startswith("dbf-hpc")]
+    assert out.returncode != 0 and lines == ["dbf-hpc: error: (rank 0) rank 0 alone refused"], out.stderr
+    assert "Traceback" not in out.stderr
+
+
 def test_modes_of_the_paper_beam_are_the_euler_bernoulli_frequencies():
     out = dbf_hpc("modes", PAPER, "--set", "basis.modes=4", "-modes_eps_tol", "1e-12")
     assert out.returncode == 0, out.stderr
