@@ -549,8 +549,15 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
             check_output_path(output, [("sweep file", os.path.abspath(path)), ("base scene", sweep["scene"])])
             lock.acquire()
             os.makedirs(folder, exist_ok=True)
-        except (InputError, OSError) as e:
+        except InputError as e:
             problem = str(e)
+        except OSError as e:   # red team: "[Errno 17] File exists: '...cases'", and the lock left behind
+            what = "is a file, not a directory" if os.path.lexists(folder) and not os.path.isdir(folder) else \
+                f"cannot be made ({e.strerror or e})"
+            problem = (f"the sweep's case folder {folder!r} {what}: move it away, or give the sweep another "
+                       f"output")
+        if problem:
+            lock.release()
     problem = world.bcast(problem, root=0)
     if problem:
         raise InputError(problem)

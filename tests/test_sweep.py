@@ -212,6 +212,20 @@ def test_a_case_whose_hdf5_write_failed_stops_the_sweep_before_another_hdf5_writ
     assert run_sweep(path, progress=False)["failed"] == 0, "a rerun with room finishes every case"
 
 
+def test_a_case_folder_that_cannot_be_made_is_one_line_on_every_rank_and_leaves_no_lock(shared_tmp_path):
+    # Red team: a file named like the case folder read "[Errno 17] File exists: '...cases'", and rank 0
+    # left the summary's lock behind (a later sweep on another node: "being written by another job").
+    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9]\n"integrator.t_end" = [0.05]\n')
+    if MPI.COMM_WORLD.rank == 0:
+        (shared_tmp_path / "summary.h5.cases").write_text("not a folder")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"case folder .*summary\.h5\.cases' is a file, not a directory: move it "
+                                         r"away, or give the sweep another output"):
+        run_sweep(path, progress=False)
+    MPI.COMM_WORLD.Barrier()
+    assert_all(sorted(os.listdir(shared_tmp_path)) == ["summary.h5.cases", "sweep.toml"], "no lock left behind")
+
+
 def test_a_summary_that_would_not_fit_on_the_disk_is_refused_before_hdf5_writes_it(shared_tmp_path, monkeypatch):
     # Red team (a 3 MB tmpfs filled during a case; the failed cases' removed files left a few kB): the
     # summary's write failed, and its close crashed HDF5 (signal 11) because the failed case's file
