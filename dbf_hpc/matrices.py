@@ -22,7 +22,7 @@ from typing import Optional
 import numpy as np
 from petsc4py import PETSc
 
-from .errors import InputError
+from .errors import InputError, decided_on_rank0
 from .operators import Operators, PointValues
 from .petsctools import aij_from_owned_triplets, owned_rows
 
@@ -295,7 +295,7 @@ class MatrixFiles:
     def fingerprint(self, comm) -> dict:
         """What identifies the operators for the basis cache: the bytes of K and M (and G). Collective."""
         keys = ("stiffness", "mass", "gyroscopic") if self.gyroscopic else ("stiffness", "mass")
-        return {key: file_digest(getattr(self, key), comm) for key in keys}
+        return {key: file_digest(getattr(self, key), comm, key) for key in keys}
 
 
 COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
@@ -338,16 +338,25 @@ def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
     return coordinates, node, component
 
 
-def file_digest(path: str, comm) -> str:
-    """sha256 of a file's bytes, read on rank 0 only. Collective."""
-    digest = None
-    if comm.rank == 0:
-        h = hashlib.sha256()
+def file_digest(path: str, comm, what: str = "input") -> str:
+    """sha256 of a file's bytes, read on rank 0 only; a file that cannot be read is every rank's
+    InputError naming it (`what` file ...). Collective."""
+    return decided_on_rank0(comm, _digest, path, what)
+
+
+def _digest(path: str, what: str) -> str:
+    # red team: a scene's missing matrix file (a typo) was "internal error (FileNotFoundError) on rank 0"
+    # in `dbf-hpc run`, which hashes the inputs before it loads them
+    if not os.path.isfile(path):
+        raise InputError(f"{what} file {path!r} " + ("is a directory" if os.path.isdir(path) else "does not exist"))
+    h = hashlib.sha256()
+    try:
         with open(path, "rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
-        digest = h.hexdigest()
-    return comm.tompi4py().bcast(digest, root=0)
+    except OSError as e:
+        raise InputError(f"{what} file {path!r} cannot be read: {e.strerror or e}") from None
+    return h.hexdigest()
 
 
 def load_operators(files: MatrixFiles, comm=None) -> Operators:

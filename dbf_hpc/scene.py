@@ -184,7 +184,8 @@ class Scene:
         damping, influence, node map ...): a result depends on their contents. Collective."""
         from .matrices import file_digest
 
-        return {path: file_digest(path, comm) for what, path in self.inputs() if what != "scene"}
+        return {path: file_digest(path, comm, what.removesuffix(" file")) for what, path in self.inputs()
+                if what != "scene"}
 
     def cache_dir(self):
         """The basis cache directory, or None when the scene turns caching off."""

@@ -192,6 +192,39 @@ def test_missing_or_foreign_files_are_errors(shared_tmp_path):
     assert_all(True)
 
 
+def test_a_run_whose_scene_names_a_missing_matrix_file_is_one_input_error_on_every_rank(shared_tmp_path, beam_files):
+    # `dbf-hpc run` hashes a scene's files (its identity) on rank 0 before it loads them: a typo in the
+    # stiffness file's name was "internal error (FileNotFoundError) on rank 0", exit 70 (red team)
+    from dbf_hpc.matrices import file_digest
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    scene_path = shared_tmp_path / "typo.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        scene_path.write_text(f"""[structure]
+kind = "matrices"
+stiffness = "{shared_tmp_path / 'Kx.mtx'}"
+mass = "{beam_files[3]['M.mtx']}"
+[excitation]
+kind = "force"
+dof = 0
+amplitude = 1.0
+frequency_hz = 5.0
+[[constraint]]
+dof = 2
+law = "deadband"
+clearance = 1e-3
+k = 1e3
+""")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"^stiffness file '.*Kx\.mtx' does not exist$"):
+        run(load_scene(str(scene_path)), str(shared_tmp_path / "typo.h5"), progress=False)
+    with pytest.raises(InputError, match=r"^mass file '.*' is a directory$"):
+        file_digest(str(shared_tmp_path), PETSc.COMM_WORLD, "mass")
+    MPI.COMM_WORLD.Barrier()
+    assert_all(not any(p.name.startswith("typo.h5") for p in shared_tmp_path.iterdir()), "no output, no lock")
+
+
 @pytest.mark.parametrize("which,message", [("K", "stiffness matrix is not positive semi-definite"),
                                            ("M", "check that M is positive definite")])
 def test_indefinite_operators_are_an_error(shared_tmp_path, beam_files, which, message):
