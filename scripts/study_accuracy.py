@@ -239,16 +239,24 @@ def main(argv=None) -> int:
                          f"second finer (more elements or a smaller step, neither coarser), e.g. "
                          f"400:2.5e-6,800:1.25e-6")
     out = os.path.abspath(args.output)
-    if world.rank == 0:
-        os.makedirs(os.path.join(out, "runs"), exist_ok=True)
-        if TUBE in grid["scenes"].values():
-            with open(os.path.join(ROOT, TUBE_JOB)) as f:
-                text = f.read()
-            for old, new in TUBE_EDITS:
-                text = text.replace(old, new)
-            with open(os.path.join(out, "steam_generator_tube_rayleigh.toml"), "w") as f:
-                f.write(text)
-    world.Barrier()
+    problem = None
+    if world.rank == 0:   # its failure is every rank's (red team: -o FILE was rank 0's traceback, a hang)
+        try:
+            os.makedirs(os.path.join(out, "runs"), exist_ok=True)
+            if TUBE in grid["scenes"].values():
+                with open(os.path.join(ROOT, TUBE_JOB)) as f:
+                    text = f.read()
+                for old, new in TUBE_EDITS:
+                    text = text.replace(old, new)
+                with open(os.path.join(out, "steam_generator_tube_rayleigh.toml"), "w") as f:
+                    f.write(text)
+        except OSError as e:
+            problem = f"-o {args.output!r}: cannot write the study there ({e.strerror or e}); give a directory"
+    problem = world.bcast(problem, root=0)
+    if problem:
+        if world.rank == 0:
+            print(f"{parser.prog}: error: {problem}", file=sys.stderr, flush=True)
+        return 1
     cache = os.path.join(out, "basis-cache")
     common = [f"output.sample_dt={SAMPLE_DT}", f"output.probes=[{MIDSPAN}]", "output.snapshots=0",
               f"basis.cache={json.dumps(cache)}"]
@@ -744,5 +752,22 @@ def plot(out: str, table: list, truths: dict) -> None:
     plt.close(fig)
 
 
+def main_or_abort(argv=None) -> int:
+    """main(), with an exception it did not expect (a bug; an error a case raised on its rank alone)
+    ending every rank: printed with its traceback, then MPI_Abort. The other ranks wait in a collective
+    call (gather, Barrier) this rank will never make: the job hung until its time limit (red team)."""
+    try:
+        return main(argv)
+    except Exception:
+        mpi = sys.modules.get("mpi4py.MPI")
+        if mpi is not None and mpi.Is_initialized() and not mpi.Is_finalized() and mpi.COMM_WORLD.size > 1:
+            import traceback
+
+            traceback.print_exc()
+            sys.stderr.flush()
+            mpi.COMM_WORLD.Abort(1)
+        raise
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main_or_abort())

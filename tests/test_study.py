@@ -102,3 +102,46 @@ def test_study_refuses_truths_that_are_not_two_resolutions_the_second_finer(trut
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-2000:]
     assert f"--truths {truths!r}: give two elements:step pairs" in done.stderr.splitlines()[-1]
     assert not (tmp_path / "study").exists()
+
+
+def _two_ranks(*args, timeout=120):
+    return subprocess.run(["mpirun", "-n", "2", sys.executable, *args], capture_output=True, text=True,
+                          timeout=timeout, cwd=ROOT, env={**os.environ, "OMPI_MCA_rmaps_base_oversubscribe": "1"})
+
+
+def test_study_with_an_output_that_is_a_file_is_one_line_on_two_ranks(tmp_path):
+    # Rank 0 makes the output directory: -o FILE was its traceback while rank 1 waited in a barrier for
+    # ever (red team)
+    taken = tmp_path / "taken"
+    taken.write_text("not a directory")
+    done = _two_ranks(os.path.join(ROOT, "scripts", "study_accuracy.py"), "--grid", "tiny", "-o", str(taken))
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert done.stderr.strip().splitlines() == [f"study_accuracy.py: error: -o {str(taken)!r}: cannot write the "
+                                                f"study there (Not a directory); give a directory"], done.stderr
+    assert taken.read_text() == "not a directory"
+
+
+# A run that fails on rank 1 alone with an error the study does not expect (a bug, an OSError)
+_FAILS_ON_RANK_1 = """
+import runpy, sys
+import dbf_hpc.run
+from mpi4py import MPI
+def run(*args, **kwargs):
+    raise RuntimeError("a run failed on rank 1 alone") if MPI.COMM_WORLD.rank == 1 else real(*args, **kwargs)
+real, dbf_hpc.run.run = dbf_hpc.run.run, run
+sys.argv = sys.argv[1:]
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def test_an_unexpected_error_on_one_rank_of_the_study_ends_both_with_its_traceback(tmp_path):
+    # Each truth and case runs on one rank: an error other than a DbfError there left the other rank
+    # in its allgather or gather, and the job hung until its time limit (red team, known since the
+    # study began); now the rank prints its traceback and aborts the job.
+    wrapper = tmp_path / "fails_on_rank_1.py"
+    wrapper.write_text(_FAILS_ON_RANK_1)
+    done = _two_ranks(str(wrapper), os.path.join(ROOT, "scripts", "study_accuracy.py"), "--grid", "tiny",
+                      "-o", str(tmp_path / "study"))
+    assert done.returncode != 0, done.stderr[-2000:]
+    assert "Traceback" in done.stderr and "RuntimeError: a run failed on rank 1 alone" in done.stderr, done.stderr
+    assert not (tmp_path / "study" / "accuracy.csv").exists()
