@@ -34,7 +34,7 @@ from .dbf import STIFFNESS_RANGE, dbf_source, participation
 from . import dbf_ritz
 from .dbf_ritz import PREFETCH_BLOCK, RitzSolver, RitzSpace, reference_vectors
 from .dbf_shared import SharedFactor, SharedSolver
-from .errors import InputError, SolverError
+from .errors import DbfError, InputError, SolverError
 from .modes import ModalBasis
 from .operators import Operators
 from .petsctools import destroy, direct_solver, unit_vector
@@ -195,6 +195,15 @@ def _free_group(group, group_ops: Operators) -> None:
     group.Free()
 
 
+def raise_agreed(world, failure) -> None:
+    """After the groups' loop over their constraints: the first group's failure ((is an InputError,
+    message) or None), in rank order, raised on every rank. A failed constraint ends its group alone;
+    the other groups went on to the world's assembly and waited there for ever (red team). Collective."""
+    failure = next((f for f in world.allgather(failure) if f), None)
+    if failure:
+        raise (InputError if failure[0] else SolverError)(failure[1])
+
+
 def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: DbfEnrichment):
     """Derivatives of all constraints, computed by groups, gathered into an n x N_L dense Mat on
     ops.comm; also k_j, k_auto and the branch of each. Collective."""
@@ -207,36 +216,41 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
     k, k_auto, branch = _empty(rows.size)
     is_leader = (group.rank if group is not None else world.rank) == 0
     factor = space = None
+    failure = None
     try:
-        # Every rank of a group takes the same path; a group with no constraint factors nothing.
-        group_modes = reference_vectors(modes, group_ops, n_groups) if settings.solver == "ritz" else []
-        if settings.solver in ("shared", "ritz") and color < rows.size:
-            factor = SharedFactor(group_ops)
-        if factor is not None and settings.solver == "ritz":
-            space, group_modes = RitzSpace(factor, group_modes), []
-        destroy(*group_modes)
-        mine = np.arange(color, rows.size, n_groups)
-        lo, hi = group_ops.K.getOwnershipRange()
-        local_rows = np.arange(lo, hi, dtype=PETSc.IntType)
-        # the analytic derivative on the ritz path: a block of constraints at a time (RitzSpace.sources)
-        blocks = space is not None and settings.derivative == "analytic" and dbf_ritz.BLOCK_SOURCES
-        for start in range(0, mine.size, PREFETCH_BLOCK):
-            chunk = mine[start:start + PREFETCH_BLOCK]
-            served = np.zeros(0, dtype=np.int64)
-            if blocks:
-                served, b, kj, kj_auto, _, d = space.sources(rows[chunk], lam, part[chunk], settings.stiffness)
-                if served.size:
-                    gathered.setValues(local_rows, chunk[served].astype(PETSc.IntType), np.ascontiguousarray(d))
+        try:
+            # Every rank of a group takes the same path; a group with no constraint factors nothing.
+            group_modes = reference_vectors(modes, group_ops, n_groups) if settings.solver == "ritz" else []
+            if settings.solver in ("shared", "ritz") and color < rows.size:
+                factor = SharedFactor(group_ops)
+            if factor is not None and settings.solver == "ritz":
+                space, group_modes = RitzSpace(factor, group_modes), []
+            destroy(*group_modes)
+            mine = np.arange(color, rows.size, n_groups)
+            lo, hi = group_ops.K.getOwnershipRange()
+            local_rows = np.arange(lo, hi, dtype=PETSc.IntType)
+            # the analytic derivative on the ritz path: a block of constraints at a time (RitzSpace.sources)
+            blocks = space is not None and settings.derivative == "analytic" and dbf_ritz.BLOCK_SOURCES
+            for start in range(0, mine.size, PREFETCH_BLOCK):
+                chunk = mine[start:start + PREFETCH_BLOCK]
+                served = np.zeros(0, dtype=np.int64)
+                if blocks:
+                    served, b, kj, kj_auto, _, d = space.sources(rows[chunk], lam, part[chunk], settings.stiffness)
+                    if served.size:
+                        gathered.setValues(local_rows, chunk[served].astype(PETSc.IntType), np.ascontiguousarray(d))
+                        if is_leader:
+                            k[chunk[served]], k_auto[chunk[served]], branch[chunk[served]] = kj, kj_auto, b
+                elif space is not None:
+                    space.prefetch(rows[chunk])
+                for j in np.delete(chunk, served):    # one at a time (and the block's unserved)
+                    src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
+                    gathered.setValues(local_rows, [j], src.derivative.array_r.reshape(-1, 1))
                     if is_leader:
-                        k[chunk[served]], k_auto[chunk[served]], branch[chunk[served]] = kj, kj_auto, b
-            elif space is not None:
-                space.prefetch(rows[chunk])
-            for j in np.delete(chunk, served):    # one at a time (and the block's unserved)
-                src = _dbf_source(group_ops, int(rows[j]), lam, part[j], settings, factor, space)
-                gathered.setValues(local_rows, [j], src.derivative.array_r.reshape(-1, 1))
-                if is_leader:
-                    k[j], k_auto[j], branch[j] = src.stiffness, src.transition, src.branch
-                src.derivative.destroy()
+                        k[j], k_auto[j], branch[j] = src.stiffness, src.transition, src.branch
+                    src.derivative.destroy()
+        except DbfError as e:   # one group's constraint: every rank hears of it (raise_agreed)
+            failure = (isinstance(e, InputError), str(e))
+        raise_agreed(world, failure)
         gathered.assemble()
     except Exception:
         gathered.destroy()

@@ -257,6 +257,25 @@ def test_shared_factorization_gives_the_dbfs_of_the_three_factorizations(paper, 
     assert_same_dbfs(ops, shared, factor)
 
 
+@pytest.mark.parametrize("solver", ["shared", "factor"])
+def test_a_dbf_solve_that_fails_in_one_group_is_every_ranks_error(paper, solver, monkeypatch):
+    # On 2 ranks each constraint has a group of its own: a failed solve ended only the group of that
+    # constraint, and the other rank waited in the assembly of the gathered DBFs for ever (red team).
+    ops, modes, _ = paper
+    rows = np.array([ops.mesh.w_row(x) for x in (0.25, 0.6)])
+    real = enrichment.dbf_source
+
+    def failing(ops_, row, *args, **kwargs):
+        if row == rows[1]:   # the last group's constraint
+            raise SolverError(f"the spring-perturbed solve at row {row} did not converge")
+        return real(ops_, row, *args, **kwargs)
+
+    monkeypatch.setattr(enrichment, "dbf_source", failing)
+    with pytest.raises(SolverError, match=f"^the spring-perturbed solve at row {rows[1]} did not converge$"):
+        DbfEnrichment(solver=solver).columns(ops, rows, modes)
+    assert_all(True)   # the ranks are still in step
+
+
 @pytest.mark.parametrize("path", ["shared", "ritz"])
 @pytest.mark.parametrize("left", ["pinned", "sliding"])
 def test_shared_factorization_shifted_below_a_rigid_body_mode_gives_the_same_dbfs(left, path):
