@@ -576,7 +576,8 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     # reused once restored)
     scenes = sweep["scenes"]
     identities = _identities(sweep, scenes)
-    records = [_read_json(_case_file(folder, i)) or {} for i in range(n)]
+    # rank 0's reading for all: which cases are pending decides collective calls (_prepare_models)
+    records = world.bcast([_read_json(_case_file(folder, i)) or {} for i in range(n)] if world.rank == 0 else None)
     # a failed case is retried: its cause may have been the machine's (a full disk), since mended
     pending = {i for i in range(n) if records[i].get("identity") != identities[i] or records[i].get("status") != "ok"}
     retried = sum(records[i].get("identity") == identities[i] for i in pending)
