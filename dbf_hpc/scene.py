@@ -474,11 +474,13 @@ def _refuse_ignored_turbulence_keys(e: dict, where: str) -> None:
 
 
 def _refuse_ignored_load_keys(e: dict, where: str) -> None:
-    """A harmonic load's amplitude or frequency on a random one, or a PSD or band on a harmonic one:
-    ignored, they would describe a load not applied (red team). kind = "none" keeps every key:
+    """A harmonic load's amplitude or frequency on a random one, or a PSD, band, seed, components or
+    span on a harmonic one: ignored, they would describe a load not applied (red team; span = [-1, 5],
+    components = -1 on a base excitation ran without a word). kind = "none" keeps every key:
     --set excitation.kind=none turns any scene into its free vibration."""
     harmonic = [key for key in ("amplitude", "frequency_hz") if e[key]]
-    spectral = [key for key, empty in (("psd", 0.0), ("band", [])) if e[key] != empty]
+    defaults = SECTIONS["excitation"][1]
+    spectral = [key for key in ("psd", "band", "seed", "components", "span") if e[key] != defaults[key].default]
     ignored = harmonic if e["kind"] in ("random", "turbulence") else spectral if e["kind"] != "none" else []
     if ignored:
         verb, it = ("has", "it") if len(ignored) == 1 else ("have", "them")

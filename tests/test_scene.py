@@ -114,6 +114,26 @@ def test_where_a_load_acts_given_to_a_load_that_does_not_take_it_is_refused(exci
     assert validate({"structure": BEAM, "excitation": force}).excitation().x == 0.5
 
 
+@pytest.mark.parametrize("key,value", [("span", [-1.0, 5.0]), ("span", [0.2, 0.4]), ("components", -1),
+                                       ("components", 64), ("seed", 7)])
+def test_a_random_loads_keys_on_a_harmonic_load_are_refused_by_name(key, value):
+    # Red team: a base excitation with span = [-1, 5] m (off the beam) or components = -1 ran without a
+    # word: a harmonic load has no loaded span, cosines or seed, the value described a load not applied.
+    base = {"kind": "base", "amplitude": 1e-3, "frequency_hz": 5.0}
+    with pytest.raises(InputError, match=rf"^test.toml: \[excitation\]: {key} has no meaning for kind = 'base' and "
+                                         r"would be ignored: remove it"):
+        validate({"structure": BEAM, "excitation": {**base, key: value}}, "test.toml")
+    assert validate({"structure": BEAM, "excitation": {**base, key: value, "kind": "none"}}).excitation().kind == "none"
+    if key != "span" or value[0] >= 0:   # the random load that takes it
+        random = {"kind": "random", "psd": 1.0, "band": [0.0, 10.0], key: value}
+        if key == "components" and value < 1:
+            with pytest.raises(InputError, match="components must be at least 1"):
+                validate({"structure": BEAM, "excitation": random}, "test.toml")
+        else:
+            taken = getattr(validate({"structure": BEAM, "excitation": random}).excitation(), key)
+            assert taken == (tuple(value) if key == "span" else value)
+
+
 @pytest.mark.parametrize("damping", [{"zeta": 0.02}, {"rayleigh_alpha": 1.0}, {"rayleigh_beta": 1e-4}])
 def test_a_damping_matrix_beside_modal_or_rayleigh_damping_is_refused(damping):
     # Red team: the reduced and full-order models used the matrix and dropped zeta (or alpha, beta)
