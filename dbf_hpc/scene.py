@@ -602,6 +602,8 @@ def _check_basis(b: dict, where: str) -> None:
     if b["gyroscopic_form"] not in ("state_space", "second_order"):
         raise InputError(f"{where}: gyroscopic_form must be \"state_space\" or \"second_order\", got "
                          f"{b['gyroscopic_form']!r}")
+    if not b["cache"].strip():   # red team: "" resolved to the scene's folder, which then held the bases
+        raise InputError(f"{where}: cache must be a directory or \"off\", got {b['cache']!r}")
     if b["groups"] < 0:
         raise InputError(f"{where}: groups must be 0 (automatic) or a positive count, got {b['groups']}")
     if b["enrichment"] not in ENRICHMENTS:

@@ -134,6 +134,16 @@ def test_a_random_loads_keys_on_a_harmonic_load_are_refused_by_name(key, value):
             assert taken == (tuple(value) if key == "span" else value)
 
 
+@pytest.mark.parametrize("cache", ["", "  "])
+def test_an_empty_basis_cache_directory_is_refused_not_taken_as_the_scenes_folder(cache):
+    # Red team: cache = "" resolved to the scene file's folder, and the run wrote its basis-*.h5 among
+    # the job files.
+    with pytest.raises(InputError, match=r'^test.toml: \[basis\]: cache must be a directory or "off", got'):
+        scene(basis={"cache": cache})
+    assert scene(basis={"cache": "off"}).cache_dir() is None
+    assert scene(basis={"cache": "bases"}).cache_dir() == os.path.join(os.getcwd(), "bases")
+
+
 @pytest.mark.parametrize("damping", [{"zeta": 0.02}, {"rayleigh_alpha": 1.0}, {"rayleigh_beta": 1e-4}])
 def test_a_damping_matrix_beside_modal_or_rayleigh_damping_is_refused(damping):
     # Red team: the reduced and full-order models used the matrix and dropped zeta (or alpha, beta)
