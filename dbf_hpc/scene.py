@@ -30,6 +30,7 @@ from .laws import KEYS as LAW_KEYS
 from .laws import KEYS_2D, LAWS_2D, default_exponent, law_from_dict
 from .matrices import MatrixFiles
 from .schema import NUMBER, SECTIONS, valid_keys
+from .stats import BATCHES
 from .structure import BOUNDARIES, Beam
 from .timestepping import CALLBACKS, IntegratorSettings
 
@@ -627,11 +628,27 @@ def _check_integrator_and_output(sections: dict, path: str, at: _Positions) -> N
     for key in ("sample_dt", "checkpoint_dt"):
         if o[key] is not None and not o[key] > 0:
             raise InputError(f"{where}: {key} must be positive, got {o[key]!r}")
+    _check_statistics_window(sections["basis"]["estimate_statistics_window"], float(i["t_end"]),
+                             float(o["sample_dt"] or i["t_end"] / 10000), f"{path}: [basis]")
     if o["snapshots"] < 0:
         raise InputError(f"{where}: snapshots must be a count >= 0, got {o['snapshots']}")
     if sections["initial"]["mode"] < 1:
         raise InputError(f"{path}: [initial] mode counts from 1, got {sections['initial']['mode']}")
     _check_initial(sections["initial"], sections["structure"], f"{path}: [initial]")
+
+
+def _check_statistics_window(window, t_end: float, sample_dt: float, where: str) -> None:
+    """A given statistics window must hold the 2 BATCHES samples its batch-means intervals need (or
+    the whole run, when that is shorter): red team, estimate_statistics_window = 1e-300 s stopped a run
+    after its integration (the richer run of t_end 0, a half-written output and a checkpoint left),
+    and 1e-5 s (5 samples) printed every statistic's error as "+- nan"."""
+    if window is None:
+        return
+    least = min(2 * BATCHES * sample_dt, t_end)
+    if window < least * (1 - 1e-12):
+        raise InputError(f"{where}: estimate_statistics_window = {window:g} s holds fewer than the {2 * BATCHES} "
+                         f"samples (sample_dt = {sample_dt:g} s) its intervals need: give at least {least:g} s, or "
+                         f"leave it out (t_end / 4)")
 
 
 def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:

@@ -128,8 +128,8 @@ SECTIONS = {
         "estimate_statistics_window": Key(NUMBER, None, "s", "a long run's (t_end over 5 estimate windows) "
                                                              "statistics window [0, T]: the richer model's impact "
                                                              "statistics over it against the run's give their model "
-                                                             "error (default t_end / 4, at least 20 samples; "
-                                                             "docs/accuracy.md)"),
+                                                             "error (default t_end / 4; given or not, at least 20 "
+                                                             "samples or the whole run; docs/accuracy.md)"),
         "tolerance": Key(NUMBER, None, "1", "the tolerance mode: the number of modes (from modes, default 4, growing "
                                             "at most twofold) and rtol (tolerance / 100) are picked so that the "
                                             "estimate over the window is below 0.75 x this relative error in w at "

@@ -144,6 +144,22 @@ def test_an_empty_basis_cache_directory_is_refused_not_taken_as_the_scenes_folde
     assert scene(basis={"cache": "bases"}).cache_dir() == os.path.join(os.getcwd(), "bases")
 
 
+@pytest.mark.parametrize("window", [1e-300, 1e-5])
+def test_a_statistics_window_shorter_than_its_batch_means_need_is_refused_before_the_run(window):
+    # Red team: estimate_statistics_window = 1e-300 s stopped the run after its integration ("IntegratorSettings
+    # t_end must be above 0", a .partial and a checkpoint left); 1e-5 s (5 samples of 2 us) printed every
+    # statistic's 95 % interval as "+- nan": batch means over 10 batches need 20 samples.
+    with pytest.raises(InputError, match=r"^test.toml: \[basis\]: estimate_statistics_window = .* holds fewer than "
+                                         r"the 20 samples \(sample_dt = 2e-06 s\) its intervals need: give at least "
+                                         r"4e-05 s"):
+        scene(integrator={"t_end": 0.02}, basis={"estimate_statistics_window": window})
+    s = scene(integrator={"t_end": 0.02}, basis={"estimate_statistics_window": 4e-5})
+    assert s.estimate_settings().statistics_window == 4e-5
+    # a run shorter than 20 samples: its whole length is the window the default would take
+    assert scene(integrator={"t_end": 0.02}, output={"sample_dt": 0.01},
+                 basis={"estimate_statistics_window": 0.02}).estimate_settings().statistics_window == 0.02
+
+
 @pytest.mark.parametrize("damping", [{"zeta": 0.02}, {"rayleigh_alpha": 1.0}, {"rayleigh_beta": 1e-4}])
 def test_a_damping_matrix_beside_modal_or_rayleigh_damping_is_refused(damping):
     # Red team: the reduced and full-order models used the matrix and dropped zeta (or alpha, beta)
