@@ -353,8 +353,11 @@ def _check_stiffness(where: str, d: dict, kind: str, fields: dict) -> None:
         if not stiffness:
             raise InputError(f"{where}: a {kind} law needs k (or k_minus and/or k_plus)")
         if fields.get("k_minus", 0) == 0 and fields.get("k_plus", 0) == 0:
-            raise InputError(f"{where}: {stiffness[0]} must be a positive number, got 0 "
-                             f"(the constraint would never push)")
+            # every k given is 0: all of them named (red team: k_minus = 0 with k_plus = 0 blamed k_minus alone,
+            # also when the user's last change was k_plus)
+            zeros = " and ".join(f"{key} = 0" for key in stiffness)
+            raise InputError(f"{where}: {zeros}: the constraint would never push; give k, k_minus or k_plus a "
+                             f"positive value")
     elif kind == "linear":
         if not stiffness:
             raise InputError(f"{where}: a linear law needs k")

@@ -289,6 +289,22 @@ def test_bad_input_raises_one_line_naming_the_constraint_and_the_key(params, key
     assert key in message
 
 
+@pytest.mark.parametrize("params, named", [
+    (dict(k_minus=0.0, k_plus=0.0), "k_minus = 0 and k_plus = 0"),
+    (dict(k_plus=0.0, k_minus=0.0), "k_minus = 0 and k_plus = 0"),
+    (dict(k=0.0), "k = 0"),
+    (dict(k_plus=0.0), "k_plus = 0"),
+])
+def test_a_two_sided_law_that_can_never_push_names_every_zero_stiffness(params, named):
+    # A stop with no stiffness on either side exerts no force. Red team: the moving belt's guide
+    # (k_minus = 0, one-sided) with --set constraint.k_plus=0 said "k_minus must be a positive number,
+    # got 0", naming the key the user had not touched.
+    with pytest.raises(InputError, match=rf"^constraint 2: {named}: the constraint would never push; give k, "
+                                         r"k_minus or k_plus a positive value$"):
+        law_from_dict(2, dict(law="deadband", clearance=D, **params))
+    assert law_from_dict(2, dict(law="deadband", clearance=D, k_minus=0.0, k_plus=2e5)).k_plus == 2e5
+
+
 def test_law_dataclass_validates_too():
     with pytest.raises(InputError, match="k_plus"):
         Law(k_plus=-1)
