@@ -41,6 +41,9 @@ W, THETA = 0, 1
 BOUNDARIES = {"pinned": (W,), "clamped": (W, THETA), "free": (), "sliding": (THETA,)}
 # Points closer than this (relative to the length) are the same node.
 POINT_TOL = 1e-9
+# The squared circular frequencies (1/s^2) a beam's mesh may span (Beam._check_scale): far outside
+# any structure's in SI units, inside what the eigen-solves' double precision holds.
+OMEGA2_RANGE = (1e-100, 1e100)
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,11 @@ class Beam:
         if isinstance(self.planes, bool) or self.planes not in (1, 2):
             raise InputError(f"beam planes must be 1 or 2, got {self.planes!r}")
         put(self, "planes", int(self.planes))
+        # red team: elements = 2**70 ended in numpy's "Maximum allowed size exceeded" (an internal error)
+        most = (int(np.iinfo(PETSc.IntType).max) - 1) // (2 * self.planes) - 1
+        if self.elements > most:
+            raise InputError(f"beam elements = {self.elements}: 2 DOFs a node in {self.planes} plane(s) are more than "
+                             f"PETSc's indices count ({np.iinfo(PETSc.IntType).max}); use at most {most} elements")
         for end in ("left", "right"):
             if not isinstance(getattr(self, end), str) or getattr(self, end) not in BOUNDARIES:
                 raise InputError(f"beam {end} boundary must be one of {', '.join(BOUNDARIES)}, "
@@ -82,6 +90,25 @@ class Beam:
             if not 0 < x < self.length:
                 raise InputError(f"intermediate support at x = {x} m is not inside the beam (0, {self.length})")
         self._check_transport()
+        self._check_scale()
+
+    def _check_scale(self) -> None:
+        """omega^2 of the mesh, (EI / h^4 + |T - m_t U^2| / h^2) / (rho A) from the whole length to half
+        an element (beam_mesh's shortest), within 1e-100 ... 1e100 1/s^2, where the double-precision
+        eigen-solves and element matrices work. Red team: E = 1e308 Pa failed in the eigensolver ("PETSc
+        error 77 ... check M"), I = 1e-300 m^4 as "the mass matrix is not positive definite", length =
+        1e200 m in an internal OverflowError; an E or rho in the wrong unit is far inside these bounds."""
+        with np.errstate(all="ignore"):
+            EI, rhoA = np.float64(self.E) * self.I, np.float64(self.rho) * self.A
+            axial = abs(self.tension - (self.transported_mass or rhoA) * np.float64(self.axial_speed) ** 2)
+            h = np.float64(self.length) / (2 * self.elements)
+            lowest = (EI / np.float64(self.length) ** 4 + axial / np.float64(self.length) ** 2) / rhoA
+            highest = (EI / h ** 4 + axial / h ** 2) / rhoA
+        if not (OMEGA2_RANGE[0] <= lowest and highest <= OMEGA2_RANGE[1]):
+            raise InputError(f"beam E, I, A, rho, length, elements (and tension, axial_speed) give omega^2 of "
+                             f"{lowest:.3g} to {highest:.3g} 1/s^2 over the mesh, outside the {OMEGA2_RANGE[0]:g} to "
+                             f"{OMEGA2_RANGE[1]:g} that double-precision solves handle: check their units (SI: Pa, "
+                             f"m^4, m^2, kg/m^3, m)")
 
     def _check_transport(self) -> None:
         # check_number, as the other numbers: a bool is not a speed (True was taken as 1 m/s), a numpy
@@ -264,7 +291,7 @@ def _mesh_nodes(length: float, elements: int, points) -> np.ndarray:
                          f"{int(np.ceil(0.5 * length / (b - a)))} elements")
     pieces = [breaks[:1]]
     for a, b in zip(breaks[:-1], breaks[1:]):
-        n = max(1, int(np.ceil(elements * (b - a) / length - 1e-9)))
+        n = max(1, int(np.ceil((b - a) / length * elements - 1e-9)))   # elements (b - a) overflowed at 1e308 m
         pieces.append(np.linspace(a, b, n + 1)[1:])
     return np.concatenate(pieces)
 

@@ -156,6 +156,35 @@ def test_bad_beam_parameters_are_clear_errors(change, word):
         beam(**change)
 
 
+@pytest.mark.parametrize("change", [dict(E=1e308), dict(E=1e150), dict(E=1e-100), dict(I=1e-300), dict(rho=1e200),
+                                    dict(length=1e200), dict(length=1e308), dict(tension=1e308)])
+def test_a_beam_whose_frequencies_leave_double_precision_is_refused_naming_its_numbers(change):
+    # omega^2 = EI / (rho A L^4) ... EI / (rho A h^4) of the mesh: red team, E = 1e308 Pa ended in "the
+    # eigensolver failed (PETSc error 77) ... check M", I = 1e-300 m^4 in "the mass matrix is not positive
+    # definite", length = 1e200 m in an internal OverflowError.
+    with pytest.raises(InputError, match=r"^beam E, I, A, rho, length, elements \(and tension, axial_speed\) give "
+                                         r"omega\^2 of .* 1/s\^2 over the mesh, outside the 1e-100 to 1e\+100"):
+        beam(elements=10, **change)
+
+
+def test_a_beam_far_from_any_structure_but_inside_double_precision_keeps_its_exact_frequencies():
+    # E 1e80 times the paper's: the frequencies scale as sqrt(E), 1e40 times the paper beam's, and are the
+    # pinned-pinned (n pi / L)^2 sqrt(EI / rho A) to the mesh's h^4 error
+    b = beam(elements=40, E=117e89)
+    assert_all(np.allclose(omegas(b, 3), 1e40 * omegas(beam(elements=40), 3), rtol=1e-9))
+    assert_all(np.allclose(omegas(b, 3), beta_omega(b, np.pi * np.arange(1, 4)), rtol=1e-5))
+
+
+def test_more_elements_than_petsc_indices_count_are_refused_not_an_allocation_failure():
+    # red team: elements = 2**70 ended in numpy's "Maximum allowed size exceeded" (an internal error)
+    largest = int(np.iinfo(PETSc.IntType).max)
+    with pytest.raises(InputError, match=rf"^beam elements = {2**70}: .* use at most {(largest - 1) // 2 - 1} "
+                                         rf"elements"):
+        beam(elements=2**70)
+    with pytest.raises(InputError, match=rf"use at most {(largest - 1) // 4 - 1} elements"):
+        beam(elements=(largest - 1) // 2 - 1, planes=2)
+
+
 @pytest.mark.parametrize("left,right", [("pinned", "pinned"), ("clamped", "free")])
 @pytest.mark.parallel
 def test_operators_on_two_ranks_equal_those_on_one(left, right):
