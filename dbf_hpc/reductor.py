@@ -71,7 +71,15 @@ class Reductor:
             force_shape = basis.dot_rows(fom.force_matrix.rows)
         else:
             force_shape = np.zeros(basis.size)
-        q0, p0 = self._initial_coordinates()
+        with np.errstate(over="ignore", invalid="ignore"):   # a non-finite start is refused below, in one line
+            q0, p0 = self._initial_coordinates()
+        if not (np.isfinite(q0).all() and np.isfinite(p0).all()):   # the same on every rank (allreduced)
+            # red team: amplitude = 1e308 m printed numpy's overflow warning, then "the state is not finite at
+            # t = 0 s (step 0); reduce [integrator] dt or rtol", which no dt changes
+            initial = self.fom.initial
+            raise InputError(f"[initial] amplitude = {initial.amplitude:g} m, velocity = {initial.velocity:g} m/s: "
+                             f"the initial state in the basis is beyond double precision; give a displacement and "
+                             f"velocity of this structure's size")
         r_q = np.zeros(basis.size)
         if fom.moving_support:
             Mr = ops.M.createVecLeft()

@@ -228,8 +228,8 @@ def check_outcome(monitor: StepMonitor, reason: int, stats: dict, t_end: float, 
         raise SolverError(monitor.failure)
     if reason < 0 or monitor.next < monitor.times.size:
         if stats["final_time"] == monitor.times[0]:
-            advice += ("; it failed in its first step, which points to the input: check the excitation's amplitude "
-                       "and the units of the model (K, M, the laws' stiffness)")
+            advice += ("; it failed in its first step, which points to the input: check the excitation's amplitude, "
+                       "the [initial] amplitude and velocity, and the units of the model (K, M, the laws' stiffness)")
         raise SolverError(f"the {what} stopped at t = {stats['final_time']:.6g} s of {t_end:g} s "
                           f"(TS reason {reason}, {stats['snes_failures']} Newton failures, "
                           f"{stats['rejected_steps']} rejected steps): {advice}")

@@ -1,10 +1,14 @@
 """The reductor (reductor.py): what it projects onto the basis is what the reduced model holds, and
 the reduced model is small numpy arrays, the same on every rank."""
+import warnings
+
 import numpy as np
+import pytest
 
 from conftest import assert_all
 from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, Damping, FullOrderModel, InitialState,
                      Reductor, law)
+from dbf_hpc.errors import InputError
 from dbf_hpc.laws import ConstraintLaws
 
 BEAM = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=40)
@@ -59,6 +63,24 @@ def test_an_initial_mode_shape_starts_at_the_requested_peak_displacement():
         rom = reductor.reduce(field=True)
     w = rom.field.at(rom.q0, 0.0)
     assert_all(abs(np.abs(w).max() - 1e-3) < 1e-15 and np.count_nonzero(rom.q0) == 1)
+
+
+@pytest.mark.parametrize("start", [dict(amplitude=1e308), dict(amplitude=-1e308), dict(velocity=1e308)])
+def test_an_initial_state_beyond_double_precision_is_refused_naming_the_initial_section(start):
+    # u(0) = amplitude x a mode shape of peak 1, projected with M: past 1e308 m it is inf. Red team: numpy's
+    # overflow warning, then "the state is not finite at t = 0 s (step 0); reduce [integrator] dt or rtol".
+    tube = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=40, planes=2)
+    stop = Constraint(law("circular", clearance=2.5e-3, k=1e6), x=0.25)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")   # no RuntimeWarning on the way to the one line
+        with FullOrderModel.build(tube, [stop], initial=InitialState(mode=1, **start)) as fom, \
+                Reductor(fom, BasisSettings(modes=4)) as reductor:
+            with pytest.raises(InputError, match=r"^\[initial\] amplitude = .* m, velocity = .* m/s: the initial "
+                                                 r"state in the basis is beyond double precision"):
+                reductor.reduce()
+    with FullOrderModel.build(tube, [stop], initial=InitialState(mode=1, amplitude=1e300)) as fom, \
+            Reductor(fom, BasisSettings(modes=4)) as reductor:
+        assert_all(np.isfinite(reductor.reduce().q0).all())   # large, finite: the integration's to judge
 
 
 def test_projection_defects_above_the_tolerance_are_kept_as_projected():
