@@ -9,8 +9,9 @@ from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
 from dbf_hpc.errors import DbfError, InputError
-from dbf_hpc.matrices import MatrixFiles, load_matrix, load_operators
+from dbf_hpc.matrices import MatrixFiles, file_digest, load_matrix, load_operators
 from dbf_hpc.modes import reference_modes
+from dbf_hpc.scene import validate
 from dbf_hpc.structure import Beam, assemble_beam
 
 TABLE1 = dict(length=1.0, E=117e9, I=0.000878e-12, A=0.29e-6, rho=11800.0)
@@ -223,6 +224,22 @@ k = 1e3
         file_digest(str(shared_tmp_path), PETSc.COMM_WORLD, "mass")
     MPI.COMM_WORLD.Barrier()
     assert_all(not any(p.name.startswith("typo.h5") for p in shared_tmp_path.iterdir()), "no output, no lock")
+
+
+def test_a_matrix_file_the_run_cannot_hash_is_an_input_error_on_every_rank(shared_tmp_path, beam_files):
+    # A run hashes its matrix files (rank 0) before it loads them. Red team: a missing K.bin (the solid
+    # cantilever's before scripts/solid3d.py wrote it), or stiffness = "." (a directory), was an internal
+    # FileNotFoundError / IsADirectoryError on rank 0 instead of one line naming the file.
+    missing = str(shared_tmp_path / "nothing.bin")
+    with pytest.raises(InputError, match=rf"^stiffness file '{missing}' does not exist$"):
+        file_digest(missing, PETSc.COMM_WORLD, "stiffness")
+    with pytest.raises(InputError, match=r"^mass file .* is a directory$"):
+        MatrixFiles(beam_files[3]["K.bin"], str(shared_tmp_path)).fingerprint(PETSc.COMM_WORLD)
+    scene = validate({"structure": {"kind": "matrices", "stiffness": missing, "mass": beam_files[3]["M.bin"]}})
+    with pytest.raises(InputError, match=rf"^stiffness file '{missing}' does not exist$"):
+        scene.file_digests(PETSc.COMM_WORLD)
+    digest = file_digest(beam_files[3]["K.bin"], PETSc.COMM_WORLD)   # the bytes' sha256, the same on every rank
+    assert_all(len(digest) == 64 and len(set(MPI.COMM_WORLD.allgather(digest))) == 1)
 
 
 @pytest.mark.parametrize("which,message", [("K", "stiffness matrix is not positive semi-definite"),
