@@ -381,8 +381,9 @@ def _check_structure(s: dict, where: str) -> None:
             raise InputError(f"{where}: axial_speed, tension and transported_mass apply to a beam; a matrix model "
                              f"gives its gyroscopic matrix (gyroscopic = \"G.mtx\") and K with its tension")
         for key in ("stiffness", "mass"):
-            if s[key] is None:
-                raise InputError(f"{where}: {key} (a matrix file) is required for kind = \"matrices\"")
+            if s[key] is None or not s[key].strip():   # red team: "" was an internal TypeError (a None path)
+                got = "" if s[key] is None else f", got {s[key]!r}"
+                raise InputError(f"{where}: {key} (a matrix file) is required for kind = \"matrices\"{got}")
     else:
         raise InputError(f"{where}: kind must be \"beam\" or \"matrices\", got {s['kind']!r}")
     # Any other key of the other kind would be ignored (a matrix model's supports = [0] pinned nothing)

@@ -182,6 +182,17 @@ def test_bad_structures_are_one_clear_error(change, message):
         validate({"structure": structure}, "test.toml")
 
 
+@pytest.mark.parametrize("key", ["stiffness", "mass"])
+@pytest.mark.parametrize("empty", ["", " "])
+def test_an_empty_matrix_file_path_is_refused_as_missing(key, empty):
+    # Red team: stiffness = "" passed validation (only None was missing) and the run ended in an internal
+    # TypeError (the path became None)
+    structure = {"kind": "matrices", "stiffness": "K.mtx", "mass": "M.mtx", key: empty}
+    with pytest.raises(InputError, match=rf'^test.toml: \[structure\]: {key} \(a matrix file\) is required for kind = '
+                                         rf'"matrices", got {empty!r}$'):
+        validate({"structure": structure}, "test.toml")
+
+
 def test_matrices_structure_uses_dofs_and_needs_its_files():
     with pytest.raises(InputError, match="stiffness .* is required"):
         validate({"structure": {"kind": "matrices"}}, "t.toml")
