@@ -232,10 +232,20 @@ def load_scene(path: str, overrides=(), raw: bytes | None = None) -> Scene:
     given, given_basis = {}, set()
     for item in overrides:
         section, key, value = parse_override(item)
+        # what the file wrote where a table (or an array of tables) goes is refused as validate() would
+        # refuse it: red team, [[basis]] or [constraint] with a --set on it was an internal TypeError
         if section == "constraint":
-            _override_constraints(data.get("constraint", []), key, value, item, given)
+            constraints = data.get("constraint", [])
+            if not isinstance(constraints, list):
+                raise InputError(f"{path}: constraints are written [[constraint]] (an array of tables)")
+            for i, c in enumerate(constraints):
+                if not isinstance(c, dict):
+                    raise InputError(f"{path}: [[constraint]] {i + 1} must be a table")
+            _override_constraints(constraints, key, value, item, given)
             continue
         target = data.setdefault(section, {})
+        if not isinstance(target, dict):
+            raise InputError(f"{path}: [{section}] must be a table")
         if section == "basis" and isinstance(target, dict):
             # the two ways to choose the modes: one given on the command line replaces the scene's other
             other = {"modes": "max_frequency_hz", "max_frequency_hz": "modes"}.get(key)

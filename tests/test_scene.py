@@ -193,6 +193,23 @@ def test_an_empty_matrix_file_path_is_refused_as_missing(key, empty):
         validate({"structure": structure}, "test.toml")
 
 
+@pytest.mark.parametrize("text,item,message", [
+    ("[[basis]]\nmodes = 3\n", "basis.modes=4", r"\[basis\] must be a table$"),
+    ("basis = 3\n", "basis.modes=4", r"\[basis\] must be a table$"),
+    ("[constraint]\nx = 0.25\nk = 1e6\n", "constraint.k=2e6", r"constraints are written \[\[constraint\]\]"),
+    ("constraint = [1, 2]\n", "constraint.1.k=2e6", r"\[\[constraint\]\] 1 must be a table$"),
+])
+def test_a_set_on_a_section_the_file_did_not_write_as_a_table_is_one_clear_error(tmp_path, text, item, message):
+    # Red team: [[basis]] (an array of tables) with --set basis.modes=4 was an internal TypeError, and
+    # [constraint] (one table) with --set constraint.k an internal AttributeError; without the --set
+    # both were already one line.
+    path = tmp_path / "s.toml"
+    path.write_text(text + "[structure]\nlength = 1.0\nE = 117e9\nI = 8.78e-16\nA = 2.9e-7\nrho = 11800.0\n")
+    for sets in ([item], []):
+        with pytest.raises(InputError, match=f"^{path}: {message}"):
+            load_scene(str(path), sets)
+
+
 def test_matrices_structure_uses_dofs_and_needs_its_files():
     with pytest.raises(InputError, match="stiffness .* is required"):
         validate({"structure": {"kind": "matrices"}}, "t.toml")
