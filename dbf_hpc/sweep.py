@@ -156,10 +156,16 @@ def load_sweep(path: str, overrides=()) -> dict:
             raise InputError(f"{path}: axis '{name}' must be a non-empty list of values")
     continuation = data.get("continuation")
     directions = data.get("directions", ["up", "down"])
+    # red team: continuation = ["x"] or directions = [[1]] was an internal TypeError (unhashable), and
+    # directions = ["up", "up"] ran every chain twice, the summary holding each case twice
+    if continuation is not None and not isinstance(continuation, str):
+        raise InputError(f"{path}: continuation must name one of the [axes] (a string), got {continuation!r}")
     if continuation is not None and continuation not in axes:
         raise InputError(f"{path}: continuation '{continuation}' is not one of the [axes]")
-    if not (isinstance(directions, list) and directions and set(directions) <= {"up", "down"}):
-        raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\"")
+    if not (isinstance(directions, list) and directions and all(d in ("up", "down") for d in directions)
+            and len(set(directions)) == len(directions)):
+        raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\", each once, got "
+                         f"{directions!r}")
     cases, chains = _expand(path, axes, listed, continuation, directions)
     parameters = list(dict.fromkeys(name for case in cases for name in case))
     _refuse_sets_the_cases_replace(path, overrides, [name for name in parameters if name != DIRECTION])

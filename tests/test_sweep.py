@@ -346,6 +346,26 @@ def test_a_continuation_axis_not_in_increasing_order_is_refused_as_its_direction
     assert [v["constraint.law"] for v in load_sweep(path)["values"]] == ["hertz", "deadband", "deadband", "hertz"]
 
 
+@pytest.mark.parametrize("body,message", [
+    ('continuation = ["excitation.frequency_hz"]\n', r"continuation must name one of the \[axes\] \(a string\), got "
+                                                    r"\['excitation.frequency_hz'\]$"),
+    ("continuation = {a = 1}\n", r"continuation must name one of the \[axes\] \(a string\), got \{'a': 1\}$"),
+    ('continuation = "excitation.frequency_hz"\ndirections = [[1.0]]\n',
+     r'directions must be a list of "up" and/or "down", each once, got \[\[1.0\]\]$'),
+    ('continuation = "excitation.frequency_hz"\ndirections = ["up", "up"]\n',
+     r"directions must be a list of .*, each once, got \['up', 'up'\]$"),
+])
+def test_a_continuation_or_directions_of_the_wrong_shape_is_one_line_naming_the_key(shared_tmp_path, body, message):
+    # Red team: continuation = ["x"] or directions = [[1.0]] was an internal TypeError (unhashable); directions =
+    # ["up", "up"] ran each chain twice, every case of it twice in the summary
+    path = write_sweep(shared_tmp_path, body + '[axes]\n"excitation.frequency_hz" = [1.0, 1.1]\n')
+    with pytest.raises(InputError, match=rf"^{path}: {message}"):
+        load_sweep(path)
+    path = write_sweep(shared_tmp_path, 'continuation = "excitation.frequency_hz"\ndirections = ["down"]\n[axes]\n'
+                                        '"excitation.frequency_hz" = [1.0, 1.1]\n')
+    assert [v["excitation.frequency_hz"] for v in load_sweep(path)["values"]] == [1.1, 1.0]
+
+
 def test_a_case_whose_fixed_step_cannot_resolve_its_forcing_is_warned_as_a_run_would(shared_tmp_path, capfd):
     # Red team: at a fixed dt of 10 steps a period of the forcing, `dbf-hpc run` warns that the response is
     # wrong; a sweep of the same cases ran them without a word
