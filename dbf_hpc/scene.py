@@ -31,7 +31,7 @@ from .laws import KEYS_2D, LAWS_2D, default_exponent, law_from_dict
 from .matrices import MatrixFiles
 from .schema import NUMBER, SECTIONS, valid_keys
 from .stats import BATCHES
-from .structure import BOUNDARIES, Beam
+from .structure import BOUNDARIES, POINT_TOL, Beam
 from .timestepping import CALLBACKS, IntegratorSettings
 
 SCHEMA = {section: {name: (key.types, key.default) for name, key in keys.items()}
@@ -456,8 +456,13 @@ def _constraints(raw, path: str, at: _Positions, kind: str) -> tuple:
     for i, c in enumerate(constraints):
         key = round(c.x / at.length, 9) if at.beam else c.dof
         if key in seen:
-            raise InputError(f"{path}: constraints {seen[key] + 1} and {i + 1} are both at {c.label}; "
-                             f"remove one or merge their laws")
+            first = constraints[seen[key]]
+            # apart by less than 1e-9 of the length, one node of the mesh (red team: 0.25 and 0.5 m on a 2**70 m
+            # beam were "both at x = 0.5 m")
+            where = (f"are both at {c.label}" if first.label == c.label else
+                     f"at {first.label} and {c.label} are one point of the mesh (closer than {POINT_TOL:g} of its "
+                     f"length)")
+            raise InputError(f"{path}: constraints {seen[key] + 1} and {i + 1} {where}; remove one or merge their laws")
         seen[key] = i
     return tuple(constraints)
 
@@ -667,6 +672,11 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
     sections = _sections(data, path)
     s = sections["structure"]
     _check_structure(s, f"{path}: [structure]")
+    if s["kind"] == "beam":   # the beam's own checks (its numbers' scale, its supports) before positions on it
+        try:                  # (red team: length = 1e308 m was "constraints 1 and 2 are both at x = 1.5 m")
+            Scene(path=path, text=text, sections=sections).beam()
+        except InputError as e:
+            raise InputError(f"{path}: [structure]: {e}") from None
     at = _Positions(s)
     for x in s["supports"]:
         at.check(f"{path}: [structure] supports", x)
@@ -684,6 +694,4 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
     scene = Scene(path=path, text=text, sections=sections, constraints=constraints)
     if scene.damping().kind != "none" and not at.beam and s["damping"]:  # (also validates the damping section)
         raise InputError(f"{path}: {DAMPING_TWICE}")
-    if at.beam:
-        scene.beam()
     return scene

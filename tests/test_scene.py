@@ -210,6 +210,25 @@ def test_a_set_on_a_section_the_file_did_not_write_as_a_table_is_one_clear_error
             load_scene(str(path), sets)
 
 
+@pytest.mark.parametrize("change,message", [
+    ({"length": 1e308}, r"beam E, I, A, rho, length, elements .* give omega\^2 of 0 to 0 1/s\^2"),
+    ({"length": 1e30}, r"beam E, I, A, rho, length, elements .* give omega\^2 of .* outside the 1e-100 to 1e\+100"),
+    ({"supports": [1.0]}, r"intermediate support at x = 1.0 m is not inside the beam \(0, 1.0\)"),
+])
+def test_the_beams_own_refusal_comes_first_naming_the_structure_section(change, message):
+    # Red team: length = 1e308 m on the steam-generator tube said "constraints 1 and 2 are both at x = 1.5 m"
+    # (0.75 and 1.5 m are one point within 1e-9 of the length), and 2**70 m "constraint at x = 0.25 m acts on a
+    # fixed DOF"; the beam's numbers were checked only after the positions on it
+    stops = [{"x": 0.25, "law": "deadband", "k": 1e6, "clearance": 1e-3},
+             {"x": 0.5, "law": "deadband", "k": 1e6, "clearance": 1e-3}]
+    with pytest.raises(InputError, match=rf"^test.toml: \[structure\]: {message}"):
+        validate({"structure": {**BEAM, **change}, "constraint": stops}, "test.toml")
+    # a beam within double precision, so long that 0.25 m and 0.5 m are one node of its mesh: said so
+    with pytest.raises(InputError, match=r"^test.toml: constraints 1 and 2 at x = 0.25 m and x = 0.5 m are one point "
+                                         r"of the mesh \(closer than 1e-09 of its length\); remove one"):
+        validate({"structure": {**BEAM, "length": 2.0**70}, "constraint": stops}, "test.toml")
+
+
 def test_matrices_structure_uses_dofs_and_needs_its_files():
     with pytest.raises(InputError, match="stiffness .* is required"):
         validate({"structure": {"kind": "matrices"}}, "t.toml")
