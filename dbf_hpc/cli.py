@@ -667,8 +667,10 @@ def main(argv=None) -> int:
               file=sys.stderr, flush=True)
         if comm.size > 1:
             comm.Abort(70)
+        ending.Free()
         return 70
     code = _finish(ending, failure)
+    ending.Free()   # collective; main runs many times in one process (the tests)
     from .errors import PARKED
 
     if comm.allreduce(len(PARKED), op=MPI.SUM):
