@@ -63,8 +63,11 @@ class Enrichment:
 
     @property
     def solver_prefixes(self) -> tuple:
-        """The options prefixes of every solver a basis of this kind uses (they enter its cache key)."""
-        return ("modes_",) + ((self.prefix,) if self.prefix else ())
+        """The options prefixes of every solver a basis of this kind uses (they enter its cache key):
+        its own, the reference modes' and static_, whose Cholesky solves give every basis its stored
+        f_exact (accuracy.exact_flexibility; red team: a DBF basis built under -static_ksp_max_it 1
+        stored f_exact = NaN, and a run without the option reused it, its indicator lost)."""
+        return tuple(dict.fromkeys(("modes_", "static_") + ((self.prefix,) if self.prefix else ())))
 
     def key(self) -> dict:
         """The parameters that change the columns (for the basis cache key)."""

@@ -381,3 +381,23 @@ def test_an_option_that_only_shows_a_solve_is_no_part_of_the_basis_key(shared_tm
         assert basis_key({"K": "k"}, [3], settings) != plain
     finally:
         options.delValue("modes_eps_tol")
+
+
+def test_a_static_option_the_exact_flexibility_was_computed_under_is_part_of_every_basis_key(shared_tmp_path):
+    # red team: f_exact = g^T K^-1 g, stored with every basis (the captured-flexibility indicator), is
+    # solved with the static_ prefix; a DBF basis built under a static_ solve that fails stored NaN, and a
+    # run without the option hit the cache and reported no indicator
+    from conftest import petsc_options
+
+    def flexibility(cache_dir):
+        s = scene()
+        with s.full_order_model() as fom, Reductor(fom, s.basis_settings(), str(cache_dir)) as reductor:
+            basis = reductor.basis()
+            return basis.flexibility_exact.copy(), basis.stats.get("cache")
+
+    with petsc_options(static_ksp_type="cg", static_pc_type="none", static_ksp_max_it="1"):
+        failed, state = flexibility(shared_tmp_path)
+    assert state == "stored" and np.all(np.isnan(failed))
+    exact, state = flexibility(shared_tmp_path)
+    assert state == "stored", "a basis stored under other static_ options was reused"
+    assert np.all(np.isfinite(exact) & (exact > 0))   # the pinned-pinned beam's K is regular
