@@ -668,14 +668,19 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
 
     records = [_read_json(_case_file(folder, i)) for i in range(len(sweep["cases"]))]
     n = len(records)
+    # each row's parameters are the sweep's as asked now, not the record's: a record is reused when its
+    # case's scene is the same, however the sweep file spells the value (red team: an axis renamed from
+    # constraint.k to constraint.1.k reused both records, and the summary's constraint.1.k read NaN, "the
+    # base scene's value", for cases that set 1e5 and 2e5 N/m)
+    values = sweep["values"]
     width = max((len(r.get("stats", {}).get("impacts", [])) for r in records), default=0)
     probes = max((len(r.get("probe_peak", [])) for r in records), default=0)
     tmp = f"{output}.partial"
     # A write that fails on a full disk crashed HDF5 in its close (signal 11) once a failed case's file
     # had been kept open in this process (errors.park; red team, a 3 MB tmpfs): the room is checked first
     needed = 8.0 * n * (len(sweep["parameters"]) + (len(STATISTICS_2D) + 1) * width + probes + 3) + \
-        sum(len(json.dumps(r.get("parameters", {}))) + len(r.get("error", "")) +
-            sum(len(w) + 1 for w in r.get("warnings", [])) + 16 for r in records) + 2**16
+        sum(len(json.dumps(v)) + len(r.get("error", "")) + sum(len(w) + 1 for w in r.get("warnings", [])) + 16
+            for r, v in zip(records, values)) + 2**16
     free = free_bytes(os.path.dirname(os.path.abspath(output)))
     if free < 1.1 * needed + 2**20:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -684,13 +689,13 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
         f = h5py.File(tmp, "w")
         f.attrs["sweep"] = json.dumps({"scene": sweep["scene"], "parameters": sweep["parameters"]})
         for name in sweep["parameters"]:
-            values = [r["parameters"].get(name) for r in records]
-            if all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in values):
+            column = [case.get(name) for case in values]
+            if all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in column):
                 # NaN where a listed case leaves the base scene's value
                 f.create_dataset(f"cases/parameters/{name}",
-                                 data=np.array([np.nan if v is None else v for v in values], dtype=float))
+                                 data=np.array([np.nan if v is None else v for v in column], dtype=float))
             else:
-                f.create_dataset(f"cases/parameters/{name}", data=[json.dumps(v) for v in values])
+                f.create_dataset(f"cases/parameters/{name}", data=[json.dumps(v) for v in column])
         f.create_dataset("cases/status", data=[r["status"] for r in records])
         f.create_dataset("cases/error", data=[r.get("error", "") for r in records])
         f.create_dataset("cases/wall_time", data=[r["wall_time"] for r in records])

@@ -930,3 +930,21 @@ def test_a_listed_case_that_leaves_another_parameter_unset_is_drawn_in_the_sweep
         lines = [(np.asarray(a[0]), k["label"]) for a, k in drawn if k.get("label", "").startswith("constraint 1")]
         assert any(1.3 in x and "zeta not set" in label for x, label in lines), [(list(x), l) for x, l in lines]
     assert_all(True)
+
+
+def test_a_reused_case_shows_the_value_the_sweep_sets_now_however_the_sweep_file_spells_it(shared_tmp_path):
+    # red team: the axis renamed from constraint.k to constraint.1.k (one constraint: the same scenes, so
+    # both records were reused) wrote NaN, "the base scene's value" of 1e6 N/m, for cases at 1e5 and 2e5 N/m
+    base = _copy_scene(shared_tmp_path)
+    path = shared_tmp_path / "renamed.toml"
+    for axis in ("constraint.k", "constraint.1.k"):
+        if MPI.COMM_WORLD.rank == 0:
+            path.write_text(f'scene = "{base}"\noutput = "renamed.h5"\n[axes]\n"{axis}" = [1e5, 2e5]\n'
+                            f'"integrator.t_end" = [0.05]\n')
+        MPI.COMM_WORLD.Barrier()
+        before = counters["eigen_solves"]
+        result = run_sweep(str(path), progress=False)
+    assert counters["eigen_solves"] == before, "the renamed axis sets the same scenes: no case is run again"
+    with h5py.File(result["output"]) as f:
+        np.testing.assert_array_equal(f["cases/parameters/constraint.1.k"][:], [1e5, 2e5])
+        assert "constraint.k" not in f["cases/parameters"]
