@@ -31,8 +31,9 @@ How it runs (collective on COMM_WORLD):
 3. The cases (chains) are dealt round-robin to the ranks; each rank integrates its cases alone.
 4. Each finished case leaves a small result file (`OUT.cases/case-NNNNN.json`, written atomically)
    with the identity of the case (its validated scene, the bytes of the files it reads, and in a
-   chain its predecessors' identities): a rerun skips the cases that are done and still the same,
-   and reruns the others. SIGTERM stops every rank at its next step (a running case is
+   chain its predecessors' identities): a rerun skips the cases that are done and still the same
+   (with keep_outputs, whose complete output of that identity is still beside it), and reruns the
+   others. SIGTERM stops every rank at its next step (a running case is
    checkpointed); rerun the same command to go on. The base scene is read once, at the start.
    A full disk (a record or a case's HDF5 file that cannot be written) stops every rank.
 5. Rank 0 writes the summary. The summary is locked while a sweep runs: a second sweep on the
@@ -66,8 +67,8 @@ from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import (coarse_samples_warning, coarse_step_warning, forcing_warning, idle_warnings, run_case,
-                  unresolved_warnings)
+from .run import (coarse_samples_warning, coarse_step_warning, finished_output, forcing_warning, idle_warnings,
+                  run_case, unresolved_warnings)
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -316,6 +317,21 @@ def _identities(sweep: dict, scenes: list) -> list:
         for before, index in zip(chain, chain[1:]):
             out[index] = hashlib.sha256((out[before] + out[index]).encode()).hexdigest()
     return out
+
+
+def _look(sweep: dict, folder: str, identities: list) -> tuple:
+    """Rank 0: (every case's record, or {}; the finished cases whose full output keep_outputs asks for
+    is not beside it as this case's, complete: they run again). Red team: keep_outputs turned on after
+    a sweep reused every record and kept no case's output, in silence."""
+    records = [_read_json(_case_file(folder, i)) or {} for i in range(len(identities))]
+    unkept = set()
+    if sweep["keep_outputs"]:
+        for i, record in enumerate(records):
+            if record.get("identity") == identities[i] and record.get("status") == "ok" and \
+                    finished_output(os.path.join(folder, f"case-{i:05d}.h5"), {"case": identities[i]},
+                                    sweep["scenes"][i]) is None:
+                unkept.add(i)
+    return records, unkept
 
 
 def _coordinates_key(scene) -> str:
@@ -583,9 +599,10 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     scenes = sweep["scenes"]
     identities = _identities(sweep, scenes)
     # rank 0's reading for all: which cases are pending decides collective calls (_prepare_models)
-    records = world.bcast([_read_json(_case_file(folder, i)) or {} for i in range(n)] if world.rank == 0 else None)
+    records, unkept = world.bcast(_look(sweep, folder, identities) if world.rank == 0 else None)
     # a failed case is retried: its cause may have been the machine's (a full disk), since mended
     pending = {i for i in range(n) if records[i].get("identity") != identities[i] or records[i].get("status") != "ok"}
+    pending |= unkept
     retried = sum(records[i].get("identity") == identities[i] for i in pending)
     for chain in sweep["chains"]:   # a step rerun starts the steps after it anew (they began from rest before)
         for k, index in enumerate(chain):

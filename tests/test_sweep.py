@@ -948,3 +948,27 @@ def test_a_reused_case_shows_the_value_the_sweep_sets_now_however_the_sweep_file
     with h5py.File(result["output"]) as f:
         np.testing.assert_array_equal(f["cases/parameters/constraint.1.k"][:], [1e5, 2e5])
         assert "constraint.k" not in f["cases/parameters"]
+
+
+def test_keep_outputs_turned_on_after_a_sweep_writes_every_case_output_it_promises(shared_tmp_path):
+    # red team: the rerun reused every record and wrote no case's HDF5 output, in silence
+    base = _copy_scene(shared_tmp_path)
+    path = shared_tmp_path / "kept.toml"
+    for keep in ("false", "true"):
+        if MPI.COMM_WORLD.rank == 0:
+            path.write_text(f'scene = "{base}"\noutput = "kept.h5"\nkeep_outputs = {keep}\n' + SMALL)
+        MPI.COMM_WORLD.Barrier()
+        result = run_sweep(str(path), progress=False)
+    folder = result["output"] + ".cases"
+    outputs = [os.path.join(folder, f"case-{i:05d}.h5") for i in range(2)]
+    assert_all(all(os.path.isfile(p) for p in outputs), "keep_outputs = true keeps each case's output")
+    with h5py.File(outputs[1]) as f:
+        assert f.attrs["complete"] and abs(f["time"][-1] - 0.3) < 1e-12   # the case's own run, to its t_end
+    # a kept output removed since is written again; the other case's is not
+    stamp = os.path.getmtime(outputs[1])
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        os.remove(outputs[0])
+    MPI.COMM_WORLD.Barrier()
+    run_sweep(str(path), progress=False)
+    assert_all(os.path.isfile(outputs[0]) and os.path.getmtime(outputs[1]) == stamp)
