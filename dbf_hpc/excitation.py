@@ -112,6 +112,19 @@ def _components(name: str, components) -> int:
     return components
 
 
+def _check_peak(name: str, psd: float, band: tuple, components: int) -> None:
+    """The largest value a history can take, components sqrt(2 psd df) (RandomProcess: every cosine at
+    its crest), a finite number, or an InputError naming psd. Red team: psd = 1e308 printed numpy's
+    overflow warning, then a first-step failure that named neither psd nor the load."""
+    from .errors import InputError
+
+    with np.errstate(all="ignore"):
+        peak = components * np.sqrt(2.0 * np.float64(psd) * ((band[1] - band[0]) / components))
+    if not np.isfinite(peak):
+        raise InputError(f"{name} psd = {psd:g} over the band {band[0]:g} to {band[1]:g} Hz: the load's peak "
+                         f"overflows double precision (a value beyond 1.8e308): check its units ((N/m)^2/Hz)")
+
+
 def _span(name: str, span) -> tuple:
     """() (the whole beam) or (x0, x1) in m with x0 < x1 (fom.py checks them against the beam)."""
     from .errors import InputError, check_number
@@ -212,6 +225,7 @@ class RandomForce:
         put(self, "components", _components("RandomForce", self.components))
         put(self, "span", _span("RandomForce", self.span))
         put(self, "direction", unit_direction("RandomForce direction", self.direction))
+        _check_peak("RandomForce", self.psd, self.band, self.components)
 
     def history(self) -> RandomProcess:
         return RandomProcess(self.psd, self.band, self.seed, self.components)
@@ -269,6 +283,7 @@ class Turbulence:
         for bad, message in problems:
             if bad:
                 raise InputError(f"turbulence: {message}")
+        _check_peak("turbulence:", self.psd, self.band, self.components)   # a knee spectrum is at most psd
 
     def density(self, f) -> np.ndarray:
         """S(f), (N/m)^2/Hz."""

@@ -399,3 +399,13 @@ def test_a_two_plane_run_under_turbulence_stopped_at_a_checkpoint_resumes_to_the
                          "reduced/q", "snapshots/w", *[f"constraints/stats/{k}" for k in a["constraints/stats"]]):
                 assert np.array_equal(a[name][:], b[name][:], equal_nan=True), name
     assert_all(True)
+
+
+def test_a_psd_whose_load_peak_overflows_double_precision_is_refused_naming_psd():
+    # The peak of a history, every cosine at its crest, is components sqrt(2 psd df); red team: psd = 1e308
+    # gave numpy's overflow warning and a first-step failure naming neither psd nor the load
+    for make in (lambda psd: RandomForce(psd, (0.0, 1000.0)), lambda psd: Turbulence(psd, (0.0, 1000.0), 0.2)):
+        with pytest.raises(InputError, match=r"psd = 1e\+308 over the band 0 to 1000 Hz: the load's peak overflows"):
+            make(1e308)
+    history = RandomForce(1e250, (0.0, 1000.0)).history()   # large but representable: still a load
+    assert np.isfinite(history.value(np.array([0.0, 0.1]))).all()
