@@ -95,7 +95,8 @@ _ESTIMATED_UNITS = {"impact_rate": "1/s", "contact_fraction": "1", "force_rms": 
 _ERROR_PARTS = {
     "": "its estimated error: the {0}_sampling_ci95 + |{0}_model| + {0}_window_reduced_ci95 + "
         "{0}_window_rich_ci95",
-    "_sampling_ci95": "95 % confidence half-width of the run's own {0} over the whole run (batch means of the samples)",
+    "_sampling_ci95": "95 % confidence half-width of the run's own {0} over the whole run (batch means of the "
+                      "samples; NaN with fewer than 20)",
     "_model": "the model error: the richer model's {0} minus the run's, both over the statistics window",
     "_window_reduced": "the run's {0} over the statistics window (from the samples)",
     "_window_reduced_ci95": "95 % confidence half-width of {0}_window_reduced (batch means)",
@@ -160,7 +161,8 @@ def reference() -> str:
              "On a beam of two planes (`[structure] planes = 2`, 2-D laws such as `circular`) the statistics are per "
              "support and radial: `displacement_*` of |u|, `force_*` of |F|, contact (and so the impacts) where "
              "|u| > clearance, `impact_power_mean` of |F_n v_n|, and `work_rate` = <|F_n| |v_t|> (W), the normal "
-             "work rate of code_aster (Archard wear), with `work_rate_ci95`, and `wear_volume` = K_w T work_rate "
+             "work rate of code_aster (Archard wear), with `work_rate_ci95` (its batch-means 95 % confidence "
+             "half-width; NaN with fewer than 20 samples), and `wear_volume` = K_w T work_rate "
              "(m^3) with `wear_volume_ci95` for a constraint's `wear_coefficient` K_w (NaN without one) (runs; the "
              "Python API's Result has the work rate only).", "",
              "With snapshots, `OUT.xdmf` beside the output describes `snapshots/points` and "
