@@ -238,7 +238,11 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float, rigi
     columns = f", Re and Im: {basis.size} real columns" if basis.complex_modes else ""
     if getattr(basis, "form", "") == "state_space":
         columns = f", Re and Im of the state vectors: {basis.size} real states, A-orthonormal"
-    _say(say, f"basis: {modes} ({f[0]:.4g} ... {f[-1]:.4g} Hz) {extra} ({seconds:.2f} s, "
+    # rigid-body modes are 0 Hz (their round-off, 1e-5 Hz on the free-free paper beam, is no frequency)
+    rigid = min(rigid_modes, f.size)
+    span = f"{f[0]:.4g} ... {f[-1]:.4g} Hz" if not rigid else f"{rigid} rigid-body at 0 Hz" + (
+        f", {f[rigid]:.4g} ... {f[-1]:.4g} Hz" if rigid < f.size else "")
+    _say(say, f"basis: {modes} ({span}) {extra} ({seconds:.2f} s, "
               f"cache {basis.stats.get('cache')}{columns})")
     warnings = basis.warnings(labels)
     flex = basis.flexibility_captured
