@@ -92,16 +92,19 @@ def captured(f_basis: np.ndarray, f_exact: np.ndarray) -> np.ndarray:
         return np.where(f_exact > 0, f_basis / np.where(f_exact > 0, f_exact, 1.0), np.nan)
 
 
-def flexibility_warning(values: np.ndarray, labels) -> str | None:
-    """One line naming the constraint whose captured flexibility is lowest, if below FLEXIBILITY_WARN."""
+def flexibility_warning(values: np.ndarray, labels, dimension: int = 1) -> str | None:
+    """One line naming the constraint whose captured flexibility is lowest, if below FLEXIBILITY_WARN.
+    values and labels have one entry per component (the DBF columns): `dimension` of them per
+    constraint (2 on a beam of two planes), so component j belongs to constraint j // dimension + 1."""
     values = np.asarray(values, dtype=float)
     if not values.size or not np.any(np.isfinite(values)):
         return None
     j = int(np.nanargmin(values))
     if values[j] >= FLEXIBILITY_WARN:
         return None
-    low = int(np.sum(values < FLEXIBILITY_WARN))
-    return (f"the basis captures {values[j]:.1%} of the static flexibility at constraint {j + 1} ({labels[j]})"
+    low = np.unique(np.flatnonzero(values < FLEXIBILITY_WARN) // dimension).size
+    return (f"the basis captures {values[j]:.1%} of the static flexibility at constraint {j // dimension + 1} "
+            f"({labels[j]})"
             f"{f' ({low} constraints below {FLEXIBILITY_WARN:.0%})' if low > 1 else ''}: expect errors of several "
             f"percent; add modes, or use enrichment = \"static\" or a basis tolerance (docs/accuracy.md)")
 

@@ -192,7 +192,7 @@ def orthonormalize(V: SLEPc.BV, first: int, rows: np.ndarray, labels=None, name:
         j = c - first
         before = V.normColumn(c)
         if not before > 0:
-            raise SolverError(f"the {name} of constraint {j + 1} ({labels[j]}) is zero; "
+            raise SolverError(f"the {name} at {labels[j]} is zero; "
                               f"the constraint does not move the structure")
         V.setActiveColumns(0, c)
         col = V.createVec()

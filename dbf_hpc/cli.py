@@ -363,7 +363,7 @@ def _basis(args) -> int:
             f"modes{enriched}{columns}, M-orthonormal "
             f"({elapsed:.3f} s, {comm.tompi4py().allreduce(counters['eigen_solves'] - solves, op=MPI.MAX)} "
             f"eigen-solves on the busiest rank, cache {basis.stats.get('cache')})")
-        _print_basis(say, basis, labels)
+        _print_basis(say, basis, labels, fom.constraints.dimension)
         if args.xdmf:
             _write_shapes(args.xdmf, fom, reductor, basis)
     return 0
@@ -416,7 +416,7 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
         print(f"wrote {path} and {h5} ({values.shape[1]} shapes)")
 
 
-def _print_basis(say, basis, labels) -> None:
+def _print_basis(say, basis, labels, dimension: int = 1) -> None:
     from petsc4py import PETSc
 
     from .accuracy import flexibility_warning
@@ -445,7 +445,7 @@ def _print_basis(say, basis, labels) -> None:
         say(f"{'j':>6} {'where':>14} {'captured':>10} {'f_exact (m/N)':>14}")
         for j in range(flex.size):
             say(f"{j + 1:>6} {labels[j]:>14} {flex[j]:>10.6f} {basis.flexibility_exact[j]:>14.6g}")
-        low = flexibility_warning(flex, labels)
+        low = flexibility_warning(flex, labels, dimension)
         if low:
             warn(low, PETSc.COMM_WORLD)
     for warning in basis.warnings(labels):

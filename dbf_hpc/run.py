@@ -177,7 +177,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             basis = reductor.basis()
             timings["basis"] = time.perf_counter() - t
             _say_basis(say, basis, timings["basis"], fom.constraints.component_labels, comm, scene.fastest_forcing_hz(),
-                       fom.operators.rigid_modes)
+                       fom.operators.rigid_modes, fom.constraints.dimension)
             t = time.perf_counter()
             model = reductor.reduce(field=scene.output().snapshots > 0)
             basis_key = {"fingerprint": fom.fingerprint, "basis": basis.settings.key(),
@@ -230,7 +230,9 @@ def _say(say, message: str) -> None:
 SUSPICIOUS_HZ = 1e-3
 
 
-def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float, rigid_modes: int = 0) -> None:
+def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float, rigid_modes: int = 0,
+               dimension: int = 1) -> None:
+    """The basis lines of a run; labels has one entry per component, `dimension` per constraint."""
     strategy = basis.settings.strategy
     extra = f"+ {basis.constraint_omega().size} {strategy.column_name}s" if strategy.column_name else "(no enrichment)"
     f = basis.omega / (2 * np.pi)
@@ -248,9 +250,9 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float, rigi
     flex = basis.flexibility_captured
     if flex.size and np.any(np.isfinite(flex)):
         j = int(np.nanargmin(flex))
-        _say(say, f"static flexibility captured (a-priori indicator): min {flex[j]:.4f} at constraint {j + 1} "
+        _say(say, f"static flexibility captured (a-priori indicator): min {flex[j]:.4f} at constraint {j // dimension + 1} "
                   f"({labels[j]})")
-    low = flexibility_warning(flex, labels)
+    low = flexibility_warning(flex, labels, dimension)
     if low:
         warnings.append(low)
     # The rigid-body modes' 0 Hz comes out as round-off (1e-5 Hz on the free-free paper beam, 2e-6 of

@@ -438,3 +438,14 @@ def test_a_long_run_sampled_coarsely_gets_a_statistics_window_its_batch_means_ca
             errors = {name: f["constraints/stats_error"][name][:] for name in f["constraints/stats_error"]}
         assert errors and all(np.all(np.isfinite(v)) for v in errors.values()), \
             [k for k, v in errors.items() if not np.all(np.isfinite(v))]
+
+
+def test_the_flexibility_warning_of_a_two_plane_beam_names_the_constraint_not_its_column():
+    # Two columns (y, z) per constraint on a beam of two planes: the lowest, column 3, is the second
+    # constraint's y, and both of its low columns are one constraint below the threshold.
+    from dbf_hpc.accuracy import flexibility_warning
+    labels = [f"x = {x} m ({axis})" for x in (0.5, 1, 1.5) for axis in "yz"]
+    line = flexibility_warning(np.array([1.0, 1.0, 0.2, 0.3, 1.0, 1.0]), labels, dimension=2)
+    assert "at constraint 2 (x = 1 m (y))" in line and "constraints below" not in line, line
+    line = flexibility_warning(np.array([0.4, 0.4, 0.2, 0.3, 1.0, 1.0]), labels, dimension=2)
+    assert "at constraint 2 (x = 1 m (y)) (2 constraints below" in line, line

@@ -336,3 +336,27 @@ def test_a_free_free_beam_in_si_units_draws_no_unit_warning_from_its_rigid_body_
                     "basis: 6 modes (2 rigid-body at 0 Hz, 1.951e-05 ... ") in captured.out, captured.out
             assert ("the lowest elastic frequency is" in captured.err) == warned, (E, captured.err)
             assert not warned or "the lowest elastic frequency is 1.95e-05 Hz" in captured.err, captured.err
+
+
+def test_a_two_plane_beams_flexibility_line_names_the_constraint_at_the_position_it_prints(shared_tmp_path, capfd):
+    # Red team: on a beam of two planes each constraint has two DBF columns (y, z), and the run said
+    # "min ... at constraint 3 (x = 1 m (y))" for the second of three constraints: the column's number.
+    # The number printed and the position printed must be the same constraint's.
+    import re
+    text = open(PAPER).read().replace('right = "pinned"', 'right = "pinned"\nplanes = 2')
+    stops = "".join(f'[[constraint]]\nx = {x}\nlaw = "circular"\nclearance = 2.5e-3\nk = 1e6\n\n'
+                    for x in (0.25, 0.6, 0.8))
+    text = text[:text.index("[[constraint]]")] + stops + text[text.index("[basis]"):]
+    path = shared_tmp_path / "two_planes.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(text)
+    MPI.COMM_WORLD.Barrier()
+    s = load_scene(str(path), ["basis.cache=off", "basis.enrichment=\"none\"", "basis.modes=4",
+                               "integrator.t_end=0.01", "basis.estimate=false"])
+    run(s, str(shared_tmp_path / "two_planes.h5"), progress=True)
+    out = capfd.readouterr()
+    if MPI.COMM_WORLD.rank == 0:
+        named = re.findall(r"at constraint (\d+) \(x = ([0-9.]+) m \([yz]\)\)", out.out + out.err)
+        assert named, out
+        for number, x in named:
+            assert (0.25, 0.6, 0.8)[int(number) - 1] == float(x), (number, x, out.out)
