@@ -1001,7 +1001,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
             snaps[i] = field.take(values) + field_support * support.value(settings.sample_times[i])
 
     _say(say, f"integrating the full-order model to t = {settings.t_end:g} s with generalized-alpha (one "
-              f"factorization, contact condensed on {constraints.count} DOF(s), step {settings.dt:g} s)")
+              f"factorization, contact condensed on {constraints.count * constraints.dimension} DOF(s), step {settings.dt:g} s)")
     t = time.perf_counter()
     try:
         with _interrupt_on_sigterm(control):

@@ -254,3 +254,21 @@ def test_unresolved_impacts_warn_whatever_the_sample_interval(shared_tmp_path, c
     err = capfd.readouterr().err
     if MPI.COMM_WORLD.rank == 0:
         assert "the impacts of constraint 1 at x = 0.25 m last 1 fixed steps" in err, err
+
+
+def test_the_full_run_counts_two_condensed_dofs_per_round_hole_of_a_two_plane_beam(shared_tmp_path, capfd):
+    # Red team: a round hole holds the tube in y and z, so three holes condense the contact on 6 DOFs;
+    # the log said "contact condensed on 3 DOF(s)" (the constraints, not their DOFs).
+    text = open(PAPER).read().replace('right = "pinned"', 'right = "pinned"\nplanes = 2')
+    stops = "".join(f'[[constraint]]\nx = {x}\nlaw = "circular"\nclearance = 2.5e-3\nk = 1e6\n\n'
+                    for x in (0.25, 0.6, 0.8))
+    text = text[:text.index("[[constraint]]")] + stops + text[text.index("[basis]"):]
+    path = shared_tmp_path / "two_planes_full.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(text)
+    MPI.COMM_WORLD.Barrier()
+    s = load_scene(str(path), ["basis.cache=off", "integrator.t_end=0.002", "integrator.dt=1e-4"])
+    run(s, str(shared_tmp_path / "two_planes_full.h5"), progress=True, method="full")
+    out = capfd.readouterr().out
+    if MPI.COMM_WORLD.rank == 0:
+        assert "contact condensed on 6 DOF(s)" in out, out
