@@ -21,7 +21,7 @@ from typing import Optional
 import numpy as np
 
 from .errors import InputError, check_number
-from .laws import ConstraintLaws, Law
+from .laws import ConstraintLaws, Law, PlanarLaws
 
 
 @dataclass(frozen=True)
@@ -154,5 +154,8 @@ class ConstraintSet:
         return np.array([law.clearance_plus for law in self.laws.laws], dtype=float)
 
     def with_laws(self, laws) -> "ConstraintSet":
-        """The same constraints with other laws (a new law never needs a new basis)."""
+        """The same constraints with other laws (a new law never needs a new basis): one law() per
+        constraint, in their order, or a ConstraintLaws (PlanarLaws on a beam of two planes)."""
+        if not hasattr(laws, "n"):
+            laws = PlanarLaws(laws) if self.dimension == 2 else ConstraintLaws(laws)
         return ConstraintSet(rows=self.rows, laws=laws, labels=self.labels, positions=self.positions)

@@ -57,6 +57,27 @@ def test_a_case_changes_the_law_and_the_excitation_but_not_the_operators():
     assert case.constraints.laws.laws[0].kind == "linear" and rom.constraints.laws.laws[0].kind == "deadband"
 
 
+def test_another_law_given_as_a_plain_list_runs_on_the_same_basis_as_a_model_built_with_it():
+    # Red team: the API's natural call, with_laws([law(...)]), was an AttributeError ('list' object
+    # has no attribute 'n'). The paper's Eq. 42 on the deadband's basis is the model built with Eq. 42
+    # from the start (the basis does not depend on the law: paper, conclusion 2), step for step.
+    from dbf_hpc import IntegratorSettings, simulate_reduced
+    eq42 = law("power", clearance=2.5e-3, k_minus=0.1, exponent_minus=3, k_plus=1e6, exponent_plus=1)
+    runs = []
+    for stop, laws in ((STOP, [eq42]), (Constraint(eq42, x=0.25), None)):
+        with FullOrderModel.build(BEAM, [stop], BaseMotion(5e-3, 1.0)) as fom, \
+                Reductor(fom, BasisSettings(modes=4), None) as reductor:
+            rom = reductor.reduce()
+        if laws is not None:
+            rom = rom.with_case(constraints=rom.constraints.with_laws(laws))
+        runs.append(simulate_reduced(rom, IntegratorSettings(t_end=2.0, sample_dt=1e-3)))
+    # the paper's Fig. 7: past -d on the soft cubic side, held at +d by the stiff side
+    assert runs[0].displacement.min() < -2.6e-3 and runs[0].displacement.max() < 2.6e-3
+    np.testing.assert_allclose(runs[0].displacement, runs[1].displacement, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="2 laws for 1 constraints"):
+        rom.constraints.with_laws([eq42, eq42])
+
+
 def test_an_initial_mode_shape_starts_at_the_requested_peak_displacement():
     with FullOrderModel.build(BEAM, [STOP], initial=InitialState(mode=2, amplitude=1e-3)) as fom, \
             Reductor(fom, BasisSettings(modes=4)) as reductor:
