@@ -174,3 +174,20 @@ def test_study_estimate_refuses_a_truth_that_is_missing_or_not_sampled_as_its_ca
     assert out.returncode == 2 and "is not the truth of paper_beam_4.toml" in out.stderr.splitlines()[-1], out.stderr
     out = script("study_estimate.py", str(tmp_path), "--modes", "0", timeout=120)
     assert out.returncode == 2 and "--modes '0'" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_setup_help_says_what_it_does_and_an_unknown_argument_installs_nothing(tmp_path):
+    # New-user pass: `scripts/setup --help` ran the whole install (venv, pip, apt) as if no argument
+    # had been given. A copy in an empty folder: without the guard it would start there.
+    import shutil
+    (tmp_path / "scripts").mkdir()
+    shutil.copy(os.path.join(ROOT, "scripts", "setup"), tmp_path / "scripts" / "setup")
+    run = lambda *args: subprocess.run(["bash", str(tmp_path / "scripts" / "setup"), *args],  # noqa: E731
+                                       capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    shown = run("--help")
+    assert shown.returncode == 0 and shown.stdout.startswith("Make this machine ready to run dbf_hpc"), shown
+    assert "Idempotent" in shown.stdout and "set -euo" not in shown.stdout, shown.stdout
+    refused = run("--yes")
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused
+    assert refused.stderr.startswith("setup: unknown argument --yes"), refused.stderr
+    assert sorted(os.listdir(tmp_path)) == ["scripts"], "nothing installed"
