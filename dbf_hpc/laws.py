@@ -743,9 +743,10 @@ def circular_from_dict(where: str, d: dict) -> CircularLaw:
             raise InputError(f"{where}: {key} does not apply to a circular law{takes} (keys: {', '.join(KEYS_2D)})")
         if key not in ("law", "damping") and not (is_number(value) and math.isfinite(value)):
             raise InputError(f"{where}: {key} must be a finite number, got {value!r}")
-    for key in ("clearance", "k"):
+    for key, unit in (("clearance", "m, the radial clearance" if d.get("law") != "flat_bar" else "m, the gap to each "
+                       "flat"), ("k", "N/m")):
         if key not in d:
-            raise InputError(f"{where}: a circular law needs {key}")
+            raise InputError(f"{where}: a {d.get('law', 'circular')} law needs {key} ({unit})")
     damping = d.get("damping", "none")
     if damping == "linear" and "c" not in d:
         raise InputError(f"{where}: damping = \"linear\" needs c (N s/m)")

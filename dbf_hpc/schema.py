@@ -190,9 +190,12 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
                                        'or on a beam of two planes "circular" (a round hole) or "flat_bar" (two '
                                        'parallel flats)'),
     "clearance": Key(NUMBER, None, "m", "deadband, power, hertz: gap on both sides (or clearance_minus, "
-                                        "clearance_plus); negative is an interference fit; circular: the radial "
-                                        "clearance (>= 0); flat_bar: the gap to each flat"),
-    "k": Key(NUMBER, None, "N/m^p", "stiffness on both sides (or k_minus, k_plus); linear, cubic: the spring"),
+                                        "clearance_plus; 0 when not given: in contact from z = 0); negative is an "
+                                        "interference fit; circular: the radial clearance (>= 0), flat_bar: the gap "
+                                        "to each flat (both required)"),
+    "k": Key(NUMBER, None, "N/m^p", "stiffness on both sides (or k_minus, k_plus); linear, cubic: the spring; "
+                                    "required but for table and friction (cubic: k and/or k3); circular, flat_bar: "
+                                    "N/m"),
     "exponent": Key(NUMBER, None, "", "power: exponent p on both sides (or exponent_minus, exponent_plus); "
                                       "hertz: 1.5"),
     "k3": Key(NUMBER, None, "N/m^3", "cubic: N = -(k z + k3 z^3)"),

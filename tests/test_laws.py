@@ -377,3 +377,13 @@ def test_contact_damping_pulls_only_where_documented_while_separating():
     # the same below the stop, mirrored
     force = ConstraintLaws([hc] * 2).force(np.full(2, -1.5 * D), np.array([0.9, 1.1]) / alpha)
     assert force[0] > 0 and force[1] < 0
+
+
+@pytest.mark.parametrize("kind", ["circular", "flat_bar"])
+def test_a_two_direction_support_without_a_stiffness_or_a_gap_is_refused_naming_its_own_law_and_unit(kind):
+    # New-user pass: a flat_bar without k said "a circular law needs k", another law than the one
+    # written, and neither said the unit. A support with no stiffness or no gap has no force law.
+    with pytest.raises(InputError, match=rf"^\[\[constraint\]\] 1: a {kind} law needs k \(N/m\)$"):
+        law_from_dict("[[constraint]] 1", {"law": kind, "clearance": 1e-4, "mu": 0.3})
+    with pytest.raises(InputError, match=rf"^\[\[constraint\]\] 1: a {kind} law needs clearance \(m, the "):
+        law_from_dict("[[constraint]] 1", {"law": kind, "k": 1e6})
