@@ -199,7 +199,8 @@ def _sweep_lines(path: str, f) -> list:
                            if not _missing(columns[name][i]))
         if state == "ok":
             lines.append(f"  case {i + 1} ({values}): max |w| {np.nanmax(peak[i]):.4g} m, "
-                         f"{np.nansum(impacts[i]):.0f} impacts, peak force {np.nanmax(force[i]):.4g} N"
+                         f"{np.nansum(impacts[i]):.0f} impacts at the {impacts.shape[1]} constraint(s) together, "
+                         f"peak force {np.nanmax(force[i]):.4g} N"
                          + _work_summary(f, i))
             lines += [f"    warning: {w}" for w in warned[i].split("\n") if w]
         else:

@@ -972,3 +972,20 @@ def test_keep_outputs_turned_on_after_a_sweep_writes_every_case_output_it_promis
     MPI.COMM_WORLD.Barrier()
     run_sweep(str(path), progress=False)
     assert_all(os.path.isfile(outputs[0]) and os.path.getmtime(outputs[1]) == stamp)
+
+
+def test_a_sweeps_info_line_says_its_impacts_are_those_of_all_constraints_together(shared_tmp_path):
+    # New-user pass: "max |w| 0.00015 m, 659 impacts" read as the impacts of the constraint with the
+    # largest |w|; it is the sum over the constraints (here the paper's four stops).
+    path = shared_tmp_path / "sweep4.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(f'scene = "{os.path.join(ROOT, "jobs", "paper_beam_4.toml")}"\noutput = "summary4.h5"\n'
+                        '[axes]\n"integrator.t_end" = [2.0]\n"basis.cache" = ["off"]\n')
+    MPI.COMM_WORLD.Barrier()
+    result = run_sweep(str(path), progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(result["output"]) as f:
+            per_stop = f["cases/stats/impacts"][0]
+        assert per_stop.shape == (4,) and np.count_nonzero(per_stop) > 1, per_stop
+        line = next(line for line in describe(result["output"]) if line.startswith("  case 1 "))
+        assert f", {per_stop.sum():.0f} impacts at the 4 constraint(s) together, " in line, line
