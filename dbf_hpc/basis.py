@@ -313,7 +313,8 @@ def check_pairs(ops: Operators, count: int | None) -> None:
     if count is not None and count % planes:
         raise InputError(f"[basis] modes = {count} on a beam of two planes: each frequency is a pair (y and z), and "
                          f"an odd count keeps one of the last pair in a direction set by round-off; give an even "
-                         f"count ({' or '.join(str(n) for n in sorted({max(count - 1, 2), count + 1}))}) or max_frequency_hz")
+                         f"count ({' or '.join(str(n) for n in sorted({max(count - 1, 2), count + 1}))}) or "
+                         f"max_frequency_hz")
 
 
 def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None) -> ReducedBasis:

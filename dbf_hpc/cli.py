@@ -569,9 +569,10 @@ def _finish(comm, failure: str | None) -> int:
 
     All ranks meet in a non-blocking barrier on `comm`, a communicator of its own (a duplicate of
     COMM_WORLD that nothing else uses: a rank waiting in another barrier never meets this one). A rank
-    that succeeded waits as long as it takes (rank 0 may still be writing). A rank that failed waits 10 s: if the others do not arrive, they are stuck
-    in a collective call this rank will never make, so it prints its error and aborts the job. When
-    all arrive, the first failing rank prints its one line and every rank exits 1.
+    that succeeded waits as long as it takes (rank 0 may still be writing). A rank that failed waits
+    10 s: if the others do not arrive, they are stuck in a collective call this rank will never make,
+    so it prints its error and aborts the job. When all arrive, the first failing rank prints its one
+    line and every rank exits 1.
     """
     request = comm.Ibarrier()
     deadline = time.monotonic() + 10.0

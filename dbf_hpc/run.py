@@ -250,8 +250,8 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float, rigi
     flex = basis.flexibility_captured
     if flex.size and np.any(np.isfinite(flex)):
         j = int(np.nanargmin(flex))
-        _say(say, f"static flexibility captured (a-priori indicator): min {flex[j]:.4f} at constraint {j // dimension + 1} "
-                  f"({labels[j]})")
+        _say(say, f"static flexibility captured (a-priori indicator): min {flex[j]:.4f} at constraint "
+                  f"{j // dimension + 1} ({labels[j]})")
     low = flexibility_warning(flex, labels, dimension)
     if low:
         warnings.append(low)
@@ -1001,7 +1001,8 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
             snaps[i] = field.take(values) + field_support * support.value(settings.sample_times[i])
 
     _say(say, f"integrating the full-order model to t = {settings.t_end:g} s with generalized-alpha (one "
-              f"factorization, contact condensed on {constraints.count * constraints.dimension} DOF(s), step {settings.dt:g} s)")
+              f"factorization, contact condensed on {constraints.count * constraints.dimension} DOF(s), step "
+              f"{settings.dt:g} s)")
     t = time.perf_counter()
     try:
         with _interrupt_on_sigterm(control):
