@@ -568,7 +568,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         with _stop_on_sigterm(estimator is not None, "stopped by a termination signal during the error estimates, "
                               "after the integration; rerun with --resume to finish from the last checkpoint"):
             estimate = _estimate(estimator, writer, settings, timings, say)
-            long_run = _estimate_statistics(estimator, estimate, writer, model.constraints, settings, timings)
+            long_run = _estimate_statistics(estimator, estimate, writer, model.constraints, settings, timings, say)
     except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
         raise type(exc)(_left_behind(str(exc), writer, checkpoint)) from None
     t = time.perf_counter()
@@ -627,12 +627,16 @@ def _estimate(estimator, writer, settings, timings: dict, say):
     return estimate
 
 
-def _estimate_statistics(estimator, estimate, writer, constraints, settings, timings: dict):
+def _estimate_statistics(estimator, estimate, writer, constraints, settings, timings: dict, say=None):
     """Rank 0: the statistics' errors of a long run (accuracy.is_long: t_end beyond STATISTICS_WINDOWS
     times the pointwise window), or None (a short run, no richer model, the tolerance mode's reused
     calibration). Reads the run's constraint samples back a batch at a time. Not collective."""
     if estimator is None or estimate is None or isinstance(estimator[0], (str, Estimate)) or \
             not is_long(settings.t_end, estimate.window):
+        if estimator is not None and estimate is not None and isinstance(estimator[0], Estimate) and \
+                is_long(settings.t_end, estimate.window):   # a long run that might expect them (day-one user)
+            _say(say, "statistics errors: none in the tolerance mode (it reuses its calibration run over the "
+                      "estimate window); run the picked modes and rtol without [basis] tolerance for them")
         return None
     writer.flush()
     times = writer.series_data(layout.TIME)

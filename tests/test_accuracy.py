@@ -269,6 +269,23 @@ def test_a_cli_run_carries_the_estimate_and_info_prints_it(tmp_path):
 
 
 @pytest.mark.launcher
+def test_a_long_tolerance_mode_run_says_it_carries_no_statistics_errors_and_stores_none(tmp_path):
+    # The tolerance mode reuses its calibration run over the estimate window, so a long run (t_end 2 s,
+    # over 5 windows of ~0.26 s) has no statistics estimate; it said nothing of it (day-one user)
+    import h5py
+
+    from test_cli import PAPER, dbf_hpc
+
+    out = tmp_path / "tol.h5"
+    done = dbf_hpc("run", PAPER, "-o", str(out), "--set", "basis.tolerance=0.05", "--set", "integrator.t_end=2",
+                   "--set", "basis.cache=off")
+    assert done.returncode == 0, done.stderr
+    assert "statistics errors: none in the tolerance mode" in done.stdout, done.stdout
+    with h5py.File(out, "r") as f:
+        assert "constraints/stats_error" not in f and "estimated_statistics_window" not in f.attrs
+
+
+@pytest.mark.launcher
 def test_a_tolerance_that_cannot_be_met_is_one_line_and_no_file(tmp_path):
     from test_cli import PAPER, dbf_hpc
 
