@@ -184,7 +184,7 @@ def _constraint_figures(name, t, positions, series, gaps, span, written) -> None
         for (values, label), color in zip(_components(force, j), ("C2", "C1")):
             ax.plot(t, values, lw=0.8, color=color, label=label)
         _legend(ax, force)
-        ax.set_ylabel(f"N [N]\n{_where(positions[j])}")
+        ax.set_ylabel(f"force [N]\n{_where(positions[j])}")
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time t [s]")
     fig.suptitle(f"Constraint force, the peak over each sample interval ({span})")
