@@ -9,7 +9,7 @@
     dbf-hpc cache list|clear [--dir DIR] [--older-than DAYS]
 
 PETSc/SLEPc options (single dash, e.g. -modes_eps_tol 1e-12 -log_view) go after the scene; each
-solver reads its own prefix (modes_, dbf_, static_, rom_, full_). Exit status: 0 on success, 1 on an
+solver reads its own prefix (modes_, dbf_, static_, buckling_, rom_, full_). Exit status: 0 on success, 1 on an
 error the user can act on (one line on stderr), 2 on a malformed command line (one line on stderr),
 70 on an internal error.
 
@@ -94,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="PETSc/SLEPc options go after the scene, e.g. -modes_eps_tol 1e-12 -log_view. "
                "Solver prefixes: modes_ (reference modes; -modes_trust_tol), dbf_ (spring-perturbed modes "
                "and DBF derivatives; dbf_shared_ on the ritz and shared paths, dbf_krylov_ on the shared path), "
-               "static_ (static modes), "
+               "static_ (static modes), buckling_ (a compressed or moving beam's buckling load), "
                "rom_ (the reduced model's TS and SNES, e.g. -rom_ts_arkimex_type 4), full_ (the full-order "
                "reference). The scene format: docs/scene.md.")
     parser.add_argument("--version", action="version", version=f"dbf-hpc {__version__}")
@@ -315,6 +315,11 @@ def _modes(args) -> int:
         if gyroscopic:
             for j in modes.unstable:
                 say(f"UNSTABLE at axial speed {_axial_speed(scene)}: {modes.describe(j)}")
+            if modes.unstable:
+                from .gyroscopic import critical_speed_note
+                note = critical_speed_note(ops)
+                if note:
+                    say(f"critical speed:{note}")
             if not modes.unstable and fom.damping.kind != "modal" and fom.damping_matrix() is not None:
                 _say_damped_stability(fom, modes.count or 8, scene, say)
         say(f"time: assembly {assembled - start:.3f} s, eigensolve {solved - assembled:.3f} s")
@@ -597,7 +602,7 @@ def _warn_unused(petsc_options, comm) -> None:
 
     for name in unused_options([t for t in petsc_options if t.startswith("-") and not _NUMBER.match(t)], comm):
         warn(f"PETSc option {name} was not used: a misspelling, or a solver this command does not run (prefixes: "
-             f"modes_, dbf_, static_, rom_, full_)", comm)
+             f"modes_, dbf_, static_, buckling_, rom_, full_)", comm)
 
 
 def _terminated(signum, frame):

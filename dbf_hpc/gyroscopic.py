@@ -221,17 +221,37 @@ def gyroscopic_modes(ops: Operators, count: int | None = None, max_frequency_hz:
     return GyroscopicModes(eigenvalues=values, real=xr, imag=xi)
 
 
+def critical_speed_note(ops: Operators) -> str:
+    """For an axially moving beam, ' U_c = sqrt((T + P_cr) / m_t) = ... m/s': the speed at which its K
+    becomes singular, sqrt((T + P_cr) / m_t) (structure.critical_speed; (pi / L) sqrt(EI / m_t) for a
+    pinned-pinned pipe without tension), where the first frequency falls to zero. '' for a matrix
+    model (its G has no speed). Collective."""
+    from .structure import buckling_load, critical_speed
+
+    beam = getattr(ops.mesh, "beam", None)
+    if beam is None or not beam.axial_speed:
+        return ""
+    speed = critical_speed(beam, buckling_load(ops.comm, ops.mesh))
+    return f" U_c = sqrt((T + P_cr) / m_t) = {speed:.6g} m/s"
+
+
 def check_stable(ops: Operators, count: int, speed: str, prefix: str = "modes_") -> None:
     """An InputError naming the first unstable mode among the lowest `count` complex modes (divergence
-    or flutter) at the axial `speed` (words): a linear model that grows without bound has no
-    steady response to run. Collective."""
-    modes = gyroscopic_modes(ops, count=min(count, ops.size), prefix=prefix)
+    or flutter) at the axial `speed` (words), and the critical speed of a beam: a linear model that
+    grows without bound has no steady response to run. Within ~1e-4 of the critical speed, the
+    SolverError of a near-singular K, with the critical speed. Collective."""
     try:
-        if modes.unstable:
-            raise InputError(f"the structure is unstable at axial speed {speed}: {modes.describe(modes.unstable[0])}; "
-                             f"lower the axial speed below the critical speed (or raise the tension)")
+        modes = gyroscopic_modes(ops, count=min(count, ops.size), prefix=prefix)
+    except SolverError as e:
+        note = critical_speed_note(ops)
+        raise SolverError(f"{e}; the critical speed is{note}" if note else str(e)) from None
+    try:
+        unstable = [modes.describe(j) for j in modes.unstable]
     finally:
         modes.destroy()
+    if unstable:
+        raise InputError(f"the structure is unstable at axial speed {speed}: {unstable[0]}; lower the axial speed "
+                         f"below the critical speed{critical_speed_note(ops)} (or raise the tension)")
 
 
 def check_damped_stable(ops: Operators, damped: PETSc.Mat, count: int, speed: str, prefix: str = "modes_") -> None:
@@ -253,7 +273,8 @@ def check_damped_stable(ops: Operators, damped: PETSc.Mat, count: int, speed: st
         raise InputError(f"the structure is unstable with its damping at axial speed {speed}: a mode grows (lambda = "
                          f"{worst.real:.6g} {abs(worst.imag):+.6g}i 1/s, growth rate {worst.real:.6g} 1/s) though the "
                          f"undamped one does not: K is not positive definite and only the gyroscopic forces held it, "
-                         f"which damping undoes; lower the axial speed (or stiffen K)")
+                         f"which damping undoes; lower the axial speed below the critical speed"
+                         f"{critical_speed_note(ops)} (or stiffen K)")
 
 
 def mode_state(ops: Operators, mode: int, prefix: str = "modes_") -> tuple:

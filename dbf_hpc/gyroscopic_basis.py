@@ -53,7 +53,7 @@ from .basis import BREAKDOWN_TOL, BasisSettings, ReducedBasis, _basis_vectors, _
 from .dbf import CENTRAL_STEP, branch_of, cluster_of, with_spring
 from .enrichment import static_modes
 from .errors import DbfError, InputError, SolverError
-from .gyroscopic import gyroscopic_modes
+from .gyroscopic import critical_speed_note, gyroscopic_modes
 from .modes import counters, normalize
 from .operators import Operators
 from .petsctools import destroy, values_at
@@ -75,7 +75,7 @@ def stable_modes(ops: Operators, count: int | None = None, max_frequency_hz: flo
         text = modes.describe(j)
         modes.destroy()
         raise InputError(f"the reduced basis of a gyroscopic structure needs stable modes: {text}; lower the axial "
-                         f"speed below the critical speed")
+                         f"speed below the critical speed{critical_speed_note(ops)}")
     return modes
 
 

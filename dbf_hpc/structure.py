@@ -32,8 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from petsc4py import PETSc
+from slepc4py import SLEPc
 
-from .errors import InputError, check_number
+from .errors import InputError, SolverError, check_number
 from .operators import Operators, PointValues
 from .petsctools import aij_from_owned_triplets, destroy, direct_solver, owned_rows
 
@@ -44,6 +45,8 @@ POINT_TOL = 1e-9
 # The squared circular frequencies (1/s^2) a beam's mesh may span (Beam._check_scale): far outside
 # any structure's in SI units, inside what the eigen-solves' double precision holds.
 OMEGA2_RANGE = (1e-100, 1e100)
+# A compression -T within this fraction of the buckling load is the buckling load (K singular to round-off).
+BUCKLING_TOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -397,6 +400,8 @@ def assemble_beam(beam: Beam, comm=None, points=(), base_end: str | None = None,
     def mass(h):
         return element_matrices(h, beam.EI, beam.rhoA)[1]
 
+    if beam.tension < 0 and not mesh.rigid_modes():   # only a compression can buckle the beam
+        check_not_buckled(beam, buckling_load(comm, mesh))
     if base_end is None:
         ops = Operators(comm=comm, K=_assemble(comm, mesh, stiffness), M=_assemble(comm, mesh, mass), mesh=mesh,
                         rigid_modes=mesh.rigid_modes(), eigen_scale=beam.eigen_scale, field=mesh.field_map())
@@ -434,6 +439,55 @@ def assemble_beam(beam: Beam, comm=None, points=(), base_end: str | None = None,
     finally:
         destroy(k_coupling, m_coupling)
     return ops
+
+
+def buckling_load(comm, mesh: BeamMesh) -> float:
+    """P_cr (N): the least compressive axial force -T at which the beam's K = K_bending + T int N'^T N' dx
+    loses its definiteness, the lowest P of K_bending x = P int N'^T N' dx x (EI pi^2 / L^2 pinned-pinned,
+    4 EI pi^2 / L^2 clamped-clamped), solved as the largest 1/P of int N'^T N' dx x = (1/P) K_bending x
+    (SLEPc GHEP, K_bending positive definite: the mesh has no rigid-body motion). Options prefix
+    `buckling_`. Collective."""
+    beam = mesh.beam
+    Kb = _assemble(comm, mesh, lambda h: element_matrices(h, beam.EI, beam.rhoA)[0])
+    Kg = _assemble(comm, mesh, lambda h: transport_matrices(h, 1.0, 0.0)[0])
+    eps = SLEPc.EPS().create(comm=comm)
+    try:
+        eps.setOperators(Kg, Kb)
+        eps.setProblemType(SLEPc.EPS.ProblemType.GHEP)
+        eps.setWhichEigenpairs(SLEPc.EPS.Which.LARGEST_REAL)
+        eps.setDimensions(1, PETSc.DEFAULT, PETSc.DEFAULT)
+        eps.setTolerances(1e-12, 1000)
+        direct_solver(eps.getST().getKSP(), PETSc.PC.Type.CHOLESKY)
+        eps.setOptionsPrefix("buckling_")
+        eps.setFromOptions()
+        eps.solve()
+        theta = eps.getEigenvalue(0).real if eps.getConverged() else 0.0
+    except PETSc.Error as e:
+        raise SolverError(f"the buckling load of the beam: the eigensolver failed (PETSc error {e.ierr}); check the "
+                          f"-buckling_ options") from None
+    finally:
+        destroy(eps, Kb, Kg)
+    if not theta > 0:
+        raise SolverError("the buckling load of the beam: the eigensolver did not converge; check the -buckling_ "
+                          "options")
+    return 1.0 / theta
+
+
+def check_not_buckled(beam: Beam, load: float) -> None:
+    """An InputError if the beam's tension is a compression at or beyond its buckling load `load` (N):
+    K is then not positive definite and the linear model grows without bound at any axial speed (no
+    critical speed is left to stay below)."""
+    if beam.tension + load <= BUCKLING_TOL * load:
+        raise InputError(f"beam tension = {beam.tension:g} N is a compression at or beyond the beam's buckling load "
+                         f"P_cr = {load:.6g} N (EI pi^2 / L^2 pinned-pinned): K is not positive definite and the "
+                         f"linear beam grows without bound at any axial speed; give a tension above {-load:.6g} N")
+
+
+def critical_speed(beam: Beam, load: float) -> float:
+    """U_c (m/s) at which K = K_bending + (T - m_t U^2) int N'^T N' dx becomes singular, sqrt((T + P_cr) /
+    m_t) with P_cr = `load` the buckling load: sqrt((EI (pi / L)^2 + T) / m_t) pinned-pinned, the
+    divergence speed of a pipe conveying fluid or a moving beam (0 if the beam is buckled)."""
+    return float(np.sqrt(max(beam.tension + load, 0.0) / beam.m_t))
 
 
 def influence_vector(K, M, k_coupling, m_coupling):

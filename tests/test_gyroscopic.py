@@ -224,7 +224,7 @@ def test_free_vibration_of_a_moving_beam_from_its_complex_mode_oscillates_at_the
     assert "lu" in result.solver["factorization"] and "cholesky" not in result.solver["factorization"]
 
 
-def moving_scene(tmp, speed):
+def moving_scene(tmp, speed, tension=100.0):
     text = f"""
 [structure]
 kind = "beam"
@@ -235,7 +235,7 @@ I = 1e-8
 A = 1e-4
 rho = 7800.0
 axial_speed = {speed}
-tension = 100.0
+tension = {tension}
 
 [excitation]
 kind = "none"
@@ -253,7 +253,7 @@ t_end = 0.002
 [output]
 probes = [0.5]
 """
-    path = tmp / f"moving_{speed}.toml"
+    path = tmp / f"moving_{speed}_{tension}.toml"
     if MPI.COMM_WORLD.rank == 0:
         path.write_text(text)
     MPI.COMM_WORLD.Barrier()
@@ -269,6 +269,75 @@ def test_run_refuses_above_the_critical_speed_naming_the_mode_and_the_speed(shar
         with pytest.raises(InputError, match=r"unstable at axial speed 200 m/s: mode 1 is unstable \(divergence"):
             run(scene, str(shared_tmp_path / "unstable.h5"), progress=False, method=method)
         assert not (shared_tmp_path / "unstable.h5").exists()
+
+
+def test_buckling_load_is_ei_pi2_over_l2_and_the_first_frequency_vanishes_at_the_critical_speed():
+    # P_cr = EI pi^2 / L^2 pinned-pinned, 4 EI pi^2 / L^2 clamped-clamped (measured 1e-8, 2e-7 at 60
+    # elements); U_c = sqrt((T + P_cr) / m_t) = sqrt((EI (pi / L)^2 + T) / m_t), the speed where
+    # K = K_bending + (T - m_t U^2) int N'^T N' dx is singular: 1e-3 below it the first frequency is
+    # small and the structure stable, 1e-3 above it mode 1 diverges (a real lambda > 0).
+    from dbf_hpc.structure import BeamMesh, buckling_load, critical_speed
+
+    for ends, factor in ((("pinned", "pinned"), 1.0), (("clamped", "clamped"), 4.0)):
+        beam = Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=60, left=ends[0], right=ends[1])
+        assert abs(buckling_load(PETSc.COMM_WORLD, BeamMesh(beam)) / (factor * EI * np.pi**2 / L**2) - 1) < 1e-6
+    T, m_t = 300.0, 0.3 * RHOA
+    pipe = dict(length=L, E=E, I=I, A=A, rho=RHO, elements=60, tension=T, transported_mass=m_t)
+    u_c = critical_speed(Beam(**pipe, axial_speed=1.0), buckling_load(PETSc.COMM_WORLD, BeamMesh(Beam(**pipe))))
+    assert abs(u_c / np.sqrt((EI * (np.pi / L) ** 2 + T) / m_t) - 1) < 1e-6
+    omega_0 = complex_frequencies(Beam(**pipe, axial_speed=1e-6 * u_c), 1)[0][0].imag
+    below, unstable = complex_frequencies(Beam(**pipe, axial_speed=(1 - 1e-3) * u_c), 1)
+    assert not unstable and 0 < below[0].imag < 0.1 * omega_0
+    above, unstable = complex_frequencies(Beam(**pipe, axial_speed=(1 + 1e-3) * u_c), 1)
+    assert unstable == [0] and above[0].imag == 0 and above[0].real > 0
+
+
+def test_run_above_the_critical_speed_names_it_in_its_one_line(shared_tmp_path):
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    u_c = np.sqrt((EI * (np.pi / L) ** 2 + 100.0) / RHOA)    # 159.5 m/s; the scene's T = 100 N
+    scene = load_scene(moving_scene(shared_tmp_path, 200.0))
+    for method in ("full", "rom"):
+        with pytest.raises(InputError, match=r"below the critical speed U_c = sqrt\(\(T \+ P_cr\) / m_t\) = "
+                                             r"([0-9.]+) m/s \(or raise the tension\)$") as e:
+            run(scene, str(shared_tmp_path / "unstable.h5"), progress=False, method=method)
+        assert abs(float(str(e.value).split("= ")[-1].split(" ")[0]) / u_c - 1) < 1e-5
+        assert not (shared_tmp_path / "unstable.h5").exists()
+
+
+@pytest.mark.parametrize("speed", [0.0, 30.0])
+def test_a_beam_compressed_beyond_its_buckling_load_is_refused_at_any_speed_by_both_methods(shared_tmp_path, speed):
+    # Compressed by T = -2 EI pi^2 / L^2, K is not positive definite: the linear beam grows without bound
+    # with or without transport (--method full at U = 0 ran it, bounded by nothing but the stops)
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    scene = load_scene(moving_scene(shared_tmp_path, speed, tension=-2 * EI * np.pi**2 / L**2))
+    for method in ("full", "rom"):
+        with pytest.raises(InputError, match=r"beyond the beam's buckling load P_cr = 19739.2 N .* give a tension "
+                                             r"above -19739.2 N"):
+            run(scene, str(shared_tmp_path / "buckled.h5"), progress=False, method=method)
+        assert not (shared_tmp_path / "buckled.h5").exists()
+
+
+def test_a_compression_below_buckling_lowers_the_first_frequency_to_the_closed_form(shared_tmp_path):
+    # U = 0, T = -P_cr / 2: omega_1^2 = (pi / L)^2 (EI (pi / L)^2 + T) / (rho A), half the unloaded one
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    T = -0.5 * EI * np.pi**2 / L**2
+    beam = Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=40, tension=T)
+    ops = assemble_beam(beam)
+    try:
+        modes = reference_modes(ops, count=1)
+        omega = float(modes.omega[0])
+        modes.destroy()
+    finally:
+        ops.destroy()
+    assert abs(omega / (np.pi / L * np.sqrt((EI * (np.pi / L) ** 2 + T) / RHOA)) - 1) < 1e-6
+    scene = load_scene(moving_scene(shared_tmp_path, 0.0, tension=T))
+    assert run(scene, str(shared_tmp_path / "compressed.h5"), progress=False, method="full") is not None
 
 
 def test_a_moving_beam_scene_runs_reduced_and_full_from_the_same_complex_mode(shared_tmp_path):
