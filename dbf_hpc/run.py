@@ -118,7 +118,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     return summary
 
 
-def _gyroscopic_checks(scene: Scene, fom, method: str) -> None:
+def gyroscopic_checks(scene: Scene, fom, method: str) -> None:
     """A gyroscopic structure (issue 19): refused above its critical speed (an unstable mode among the
     [basis] modes lowest, or the lowest 8, without and with its damping); the reduced model
     (gyroscopic_basis.py) takes no modal damping ratios (its basis vectors are not modes) and no
@@ -152,7 +152,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         _say(say, f"dbf-hpc: {scene.path}: {fom.size} DOFs, {fom.constraints.count} constraint(s), "
                   f"{comm.getSize()} rank(s)")
         if fom.operators.G is not None:
-            _gyroscopic_checks(scene, fom, method)
+            gyroscopic_checks(scene, fom, method)
         elif scene["basis"]["gyroscopic_form"] == "state_space" and method == "rom":
             warn('[basis] gyroscopic_form = "state_space" is for gyroscopic structures (axial_speed, or a '
                  'matrices G); this one has no G, so its reduced model is the usual second-order one', comm)

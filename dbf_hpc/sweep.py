@@ -67,8 +67,8 @@ from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import (coarse_samples_warning, coarse_step_warning, finished_output, forcing_warning, idle_warnings,
-                  run_case, unresolved_warnings)
+from .run import (coarse_samples_warning, coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks,
+                  idle_warnings, run_case, unresolved_warnings)
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -363,9 +363,13 @@ def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | No
         if key in models:
             continue
         try:
-            with scene.full_order_model(PETSc.COMM_WORLD) as fom, \
-                    Reductor(fom, scene.basis_settings(), cache_dir) as reductor:
-                models[key] = reductor.reduce(field=scene.output().snapshots > 0)
+            with scene.full_order_model(PETSc.COMM_WORLD) as fom:
+                # what a run refuses of a gyroscopic structure, a case too (red team: a sweep ran modal damping
+                # ratios on the complex modes' real basis, and skipped the stability check with damping)
+                if fom.operators.G is not None:
+                    gyroscopic_checks(scene, fom, "rom")
+                with Reductor(fom, scene.basis_settings(), cache_dir) as reductor:
+                    models[key] = reductor.reduce(field=scene.output().snapshots > 0)
         except DbfError as e:
             models[key] = str(e)
     say(f"reduced models ready: {len(models)}")

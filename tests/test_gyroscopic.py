@@ -2,6 +2,8 @@
 closed forms and an independent Galerkin solution; their complex modes (gyroscopic.py), stability,
 and the full-order reference with G. Serial and on 2 ranks (every number compared is the same on
 every rank: the eigenvalues and the run's samples are collective results)."""
+import re
+
 import numpy as np
 import pytest
 import scipy.io
@@ -1183,6 +1185,28 @@ t_end = 0.01
             run(load_scene(str(shared_tmp_path / f"rotor_{alpha:g}.toml")), str(out), progress=False, method=method)
         assert not out.exists()
     assert run(load_scene(str(shared_tmp_path / "rotor_0.toml")), str(out), progress=False, method="full") is not None
+
+
+def test_a_sweep_case_of_a_gyroscopic_structure_is_refused_as_its_run_is(shared_tmp_path):
+    # Red team: a sweep built its reduced models without the run's gyroscopic checks: the damped rotor
+    # above (its damping destroys the gyroscopic stabilization: growth rate 3.37 1/s) ran, and so did modal
+    # damping ratios on the real basis of complex modes, where they have no meaning. Each is a failed case.
+    from dbf_hpc.sweep import run_sweep
+
+    K = np.diag([-1e4, -1e4, 2e4])
+    G = np.array([[0.0, 300.0, 0.0], [-300.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    write_rotor(shared_tmp_path, K, G, {"rotor_damped.toml": "[damping]\nrayleigh_alpha = 20.0\n",
+                                        "rotor_zeta.toml": "[damping]\nzeta = 0.01\n"})
+    for name, message in (("damped", r"unstable with its damping .* growth rate 3\.374"),
+                          ("zeta", r"modal damping ratios have no meaning")):
+        path = shared_tmp_path / f"sweep_{name}.toml"
+        if MPI.COMM_WORLD.rank == 0:
+            path.write_text(f'scene = "rotor_{name}.toml"\noutput = "sweep_{name}.h5"\n[axes]\n'
+                            f'"basis.modes" = [3]\n"basis.cache" = ["off"]\n"integrator.t_end" = [0.01]\n')
+        MPI.COMM_WORLD.Barrier()
+        result = run_sweep(str(path), progress=False)
+        assert result["failed"] == result["cases"] == 1
+        assert re.search(message, result["first_failure"]), result["first_failure"]
 
 
 @pytest.mark.parametrize("fraction", [0.0, 0.5, 0.99, -0.5])
