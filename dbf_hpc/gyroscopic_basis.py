@@ -189,11 +189,30 @@ def transition(ops: Operators, row: int, modes) -> tuple:
 
 
 def _corner(omega: float, pinned: float, slope: float) -> float:
-    return max(pinned**2 - omega**2, 0.0) / (2 * omega * slope)
+    """The auto stiffness, or 0 (no transition) for a branch that does not stiffen (slope <= 0)."""
+    return max(pinned**2 - omega**2, 0.0) / (2 * omega * slope) if slope > 0 else 0.0
 
 
-def _branch_slope(ops: Operators, row: int, modes) -> tuple:
-    """(branch, omega_m, d omega/dk) of the constraint at `row` from the reference modes. Collective."""
+def _auto_stiffness(ops: Operators, row: int, branch: int, omega: float, slope: float, stiffness) -> float:
+    """k_auto, the corner of Fig. 2. When the DBF `stiffness` is a number, k_auto only serves its
+    warning (far from the transition) and is 0 (none) where there is no transition: a branch that does
+    not stiffen under a spring, or a structure that pinning the DOF makes unstable (a mode only G held;
+    red team: a number was refused with the advice to give one). Collective."""
+    if stiffness == "auto":
+        return _corner(omega, _pinned_frequency(ops, row, branch), slope)
+    if not slope > 0:
+        return 0.0
+    try:
+        pinned = _pinned_frequency(ops, row, branch)
+    except InputError:   # every rank: the same eigenvalues
+        return 0.0
+    return _corner(omega, pinned, slope)
+
+
+def _branch_slope(ops: Operators, row: int, modes, stiffness="auto") -> tuple:
+    """(branch, omega_m, d omega/dk) of the constraint at `row` from the reference modes; a branch that
+    does not stiffen under a spring (a mode that only G holds: K is not positive definite there) has no
+    auto stiffness, an error only when `stiffness` is "auto". Collective."""
     lam = modes.omega ** 2
     part = np.array([values_at(a, [row])[0] ** 2 + values_at(b, [row])[0] ** 2
                      for a, b in zip(modes.real, modes.imag)])
@@ -204,7 +223,7 @@ def _branch_slope(ops: Operators, row: int, modes) -> tuple:
     cluster = cluster_of(part, lam)
     omega = modes.omega[branch - 1]
     slope = cluster_slope(ops, row, omega, [modes.real[i] for i in cluster], [modes.imag[i] for i in cluster])
-    if not slope > 0:
+    if not slope > 0 and stiffness == "auto":   # red team: a number was refused with the same advice
         raise SolverError(f"the gyroscopic DBF at row {row}: mode {branch} does not stiffen under a spring "
                           f"(d omega/dk = {slope:.3g}); give [basis] dbf_stiffness as a number")
     return branch, float(omega), float(slope)
@@ -232,11 +251,8 @@ def _dbf_state(ops: Operators, row: int, modes, stiffness="auto", reference=None
     DBF [i varpi d; d] (Eq. 17, state_space.py) needs. `reference`: (branch, omega, slope) from
     _branch_slope, when the modes live on another communicator (groups; modes is then unused).
     Collective on ops.comm."""
-    if reference is None:
-        branch, _, _, k_auto = transition(ops, row, modes)
-    else:
-        branch, omega, slope = reference
-        k_auto = _corner(omega, _pinned_frequency(ops, row, branch), slope)
+    branch, omega, slope = _branch_slope(ops, row, modes, stiffness) if reference is None else reference
+    k_auto = _auto_stiffness(ops, row, branch, omega, slope, stiffness)
     k = k_auto if stiffness == "auto" else float(stiffness)
     h = CENTRAL_STEP
     vecs = []
@@ -272,7 +288,7 @@ def all_dbfs(ops: Operators, rows: np.ndarray, modes, stiffness="auto", groups: 
     n_groups = constraint_groups(world.size, NL, groups) if NL else 1
     if n_groups == 1:
         return [_dbf_state(ops, int(r), modes, stiffness) for r in rows]
-    reference = [_branch_slope(ops, int(r), modes) for r in rows]
+    reference = [_branch_slope(ops, int(r), modes, stiffness) for r in rows]
     color = world.rank * n_groups // world.size
     group, group_ops = _group_operators(ops, n_groups)
     group_ops.G = ops.G.getRedundantMatrix(n_groups, group_ops.comm)
