@@ -52,6 +52,8 @@ from .rom import ReducedField, applied, digest_of
 
 # A real column below this fraction of its complex vector's A-norm is left out (gyroscopic_basis.DROP_TOL).
 DROP_TOL = 1e-6
+# w^T K w below -NEGATIVE_TOL (v^T M v + |w^T K w|) is negative beyond round-off: K is not positive definite.
+NEGATIVE_TOL = 1e-10
 FORMS = ("state_space", "second_order")
 
 
@@ -77,9 +79,9 @@ class _StateGramSchmidt:
 
     def norm(self, v, w) -> float:
         Mv, Kw = self._products(v, w)
-        value = v.dot(Mv) + w.dot(Kw)
+        value = _a_norm(v, w, Mv, Kw)
         destroy(Mv, Kw)
-        return float(np.sqrt(max(value, 0.0)))
+        return value
 
     def add(self, v, w, scale: float) -> bool:
         """Orthonormalize copies of (v, w) against the kept columns; True if kept. `scale`: the A-norm of
@@ -96,7 +98,11 @@ class _StateGramSchmidt:
                     v.axpy(-cj, a)
                     w.axpy(-cj, b)
             Mv, Kw = self._products(v, w)
-            norm = float(np.sqrt(max(v.dot(Mv) + w.dot(Kw), 0.0)))
+            try:
+                norm = _a_norm(v, w, Mv, Kw)
+            except InputError:
+                destroy(v, w, Mv, Kw)
+                raise
             if norm < BREAKDOWN_TOL * before:
                 destroy(v, w, Mv, Kw)
                 return False
@@ -113,6 +119,19 @@ class _StateGramSchmidt:
     def destroy_products(self):
         destroy(*self.Mv, *self.Kw)
         self.Mv, self.Kw = [], []
+
+
+def _a_norm(v, w, Mv, Kw) -> float:
+    """sqrt(v^T M v + w^T K w), the A-norm of the state (v, w) (Eq. 9); an InputError where w^T K w is
+    clearly negative: A is an inner product only with K positive definite, and a structure whose K is
+    not (a mode that only G holds, Kelvin-Tait-Chetaev) had its mode columns dropped as zero and ended
+    in an internal error (red team). Collective."""
+    m, k = v.dot(Mv), w.dot(Kw)
+    if k < -NEGATIVE_TOL * (m + abs(k)):
+        raise InputError('[basis] gyroscopic_form = "state_space": its inner product A = diag(M, K) (Eqs. 9, 11) '
+                         'needs K positive definite, and this structure\'s K is not (w^T K w < 0 on a basis vector: '
+                         'a mode that only G holds); use gyroscopic_form = "second_order"')
+    return float(np.sqrt(max(m + k, 0.0)))
 
 
 def _state_parts(xr, xi, omega: float):

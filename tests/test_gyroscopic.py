@@ -1270,6 +1270,25 @@ def test_a_mode_only_g_holds_softens_under_a_spring_and_a_given_dbf_stiffness_st
     assert np.ptp(w_full) > 1e-4 and np.abs(w - w_full).max() < 1e-4 * np.ptp(w_full)
 
 
+@pytest.mark.parametrize("enrichment", ["none", "dbf"])
+def test_the_state_space_form_of_a_mode_only_g_holds_is_refused_since_a_is_no_inner_product(shared_tmp_path,
+                                                                                          enrichment):
+    # A = diag(M, K) (Eq. 9) is an inner product only for K positive definite. The held mode's state vector
+    # has a negative A-"norm" (its energy omega^2 x^H M x + x^H K x < 0): its columns were dropped as zero,
+    # and the run ended in an internal IndexError (enrichment none) or a 'basis breakdown' of the DBF.
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    write_held(shared_tmp_path, {f"held_state_{enrichment}.toml": f'gyroscopic_form = "state_space"\n'
+                                                                  f'enrichment = "{enrichment}"\n'
+                                                                  f'dbf_stiffness = 1e3'})
+    with pytest.raises(InputError, match=r'state_space.*needs K positive definite.*use gyroscopic_form = '
+                                         r'"second_order"'):
+        run(load_scene(str(shared_tmp_path / f"held_state_{enrichment}.toml")), str(shared_tmp_path / "hs.h5"),
+            progress=False)
+    assert not (shared_tmp_path / "hs.h5").exists()
+
+
 @pytest.mark.parametrize("fraction", [0.0, 0.5, 0.99, -0.5])
 def test_pipe_complex_modes_are_the_dense_companion_eigenpairs_and_omega_1_falls_as_sqrt_1_minus_u2(fraction):
     # u_c = (pi / L) sqrt(EI / m_f): omega_1(u) ~ omega_1(0) sqrt(1 - (u / u_c)^2) to first approximation
