@@ -65,15 +65,24 @@ DROP_TOL = 1e-6
 PREFIX = "dbf_"
 
 
-def stable_modes(ops: Operators, count: int | None = None, max_frequency_hz: float | None = None, prefix="modes_"):
+# A spring above this multiple of K's diagonal entry at its row is refused (_spring_mode): the PEP with it
+# loses its digits, far inside the pinned limit (dbf-hpc stiffness shows the whole curve below it).
+SPRING_RATIO_MAX = 1e4
+
+
+def stable_modes(ops: Operators, count: int | None = None, max_frequency_hz: float | None = None, prefix="modes_",
+                 problem: str | None = None):
     """gyroscopic_modes, or an InputError naming the first unstable mode (a basis of growing modes
-    has no meaning). Collective."""
+    has no meaning): of the structure, or of the `problem` (words: a spring-perturbed or pinned one,
+    which the axial speed is not to blame for). Collective."""
     counters["eigen_solves"] += 1
     modes = gyroscopic_modes(ops, count=count, max_frequency_hz=max_frequency_hz, prefix=prefix)
     if modes.unstable:
         j = modes.unstable[0]
         text = modes.describe(j)
         modes.destroy()
+        if problem is not None:
+            raise InputError(problem.format(text))
         raise InputError(f"the reduced basis of a gyroscopic structure needs stable modes: {text}; lower the axial "
                          f"speed below the critical speed{critical_speed_note(ops)}")
     return modes
@@ -91,10 +100,23 @@ def _mdot(M: PETSc.Mat, a: PETSc.Vec, b: PETSc.Vec) -> float:
 def _spring_mode(ops: Operators, row: int, k: float, branch: int):
     """(lambda, x_R, x_I): mode `branch` of (lambda^2 M + lambda G + K + k g g^T) x = 0 (Eq. 13),
     x^H M x = 1 (new Vecs, the caller's). Collective."""
+    diagonal = ops.K.getDiagonal()
+    own = abs(float(values_at(diagonal, [row])[0]))
+    diagonal.destroy()
+    # red team: --k 1e20 on the pipe at half its critical speed gave 547 rad/s (pinned: 438) in one process and a
+    # 'flutter' blamed on the axial speed in another; 1e16 (3e6 x K_rr) was 2.6e-5 off, 1e12 (300 x) exact
+    if own > 0 and k > SPRING_RATIO_MAX * own:
+        raise InputError(f"a spring of k = {k:.3g} N/m at row {row} is {k / own:.1e} x K's own entry there "
+                         f"({own:.3g}): above {SPRING_RATIO_MAX:g} x, the gyroscopic eigenproblem with the spring "
+                         f"(Eq. 13) loses its digits to round-off, and the pinned limit is reached long before; give "
+                         f"a smaller k ([basis] dbf_stiffness, or --k)")
+    problem = (f"the structure with a spring of k = {k:.3g} N/m at row {row} (Eq. 13): {{}}; a spring destabilizes "
+               f"only a structure that G alone holds (K not positive definite): give another k ([basis] "
+               f"dbf_stiffness, or --k)")
     A = with_spring(ops.K, row, k)
     try:
         spring = Operators(comm=ops.comm, K=A, M=ops.M, G=ops.G)
-        modes = stable_modes(spring, count=branch, prefix=PREFIX)
+        modes = stable_modes(spring, count=branch, prefix=PREFIX, problem=problem)
     finally:
         A.destroy()
     lam, xr, xi = modes.eigenvalues[branch - 1], modes.real[branch - 1], modes.imag[branch - 1]
@@ -110,7 +132,10 @@ def _pinned_frequency(ops: Operators, row: int, branch: int) -> float:
     pinned = Operators(comm=ops.comm, K=ops.K.createSubMatrix(index, index), M=ops.M.createSubMatrix(index, index),
                        G=ops.G.createSubMatrix(index, index))
     try:
-        modes = stable_modes(pinned, count=branch, prefix=PREFIX)
+        modes = stable_modes(pinned, count=branch, prefix=PREFIX,
+                             problem=f"the structure with the constraint DOF at row {row} pinned (k -> infinity, the "
+                                     f"end of Fig. 2 and of the auto stiffness): {{}}; give [basis] dbf_stiffness as "
+                                     f"a number")
         omega = float(modes.omega[branch - 1])
         modes.destroy()
     finally:

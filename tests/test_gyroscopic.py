@@ -1289,6 +1289,33 @@ def test_the_state_space_form_of_a_mode_only_g_holds_is_refused_since_a_is_no_in
     assert not (shared_tmp_path / "hs.h5").exists()
 
 
+def test_a_spring_too_stiff_for_double_precision_is_refused_not_a_wrong_frequency_or_a_blamed_speed():
+    # The pipe at half its critical speed under a spring at x = 0.5 m: omega_1(k) rises to its pinned value
+    # (438.048 rad/s at 60 elements) and stays there. Red team: k = 1e20 N/m (3e10 x K_rr) gave 547 rad/s in
+    # one process and a 'flutter' blamed on the axial speed in another (round-off of the PEP); 1e16 was
+    # 2.6e-5 off. Above 1e4 K_rr (a spring pinned to 1e-7 long before) it is refused in one line.
+    from dbf_hpc.gyroscopic_basis import SPRING_RATIO_MAX, stiffness_sweep
+    from dbf_hpc.petsctools import values_at
+
+    pipe = Beam(length=1.5, E=2e11, I=9.6268e-9, A=1.44513e-4, rho=10247.0, elements=60, transported_mass=0.34636,
+                axial_speed=78.0)
+    ops = assemble_beam(pipe, points=[0.5])
+    try:
+        row = ops.mesh.w_row(0.5)
+        diagonal = ops.K.getDiagonal()
+        own = float(values_at(diagonal, [row])[0])
+        diagonal.destroy()
+        omega = stiffness_sweep(ops, row, [1e3, 3e2 * own, SPRING_RATIO_MAX * own])
+        assert 0 < omega[0] < omega[1] and abs(omega[2] / omega[1] - 1) < 1e-6   # pinned, to round-off
+        for k in (1e20, 1.01 * SPRING_RATIO_MAX * own):
+            with pytest.raises(InputError, match=r"a spring of k = .* N/m at row .* x K's own entry there .* loses its "
+                                                 r"digits .* give a smaller k") as e:
+                stiffness_sweep(ops, row, [k])
+            assert "axial speed" not in str(e.value)
+    finally:
+        ops.destroy()
+
+
 @pytest.mark.parametrize("fraction", [0.0, 0.5, 0.99, -0.5])
 def test_pipe_complex_modes_are_the_dense_companion_eigenpairs_and_omega_1_falls_as_sqrt_1_minus_u2(fraction):
     # u_c = (pi / L) sqrt(EI / m_f): omega_1(u) ~ omega_1(0) sqrt(1 - (u / u_c)^2) to first approximation
