@@ -40,11 +40,15 @@ SECTIONS = {
                                      "then take 2-D laws, law = \"circular\")"),
         "axial_speed": Key(NUMBER, 0.0, "m/s", "beam: axial transport speed U (an axially moving beam, or the flow "
                                                "speed of a pipe conveying fluid); needs w fixed at both ends. Adds "
-                                               "the gyroscopic G = 2 m_t U int N^T N' dx and softens K by m_t U^2"),
+                                               "the gyroscopic G = 2 m_t U int N^T N' dx and softens K by m_t U^2; "
+                                               "at or above the critical speed sqrt((T + P_cr) / m_t) (P_cr the "
+                                               "buckling load) the run is refused"),
         "transported_mass": Key(NUMBER, None, "kg/m", "beam: mass per length moving at axial_speed (default rho A; "
                                                       "a pipe's fluid mass per length, which rho A, the whole "
                                                       "mass per length, includes: at most rho A)"),
-        "tension": Key(NUMBER, 0.0, "N", "beam: axial tension T: K += (T - m_t U^2) int N'^T N' dx"),
+        "tension": Key(NUMBER, 0.0, "N", "beam: axial tension T: K += (T - m_t U^2) int N'^T N' dx; negative: a "
+                                         "compression, refused at or beyond the buckling load P_cr (EI pi^2 / L^2 "
+                                         "pinned-pinned)"),
         "stiffness": Key((str,), None, "", "matrices: K over the free DOFs, Matrix Market (.mtx) or PETSc binary "
                                            "(required); in SI units, N/m, as M in kg: the outputs' units, the "
                                            "absolute tolerances and the friction's regularization speed are SI"),
