@@ -28,6 +28,7 @@ own rows.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -253,6 +254,11 @@ class BeamMesh:
         """Row of the displacement DOF at x (of plane 0 = y or 1 = z), or -1 if w is fixed there."""
         return int(self.row[self.node_at(x), 2 * plane + W])
 
+    def can_rotate(self) -> bool:
+        """Whether the supports allow a rigid rotation w = a + b x, b != 0 (no slope held, w held at one
+        point at most): a rigid motion that a compression does work on."""
+        return not self.fixed[:, THETA].any() and np.count_nonzero(self.fixed[:, W]) < 2
+
     def rigid_modes(self) -> int:
         """Number of rigid-body motions w = a + b x that the supports allow (0, 1 or 2)."""
         conditions = [[1.0, xi] for xi in self.x[self.fixed[:, W]]]
@@ -400,8 +406,21 @@ def assemble_beam(beam: Beam, comm=None, points=(), base_end: str | None = None,
     def mass(h):
         return element_matrices(h, beam.EI, beam.rhoA)[1]
 
-    if beam.tension < 0 and not mesh.rigid_modes():   # only a compression can buckle the beam
-        check_not_buckled(beam, buckling_load(comm, mesh))
+    if beam.tension < 0:   # only a compression can buckle the beam
+        if mesh.can_rotate():
+            # red team: pinned-free under -1000 N, --method full swung w to 20 m on a 1 m beam without a word
+            raise InputError(f"beam tension = {beam.tension:g} N compresses a beam free to rotate as a rigid body "
+                             f"(left = {beam.left!r}, right = {beam.right!r}, {len(beam.supports)} support(s)): any "
+                             f"compression tips it over (the buckling load is 0) and the linear beam grows without "
+                             f"bound; give tension >= 0, or ends and supports that hold its rotation")
+        held = mesh
+        if mesh.rigid_modes():
+            # free to translate only (a sliding end, no w held): w + c costs nothing in either stiffness, so the
+            # beam with its sliding end clamped buckles at the same load (red team: free-sliding at -2 P_cr swung
+            # to 1e19 m under --method full)
+            end = "left" if beam.left == "sliding" else "right"
+            held = BeamMesh(dataclasses.replace(beam, **{end: "clamped"}), points)
+        check_not_buckled(beam, buckling_load(comm, held))
     if base_end is None:
         ops = Operators(comm=comm, K=_assemble(comm, mesh, stiffness), M=_assemble(comm, mesh, mass), mesh=mesh,
                         rigid_modes=mesh.rigid_modes(), eigen_scale=beam.eigen_scale, field=mesh.field_map())

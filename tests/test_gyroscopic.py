@@ -323,6 +323,26 @@ def test_a_beam_compressed_beyond_its_buckling_load_is_refused_at_any_speed_by_b
         assert not (shared_tmp_path / "buckled.h5").exists()
 
 
+@pytest.mark.parametrize("ends, load", [(("pinned", "free"), 0.0), (("free", "free"), 0.0),
+                                        (("free", "sliding"), 0.25), (("sliding", "free"), 0.25),
+                                        (("sliding", "sliding"), 1.0)])
+def test_a_beam_free_to_rotate_tips_under_any_compression_and_one_free_to_translate_buckles_as_if_clamped(ends, load):
+    # A rigid rotation w = b x takes a compression's work (int w'^2 > 0): the buckling load is 0. A rigid
+    # translation takes none, so the beam buckles at its load with the sliding end clamped: pi^2 EI / (4 L^2)
+    # free-sliding (a cantilever's), pi^2 EI / L^2 sliding-sliding. Red team: both ran under --method full
+    # (pinned-free at -1000 N swung to 20 m, free-sliding at -2 P_cr to 1e19 m); the reduced model said
+    # 'check K and its boundary conditions'.
+    P = load * EI * np.pi**2 / L**2
+    for T, refused in ((-0.99 * P, False), (-1.01 * P, True)) if P else ((-1e-3, True),):
+        beam = Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=40, left=ends[0], right=ends[1], tension=T)
+        if refused:
+            with pytest.raises(InputError, match=(r"free to rotate as a rigid body.*tips it over" if not P else
+                                                  rf"buckling load P_cr = {P:.6g} N")):
+                assemble_beam(beam)
+        else:
+            assemble_beam(beam).destroy()
+
+
 def test_a_compression_below_buckling_lowers_the_first_frequency_to_the_closed_form(shared_tmp_path):
     # U = 0, T = -P_cr / 2: omega_1^2 = (pi / L)^2 (EI (pi / L)^2 + T) / (rho A), half the unloaded one
     from dbf_hpc.run import run
