@@ -125,6 +125,17 @@ def test_modes_of_a_gyroscopic_structure_say_when_its_damping_makes_one_grow(tmp
     assert out.returncode == 0 and "UNSTABLE" not in out.stdout, out
 
 
+def test_modes_of_a_pipe_above_its_divergence_speed_name_the_critical_speed_pi_over_l_sqrt_ei_over_m_t():
+    # The pipe conveying fluid at 200 m/s: mode 1 diverges; its critical speed is (pi / L) sqrt(EI / m_t) =
+    # 156.153 m/s (L = 1.5 m, EI = 1925.36 N m^2, m_t = 0.34636 kg/m), which the listing now says.
+    out = dbf_hpc("modes", os.path.join(ROOT, "jobs", "pipe_conveying_fluid.toml"), "--set",
+                  "structure.axial_speed=200.0")
+    exact = np.pi / 1.5 * np.sqrt(2e11 * 9.6268e-9 / 0.34636)
+    speed = re.search(r"^critical speed: U_c = sqrt\(\(T \+ P_cr\) / m_t\) = ([\d.]+) m/s$", out.stdout, re.M)
+    assert out.returncode == 0 and "UNSTABLE at axial speed 200 m/s: mode 1" in out.stdout, out
+    assert speed and abs(float(speed.group(1)) / exact - 1) < 1e-5, out.stdout
+
+
 def test_basis_is_cached_and_reused_without_eigen_solves(tmp_path):
     args = ("basis", PAPER, "--set", f"basis.cache={tmp_path}")
     first, second = dbf_hpc(*args), dbf_hpc(*args)
