@@ -118,9 +118,26 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     return summary
 
 
+def _warn_gyroscopically_held(ops) -> None:
+    """A warning when an undamped moving beam is above its critical speed sqrt((T + P_cr) / m_t) with
+    no mode growing: K has an even number of negative eigenvalues and the gyroscopic forces alone hold
+    it (red team: a band at 93 m/s, U_c = 92.56 m/s, ran without a word); any damping makes it grow
+    (Kelvin-Tait-Chetaev), so the response has no damped counterpart. Collective."""
+    from .structure import buckling_load, critical_speed
+
+    beam = ops.mesh.beam
+    u_c = critical_speed(beam, buckling_load(ops.comm, ops.mesh))
+    if abs(beam.axial_speed) > u_c:
+        warn(f"axial speed {beam.axial_speed:g} m/s is above the critical speed U_c = sqrt((T + P_cr) / m_t) = "
+             f"{u_c:.6g} m/s: K is not positive definite and only the gyroscopic forces hold the undamped structure "
+             f"(no mode grows); any damping makes it grow (Kelvin-Tait-Chetaev), so this response has no damped "
+             f"counterpart", ops.comm)
+
+
 def gyroscopic_checks(scene: Scene, fom, method: str) -> None:
     """A gyroscopic structure (issue 19): refused above its critical speed (an unstable mode among the
-    [basis] modes lowest, or the lowest 8, without and with its damping); the reduced model
+    [basis] modes lowest, or the lowest 8, without and with its damping), and warned about if undamped
+    above it with no mode growing (_warn_gyroscopically_held); the reduced model
     (gyroscopic_basis.py) takes no modal damping ratios (its basis vectors are not modes) and no
     tolerance mode. Collective."""
     from .gyroscopic import check_damped_stable, check_stable
@@ -131,6 +148,8 @@ def gyroscopic_checks(scene: Scene, fom, method: str) -> None:
     check_stable(fom.operators, count, speed)
     if fom.damping.kind != "modal" and fom.damping_matrix() is not None:   # modal: refused below, or by --method full
         check_damped_stable(fom.operators, fom.velocity_matrix(), count, speed)
+    elif scene.is_beam and fom.damping.kind != "modal":
+        _warn_gyroscopically_held(fom.operators)
     if method == "rom" and fom.damping.kind == "modal":
         raise InputError("[damping] zeta: modal damping ratios have no meaning for the real basis of a gyroscopic "
                          "structure's complex modes; give Rayleigh coefficients (rayleigh_alpha, rayleigh_beta)")

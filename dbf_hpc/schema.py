@@ -41,8 +41,9 @@ SECTIONS = {
         "axial_speed": Key(NUMBER, 0.0, "m/s", "beam: axial transport speed U (an axially moving beam, or the flow "
                                                "speed of a pipe conveying fluid); needs w fixed at both ends. Adds "
                                                "the gyroscopic G = 2 m_t U int N^T N' dx and softens K by m_t U^2; "
-                                               "at or above the critical speed sqrt((T + P_cr) / m_t) (P_cr the "
-                                               "buckling load) the run is refused"),
+                                               "above the critical speed sqrt((T + P_cr) / m_t) (P_cr the buckling "
+                                               "load) K is indefinite: a run whose modes grow is refused, an "
+                                               "undamped one that G alone holds is warned about"),
         "transported_mass": Key(NUMBER, None, "kg/m", "beam: mass per length moving at axial_speed (default rho A; "
                                                       "a pipe's fluid mass per length, which rho A, the whole "
                                                       "mass per length, includes: at most rho A)"),

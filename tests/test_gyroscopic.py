@@ -308,6 +308,30 @@ def test_run_above_the_critical_speed_names_it_in_its_one_line(shared_tmp_path):
         assert not (shared_tmp_path / "unstable.h5").exists()
 
 
+def test_an_undamped_band_held_by_gyroscopic_forces_above_its_critical_speed_is_warned_about(shared_tmp_path, capfd):
+    # The band (T = 2000 N, EI = 0.5 N m^2): U_c = sqrt((T + EI pi^2 / L^2) / rho A) = 92.56 m/s. At 93 m/s its
+    # K has two negative eigenvalues (modes 1 and 2 past divergence) and the gyroscopic forces hold them: no
+    # undamped mode grows (numpy's companion eigenvalues: max Re 1e-9 1/s), any damping makes one grow. It
+    # ran without a word (red team); now one warning names the critical speed. None at 30 m/s.
+    import os
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    u_c = np.sqrt((2000.0 + 2e11 * 2.5e-12 * np.pi**2) / (7800.0 * 3e-5))
+    path = os.path.join(os.path.dirname(__file__), "..", "jobs", "moving_belt_guide.toml")
+    for speed, warned in ((93.0, True), (30.0, False)):
+        scene = load_scene(path, [f"structure.axial_speed={speed}", "damping.rayleigh_alpha=0.0",
+                                  "integrator.t_end=0.002"])
+        run(scene, str(shared_tmp_path / f"held_{speed:g}.h5"), progress=False, method="full")
+        err = capfd.readouterr().err
+        if MPI.COMM_WORLD.rank == 0:
+            found = re.search(r"warning: axial speed 93 m/s is above the critical speed U_c = sqrt\(\(T \+ P_cr\) / "
+                              r"m_t\) = ([0-9.]+) m/s: .* only the gyroscopic forces hold", err)
+            assert bool(found) == warned, err
+            assert not warned or abs(float(found.group(1)) / u_c - 1) < 1e-5
+
+
 @pytest.mark.parametrize("speed", [0.0, 30.0])
 def test_a_beam_compressed_beyond_its_buckling_load_is_refused_at_any_speed_by_both_methods(shared_tmp_path, speed):
     # Compressed by T = -2 EI pi^2 / L^2, K is not positive definite: the linear beam grows without bound
