@@ -284,7 +284,7 @@ def _read_sweep(f) -> dict:
         raw = f[f"cases/parameters/{name}"][:]
         columns[name] = raw if raw.dtype.kind == "f" else np.array([json.loads(v) for v in raw], dtype=object)
     stats = {name: f[f"cases/stats/{name}"][:] for name in
-             ("displacement_peak", "impact_rate", "contact_fraction", "force_peak", "work_rate")
+             ("displacement_peak", "impact_rate", "contact_fraction", "force_peak", "work_rate", "work_rate_ci95")
              if f"cases/stats/{name}" in f}
     return {"ok": ok, "columns": columns, "stats": stats, "probe_peak": f["cases/probe_peak"][:]}
 
@@ -292,7 +292,7 @@ def _read_sweep(f) -> dict:
 PANELS = (("displacement_peak", "peak |w| [mm]", 1e3), ("impact_rate", "impacts per second [1/s]", 1),
           ("contact_fraction", "fraction of time in contact", 1), ("force_peak", "peak force [N]", 1))
 # supports of two directions: the normal work rate in place of the contact fraction
-PANELS_2D = PANELS[:2] + (("work_rate", "normal work rate [mW]", 1e3),) + PANELS[3:]
+PANELS_2D = PANELS[:2] + (("work_rate", "normal work rate [mW]\n(bars: 95 % interval)", 1e3),) + PANELS[3:]
 
 
 def plot_sweep(path: str, folder: str, window=None) -> list:
@@ -300,7 +300,7 @@ def plot_sweep(path: str, folder: str, window=None) -> list:
     combination of the other varying parameters (and sweep direction), each line its own colour:
     peak displacement at each constraint and probe (a frequency response when the parameter is the
     excitation frequency), impact rate, contact fraction (supports of two directions: the normal work
-    rate) and peak force. Failed cases are marked
+    rate, with its 95 % confidence intervals as error bars) and peak force. Failed cases are marked
     with a red cross on the axis. (`window` is for runs; a sweep has no time axis.)"""
     import h5py
 
@@ -364,12 +364,26 @@ def _sweep_lines(ax, stat, scale, key, keys, x, others, data, colours, colour) -
     tag = f" ({tag})" if tag else ""
     style = "v--" if "down" in key else "o-"
     table = data["stats"][stat][order] * scale
-    lines = ([("mean over constraints", np.nanmean(table, axis=1)), ("worst constraint", np.nanmax(table, axis=1))]
-             if table.shape[1] > 4 else [(f"constraint {j + 1}", table[:, j]) for j in range(table.shape[1])])
+    # the 95 % confidence half-widths where the summary has them (the work rate): error bars on each
+    # constraint's line and on the worst one's (a wear study reads the rate with its interval)
+    ci = data["stats"].get(f"{stat}_ci95")
+    ci = None if ci is None else ci[order] * scale
+    if table.shape[1] > 4:
+        worst = np.nanargmax(np.where(np.isnan(table), -np.inf, table), axis=1)
+        lines = [("mean over constraints", np.nanmean(table, axis=1), None),
+                 ("worst constraint", table[np.arange(len(order)), worst],
+                  None if ci is None else ci[np.arange(len(order)), worst])]
+    else:
+        lines = [(f"constraint {j + 1}", table[:, j], None if ci is None else ci[:, j]) for j in range(table.shape[1])]
     if stat == "displacement_peak":
-        lines += [(f"probe {p + 1}", data["probe_peak"][order, p] * 1e3) for p in range(data["probe_peak"].shape[1])]
-    for label, values in lines:
+        lines += [(f"probe {p + 1}", data["probe_peak"][order, p] * 1e3, None)
+                  for p in range(data["probe_peak"].shape[1])]
+    for label, values, error in lines:
         full = f"{label}{tag}"
         if full not in colours:
             colours[full] = next(colour, "k")
-        ax.plot(x[order], values, style, ms=3, lw=1, color=colours[full], label=full)
+        if error is None:
+            ax.plot(x[order], values, style, ms=3, lw=1, color=colours[full], label=full)
+        else:
+            ax.errorbar(x[order], values, yerr=error, fmt=style, ms=3, lw=1, capsize=2, color=colours[full],
+                        label=full)

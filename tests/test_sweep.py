@@ -989,3 +989,33 @@ def test_a_sweeps_info_line_says_its_impacts_are_those_of_all_constraints_togeth
         assert per_stop.shape == (4,) and np.count_nonzero(per_stop) > 1, per_stop
         line = next(line for line in describe(result["output"]) if line.startswith("  case 1 "))
         assert f", {per_stop.sum():.0f} impacts at the 4 constraint(s) together, " in line, line
+
+
+def test_a_sweep_figure_draws_each_supports_work_rate_with_its_95_percent_interval():
+    # A wear study reads the work rate with its batch-means interval (info prints both); the sweep
+    # figure drew the rate alone (day-one user). Per support, and on the worst support of many.
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.container import ErrorbarContainer
+
+    from dbf_hpc.plots import _sweep_lines
+
+    rate = np.array([[1e-3, 2e-3], [3e-3, 1e-3]])
+    ci = np.array([[1e-4, 2e-4], [3e-4, 4e-4]])
+    x = np.array([1e-4, 2e-4])
+    for supports in (2, 6):   # a line per support, or the mean and the worst of many
+        data = {"ok": np.ones(2, bool), "stats": {"work_rate": np.tile(rate, (1, supports // 2)),
+                                                   "work_rate_ci95": np.tile(ci, (1, supports // 2))},
+                "probe_peak": np.zeros((2, 0))}
+        fig, ax = plt.subplots()
+        _sweep_lines(ax, "work_rate", 1e3, (), [()] * 2, x, [], data, {}, iter(plt.cm.tab20(np.linspace(0, 1, 20))))
+        bars = [c for c in ax.containers if isinstance(c, ErrorbarContainer)]
+        plt.close(fig)
+        assert len(bars) == (2 if supports == 2 else 1), bars
+        # the worst support's interval is that support's own: case 1 worst at support 2 (2e-3 +- 2e-4), case 2
+        # at support 1 (3e-3 +- 3e-4), in mW
+        segments = bars[-1].lines[2][0].get_segments()
+        heights = [seg[1][1] - seg[0][1] for seg in segments]
+        expected = [2 * 2e-4 * 1e3, 2 * 4e-4 * 1e3] if supports == 2 else [2 * 2e-4 * 1e3, 2 * 3e-4 * 1e3]
+        np.testing.assert_allclose(heights, expected, rtol=1e-12)
