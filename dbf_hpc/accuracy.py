@@ -580,6 +580,8 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
     same for every candidate. No full-order run. An InputError naming what it reached when the
     tolerance cannot be met: at the largest basis, or as soon as the estimates' trend puts it beyond
     reach (hopeless). Collective."""
+    from .basis import modes_per_frequency
+
     tol = estimate.tolerance
     if not fom.constraints.count:
         raise InputError("[basis] tolerance bounds the error in w at the constraints; this scene has none")
@@ -589,8 +591,7 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
     settings = dataclasses.replace(settings, rtol=rtol, atol=settings.atol * rtol / settings.rtol)
     modes, tried, window = max(int(basis_settings.modes or 4), 1), [], estimate.window
     limit = min(MAX_MODES, (fom.size - fom.constraints.count) // RICH_MODES)
-    # a beam of two planes: whole y-z pairs of modes (basis.check_pairs)
-    pairs = getattr(fom.operators.mesh, "planes", 1) if fom.operators.mesh is not None else 1
+    pairs = modes_per_frequency(fom.operators)   # whole y-z pairs on a beam of two planes (basis.check_pairs)
     limit -= limit % pairs
     if modes > limit:
         raise InputError(f"[basis] tolerance: the first candidate, [basis] modes = {modes}, is beyond the largest "

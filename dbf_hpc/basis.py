@@ -304,13 +304,17 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     return basis
 
 
+def modes_per_frequency(ops: Operators) -> int:
+    """2 on a beam of two planes (y and z bend alike: every frequency twice), else 1."""
+    return getattr(ops.mesh, "planes", 1)
+
+
 def check_pairs(ops: Operators, count: int | None) -> None:
     """A beam of two planes has every frequency twice (y and z bend alike): an odd count of modes keeps
     one of the last pair, in a y-z direction the eigensolver picks by round-off, so the reduced model
     changed with the rank count (red team: the 2-D tube at 3 modes, 39 % apart at 0.2 s on 1 and 2
     ranks; 4e-10 at 4 modes). An InputError before any eigen-solve."""
-    planes = getattr(ops.mesh, "planes", 1) if ops.mesh is not None else 1
-    if count is not None and count % planes:
+    if count is not None and count % modes_per_frequency(ops):
         raise InputError(f"[basis] modes = {count} on a beam of two planes: each frequency is a pair (y and z), and "
                          f"an odd count keeps one of the last pair in a direction set by round-off; give an even "
                          f"count ({' or '.join(str(n) for n in sorted({max(count - 1, 2), count + 1}))}) or "

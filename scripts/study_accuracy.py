@@ -220,7 +220,7 @@ def main(argv=None) -> int:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from dbf_hpc.errors import DbfError
+    from dbf_hpc.errors import DbfError, InputError, decided_on_rank0
     from dbf_hpc.reductor import Reductor
     from dbf_hpc.run import run
     from dbf_hpc.scene import load_scene
@@ -239,23 +239,11 @@ def main(argv=None) -> int:
                          f"second finer (more elements or a smaller step, neither coarser), e.g. "
                          f"400:2.5e-6,800:1.25e-6")
     out = os.path.abspath(args.output)
-    problem = None
-    if world.rank == 0:   # its failure is every rank's (red team: -o FILE was rank 0's traceback, a hang)
-        try:
-            os.makedirs(os.path.join(out, "runs"), exist_ok=True)
-            if TUBE in grid["scenes"].values():
-                with open(os.path.join(ROOT, TUBE_JOB)) as f:
-                    text = f.read()
-                for old, new in TUBE_EDITS:
-                    text = text.replace(old, new)
-                with open(os.path.join(out, "steam_generator_tube_rayleigh.toml"), "w") as f:
-                    f.write(text)
-        except OSError as e:
-            problem = f"-o {args.output!r}: cannot write the study there ({e.strerror or e}); give a directory"
-    problem = world.bcast(problem, root=0)
-    if problem:
+    try:   # rank 0 writes; its failure is every rank's (red team: -o FILE was rank 0's traceback, a hang)
+        decided_on_rank0(world, _prepare_folder, out, args.output, TUBE in grid["scenes"].values())
+    except InputError as e:
         if world.rank == 0:
-            print(f"{parser.prog}: error: {problem}", file=sys.stderr, flush=True)
+            print(f"{parser.prog}: error: {e}", file=sys.stderr, flush=True)
         return 1
     cache = os.path.join(out, "basis-cache")
     common = [f"output.sample_dt={SAMPLE_DT}", f"output.probes=[{MIDSPAN}]", "output.snapshots=0",
@@ -750,6 +738,24 @@ def plot(out: str, table: list, truths: dict) -> None:
     fig.tight_layout()
     fig.savefig(os.path.join(out, "pareto.png"), dpi=120)
     plt.close(fig)
+
+
+def _prepare_folder(out: str, given: str, tube: bool) -> None:
+    """The study's folder and, for the tube, its Rayleigh-damped scene (rank 0); an InputError when
+    they cannot be written there."""
+    from dbf_hpc.errors import InputError
+
+    try:
+        os.makedirs(os.path.join(out, "runs"), exist_ok=True)
+        if tube:
+            with open(os.path.join(ROOT, TUBE_JOB)) as f:
+                text = f.read()
+            for old, new in TUBE_EDITS:
+                text = text.replace(old, new)
+            with open(os.path.join(out, "steam_generator_tube_rayleigh.toml"), "w") as f:
+                f.write(text)
+    except OSError as e:
+        raise InputError(f"-o {given!r}: cannot write the study there ({e.strerror or e}); give a directory") from None
 
 
 def main_or_abort(argv=None) -> int:
