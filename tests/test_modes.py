@@ -179,3 +179,21 @@ def test_massless_dofs_leave_finitely_many_modes_and_asking_for_more_names_them(
             reference_modes(ops, count=n - 1)
     finally:
         ops.destroy()
+
+
+def test_a_cutoff_between_the_y_and_z_frequencies_of_a_pair_keeps_both():
+    # A beam of two planes has every frequency twice (y and z, equal to round-off); a cutoff that
+    # falls between the two must not keep one of them in a direction set by round-off
+    # (basis.check_pairs refuses an odd count for the same reason).
+    ops = assemble_beam(Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=40, planes=2))
+    try:
+        pairs = reference_modes(ops, count=6)
+        hz = pairs.frequency_hz
+        pairs.destroy()
+        assert hz[5] > hz[4]                      # round-off separates the members of the third pair
+        modes = reference_modes(ops, max_frequency_hz=0.5 * (hz[4] + hz[5]))
+        assert modes.count == 6
+        assert modes.frequency_hz[5] == pytest.approx(hz[5], rel=1e-10)
+        modes.destroy()
+    finally:
+        ops.destroy()
