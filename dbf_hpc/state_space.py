@@ -676,7 +676,7 @@ def integrate_state_space(model: StateSpaceModel, settings, record=None, on_step
         defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic"}
         if settings.adaptive:
             defaults.update(ADAPT_DEFAULTS)
-        configure(ts, settings, PREFIX, defaults, settings.adaptive, resume)
+        configure(ts, settings, PREFIX, defaults, settings.adaptive, resume, steps)
         wall = solve(ts, y, steps, WHAT, "reduce [integrator] dt or rtol")
         before = resume or {}
         stats = {"steps": ts.getStepNumber(), "rejected_steps": ts.getStepRejections() + before.get("rejected", 0),

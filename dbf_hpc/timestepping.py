@@ -29,6 +29,12 @@ RTOL_FLOOR = 1e-14          # a relative error control tighter than this is belo
 # are more than two days); STEPS_PER_PERIOD steps resolve one period of the fastest forcing.
 MAX_STEPS = 1e10
 STEPS_PER_PERIOD = 20
+# An adaptive step is kept between [integrator] dt x MIN_STEP_FRACTION and 10 samples. PETSc accepts a
+# step at that floor even when its error is above rtol/atol, so a model that wants steps below it
+# (a contact law far too stiff or damped for its time scale, an extreme load) crawls at the floor
+# with no error: FLOOR_STEPS steps in a row there stop the run (StepMonitor.report).
+MIN_STEP_FRACTION = 1e-8
+FLOOR_STEPS = 1000
 MAX_SAMPLES = 1e9           # 8 GB a series
 CALLBACKS = ("auto", "c", "python")
 # The step controller's defaults for the reduced model (scoped to -rom_, the user's options win):
@@ -128,11 +134,12 @@ def refuse_settings_options(prefix: str, adaptive: bool) -> None:
 
 
 def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults: dict, adaptive: bool,
-              start: dict | None = None) -> None:
+              start: dict | None = None, steps: "StepMonitor | None" = None) -> None:
     """What every integrator's TS gets: time span, first step, tolerances, the failure policy, the
     Newton tolerances, then the code's defaults (scoped to `prefix`, only where the user set
     nothing) and the user's options; a user option [integrator] sets is refused
-    (refuse_settings_options). `start` (t, dt, steps) continues a checkpointed run."""
+    (refuse_settings_options). `start` (t, dt, steps) continues a checkpointed run. `steps`, on an
+    adaptive run, watches the step-size floor (FLOOR_STEPS)."""
     refuse_settings_options(prefix, adaptive)
     ts.setTime(start["t"] if start else 0.0)
     ts.setTimeStep(start["dt"] if start else settings.dt)
@@ -146,7 +153,9 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
     ts.setMaxSNESFailures(-1 if adaptive else 1)
     ts.setMaxStepRejections(50)  # consecutive, within one step: bounds the retries of a hopeless step
     if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples)
-        ts.setStepLimits(settings.dt * 1e-8, max(settings.dt, settings.sample_dt * 10))
+        ts.setStepLimits(settings.dt * MIN_STEP_FRACTION, max(settings.dt, settings.sample_dt * 10))
+        if steps is not None:
+            steps.ts, steps.floor = ts, settings.dt * MIN_STEP_FRACTION
     ts.getSNES().setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
     with options_defaults(prefix, defaults):
         ts.setOptionsPrefix(prefix)
@@ -171,6 +180,7 @@ class StepMonitor:
         self.start = self.last_report = time.perf_counter()
         self.first_step = self.first_time = None
         self.tol = 1e-9 * max(times[-1], 1.0)
+        self.ts = self.floor = self.floor_since = None   # configure sets ts and floor on an adaptive run
 
     def samples_due(self, t: float):
         """(index, sample time, whether it is the step's own time) of every sample up to t."""
@@ -198,6 +208,9 @@ class StepMonitor:
         return False
 
     def report(self, step: int, t: float) -> None:
+        """Progress every 5 s, and the stop of a run stuck at the step-size floor (FLOOR_STEPS). Called
+        after every step (Python callbacks) or every 64 (C); the same steps on every rank."""
+        self._check_floor(step, t)
         now = time.perf_counter()
         if self.first_step is None:  # a resumed run starts at its checkpoint, not at 0
             self.first_step, self.first_time = step, t
@@ -208,6 +221,23 @@ class StepMonitor:
         rate = (step - self.first_step) / (now - self.start)
         eta = (now - self.start) * (t_end - t) / (t - self.first_time)
         self.say(f"  t = {t:.4g} s of {t_end:g} s ({100 * t / t_end:.0f} %), {rate:.0f} steps/s, ETA {eta:.0f} s")
+
+    def _check_floor(self, step: int, t: float) -> None:
+        if self.floor is None or self.failure:
+            return
+        if self.ts.getTimeStep() > self.floor * (1 + 1e-9):
+            self.floor_since = None
+        elif self.floor_since is None:
+            self.floor_since = step
+        elif step - self.floor_since >= FLOOR_STEPS:
+            self.stop(self.ts, t, _floor_message(self.floor, step - self.floor_since, t))
+
+
+def _floor_message(floor: float, steps: int, t: float) -> str:
+    return (f"the time step stayed at its floor ({floor:.3g} s, [integrator] dt x {MIN_STEP_FRACTION:g}) for {steps} "
+            f"steps at t = {t:.6g} s, where the error cannot be kept within rtol and atol and the run would crawl: "
+            f"check the constraint laws' stiffness and damping (k, alpha, c) and the loads against the structure's "
+            f"own scales and units, or lower [integrator] dt if the model is that fast")
 
 
 def solve(ts: PETSc.TS, y: PETSc.Vec, monitor: StepMonitor, what: str, advice: str) -> float:

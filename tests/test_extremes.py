@@ -118,3 +118,17 @@ def test_constraints_on_adjacent_nodes_of_a_coarse_mesh_give_an_orthonormal_basi
     assert np.all(basis.enrichment_omega > basis.omega[-1])
     basis.destroy()
     ops.destroy()
+
+
+@pytest.mark.parametrize("callbacks", ["c", "python"])
+def test_a_contact_damping_too_large_for_any_step_stops_at_the_step_floor_not_a_crawl(shared_tmp_path, callbacks):
+    # Red team: a Hunt-Crossley alpha of 1e308 s/m wants a step far below the floor (dt x 1e-8) at the
+    # first contact; PETSc accepts steps there without error control, and the run sat at t = 0.105 s
+    # for ever (47 000 steps a second, ETA growing). It now stops with the cause after FLOOR_STEPS.
+    from dbf_hpc.errors import SolverError
+    from dbf_hpc import _romc
+    if callbacks == "c" and _romc.core is None:
+        pytest.skip(_romc.why)
+    with pytest.raises(SolverError, match=r"time step stayed at its floor \(1e-12 s.*t = 0\.105.*alpha"):
+        paper(shared_tmp_path, f"hc_{callbacks}.h5", "integrator.t_end=0.2", "basis.estimate=false",
+              f"integrator.callbacks={callbacks}", "constraint.damping=hunt_crossley", "constraint.alpha=1e308")
