@@ -152,3 +152,19 @@ def write_rotor(folder, K, G, scenes: dict) -> None:
         for name, extra in scenes.items():
             (folder / name).write_text(ROTOR_SCENE + extra)
     MPI.COMM_WORLD.Barrier()
+
+
+def petsc_garbage(capfd) -> int:
+    """How many PETSc objects wait in PETSc's garbage on COMM_WORLD and COMM_SELF, the same on every
+    rank. petsc4py 3.18 parks an object there when a Python wrapper holding its last reference is
+    collected (a factor Mat got from a PC whose KSP was destroyed first, say): it is freed only by a
+    collective PETSc.garbage_cleanup(), so in one long process (a parameter study) it is a leak. Reads
+    PETSc.garbage_view's table (rank 0 prints every rank's). Collective."""
+    import re
+
+    capfd.readouterr()
+    PETSc.garbage_view(PETSc.COMM_WORLD)
+    PETSc.garbage_view(PETSc.COMM_SELF)
+    text = capfd.readouterr().out
+    count = sum(int(n) for n in re.findall(r"Total entries: (\d+)", text))
+    return MPI.COMM_WORLD.bcast(count, root=0)
