@@ -208,7 +208,7 @@ class EffectiveSystem:
         started = time.perf_counter()
         self.h = h
         self.sV, self.sA = params.shifts(h)
-        self.A = self.ksp = None
+        self.A = self.ksp = self.factor = None
         self.Y = []
         try:
             A = K.duplicate(copy=True)
@@ -219,8 +219,8 @@ class EffectiveSystem:
             if symmetric_positive:   # with a gyroscopic G (skew) K_eff is not symmetric: LU
                 A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
                 A.setOption(PETSc.Mat.Option.SPD, True)
-            self.ksp, self.solve, self.description = _factored(A, factorization(A, PREFIX, symmetric_positive),
-                                                               PREFIX, "the step's matrix K_eff")
+            self.ksp, self.factor, self.solve, self.description = _factored(
+                A, factorization(A, PREFIX, symmetric_positive), PREFIX, "the step's matrix K_eff")
             self.t_factor = time.perf_counter() - started
             lo, hi = A.getOwnershipRange()
             e = A.createVecLeft()
@@ -248,16 +248,20 @@ class EffectiveSystem:
         self.t_setup = time.perf_counter() - started
 
     def destroy(self) -> None:
-        destroy(self.ksp, self.A, *self.Y)
-        self.ksp = self.A = None
+        destroy(self.factor, self.ksp, self.A, *self.Y)
+        self.ksp = self.A = self.factor = None
         self.Y = []
 
 
 def _factored(A: PETSc.Mat, defaults: dict, prefix: str, what: str):
-    """A KSP set up on A with the code's `defaults` (factorization()) under `prefix`, the user's
-    options winning; the fastest exact solve it offers (the factor's MatSolve for a plain
-    factorization); a description. PETSc errors become one-line SolverErrors."""
+    """(ksp, factor, solve, description): a KSP set up on A with the code's `defaults`
+    (factorization()) under `prefix`, the user's options winning; our reference to its factored
+    matrix, or None; the fastest exact solve it offers (the factor's MatSolve for a plain
+    factorization); a description. The caller destroys factor and ksp (a factor reference Python
+    drops after the KSP is gone is parked in PETSc's garbage by petsc4py 3.18: a leak in a long
+    process). PETSc errors become one-line SolverErrors."""
     ksp = PETSc.KSP().create(comm=A.getComm())
+    factor = None
     try:
         ksp.setOperators(A)
         with options_defaults(prefix, defaults):
@@ -291,9 +295,9 @@ def _factored(A: PETSc.Mat, defaults: dict, prefix: str, what: str):
                     raise SolverError(f"the -{prefix}ksp_type {kind} solve with {what} did not converge (reason "
                                       f"{ksp.getConvergedReason()}); use a direct solver (-{prefix}ksp_type preonly "
                                       f"-{prefix}pc_type cholesky) or tighten -{prefix}ksp_rtol")
-        return ksp, solve, description
+        return ksp, factor, solve, description
     except Exception:
-        ksp.destroy()
+        destroy(factor, ksp)
         raise
 
 
@@ -664,8 +668,8 @@ class FullIntegrator:
         if not math.isfinite(norm):
             raise SolverError("the initial state gives a load that is not finite; check [initial] and the excitation")
         self.M.setOption(PETSc.Mat.Option.SPD, True)
-        ksp, solve, description = _factored(self.M, factorization(self.M, PREFIX + "mass_"), PREFIX + "mass_",
-                                            "the mass matrix M (the start)")
+        ksp, factor, solve, description = _factored(self.M, factorization(self.M, PREFIX + "mass_"),
+                                                    PREFIX + "mass_", "the mass matrix M (the start)")
         self.factorizations += 1
         try:
             solve(B, self.A0)
@@ -678,7 +682,7 @@ class FullIntegrator:
                 raise SolverError(f"the -{PREFIX}mass_ solver ({description}) is not exact: relative residual "
                                   f"{residual:.2e}; use a direct factorization (-{PREFIX}mass_pc_type cholesky)")
         finally:
-            ksp.destroy()
+            destroy(factor, ksp)
 
     def get_state(self) -> dict:
         """The integrator's state at the end of a step, for a checkpoint: the distributed vectors

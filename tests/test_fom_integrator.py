@@ -348,3 +348,21 @@ def test_a_factorization_that_is_wrong_away_from_the_constraint_rows_is_an_error
             _check_exact_dense(A, wrong, "test")
     finally:
         A.destroy()
+
+
+def test_repeated_full_order_runs_leave_no_factor_behind_in_petscs_garbage(capfd):
+    # Ownership: the step's K_eff and the start's M were solved through the factor's MatSolve, and the
+    # reference to the factor outlived its KSP; petsc4py 3.18 then parks the factor in PETSc's garbage
+    # until a collective cleanup: one factored K_eff (and one M) per run of a parameter study. A
+    # displaced start (M A0 = -K X0) factors M too.
+    from conftest import petsc_garbage
+    from dbf_hpc import InitialState
+
+    beam = Beam(elements=20, **PAPER_BEAM)
+    stop = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
+    PETSc.garbage_cleanup()
+    for _ in range(2):
+        with FullOrderModel.build(beam, [stop], BaseMotion(amplitude=5e-3, frequency_hz=1.0), probes=[0.5],
+                                  initial=InitialState(amplitude=1e-3)) as fom:
+            simulate_full(fom, IntegratorSettings(t_end=1e-4, dt=1e-5, sample_dt=1e-5))
+    assert petsc_garbage(capfd) == 0, "a factored matrix of the run was left in PETSc's garbage"
