@@ -256,7 +256,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
     y.getArray()[:r], y.getArray()[r:] = (resume["q"], resume["p"]) if resume else (model.q0, model.p0)
     F, G, work = y.duplicate(), y.duplicate(), y.duplicate()
     ts = PETSc.TS().create(comm=comm)
-    J = fast = monitor = None
+    J = fast = monitor = ksp = None
     c_newton = viewers_off = False
     try:
         ts.setProblemType(PETSc.TS.ProblemType.NONLINEAR)
@@ -344,7 +344,9 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
                                    for name, value in fast.counters.items()}
         reason = ts.getConvergedReason()
     finally:
-        destroy(ts, y, F, G, J, work, monitor.work if monitor is not None else None)
+        # ksp is our reference to the TS's own solver (dropped by Python after the TS, petsc4py 3.18 parks it
+        # in PETSc's garbage: one KSP per integration in a long process)
+        destroy(ts, ksp, y, F, G, J, work, monitor.work if monitor is not None else None)
     advice = ("set contact = \"implicit\" or reduce [integrator] dt" if settings.contact == "explicit"
               else "reduce [integrator] dt or rtol, or try another scheme")
     check_outcome(steps, reason, stats, settings.t_end, WHAT, advice)

@@ -651,7 +651,7 @@ def integrate_state_space(model: StateSpaceModel, settings, record=None, on_step
     y.getArray()[:] = resume["q"] if resume else model.q0
     F, G = y.duplicate(), y.duplicate()
     ts = PETSc.TS().create(comm=comm)
-    J = monitor = None
+    J = monitor = ksp = None
     try:
         ts.setProblemType(PETSc.TS.ProblemType.NONLINEAR)
         ts.setType(PETSc.TS.Type.ARKIMEX)
@@ -688,7 +688,7 @@ def integrate_state_space(model: StateSpaceModel, settings, record=None, on_step
                  "newton_iterations": ts.getSNESIterations() + int(before.get("newton_iterations", 0))}
         reason = ts.getConvergedReason()
     finally:
-        destroy(ts, y, F, G, J, monitor.work if monitor is not None else None)
+        destroy(ts, ksp, y, F, G, J, monitor.work if monitor is not None else None)   # ksp: our reference
     advice = ("set contact = \"implicit\" or reduce [integrator] dt" if settings.contact == "explicit"
               else "reduce [integrator] dt or rtol, or try another scheme")
     check_outcome(steps, reason, stats, settings.t_end, WHAT, advice)

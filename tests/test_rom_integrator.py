@@ -70,3 +70,20 @@ def test_a_stop_requested_after_a_step_ends_the_run_with_that_message():
     with pytest.raises(SolverError, match="asked to stop"):
         integrate_reduced(model, IntegratorSettings(t_end=1.0, sample_dt=1e-2), lambda t, q, p: None,
                           on_step=lambda ts, t, q, p: "asked to stop" if t > 0.1 else None)
+
+
+@pytest.mark.parametrize("callbacks", ["python", "c"])
+def test_repeated_integrations_leave_no_solver_behind_in_petscs_garbage(callbacks, capfd):
+    # Ownership: the integrator held a reference to its TS's KSP past the TS's destruction; petsc4py
+    # 3.18 then parks the KSP in PETSc's garbage until a collective cleanup: one per reduced run of a
+    # parameter study (both callback paths).
+    from petsc4py import PETSc
+
+    from conftest import petsc_garbage
+
+    model = oscillator(spring=5.0)
+    PETSc.garbage_cleanup()
+    for _ in range(3):
+        integrate_reduced(model, IntegratorSettings(t_end=0.1, dt=1e-2, sample_dt=1e-2, adaptive=False,
+                                                    callbacks=callbacks), lambda t, q, p: None)
+    assert petsc_garbage(capfd) == 0, "the reduced run's KSP was left in PETSc's garbage"
