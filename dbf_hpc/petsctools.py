@@ -104,6 +104,33 @@ def destroy(*objects) -> None:
             obj.destroy()
 
 
+def release_frames(exc: BaseException) -> None:
+    """Clear the local variables of the finished frames an exception passed through (and those of the
+    exceptions it arose from), before the owner of the PETSc objects they refer to destroys them on
+    its error path. Those frames hold references to the solver's own objects: the TS or PC petsc4py
+    hands a Python callback, an ST or factor got from a solver; kept by the traceback, they outlive the
+    owner's destroy, and petsc4py 3.18 then parks each such object (with all it holds: a TS's SNES, KSP
+    and matrices) in PETSc's garbage until a collective cleanup: a leak in a long process. Frames still
+    running keep their variables. Not collective."""
+    import traceback
+
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        traceback.clear_frames(exc.__traceback__)
+        exc = exc.__context__
+
+
+@contextlib.contextmanager
+def frames_released():
+    """release_frames on any exception leaving the block (a solve that calls back into Python)."""
+    try:
+        yield
+    except BaseException as e:
+        release_frames(e)
+        raise
+
+
 def _petsc_library():
     """The loaded libpetsc, through ctypes (petsc4py 3.18 does not expose PetscOptionsUsed), or None."""
     import ctypes

@@ -20,7 +20,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .errors import InputError, SolverError, check_number
-from .petsctools import options_defaults
+from .petsctools import frames_released, options_defaults
 
 ARKIMEX_TYPES = ("1bee", "a2", "l2", "ars122", "2c", "2d", "2e", "prssp2", "3", "bpr3", "ars443", "4", "5")
 NO_DENSE_OUTPUT = ("prssp2", "bpr3", "ars443")  # also without an embedded error estimate
@@ -245,7 +245,8 @@ def solve(ts: PETSc.TS, y: PETSc.Vec, monitor: StepMonitor, what: str, advice: s
     wall time. A failure the monitor recorded is left for `check_outcome`."""
     start = time.perf_counter()
     try:
-        ts.solve(y)
+        with frames_released():   # a callback's exception must not keep its TS past the TS's destroy
+            ts.solve(y)
     except PETSc.Error as e:
         if monitor.failure is None:
             raise SolverError(f"the {what} failed at t = {ts.getTime():.6g} s: PETSc error {e.ierr}; {advice}") from None

@@ -87,3 +87,22 @@ def test_repeated_integrations_leave_no_solver_behind_in_petscs_garbage(callback
         integrate_reduced(model, IntegratorSettings(t_end=0.1, dt=1e-2, sample_dt=1e-2, adaptive=False,
                                                     callbacks=callbacks), lambda t, q, p: None)
     assert petsc_garbage(capfd) == 0, "the reduced run's KSP was left in PETSc's garbage"
+
+
+def test_an_exception_from_a_record_callback_frees_the_time_stepper(capfd):
+    # Ownership on the error path: the callback's exception carried, in its traceback, the TS petsc4py
+    # handed the monitor; it outlived the integrator's destroy, and petsc4py 3.18 parks the TS (with its
+    # SNES, KSP and matrices) in PETSc's garbage until a collective cleanup.
+    from petsc4py import PETSc
+
+    from conftest import petsc_garbage
+
+    def record(t, q, p):
+        raise KeyError("a study script's own bug")
+
+    PETSc.garbage_cleanup()
+    for _ in range(2):
+        with pytest.raises(KeyError):
+            integrate_reduced(oscillator(spring=5.0), IntegratorSettings(t_end=0.1, dt=1e-2, sample_dt=1e-2,
+                                                                         adaptive=False, callbacks="python"), record)
+    assert petsc_garbage(capfd) == 0, "the failed run's TS was left in PETSc's garbage"
