@@ -41,7 +41,7 @@ from petsc4py import PETSc
 from .errors import SolverError
 from .modes import ModalBasis, bv_rows, lowest_eigenpair, normalize
 from .operators import Operators
-from .petsctools import destroy, direct_solver, values_at
+from .petsctools import destroy, direct_solver, frames_released, values_at
 
 PREFIX = "dbf_"
 # A reference mode "moves at the constraint" if (g^T phi)^2 exceeds this fraction of the largest
@@ -242,7 +242,8 @@ def refine_derivative(ksp: PETSc.KSP, A: PETSc.Mat, rhs: PETSc.Vec, phi: PETSc.V
     d.set(0.0)
     try:
         for _ in range(REFINEMENT_STEPS + 1):
-            ksp.solve(residual, correction)
+            with frames_released():   # a PCShell inverse calls back (dbf_shared.py)
+                ksp.solve(residual, correction)
             if ksp.getConvergedReason() < 0:
                 raise SolverError(failed(ksp.getConvergedReason()))
             correction.axpy(-correction.dot(Mphi), phi)  # deflate: phi^T M phi' = 0

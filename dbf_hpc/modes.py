@@ -33,7 +33,7 @@ from slepc4py import SLEPc
 
 from .errors import DbfError, InputError, SolverError
 from .operators import Operators
-from .petsctools import destroy, direct_solver, options_defaults
+from .petsctools import destroy, direct_solver, frames_released, options_defaults, release_frames
 
 # Options the eigensolvers set as defaults (so that MUMPS reports the inertia); they do not change
 # the eigenpairs.
@@ -102,7 +102,16 @@ class LowestModes:
 
     def __init__(self, ops: Operators, K: PETSc.Mat, prefix: str, tol: float = 1e-10, inverse=None):
         self.prefix = prefix
-        eps = self.eps = SLEPc.EPS().create(comm=K.getComm())
+        self.eps = SLEPc.EPS().create(comm=K.getComm())
+        try:
+            self._configure(ops, K, tol, inverse)
+        except BaseException as e:   # a refused -<prefix> option, say: the EPS is ours to free (red team: leaked)
+            release_frames(e)   # _configure's reference to the EPS's ST first
+            self.destroy()
+            raise
+
+    def _configure(self, ops: Operators, K: PETSc.Mat, tol: float, inverse) -> None:
+        eps, prefix = self.eps, self.prefix
         eps.setOperators(K, ops.M)
         eps.setProblemType(SLEPc.EPS.ProblemType.GHEP)
         eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
@@ -130,7 +139,6 @@ class LowestModes:
         near = lambda x: abs(complex(x).real - sigma) <= 1e-14 * max(abs(sigma), 1.0)  # noqa: E731
         if (st.getType() != SLEPc.ST.Type.SINVERT or not near(self.eps.getTarget())
                 or (options.hasName("st_shift") and not near(options.getReal("st_shift")))):
-            self.eps.destroy()
             raise InputError(f"the shared-factorization DBF path needs shift-and-invert about {sigma:g} "
                              f"(-{self.prefix}eps_target, -{self.prefix}st_shift, -{self.prefix}st_type changed it); "
                              f"remove those options or use [basis] dbf_solver = \"factor\"")
@@ -151,7 +159,7 @@ class LowestModes:
                           options.getInt("eps_mpd", PETSc.DEFAULT))
         try:
             # MUMPS reads its inertia switches when it factors: the defaults stay for the solve.
-            with options_defaults(self.prefix, FACTOR_DEFAULTS):
+            with options_defaults(self.prefix, FACTOR_DEFAULTS), frames_released():   # a PCShell inverse calls back
                 eps.solve()
         except PETSc.Error as e:
             # red team: -modes_st_ksp_type cg was blamed on M and K alone

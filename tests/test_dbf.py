@@ -620,3 +620,22 @@ def test_dbf_frequencies_of_a_soft_beam_scale_as_the_square_root_of_e(path):
     np.testing.assert_allclose(w2, w1 * 1e-6, rtol=1e-8)
     np.testing.assert_allclose(d2, d1 * 1e-6, rtol=1e-8)
     np.testing.assert_allclose(k2, k1 * 1e-12, rtol=1e-6)
+
+
+@pytest.mark.parametrize("path,values,error", [
+    ("shared", {"dbf_shared_ksp_type": "cg", "dbf_shared_pc_type": "jacobi"}, SolverError),
+    ("ritz", {"dbf_shared_ksp_type": "cg", "dbf_shared_pc_type": "jacobi"}, SolverError),
+    ("shared", {"dbf_eps_target": "1.0"}, InputError)])
+def test_a_failed_dbf_solve_frees_its_solvers(paper, path, values, error, capfd):
+    # Ownership on the error path: the failure raised inside the shared path's preconditioner (a
+    # Python PCShell) carried the PC petsc4py handed the callback in its traceback, and the refused
+    # shift kept the eigensolver's ST: both outlived their solver's destroy, and petsc4py 3.18 parks
+    # them in PETSc's garbage until a collective cleanup (one per failed basis in a study script).
+    from conftest import petsc_garbage, petsc_options
+
+    ops, modes, row = paper
+    PETSc.garbage_cleanup()
+    for _ in range(2):
+        with petsc_options(**values), pytest.raises(error):
+            DbfEnrichment(solver=path).columns(ops, np.array([row]), modes)
+    assert petsc_garbage(capfd) == 0, "a solver of the failed DBF path was left in PETSc's garbage"

@@ -197,3 +197,18 @@ def test_a_cutoff_between_the_y_and_z_frequencies_of_a_pair_keeps_both():
         modes.destroy()
     finally:
         ops.destroy()
+
+
+def test_an_eigensolver_refused_by_its_options_is_freed_with_its_spectral_transform(ops, capfd):
+    # Ownership on the error path: a -modes_ option PETSc refuses in setFromOptions left the EPS (and
+    # the reference to its ST) to Python, and petsc4py 3.18 parks them in PETSc's garbage until a
+    # collective cleanup: one eigensolver per failed basis in a study script.
+    from petsc4py import PETSc
+
+    from conftest import petsc_garbage
+
+    PETSc.garbage_cleanup()
+    for _ in range(2):
+        with petsc_options(modes_eps_type="no_such_solver"), pytest.raises(PETSc.Error):
+            reference_modes(ops, count=4)
+    assert petsc_garbage(capfd) == 0, "the refused eigensolver was left in PETSc's garbage"
