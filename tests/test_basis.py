@@ -378,3 +378,21 @@ def test_a_static_mode_solve_leaves_no_factor_behind_in_petscs_garbage(capfd):
         assert petsc_garbage(capfd) == 0, "the factored K (a Mat) of each static solve was left in PETSc's garbage"
     finally:
         ops.destroy()
+
+
+def test_a_static_solver_refused_by_its_options_is_freed(capfd):
+    # Ownership on the error path: a -static_ option PETSc refuses in setFromOptions left the KSP to
+    # Python (petsc4py 3.18 parks it in PETSc's garbage until a collective cleanup).
+    from conftest import petsc_garbage, petsc_options
+
+    positions = [0.25]
+    ops = assemble_beam(Beam(**TABLE1, elements=20), points=positions)
+    rows = np.array([ops.mesh.w_row(x) for x in positions])
+    PETSc.garbage_cleanup()
+    try:
+        for _ in range(2):
+            with petsc_options(static_pc_type="no_such_pc"), pytest.raises(PETSc.Error):
+                static_modes(ops, rows)
+        assert petsc_garbage(capfd) == 0, "the refused static solver (a KSP) was left in PETSc's garbage"
+    finally:
+        ops.destroy()
