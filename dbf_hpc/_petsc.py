@@ -14,14 +14,17 @@ _DEBIAN = {"PETSC_DIR": "/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real",
            "SLEPC_DIR": "/usr/lib/slepcdir/slepc3.18/x86_64-linux-gnu-real"}
 
 
-def init(options=()) -> None:
-    """Initialize SLEPc (and PETSc) with `options`. Only the first initialization takes effect, so
-    call this before any dbf_hpc module that imports petsc4py.PETSc."""
+def init(options=()) -> bool:
+    """Initialize SLEPc (and PETSc) with `options`; True if this call did it. Only the first
+    initialization takes effect, so call this before any dbf_hpc module that imports
+    petsc4py.PETSc (a later command's options go in through petsctools.command_options)."""
     for key, value in _DEBIAN.items():
         if key not in os.environ and os.path.isdir(value):
             os.environ[key] = value
     if "slepc4py.SLEPc" in sys.modules or "petsc4py.PETSc" in sys.modules:
-        return  # already initialized (options can no longer change)
+        return False  # already initialized
     import slepc4py
 
-    slepc4py.init([sys.argv[0] or "dbf-hpc", *options])
+    # the program's name, never sys.argv[0]: under `python -c` that is "-c", which PETSc took for an option
+    slepc4py.init(["dbf-hpc", *options])
+    return True

@@ -640,13 +640,14 @@ def main(argv=None) -> int:
 
     from . import _petsc
 
-    _petsc.init(petsc_options)
+    at_start = _petsc.init(petsc_options)
     # `dbf-hpc info OUT.h5 | head` ends quietly, as other commands do, not in PETSc's signal handler
     signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     from mpi4py import MPI
     from petsc4py import PETSc
 
     from .errors import DbfError, petsc_failure, termination_signals
+    from .petsctools import command_options
 
     comm = MPI.COMM_WORLD
     # _finish's own communicator: its barrier on COMM_WORLD met a rank still waiting in one of the
@@ -655,9 +656,10 @@ def main(argv=None) -> int:
     for signum in termination_signals():   # SIGTERM, and Ctrl-C; integrations and sweeps install their own
         signal.signal(signum, _terminated)
     try:
-        args.func(args)
-        failure = None
-        _warn_unused(petsc_options, PETSc.COMM_WORLD)
+        with command_options(petsc_options, at_start):
+            args.func(args)
+            failure = None
+            _warn_unused(petsc_options, PETSc.COMM_WORLD)
     except DbfError as e:
         failure = str(e)
     except PETSc.Error as e:  # most often an option PETSc refused: one line, the ranks agree as on a DbfError

@@ -131,6 +131,44 @@ def frames_released():
         raise
 
 
+# The options prefixes of the package's solvers: an option under one of them belongs to one command
+SOLVER_PREFIXES = ("modes_", "dbf_", "static_", "buckling_", "rom_", "full_")
+
+
+@contextlib.contextmanager
+def command_options(tokens, at_start: bool):
+    """One command's PETSc options (tokens as given: -name [value] ...) in the database while it runs,
+    so that a later command in the same process (a study script or the tests calling cli.main)
+    neither inherits them nor loses its own (red team: a second cli.main ran with the first one's
+    -modes_eps_tol 1e-3 and warned its own options unused). `at_start`: PETSc was initialized with
+    them (the first command); else they go in now. The options of the package's solvers
+    (SOLVER_PREFIXES) are taken back afterwards, the values from before the command restored;
+    others (-log_view, -malloc_debug) configure PETSc itself and stay. Not collective."""
+    options = PETSc.Options()
+    pairs, name = [], None
+    for token in tokens:
+        if token.startswith("-") and token.lstrip("-")[:1].isalpha():
+            name = token.lstrip("-")
+            pairs.append([name, None])
+        elif name is not None:
+            pairs[-1][1] = token
+            name = None
+    before = {}
+    for name, _ in pairs:
+        if name.startswith(SOLVER_PREFIXES) and name not in before:
+            before[name] = options.getString(name) if not at_start and options.hasName(name) else None
+    if not at_start:
+        for name, value in pairs:
+            options.setValue(name, value)
+    try:
+        yield
+    finally:
+        for name, value in before.items():
+            options.delValue(name)
+            if value is not None:
+                options.setValue(name, value or None)
+
+
 def _petsc_library():
     """The loaded libpetsc, through ctypes (petsc4py 3.18 does not expose PetscOptionsUsed), or None."""
     import ctypes

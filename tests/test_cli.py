@@ -946,3 +946,21 @@ def test_a_report_piped_into_head_ends_quietly(tmp_path):
     cmd = f"{sys.executable} -m dbf_hpc.cli modes {PAPER} | head -1"
     out = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=120, cwd=ROOT, env=mpi_env())
     assert out.stdout.startswith("dbf-hpc ") and out.stderr == "", out.stderr
+
+
+def test_a_commands_petsc_options_hold_for_that_command_only(capsys):
+    # Red team: cli.main called twice in one process (a study script) ran the second command with the
+    # first one's -modes_eps_tol, and dropped its own options with an "unused" warning. A command's
+    # solver options now go in for its duration and the values from before come back.
+    from petsc4py import PETSc
+
+    from conftest import petsc_options
+    from dbf_hpc.cli import main
+    before = PETSc.Options().getAll()
+    assert main(["modes", PAPER, "--set", "basis.modes=4", "-modes_eps_tol", "1e-9", "-modes_eps_conv_abs"]) == 0
+    assert "was not used" not in capsys.readouterr().err        # the eigensolver read both
+    assert PETSc.Options().getAll() == before
+    with petsc_options(modes_eps_tol=1e-11):
+        assert main(["modes", PAPER, "--set", "basis.modes=4", "-modes_eps_tol", "1e-9"]) == 0
+        assert PETSc.Options().getString("modes_eps_tol") == "1e-11"
+    assert PETSc.Options().getAll() == before
