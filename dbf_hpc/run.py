@@ -9,6 +9,7 @@ wait (without spinning). A full-order run integrates on every rank; rank 0 write
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -22,9 +23,9 @@ from slepc4py import SLEPc
 
 from . import __version__, layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
-from .accuracy import (RICH_MODES, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window, first_contact,
-                       flexibility_warning, is_long, nested_estimate, pick_basis, reused_estimate, statistics_estimate,
-                       statistics_window)
+from .accuracy import (RICH_MODES, RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window,
+                       first_contact, flexibility_warning, is_long, nested_estimate, pick_basis, relative_difference,
+                       reused_estimate, statistics_estimate, statistics_window)
 from .basis import richer_basis
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
@@ -976,6 +977,78 @@ class FullCheckpointing:
 _RESUME_SCALARS = ("t", "steps", "next_sample", "lam", "pushing", "counters")
 
 
+class _EstimateControl:
+    """Rank 0's control of the full-order estimate's run (integrate_full's `control`): no checkpoints;
+    SIGTERM stops it at the next control point, on every rank."""
+
+    interrupted = False
+
+    def at(self, t: float, steps: int):
+        return "save and stop" if self.interrupted else None
+
+    def save(self, state: dict) -> None:
+        pass
+
+    def stop_message(self, t: float) -> str:
+        return ("stopped by a termination signal during the error estimate, after the integration; rerun with "
+                "--resume to finish from the last checkpoint")
+
+
+def _full_estimate(scene: Scene, fom, settings, observation, recorder, timings: dict, say) -> Estimate | None:
+    """A full-order run's a-posteriori estimate of its time step's error (docs/full-order.md): the same
+    model over the estimate's window (accuracy.estimate_window: twice the first contact) at a step RICH_STEP
+    times shorter (as a reduced run's richer run of fixed steps), compared at the constraints
+    as a reduced run's estimate is (accuracy.relative_difference). The mesh's own error is not in it.
+    None with [basis] estimate = false or without constraints. Collective; the Estimate on rank 0
+    (None elsewhere)."""
+    chosen = scene.estimate_settings()
+    if not chosen.enabled or not fom.constraints.count:
+        return None
+    world = fom.comm.tompi4py()
+    times = contact = end = None
+    if world.rank == 0:
+        times = recorder.writer.series_data(layout.TIME)
+        contact = _first_contact(recorder.writer, times)
+        end = estimate_window(times, contact, settings.t_end, chosen.window)
+    end = world.bcast(end, root=0)
+    rich = dataclasses.replace(settings, t_end=end, dt=settings.dt / RICH_STEP)   # the full order's step is fixed
+    blocks, rich_times = [], []
+
+    def on_block(steps, samples):
+        if samples[0].size:
+            rich_times.append(samples[0])
+            blocks.append(observation.block_totals(*samples[:3])[0])
+
+    control = _EstimateControl() if world.rank == 0 else None
+    start = time.perf_counter()
+    failure = None
+    try:
+        with _interrupt_on_sigterm(control):
+            integrate_full(fom, rich, observation.rows, on_block if world.rank == 0 else None, control=control)
+    except Interrupted:   # a SolverError too, but the run's to stop (every rank: control's word)
+        raise
+    except SolverError as exc:   # every rank's (integrate_full's errors are collective)
+        failure = f"the run at a fixed step of {rich.dt:g} s failed: {exc}"
+    seconds = time.perf_counter() - start
+    if world.rank != 0:
+        return None
+    note = f"against the same model at a fixed step of {rich.dt:g} s: the step's error, not the mesh's"
+    k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
+    if failure:
+        estimate = Estimate(np.nan, end, seconds, failure)
+    elif sum(b.size for b in rich_times) != k or not np.allclose(np.concatenate(rich_times), times[:k], rtol=0,
+                                                                  atol=1e-9 * max(end, 1e-300)):
+        estimate = Estimate(np.nan, end, seconds, "the run at the shorter step is not sampled alike")
+    else:
+        recorder.writer.flush()
+        w = recorder.writer.series[layout.CONSTRAINT_DISPLACEMENT][:k]
+        estimate = Estimate(relative_difference(w, np.concatenate(blocks)), end, seconds, note)
+    estimate = blind_to_contact(estimate, contact)
+    timings["estimate"] = seconds
+    _say(say, estimate.line())
+    return estimate
+
+
 def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume: bool,
               request: str | None = None, digests: dict | None = None) -> dict:
     """The full-order reference on fom.comm, every rank integrating its share of the state; rank 0
@@ -1038,6 +1111,10 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
         raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint,
                                      failed_write=isinstance(exc, WriteFailed))) from None
     timings["integration"] = time.perf_counter() - t + (control.wall if control else 0.0)
+    try:
+        estimate = _full_estimate(scene, fom, settings, observation, recorder, timings, say)
+    except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
+        raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint)) from None
     summary, failure = {}, None
     if world.rank == 0:   # a failed or stopped write is every rank's error (they waited in bcast for ever)
         try:
@@ -1045,8 +1122,10 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
                 snap_t = settings.sample_times[sorted(snaps)] if snaps else np.zeros(0)
                 snap_w = np.array([snaps[i] for i in sorted(snaps)]).reshape(snap_t.size, field.positions.size)
                 summary = finish(scene, recorder, stats, timings, world.size, "full", field, snap_t, snap_w,
-                                 checkpoint=checkpoint)
+                                 extra_attrs=estimate.attrs() if estimate else None, checkpoint=checkpoint)
                 checkpoint.remove()
+            if estimate:
+                summary["estimated_error"], summary["estimated_error_window"] = estimate.value, estimate.window
         except Interrupted as exc:
             failure = ("Interrupted", _left_behind(str(exc), recorder.writer, checkpoint))
         except DbfError as exc:

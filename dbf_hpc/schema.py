@@ -126,8 +126,9 @@ SECTIONS = {
         "estimate": Key((bool,), True, "", "the a-posteriori error estimate of a run (the attribute estimated_error: "
                                            "the largest error in w at any constraint over the largest |w| at any "
                                            "constraint): the same scene on twice the modes with the same enrichment "
-                                           "at a 10x tighter rtol, over estimate_window (docs/accuracy.md); sweeps "
-                                           "and scenes without constraints do not make it"),
+                                           "at a 10x tighter rtol, over estimate_window (docs/accuracy.md); with "
+                                           "--method full the same model at a 4x shorter step; sweeps and scenes "
+                                           "without constraints do not make it"),
         "estimate_window": Key(NUMBER, None, "s", "the window [0, T] the estimate holds over (default twice the time "
                                                   "of the first contact, or t_end / 10 without contact)"),
         "estimate_statistics_window": Key(NUMBER, None, "s", "a long run's (t_end over 5 estimate windows) "

@@ -270,7 +270,7 @@ def main(argv=None) -> int:
             try:
                 scene = load_scene(scene_path(label),
                                    common + [f"structure.elements={elements}", f"integrator.dt={dt}",
-                                             f"integrator.t_end={of(label, 't_end')}"])
+                                             f"integrator.t_end={of(label, 't_end')}", "basis.estimate=false"])
                 run(scene, name, progress=False, method="full", comm=PETSc.COMM_SELF)
             except DbfError as e:   # every rank stops, not the one alone beside the others' barrier
                 failed = f"the full-order run of {label} ({elements} elements, step {dt:g} s): {str(e).splitlines()[0]}"
