@@ -290,11 +290,12 @@ class FullOrderModel:
         w), u = amplitude (dy phi_y + dz phi_z), u' = velocity (ey phi_y + ez phi_z). New Vecs, the
         caller's. Collective."""
         init = self.initial
+        # the planar mode first: a mode the basis does not have is an InputError with no Vec made yet
+        y, z = planar_mode(self.operators, init.mode) if init.amplitude or init.velocity else (None, None)
         u, v = self.operators.K.createVecLeft(), self.operators.K.createVecLeft()
         u.zeroEntries()
         v.zeroEntries()
-        if init.amplitude or init.velocity:
-            y, z = planar_mode(self.operators, init.mode)
+        if y is not None:
             for vec, scale, (dy, dz) in ((u, init.amplitude, init.direction), (v, init.velocity,
                                                                             init.velocity_direction)):
                 vec.axpy(scale * dy, y)
@@ -319,14 +320,20 @@ class FullOrderModel:
         `initial.mode`."""
         from .modes import reference_modes
 
+        # the modes first: an [initial] mode the structure does not have is an InputError with no Vec made yet
+        modes = reference_modes(self.operators, count=self.initial.mode) if self.initial.amplitude else None
         u = self.operators.K.createVecRight()
         u.zeroEntries()
-        if not self.initial.amplitude:
+        if modes is None:
             return u
-        modes = reference_modes(self.operators, count=self.initial.mode)
-        modes.vectors.copyVec(self.initial.mode - 1, u)
-        modes.destroy()
-        u.scale(self.initial.amplitude / field_peak(self.operators, u))
+        try:
+            modes.vectors.copyVec(self.initial.mode - 1, u)
+            u.scale(self.initial.amplitude / field_peak(self.operators, u))
+        except Exception:
+            u.destroy()
+            raise
+        finally:
+            modes.destroy()
         return u
 
     def destroy(self) -> None:

@@ -168,3 +168,13 @@ def petsc_garbage(capfd) -> int:
     text = capfd.readouterr().out
     count = sum(int(n) for n in re.findall(r"Total entries: (\d+)", text))
     return MPI.COMM_WORLD.bcast(count, root=0)
+
+
+def undestroyed_petsc_objects() -> int:
+    """How many petsc4py objects Python still holds whose PETSc object is not destroyed (after a
+    garbage collection). An error path that leaves one alive (e.g. in the frames its traceback keeps)
+    counts it; in parallel such objects pile up in PETSc's garbage."""
+    import gc
+
+    gc.collect()
+    return sum(1 for o in gc.get_objects() if isinstance(o, PETSc.Object) and o.handle)
