@@ -217,8 +217,6 @@ def orthonormalize(V: SLEPc.BV, first: int, rows: np.ndarray, labels=None, name:
         V.restoreColumn(c, vec)
 
 
-
-
 def _check_rows(ops: Operators, rows: np.ndarray) -> None:
     values, counts = np.unique(rows, return_counts=True)
     if np.any(counts > 1):
@@ -295,10 +293,14 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     basis = ReducedBasis(vectors=V, omega=modes.omega.copy(), enrichment_omega=np.zeros(NL), dbf_k=columns.k,
                          dbf_branch=columns.branch, constraint_rows=rows, dbf_k_auto=columns.k_auto,
                          settings=settings)
-    K_r = basis.project(ops.K)
-    basis.enrichment_omega = np.sqrt(np.clip(np.diag(K_r)[N:], 0.0, None))
-    t3 = time.perf_counter()
-    basis.set_flexibility(exact_flexibility(ops, rows), K_r)
+    try:
+        K_r = basis.project(ops.K)
+        basis.enrichment_omega = np.sqrt(np.clip(np.diag(K_r)[N:], 0.0, None))
+        t3 = time.perf_counter()
+        basis.set_flexibility(exact_flexibility(ops, rows), K_r)   # Cholesky solves of K: may be refused
+    except Exception:
+        basis.destroy()
+        raise
     basis.stats = {"time_modes": t1 - t0, "time_enrichment": t2 - t1,
                    "time_orthogonalization": t3 - t2, "time_flexibility": time.perf_counter() - t3}
     return basis
@@ -354,7 +356,11 @@ def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None) -
     rich = ReducedBasis(vectors=V, omega=more.omega.copy(), enrichment_omega=np.zeros(NL), dbf_k=basis.dbf_k,
                         dbf_branch=basis.dbf_branch, constraint_rows=rows, dbf_k_auto=basis.dbf_k_auto,
                         settings=settings, stats={"cache": "off"})
-    K_r = rich.project(ops.K)
-    rich.enrichment_omega = np.sqrt(np.clip(np.diag(K_r)[modes:], 0.0, None))
-    rich.set_flexibility(basis.flexibility_exact, K_r)
+    try:
+        K_r = rich.project(ops.K)
+        rich.enrichment_omega = np.sqrt(np.clip(np.diag(K_r)[modes:], 0.0, None))
+        rich.set_flexibility(basis.flexibility_exact, K_r)
+    except Exception:
+        rich.destroy()
+        raise
     return rich
