@@ -265,11 +265,12 @@ def analytic_derivative(ops: Operators, row: int, k: float, lam: float, phi: PET
     """d phi/dk from the deflated derivative equation (module docstring, step 3), by a factorization
     of A - lambda M (LU: it is indefinite) with iterative refinement."""
     A, rhs, Mphi = derivative_system(ops, row, k, lam, phi)
-    ksp = direct_solver(PETSc.KSP().create(comm=ops.comm))  # A - lambda M is indefinite: LU
-    ksp.setOperators(A)
-    ksp.setOptionsPrefix(PREFIX)
-    ksp.setFromOptions()
+    ksp = None
     try:
+        ksp = direct_solver(PETSc.KSP().create(comm=ops.comm))  # A - lambda M is indefinite: LU
+        ksp.setOperators(A)
+        ksp.setOptionsPrefix(PREFIX)
+        ksp.setFromOptions()   # a -dbf_ option PETSc refuses raises here: ksp is destroyed below
         d = refine_derivative(
             ksp, A, rhs, phi, Mphi,
             failed=lambda reason: (f"DBF derivative solve failed at row {row} ({reason}); "

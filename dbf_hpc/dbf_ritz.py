@@ -96,10 +96,19 @@ class RitzSpace:
     residual is neglected), and ||K||_F, ||M||_F for the final checks. Collective."""
 
     def __init__(self, factor: SharedFactor, modes: list):
+        """Takes ownership of `modes` (Vecs) on success; on an error the caller still owns them."""
         self.factor, self.ops, self.sigma = factor, factor.ops, factor.sigma
-        M = self.ops.M
         self.comm = self.ops.comm.tompi4py()
         self.Phi, self.MPhi = list(modes), []
+        try:
+            self._setup()
+        except Exception:
+            destroy(*self.MPhi)
+            self.Phi, self.MPhi = [], []
+            raise
+
+    def _setup(self) -> None:
+        M = self.ops.M
         for phi in self.Phi:
             self.MPhi.append(M.createVecLeft())
             M.mult(phi, self.MPhi[-1])
@@ -116,7 +125,7 @@ class RitzSpace:
         # A^-1 M Phi is taken to lie in span Phi: the part outside, the modes' own shift-and-invert
         # residual rho_j (relative), bounds what the Ritz residuals can reach (module docstring).
         # the N solves as one block (factor.solve_block)
-        W = factor.solve_block(np.asfortranarray(self.MPhi_local.T)) if n else np.zeros((nloc, 0))
+        W = self.factor.solve_block(np.asfortranarray(self.MPhi_local.T)) if n else np.zeros((nloc, 0))
         self.T0 = _sum(self.comm, self.MPhi_local @ W)
         W -= self.Phi_local.T @ self.T0
         rho = (np.sqrt(np.maximum(_sum(self.comm, np.einsum("ij,ij->j", W, _mult_block(M, W))), 0.0))

@@ -231,12 +231,16 @@ class SharedSolver:
 def _krylov(A: PETSc.Mat, inverse: SpringInverse) -> PETSc.KSP:
     """GMRES on A, left-preconditioned by `inverse` (a PCShell), user options under dbf_krylov_."""
     ksp = PETSc.KSP().create(comm=A.getComm())
-    ksp.setOperators(A)
-    ksp.setType(PETSc.KSP.Type.GMRES)
-    ksp.setTolerances(rtol=KRYLOV_RTOL, atol=0.0, max_it=KRYLOV_MAX_IT)
-    ksp.setOptionsPrefix(KRYLOV_PREFIX)
-    ksp.setFromOptions()
-    pc = ksp.getPC()   # after setFromOptions: the shared path is this preconditioner
-    pc.setType(PETSc.PC.Type.PYTHON)
-    pc.setPythonContext(inverse)
+    try:
+        ksp.setOperators(A)
+        ksp.setType(PETSc.KSP.Type.GMRES)
+        ksp.setTolerances(rtol=KRYLOV_RTOL, atol=0.0, max_it=KRYLOV_MAX_IT)
+        ksp.setOptionsPrefix(KRYLOV_PREFIX)
+        ksp.setFromOptions()   # a -dbf_krylov_ option PETSc refuses raises here
+        pc = ksp.getPC()   # after setFromOptions: the shared path is this preconditioner
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(inverse)
+    except Exception:
+        ksp.destroy()
+        raise
     return ksp

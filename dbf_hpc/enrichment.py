@@ -224,11 +224,13 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
         try:
             # Every rank of a group takes the same path; a group with no constraint factors nothing.
             group_modes = reference_vectors(modes, group_ops, n_groups) if settings.solver == "ritz" else []
-            if settings.solver in ("shared", "ritz") and color < rows.size:
-                factor = SharedFactor(group_ops)
-            if factor is not None and settings.solver == "ritz":
-                space, group_modes = RitzSpace(factor, group_modes), []
-            destroy(*group_modes)
+            try:
+                if settings.solver in ("shared", "ritz") and color < rows.size:
+                    factor = SharedFactor(group_ops)
+                if factor is not None and settings.solver == "ritz":
+                    space, group_modes = RitzSpace(factor, group_modes), []   # the space owns them now
+            finally:
+                destroy(*group_modes)
             mine = np.arange(color, rows.size, n_groups)
             lo, hi = group_ops.K.getOwnershipRange()
             local_rows = np.arange(lo, hi, dtype=PETSc.IntType)
