@@ -8,8 +8,9 @@ those rows, is never formed: every operator that needs it works on the rows.
 Vectors at the constraints are flat, constraint-major, of length N_L d: entry j d + a is
 direction a of constraint j (for d = 1 simply one entry per constraint). The law of constraint j
 maps its total displacement and velocity (d values each) to the force on the structure (d values)
-and its derivatives, d x d blocks, (N_L, d, d) for all of them. A law may carry state that changes
-only when a step is accepted (friction's stick point): `commit` is called once per accepted step.
+and its derivatives, d x d blocks, (N_L, d, d) for all of them. The laws of laws.py have no state
+(friction is regularized, a function of v); `commit`, called once per accepted step, is the hook for
+a law that would (a stick point).
 
 Nothing here is collective.
 """
@@ -132,7 +133,7 @@ class ConstraintSet:
     stateful = False
 
     def commit(self, z, v) -> None:
-        """Accept a step: laws with state (friction) take it here. The laws of laws.py have none."""
+        """Accept a step: a law with state would take it here. The laws of laws.py have none."""
 
     def in_contact(self, z) -> np.ndarray:
         """(N_L,) whether each constraint is in contact."""

@@ -310,7 +310,9 @@ def dbf_source(ops: Operators, row: int, reference_eigenvalues: np.ndarray, part
 
     reference_eigenvalues  lambda_i of the reference modes
     participation          (g^T phi_i)^2 of the reference modes at this constraint
-    solver                 FactorSolver(ops, row) (the default) or a dbf_shared.SharedSolver for row
+    solver                 FactorSolver(ops, row) (the default), a dbf_shared.SharedSolver or a
+                           dbf_ritz.RitzSolver for row (the caller destroys it)
+    Returns a DbfSource whose derivative Vec is the caller's. Collective on ops.comm.
     """
     # Rigid-body eigenvalues are zero up to round-off (1e-9 rad^2/s^2 apart on a free-free beam):
     # exactly one repeated eigenvalue, which the spring moves in one direction only.

@@ -261,9 +261,10 @@ class FullOrderModel:
             F.getArray()[:] += scale * self.force_matrix.local(t)
 
     def initial_state(self) -> tuple:
-        """(u(0), u'(0)): initial_displacement() at rest, or on a gyroscopic structure (G set) the
-        free vibration of complex mode `initial.mode` (gyroscopic.mode_state), `initial.amplitude` m
-        peak in u. New Vecs, the caller's. Collective."""
+        """(u(0), u'(0)): on a beam of two planes two_plane_state(); on a gyroscopic structure (G set)
+        with an amplitude the free vibration of complex mode `initial.mode` (gyroscopic.mode_state),
+        `initial.amplitude` m peak in u; otherwise initial_displacement() and u'(0) = 0. New Vecs, the
+        caller's. Collective."""
         try:
             return self._initial_state()
         except InputError as e:   # "number of modes must be between 1 and 80" named no [initial] (red team)

@@ -124,13 +124,14 @@ class ReducedModel:
 
     def energy(self, q: np.ndarray, p: np.ndarray) -> float:
         """Kinetic plus strain energy of the linear part, (p^T M p + q^T K q) / 2, J (relative
-        coordinates; the laws' potential is ConstraintSet's)."""
+        coordinates; the constraints' potential is not included: constraints.laws.potential(z))."""
         return 0.5 * (p @ self.M @ p + q @ self.K @ q)
 
     def support_jump(self, value: float, rate: float) -> tuple:
-        """(dq, dp) that keep the total displacement and velocity continuous when the support's
-        motion jumps by value (m) and rate (m/s) at a case boundary (a sweep's continuation): the
-        relative state takes -r times the jump, r as the basis holds it (M_r^-1 V^T M r)."""
+        """(dq, dp) that keep the total displacement and velocity continuous at a case boundary (a
+        sweep's continuation) where the support's displacement and rate change: `value` (m) and `rate`
+        (m/s) are the old values minus the new ones (minus the jump, as sweep.py passes them), and the
+        relative state takes r times them, r as the basis holds it (M_r^-1 V^T M r)."""
         if self.r_q is None or not np.any(self.r_q):
             return np.zeros(self.size), np.zeros(self.size)
         r = np.linalg.solve(self.M, self.r_q)

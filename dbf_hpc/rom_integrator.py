@@ -21,7 +21,7 @@ Two implementations of the same callbacks ([integrator] callbacks, docs/design.m
 integrator's fast path"): ReducedProblem and _Monitor below, in Python, are the readable reference;
 the C core (dbf_hpc/_romc: rom_core.c, core.pyx), built as an optional extension, is the fast path.
 It keeps ARKIMEX and every option, and changes how the stage equations are solved: the Jacobian is a
-MatShell, and its exact inverse is structured (A(shift) = shift^2 I + shift D + K factored once per
+MatShell, and its exact inverse is structured (A(shift) = shift^2 M_r + shift D + K_r factored once per
 shift, Woodbury on the constraints in contact), applied by a Newton iteration in C (SNESSHELL) unless
 a -rom_snes_*, -rom_ksp_* or -rom_pc_* option asks for PETSc's own (then NEWTONLS, KSPPREONLY and the
 exact solve as a PCSHELL, so that -rom_snes_test_jacobian and monitors work). Its monitor takes the

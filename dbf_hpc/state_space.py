@@ -473,8 +473,9 @@ class StateSpaceModel:
         return out if np.array_equal(self.A, np.eye(self.size)) else np.linalg.solve(self.A, out)
 
     def support_jump(self, value: float, rate: float) -> tuple:
-        """ReducedModel.support_jump for eta: the relative state x = [u'; u] takes -[r rate; r value],
-        projected as the initial state is (eta = A_r^-1 Psi^T A x); eta' is not a state (zeros)."""
+        """ReducedModel.support_jump for eta (value, rate: the old support values minus the new ones):
+        the relative state x = [u'; u] takes [r rate; r value], projected as the initial state is
+        (eta = A_r^-1 Psi^T A x); eta' is not a state (zeros)."""
         if self.r_rate is None:
             return np.zeros(self.size), np.zeros(self.size)
         return self.r_rate * rate + self.r_value * value, np.zeros(self.size)

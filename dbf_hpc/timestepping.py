@@ -51,7 +51,8 @@ SETTINGS_OPTIONS = {"ts_rtol": "rtol", "ts_atol": "atol", "ts_dt": "dt", "ts_max
 @dataclass(frozen=True)
 class IntegratorSettings:
     """t_end (s); dt: the fixed step, or the first step of an adaptive run (s); scheme: the
-    ARKIMEX type of the reduced model; rtol, atol: the adaptive error control; contact: the
+    ARKIMEX type of the reduced model; adaptive: error-controlled steps (the reduced model; the
+    full-order loop takes fixed steps dt); rtol, atol: the adaptive error control; contact: the
     contact force on the "implicit" or "explicit" side of the reduced model's IMEX split;
     sample_dt: the output interval (s); callbacks: the reduced model's TS callbacks, "c" (the compiled
     fast path), "python" (the reference) or "auto" (C when built)."""

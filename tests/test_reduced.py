@@ -1,4 +1,5 @@
-"""Pieces of the reduced model (reduced.py): the random forcing process and the distributed load."""
+"""Pieces of the reduced model (rom.py, excitation.py): the random forcing process, the distributed load, and
+the continuation of the state across a support jump."""
 import numpy as np
 import pytest
 
@@ -51,3 +52,27 @@ def test_harmonic_derivatives_are_consistent():
     h, t, dt = Harmonic(2e-3, 1.5), 0.37, 1e-6
     assert (h.value(t + dt) - h.value(t - dt)) / (2 * dt) == pytest.approx(h.rate(t), rel=1e-8)
     assert (h.rate(t + dt) - h.rate(t - dt)) / (2 * dt) == pytest.approx(h.acceleration(t), rel=1e-8)
+
+
+def test_a_support_jump_between_cases_keeps_the_total_displacement_and_velocity_continuous():
+    # z = B q + r_c Omega(t): where the support moves from (value, rate) to (new, new rate) at a case
+    # boundary, the relative state must take r (old - new), r as the basis holds it (M_r^-1 V^T M r), which
+    # is what sweep.py passes to support_jump. Here the basis holds r exactly: B r = r_c.
+    from dbf_hpc.constraints import ConstraintSet
+    from dbf_hpc.laws import ConstraintLaws, law
+    from dbf_hpc.rom import ReducedModel
+
+    M = np.diag([2.0, 3.0])
+    r = np.array([0.5, -1.0])                     # the influence in basis coordinates
+    B = np.array([[1.0, 0.2], [0.0, 1.0]])
+    constraints = ConstraintSet(rows=[[0], [1]], laws=ConstraintLaws([law("linear", k=1.0)] * 2), labels=("a", "b"),
+                                positions=np.zeros(2))
+    model = ReducedModel(M=M, C=np.zeros((2, 2)), K=np.eye(2), B=B, r_c=B @ r, base_load=np.zeros(2),
+                         force_shape=np.zeros(2), constraints=constraints, support=Harmonic(), force=Harmonic(),
+                         q0=np.zeros(2), p0=np.zeros(2), probe_B=np.zeros((0, 2)), probe_r=np.zeros(0),
+                         basis_info={}, r_q=M @ r)
+    q, p = np.array([1e-3, -2e-3]), np.array([0.1, 0.3])
+    (old, old_rate), (new, new_rate) = (0.3, 2.0), (-0.1, 5.0)
+    dq, dp = model.support_jump(old - new, old_rate - new_rate)
+    np.testing.assert_allclose(B @ (q + dq) + model.r_c * new, B @ q + model.r_c * old, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(B @ (p + dp) + model.r_c * new_rate, B @ p + model.r_c * old_rate, rtol=0, atol=1e-14)
