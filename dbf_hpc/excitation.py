@@ -269,13 +269,9 @@ class Turbulence:
                 raise InputError(f"turbulence: {name} must be finite, got {value!r}")
         put(self, "seed", check_number("turbulence: seed", self.seed, 0, integer=True))
         put(self, "components", _components("turbulence:", self.components))
-        f_low, f_high = self.band
-        problems = [(not (self.psd > 0), f"psd must be positive, got {self.psd!r}"),
-                    (not (f_low is not None and f_high is not None and 0 <= f_low < f_high),
-                     f"band must be (f_low, f_high) with 0 <= f_low < f_high, got {self.band!r}"),
+        problems = [(not (self.psd > 0), f"psd must be positive, got {self.psd!r}"),   # band, components: above
                     (not (self.correlation_length > 0), f"correlation_length must be positive (m), got "
                                                         f"{self.correlation_length!r}"),
-                    (not (self.components >= 1), f"components must be at least 1, got {self.components!r}"),
                     (self.spectrum not in ("flat", "knee"), f"spectrum must be \"flat\" or \"knee\", got "
                                                             f"{self.spectrum!r}"),
                     (self.spectrum == "knee" and not (self.corner_hz > 0 and self.slope > 0),

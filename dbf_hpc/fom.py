@@ -143,11 +143,9 @@ class FullOrderModel:
                 if beam[key] == default:
                     del beam[key]    # nor do those of beams without axial transport or tension
             fingerprint = {"beam": beam, "nodes": hashlib.sha256(ops.mesh.x.tobytes()).hexdigest()}
-        elif isinstance(structure, MatrixFiles):
+        else:   # MatrixFiles (checked above)
             ops = load_operators(structure, comm)
             fingerprint = None
-        else:
-            raise InputError(f"a structure is a Beam or MatrixFiles, got {type(structure).__name__}")
         force_load = force_matrix = None
         if excitation.kind in ("random", "turbulence") and not isinstance(structure, Beam):
             ops.destroy()
@@ -456,7 +454,6 @@ def planar_mode(ops: Operators, mode: int) -> tuple:
     and the same shape in z, peak |w| = 1. The eigensolver returns any orthonormal pair of each y-z
     eigenspace; the pair's member with the larger y part, cut to its y rows, is the planar mode
     (the planes are uncoupled). Collective."""
-    from mpi4py import MPI
     from .modes import reference_modes
 
     mesh = ops.mesh
@@ -499,8 +496,6 @@ def _w_positions(mesh) -> np.ndarray:
 def field_peak(ops: Operators, u: PETSc.Vec) -> float:
     """max |u| over the DOFs of the field a user sees (w at the nodes of a beam, all DOFs of a
     matrix model). Collective."""
-    from mpi4py import MPI
-
     lo, hi = u.getOwnershipRange()
     rows = ops.field_map().rows
     rows = rows[(rows >= lo) & (rows < hi)]

@@ -541,7 +541,6 @@ class _Friction(_Group):
 
     def __init__(self, indices, laws):
         super().__init__(indices)
-        self.zero = np.zeros(len(laws))
 
     def evaluate(self, z):
         zero = np.zeros(z.shape)

@@ -46,18 +46,18 @@ WHAT = "time integration"
 _warned = []
 
 
-def c_core(callbacks: str, say=None, dimension: int = 1, load_matrix: bool = False, friction: bool = False):
+def c_core(callbacks: str, dimension: int = 1):
     """The C core for [integrator] callbacks = `callbacks`, or None for the Python callbacks. "c"
     without the extension is an InputError (one line saying how to build it); "auto" falls back to
     Python with a one-line warning (once per process). The C callbacks handle every law of laws.py:
     those of one direction (d = 1, with law = "friction"), and those of two (d = 2: circular, flat_bar,
     with friction and contact damping); one load shape times one history, or a load matrix times its
-    histories (turbulence). `load_matrix` and `friction` are therefore covered; with constraints of
-    more than two directions "auto" takes the Python callbacks without a warning, and "c" is an
-    InputError. The decision depends on the model alone: the same on every rank."""
+    histories (turbulence). With constraints of `dimension` > 2 directions "auto" takes the Python
+    callbacks without a warning, and "c" is an InputError. The decision depends on the model alone:
+    the same on every rank."""
     if callbacks == "python":
         return None
-    if not _covered(dimension, load_matrix, friction):
+    if not _covered(dimension):
         if callbacks == "c":
             raise InputError(f"callbacks = \"c\": the C callbacks handle constraints of one or two directions, "
                              f"not {dimension}; use callbacks = \"auto\" or \"python\"")
@@ -73,18 +73,18 @@ def c_core(callbacks: str, say=None, dimension: int = 1, load_matrix: bool = Fal
     return None
 
 
-def effective_callbacks(callbacks: str, dimension: int = 1, load_matrix: bool = False, friction: bool = False) -> str:
+def effective_callbacks(callbacks: str, dimension: int = 1) -> str:
     """"c" or "python": what [integrator] callbacks = `callbacks` runs on this installation for laws
     of `dimension` (as c_core decides; part of a checkpoint's identity: the two agree to the
     integrator's tolerance, not bit for bit)."""
     from . import _romc
-    return "c" if callbacks != "python" and _covered(dimension, load_matrix, friction) and _romc.core is not None \
+    return "c" if callbacks != "python" and _covered(dimension) and _romc.core is not None \
         else "python"
 
 
-def _covered(dimension: int, load_matrix: bool, friction: bool) -> bool:
+def _covered(dimension: int) -> bool:
     """Whether the C callbacks implement the model: laws of one or two directions (with friction, with
-    a load matrix or not)."""
+    a load matrix or not: every law and load is covered)."""
     return dimension in (1, 2)
 
 
@@ -246,8 +246,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
         raise TypeError("integrate_reduced takes either record or recorder")
     if recorder is not None:
         record = recorder.record
-    core = c_core(settings.callbacks, say, model.constraints.dimension, model.force_shape.ndim == 2,
-                  getattr(model.constraints.laws, "friction", False))
+    core = c_core(settings.callbacks, model.constraints.dimension)
     r = model.size
     implicit = settings.contact == "implicit"
     problem = ReducedProblem(model, implicit)

@@ -411,9 +411,7 @@ def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordi
     was asked. The finished output stores it too (finished_output). `digests`: the scene's
     file_digests when already made (they are not hashed again). Collective."""
     dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
-    matrix = scene["excitation"]["kind"] == "turbulence"   # a load matrix: the Python callbacks
-    friction = any(c.law.kind == "friction" for c in scene.constraints)
-    callbacks = (effective_callbacks(scene.integrator_settings().callbacks, dimension, matrix, friction)
+    callbacks = (effective_callbacks(scene.integrator_settings().callbacks, dimension)
                  if method == "rom" else None)
     s = scene["structure"]
     if callbacks and scene["basis"]["gyroscopic_form"] == "state_space" and (s.get("axial_speed") or

@@ -96,7 +96,7 @@ def test_friction_law_keys_are_checked_in_one_line():
         law("deadband", clearance=1e-3, k=1e6, normal_force=2.0)
     with pytest.raises(InputError, match="no contact damping"):
         law("friction", normal_force=1.0, mu=0.3, damping="linear", c=1.0)
-    assert c_core("python", friction=True) is None
+    assert c_core("python") is None
 
 
 def den_hartog_steady_state(k, m, P0, F, omega):

@@ -303,7 +303,7 @@ def test_the_two_plane_tube_writes_y_and_z_per_support_and_its_work_rate(shared_
     out = str(shared_tmp_path / "tube2d.h5")
     summary = run(scene, out, progress=False, comm=comm)
     assert "work_rate" in summary["constraint_stats"]
-    assert summary["stats"]["callbacks"] == effective_callbacks("auto", dimension=2, load_matrix=True)
+    assert summary["stats"]["callbacks"] == effective_callbacks("auto", dimension=2)
     if comm.getRank() == 0:
         with h5py.File(out) as f:
             nt = f["time"].size

@@ -194,9 +194,9 @@ def test_c_callbacks_take_a_load_matrix_of_one_or_two_plane_turbulence():
     if _romc.core is None:
         pytest.skip(_romc.why)
     for dimension in (1, 2):
-        assert c_core("c", dimension=dimension, load_matrix=True) is _romc.core
-        assert c_core("auto", dimension=dimension, load_matrix=True) is _romc.core
-    assert c_core("python", load_matrix=True) is None
+        assert c_core("c", dimension=dimension) is _romc.core
+        assert c_core("auto", dimension=dimension) is _romc.core
+    assert c_core("python") is None
 
 
 SCENE = """
@@ -316,7 +316,7 @@ def test_a_planar_turbulence_scene_runs_reduced_on_the_c_callbacks_and_full_orde
         summary = run(scene, out, progress=False, comm=comm, method=method)
         peaks.append(summary["constraint_stats"]["displacement_peak"][0])
         if method == "rom":
-            assert summary["stats"]["callbacks"] == effective_callbacks("auto", load_matrix=True)
+            assert summary["stats"]["callbacks"] == effective_callbacks("auto")
             assert summary["stats"]["callbacks"] == ("python" if _romc.core is None else "c")
             if comm.getRank() == 0:
                 with h5py.File(out) as f:
