@@ -476,6 +476,33 @@ def hopeless(tried: list, target: float, limit: int) -> tuple[float, float] | No
     return laws[1]
 
 
+def rich_model(fom, basis):
+    """The reduced model of the estimate's richer basis (RICH_MODES times the modes, the same
+    enrichment columns, each named by its constraint component), or the reason it cannot be made (a
+    string). Collective."""
+    from .basis import richer_basis
+    from .errors import DbfError
+    from .reductor import Reductor
+
+    if zeta_per_vector(fom):
+        return ("no richer model: [damping] zeta gives one ratio per basis vector, none for the richer basis's "
+                "extra modes (one zeta for all, or Rayleigh damping, has an estimate)")
+    try:
+        # a gyroscopic basis has two columns (Re, Im) per complex mode: twice the complex modes
+        rich = richer_basis(fom.operators, basis, RICH_MODES * basis.stats.get("complex_modes", basis.mode_count),
+                            fom.constraints.component_labels)
+    except DbfError as e:  # the same on every rank: too few DOFs, or a column the richer modes hold
+        return f"no richer basis: {e}"
+    with Reductor(fom, rich.settings, basis=rich) as reductor:
+        return reductor.reduce()
+
+
+def zeta_per_vector(fom) -> bool:
+    """Whether the modal damping gives a ratio per basis vector (a list), which fits one basis size only."""
+    damping = fom.damping
+    return damping is not None and damping.kind == "modal" and np.atleast_1d(damping.zeta).size > 1
+
+
 def tolerance_rtol(tolerance: float) -> float:
     """The integrator rtol of the tolerance mode: TOLERANCE_RTOL x tolerance (the tolerance mode
     picks the rtol as it picks the modes; the scene's rtol only sets atol's proportion to it,
@@ -534,7 +561,7 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
 
     from .errors import DbfError, petsc_failure
     from .reductor import Reductor
-    from .run import rich_model, wait_for_rank0
+    from .errors import wait_for_rank0
     from .simulate import simulate_reduced
 
     with Reductor(fom, basis_settings, cache_dir) as reductor:

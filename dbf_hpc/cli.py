@@ -651,7 +651,7 @@ def main(argv=None) -> int:
 
     comm = MPI.COMM_WORLD
     # _finish's own communicator: its barrier on COMM_WORLD met a rank still waiting in one of the
-    # library's (run.wait_for_rank0) after rank 0 failed alone, and the job hung (red team)
+    # library's (errors.wait_for_rank0) after rank 0 failed alone, and the job hung (red team)
     ending = comm.Dup()
     for signum in termination_signals():   # SIGTERM, and Ctrl-C; integrations and sweeps install their own
         signal.signal(signum, _terminated)

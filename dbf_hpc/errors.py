@@ -2,7 +2,8 @@
 
 Each carries one line for the user: what is wrong and what to change. The command prints that line
 and exits non-zero; anything else is a bug and ends the whole MPI job. Nothing here is
-collective: whoever raises makes sure every rank raises the same error on the same path.
+collective but decided_on_rank0 and wait_for_rank0: whoever raises makes sure every rank raises the
+same error on the same path.
 """
 import contextlib
 import math
@@ -65,6 +66,16 @@ def decided_on_rank0(comm, decide, *args):
     if problem:
         raise InputError(problem)
     return value
+
+
+def wait_for_rank0(world) -> None:
+    """Block until rank 0 of the mpi4py communicator `world` arrives, sleeping instead of spinning (its
+    integration may be long). Collective."""
+    import time
+
+    request = world.Ibarrier()
+    while not request.Test():
+        time.sleep(0.02)
 
 
 # What writing a file can raise: the OS's errors, and h5py's RuntimeError when HDF5 cannot flush (a

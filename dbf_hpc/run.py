@@ -23,13 +23,12 @@ from slepc4py import SLEPc
 
 from . import __version__, layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
-from .accuracy import (RICH_MODES, RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window,
-                       first_contact, flexibility_warning, is_long, nested_estimate, pick_basis, relative_difference,
-                       reused_estimate, statistics_estimate, statistics_window)
-from .basis import richer_basis
+from .accuracy import (RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window, first_contact,
+                       flexibility_warning, is_long, nested_estimate, pick_basis, relative_difference, reused_estimate,
+                       rich_model, statistics_estimate, statistics_window, zeta_per_vector)
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
-                     decided_on_rank0, petsc_failure, termination_signals, warn, write_failure)
+                     decided_on_rank0, petsc_failure, termination_signals, wait_for_rank0, warn, write_failure)
 from .fom import Observation
 from .fom_integrator import integrate_full
 from .fom_integrator import options as full_options
@@ -41,6 +40,7 @@ from .reductor import Reductor
 from .rom import ReducedModel
 from .rom_integrator import c_counters, effective_callbacks, integrate_reduced
 from .scene import Scene
+from .simulate import snapshot_samples
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
 from .timestepping import STEPS_PER_PERIOD, check_work, refuse_settings_options
 
@@ -181,7 +181,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
         t, solves = time.perf_counter(), counters["eigen_solves"]
         estimate, pick = scene.estimate_settings(), None
         if estimate.tolerance is not None:
-            if _zeta_per_vector(fom):
+            if zeta_per_vector(fom):
                 raise InputError("[damping] zeta gives one ratio per basis vector, but [basis] tolerance picks the "
                                  "number of modes: give one zeta for all, or Rayleigh damping")
             pick = pick_basis(fom, scene.basis_settings(), scene.cache_dir(), settings, estimate, comm, say)
@@ -216,29 +216,6 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
                         {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state},
                         (rich, window, estimate.statistics_window) if rich is not None and initial_state is None
                         else None)
-
-
-def rich_model(fom, basis):
-    """The reduced model of the estimate's richer basis (accuracy.RICH_MODES times the modes, the same
-    enrichment columns), or the reason it cannot be made (a string). Collective."""
-    labels = list(fom.constraints.labels)
-    if _zeta_per_vector(fom):
-        return ("no richer model: [damping] zeta gives one ratio per basis vector, none for the richer basis's "
-                "extra modes (one zeta for all, or Rayleigh damping, has an estimate)")
-    try:
-        # a gyroscopic basis has two columns (Re, Im) per complex mode: twice the complex modes
-        rich = richer_basis(fom.operators, basis, RICH_MODES * basis.stats.get("complex_modes", basis.mode_count),
-                            labels)
-    except DbfError as e:  # the same on every rank: too few DOFs, or a column the richer modes hold
-        return f"no richer basis: {e}"
-    with Reductor(fom, rich.settings, basis=rich) as reductor:
-        return reductor.reduce()
-
-
-def _zeta_per_vector(fom) -> bool:
-    """Whether the modal damping gives a ratio per basis vector (a list), which fits one basis size only."""
-    damping = fom.damping
-    return damping is not None and damping.kind == "modal" and np.atleast_1d(damping.zeta).size > 1
 
 
 def _say(say, message: str) -> None:
@@ -496,21 +473,6 @@ def _stored_summary(f, path: str) -> dict:
     return summary
 
 
-def wait_for_rank0(world) -> None:
-    """Block until rank 0 arrives, sleeping instead of spinning (the integration may be long)."""
-    request = world.Ibarrier()
-    while not request.Test():
-        time.sleep(0.02)
-
-
-def _snapshot_samples(count: int, sample_times: np.ndarray) -> np.ndarray:
-    """The indices of the samples that carry `count` evenly spaced snapshots."""
-    if not count:
-        return np.zeros(0, dtype=np.int64)
-    t_end = sample_times[-1]
-    return np.unique(np.searchsorted(sample_times, np.linspace(0.0, t_end, count) - 1e-12 * t_end))
-
-
 def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident, basis_stats, estimator=None) -> dict:
     """Rank 0 integrates and writes; the others wait and learn the outcome."""
     world = comm.tompi4py()
@@ -561,7 +523,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         check_free_space(path, needed + 8.0 * (2 * model.size + 64))   # the output and its checkpoint
         writer = (_reopen(path, state) if state else
                   OutputWriter(path, model.constraints.shape, model.probe_sample_shape, model.size))
-        recorder = ReducedRecorder(writer, model, _snapshot_samples(output.snapshots, settings.sample_times))
+        recorder = ReducedRecorder(writer, model, snapshot_samples(output.snapshots, settings.sample_times))
         if state:
             recorder.restore(state)
         stepper = Checkpointing(recorder, checkpoint, output.checkpoint_dt, state)
@@ -1057,7 +1019,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     constraints, observation = fom.constraints, Observation(fom)
     support, field = fom.support, fom.operators.field_map()
     output = scene.output()
-    snap_index = _snapshot_samples(output.snapshots, settings.sample_times)
+    snap_index = snapshot_samples(output.snapshots, settings.sample_times)
     field_support = fom.field_support()
     checkpoint = Checkpoint(f"{path}.checkpoint", run_identity(scene, {"fingerprint": fom.fingerprint}, fom.comm,
                                                                 "full", request=request, digests=digests))

@@ -21,7 +21,8 @@ from .rom_integrator import integrate_reduced
 from .timestepping import IntegratorSettings
 
 
-def _snapshot_samples(count: int, times: np.ndarray) -> np.ndarray:
+def snapshot_samples(count: int, times: np.ndarray) -> np.ndarray:
+    """The indices of the samples that carry `count` evenly spaced snapshots (run.py's too)."""
     if not count:
         return np.zeros(0, dtype=np.int64)
     return np.unique(np.searchsorted(times, np.linspace(0.0, times[-1], count) - 1e-12 * times[-1]))
@@ -36,7 +37,7 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
         raise InputError(f"simulate_reduced integrates a reduced model (Reductor(...).reduce()), got "
                          f"{type(model).__name__}; simulate_full integrates a FullOrderModel")
     writer = MemoryWriter(model.constraints.shape, model.probe_sample_shape, model.size)
-    recorder = ReducedRecorder(writer, model, _snapshot_samples(snapshots, settings.sample_times))
+    recorder = ReducedRecorder(writer, model, snapshot_samples(snapshots, settings.sample_times))
     stats = integrate_reduced(model, settings, say=say, recorder=recorder)
     result = Result.from_recorder(recorder, stats)
     result.snapshot_time, result.snapshot_w = recorder.snapshots(settings.sample_times)

@@ -466,3 +466,26 @@ def test_the_flexibility_warning_of_a_two_plane_beam_names_the_constraint_not_it
     assert "at constraint 2 (x = 1 m (y))" in line and "constraints below" not in line, line
     line = flexibility_warning(np.array([0.4, 0.4, 0.2, 0.3, 1.0, 1.0]), labels, dimension=2)
     assert "at constraint 2 (x = 1 m (y)) (2 constraints below" in line, line
+
+
+def test_the_richer_basis_of_a_two_plane_beam_names_each_enrichment_column_by_its_component(monkeypatch):
+    # A round hole has two enrichment columns, y and z: the richer basis's Gram-Schmidt names a dependent
+    # column by its component. Review: rich_model (in run.py then) gave one label per constraint, so a
+    # breakdown of column j named constraint j (the wrong support), or failed on an IndexError.
+    from dbf_hpc import accuracy, basis as basis_module
+
+    seen = []
+    richer = basis_module.richer_basis
+
+    def spy(ops, basis, modes, labels=None):
+        seen.append(list(labels))
+        return richer(ops, basis, modes, labels)
+
+    monkeypatch.setattr(basis_module, "richer_basis", spy)
+    tube = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20, planes=2)
+    holes = [Constraint(law("circular", clearance=2.5e-3, k=1e6), x=x) for x in (0.25, 0.6)]
+    with FullOrderModel.build(tube, holes, BaseMotion(5e-3, 1.0)) as fom, \
+            Reductor(fom, BasisSettings(modes=4)) as reductor:
+        rich = accuracy.rich_model(fom, reductor.basis())
+        assert_all(seen == [fom.constraints.component_labels] and len(seen[0]) == reductor.basis().enrichment_count == 4)
+        assert_all(rich.size == 2 * 4 + 4)

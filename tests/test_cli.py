@@ -66,7 +66,7 @@ def test_a_malformed_command_line_is_one_error_line_from_one_rank(argv):
 
 
 # A command whose rank 0 fails alone while rank 1 waits for it in the library's barrier
-# (run.wait_for_rank0, as a run's integration and the tolerance mode's candidates do)
+# (errors.wait_for_rank0, as a run's integration and the tolerance mode's candidates do)
 _RANK0_FAILS_ALONE = """
 import sys
 from dbf_hpc import cli
@@ -74,7 +74,7 @@ from dbf_hpc import cli
 def fails_on_rank0(args):
     from mpi4py import MPI
     from dbf_hpc.errors import InputError
-    from dbf_hpc.run import wait_for_rank0
+    from dbf_hpc.errors import wait_for_rank0
     if MPI.COMM_WORLD.rank == 0:
         raise InputError("rank 0 alone refused")
     wait_for_rank0(MPI.COMM_WORLD)
@@ -86,7 +86,7 @@ sys.exit(cli.main(["info", "x.h5"]))
 
 
 def test_an_error_on_rank_0_alone_while_rank_1_waits_in_a_barrier_ends_the_job_with_its_line(tmp_path):
-    # The command's end met rank 1's barrier in run.wait_for_rank0 (both are barriers on COMM_WORLD),
+    # The command's end met rank 1's barrier in errors.wait_for_rank0 (both are barriers on COMM_WORLD),
     # then rank 0 waited in allgather and rank 1 in bcast: the job hung (red team). Now rank 0's
     # barrier is on a communicator of its own: it finds rank 1 absent, prints its line and aborts.
     script = tmp_path / "rank0_fails.py"
