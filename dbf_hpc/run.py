@@ -967,10 +967,15 @@ def _full_estimate(scene: Scene, fom, settings, observation, recorder, timings: 
     world = fom.comm.tompi4py()
     times = contact = end = None
     if world.rank == 0:
-        times = recorder.writer.series_data(layout.TIME)
-        contact = _first_contact(recorder.writer, times)
-        end = estimate_window(times, contact, settings.t_end, chosen.window)
+        try:   # the samples just written, read back; a failure must not leave the others in the bcast
+            times = recorder.writer.series_data(layout.TIME)
+            contact = _first_contact(recorder.writer, times)
+            end = estimate_window(times, contact, settings.t_end, chosen.window)
+        except Exception as exc:
+            end = f"cannot read the run's samples back: {exc}"
     end = world.bcast(end, root=0)
+    if isinstance(end, str):
+        raise SolverError(end)
     rich = dataclasses.replace(settings, t_end=end, dt=settings.dt / RICH_STEP)   # the full order's step is fixed
     blocks, rich_times = [], []
 
