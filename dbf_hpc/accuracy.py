@@ -476,7 +476,7 @@ def hopeless(tried: list, target: float, limit: int) -> tuple[float, float] | No
     return laws[1]
 
 
-def rich_model(fom, basis):
+def richer_model(fom, basis):
     """The reduced model of the estimate's richer basis (RICH_MODES times the modes, the same
     enrichment columns, each named by its constraint component), or the reason it cannot be made (a
     string). Collective."""
@@ -566,7 +566,7 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
 
     with Reductor(fom, basis_settings, cache_dir) as reductor:
         model = reductor.reduce()
-        rich = rich_model(fom, reductor.basis())
+        rich = richer_model(fom, reductor.basis())
     world = comm.tompi4py()
     result = failure = None
     if world.rank == 0:

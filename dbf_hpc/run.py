@@ -25,7 +25,7 @@ from . import __version__, layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
 from .accuracy import (RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window, first_contact,
                        flexibility_warning, is_long, nested_estimate, pick_basis, relative_difference, reused_estimate,
-                       rich_model, statistics_estimate, statistics_window, zeta_per_vector)
+                       richer_model, statistics_estimate, statistics_window, zeta_per_vector)
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
                      decided_on_rank0, petsc_failure, termination_signals, wait_for_rank0, warn, write_failure)
@@ -207,7 +207,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             rich, window = (pick.estimate, pick.estimate.window) if pick else (None, estimate.window)
             if estimate.enabled and initial_state is None and pick is None and fom.constraints.count:
                 t = time.perf_counter()
-                rich = rich_model(fom, basis)
+                rich = richer_model(fom, basis)
                 timings["estimate_basis"] = time.perf_counter() - t
     if initial_state is not None:
         model = _continue_from(model, initial_state)

@@ -486,6 +486,6 @@ def test_the_richer_basis_of_a_two_plane_beam_names_each_enrichment_column_by_it
     holes = [Constraint(law("circular", clearance=2.5e-3, k=1e6), x=x) for x in (0.25, 0.6)]
     with FullOrderModel.build(tube, holes, BaseMotion(5e-3, 1.0)) as fom, \
             Reductor(fom, BasisSettings(modes=4)) as reductor:
-        rich = accuracy.rich_model(fom, reductor.basis())
+        rich = accuracy.richer_model(fom, reductor.basis())
         assert_all(seen == [fom.constraints.component_labels] and len(seen[0]) == reductor.basis().enrichment_count == 4)
         assert_all(rich.size == 2 * 4 + 4)
