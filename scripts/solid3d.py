@@ -13,9 +13,12 @@ node's z displacement along the top edge at y = W/2 (`top_z`, from the clamp to 
 z DOF (`tip_z`), and the element sizes). jobs/solid_cantilever.toml is that scene for the default
 mesh: `python scripts/solid3d.py jobs/solid_cantilever` writes the matrices it reads.
 
-The element is stiff in bending (full integration): the first bending frequency is 87.2, 83.1 and
-81.9 Hz on 20x2x2, 40x4x4 and 80x8x8 meshes, converging from above to the beam's 81.8 Hz
-(Euler-Bernoulli; tests/test_solid3d.py checks it through dbf-hpc's own modes).
+The element is stiff in bending (full integration): the first bending frequency is 87.2, 83.1, 81.9
+and 81.70 Hz on 20x2x2, 40x4x4, 80x8x8 and the default 120x16x16 meshes, converging from above to
+about the Timoshenko beam's 81.16 Hz (kappa = 5/6: at L/H = 10 shear and rotary inertia take 0.8 %
+off Euler-Bernoulli's 81.80 Hz, which the finer meshes pass; tests/test_solid3d.py checks it through
+dbf-hpc's own modes). Torsion 723.5 Hz (Saint-Venant, J = 0.1406 a^4: 721.1 Hz) and the axial mode
+1269.7 Hz (sqrt(E / rho) / 4 L = 1265.9 Hz) on the default mesh.
 """
 from __future__ import annotations
 
@@ -104,7 +107,7 @@ def top_surface_z_dofs(nx: int, ny: int, nz: int) -> list:
 def scene_text(top: list, stops: int, surface: list | None = None) -> str:
     """The guide-channel scene: `stops` stops spread over the outer 5/6 of the top centre line (or,
     with `surface`, over all the top face's z DOFs off the clamp) (0.2 mm clearance, 1e7 N/m), a 1 kN
-    force at 60 Hz at the tip (below the first bending mode, 81.8 Hz), 1 % modal damping."""
+    force at 60 Hz at the tip (below the first bending mode, 81.7 Hz), 1 % modal damping."""
     where, places = ("top face", surface) if surface is not None else ("top centre line", top)
     first = 0 if surface is not None else len(places) // 6
     if not 1 <= stops <= len(places) - first:   # more would put two stops on one node (silently fewer)
