@@ -265,7 +265,10 @@ def _plot(args) -> int:
     if problem:
         raise InputError(problem)
     if MPI.COMM_WORLD.rank == 0:
-        written = (plot_sweep if sweep else plot_run)(args.output, args.directory, window=window)
+        try:
+            written = (plot_sweep if sweep else plot_run)(args.output, args.directory, window=window)
+        except (KeyError, RuntimeError) as e:   # a dataset missing or unreadable (as `info` says it)
+            raise InputError(f"{args.output!r} is damaged ({str(e).splitlines()[0]})") from None
         for path in written:
             print(f"wrote {path}")
     return 0

@@ -915,6 +915,21 @@ def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp
     assert (figs / "time_histories.png").read_bytes() == whole
 
 
+def test_plot_of_an_output_with_a_dataset_missing_is_one_line_naming_it_damaged(tmp_path):
+    # Red team: a finished run's file with one dataset gone (the solid's snapshot vectors, edited by
+    # hand or cut short by a full disk) was "internal error (KeyError)" in plot; info already said
+    # "is damaged". The velocities at the constraints are what the phase diagrams read.
+    import h5py
+
+    target = tmp_path / "d.h5"
+    assert dbf_hpc("run", PAPER, "-o", str(target), *SHORT).returncode == 0
+    with h5py.File(target, "a") as f:
+        del f["constraints/velocity"]
+    out = dbf_hpc("plot", str(target), "-d", str(tmp_path / "figs"), ranks=1)
+    assert _one_line(out) and "is damaged" in out.stderr and "constraints/velocity" not in out.stdout, out.stderr
+    assert "internal error" not in out.stderr
+
+
 def test_a_checkpoint_is_not_resumed_in_a_basis_rebuilt_with_its_repeated_modes_turned(tmp_path):
     # Red team: a tube's modes come in pairs of one frequency; the pair's orientation depends on the
     # rank layout. A run on 1 rank used a basis cached by a 2-rank run; after the cache was cleared
