@@ -1,5 +1,7 @@
 """External operators from files: exact round trips, the same modes as the beam they came from,
 and clear errors for files that cannot be operators."""
+import re
+
 import numpy as np
 import pytest
 import scipy.io
@@ -388,3 +390,22 @@ def test_a_damping_matrix_with_a_negative_eigenvalue_and_a_positive_diagonal_is_
         load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], damping=paths["C.mtx"]))
     for name in ("D.mtx", "R.mtx"):
         load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], damping=paths[name])).destroy()
+
+
+def test_a_mass_matrix_of_another_dof_numbering_draws_a_warning(shared_tmp_path, beam_files, capfd):
+    # Red team: a K and an M of the same size from two different meshes ran with no word (the first mode
+    # 8 % off). An element's mass couples no DOFs its stiffness does not, so M's entries outside K's
+    # pattern mean the files do not describe one model; the beam's own pair draws no warning.
+    _, _, M, paths = beam_files
+    perm = np.random.default_rng(0).permutation(M.shape[0])
+    other = str(shared_tmp_path / "M_other_numbering.mtx")
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(other, scipy.sparse.csr_matrix(M[perm][:, perm]), precision=17)
+    MPI.COMM_WORLD.Barrier()
+    capfd.readouterr()
+    load_operators(MatrixFiles(paths["K.mtx"], paths["M.bin"])).destroy()
+    assert "non-zero entries where the stiffness" not in capfd.readouterr().err
+    load_operators(MatrixFiles(paths["K.mtx"], other)).destroy()
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        assert re.search(r"mass matrix .*M_other_numbering.mtx' has \d+ non-zero entries where the stiffness", err), err
