@@ -249,6 +249,21 @@ def _insert_columns(V: SLEPc.BV, first: int, source, count: int, ops: Operators)
     template.destroy()
 
 
+# A lowest frequency below this is more likely a unit mistake (E in GPa given as Pa) than a structure.
+SUSPICIOUS_HZ = 1e-3
+
+
+def _units_hint(ops: Operators, frequency_hz) -> str:
+    """What to check when an enrichment solve fails on a structure whose lowest elastic frequency is
+    below SUSPICIOUS_HZ (red team: K and M files swapped failed as "GMRES did not converge; use
+    dbf_solver = factor", the units warning printed only after a basis), else ""."""
+    elastic = np.asarray(frequency_hz)[ops.rigid_modes:]
+    if elastic.size and elastic[0] < SUSPICIOUS_HZ:
+        return (f"; the lowest elastic frequency is {elastic[0]:.3g} Hz: check the structure's units (SI: N/m "
+                f"and kg), and that the stiffness and mass are not swapped")
+    return ""
+
+
 def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(), labels=None) -> ReducedBasis:
     """Reference modes and the enrichment columns settings.strategy makes (one per constraint row,
     or none), M-orthonormalized. With a gyroscopic G, the real basis of the complex modes and DBFs
@@ -285,6 +300,12 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
             _insert_columns(V, N, columns.matrix, NL, ops)
         t2 = time.perf_counter()
         orthonormalize(V, N, rows, labels, strategy.column_name or "column")
+    except SolverError as exc:   # every rank's (enrichment.raise_agreed), with the same modes
+        V.destroy()
+        hint = _units_hint(ops, modes.frequency_hz)
+        if not hint:
+            raise
+        raise SolverError(f"{exc}{hint}") from None
     except Exception:
         V.destroy()
         raise

@@ -26,6 +26,7 @@ from .xdmf import geometry_datasets, node_vectors
 from .accuracy import (RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window, first_contact,
                        flexibility_warning, is_long, nested_estimate, pick_basis, relative_difference, reused_estimate,
                        richer_model, statistics_estimate, statistics_window, zeta_per_vector)
+from .basis import SUSPICIOUS_HZ
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
                      decided_on_rank0, petsc_failure, termination_signals, wait_for_rank0, warn, write_failure)
@@ -221,10 +222,6 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
 def _say(say, message: str) -> None:
     if say is not None:
         say(message)
-
-
-# A lowest frequency below this is more likely a unit mistake (E in GPa given as Pa) than a structure.
-SUSPICIOUS_HZ = 1e-3
 
 
 def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float, rigid_modes: int = 0,

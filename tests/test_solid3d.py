@@ -146,3 +146,18 @@ def test_a_regeneration_that_cannot_write_leaves_the_earlier_matrices_whole(shar
         assert {name: (folder / name).read_bytes() for name in before} == before
         assert [p.name for p in folder.iterdir() if p.name.startswith(".")] == []   # no temporary folder left
     MPI.COMM_WORLD.Barrier()
+
+
+def test_swapped_stiffness_and_mass_files_fail_naming_the_swap_not_only_the_solver(shared_tmp_path):
+    # Red team: K.bin and M.bin given the wrong way round failed in the DBF solve as "GMRES did not
+    # converge; use dbf_solver = factor"; the lowest "frequency" (3e-7 Hz) says why.
+    from dbf_hpc.errors import SolverError
+    from dbf_hpc.run import run
+
+    folder = shared_tmp_path / "swapped"
+    scene = load_scene(generate(folder, (10, 2, 2), 4), ["structure.stiffness=M.bin", "structure.mass=K.bin",
+                                                         "basis.cache=off", "integrator.t_end=0.01"])
+    with pytest.raises(SolverError, match=r"lowest elastic frequency is .* Hz: check the structure's units .* "
+                                          r"not swapped"):
+        run(scene, str(folder / "out.h5"), progress=False)
+    assert not (folder / "out.h5").exists()
