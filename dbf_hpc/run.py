@@ -523,7 +523,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         recorder = ReducedRecorder(writer, model, snapshot_samples(output.snapshots, settings.sample_times))
         if state:
             recorder.restore(state)
-        stepper = Checkpointing(recorder, checkpoint, output.checkpoint_dt, state)
+        stepper = Checkpointing(recorder, checkpoint, output.checkpoint_dt, state, output.checkpoint_wall)
         _say(say, f"integrating to t = {settings.t_end:g} s with ARKIMEX {settings.scheme} "
                   f"(contact {settings.contact}, {'adaptive' if settings.adaptive else 'fixed'} step)")
         t = time.perf_counter()
@@ -669,11 +669,14 @@ def _left_behind(message: str, writer, checkpoint: Checkpoint | None, failed_wri
 
 
 class Checkpointing:
-    """Rank 0's per-step hook of a reduced run: a checkpoint every checkpoint_dt of simulated time and
-    when SIGTERM asked for one, then a stop with the advice to resume."""
+    """Rank 0's per-step hook of a reduced run: a checkpoint every checkpoint_dt of simulated time (one
+    due sooner than `min_wall` s of wall time after the start or the last is skipped:
+    OutputSettings.checkpoint_wall) and when SIGTERM asked for one, then a stop with the advice to
+    resume."""
 
-    def __init__(self, recorder: ReducedRecorder, checkpoint: Checkpoint, interval: float, state: dict | None):
-        self.recorder, self.checkpoint, self.interval = recorder, checkpoint, interval
+    def __init__(self, recorder: ReducedRecorder, checkpoint: Checkpoint, interval: float, state: dict | None,
+                 min_wall: float = 0.0):
+        self.recorder, self.checkpoint, self.interval, self.min_wall = recorder, checkpoint, interval, min_wall
         self.interrupted = False
         self.start = None
         self.next = interval
@@ -688,7 +691,7 @@ class Checkpointing:
                           "snes_failures": int(self.base["snes_failures"]), "wall": self.base["wall"],
                           "newton_iterations": int(self.base["newton_iterations"]), "c_counters": self.base_c}
             self.next = float(state["t"]) + interval
-        self.clock = time.perf_counter()
+        self.clock = self.saved = time.perf_counter()
 
     def due(self) -> float:
         """The simulated time from which on_step has work to do (the integrator may skip it before)."""
@@ -696,9 +699,11 @@ class Checkpointing:
 
     def on_step(self, ts, t, q, p):
         """After a step (the recorder has taken its statistics): a checkpoint when due or asked for."""
-        if self.interrupted or t >= self.next:
-            self.save(ts, t, q, p)
+        due = t >= self.next
+        if due:
             self.next = t + self.interval
+        if self.interrupted or (due and time.perf_counter() - self.saved >= self.min_wall):
+            self.save(ts, t, q, p)
         if self.interrupted:
             return (f"stopped by a termination signal at t = {t:.6g} s; the run is checkpointed: "
                     f"rerun with --resume to continue")
@@ -717,6 +722,7 @@ class Checkpointing:
                                "snes_failures": self.base["snes_failures"] + ts.getSNESFailures(), "wall": wall,
                                "newton_iterations": self.base["newton_iterations"] + ts.getSNESIterations(),
                                **({} if counts is None else {"c_counters": counts}), **self.recorder.state()})
+        self.saved = time.perf_counter()
 
 
 @contextlib.contextmanager
@@ -896,24 +902,28 @@ def _write_fixed(writer, datasets, constraint_stats, scene, method, stats, timin
 
 class FullCheckpointing:
     """Rank 0's control of a full-order run (fom_integrator.integrate_full's `control`): a checkpoint
-    every checkpoint_dt of simulated time and when SIGTERM asked for one, then a stop with the advice
-    to resume. A checkpoint holds the distributed state gathered on rank 0 (the rank count is part
-    of the run's identity), the recorder's statistics and the snapshots taken so far."""
+    every checkpoint_dt of simulated time (one due sooner than `min_wall` s of wall time after the
+    start or the last is skipped: OutputSettings.checkpoint_wall) and when SIGTERM asked for one, then
+    a stop with the advice to resume. A checkpoint holds the distributed state gathered on rank 0
+    (the rank count is part of the run's identity), the recorder's statistics and the snapshots taken
+    so far."""
 
     def __init__(self, recorder: SampleRecorder, checkpoint: Checkpoint, interval: float, state: dict | None,
-                 snaps: dict):
+                 snaps: dict, min_wall: float = 0.0):
         self.recorder, self.checkpoint, self.interval, self.snaps = recorder, checkpoint, interval, snaps
+        self.min_wall = min_wall
         self.interrupted = False
         self.next = float(state["next_checkpoint"]) if state else interval
         self.wall = float(state["wall"]) if state else 0.0
-        self.clock = time.perf_counter()
+        self.clock = self.saved = time.perf_counter()
 
     def at(self, t: float, steps: int):
         if self.interrupted:
             return "save and stop"
         if t >= self.next:
             self.next = t + self.interval
-            return "save"
+            if time.perf_counter() - self.saved >= self.min_wall:
+                return "save"
         return None
 
     def save(self, state: dict) -> None:
@@ -926,6 +936,7 @@ class FullCheckpointing:
                                "snapshot_index": np.array(index, dtype=np.int64),
                                "snapshot_w": np.array([self.snaps[i] for i in index]).reshape(len(index), width),
                                **self.recorder.state()})
+        self.saved = time.perf_counter()
 
     def stop_message(self, t: float) -> str:
         return f"stopped by a termination signal at t = {t:.6g} s; the run is checkpointed: rerun with --resume to continue"
@@ -1043,7 +1054,8 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
             if state:
                 recorder.restore(state)
                 snaps = {int(i): np.array(w) for i, w in zip(state["snapshot_index"], state["snapshot_w"])}
-            control = FullCheckpointing(recorder, checkpoint, output.checkpoint_dt, state, snaps)
+            control = FullCheckpointing(recorder, checkpoint, output.checkpoint_dt, state, snaps,
+                                        output.checkpoint_wall)
         except DbfError as exc:
             opened = (type(exc).__name__, str(exc))
         except WRITE_ERRORS as exc:

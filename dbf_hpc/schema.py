@@ -184,7 +184,9 @@ SECTIONS = {
                                             "divide t_end"),
         "probes": Key((list,), [], "m", "x of the probes on a beam (DOFs for matrices): total displacement there"),
         "snapshots": Key((int,), 0, "", "field snapshots at evenly spaced times"),
-        "checkpoint_dt": Key(NUMBER, None, "s", "simulated time between checkpoints (default t_end / 10)"),
+        "checkpoint_dt": Key(NUMBER, None, "s", "simulated time between checkpoints (default t_end / 10, none sooner "
+                                                "than 1 s of wall time after the start or the last: a short run "
+                                                "writes none)"),
     }),
 }
 

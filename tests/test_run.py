@@ -360,3 +360,32 @@ def test_a_two_plane_beams_flexibility_line_names_the_constraint_at_the_position
         assert named, out
         for number, x in named:
             assert (0.25, 0.6, 0.8)[int(number) - 1] == float(x), (number, x, out.out)
+
+
+def test_the_default_checkpoints_of_a_short_run_are_skipped_and_change_no_sample(shared_tmp_path, monkeypatch):
+    # A checkpoint is some 30 HDF5 datasets and an fsync (10-20 ms): a short run spent more on its nine
+    # default checkpoints (every t_end / 10) than on its integration. The default ones are written only
+    # scene.CHECKPOINT_WALL s of wall time after the start or the last (here never, or always); a
+    # checkpoint_dt given is kept; and a checkpoint changes nothing a run computes, bit for bit.
+    import dbf_hpc.scene
+    from dbf_hpc.checkpoint import Checkpoint
+
+    writes = []
+    original = Checkpoint.write
+    monkeypatch.setattr(Checkpoint, "write", lambda self, state: (writes.append(state["t"]), original(self, state)))
+    names = ("time", "reduced/q", "reduced/qdot", "constraints/force", "probes/displacement")
+    runs = {}
+    for wall, sets in ((float("inf"), ()), (0.0, ()), (float("inf"), ("output.checkpoint_dt=0.005",))):
+        monkeypatch.setattr(dbf_hpc.scene, "CHECKPOINT_WALL", wall)
+        writes.clear()
+        name = f"ck_{wall}_{len(sets)}.h5"
+        _, f, _ = paper_run(shared_tmp_path, "integrator.t_end=0.05", "basis.estimate=false", *sets, name=name)
+        runs[name] = ({n: f[n][()] for n in names} if f is not None else None), len(writes)
+    counts = [count for _, count in runs.values()]
+    if MPI.COMM_WORLD.rank == 0:   # rank 0 integrates and checkpoints a reduced run
+        assert counts[0] == 0 and counts[1] >= 5 and counts[2] == counts[1], counts
+        first = next(iter(runs.values()))[0]
+        for data, _ in runs.values():
+            assert all(np.array_equal(data[n], first[n]) for n in names)
+    else:
+        assert counts == [0, 0, 0]
