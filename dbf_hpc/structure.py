@@ -178,6 +178,7 @@ class BeamMesh:
         self.row = np.full(fixed.shape, -1, dtype=np.int64)
         self.row[~fixed] = np.arange(np.count_nonzero(~fixed))
         self.free_dofs = np.flatnonzero(~fixed.ravel())  # node-major DOF index of each row
+        self.p_cr = None   # the buckling load (N), once buckling_load has solved it
 
     @property
     def elements(self) -> int:
@@ -465,7 +466,15 @@ def buckling_load(comm, mesh: BeamMesh) -> float:
     loses its definiteness, the lowest P of K_bending x = P int N'^T N' dx x (EI pi^2 / L^2 pinned-pinned,
     4 EI pi^2 / L^2 clamped-clamped), solved as the largest 1/P of int N'^T N' dx x = (1/P) K_bending x
     (SLEPc GHEP, K_bending positive definite: the mesh has no rigid-body motion). Options prefix
-    `buckling_`. Collective."""
+    `buckling_`. Solved once per mesh, kept in mesh.p_cr: a compressed moving beam's assembly checks
+    it and the run's critical speed needs it again. Collective."""
+    if mesh.p_cr is None:
+        mesh.p_cr = _solve_buckling_load(comm, mesh)
+    return mesh.p_cr
+
+
+def _solve_buckling_load(comm, mesh: BeamMesh) -> float:
+    """buckling_load's eigen-solve. Collective."""
     beam = mesh.beam
     Kb = _assemble(comm, mesh, lambda h: element_matrices(h, beam.EI, beam.rhoA)[0])
     Kg = _assemble(comm, mesh, lambda h: transport_matrices(h, 1.0, 0.0)[0])

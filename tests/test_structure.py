@@ -262,3 +262,30 @@ def test_points_within_point_tol_of_each_other_in_a_chain_are_one_node_or_a_gap_
         BeamMesh(beam(elements=100), [0.25, 0.25 + 0.8e-9, 0.25 + 1.6e-9])
     mesh = BeamMesh(beam(elements=100), [1 - 0.4e-9, 1 - 0.8e-9])   # both within 1e-9 L of the end
     assert mesh.x[-1] == 1.0 and mesh.elements == 100 and mesh.node_at(1 - 0.8e-9) == 100
+
+
+def test_a_compressed_undamped_moving_beam_solves_its_buckling_load_ei_pi2_over_l2_once(tmp_path, monkeypatch):
+    # Its assembly checks the compression against P_cr = EI pi^2 / L^2 (pinned-pinned), and the run's
+    # warning above the critical speed sqrt((T + P_cr) / m_t) needs P_cr again: one eigen-solve, not two.
+    from mpi4py import MPI
+
+    import dbf_hpc.structure as structure
+    from dbf_hpc.run import gyroscopic_checks
+    from dbf_hpc.scene import load_scene
+
+    solved = []
+    original = structure._solve_buckling_load
+    monkeypatch.setattr(structure, "_solve_buckling_load",
+                        lambda comm, mesh: solved.append(original(comm, mesh)) or solved[-1])
+    path = MPI.COMM_WORLD.bcast(tmp_path / "compressed.toml")
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text('[structure]\nkind = "beam"\nlength = 1.0\nelements = 40\nE = 2e11\nI = 1e-8\nA = 1e-4\n'
+                        'rho = 7800.0\naxial_speed = 10.0\ntension = -1000.0\n[excitation]\nkind = "none"\n'
+                        '[initial]\namplitude = 1e-3\n[basis]\nmodes = 4\ncache = "off"\n[integrator]\nt_end = 0.002\n')
+    MPI.COMM_WORLD.Barrier()
+    scene = load_scene(str(path))
+    with scene.full_order_model() as fom:
+        gyroscopic_checks(scene, fom, "rom")
+        assert fom.operators.mesh.p_cr == solved[0]
+    assert len(solved) == 1, solved
+    assert abs(solved[0] / (2e11 * 1e-8 * np.pi**2) - 1) < 1e-6
