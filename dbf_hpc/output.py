@@ -454,6 +454,17 @@ class OutputWriter:
             raise
         os.replace(self.partial, self.path)
 
+    def discard(self) -> None:
+        """Close and remove the .partial without finishing it (a sweep's case whose output is not
+        kept). A write that fails (a full disk) parks it (errors.park) and raises."""
+        try:
+            self.flush()
+            self.file.close()
+        except WRITE_ERRORS:
+            self._park()
+            raise
+        os.remove(self.partial)
+
     def _park(self) -> None:
         park(self, self.file, self.series)
         self.series, self.blocks, self.parked = {}, _Blocks({}), True

@@ -493,13 +493,15 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
 
 
 def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: bool = False, ident=None,
-             extra_stats=None, ranks: int = 1, timings=None, estimator=None) -> dict:
+             extra_stats=None, ranks: int = 1, timings=None, estimator=None, keep: bool = True) -> dict:
     """Integrate a reduced model on this rank alone and write the run's output to `path` (rank 0 of
     a run, or any rank of a sweep). Checkpoints every [output] checkpoint_dt; SIGTERM checkpoints
     and stops (errors.Interrupted); with resume, continues from a valid checkpoint. With estimator =
     (the richer reduced model, or the tolerance mode's calibration Estimate, or why there is none;
     window or None), the output carries the a-posteriori estimate (accuracy.py). Returns the
-    summary with the final state and excitation phase (for continuation)."""
+    summary with the final state and excitation phase (for continuation). keep False (a sweep's
+    case without keep_outputs): the samples go to path.partial for the checkpoints alone, and the
+    finished run writes no output (finish)."""
     settings, output = scene.integrator_settings(), scene.output()
     timings = {} if timings is None else timings
     checkpoint = Checkpoint(f"{path}.checkpoint", ident or {})
@@ -531,6 +533,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
             stats = integrate_reduced(model, settings, None, stepper.on_step, say, stepper.start, recorder=recorder,
                                       due=stepper.due)
         timings["integration"] = stats["time_integration"]   # a resumed run's whole, not this part
+        writer.flush()   # the last samples: a write that fails is this block's error, not the estimate's
     except PETSc.Error as exc:   # before WRITE_ERRORS: petsc4py's Error is a RuntimeError
         raise SolverError(_left_behind(f"the reduced integration: {petsc_failure(exc)}; check the -rom_ options",
                                        writer, checkpoint)) from None
@@ -555,10 +558,13 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
             timings["snapshots"] = time.perf_counter() - t
             summary = finish(scene, recorder, stats, timings, ranks, "rom", model.field_points, snap_t, snap_w, model,
                              {**(estimate.attrs() if estimate else {}), **(long_run.attrs() if long_run else {})},
-                             long_run.datasets(layout.STATISTICS_ERROR) if long_run else None, checkpoint)
+                             long_run.datasets(layout.STATISTICS_ERROR) if long_run else None, checkpoint, keep)
             checkpoint.remove()
     except Interrupted as exc:
         raise Interrupted(_left_behind(str(exc), writer, checkpoint)) from None
+    except WRITE_ERRORS as exc:   # the last samples' flush (a full disk); finish's own writes say theirs
+        raise SolverError(_left_behind(f"cannot write {path}.partial or its checkpoint: {write_failure(exc)}",
+                                       writer, checkpoint, failed_write=True)) from None
     if estimate:
         summary["estimated_error"], summary["estimated_error_window"] = estimate.value, estimate.window
     if long_run:
@@ -787,10 +793,12 @@ def _initial_text(init) -> str:
 
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
            field, snap_t, snap_w, model: ReducedModel | None = None, extra_attrs: dict | None = None,
-           extra_datasets: dict | None = None, checkpoint: Checkpoint | None = None) -> dict:
+           extra_datasets: dict | None = None, checkpoint: Checkpoint | None = None, write: bool = True) -> dict:
     """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
     snapshots, an XDMF file beside it for ParaView), and return the run's summary. `field` is the
-    PointValues the snapshots are taken at; `checkpoint` the run's (a failed write names it)."""
+    PointValues the snapshots are taken at; `checkpoint` the run's (a failed write names it). With
+    write False (a sweep's case whose output is not kept), the summary only: the .partial is closed
+    and removed, nothing is written to `path`."""
     timings["total"] = sum(timings.values())
     constraints, output, init = recorder.constraints, scene.output(), scene.initial()
     snap_w = np.asarray(snap_w, dtype=float).reshape(np.size(snap_t), field.count)
@@ -805,6 +813,11 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
             [c.wear_coefficient for c in scene.constraints], float(t[-1] - t[0]) if t.size else 0.0,
             constraint_stats["work_rate"], constraint_stats["work_rate_ci95"])
     probe_peak = np.abs(writer.series_data(layout.PROBE_DISPLACEMENT)).max(axis=0, initial=0.0)
+    summary = {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
+               "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
+    if not write:   # some 80 datasets with their units, 50 ms a case, written to be removed (sweep._run_one)
+        writer.discard()
+        return summary
     geometry = field.geometry()
     datasets = {layout.CONSTRAINT_POSITION: constraints.positions,
                 layout.CONSTRAINT_CLEARANCE_MINUS: constraints.clearance_minus,
@@ -851,8 +864,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     if deferred:
         print(f"dbf-hpc: warning: a termination signal came while {writer.path} was written; it was finished first",
               file=sys.stderr, flush=True)
-    return {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
-            "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
+    return summary
 
 
 def _write_output(writer, datasets, constraint_stats, scene, method, stats, timings, ranks, init, attrs, checkpoint,

@@ -467,11 +467,12 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
         # resumed its q in the basis a 1-rank rerun rebuilt, and its statistics were neither run's)
         ident = {"case": identity, "coordinates": model.coordinates_digest()}
         _drop_stale_checkpoint(case_out, ident)
+        keep = sweep["keep_outputs"]
         try:
-            summary = run_case(scene, model, case_out, resume=True, ident=ident)
+            summary = run_case(scene, model, case_out, resume=True, ident=ident, keep=keep)
         except Unresumable:   # a valid checkpoint, a .partial that cannot continue: the case starts again
             _remove(f"{case_out}.partial", f"{case_out}.checkpoint")
-            summary = run_case(scene, model, case_out, resume=True, ident=ident)
+            summary = run_case(scene, model, case_out, resume=True, ident=ident, keep=keep)
         record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
                       solver=summary["stats"], final_state=summary["final_state"],
                       coordinates=model.coordinates_digest(), warnings=_case_warnings(scene, model, summary),

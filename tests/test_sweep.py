@@ -1019,3 +1019,38 @@ def test_a_sweep_figure_draws_each_supports_work_rate_with_its_95_percent_interv
         heights = [seg[1][1] - seg[0][1] for seg in segments]
         expected = [2 * 2e-4 * 1e3, 2 * 4e-4 * 1e3] if supports == 2 else [2 * 2e-4 * 1e3, 2 * 3e-4 * 1e3]
         np.testing.assert_allclose(heights, expected, rtol=1e-12)
+
+
+def test_a_case_whose_output_is_not_kept_writes_none_and_its_statistics_are_the_kept_ones(shared_tmp_path,
+                                                                                          monkeypatch):
+    # Without keep_outputs a case's HDF5 output (some 80 datasets with their units) was written, then
+    # removed: half a short case's wall time. Now only its samples for the checkpoints are streamed;
+    # the impact statistics, probe peaks and final states are those of the kept run, bit for bit.
+    from dbf_hpc.output import OutputWriter
+
+    finished = []
+    original = OutputWriter.finish
+    monkeypatch.setattr(OutputWriter, "finish", lambda self, *a, **k: (finished.append(self.path),
+                                                                       original(self, *a, **k)))
+    base = _copy_scene(shared_tmp_path)
+    path = shared_tmp_path / "keep.toml"
+    summaries, counts = {}, {}
+    for keep in ("false", "true"):
+        if MPI.COMM_WORLD.rank == 0:
+            path.write_text(f'scene = "{base}"\noutput = "keep_{keep}.h5"\nkeep_outputs = {keep}\n' + SMALL)
+        MPI.COMM_WORLD.Barrier()
+        finished.clear()
+        result = run_sweep(str(path), progress=False)
+        counts[keep] = MPI.COMM_WORLD.allreduce(len(finished))
+        with h5py.File(result["output"]) as f:
+            summaries[keep] = {name: f[f"cases/stats/{name}"][()] for name in STATISTICS}
+            summaries[keep]["probe_peak"] = f["cases/probe_peak"][()]
+        folder = result["output"] + ".cases"
+        records = [json.load(open(os.path.join(folder, f"case-{i:05d}.json"))) for i in range(2)]
+        summaries[keep]["final_state"] = np.array([r["final_state"] for r in records])
+    assert counts == {"false": 0, "true": 2}, counts
+    assert not any(name.endswith((".h5", ".partial", ".checkpoint"))
+                   for name in os.listdir(shared_tmp_path / "keep_false.h5.cases"))
+    assert summaries["false"]["impacts"].sum() > 0
+    for name, value in summaries["true"].items():
+        np.testing.assert_array_equal(summaries["false"][name], value, err_msg=name)
