@@ -51,12 +51,21 @@ def exact_flexibility(ops, rows) -> np.ndarray:
     """f_exact_j = g_j^T K^-1 g_j (m/N) of every constraint row: one Cholesky factorization of K and
     its solves, a block of unit loads at a time (enrichment.static_modes, options prefix static_). NaN for all when K is
     singular (rigid-body modes, or a solve that fails: the indicator never stops a basis that can be
-    built). Collective on ops.comm."""
-    from .enrichment import static_modes
-
+    built). Solved once per operators and rows (ops.flexibility: the tolerance mode builds a basis per
+    candidate, and K factored for each). Collective on ops.comm."""
     rows = np.asarray(rows, dtype=np.int64)
     if ops.rigid_modes or not rows.size:
         return np.full(rows.size, np.nan)
+    key = rows.tobytes()
+    if key not in ops.flexibility:
+        ops.flexibility[key] = _solve_flexibility(ops, rows)
+    return ops.flexibility[key].copy()
+
+
+def _solve_flexibility(ops, rows: np.ndarray) -> np.ndarray:
+    """exact_flexibility's factorization and solves. Collective on ops.comm."""
+    from .enrichment import static_modes
+
     try:
         psi = static_modes(ops, rows)
     except SolverError:   # decided on every rank alike (a collective residual norm)

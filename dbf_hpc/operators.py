@@ -10,7 +10,7 @@ on it; PointValues is plain numpy and not collective.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field as dataclass_field
 from typing import Optional
 
 import numpy as np
@@ -107,6 +107,8 @@ class Operators:
     eigen_scale      a typical eigenvalue of (K, M), rad^2/s^2 (sets default solver shifts).
     mesh             the beam mesh for beam models (positions of nodes, DOF rows), else None.
     field            what snapshots show (PointValues of the nodes); every DOF when not set.
+    flexibility      g_j^T K^-1 g_j of constraint rows once solved (accuracy.exact_flexibility), keyed
+                     by the rows: the tolerance mode's candidate bases factor K for it once.
     """
 
     comm: PETSc.Comm
@@ -120,6 +122,7 @@ class Operators:
     eigen_scale: float = 1.0
     mesh: Optional[object] = None
     field: Optional[PointValues] = None
+    flexibility: dict = dataclass_field(default_factory=dict, repr=False)
 
     @property
     def size(self) -> int:

@@ -489,3 +489,25 @@ def test_the_richer_basis_of_a_two_plane_beam_names_each_enrichment_column_by_it
         rich = accuracy.richer_model(fom, reductor.basis())
         assert_all(seen == [fom.constraints.component_labels] and len(seen[0]) == reductor.basis().enrichment_count == 4)
         assert_all(rich.size == 2 * 4 + 4)
+
+
+def test_the_tolerance_modes_candidate_bases_factor_k_for_the_exact_flexibility_once(shared_tmp_path, monkeypatch):
+    # f_exact = g^T K^-1 g depends on K and the constraint rows alone, not on the modes: the tolerance
+    # mode's candidates (6, then 12 modes here) and the picked basis, rebuilt without a cache, share one
+    # factorization of K, and every basis carries the closed form a^2 (L - a)^2 / (3 EI L) at a = 0.25 m.
+    import h5py
+    from mpi4py import MPI
+
+    import dbf_hpc.accuracy as accuracy
+
+    solves = []
+    original = accuracy._solve_flexibility
+    monkeypatch.setattr(accuracy, "_solve_flexibility", lambda ops, rows: solves.append(rows) or original(ops, rows))
+    _, summary = _w(shared_tmp_path, "flex_once.h5", "basis.tolerance=0.05", "basis.cache=off",
+                    "integrator.t_end=0.5")
+    assert len(solves) == 1, solves
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(shared_tmp_path / "flex_once.h5", "r") as f:
+            assert f["basis/omega"].size > 6, "more than one candidate was built"
+            f_exact = f["basis/flexibility_exact"][()]
+        assert np.allclose(f_exact, 0.25**2 * 0.75**2 / (3 * EI), rtol=1e-8), f_exact
