@@ -14,6 +14,34 @@ _DEBIAN = {"PETSC_DIR": "/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real",
            "SLEPC_DIR": "/usr/lib/slepcdir/slepc3.18/x86_64-linux-gnu-real"}
 
 
+# The options prefixes of the package's solvers: an option under one of them belongs to one command
+# (petsctools.command_options); they go in after PETSc starts, the others (-log_view) at its start
+SOLVER_PREFIXES = ("modes_", "dbf_", "static_", "buckling_", "rom_", "full_")
+
+
+def option_pairs(tokens) -> list:
+    """[name, value or None] per option of `tokens` as given (-name [value] ...): a token after a
+    name that is not itself a name (a dash and a letter) is its value; -1 and -.5 are values."""
+    pairs, name = [], None
+    for token in tokens:
+        if token.startswith("-") and token.lstrip("-")[:1].isalpha():
+            name = token.lstrip("-")
+            pairs.append([name, None])
+        elif name is not None:
+            pairs[-1][1] = token
+            name = None
+    return pairs
+
+
+def startup_options(tokens) -> list:
+    """The tokens of the options that are not a solver's (SOLVER_PREFIXES): what init hands PETSc."""
+    out = []
+    for name, value in option_pairs(tokens):
+        if not name.startswith(SOLVER_PREFIXES):
+            out += [f"-{name}"] + ([value] if value is not None else [])
+    return out
+
+
 def init(options=()) -> bool:
     """Initialize SLEPc (and PETSc) with `options`; True if this call did it. Only the first
     initialization takes effect, so call this before any dbf_hpc module that imports

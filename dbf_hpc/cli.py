@@ -636,6 +636,7 @@ def _is_write_failure(exc) -> bool:
 
 
 def main(argv=None) -> int:
+    program = argv is None   # the program's own command line, not a call from Python (command_options)
     argv = list(sys.argv[1:] if argv is None else argv)
     sys.unraisablehook, sys.excepthook = _quiet_write_failures, _quiet_write_failures_printed
     ours, petsc_options = split_petsc_options(argv)
@@ -643,7 +644,7 @@ def main(argv=None) -> int:
 
     from . import _petsc
 
-    at_start = _petsc.init(petsc_options)
+    at_start = _petsc.init(_petsc.startup_options(petsc_options))   # the solvers' go in per command
     # `dbf-hpc info OUT.h5 | head` ends quietly, as other commands do, not in PETSc's signal handler
     signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     from mpi4py import MPI
@@ -659,7 +660,7 @@ def main(argv=None) -> int:
     for signum in termination_signals():   # SIGTERM, and Ctrl-C; integrations and sweeps install their own
         signal.signal(signum, _terminated)
     try:
-        with command_options(petsc_options, at_start):
+        with command_options(petsc_options, at_start, keep=program):
             args.func(args)
             failure = None
             _warn_unused(petsc_options, PETSc.COMM_WORLD)

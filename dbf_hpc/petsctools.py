@@ -14,6 +14,8 @@ import contextlib
 import numpy as np
 from petsc4py import PETSc
 
+from ._petsc import SOLVER_PREFIXES, option_pairs
+
 
 def owned_rows(n: int, comm) -> tuple[int, int]:
     """The rows [start, end) this rank owns in PETSc's default layout of n rows. Collective."""
@@ -131,42 +133,36 @@ def frames_released():
         raise
 
 
-# The options prefixes of the package's solvers: an option under one of them belongs to one command
-SOLVER_PREFIXES = ("modes_", "dbf_", "static_", "buckling_", "rom_", "full_")
-
-
 @contextlib.contextmanager
-def command_options(tokens, at_start: bool):
+def command_options(tokens, at_start: bool, keep: bool = False):
     """One command's PETSc options (tokens as given: -name [value] ...) in the database while it runs,
     so that a later command in the same process (a study script or the tests calling cli.main)
     neither inherits them nor loses its own (red team: a second cli.main ran with the first one's
-    -modes_eps_tol 1e-3 and warned its own options unused). `at_start`: PETSc was initialized with
-    them (the first command); else they go in now. The options of the package's solvers
-    (SOLVER_PREFIXES) are taken back afterwards, the values from before the command restored;
-    others (-log_view, -malloc_debug) configure PETSc itself and stay. Not collective."""
+    -modes_eps_tol 1e-3 and warned its own options unused). The options of the package's solvers
+    (_petsc.SOLVER_PREFIXES) go in now, over any value PETSC_OPTIONS or a file gave (the command line
+    wins, as in PETSc), and are taken back afterwards, the values from before restored; the others
+    (-log_view, -malloc_debug) configure PETSc itself and stay: `at_start`, PETSc was initialized with
+    them (_petsc.startup_options), else they go in now. `keep`: the command is the program's (its
+    own command line): its options stay for PETSc's finalization, whose -options_left and -log_view
+    report them (taken back, -options_left said "There are no unused options" of a misspelled one
+    and -log_view's option table lost every solver option; red team). Not collective."""
     options = PETSc.Options()
-    pairs, name = [], None
-    for token in tokens:
-        if token.startswith("-") and token.lstrip("-")[:1].isalpha():
-            name = token.lstrip("-")
-            pairs.append([name, None])
-        elif name is not None:
-            pairs[-1][1] = token
-            name = None
+    pairs = option_pairs(tokens)
     before = {}
     for name, _ in pairs:
         if name.startswith(SOLVER_PREFIXES) and name not in before:
-            before[name] = options.getString(name) if not at_start and options.hasName(name) else None
-    if not at_start:
-        for name, value in pairs:
+            before[name] = options.getString(name) if options.hasName(name) else None
+    for name, value in pairs:
+        if name.startswith(SOLVER_PREFIXES) or not at_start:
             options.setValue(name, value)
     try:
         yield
     finally:
-        for name, value in before.items():
-            options.delValue(name)
-            if value is not None:
-                options.setValue(name, value or None)
+        if not keep:
+            for name, value in before.items():
+                options.delValue(name)
+                if value is not None:
+                    options.setValue(name, value or None)
 
 
 def _petsc_library():

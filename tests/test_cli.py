@@ -979,3 +979,41 @@ def test_a_commands_petsc_options_hold_for_that_command_only(capsys):
         assert main(["modes", PAPER, "--set", "basis.modes=4", "-modes_eps_tol", "1e-9"]) == 0
         assert PETSc.Options().getString("modes_eps_tol") == "1e-11"
     assert PETSc.Options().getAll() == before
+
+
+def test_the_programs_solver_options_reach_petsc_finalization_options_left_and_log_view(tmp_path):
+    # Red team: a command's solver options were taken back when it ended, also at the end of the
+    # program itself, so PETSc's finalization reported on a database without them: -options_left said
+    # "There are no unused options." of a misspelled -modes_ option, and -log_view's option table
+    # listed none of the solver options the run used. The program's options stay to its end.
+    out = dbf_hpc("modes", PAPER, "--set", "basis.modes=4", "-modes_eps_tol", "1e-9", "-modes_eps_tolerance", "3",
+                  "-modes_eps_target", "-1", "-options_left", "-options_view")
+    assert out.returncode == 0, out.stderr
+    assert "Option left: name:-modes_eps_tolerance value: 3" in out.stdout, out.stdout[-2000:]
+    assert "There are no unused options" not in out.stdout
+    table = out.stdout[out.stdout.index("#PETSc Option Table entries:"):]
+    assert "-modes_eps_tol 1e-9" in table and "-modes_eps_target -1" in table, table
+    assert "PETSc option -modes_eps_tolerance was not used" in out.stderr   # dbf-hpc's own line too
+
+
+_ENVIRONMENT_OPTION = """
+from dbf_hpc.cli import main
+code = main(["modes", {paper!r}, "--set", "basis.modes=4", "-modes_eps_tol", "1e-9", "-modes_eps_view"])
+from petsc4py import PETSc
+print("after:", PETSc.Options().getString("modes_eps_tol"), code)
+"""
+
+
+def test_a_petsc_options_environment_value_comes_back_after_a_command_that_overrode_it(tmp_path):
+    # Red team: the first command of a process (PETSc started with its options) took its solver
+    # options back by deleting them, so a PETSC_OPTIONS value of the same name was gone for every later
+    # command of the process. The command line still wins while the command runs (as in PETSc).
+    script = tmp_path / "environment_option.py"
+    script.write_text(_ENVIRONMENT_OPTION.format(paper=PAPER))
+    env = {**mpi_env(), "PETSC_OPTIONS": "-modes_eps_tol 1e-11",
+           "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=ROOT,
+                         env=env)
+    assert out.returncode == 0, out.stderr
+    assert re.search(r"^\s*tolerance: 1e-09$", out.stdout, re.M), out.stdout[:3000]   # the command's value
+    assert "after: 1e-11 0" in out.stdout, out.stdout[-500:]                           # the environment's again
