@@ -155,12 +155,17 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
     ts.setMaxStepRejections(50)  # consecutive, within one step: bounds the retries of a hopeless step
     if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples)
         ts.setStepLimits(settings.dt * MIN_STEP_FRACTION, max(settings.dt, settings.sample_dt * 10))
-        if steps is not None:
-            steps.ts, steps.floor = ts, settings.dt * MIN_STEP_FRACTION
     ts.getSNES().setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
     with options_defaults(prefix, defaults):
         ts.setOptionsPrefix(prefix)
         ts.setFromOptions()
+    if adaptive and steps is not None:
+        # the floor the controller has, which -<prefix>ts_adapt_dt_min raises (a crawl there went
+        # unseen; red team); below dt x MIN_STEP_FRACTION a run crawls whatever the floor
+        nominal, floor = settings.dt * MIN_STEP_FRACTION, ts.getStepLimits()[0]
+        steps.ts, steps.floor = ts, max(floor, nominal)
+        steps.floor_source = (f"-{prefix}ts_adapt_dt_min" if floor > nominal else
+                              f"[integrator] dt x {MIN_STEP_FRACTION:g}")
 
 
 class StepMonitor:
@@ -182,6 +187,7 @@ class StepMonitor:
         self.first_step = self.first_time = None
         self.tol = 1e-9 * max(times[-1], 1.0)
         self.ts = self.floor = self.floor_since = None   # configure sets ts and floor on an adaptive run
+        self.floor_source = ""
 
     def samples_due(self, t: float):
         """(index, sample time, whether it is the step's own time) of every sample up to t."""
@@ -231,11 +237,11 @@ class StepMonitor:
         elif self.floor_since is None:
             self.floor_since = step
         elif step - self.floor_since >= FLOOR_STEPS:
-            self.stop(self.ts, t, _floor_message(self.floor, step - self.floor_since, t))
+            self.stop(self.ts, t, _floor_message(self.floor, self.floor_source, step - self.floor_since, t))
 
 
-def _floor_message(floor: float, steps: int, t: float) -> str:
-    return (f"the time step stayed at its floor ({floor:.3g} s, [integrator] dt x {MIN_STEP_FRACTION:g}) for {steps} "
+def _floor_message(floor: float, source: str, steps: int, t: float) -> str:
+    return (f"the time step stayed at its floor ({floor:.3g} s, {source}) for {steps} "
             f"steps at t = {t:.6g} s, where the error cannot be kept within rtol and atol and the run would crawl: "
             f"check the constraint laws' stiffness and damping (k, alpha, c) and the loads against the structure's "
             f"own scales and units, or lower [integrator] dt if the model is that fast")

@@ -1,5 +1,7 @@
 """The time-stepping layer (timestepping.py): settings validated once, and runs that cannot finish
 in reasonable time refused before any work, with what to change."""
+import re
+
 import pytest
 
 from dbf_hpc.errors import InputError
@@ -71,4 +73,43 @@ def test_a_step_controller_that_agrees_with_integrator_adaptive_is_the_users(ada
         assert ts.getTolerances()[0] == 1e-6                        # [integrator] rtol
     finally:
         options.delValue("rom_ts_adapt_type")
+        ts.destroy()
+
+
+@pytest.mark.parametrize("dt_min,floor,source", [(None, 1e-12, r"\[integrator\] dt x 1e-08"),
+                                                 (1e-9, 1e-9, "-rom_ts_adapt_dt_min"),
+                                                 (1e-20, 1e-12, r"\[integrator\] dt x 1e-08")])
+def test_a_step_held_at_the_controllers_floor_for_floor_steps_stops_the_run_naming_that_floor(dt_min, floor, source):
+    # PETSc accepts a step at its floor without error control. Red team: the watch took the floor as
+    # dt x 1e-8 whatever -rom_ts_adapt_dt_min said, so a Hunt-Crossley alpha of 1e308 under
+    # -rom_ts_adapt_dt_min 1e-9 crawled at 1e-9 s for ever (the step never sat at 1e-12 s). A floor
+    # lowered below dt x 1e-8 still stops there: steps that short make no progress on any scene.
+    import numpy as np
+    from petsc4py import PETSc
+
+    from dbf_hpc.timestepping import FLOOR_STEPS, StepMonitor, configure
+
+    options = PETSc.Options()
+    ts = PETSc.TS().create(comm=PETSc.COMM_SELF)
+    ts.setType(PETSc.TS.Type.ARKIMEX)
+    if dt_min is not None:
+        options.setValue("rom_ts_adapt_dt_min", dt_min)
+    try:
+        settings = IntegratorSettings(t_end=1.0, dt=1e-4, adaptive=True)
+        monitor = StepMonitor(np.linspace(0.0, 1.0, 11))
+        configure(ts, settings, "rom_", {"ts_adapt_type": "basic"}, True, steps=monitor)
+        assert monitor.floor == pytest.approx(floor, rel=1e-12)
+        ts.setTimeStep(2 * floor)                       # above the floor: no count
+        for step in range(2 * FLOOR_STEPS):
+            monitor.report(step, 0.5)
+        assert monitor.failure is None
+        ts.setTimeStep(floor)                           # held at the floor: FLOOR_STEPS steps, then the stop
+        for step in range(2 * FLOOR_STEPS, 3 * FLOOR_STEPS + 1):
+            monitor.report(step, 0.5)
+        assert monitor.failure is not None
+        assert re.search(rf"stayed at its floor \({floor:.3g} s, {source}\) for {FLOOR_STEPS} steps at t = 0.5 s",
+                         monitor.failure), monitor.failure
+    finally:
+        if dt_min is not None:
+            options.delValue("rom_ts_adapt_dt_min")
         ts.destroy()
