@@ -1005,11 +1005,13 @@ def _full_estimate(scene: Scene, fom, settings, observation, recorder, timings: 
             blocks.append(observation.block_totals(*samples[:3])[0])
 
     control = _EstimateControl() if world.rank == 0 else None
+    _say(say, f"estimating the step's error: the same model to t = {end:g} s at a step of {rich.dt:g} s")
     start = time.perf_counter()
     failure = None
     try:
         with _interrupt_on_sigterm(control):
-            integrate_full(fom, rich, observation.rows, on_block if world.rank == 0 else None, control=control)
+            integrate_full(fom, rich, observation.rows, on_block if world.rank == 0 else None, say=say,
+                           control=control)
     except Interrupted:   # a SolverError too, but the run's to stop (every rank: control's word)
         raise
     except SolverError as exc:   # every rank's (integrate_full's errors are collective)
