@@ -166,6 +166,9 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
         steps.ts, steps.floor = ts, max(floor, nominal)
         steps.floor_source = (f"-{prefix}ts_adapt_dt_min" if floor > nominal else
                               f"[integrator] dt x {MIN_STEP_FRACTION:g}")
+        # a user's Newton or step options can starve the step too (-rom_snes_max_it 1): name them
+        steps.floor_options = sorted(f"-{name}" for name in PETSc.Options().getAll()
+                                     if name.startswith((prefix + "snes_", prefix + "ksp_", prefix + "ts_")))
 
 
 class StepMonitor:
@@ -187,7 +190,7 @@ class StepMonitor:
         self.first_step = self.first_time = None
         self.tol = 1e-9 * max(times[-1], 1.0)
         self.ts = self.floor = self.floor_since = None   # configure sets ts and floor on an adaptive run
-        self.floor_source = ""
+        self.floor_source, self.floor_options = "", []
 
     def samples_due(self, t: float):
         """(index, sample time, whether it is the step's own time) of every sample up to t."""
@@ -237,14 +240,16 @@ class StepMonitor:
         elif self.floor_since is None:
             self.floor_since = step
         elif step - self.floor_since >= FLOOR_STEPS:
-            self.stop(self.ts, t, _floor_message(self.floor, self.floor_source, step - self.floor_since, t))
+            self.stop(self.ts, t, _floor_message(self.floor, self.floor_source, step - self.floor_since, t,
+                                                 self.floor_options))
 
 
-def _floor_message(floor: float, source: str, steps: int, t: float) -> str:
+def _floor_message(floor: float, source: str, steps: int, t: float, options=()) -> str:
+    given = f"the options given ({' '.join(options)}), " if options else ""
     return (f"the time step stayed at its floor ({floor:.3g} s, {source}) for {steps} "
             f"steps at t = {t:.6g} s, where the error cannot be kept within rtol and atol and the run would crawl: "
-            f"check the constraint laws' stiffness and damping (k, alpha, c) and the loads against the structure's "
-            f"own scales and units, or lower [integrator] dt if the model is that fast")
+            f"check {given}the constraint laws' stiffness and damping (k, alpha, c) and the loads against the "
+            f"structure's own scales and units, or lower [integrator] dt if the model is that fast")
 
 
 def solve(ts: PETSc.TS, y: PETSc.Vec, monitor: StepMonitor, what: str, advice: str) -> float:

@@ -132,3 +132,14 @@ def test_a_contact_damping_too_large_for_any_step_stops_at_the_step_floor_not_a_
     with pytest.raises(SolverError, match=r"time step stayed at its floor \(1e-12 s.*t = 0\.105.*alpha"):
         paper(shared_tmp_path, f"hc_{callbacks}.h5", "integrator.t_end=0.2", "basis.estimate=false",
               f"integrator.callbacks={callbacks}", "constraint.damping=hunt_crossley", "constraint.alpha=1e308")
+
+
+def test_a_run_stopped_at_the_step_floor_names_the_newton_options_the_user_gave(shared_tmp_path):
+    # Red team: with -rom_snes_max_it 1 the floor's line blamed only the stiffness and the loads.
+    from conftest import petsc_options
+    from dbf_hpc.errors import SolverError
+
+    with petsc_options(rom_snes_max_it=20), pytest.raises(SolverError, match=r"at its floor .* check the "
+                                                                           r"options given \(-rom_snes_max_it\)"):
+        paper(shared_tmp_path, "hc_options.h5", "integrator.t_end=0.2", "basis.estimate=false",
+              "constraint.damping=hunt_crossley", "constraint.alpha=1e308")
