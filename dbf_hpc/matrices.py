@@ -236,9 +236,11 @@ def mass_outside_stiffness(K: PETSc.Mat, M: PETSc.Mat) -> int:
     of the same size from two different meshes ran with no word, the first mode 8 % off. A writer
     that drops K's zero entries could count a few: the caller warns, it does not refuse. Collective
     (0 when the two are not laid out alike)."""
+    from mpi4py import MPI
+
     same = int(K.getOwnershipRange() == M.getOwnershipRange())
     comm = K.getComm().tompi4py()
-    if not comm.allreduce(same, op=_mpi_min()):
+    if not comm.allreduce(same, op=MPI.MIN):
         return 0
     lo = K.getOwnershipRange()[0]
     n = K.getSize()[1]
@@ -248,11 +250,6 @@ def mass_outside_stiffness(K: PETSc.Mat, M: PETSc.Mat) -> int:
     m_keys = np.repeat(np.arange(m_ptr.size - 1, dtype=np.int64) + lo, np.diff(m_ptr)) * n + m_cols
     outside = int(np.count_nonzero(~np.isin(m_keys[m_vals != 0], k_keys)))
     return comm.allreduce(outside)
-
-
-def _mpi_min():
-    from mpi4py import MPI
-    return MPI.MIN
 
 
 def _check_dissipative(C: PETSc.Mat, path: str) -> None:

@@ -10,7 +10,7 @@ from dbf_hpc.errors import InputError
 from dbf_hpc.run import run
 from dbf_hpc.scene import load_scene
 from exact import pinned_beam_base_response
-from test_run import EI, PAPER, RHOA, without_constraints
+from test_run import EI, PAPER, RHOA, two_plane_tube_with_three_holes, without_constraints
 
 
 def full_run(tmp, *sets, name="full.h5", scene=PAPER, method="full"):
@@ -259,14 +259,7 @@ def test_unresolved_impacts_warn_whatever_the_sample_interval(shared_tmp_path, c
 def test_the_full_run_counts_two_condensed_dofs_per_round_hole_of_a_two_plane_beam(shared_tmp_path, capfd):
     # Red team: a round hole holds the tube in y and z, so three holes condense the contact on 6 DOFs;
     # the log said "contact condensed on 3 DOF(s)" (the constraints, not their DOFs).
-    text = open(PAPER).read().replace('right = "pinned"', 'right = "pinned"\nplanes = 2')
-    stops = "".join(f'[[constraint]]\nx = {x}\nlaw = "circular"\nclearance = 2.5e-3\nk = 1e6\n\n'
-                    for x in (0.25, 0.6, 0.8))
-    text = text[:text.index("[[constraint]]")] + stops + text[text.index("[basis]"):]
-    path = shared_tmp_path / "two_planes_full.toml"
-    if MPI.COMM_WORLD.rank == 0:
-        path.write_text(text)
-    MPI.COMM_WORLD.Barrier()
+    path = two_plane_tube_with_three_holes(shared_tmp_path)
     s = load_scene(str(path), ["basis.cache=off", "integrator.t_end=0.002", "integrator.dt=1e-4"])
     run(s, str(shared_tmp_path / "two_planes_full.h5"), progress=True, method="full")
     out = capfd.readouterr().out

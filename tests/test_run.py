@@ -36,6 +36,20 @@ def without_constraints(tmp):
     MPI.COMM_WORLD.Barrier()
     return str(path)
 
+def two_plane_tube_with_three_holes(tmp) -> str:
+    """The paper's beam bending in two planes, held by round holes (clearance 2.5 mm, 1e6 N/m) at
+    x = 0.25, 0.6 and 0.8 m: a scene file in tmp, written by rank 0. Collective."""
+    text = open(PAPER).read().replace('right = "pinned"', 'right = "pinned"\nplanes = 2')
+    stops = "".join(f'[[constraint]]\nx = {x}\nlaw = "circular"\nclearance = 2.5e-3\nk = 1e6\n\n'
+                    for x in (0.25, 0.6, 0.8))
+    text = text[:text.index("[[constraint]]")] + stops + text[text.index("[basis]"):]
+    path = tmp / "two_planes.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(text)
+    MPI.COMM_WORLD.Barrier()
+    return str(path)
+
+
 
 def test_modal_model_without_constraints_is_the_closed_form_truncated_to_n_modes(shared_tmp_path):
     scene = without_constraints(shared_tmp_path)
@@ -343,14 +357,7 @@ def test_a_two_plane_beams_flexibility_line_names_the_constraint_at_the_position
     # "min ... at constraint 3 (x = 1 m (y))" for the second of three constraints: the column's number.
     # The number printed and the position printed must be the same constraint's.
     import re
-    text = open(PAPER).read().replace('right = "pinned"', 'right = "pinned"\nplanes = 2')
-    stops = "".join(f'[[constraint]]\nx = {x}\nlaw = "circular"\nclearance = 2.5e-3\nk = 1e6\n\n'
-                    for x in (0.25, 0.6, 0.8))
-    text = text[:text.index("[[constraint]]")] + stops + text[text.index("[basis]"):]
-    path = shared_tmp_path / "two_planes.toml"
-    if MPI.COMM_WORLD.rank == 0:
-        path.write_text(text)
-    MPI.COMM_WORLD.Barrier()
+    path = two_plane_tube_with_three_holes(shared_tmp_path)
     s = load_scene(str(path), ["basis.cache=off", "basis.enrichment=\"none\"", "basis.modes=4",
                                "integrator.t_end=0.01", "basis.estimate=false"])
     run(s, str(shared_tmp_path / "two_planes.h5"), progress=True)
