@@ -29,7 +29,7 @@ from .excitation import (BaseMotion, CorrelatedProcess, NoExcitation, PointForce
 from .laws import ConstraintLaws, PlanarLaws
 from .matrices import MatrixFiles, load_operators
 from .operators import Operators, PointValues
-from .petsctools import destroy, values_at
+from .petsctools import destroy, petsc_errors_as_one_line, values_at
 from .structure import Beam, assemble_beam, distributed_load, span_node_loads
 
 
@@ -93,6 +93,7 @@ class FullOrderModel:
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
+    @petsc_errors_as_one_line("FullOrderModel.build")
     def build(cls, structure, constraints=(), excitation=NoExcitation(), damping: Damping = Damping(),
               probes=(), initial: InitialState = InitialState(), comm=None) -> "FullOrderModel":
         """Assemble or load the operators of `structure` (a Beam or MatrixFiles) and place the

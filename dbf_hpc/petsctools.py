@@ -10,6 +10,8 @@ collective (on the communicator of the objects it is given).
 from __future__ import annotations
 
 import contextlib
+import functools
+import os
 
 import numpy as np
 from petsc4py import PETSc
@@ -121,6 +123,48 @@ def release_frames(exc: BaseException) -> None:
         seen.add(id(exc))
         traceback.clear_frames(exc.__traceback__)
         exc = exc.__context__
+
+
+def refused_options_line(exc: Exception, what: str | None = None, prefixes: tuple = ()) -> str:
+    """One line for a PETSc error that reached the Python API: `what` failed (the stage), PETSc's
+    code, function and message (errors.petsc_failure), and the options of the package's solvers
+    (_petsc.SOLVER_PREFIXES) in the database, the one whose value PETSc's message quotes (an unknown
+    type) first; `prefixes` (e.g. ("rom_",)) are the solvers of the stage. Not collective."""
+    from .errors import petsc_failure
+
+    failure = petsc_failure(exc)
+    given = {k: v for k, v in sorted(PETSc.Options().getAll().items()) if k.startswith(SOLVER_PREFIXES)}
+    words = failure.rsplit(": ", 1)[-1].split()
+    quoted = [k for k, v in given.items() if v and v.strip() in words]
+    names = " ".join(f"-{k}" + (f" {given[k]}" if given[k] else "")
+                     for k in quoted + [k for k in given if k not in quoted])
+    if prefixes:
+        hint = f"; check the {', '.join(f'-{p}' for p in prefixes)} options" + (f" (given: {names})" if names else "")
+    else:
+        hint = f"; check the PETSc options given ({names})" if names else ""
+    return (f"{what}: " if what else "") + failure + hint
+
+
+def petsc_errors_as_one_line(what: str | None = None, prefixes: tuple = ()):
+    """Decorator for the Python API's entry points: a PETSc error (most often an option PETSc refused,
+    -rom_ts_type nonsense) leaves as one SolverError line (refused_options_line), never as PETSc's
+    multi-line petsc4py.PETSc.Error; the frames it passed through are released first (their PETSc
+    objects are their owners' to destroy). With DBF_HPC_DEBUG set the PETSc error passes as it is.
+    Collective as the function is: the ranks meet a refused option alike, and each raises."""
+    def wrap(function):
+        @functools.wraps(function)
+        def api(*args, **kwargs):
+            try:
+                return function(*args, **kwargs)
+            except PETSc.Error as e:
+                if os.environ.get("DBF_HPC_DEBUG"):
+                    raise
+                release_frames(e)
+                from .errors import SolverError
+
+                raise SolverError(refused_options_line(e, what, prefixes)) from None
+        return api
+    return wrap
 
 
 @contextlib.contextmanager

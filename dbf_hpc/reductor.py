@@ -17,7 +17,7 @@ from .basis import BasisSettings, ReducedBasis
 from .cache import obtain_basis
 from .errors import InputError
 from .fom import FullOrderModel
-from .petsctools import destroy
+from .petsctools import destroy, petsc_errors_as_one_line
 from .rom import ReducedField, ReducedModel
 
 PROJECTION_TOL = 1e-8   # relative defects of the projected M_r, K_r set to the method's exact values
@@ -39,6 +39,7 @@ class Reductor:
         self.fom, self.settings, self.cache_dir = fom, settings, cache_dir
         self._basis = basis
 
+    @petsc_errors_as_one_line("the basis", ("modes_", "dbf_", "static_"))
     def basis(self) -> ReducedBasis:
         """The basis (obtained once). Collective."""
         if self._basis is None:
@@ -47,6 +48,7 @@ class Reductor:
                                        self.cache_dir, fom.constraints.component_labels)
         return self._basis
 
+    @petsc_errors_as_one_line("Reductor.reduce", ("modes_", "dbf_", "static_"))
     def reduce(self, field: bool = False) -> ReducedModel:
         """Project the full-order model onto the basis. With field, also the basis at the field
         points, for snapshots. Collective."""

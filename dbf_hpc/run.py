@@ -36,6 +36,7 @@ from .fom_integrator import options as full_options
 from .modes import counters
 from .output import (SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space, check_output_path,
                      free_bytes, is_dbf_checkpoint, is_dbf_partial, output_bytes)
+from .petsctools import petsc_errors_as_one_line
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
@@ -75,6 +76,7 @@ def claimed(path: str, comm):
             lock.release()
 
 
+@petsc_errors_as_one_line()
 def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, initial_state=None,
         resume: bool = False, method: str = "rom") -> dict:
     """Run the scene and write its HDF5 output. Returns a summary (the same on every rank) with the

@@ -15,6 +15,7 @@ from .errors import InputError, check_number
 from .fom import FullOrderModel, Observation
 from .fom_integrator import integrate_full
 from .output import MemoryWriter
+from .petsctools import petsc_errors_as_one_line
 from .recorder import FullRecorder, ReducedRecorder, Result
 from .rom import ReducedModel
 from .rom_integrator import integrate_reduced
@@ -28,6 +29,7 @@ def snapshot_samples(count: int, times: np.ndarray) -> np.ndarray:
     return np.unique(np.searchsorted(times, np.linspace(0.0, times[-1], count) - 1e-12 * times[-1]))
 
 
+@petsc_errors_as_one_line("the reduced integration", ("rom_",))
 def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
     """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Not collective."""
@@ -44,6 +46,7 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
     return result
 
 
+@petsc_errors_as_one_line("the full-order integration", ("full_",))
 def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -> Result:
     """Integrate the full-order model (fom_integrator.py) and return the same Result as
     simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""

@@ -286,3 +286,39 @@ def test_an_initial_mode_the_structure_does_not_have_is_refused_without_leaving_
             fom.initial_state()
         # the refusal's traceback (still held here) keeps every local of the frames that raised alive
         assert_all(refused.value is not None and undestroyed_petsc_objects() == before)
+
+
+@pytest.mark.parametrize("option,value,stage", [("rom_ts_type", "nonsense", "the reduced integration"),
+                                                ("modes_eps_type", "bogus", "the basis"),
+                                                ("full_ksp_type", "nonexistent", "the full-order integration")])
+def test_a_solver_option_petsc_refuses_reaches_the_api_caller_as_one_line_naming_it(option, value, stage):
+    # Red team: an option PETSc refuses reached the Python API's caller as a bare petsc4py.PETSc.Error
+    # with PETSc's multi-line traceback (the command line printed one line). Now a SolverError of one
+    # line naming the stage and the option, on every rank (this test runs on each rank under mpirun:
+    # a rank that did not raise would fail it), and no PETSc object left behind.
+    from petsc4py import PETSc
+
+    from conftest import petsc_options
+    from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, FullOrderModel, IntegratorSettings, Reductor,
+                         SolverError, law, simulate_full, simulate_reduced)
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    stop = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
+    before = undestroyed_petsc_objects()
+    raised = None
+    with petsc_options(**{option: value}):
+        try:
+            with FullOrderModel.build(beam, [stop], BaseMotion(amplitude=5e-3, frequency_hz=1.0), probes=[0.5]) as fom:
+                if option.startswith("full_"):
+                    simulate_full(fom, IntegratorSettings(t_end=1e-3, dt=1e-4, sample_dt=1e-4))
+                else:
+                    with Reductor(fom, BasisSettings(modes=4)) as reductor:
+                        rom = reductor.reduce()
+                    simulate_reduced(rom, IntegratorSettings(t_end=1e-2, sample_dt=1e-3))
+        except (SolverError, PETSc.Error) as e:
+            raised = e
+    assert_all(isinstance(raised, SolverError), f"a SolverError, not {type(raised).__name__}: {raised}")
+    line = str(raised)
+    assert_all("\n" not in line and line.startswith(f"{stage}: PETSc error 86 in "), line)
+    assert_all(f"check the -{option.split('_')[0]}_" in line and f"(given: -{option} {value})" in line, line)
+    assert_all(undestroyed_petsc_objects() == before, "the failed stage's PETSc objects were destroyed")

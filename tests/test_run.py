@@ -145,6 +145,21 @@ def test_failed_run_leaves_no_output_and_never_clobbers(shared_tmp_path):
     assert_all(not os.path.exists(str(target) + ".partial"))
 
 
+
+def test_a_basis_option_petsc_refuses_is_one_line_from_run_and_leaves_no_file(shared_tmp_path):
+    # Red team: run() from Python let a refused -modes_ option out as a bare petsc4py.PETSc.Error with
+    # PETSc's multi-line traceback (only the command line made it one line). Every rank raises the
+    # SolverError naming the option, and nothing is written.
+    from conftest import petsc_options
+    from dbf_hpc.errors import SolverError
+
+    with petsc_options(modes_eps_type="bogus"), pytest.raises(SolverError) as refused:
+        paper_run(shared_tmp_path, "integrator.t_end=0.01", name="refused.h5")
+    line = str(refused.value)
+    assert_all("\n" not in line and "EPSSetType" in line and "(given: -modes_eps_type bogus)" in line, line)
+    assert_all(not any(p.name.startswith("refused") for p in shared_tmp_path.iterdir()))
+
+
 @pytest.mark.parametrize("suffix", [".partial", ".checkpoint"])
 def test_a_file_named_like_the_runs_partial_output_or_checkpoint_is_never_replaced(shared_tmp_path, suffix):
     # Red team: `echo precious > x.h5.partial` was overwritten by the run, a y.h5.checkpoint deleted at its end.
