@@ -25,6 +25,7 @@ key, the name of its columns, and its warnings.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +38,7 @@ from .dbf_shared import SharedFactor, SharedSolver
 from .errors import DbfError, InputError, SolverError
 from .modes import ModalBasis
 from .operators import Operators
-from .petsctools import destroy, direct_solver, unit_vector
+from .petsctools import destroy, direct_solver, refused_options_line, release_frames, unit_vector
 
 STATIC_BACKWARD_TOL = 1e-10  # normwise backward error of K psi = g (a backward-stable solve gives ~1e-16)
 STATIC_BLOCK = 64            # unit loads per multi-right-hand-side solve (memory: 3 local rows of each)
@@ -198,12 +199,34 @@ def _free_group(group, group_ops: Operators) -> None:
     group.Free()
 
 
-def raise_agreed(world, failure) -> None:
+def group_failure(exc: Exception, world, prefix: str = "dbf_") -> tuple:
+    """(is an InputError, one line) of whatever ended a constraint group's loop, for raise_agreed: a
+    DbfError as it is; a PETSc error with the options of the group's solvers (-`prefix`); anything
+    else (a bug) as an internal error naming its type and rank. Red team: a non-DbfError skipped
+    raise_agreed, and the other groups waited in its allgather until the command's abort. The frames
+    the exception passed through are released (their PETSc objects are the loop's to destroy). Not
+    collective."""
+    release_frames(exc)
+    if isinstance(exc, DbfError):
+        return isinstance(exc, InputError), str(exc)
+    if isinstance(exc, PETSc.Error):
+        return False, refused_options_line(exc, "the DBFs of a constraint group", (prefix,))
+    text = (str(exc).splitlines() or [""])[0]
+    return False, (f"internal error ({type(exc).__name__}) on rank {world.rank} in the DBFs of its constraint group"
+                   f"{': ' + text if text else ''}; a bug: please report it (DBF_HPC_DEBUG=1 raises it with its "
+                   f"traceback on that rank)")
+
+
+def raise_agreed(world, failure, exc: Exception | None = None) -> None:
     """After the groups' loop over their constraints: the first group's failure ((is an InputError,
-    message) or None), in rank order, raised on every rank. A failed constraint ends its group alone;
-    the other groups went on to the world's assembly and waited there for ever (red team). Collective."""
+    message) or None, group_failure), in rank order, raised on every rank. A failed constraint ends
+    its group alone; the other groups went on to the world's assembly and waited there for ever (red
+    team). `exc`: this rank's own exception, raised as it is with DBF_HPC_DEBUG set (a bug's
+    traceback; the other ranks raise the agreed line). Collective."""
     failure = next((f for f in world.allgather(failure) if f), None)
     if failure:
+        if exc is not None and not isinstance(exc, DbfError) and os.environ.get("DBF_HPC_DEBUG"):
+            raise exc
         raise (InputError if failure[0] else SolverError)(failure[1])
 
 
@@ -219,7 +242,7 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
     k, k_auto, branch = _empty(rows.size)
     is_leader = (group.rank if group is not None else world.rank) == 0
     factor = space = None
-    failure = None
+    failure = mine = None
     try:
         try:
             # Every rank of a group takes the same path; a group with no constraint factors nothing.
@@ -253,9 +276,9 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
                     if is_leader:
                         k[j], k_auto[j], branch[j] = src.stiffness, src.transition, src.branch
                     src.derivative.destroy()
-        except DbfError as e:   # one group's constraint: every rank hears of it (raise_agreed)
-            failure = (isinstance(e, InputError), str(e))
-        raise_agreed(world, failure)
+        except Exception as e:   # whatever ends one group: every rank hears of it (raise_agreed)
+            failure, mine = group_failure(e, world), e
+        raise_agreed(world, failure, mine)
         gathered.assemble()
     except Exception:
         gathered.destroy()

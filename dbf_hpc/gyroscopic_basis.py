@@ -52,7 +52,7 @@ from .accuracy import exact_flexibility
 from .basis import BREAKDOWN_TOL, BasisSettings, ReducedBasis, _basis_vectors, _check_rows
 from .dbf import CENTRAL_STEP, branch_of, cluster_of, with_spring
 from .enrichment import static_modes
-from .errors import DbfError, InputError, SolverError
+from .errors import InputError, SolverError
 from .gyroscopic import critical_speed_note, gyroscopic_modes
 from .modes import counters, normalize
 from .operators import Operators
@@ -306,7 +306,8 @@ def all_dbfs(ops: Operators, rows: np.ndarray, modes, stiffness="auto", groups: 
     (enrichment.py): COMM_WORLD split into `groups` (0: one per rank, at most one per constraint),
     each with its own copy of K, M, G taking every groups-th constraint (four PEP solves each); the
     branch, omega and slope come from the reference modes on ops.comm first. Collective."""
-    from .enrichment import _dense_columns, _free_group, _group_operators, constraint_groups, raise_agreed
+    from .enrichment import (_dense_columns, _free_group, _group_operators, constraint_groups, group_failure,
+                             raise_agreed)
 
     world = ops.comm.tompi4py()
     NL = rows.size
@@ -319,7 +320,7 @@ def all_dbfs(ops: Operators, rows: np.ndarray, modes, stiffness="auto", groups: 
     group_ops.G = ops.G.getRedundantMatrix(n_groups, group_ops.comm)
     gathered = _dense_columns(ops, 2 * NL)
     scalars = np.zeros((NL, 4))   # k, k_auto, branch, varpi
-    failure = None
+    failure = mine = None
     try:
         try:
             for j in range(color, NL, n_groups):
@@ -331,9 +332,9 @@ def all_dbfs(ops: Operators, rows: np.ndarray, modes, stiffness="auto", groups: 
                 destroy(dr, di)
                 if group.rank == 0:
                     scalars[j] = k, k_auto, branch, varpi
-        except DbfError as e:   # one group's constraint: every rank hears of it (enrichment.raise_agreed)
-            failure = (isinstance(e, InputError), str(e))
-        raise_agreed(world, failure)
+        except Exception as e:   # whatever ends one group: every rank hears of it (enrichment.raise_agreed)
+            failure, mine = group_failure(e, world, "modes_"), e
+        raise_agreed(world, failure, mine)
         gathered.assemble()
     except Exception:
         gathered.destroy()

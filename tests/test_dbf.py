@@ -277,6 +277,31 @@ def test_a_dbf_solve_that_fails_in_one_group_is_every_ranks_error(paper, solver,
     assert_all(True)   # the ranks are still in step
 
 
+@pytest.mark.parametrize("solver", ["shared", "factor"])
+def test_a_bug_in_one_groups_dbf_is_every_ranks_one_line_internal_error_not_a_hang(paper, solver, monkeypatch):
+    # Red team: an exception that is no DbfError (a bug: here a ZeroDivisionError in the last group's
+    # constraint only, rank 1's on 2 ranks) skipped raise_agreed, and the other rank waited in its
+    # allgather until the command's 10 s abort. Every rank now raises one line saying it is internal.
+    ops, modes, _ = paper
+    rows = np.array([ops.mesh.w_row(x) for x in (0.25, 0.6)])
+    real = enrichment.dbf_source
+    last = MPI.COMM_WORLD.size - 1
+
+    def failing(ops_, row, *args, **kwargs):
+        if row == rows[1]:   # the last group's constraint
+            raise ZeroDivisionError("float division by zero")
+        return real(ops_, row, *args, **kwargs)
+
+    monkeypatch.setattr(enrichment, "dbf_source", failing)
+    monkeypatch.delenv("DBF_HPC_DEBUG", raising=False)
+    before = undestroyed_petsc_objects()
+    with pytest.raises(SolverError, match=rf"^internal error \(ZeroDivisionError\) on rank {last} in the DBFs of its "
+                                          rf"constraint group: float division by zero; a bug") as failed:
+        DbfEnrichment(solver=solver).columns(ops, rows, modes)
+    assert_all("\n" not in str(failed.value))
+    assert_all(undestroyed_petsc_objects() == before, "the groups' PETSc objects were destroyed")
+
+
 @pytest.mark.parametrize("path", ["shared", "ritz"])
 @pytest.mark.parametrize("left", ["pinned", "sliding"])
 def test_shared_factorization_shifted_below_a_rigid_body_mode_gives_the_same_dbfs(left, path):

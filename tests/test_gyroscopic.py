@@ -1037,6 +1037,35 @@ def test_gyroscopic_dbfs_solved_by_constraint_groups_are_those_solved_on_all_ran
     assert_all(np.abs(together - apart).max() < 1e-8 * np.abs(together).max())
 
 
+
+@pytest.mark.parallel
+def test_a_bug_in_one_groups_gyroscopic_dbf_is_every_ranks_one_line_internal_error_not_a_hang(monkeypatch):
+    # Red team: an exception that is no DbfError in one constraint group's PEP solves (here a
+    # ZeroDivisionError at the last group's stop only) skipped raise_agreed, and the other rank waited in
+    # its allgather until the command's abort. Every rank now raises one line saying it is internal.
+    from dbf_hpc import Constraint, FullOrderModel, gyroscopic_basis, law
+    from dbf_hpc.basis import BasisSettings, build_basis
+    from dbf_hpc.errors import SolverError
+
+    beam = Beam(elements=30, axial_speed=30.0, **BAND)
+    stops = [Constraint(law("deadband", clearance=5e-4, k=1e5), x=x) for x in (0.3, 0.75)]
+    real = gyroscopic_basis._dbf_state
+    monkeypatch.delenv("DBF_HPC_DEBUG", raising=False)
+    with FullOrderModel.build(beam, stops) as fom:
+        rows = fom.constraints.flat_rows
+
+        def failing(ops, row, *args, **kwargs):
+            if row == rows[1]:   # the last group's stop
+                raise ZeroDivisionError("float division by zero")
+            return real(ops, row, *args, **kwargs)
+
+        monkeypatch.setattr(gyroscopic_basis, "_dbf_state", failing)
+        with pytest.raises(SolverError, match=r"^internal error \(ZeroDivisionError\) on rank 1 in the DBFs of its "
+                                              r"constraint group: float division by zero; a bug"):
+            build_basis(fom.operators, rows, BasisSettings(modes=4, groups=2))
+    assert_all(True)   # the ranks are still in step
+
+
 # jobs/pipe_conveying_fluid.toml's pipe (pinned-pinned, water at half its divergence speed), the
 # [structure] section of the two-plane scenes below
 PIPE_STRUCTURE = """[structure]
