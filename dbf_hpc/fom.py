@@ -132,6 +132,8 @@ class FullOrderModel:
         _check_dimensions(constraints, planes)
         if isinstance(structure, MatrixFiles) and structure.damping and damping.kind != "none":
             raise InputError(DAMPING_TWICE)
+        if excitation.kind in ("random", "turbulence") and not isinstance(structure, Beam):   # before the files are read
+            raise InputError(f"{excitation.kind} forcing is distributed along a beam; not available for matrices")
         if planes == 1 and (getattr(excitation, "direction", (1.0, 0.0)) != (1.0, 0.0) or not initial.planar):
             raise InputError("FullOrderModel.build: a direction (dy, dz) or an initial velocity applies to a beam of "
                              "two planes (Beam(planes=2)); this structure moves along one direction only")
@@ -148,9 +150,6 @@ class FullOrderModel:
             ops = load_operators(structure, comm)
             fingerprint = None
         force_load = force_matrix = None
-        if excitation.kind in ("random", "turbulence") and not isinstance(structure, Beam):
-            ops.destroy()
-            raise InputError(f"{excitation.kind} forcing is distributed along a beam; not available for matrices")
         try:
             if fingerprint is None:
                 fingerprint = structure.fingerprint(comm)

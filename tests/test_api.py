@@ -322,3 +322,21 @@ def test_a_solver_option_petsc_refuses_reaches_the_api_caller_as_one_line_naming
     assert_all("\n" not in line and line.startswith(f"{stage}: PETSc error 86 in "), line)
     assert_all(f"check the -{option.split('_')[0]}_" in line and f"(given: -{option} {value})" in line, line)
     assert_all(undestroyed_petsc_objects() == before, "the failed stage's PETSc objects were destroyed")
+
+
+@pytest.mark.parametrize("kind", ["random", "turbulence"])
+def test_a_distributed_load_on_a_matrix_model_is_refused_before_its_files_are_read(kind, monkeypatch):
+    # Review: FullOrderModel.build loaded (and checked) K and M, possibly gigabytes, and only then
+    # refused a random or turbulent load, which acts along a beam: cheap checks come first. The
+    # matrix files here do not exist: the refusal must come without reading them.
+    from dbf_hpc import Constraint, FullOrderModel, InputError, MatrixFiles, RandomForce, Turbulence, fom, law
+
+    def read(*args, **kwargs):
+        raise AssertionError("the matrix files were read")
+
+    monkeypatch.setattr(fom, "load_operators", read)
+    load = (RandomForce(psd=1.0, band=(1.0, 100.0)) if kind == "random" else
+            Turbulence(psd=1.0, band=(1.0, 100.0), correlation_length=0.1))
+    with pytest.raises(InputError, match=f"^{kind} forcing is distributed along a beam; not available for matrices$"):
+        FullOrderModel.build(MatrixFiles("no_such_K.bin", "no_such_M.bin"),
+                             [Constraint(law("deadband", clearance=1e-3, k=1e6), dof=3)], load)
