@@ -161,15 +161,15 @@ def pinned_eigenvalue(ops: Operators, row: int, branch: int) -> float:
     keep = np.arange(lo, hi, dtype=PETSc.IntType)
     keep = keep[keep != row]
     index = PETSc.IS().createGeneral(keep, comm=ops.comm)
-    pinned = Operators(comm=ops.comm, K=ops.K.createSubMatrix(index, index),
-                       M=ops.M.createSubMatrix(index, index),
-                       rigid_modes=ops.rigid_modes, eigen_scale=ops.eigen_scale)
-    try:
+    K = M = None
+    try:   # the index set and the submatrices are freed also when a submatrix or the solve fails
+        K = ops.K.createSubMatrix(index, index)
+        M = ops.M.createSubMatrix(index, index)
+        pinned = Operators(comm=ops.comm, K=K, M=M, rigid_modes=ops.rigid_modes, eigen_scale=ops.eigen_scale)
         mu, phi = lowest_eigenpair(pinned, pinned.K, branch, PREFIX, f"pinned modes (row {row})", EIGEN_TOL)
         phi.destroy()
     finally:
-        pinned.destroy()
-        index.destroy()
+        destroy(K, M, index)
     return mu
 
 

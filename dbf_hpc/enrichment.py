@@ -185,9 +185,15 @@ def _group_operators(ops: Operators, n_groups: int):
     color = world.rank * n_groups // world.size
     group = world.Split(color, world.rank)
     sub = PETSc.Comm(group)
-    return group, Operators(comm=sub, K=ops.K.getRedundantMatrix(n_groups, sub),
-                            M=ops.M.getRedundantMatrix(n_groups, sub),
-                            rigid_modes=ops.rigid_modes, eigen_scale=ops.eigen_scale)
+    K = None
+    try:
+        K = ops.K.getRedundantMatrix(n_groups, sub)
+        M = ops.M.getRedundantMatrix(n_groups, sub)
+    except BaseException:   # the copy of K and the group are this function's until it returns them
+        destroy(K)
+        group.Free()
+        raise
+    return group, Operators(comm=sub, K=K, M=M, rigid_modes=ops.rigid_modes, eigen_scale=ops.eigen_scale)
 
 
 def _free_group(group, group_ops: Operators) -> None:

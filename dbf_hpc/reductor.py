@@ -85,9 +85,11 @@ class Reductor:
         r_q = np.zeros(basis.size)
         if fom.moving_support:
             Mr = ops.M.createVecLeft()
-            ops.M.mult(ops.influence, Mr)
-            r_q = basis.dot(Mr)
-            Mr.destroy()
+            try:
+                ops.M.mult(ops.influence, Mr)
+                r_q = basis.dot(Mr)
+            finally:
+                Mr.destroy()
         info = {"omega": basis.omega, "enrichment_omega": basis.enrichment_omega, "dbf_k": basis.dbf_k,
                 "enrichment": basis.enrichment, "flexibility_captured": basis.flexibility_captured,
                 "flexibility_exact": basis.flexibility_exact, "complex_modes": basis.complex_modes, **structure}
@@ -138,17 +140,22 @@ class Reductor:
                 raise InputError(f"[initial] mode = {initial.mode}: a beam of two planes counts its modes in y-z "
                                  f"pairs; the basis has {basis.mode_count // 2} pairs")
             u, v = self.fom.two_plane_state()
-            Mx = u.duplicate()
-            out = []
-            for vec in (u, v):
-                self.fom.operators.M.mult(vec, Mx)
-                out.append(basis.dot(Mx))
-            destroy(u, v, Mx)
+            Mx = None
+            try:   # freed also on an error
+                Mx = u.duplicate()
+                out = []
+                for vec in (u, v):
+                    self.fom.operators.M.mult(vec, Mx)
+                    out.append(basis.dot(Mx))
+            finally:
+                destroy(u, v, Mx)
             return out[0], out[1]
         if initial.amplitude and self.fom.operators.G is not None:
             u, v = self.fom.initial_state()
-            q0, p0 = basis.vectors.dotVec(u), basis.vectors.dotVec(v)   # V^T M u (the BV's inner product is M)
-            destroy(u, v)
+            try:
+                q0, p0 = basis.vectors.dotVec(u), basis.vectors.dotVec(v)   # V^T M u (the BV's inner product is M)
+            finally:
+                destroy(u, v)
         elif initial.amplitude:
             if not 1 <= initial.mode <= basis.mode_count:
                 raise InputError(f"[initial] mode = {initial.mode}: the basis has {basis.mode_count} reference modes")

@@ -708,3 +708,51 @@ def test_a_shared_factorization_that_fails_leaves_no_petsc_object(paper, solver)
         assert_all(refused.value is not None and undestroyed_petsc_objects() == before)
     finally:
         PETSc.Options().delValue("-dbf_shared_pc_type")
+
+
+class _Refusing:
+    """A matrix stand-in whose copies PETSc refuses (the error a submatrix or a redundant copy of M
+    meets when memory runs out)."""
+
+    def createSubMatrix(self, *args):
+        raise PETSc.Error(55)   # PETSC_ERR_MEM
+
+    def getRedundantMatrix(self, *args):
+        raise PETSc.Error(55)
+
+
+def test_the_pinned_eigenvalue_frees_its_index_set_and_k_submatrix_when_m_submatrix_fails(paper, capfd):
+    # Review: the index set and K's submatrix were made outside the try that frees them, so a
+    # failure of M's submatrix left both behind (in parallel: in PETSc's garbage).
+    import types
+
+    from conftest import petsc_garbage
+
+    ops, _, row = paper
+    broken = types.SimpleNamespace(comm=ops.comm, K=ops.K, M=_Refusing(), rigid_modes=ops.rigid_modes,
+                                   eigen_scale=ops.eigen_scale)
+    PETSc.garbage_cleanup()
+    before = undestroyed_petsc_objects()
+    with pytest.raises(PETSc.Error):
+        pinned_eigenvalue(broken, row, 1)
+    assert_all(undestroyed_petsc_objects() == before, "the index set and K's submatrix were destroyed")
+    assert petsc_garbage(capfd) == 0, "nothing was left in PETSc's garbage"
+
+
+@pytest.mark.parallel
+def test_a_group_whose_copy_of_m_fails_frees_its_copy_of_k_and_its_communicator(paper, capfd):
+    # Review: _group_operators made the group's copy of K, then of M, outside any try: a failed copy of
+    # M left K's copy (and the split communicator) behind.
+    import types
+
+    from conftest import petsc_garbage
+
+    ops, _, _ = paper
+    broken = types.SimpleNamespace(comm=ops.comm, K=ops.K, M=_Refusing(), rigid_modes=ops.rigid_modes,
+                                   eigen_scale=ops.eigen_scale)
+    PETSc.garbage_cleanup()
+    before = undestroyed_petsc_objects()
+    with pytest.raises(PETSc.Error):
+        enrichment._group_operators(broken, MPI.COMM_WORLD.size)
+    assert_all(undestroyed_petsc_objects() == before, "the group's copy of K was destroyed")
+    assert petsc_garbage(capfd) == 0, "nothing was left in PETSc's garbage"

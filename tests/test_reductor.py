@@ -119,3 +119,32 @@ def test_projection_defects_above_the_tolerance_are_kept_as_projected():
     assert defects["mode_coupling_defect"] > PROJECTION_TOL and defects["mass_orthonormality_defect"] > PROJECTION_TOL
     np.testing.assert_array_equal(K, K0)
     np.testing.assert_array_equal(M, M0)
+
+
+def test_a_failed_projection_of_the_support_load_frees_its_mass_product(monkeypatch, capfd):
+    # Review: reduce() made M r (the support's inertia load) and destroyed it only after projecting it,
+    # so a failure there left the Vec behind (in parallel: in PETSc's garbage). The failure reaches the
+    # caller as one SolverError line.
+    from petsc4py import PETSc
+
+    from conftest import petsc_garbage, undestroyed_petsc_objects
+    from dbf_hpc.basis import ReducedBasis
+    from dbf_hpc.errors import SolverError
+
+    real = ReducedBasis.dot
+    with FullOrderModel.build(BEAM, [STOP], BaseMotion(5e-3, 1.0)) as fom, \
+            Reductor(fom, BasisSettings(modes=4)) as reductor:
+        reductor.basis()
+
+        def dot(self, vec):
+            if vec is not fom.operators.base_mass_load:   # M r, after the base load's projection
+                raise PETSc.Error(55)
+            return real(self, vec)
+
+        monkeypatch.setattr(ReducedBasis, "dot", dot)
+        PETSc.garbage_cleanup()
+        before = undestroyed_petsc_objects()
+        with pytest.raises(SolverError, match=r"^Reductor.reduce: PETSc error 55"):
+            reductor.reduce()
+        assert_all(undestroyed_petsc_objects() == before, "M r was destroyed")
+        assert petsc_garbage(capfd) == 0, "nothing was left in PETSc's garbage"
