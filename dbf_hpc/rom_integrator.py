@@ -39,7 +39,7 @@ from .errors import InputError, SolverError
 from .petsctools import destroy
 from .rom import ReducedModel, applied
 from .timestepping import (ADAPT_DEFAULTS, NO_DENSE_OUTPUT, IntegratorSettings, StepMonitor, check_outcome,
-                           configure, solve)
+                           checked_by_the_integrator, configure, solve)
 
 PREFIX = "rom_"
 WHAT = "time integration"
@@ -133,6 +133,7 @@ class ReducedProblem:
         m = self.model
         return applied(self.force_shape, m.force.value(t)) - self.base_load * m.support.acceleration(t)
 
+    @checked_by_the_integrator
     def ifunction(self, ts, t, y, ydot, f):
         r = self.r
         q, p = self.split(y)
@@ -143,6 +144,7 @@ class ReducedProblem:
         if self.implicit_contact:
             out[r:] -= self.contact(t, q, p)
 
+    @checked_by_the_integrator
     def ijacobian(self, ts, t, y, ydot, shift, J, P):
         m, r = self.model, self.r
         q, p = self.split(y)
@@ -168,6 +170,7 @@ class ReducedProblem:
             J.assemble()
         return True
 
+    @checked_by_the_integrator
     def rhsfunction(self, ts, t, y, g):
         out = g.getArray()
         out[: self.r] = 0.0

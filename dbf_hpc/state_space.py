@@ -49,6 +49,7 @@ from .excitation import Harmonic
 from .operators import Operators
 from .petsctools import destroy
 from .rom import ReducedField, applied, digest_of
+from .timestepping import checked_by_the_integrator
 
 # A real column below this fraction of its complex vector's A-norm is left out (gyroscopic_basis.DROP_TOL).
 DROP_TOL = 1e-6
@@ -593,6 +594,7 @@ class StateSpaceProblem:
             out += self.contact(t, q)
         return out
 
+    @checked_by_the_integrator
     def ifunction(self, ts, t, y, ydot, f):
         q = y.getArray(readonly=True)
         out = f.getArray()
@@ -600,6 +602,7 @@ class StateSpaceProblem:
         if self.implicit_contact:
             out -= self.contact(t, q)
 
+    @checked_by_the_integrator
     def ijacobian(self, ts, t, y, ydot, shift, J, P):
         m = self.model
         a = P.getDenseArray()
@@ -621,6 +624,7 @@ class StateSpaceProblem:
             J.assemble()
         return True
 
+    @checked_by_the_integrator
     def rhsfunction(self, ts, t, y, g):
         out = g.getArray()
         out[:] = self.forcing(t)
