@@ -157,6 +157,12 @@ class ConstraintSet:
     def with_laws(self, laws) -> "ConstraintSet":
         """The same constraints with other laws (a new law never needs a new basis): one law() per
         constraint, in their order, or a ConstraintLaws (PlanarLaws on a beam of two planes)."""
-        if not hasattr(laws, "n"):
-            laws = PlanarLaws(laws) if self.dimension == 2 else ConstraintLaws(laws)
-        return ConstraintSet(rows=self.rows, laws=laws, labels=self.labels, positions=self.positions)
+        from .errors import InputError
+
+        try:   # the user's laws: a list of the wrong length or of other things is one line (red team: ValueError)
+            if not hasattr(laws, "n"):
+                laws = PlanarLaws(laws) if self.dimension == 2 else ConstraintLaws(laws)
+            return ConstraintSet(rows=self.rows, laws=laws, labels=self.labels, positions=self.positions)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"with_laws: {e}; give one law(...) per constraint, in their order ({self.count} of "
+                             f"them)") from None

@@ -45,6 +45,45 @@ class ReducedField:
         return self.V @ q + self.support * omega
 
 
+def case_changes(model, constraints=None, support=None, force=None, q0=None, p0=None) -> dict:
+    """What with_case changes (the arguments that are not None), checked against `model` (a
+    ReducedModel or a state_space.StateSpaceModel): the same constraints (model.constraints.with_laws),
+    a Harmonic support motion and a force history of finite numbers, and a finite start of the
+    model's size. Red team: q0 = [1e-4] on a basis of 4 was broadcast to every coordinate, and a
+    support or force of another type failed deep in the integration (AttributeError, TypeError)."""
+    from .errors import InputError
+
+    changes = {}
+    if constraints is not None:
+        if not isinstance(constraints, ConstraintSet) or not np.array_equal(constraints.rows, model.constraints.rows):
+            raise InputError(f"with_case constraints: give the model's own constraints with other laws "
+                             f"(model.constraints.with_laws([...])), got {type(constraints).__name__}")
+        changes["constraints"] = constraints
+    if support is not None:
+        if not isinstance(support, Harmonic) or not np.all(np.isfinite([support.amplitude, support.frequency_hz,
+                                                                         support.phase])):
+            raise InputError(f"with_case support: give a Harmonic(amplitude (m), frequency_hz, phase) of finite "
+                             f"numbers, got {support!r}")
+        changes["support"] = support
+    if force is not None:
+        if not callable(getattr(force, "value", None)) or (isinstance(force, Harmonic) and not np.all(
+                np.isfinite([force.amplitude, force.frequency_hz, force.phase]))):
+            raise InputError(f"with_case force: give a force history (a Harmonic of finite numbers, N), got {force!r}")
+        changes["force"] = force
+    for name, value in (("q0", q0), ("p0", p0)):
+        if value is None:
+            continue
+        try:
+            array = np.array(value, dtype=float)
+        except (TypeError, ValueError):
+            array = None
+        if array is None or array.shape != (model.size,) or not np.all(np.isfinite(array)):
+            raise InputError(f"with_case {name}: give {model.size} finite reduced coordinates (one per basis vector), "
+                             f"got {value!r}")
+        changes[name] = array
+    return changes
+
+
 def digest_of(**arrays) -> str:
     """sha256 of the named arrays that are not None (a model's coordinates_digest)."""
     from .checkpoint import arrays_sha256
@@ -141,6 +180,4 @@ class ReducedModel:
                   q0=None, p0=None) -> "ReducedModel":
         """The same reduced operators with another law, excitation history or initial state (what
         the cases of a sweep change; none of it needs a new basis)."""
-        changes = {name: value for name, value in (("constraints", constraints), ("support", support),
-                                                   ("force", force), ("q0", q0), ("p0", p0)) if value is not None}
-        return dataclasses.replace(self, **changes)
+        return dataclasses.replace(self, **case_changes(self, constraints, support, force, q0, p0))

@@ -48,7 +48,7 @@ from .errors import InputError, SolverError
 from .excitation import Harmonic
 from .operators import Operators
 from .petsctools import destroy
-from .rom import ReducedField, applied, digest_of
+from .rom import ReducedField, applied, case_changes, digest_of
 from .timestepping import checked_by_the_integrator
 
 # A real column below this fraction of its complex vector's A-norm is left out (gyroscopic_basis.DROP_TOL).
@@ -482,9 +482,7 @@ class StateSpaceModel:
         return self.r_rate * rate + self.r_value * value, np.zeros(self.size)
 
     def with_case(self, constraints=None, support=None, force=None, q0=None, p0=None) -> "StateSpaceModel":
-        changes = {name: value for name, value in (("constraints", constraints), ("support", support),
-                                                   ("force", force), ("q0", q0), ("p0", p0)) if value is not None}
-        return dataclasses.replace(self, **changes)
+        return dataclasses.replace(self, **case_changes(self, constraints, support, force, q0, p0))
 
 
 def reduce_state_space(fom, basis: StateSpaceBasis, field: ReducedField | None = None) -> StateSpaceModel:

@@ -9,6 +9,7 @@ from conftest import assert_all
 from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, Damping, FullOrderModel, InitialState,
                      Reductor, law)
 from dbf_hpc.errors import InputError
+from dbf_hpc.excitation import Harmonic
 from dbf_hpc.laws import ConstraintLaws
 
 BEAM = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=40)
@@ -74,7 +75,7 @@ def test_another_law_given_as_a_plain_list_runs_on_the_same_basis_as_a_model_bui
     # the paper's Fig. 7: past -d on the soft cubic side, held at +d by the stiff side
     assert runs[0].displacement.min() < -2.6e-3 and runs[0].displacement.max() < 2.6e-3
     np.testing.assert_allclose(runs[0].displacement, runs[1].displacement, rtol=0, atol=1e-12)
-    with pytest.raises(ValueError, match="2 laws for 1 constraints"):
+    with pytest.raises(InputError, match="2 laws for 1 constraints"):   # the project's one line, not a ValueError
         rom.constraints.with_laws([eq42, eq42])
 
 
@@ -148,3 +149,33 @@ def test_a_failed_projection_of_the_support_load_frees_its_mass_product(monkeypa
             reductor.reduce()
         assert_all(undestroyed_petsc_objects() == before, "M r was destroyed")
         assert petsc_garbage(capfd) == 0, "nothing was left in PETSc's garbage"
+
+
+@pytest.mark.parametrize("change,message", [
+    ({"q0": [1e-4]}, r"with_case q0: give 5 finite reduced coordinates .*got \[0.0001\]"),
+    ({"p0": [np.nan] * 5}, r"with_case p0: give 5 finite reduced coordinates"),
+    ({"q0": "abc"}, r"with_case q0: give 5 finite"),
+    ({"support": "x"}, r"with_case support: give a Harmonic"),
+    ({"support": Harmonic(np.inf, 1.0)}, r"with_case support: give a Harmonic"),
+    ({"force": 3.0}, r"with_case force: give a force history"),
+    ({"force": Harmonic(np.nan, 1.0)}, r"with_case force: give a force history"),
+    ({"constraints": "deadband"}, r"with_case constraints: give the model's own constraints"),
+])
+def test_a_case_refuses_a_start_or_an_excitation_the_model_cannot_take_in_one_line(change, message):
+    # Red team: q0 = [1e-4] on a basis of 5 was broadcast to all 5 coordinates (a silent wrong start),
+    # and a support or force of another type failed in the integration as AttributeError or TypeError.
+    with FullOrderModel.build(BEAM, [STOP], BaseMotion(5e-3, 1.0)) as fom, \
+            Reductor(fom, BasisSettings(modes=4)) as reductor:
+        rom = reductor.reduce()
+    assert rom.size == 5
+    with pytest.raises(InputError, match=message):
+        rom.with_case(**change)
+
+
+@pytest.mark.parametrize("laws,message", [([], "0 laws for 1 constraints"), (["deadband"], "constraint 1: expected a Law, got str"),
+                                          ([law("linear", k=1.0)] * 2, "2 laws for 1 constraints")])
+def test_other_laws_of_the_wrong_count_or_kind_are_one_input_error(laws, message):
+    # Red team: with_laws([]) raised a bare ValueError and with_laws(["deadband"]) a TypeError
+    with FullOrderModel.build(BEAM, [STOP], BaseMotion(5e-3, 1.0)) as fom:
+        with pytest.raises(InputError, match=f"with_laws: {message}; give one law\\(...\\) per constraint"):
+            fom.constraints.with_laws(laws)
