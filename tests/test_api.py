@@ -340,3 +340,16 @@ def test_a_distributed_load_on_a_matrix_model_is_refused_before_its_files_are_re
     with pytest.raises(InputError, match=f"^{kind} forcing is distributed along a beam; not available for matrices$"):
         FullOrderModel.build(MatrixFiles("no_such_K.bin", "no_such_M.bin"),
                              [Constraint(law("deadband", clearance=1e-3, k=1e6), dof=3)], load)
+
+
+def test_run_imported_from_the_package_runs_a_scene(tmp_path):
+    # Red team: `from dbf_hpc import run` gave the module dbf_hpc.run (the import of a submodule binds
+    # its name in the package), and the documented run(scene, out) raised "TypeError: 'module' object
+    # is not callable". A bad output path is then the run's own one-line InputError, and nothing is
+    # written.
+    from dbf_hpc import InputError, load_scene, run
+
+    scene = load_scene(os.path.join(ROOT, "jobs", "paper_beam.toml"), ["integrator.t_end=0.01", "basis.cache=off"])
+    with pytest.raises(InputError, match="no_such_dir"):
+        run(scene, str(tmp_path / "no_such_dir" / "out.h5"), progress=False)
+    assert not any(tmp_path.iterdir())
