@@ -314,6 +314,19 @@ class MatrixFiles:
     dofs: Optional[str] = None
     gyroscopic: Optional[str] = None
 
+    def __post_init__(self):
+        """Each file a path (str or os.PathLike, kept as str), the optional ones None. Red team:
+        MatrixFiles(None, None) and MatrixFiles(1, 2) were taken, and FullOrderModel.build failed in
+        os.stat with a bare TypeError."""
+        for name in ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes", "dofs", "gyroscopic"):
+            value = getattr(self, name)
+            if value is None and name not in ("stiffness", "mass"):
+                continue
+            path = os.fspath(value) if isinstance(value, (str, os.PathLike)) else None
+            if not isinstance(path, str) or not path:
+                raise InputError(f"MatrixFiles {name}: give the path of a file (a str), got {value!r}")
+            object.__setattr__(self, name, path)
+
     def fingerprint(self, comm) -> dict:
         """What identifies the operators for the basis cache: the bytes of K and M (and G). Collective."""
         keys = ("stiffness", "mass", "gyroscopic") if self.gyroscopic else ("stiffness", "mass")

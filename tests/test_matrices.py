@@ -409,3 +409,20 @@ def test_a_mass_matrix_of_another_dof_numbering_draws_a_warning(shared_tmp_path,
     err = capfd.readouterr().err
     if MPI.COMM_WORLD.rank == 0:
         assert re.search(r"mass matrix .*M_other_numbering.mtx' has \d+ non-zero entries where the stiffness", err), err
+
+
+
+@pytest.mark.parametrize("args,message", [((None, None), "MatrixFiles stiffness: give the path of a file"),
+                                          (("K.mtx", 2), "MatrixFiles mass: give the path of a file .* got 2"),
+                                          (("K.mtx", ""), "MatrixFiles mass: give the path of a file .* got ''"),
+                                          (("K.mtx", b"M.mtx"), "MatrixFiles mass: give the path of a file")])
+def test_matrix_files_refuse_what_is_not_a_path_where_they_are_given(args, message):
+    # Red team: MatrixFiles(None, None) and MatrixFiles(1, 2) were taken, and FullOrderModel.build
+    # failed in os.stat with a bare TypeError
+    with pytest.raises(InputError, match=message):
+        MatrixFiles(*args)
+
+
+def test_matrix_files_take_a_pathlib_path_as_its_str(tmp_path):
+    files = MatrixFiles(tmp_path / "K.mtx", tmp_path / "M.mtx", influence=tmp_path / "r.npy")
+    assert (files.stiffness, files.mass, files.influence) == tuple(str(tmp_path / n) for n in ("K.mtx", "M.mtx", "r.npy"))
