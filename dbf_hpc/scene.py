@@ -223,7 +223,11 @@ def parse_override(text: str) -> tuple[str, str, object]:
 
 
 def read_scene_bytes(path: str) -> bytes:
-    """The scene file's bytes, or an InputError naming why they cannot be read."""
+    """The scene file's bytes, or an InputError naming why they cannot be read. Red team:
+    load_scene(None) was a TypeError, and load_scene(3) read file descriptor 3 and closed it."""
+    name = os.fspath(path) if isinstance(path, (str, os.PathLike)) else None
+    if not isinstance(name, str) or not name:
+        raise InputError(f"load_scene: give the path of a scene file (a str), got {path!r}")
     try:
         with open(path, "rb") as f:
             return f.read()

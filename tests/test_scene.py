@@ -377,3 +377,22 @@ def test_set_k_is_refused_when_a_side_of_another_exponent_takes_its_kinds_defaul
         load_scene(str(path), ["constraint.k=1e6"])
     law = load_scene(str(path), ["constraint.exponent=3", "constraint.k=1e6"]).constraints[0].law
     assert (law.k_minus, law.k_plus, law.exponent_minus, law.exponent_plus) == (1e6, 1e6, 3.0, 3.0)
+
+
+@pytest.mark.parametrize("path", [None, 3, "", b"jobs/paper_beam.toml"])
+def test_a_scene_path_that_is_not_a_path_is_one_input_error_and_no_file_descriptor_is_touched(path):
+    # Red team: load_scene(None) raised a bare TypeError, and load_scene(3) opened file descriptor 3
+    # (whatever the process had there), read it and closed it.
+    had_fd_3 = path == 3 and _open_fd(3)
+    with pytest.raises(InputError, match="load_scene: give the path of a scene file"):
+        load_scene(path)
+    if had_fd_3:
+        assert _open_fd(3), "file descriptor 3 is still open"
+
+
+def _open_fd(fd: int) -> bool:
+    try:
+        os.fstat(fd)
+        return True
+    except OSError:
+        return False
