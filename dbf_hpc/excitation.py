@@ -27,6 +27,15 @@ class Harmonic:
     frequency_hz: float = 0.0
     phase: float = 0.0
 
+    def __post_init__(self):
+        """Finite numbers, the frequency at least 0 (the API's edge: ReducedModel.with_case takes one).
+        Red team: Harmonic(nan, 1.0) as a case's force ran into "reduce [integrator] dt or rtol"."""
+        from .errors import check_number
+
+        object.__setattr__(self, "amplitude", check_number("Harmonic amplitude", self.amplitude))
+        object.__setattr__(self, "frequency_hz", check_number("Harmonic frequency_hz (Hz)", self.frequency_hz, 0.0))
+        object.__setattr__(self, "phase", check_number("Harmonic phase (rad)", self.phase))
+
     def value(self, t):
         return self.amplitude * np.sin(2 * np.pi * self.frequency_hz * t + self.phase)
 

@@ -72,6 +72,9 @@ def test_the_example_objects_agree_with_the_full_order_model_before_the_first_im
     (lambda api: api.IntegratorSettings(t_end=1, contact="bogus"), "contact must be"),
     (lambda api: api.BasisSettings(dbf_derivative="bogus"), "dbf_derivative must be one of"),
     (lambda api: api.PointForce(amplitude=1.0, frequency_hz=1.0), "PointForce: give where it acts"),
+    (lambda api: api.Harmonic(amplitude=float("nan"), frequency_hz=1.0), "Harmonic amplitude must be a finite number"),
+    (lambda api: api.Harmonic(amplitude=1.0, frequency_hz=-1.0), "Harmonic frequency_hz \\(Hz\\) must be at least 0"),
+    (lambda api: api.Harmonic(amplitude=1.0, frequency_hz=1.0, phase="0"), "Harmonic phase \\(rad\\) must be a finite"),
 ])
 def test_the_python_api_refuses_a_wrong_value_where_it_is_given(make, message):
     # New-user pass: these failed later as TypeError, IndexError, AttributeError or a 7 TiB MemoryError.
