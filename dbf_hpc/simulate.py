@@ -33,7 +33,7 @@ def snapshot_samples(count: int, times: np.ndarray) -> np.ndarray:
 def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
     """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Not collective."""
-    _check_settings(settings)
+    _check_settings(settings, say, "simulate_reduced")
     snapshots = check_number("simulate_reduced snapshots", snapshots, 0, integer=True)
     if isinstance(model, FullOrderModel) or not hasattr(model, "probe_sample_shape"):
         raise InputError(f"simulate_reduced integrates a reduced model (Reductor(...).reduce()), got "
@@ -50,7 +50,7 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
 def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -> Result:
     """Integrate the full-order model (fom_integrator.py) and return the same Result as
     simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""
-    _check_settings(settings)
+    _check_settings(settings, say, "simulate_full")
     if not isinstance(fom, FullOrderModel):
         raise InputError(f"simulate_full integrates a FullOrderModel (FullOrderModel.build), got {type(fom).__name__}")
     world = fom.comm.tompi4py()
@@ -60,6 +60,8 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)
 
 
-def _check_settings(settings) -> None:
+def _check_settings(settings, say, where: str) -> None:
     if not isinstance(settings, IntegratorSettings):
         raise InputError(f"give IntegratorSettings(t_end=..., ...), got {settings!r}")
+    if say is not None and not callable(say):   # red team: a str was taken, and failed in the first progress line
+        raise InputError(f"{where} say: give a function of one line (print) or None, got {say!r}")

@@ -68,6 +68,8 @@ def test_the_example_objects_agree_with_the_full_order_model_before_the_first_im
     (lambda api: api.BaseMotion(amplitude="5e-3", frequency_hz=1.0), "BaseMotion amplitude must be a finite"),
     (lambda api: api.Reductor(6), "Reductor reduces a FullOrderModel"),
     (lambda api: api.simulate_reduced(None, {"t_end": 0.01}), "give IntegratorSettings"),
+    (lambda api: api.simulate_reduced(None, api.IntegratorSettings(t_end=0.01), say="progress"),
+     "simulate_reduced say: give a function"),
     (lambda api: api.IntegratorSettings(t_end=1, adaptive="no"), "adaptive must be True or False"),
     (lambda api: api.IntegratorSettings(t_end=1, contact="bogus"), "contact must be"),
     (lambda api: api.BasisSettings(dbf_derivative="bogus"), "dbf_derivative must be one of"),
