@@ -339,7 +339,7 @@ class RitzSpace:
             return
         kJ, gzJ = k[J], gz[J]
         c = kJ / (1.0 + kJ * gzJ)
-        dc = 1.0 / (1.0 + kJ * gzJ) ** 2
+        dc = (1.0 / (1.0 + kJ * gzJ)) ** 2   # squared after the division: no overflow at a k of 1e300 N/m
         nu, W, beta_row = _reduced_stack(C[J], S[J], c, q)
         idx, m = np.arange(J.size), branch[J] - 1
         y = W[idx, :, m]
@@ -675,7 +675,7 @@ class RitzSolver:
 
     def _spring_reduced(self, k: float, branch: int):
         c = k / (1.0 + k * self.gz)
-        dc = 1.0 / (1.0 + k * self.gz) ** 2                # d c / dk
+        dc = (1.0 / (1.0 + k * self.gz)) ** 2              # d c / dk (squared after the division: no overflow)
         nu, W, beta_row = self._reduced(c, branch)
         m = branch - 1
         y = W[:, m]

@@ -284,6 +284,12 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
                     src.derivative.destroy()
         except Exception as e:   # whatever ends one group: every rank hears of it (raise_agreed)
             failure, mine = group_failure(e, world), e
+            if isinstance(e, SolverError) and settings.stiffness != "auto":
+                # red team: dbf_stiffness = 1e300 failed with "use dbf_solver = factor", which failed with
+                # "try central": d phi/dk ~ 1/k^2 is round-off there whatever the solver
+                failure = (False, f"{failure[1]} (with the given [basis] dbf_stiffness = {settings.stiffness:g} "
+                                  f"N/m: far from a constraint's transition, Fig. 2, d phi/dk is lost in round-off; "
+                                  f"try dbf_stiffness = \"auto\")")
         raise_agreed(world, failure, mine)
         gathered.assemble()
     except Exception:

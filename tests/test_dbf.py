@@ -756,3 +756,19 @@ def test_a_group_whose_copy_of_m_fails_frees_its_copy_of_k_and_its_communicator(
         enrichment._group_operators(broken, MPI.COMM_WORLD.size)
     assert_all(undestroyed_petsc_objects() == before, "the group's copy of K was destroyed")
     assert petsc_garbage(capfd) == 0, "nothing was left in PETSc's garbage"
+
+
+@pytest.mark.parametrize("solver", ["ritz", "factor"])
+def test_a_given_dbf_stiffness_far_beyond_the_transition_is_refused_naming_it_without_numpy_warnings(paper, solver):
+    # Red team: dbf_stiffness = 1e300 N/m printed numpy's overflow warnings (dc = 1 / (1 + k g^T z)^2),
+    # then "use dbf_solver = factor", whose run said "try central": d phi/dk ~ 1/k^2 is round-off that
+    # far above the transition (0.05 N/m here) on any path. The line now names the given stiffness.
+    import warnings
+
+    ops, modes, row = paper
+    with warnings.catch_warnings(record=True) as caught, pytest.raises(
+            SolverError, match=r"given \[basis\] dbf_stiffness = 1e\+300 N/m: far from a constraint's transition.*"
+                               r"try dbf_stiffness = \"auto\"\)$"):
+        warnings.simplefilter("always")
+        DbfEnrichment(stiffness=1e300, solver=solver).columns(ops, np.array([row]), modes)
+    assert not [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
