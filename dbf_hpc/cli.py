@@ -128,8 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("sweep", metavar="SWEEP.toml")
     sweep.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sweep.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                       help="override a value of the base scene for every case (repeatable; a value the sweep's "
-                            "cases set is refused)")
+                       help="override a value of the base scene for every case (repeatable); an axis of one "
+                            "value, e.g. integrator.t_end, is replaced by a --set of the same name; another value "
+                            "the sweep's cases set is refused")
     sweep.set_defaults(func=_sweep)
     info = sub.add_parser("info", help="summarize a run's (or a sweep's) HDF5 output",
                           description="Print what a run computed: scene, basis, solver statistics, "

@@ -13,7 +13,9 @@ A sweep file (TOML):
     continuation = "excitation.frequency_hz"   # optional: an axis swept up and down with continuation
     directions = ["up", "down"]                # (default both)
 
-Each case is the base scene with its values set (as `--set section.key=value`). With continuation,
+Each case is the base scene with its values set (as `--set section.key=value`). `dbf-hpc sweep --set`
+sets a base scene value for every case, and replaces an axis of one value of the same name (e.g.
+`--set integrator.t_end=1` on a shipped sweep); a value the cases vary is refused. With continuation,
 the cases along that axis form chains, one per direction and per combination of the other axes:
 each case starts from the previous one's final physical state (a stepped sine: the excitation
 continues its phase, and the total displacement and velocity are continuous); the summary gets a
@@ -140,7 +142,7 @@ def _expand(path: str, axes: dict, listed: list, continuation, directions) -> tu
 def load_sweep(path: str, overrides=()) -> dict:
     """Read a sweep file: {'scene', 'output', 'keep_outputs', 'cases': [[override, ...], ...],
     'values', 'parameters', 'chains', 'scenes'}. `overrides` ('section.key=value', --set) apply to every
-    case before its own values. All case scenes are validated here, and kept (the cases run them)."""
+    case before its own values; one naming an axis of one value replaces that value. All case scenes are validated here, and kept (the cases run them)."""
     data = _read(path)
     folder = os.path.dirname(os.path.abspath(path))
     scene = os.path.join(folder, _typed(path, data, "scene", str, None))
@@ -167,6 +169,7 @@ def load_sweep(path: str, overrides=()) -> dict:
             and len(set(directions)) == len(directions)):
         raise InputError(f"{path}: directions must be a list of \"up\" and/or \"down\", each once, got "
                          f"{directions!r}")
+    axes, overrides = _set_single_valued_axes(axes, listed, continuation, overrides)
     cases, chains = _expand(path, axes, listed, continuation, directions)
     parameters = list(dict.fromkeys(name for case in cases for name in case))
     _refuse_sets_the_cases_replace(path, overrides, [name for name in parameters if name != DIRECTION])
@@ -235,6 +238,24 @@ def _target(name: str) -> tuple:
     return section, key, None
 
 
+def _set_single_valued_axes(axes: dict, listed: list, continuation, overrides) -> tuple:
+    """(axes, the --set values left for the base scene): a --set of an axis of one value (the shipped
+    sweeps give integrator.t_end so) replaces that value, as it replaces a run's: the value is every
+    case's, and the summary's column shows it (red team: `--set integrator.t_end=1` to try a sweep
+    quickly was refused). An axis of several values, the continuation axis and a [[case]] value
+    stay the sweep file's (_refuse_sets_the_cases_replace)."""
+    axes, left = dict(axes), []
+    listed_names = {name for case in listed if isinstance(case, dict) for name in case}
+    for text in overrides:
+        name = text.partition("=")[0].strip()
+        values = axes.get(name)
+        if isinstance(values, list) and len(values) == 1 and name != continuation and name not in listed_names:
+            axes[name] = [parse_override(text)[2]]
+        else:
+            left.append(text)
+    return axes, left
+
+
 def _refuse_sets_the_cases_replace(path: str, overrides, parameters: list) -> None:
     """A --set of a value the sweep's cases set themselves: each case's own value is applied after the
     --set and would replace it in silence (red team: `--set integrator.t_end=0.1` on a sweep whose axes
@@ -245,7 +266,8 @@ def _refuse_sets_the_cases_replace(path: str, overrides, parameters: list) -> No
             other = _target(name)
             if other[:2] == (section, key) and (number is None or other[2] is None or number == other[2]):
                 raise InputError(f"--set {text}: the sweep {path} sets {name} in its cases, which would replace "
-                                 f"this value; change it in the sweep file's [axes] or [[case]] instead")
+                                 f"this value; change it in the sweep file's [axes] or [[case]] instead (a --set "
+                                 f"replaces only an axis of one value, given by the same name)")
 
 
 def _toml_value(value) -> str:

@@ -380,16 +380,33 @@ def test_a_case_whose_fixed_step_cannot_resolve_its_forcing_is_warned_as_a_run_w
         assert re.search(r"warning: .*: cases 1, 2: \[output\] sample_dt = 0.8 s takes 1.2 samples", err), err
 
 
-@pytest.mark.parametrize("given", ["integrator.t_end=0.1", "constraint.1.clearance=1e-3"])
+@pytest.mark.parametrize("given", ["constraint.clearance=1e-3", "constraint.1.clearance=1e-3"])
 def test_a_set_of_a_value_the_cases_set_is_refused_instead_of_silently_replaced(shared_tmp_path, given):
-    # each case's own value is applied after --set: t_end from the axis would run every case 0.5 s
-    # although the command line asked for 0.1 s (red team), so the --set is refused before any work
+    # each case's own value is applied after --set: the clearance from the axis would replace the one the
+    # command line asked for (red team), so the --set is refused before any work
     path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [1e-3, 2e-3]\n"integrator.t_end" = [0.5]\n')
     with pytest.raises(InputError, match=f"--set {given}: the sweep .* sets .* in its cases"):
         load_sweep(path, [given])
     # a value no case sets still applies to every case
     sweep = load_sweep(path, ["constraint.1.k=2e6"])
     assert [scene.constraints[0].law.k_plus for scene in sweep["scenes"]] == [2e6, 2e6]
+
+
+def test_a_set_of_an_axis_of_one_value_shortens_every_case_as_it_shortens_a_run(shared_tmp_path):
+    # the shipped sweeps give integrator.t_end as an axis of one value: `--set integrator.t_end=0.1` to try
+    # a study quickly was refused (red team). It is every case's simulated time: the --set replaces it,
+    # the summary's column says 0.1 s, and the cases' identities change (a finished 0.5 s case is not reused)
+    path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [1e-3, 2e-3]\n"integrator.t_end" = [0.5]\n')
+    plain, short = load_sweep(path), load_sweep(path, ["integrator.t_end=0.1"])
+    assert [scene.integrator_settings().t_end for scene in short["scenes"]] == [0.1, 0.1]
+    assert [v["integrator.t_end"] for v in short["values"]] == [0.1, 0.1]
+    assert [scene.integrator_settings().t_end for scene in plain["scenes"]] == [0.5, 0.5]
+    from dbf_hpc.sweep import _identities
+    assert not set(_identities(plain, plain["scenes"])) & set(_identities(short, short["scenes"]))
+    # an axis of several values, or a [[case]] that sets it, still refuses it
+    path = write_sweep(shared_tmp_path, '[axes]\n"integrator.t_end" = [0.5]\n[[case]]\n"integrator.t_end" = 0.2\n')
+    with pytest.raises(InputError, match="--set integrator.t_end=0.1: the sweep .* sets integrator.t_end in its cases"):
+        load_sweep(path, ["integrator.t_end=0.1"])
 
 
 @pytest.mark.parametrize("name", sorted(f for f in os.listdir(os.path.join(ROOT, "jobs")) if f.startswith("sweep_")))
