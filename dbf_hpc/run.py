@@ -377,6 +377,17 @@ def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
     return model.with_case(q0=q, p0=p)
 
 
+def scene_callbacks(scene: Scene) -> str:
+    """"c" or "python": the callbacks a reduced run of `scene` integrates with on this installation
+    (rom_integrator.effective_callbacks; the state-space form has only the Python ones)."""
+    dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
+    callbacks = effective_callbacks(scene.integrator_settings().callbacks, dimension)
+    s = scene["structure"]
+    if scene["basis"]["gyroscopic_form"] == "state_space" and (s.get("axial_speed") or s.get("gyroscopic")):
+        callbacks = "python"   # the state-space form has no C callbacks (state_space.py)
+    return callbacks
+
+
 def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordinates: str | None = None,
                  request: str | None = None, digests: dict | None = None) -> dict:
     """What a checkpoint must match to be resumed: every part that changes the result: the scene, the
@@ -386,13 +397,7 @@ def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordi
     holds the same key, not the same q); with `request` (request_identity), also the question as it
     was asked. The finished output stores it too (finished_output). `digests`: the scene's
     file_digests when already made (they are not hashed again). Collective."""
-    dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
-    callbacks = (effective_callbacks(scene.integrator_settings().callbacks, dimension)
-                 if method == "rom" else None)
-    s = scene["structure"]
-    if callbacks and scene["basis"]["gyroscopic_form"] == "state_space" and (s.get("axial_speed") or
-                                                                            s.get("gyroscopic")):
-        callbacks = "python"   # the state-space form has no C callbacks (state_space.py)
+    callbacks = scene_callbacks(scene) if method == "rom" else None
     files = scene.file_digests(comm) if digests is None else digests
     return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], files=files,
                     structure=basis_key, coordinates=coordinates, options=PETSc.Options().getAll(),

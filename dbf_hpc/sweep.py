@@ -32,10 +32,10 @@ How it runs (collective on COMM_WORLD):
    cannot be built fails its cases, recorded with the error; the others go on.
 3. The cases (chains) are dealt round-robin to the ranks; each rank integrates its cases alone.
 4. Each finished case leaves a small result file (`OUT.cases/case-NNNNN.json`, written atomically)
-   with the identity of the case (its validated scene, the bytes of the files it reads, and in a
-   chain its predecessors' identities): a rerun skips the cases that are done and still the same
-   (with keep_outputs, whose complete output of that identity is still beside it), and reruns the
-   others. SIGTERM stops every rank at its next step (a running case is
+   with the identity of the case (its validated scene, the bytes of the files it reads, the rank
+   count and callbacks, and in a chain its predecessors' identities): a rerun skips the cases that
+   are done and still the same (with keep_outputs, whose complete output of that identity is still
+   beside it), and reruns the others (on another rank count: all, and says why). SIGTERM stops every rank at its next step (a running case is
    checkpointed); rerun the same command to go on. The base scene is read once, at the start.
    A full disk (a record or a case's HDF5 file that cannot be written) stops every rank.
 5. Rank 0 writes the summary. The summary is locked while a sweep runs: a second sweep on the
@@ -70,7 +70,7 @@ from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
 from .run import (coarse_samples_warning, coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks,
-                  idle_warnings, run_case, unresolved_warnings)
+                  idle_warnings, run_case, scene_callbacks, unresolved_warnings)
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -322,17 +322,31 @@ def _scene_files(scene) -> list:
     return [path for what, path in scene.inputs() if what != "scene"]
 
 
+def _setup(scene) -> dict:
+    """What a case's result depends on besides its scene and files: the rank count (the reduced model is
+    projected on all ranks, and its round-off differs with their number: 0.2 % on the chaotic tube) and
+    the callbacks the case integrates with ("c" or "python", also round-off apart)."""
+    try:
+        callbacks = scene_callbacks(scene)
+    except InputError:   # integrator settings the case refuses when it runs (recorded as failed)
+        callbacks = None
+    return {"ranks": MPI.COMM_WORLD.size, "callbacks": callbacks}
+
+
 def _identities(sweep: dict, scenes: list) -> list:
     """Per case, the sha256 of what its result depends on: the validated scene (`scenes`, as the
     cases run it), the bytes of every file it reads (hashed once, on rank 0), the PETSc options, the
-    package version, and in a continuation chain its predecessors'. Collective."""
+    package version, the rank count and the callbacks (_setup), and in a continuation chain its
+    predecessors'. A sweep rerun on another rank count reruns its finished cases, as a run's --resume
+    on another rank count starts again: a summary mixing both would be neither's answer, and no rerun
+    of the command would reproduce it (red team). Collective."""
     files = sorted({path for scene in scenes for path in _scene_files(scene)})
     digests = {path: file_digest(path, PETSc.COMM_WORLD) for path in files}
     options = PETSc.Options().getAll()
     out = []
     for scene in scenes:
         content = [scene.sections, [repr(c) for c in scene.constraints],
-                   {path: digests[path] for path in _scene_files(scene)}, options, __version__]
+                   {path: digests[path] for path in _scene_files(scene)}, options, __version__, _setup(scene)]
         out.append(hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest())
     # a case of a chain starts from its predecessor's final state: its identity holds the chain's
     for chain in sweep["chains"]:
@@ -471,7 +485,8 @@ class _Stop:
 
 def _record(sweep, index: int, identity: str, continued: bool) -> dict:
     """What every record of case `index` starts with (RECORD_KEYS but its status and wall time)."""
-    return {"index": index, "identity": identity, "parameters": sweep["values"][index], "continued": continued}
+    return {"index": index, "identity": identity, "parameters": sweep["values"][index], "continued": continued,
+            **_setup(sweep["scenes"][index])}
 
 
 def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dict:
@@ -631,6 +646,8 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     pending = {i for i in range(n) if records[i].get("identity") != identities[i] or records[i].get("status") != "ok"}
     pending |= unkept
     retried = sum(records[i].get("identity") == identities[i] for i in pending)
+    moved = [i for i in pending if records[i].get("status") == "ok" and "ranks" in records[i] and
+             (records[i]["ranks"], records[i].get("callbacks")) != tuple(_setup(scenes[i]).values())]
     for chain in sweep["chains"]:   # a step rerun starts the steps after it anew (they began from rest before)
         for k, index in enumerate(chain):
             if index in pending:
@@ -639,6 +656,10 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     pending = sorted(pending)
     say(f"dbf-hpc sweep: {n} cases, {n - len(pending)} already done, {len(pending)} to run on {world.size} rank(s)"
         + (f" ({retried} failed before: retried)" if retried else ""))
+    if moved:
+        first = records[moved[0]]
+        say(f"  {len(moved)} finished case(s) rerun: they ran on {first['ranks']} rank(s) with the {first['callbacks']} "
+            f"callbacks, and the rank count and callbacks change a case's round-off (rerun on that setup to reuse them)")
     cache_dir = scenes[0].cache_dir() or os.path.join(folder, "basis-cache")
     sweep = {**sweep, "run_scenes": [scene.with_values("basis", cache=cache_dir) for scene in scenes]}
     models = _prepare_models(sweep, pending, cache_dir, say)

@@ -113,6 +113,35 @@ def _swept(folder, body: str, count: int):
     return path, [os.path.join(output + ".cases", f"case-{i:05d}.json") for i in range(count)]
 
 
+def test_a_sweep_rerun_on_another_rank_count_or_callbacks_reruns_its_finished_cases(shared_tmp_path, monkeypatch,
+                                                                                   capsys):
+    # The reduced model is projected on every rank, and its round-off differs with their number (0.2 % on
+    # the chaotic tube between 1 and 2 ranks); the callbacks ("c", "python") differ by round-off too. A
+    # sweep resumed on another setup reused the finished cases' records (red team): the summary mixed two
+    # setups' answers. Each case's record says its setup; another one reruns it, and the line says why.
+    import dbf_hpc.sweep as sweep
+
+    path, files = _swept(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n'
+                                          '"integrator.t_end" = [0.05]\n', 2)
+    first = [json.load(open(name)) for name in files]
+    callbacks = sweep.scene_callbacks(load_sweep(path)["scenes"][0])
+    assert_all([(r["ranks"], r["callbacks"]) for r in first] == [(MPI.COMM_WORLD.size, callbacks)] * 2)
+    same = run_sweep(path)   # the same setup: reused
+    assert_all([json.load(open(name))["identity"] for name in files] == [r["identity"] for r in first])
+    capsys.readouterr()
+    monkeypatch.setattr(sweep, "_setup", lambda scene: {"ranks": MPI.COMM_WORLD.size + 1, "callbacks": callbacks})
+    other = run_sweep(path)
+    out = capsys.readouterr().out
+    again = [json.load(open(name)) for name in files]
+    assert same["failed"] == other["failed"] == 0
+    assert_all(all(a["identity"] != r["identity"] and a["ranks"] == MPI.COMM_WORLD.size + 1
+                   for a, r in zip(again, first)))
+    if MPI.COMM_WORLD.rank == 0:
+        assert "2 cases, 0 already done" in out, out
+        assert f"2 finished case(s) rerun: they ran on {MPI.COMM_WORLD.size} rank(s) with the {callbacks} callbacks" \
+            in out, out
+
+
 def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_record(shared_tmp_path):
     # Red team: cases that failed on a full disk stayed failed after the disk was freed ("6 already
     # done"), and a case file holding valid JSON that is not a record was an internal error.
