@@ -50,6 +50,18 @@ def termination_signals() -> tuple:
     return (signal.SIGTERM, signal.SIGINT)
 
 
+class _Termination:
+    """Whether this process received a termination signal during the integration under way: run.py's
+    handlers set it on every rank (rank 0's also asks its own checkpoint), and the integrations tell
+    rank 0 of another rank's (fom_integrator's control points, run.RemoteStop). Red team: a SIGTERM to
+    rank 1 alone of a 2-rank run was ignored, and the job ran on to its end."""
+
+    requested = False
+
+
+TERMINATION = _Termination()
+
+
 def decided_on_rank0(comm, decide, *args):
     """decide(*args) on rank 0 of `comm` (petsc4py or mpi4py), its value given to every rank, or its
     InputError raised on every rank: a check of files that each rank made itself could differ

@@ -69,7 +69,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from .errors import WRITE_ERRORS, InputError, SolverError, WriteFailed, write_failure
+from .errors import TERMINATION, WRITE_ERRORS, InputError, SolverError, WriteFailed, write_failure
 from .fom import FullOrderModel
 from .petsctools import destroy, natural_fill_is_small, options_defaults
 from .timestepping import IntegratorSettings, StepMonitor, check_outcome
@@ -1023,6 +1023,10 @@ class _Run:
         if not math.isfinite(norm):
             raise SolverError(f"the state is not finite at t = {t:.6g} s (step {step}); {NOT_FINITE}")
         action = None
+        # a termination signal on any rank stops the run here, on every rank (rank 0's hook saves first)
+        if self.world.size > 1 and self.world.allreduce(TERMINATION.requested, op=MPI.LOR) and \
+                self.world.rank == 0 and self.hook is not None:
+            self.hook.interrupted = True
         if self.world.rank == 0 and not self.failure and self.hook is not None:
             action = self._call(self.hook.at, t, step)
         action = self._word(action)

@@ -18,6 +18,7 @@ import time
 
 import h5py
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
@@ -28,7 +29,7 @@ from .accuracy import (RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_to_contact, 
                        richer_model, statistics_estimate, statistics_window, zeta_per_vector)
 from .basis import SUSPICIOUS_HZ
 from .checkpoint import Checkpoint, arrays_sha256, identity
-from .errors import (WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
+from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
                      decided_on_rank0, petsc_failure, termination_signals, wait_for_rank0, warn, write_failure)
 from .fom import Observation
 from .fom_integrator import integrate_full
@@ -480,18 +481,22 @@ def _stored_summary(f, path: str) -> dict:
 def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident, basis_stats, estimator=None) -> dict:
     """Rank 0 integrates and writes; the others wait and learn the outcome."""
     world = comm.tompi4py()
-    summary, failure = {}, None
+    summary, failure, sent = {}, None, 0
+    remote = RemoteStop(world) if world.size > 1 and world.rank == 0 else None
     if world.rank == 0:
         try:
             summary = run_case(scene, model, path, say=say, resume=resume, ident=ident, extra_stats=basis_stats,
-                               ranks=world.size, timings=timings, estimator=estimator)
+                               ranks=world.size, timings=timings, estimator=estimator, remote=remote)
         except DbfError as exc:
             failure = (type(exc).__name__, str(exc))
     else:
-        with _interrupt_on_sigterm(None):
-            wait_for_rank0(world)
+        with _interrupt_on_sigterm(None):   # a signal here is sent to rank 0 (RemoteStop)
+            sent = _wait_telling(world)
     if world.rank == 0:
         wait_for_rank0(world)
+    sent = world.reduce(sent, root=0)
+    if remote is not None:
+        remote.drain(sent)
     failure = world.bcast(failure, root=0)
     if failure:
         kinds = {kind.__name__: kind for kind in (InputError, Unresumable, SolverError, Interrupted)}
@@ -500,7 +505,8 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
 
 
 def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: bool = False, ident=None,
-             extra_stats=None, ranks: int = 1, timings=None, estimator=None, keep: bool = True) -> dict:
+             extra_stats=None, ranks: int = 1, timings=None, estimator=None, keep: bool = True,
+             remote: RemoteStop | None = None) -> dict:
     """Integrate a reduced model on this rank alone and write the run's output to `path` (rank 0 of
     a run, or any rank of a sweep). Checkpoints every [output] checkpoint_dt; SIGTERM checkpoints
     and stops (errors.Interrupted); with resume, continues from a valid checkpoint. With estimator =
@@ -508,7 +514,8 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     window or None), the output carries the a-posteriori estimate (accuracy.py). Returns the
     summary with the final state and excitation phase (for continuation). keep False (a sweep's
     case without keep_outputs): the samples go to path.partial for the checkpoints alone, and the
-    finished run writes no output (finish)."""
+    finished run writes no output (finish). `remote`: how rank 0 of a run hears of a termination
+    signal on another rank during the integration."""
     settings, output = scene.integrator_settings(), scene.output()
     timings = {} if timings is None else timings
     checkpoint = Checkpoint(f"{path}.checkpoint", ident or {})
@@ -532,7 +539,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
         recorder = ReducedRecorder(writer, model, snapshot_samples(output.snapshots, settings.sample_times))
         if state:
             recorder.restore(state)
-        stepper = Checkpointing(recorder, checkpoint, output.checkpoint_dt, state, output.checkpoint_wall)
+        stepper = Checkpointing(recorder, checkpoint, output.checkpoint_dt, state, output.checkpoint_wall, remote)
         _say(say, f"integrating to t = {settings.t_end:g} s with ARKIMEX {settings.scheme} "
                   f"(contact {settings.contact}, {'adaptive' if settings.adaptive else 'fixed'} step)")
         t = time.perf_counter()
@@ -688,8 +695,9 @@ class Checkpointing:
     resume."""
 
     def __init__(self, recorder: ReducedRecorder, checkpoint: Checkpoint, interval: float, state: dict | None,
-                 min_wall: float = 0.0):
+                 min_wall: float = 0.0, remote: RemoteStop | None = None):
         self.recorder, self.checkpoint, self.interval, self.min_wall = recorder, checkpoint, interval, min_wall
+        self.remote = remote
         self.interrupted = False
         self.start = None
         self.next = interval
@@ -707,11 +715,16 @@ class Checkpointing:
         self.clock = self.saved = time.perf_counter()
 
     def due(self) -> float:
-        """The simulated time from which on_step has work to do (the integrator may skip it before)."""
+        """The simulated time from which on_step has work to do (the integrator may skip it before).
+        Called after every step: another rank's termination signal is looked for here (RemoteStop)."""
+        if not self.interrupted and self.remote is not None and self.remote.poll():
+            self.interrupted = True
         return -np.inf if self.interrupted else self.next
 
     def on_step(self, ts, t, q, p):
         """After a step (the recorder has taken its statistics): a checkpoint when due or asked for."""
+        if not self.interrupted and self.remote is not None and self.remote.poll():
+            self.interrupted = True
         due = t >= self.next
         if due:
             self.next = t + self.interval
@@ -758,13 +771,63 @@ def _on_sigterm(handler):
 
 
 def _interrupt_on_sigterm(stepper):
-    """While integrating, SIGTERM (a batch system's time limit) asks rank 0 to checkpoint at the end
-    of the current step and stop; the other ranks ignore it and wait for rank 0's word."""
+    """While integrating, SIGTERM (a batch system's time limit) on any rank asks rank 0 to checkpoint
+    at the end of the current step and stop: rank 0's own sets `stepper`'s flag, another rank's
+    errors.TERMINATION, which reaches rank 0 at its next control point (a full-order run's) or as a
+    message (RemoteStop: a reduced run's, integrated by rank 0 alone)."""
+    TERMINATION.requested = False
+
     def handler(signum, frame):
+        TERMINATION.requested = True
         if stepper is not None:
             stepper.interrupted = True
 
     return _on_sigterm(handler)
+
+
+STOP_TAG = 7301     # a termination signal on a rank other than 0, sent to rank 0 (RemoteStop)
+
+
+class RemoteStop:
+    """Rank 0 of a reduced run integrates alone while the others wait (_run_reduced, _wait_telling):
+    a termination signal on another rank reaches it as a message, looked for at most every POLL s
+    of the integration's wall time (Checkpointing.due and on_step); rank 0 then checkpoints and stops
+    as at its own signal. Every message sent is received by the end (drain): none is left in MPI."""
+
+    POLL = 0.05
+
+    def __init__(self, world):
+        self.world, self.received, self.last = world, 0, -float("inf")
+
+    def poll(self) -> bool:
+        now = time.perf_counter()
+        if now - self.last < self.POLL:
+            return False
+        self.last = now
+        got = False
+        while self.world.iprobe(source=MPI.ANY_SOURCE, tag=STOP_TAG):
+            self.world.recv(source=MPI.ANY_SOURCE, tag=STOP_TAG)
+            self.received, got = self.received + 1, True
+        return got
+
+    def drain(self, sent: int) -> None:
+        """Receive the messages still on their way (`sent`: how many the other ranks sent in all)."""
+        while self.received < sent:
+            self.world.recv(source=MPI.ANY_SOURCE, tag=STOP_TAG)
+            self.received += 1
+
+
+def _wait_telling(world) -> int:
+    """A rank other than 0 while rank 0 integrates alone: errors.wait_for_rank0, telling rank 0 of a
+    termination signal received meanwhile (RemoteStop). Returns how many messages it sent (0 or 1)."""
+    request, sent, message = world.Ibarrier(), 0, None
+    while not request.Test():
+        if TERMINATION.requested and not sent:
+            message, sent = world.isend(True, dest=0, tag=STOP_TAG), 1
+        time.sleep(0.02)
+    if message is not None:
+        message.wait()
+    return sent
 
 
 def _stop_on_sigterm(active: bool, message: str):

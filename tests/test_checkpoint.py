@@ -495,3 +495,75 @@ def test_a_resume_of_another_scene_names_the_scene_not_a_rebuilt_cache(stopped):
     with pytest.raises(InputError) as refused:
         resume([*sets, "output.probes=[0.4]"], out)
     assert "scene" in str(refused.value) and "the cache cleared" not in str(refused.value), str(refused.value)
+
+
+def _signal_rank_1_at(monkeypatch, module, name: str) -> None:
+    """Rank 1 sends itself SIGTERM as `module.name` begins; the handler the run installed takes it."""
+    original = getattr(module, name)
+
+    def signalled(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return original(*args, **kwargs)
+
+    if MPI.COMM_WORLD.rank == 1:
+        monkeypatch.setattr(module, name, signalled)
+
+
+def _same_samples(whole: str, out: str, names) -> None:
+    MPI.COMM_WORLD.Barrier()
+    with h5py.File(whole) as a, h5py.File(out) as b:
+        assert bool(b.attrs["complete"]) and a["time"].shape == b["time"].shape
+        for name in names:
+            assert np.array_equal(a[name][:], b[name][:]), name
+
+
+def test_sigterm_to_rank_1_alone_stops_a_reduced_run_for_resume(shared_tmp_path, monkeypatch):
+    # Red team: rank 0 integrates a reduced run alone, and a SIGTERM to rank 1 alone (a launcher that
+    # signals one process, a node's own limit) was ignored: the job ran on. Rank 1 tells rank 0, which
+    # checkpoints at the end of its step and stops with the resume line on every rank; the resume is
+    # the uninterrupted run, sample for sample.
+    if MPI.COMM_WORLD.size < 2:
+        pytest.skip("a signal to another rank than 0: run on 2 ranks")
+    from dbf_hpc import run as run_module
+
+    sets = ["integrator.t_end=0.2", "output.checkpoint_dt=10", f"basis.cache={shared_tmp_path / 'cache'}"]
+    whole, out = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
+    run(load_scene(PAPER, sets), whole, progress=False)
+    _signal_rank_1_at(monkeypatch, run_module, "_wait_telling")
+    if MPI.COMM_WORLD.rank == 0:
+        # rank 0 starts integrating once rank 1's word is on its way (it cannot finish first): waiting
+        # for the message itself, not for a time
+        begin = run_module.Checkpointing.__init__
+
+        def after_the_word(self, *args, **kwargs):
+            while not MPI.COMM_WORLD.iprobe(source=1, tag=run_module.STOP_TAG):
+                time.sleep(0.01)
+            begin(self, *args, **kwargs)
+
+        monkeypatch.setattr(run_module.Checkpointing, "__init__", after_the_word)
+    with pytest.raises(SolverError, match=r"stopped by a termination signal at t = .*rerun with --resume"):
+        run(load_scene(PAPER, sets), out, progress=False)
+    monkeypatch.undo()
+    assert_all(not os.path.exists(out) and os.path.exists(out + ".partial") and os.path.exists(out + ".checkpoint"))
+    resume(sets, out)
+    _same_samples(whole, out, ("time", "constraints/displacement", "constraints/force", "reduced/q"))
+
+
+def test_sigterm_to_rank_1_alone_stops_a_full_order_run_for_resume(shared_tmp_path, monkeypatch):
+    # Red team: only rank 0's signal stopped a full-order run; every rank integrates it, and rank 1's
+    # flag reaches rank 0 at the next control point, where every rank stops after rank 0's checkpoint.
+    if MPI.COMM_WORLD.size < 2:
+        pytest.skip("a signal to another rank than 0: run on 2 ranks")
+    from dbf_hpc import run as run_module
+
+    sets = ["integrator.t_end=0.1", "integrator.dt=1e-4", "basis.estimate=false", "basis.cache=off"]
+    whole, out = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
+    run(load_scene(PAPER, sets), whole, progress=False, method="full")
+    _signal_rank_1_at(monkeypatch, run_module, "integrate_full")
+    with pytest.raises(SolverError, match=r"stopped by a termination signal at t = .*rerun with --resume"):
+        run(load_scene(PAPER, sets), out, progress=False, method="full")
+    monkeypatch.undo()
+    assert_all(not os.path.exists(out) and os.path.exists(out + ".partial") and os.path.exists(out + ".checkpoint"))
+    run(load_scene(PAPER, sets), out, progress=False, method="full", resume=True)
+    _same_samples(whole, out, ("time", "constraints/displacement", "constraints/force"))
+
