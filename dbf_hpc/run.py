@@ -32,7 +32,7 @@ from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
                      decided_on_rank0, petsc_failure, termination_signals, wait_for_rank0, warn, write_failure)
 from .fom import Observation
-from .fom_integrator import integrate_full
+from .fom_integrator import integrate_full, step_count
 from .fom_integrator import options as full_options
 from .modes import counters
 from .output import (SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space, check_output_path,
@@ -991,9 +991,9 @@ class FullCheckpointing:
     so far."""
 
     def __init__(self, recorder: SampleRecorder, checkpoint: Checkpoint, interval: float, state: dict | None,
-                 snaps: dict, min_wall: float = 0.0):
+                 snaps: dict, min_wall: float = 0.0, save_at: int | None = None):
         self.recorder, self.checkpoint, self.interval, self.snaps = recorder, checkpoint, interval, snaps
-        self.min_wall = min_wall
+        self.min_wall, self.save_at = min_wall, save_at
         self.interrupted = False
         self.next = float(state["next_checkpoint"]) if state else interval
         self.wall = float(state["wall"]) if state else 0.0
@@ -1002,6 +1002,11 @@ class FullCheckpointing:
     def at(self, t: float, steps: int):
         if self.interrupted:
             return "save and stop"
+        if self.save_at is not None and steps >= self.save_at:
+            # the integration's end, before the error estimate (which integrates again, up to 4 times as
+            # long): a stop in the estimate resumes from here and only redoes the estimate (red team: it
+            # redid the integration from the last checkpoint on)
+            return "save"
         if t >= self.next:
             self.next = t + self.interval
             if time.perf_counter() - self.saved >= self.min_wall:
@@ -1138,8 +1143,10 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
             if state:
                 recorder.restore(state)
                 snaps = {int(i): np.array(w) for i, w in zip(state["snapshot_index"], state["snapshot_w"])}
+            estimated = scene.estimate_settings().enabled and constraints.count
             control = FullCheckpointing(recorder, checkpoint, output.checkpoint_dt, state, snaps,
-                                        output.checkpoint_wall)
+                                        output.checkpoint_wall,
+                                        step_count(settings.t_end, settings.dt)[0] if estimated else None)
         except DbfError as exc:
             opened = (type(exc).__name__, str(exc))
         except WRITE_ERRORS as exc:

@@ -567,3 +567,45 @@ def test_sigterm_to_rank_1_alone_stops_a_full_order_run_for_resume(shared_tmp_pa
     run(load_scene(PAPER, sets), out, progress=False, method="full", resume=True)
     _same_samples(whole, out, ("time", "constraints/displacement", "constraints/force"))
 
+
+def test_sigterm_during_a_full_order_runs_estimate_resumes_from_the_integrations_end(shared_tmp_path, monkeypatch):
+    # Red team: a full-order run stopped in its error estimate (a second integration at a 4 times shorter
+    # step) resumed from its last in-run checkpoint, or from t = 0 when the run was too short to write one,
+    # and integrated again. The integration's end is checkpointed before the estimate: the resume only
+    # redoes the estimate, and its output is the uninterrupted run's, estimate included.
+    from dbf_hpc import run as run_module
+    from dbf_hpc import fom_integrator
+
+    sets = ["integrator.t_end=0.1", "integrator.dt=1e-4", "basis.cache=off"]
+    whole, out = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
+    run(load_scene(PAPER, sets), whole, progress=False, method="full")
+    integrate = fom_integrator.integrate_full
+
+    def terminated(*args, **kwargs):   # rank 0's signal, as the estimate's integration begins
+        if isinstance(kwargs.get("control"), run_module._EstimateControl):
+            os.kill(os.getpid(), signal.SIGTERM)
+        return integrate(*args, **kwargs)
+
+    monkeypatch.setattr(run_module, "integrate_full", terminated)
+    with pytest.raises(SolverError, match="during the error estimate, after the integration; rerun with --resume"):
+        run(load_scene(PAPER, sets), out, progress=False, method="full")
+    monkeypatch.undo()
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(out + ".checkpoint", "r") as f:
+            assert float(f["t"][()]) == pytest.approx(0.1, rel=1e-12)
+    starts = []
+
+    def counted(fom, settings, *args, resume=None, **kwargs):
+        starts.append((settings.t_end, None if resume is None else float(resume["t"])))
+        return integrate(fom, settings, *args, resume=resume, **kwargs)
+
+    monkeypatch.setattr(run_module, "integrate_full", counted)
+    summary = run(load_scene(PAPER, sets), out, progress=False, method="full", resume=True)
+    assert starts[0] == (0.1, pytest.approx(0.1, rel=1e-12)), "the resume starts at the integration's end"
+    assert len(starts) == 2 and starts[1][0] < 0.1 and starts[1][1] is None, "then only the estimate integrates"
+    assert np.isfinite(summary["estimated_error"])
+    _same_samples(whole, out, ("time", "constraints/displacement", "constraints/force"))
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(whole) as a, h5py.File(out) as b:
+            assert a.attrs["estimated_error"] == b.attrs["estimated_error"]
+            assert np.array_equal(a["constraints/stats/impacts"][:], b["constraints/stats/impacts"][:])
