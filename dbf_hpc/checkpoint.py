@@ -64,6 +64,10 @@ class Checkpoint:
         tmp = f"{self.path}.tmp"
         f = None
         try:
+            # a file left there (a killed run's, another run's) is removed, not written through: a symlink
+            # there had HDF5 overwrite the file it pointed to (red team)
+            if os.path.lexists(tmp):
+                os.remove(tmp)
             f = h5py.File(tmp, "w", userblock_size=sealed.USERBLOCK)
             for name, value in datasets.items():
                 f.create_dataset(name, data=value)
@@ -79,7 +83,7 @@ class Checkpoint:
             # write, as `with` did, or freeing it later crashed HDF5 (signal 11); it is kept instead
             # (errors.park), and the half-written file is removed
             park(f)
-            if os.path.exists(tmp):
+            if os.path.isfile(tmp) and not os.path.islink(tmp):   # this write's own file (a directory there stays)
                 os.remove(tmp)
             raise
         os.replace(tmp, self.path)

@@ -609,3 +609,30 @@ def test_sigterm_during_a_full_order_runs_estimate_resumes_from_the_integrations
         with h5py.File(whole) as a, h5py.File(out) as b:
             assert a.attrs["estimated_error"] == b.attrs["estimated_error"]
             assert np.array_equal(a["constraints/stats/impacts"][:], b["constraints/stats/impacts"][:])
+
+
+def test_a_file_left_at_the_checkpoints_temporary_name_is_replaced_not_written_through(shared_tmp_path):
+    # Red team: Checkpoint.write opened OUT.h5.checkpoint.tmp for writing as it found it: a symlink left
+    # there had HDF5 overwrite the file it pointed to (a user's file, clobbered). A killed run's file of
+    # another scene there is replaced; a directory there is a write error (the run's one line), kept.
+    from dbf_hpc.checkpoint import Checkpoint
+
+    ok = True
+    if MPI.COMM_WORLD.rank == 0:
+        precious = shared_tmp_path / "precious.txt"
+        precious.write_text("a user's own file")
+        path = str(shared_tmp_path / "x.h5.checkpoint")
+        os.symlink(precious, path + ".tmp")
+        checkpoint = Checkpoint(path, {"scene": "this one"})
+        checkpoint.write({"t": 1.5, "q": np.arange(3.0)})
+        ok &= precious.read_text() == "a user's own file" and not os.path.lexists(path + ".tmp")
+        ok &= float(checkpoint.read()["t"]) == 1.5
+        with open(path + ".tmp", "wb") as f:   # a killed run's half-written checkpoint of another scene
+            f.write(b"\x89HDF\r\n\x1a\n" + b"\0" * 100)
+        checkpoint.write({"t": 2.5, "q": np.arange(3.0)})
+        ok &= float(checkpoint.read()["t"]) == 2.5 and not os.path.lexists(path + ".tmp")
+        os.mkdir(path + ".tmp")
+        with pytest.raises(OSError):
+            checkpoint.write({"t": 3.5, "q": np.arange(3.0)})
+        ok &= os.path.isdir(path + ".tmp") and float(checkpoint.read()["t"]) == 2.5
+    assert_all(ok)
