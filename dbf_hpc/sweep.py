@@ -697,7 +697,7 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
         try:
             failed = _write_summary(sweep, folder, output)
         except WRITE_ERRORS as e:   # every rank hears of it (the case files stay: a rerun only writes this)
-            if os.path.exists(f"{output}.partial"):
+            if os.path.isfile(f"{output}.partial") and not os.path.islink(f"{output}.partial"):
                 os.remove(f"{output}.partial")
             problem = f"cannot write the sweep summary {output}: {write_failure(e)}; the cases are kept in {folder}"
         if progress and problem is None:
@@ -750,6 +750,10 @@ def _write_summary(sweep: dict, folder: str, output: str) -> int:
     if free < 1.1 * needed + 2**20:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
     f = None
+    # a file left at the temporary name (a killed sweep's) is removed, not written through: a symlink
+    # there had HDF5 overwrite the file it pointed to (red team); a directory there is the write's error
+    if os.path.lexists(tmp) and not os.path.isdir(tmp):
+        os.remove(tmp)
     try:
         f = h5py.File(tmp, "w")
         f.attrs["sweep"] = json.dumps({"scene": sweep["scene"], "parameters": sweep["parameters"]})

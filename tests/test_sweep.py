@@ -276,6 +276,33 @@ def test_a_summary_that_would_not_fit_on_the_disk_is_refused_before_hdf5_writes_
         "with room, the summary is written from the cases kept"
 
 
+def test_a_file_left_at_the_summarys_temporary_name_is_replaced_not_written_through(shared_tmp_path):
+    # Red team: the summary was written to OUT.h5.partial as found there: a symlink left there had HDF5
+    # overwrite the file it pointed to (a user's file clobbered, then renamed over the summary's name as
+    # a symlink). It is removed first; a directory there is the write's one line, and stays.
+    from dbf_hpc.errors import DbfError
+
+    path = write_sweep(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9]\n"integrator.t_end" = [0.05]\n')
+    summary, precious = shared_tmp_path / "summary.h5", shared_tmp_path / "precious.txt"
+    if MPI.COMM_WORLD.rank == 0:
+        precious.write_text("a user's own file")
+        os.symlink(precious, str(summary) + ".partial")
+    MPI.COMM_WORLD.Barrier()
+    assert run_sweep(path, progress=False)["failed"] == 0
+    assert_all(precious.read_text() == "a user's own file" and not os.path.islink(summary)
+               and not os.path.lexists(str(summary) + ".partial"))
+    with h5py.File(summary) as f:
+        assert list(f["cases/status"].asstr()) == ["ok"]
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        os.remove(summary)
+        os.mkdir(str(summary) + ".partial")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(DbfError, match="^cannot write the sweep summary .*; the cases are kept in"):
+        run_sweep(path, progress=False)
+    assert_all(os.path.isdir(str(summary) + ".partial") and not os.path.exists(summary))
+
+
 def test_a_retried_step_of_a_stepped_sine_reruns_the_steps_after_it(shared_tmp_path):
     # Red team: when step 2 failed, step 3 ran from rest and was kept as ok after step 2's retry.
     path, files = _swept(shared_tmp_path, 'continuation = "excitation.frequency_hz"\n[axes]\n'
