@@ -197,4 +197,4 @@ PARKED = []
 
 def park(*objects) -> None:
     """Keep the h5py objects of a failed write alive for the rest of the process."""
-    PARKED.extend(objects)
+    PARKED.extend(o for o in objects if o is not None)   # None: a file that never opened (nothing to keep)
