@@ -161,11 +161,6 @@ def gyroscopic_checks(scene: Scene, fom, method: str) -> None:
     if method == "rom" and scene.estimate_settings().tolerance is not None:
         raise InputError("[basis] tolerance: the tolerance mode is not available for a gyroscopic structure; give "
                          "[basis] modes")
-    if method == "rom" and scene["basis"]["gyroscopic_form"] == "state_space" and \
-            scene.integrator_settings().callbacks == "c":
-        raise InputError('[integrator] callbacks = "c": the C callbacks integrate the second-order form; the '
-                         'state-space form ([basis] gyroscopic_form = "state_space") runs the Python callbacks: use '
-                         'callbacks = "auto" or "python"')
 
 
 def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str,
@@ -380,13 +375,9 @@ def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
 
 def scene_callbacks(scene: Scene) -> str:
     """"c" or "python": the callbacks a reduced run of `scene` integrates with on this installation
-    (rom_integrator.effective_callbacks; the state-space form has only the Python ones)."""
+    (rom_integrator.effective_callbacks: the same for either gyroscopic form)."""
     dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
-    callbacks = effective_callbacks(scene.integrator_settings().callbacks, dimension)
-    s = scene["structure"]
-    if scene["basis"]["gyroscopic_form"] == "state_space" and (s.get("axial_speed") or s.get("gyroscopic")):
-        callbacks = "python"   # the state-space form has no C callbacks (state_space.py)
-    return callbacks
+    return effective_callbacks(scene.integrator_settings().callbacks, dimension)
 
 
 def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordinates: str | None = None,

@@ -116,10 +116,10 @@ SECTIONS = {
         "gyroscopic_form": Key((str,), "second_order", "", 'a gyroscopic structure\'s reduced model: '
                                                            '"second_order" (Re and Im of the complex modes and DBFs '
                                                            'as displacement columns, M-orthonormal; 2 states a '
-                                                           'column, the C callbacks) or "state_space" (the paper\'s '
-                                                           'first-order form, Eqs. 4-21: state vectors orthonormal '
-                                                           'in A = diag(M, K), 2 (N + N_L) states, the Python '
-                                                           'callbacks)'),
+                                                           'column) or "state_space" (the paper\'s first-order '
+                                                           'form, Eqs. 4-21: state vectors orthonormal in '
+                                                           'A = diag(M, K), 2 (N + N_L) states); both run the '
+                                                           '[integrator] callbacks'),
         "groups": Key((int,), 0, "", "constraint groups solved side by side (0: one per rank, at most one per "
                                      "constraint)"),
         "cache": Key((str,), "~/.cache/dbf_hpc", "", 'directory of cached bases, or "off"'),

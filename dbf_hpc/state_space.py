@@ -29,7 +29,9 @@ State x = [w_t; w] (Eq. 4), A x' + B x = [f; 0] with
   M_r). w = Psi_w eta is what the outputs show (constraints, probes, snapshots); the contact law's
   velocity is the velocity part Psi_v eta.
 
-Integrated with PETSc TS ARKIMEX (options prefix `rom_`, Python callbacks; integrate_state_space).
+Integrated with PETSc TS ARKIMEX (options prefix `rom_`; integrate_state_space): the C callbacks
+(dbf_hpc/_romc, RomCtx.first: the same equations, the stage Jacobian formed densely and solved by LU
+in C, samples and step statistics in C) or StateSpaceProblem's Python ones, the readable reference.
 """
 from __future__ import annotations
 
@@ -547,11 +549,12 @@ def reduce_state_space(fom, basis: StateSpaceBasis, field: ReducedField | None =
 
 
 # ---------------------------------------------------------------------------------------------------
-# Time integration: PETSc TS ARKIMEX on y = eta (Python callbacks)
+# Time integration: PETSc TS ARKIMEX on y = eta (the C callbacks, or these Python ones: the reference)
 
 
 class StateSpaceProblem:
-    """The TS callbacks of eta' = A_r^-1 (-B_r eta + f_r(t) + B_v^T N(z, v)):
+    """The TS callbacks of eta' = A_r^-1 (-B_r eta + f_r(t) + B_v^T N(z, v)) in Python (the C ones,
+    rom_core.c with RomCtx.first, take Bs, Bvt and the loads from here and compute the same):
 
         F(t, y, y') = y' + B_r y - B_v^T N(z, v)    implicit (contact implicit by default)
         G(t, y)     = f_r(t)                           explicit (forcing; the contact with contact = "explicit")
@@ -633,65 +636,110 @@ class StateSpaceProblem:
 def integrate_state_space(model: StateSpaceModel, settings, record=None, on_step=None, say=None,
                           resume: dict | None = None, *, recorder=None, due=None) -> dict:
     """rom_integrator.integrate_reduced for a StateSpaceModel (same arguments, same statistics): PETSc
-    TS ARKIMEX on y = eta with the Python callbacks (callbacks = "c" is refused: the C core integrates
-    the second-order form). Runs on COMM_SELF."""
-    from .rom_integrator import PREFIX, WHAT, _Monitor
+    TS ARKIMEX on y = eta, with the C callbacks (rom_integrator.c_core decides, as for the
+    second-order form: "auto" takes them when built; the stage Jacobian is formed densely and
+    factored by LU in C, Newton in C unless a -rom_snes_/ksp_/pc_ option asks for PETSc's own) or
+    StateSpaceProblem's Python ones. Runs on COMM_SELF."""
+    from .rom_integrator import C_CONTEXT, C_COUNTERS, PREFIX, WHAT, _Monitor, _user_solver_options, _user_viewers, c_core
     from .timestepping import ADAPT_DEFAULTS, NO_DENSE_OUTPUT, StepMonitor, check_outcome, configure, solve
 
     if (record is None) == (recorder is None):
         raise TypeError("integrate_state_space takes either record or recorder")
-    if settings.callbacks == "c":
-        raise InputError('callbacks = "c": the C callbacks integrate the second-order form; the state-space form of '
-                         'a gyroscopic structure runs the Python callbacks: use callbacks = "auto" or "python", or '
-                         '[basis] gyroscopic_form = "second_order"')
     if recorder is not None:
         record = recorder.record
+    core = c_core(settings.callbacks, model.constraints.dimension)
     n = model.size
     implicit = settings.contact == "implicit"
     problem = StateSpaceProblem(model, implicit)
     comm = PETSc.COMM_SELF
     y = PETSc.Vec().createSeq(n, comm=comm)
     y.getArray()[:] = resume["q"] if resume else model.q0
-    F, G = y.duplicate(), y.duplicate()
+    F, G, work = y.duplicate(), y.duplicate(), y.duplicate()
     ts = PETSc.TS().create(comm=comm)
-    J = monitor = ksp = None
+    J = fast = monitor = ksp = None
+    c_newton = viewers_off = False
     try:
         ts.setProblemType(PETSc.TS.ProblemType.NONLINEAR)
         ts.setType(PETSc.TS.Type.ARKIMEX)
         ts.setARKIMEXType(settings.scheme)
         ksp = ts.getSNES().getKSP()
         ksp.setType(PETSc.KSP.Type.PREONLY)
-        J = PETSc.Mat().createDense((n, n), comm=comm)
-        J.setUp()
-        ts.setIFunction(problem.ifunction, F)
-        ts.setIJacobian(problem.ijacobian, J, J)
-        ts.setRHSFunction(problem.rhsfunction, G)
-        ksp.getPC().setType(PETSc.PC.Type.LU)
+        if core is None:
+            J = PETSc.Mat().createDense((n, n), comm=comm)
+            J.setUp()
+            ts.setIFunction(problem.ifunction, F)
+            ts.setIJacobian(problem.ijacobian, J, J)
+            ts.setRHSFunction(problem.rhsfunction, G)
+            ksp.getPC().setType(PETSc.PC.Type.LU)
+        else:
+            fast = core.Problem(model, problem, implicit)
+            ts.setAttr(C_CONTEXT, fast)   # the checkpoints read its counters (run.Checkpointing)
+            J = fast.shell_matrix()
+            fast.attach(ts, F, G, J, True)
+            fast.set_pcshell(ksp.getPC())
+            c_newton = not _user_solver_options()
+            if c_newton:
+                fast.set_snes_shell(ts.getSNES())
         dense = settings.scheme not in NO_DENSE_OUTPUT
         times = settings.sample_times
         first = resume["next_sample"] if resume else 0
         if not dense:
             ts.setTimeSpan(np.concatenate([[resume["t"]], times[first:]]) if resume else times)
         steps = StepMonitor(times, first, resumed=bool(resume), say=say)
-        monitor = _Monitor(problem, steps, record, on_step, dense, recorder)
-        ts.setMonitor(monitor)
+        if fast is None:
+            monitor = _Monitor(problem, steps, record, on_step, dense, recorder)
+            ts.setMonitor(monitor)
+        else:
+            stateful = getattr(model.constraints, "stateful", False)
+            commit = (lambda t, q, p: model.constraints.commit(*model.constraint_state(t, q))) if stateful else None
+            steps.ts = ts
+            fast.set_monitor(ts, work, steps, times, dense, record, recorder, on_step, due, commit, bool(resume))
         # the second-order integrator's defaults (rom_integrator.py says why)
         defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic"}
         if settings.adaptive:
             defaults.update(ADAPT_DEFAULTS)
         configure(ts, settings, PREFIX, defaults, settings.adaptive, resume, steps)
-        wall = solve(ts, y, steps, WHAT, "reduce [integrator] dt or rtol")
+        c_newton = c_newton and ts.getSNES().getType() == "shell"
+        if c_newton and not _user_viewers():
+            core.viewers_off()   # as integrate_reduced: the per-solve viewer queries cost more than the solve
+            viewers_off = True
+        try:
+            wall = solve(ts, y, steps, WHAT, "reduce [integrator] dt or rtol")
+        except SolverError:
+            if fast is not None and fast.error is not None:
+                raise fast.error from None
+            raise
+        finally:
+            if viewers_off:
+                core.viewers_pop()
+            if fast is not None and fast.error is None:
+                fast.sync()
+        if fast is not None:
+            if fast.error is not None:
+                raise fast.error
+            steps.next = fast.next_sample
+            if fast.nonfinite is not None:
+                step, t = fast.nonfinite
+                steps.failure = (f"the state is not finite at t = {t:.6g} s (step {step}); reduce [integrator] "
+                                 f"dt or rtol, or set contact = \"implicit\"")
+            elif fast.stop_message:
+                steps.failure = fast.stop_message
         before = resume or {}
         stats = {"steps": ts.getStepNumber(), "rejected_steps": ts.getStepRejections() + before.get("rejected", 0),
                  "snes_failures": ts.getSNESFailures() + before.get("snes_failures", 0),
                  "time_integration": wall + before.get("wall", 0.0),
                  "scheme": ts.getARKIMEXType(), "final_time": ts.getTime(),
                  "adaptive": settings.adaptive, "contact": settings.contact,
-                 "callbacks": "python", "newton": "petsc", "form": "state_space",
+                 "callbacks": "python" if fast is None else "c",
+                 "newton": "petsc" if fast is None or not c_newton else "c", "form": "state_space",
                  "newton_iterations": ts.getSNESIterations() + int(before.get("newton_iterations", 0))}
+        if fast is not None:   # a resumed run's whole, as the other counts
+            done = before.get("c_counters")
+            stats["c_counters"] = {name: value + (int(done[C_COUNTERS.index(name)]) if done is not None else 0)
+                                   for name, value in fast.counters.items()}
         reason = ts.getConvergedReason()
     finally:
-        destroy(ts, ksp, y, F, G, J, monitor.work if monitor is not None else None)   # ksp: our reference
+        destroy(ts, ksp, y, F, G, J, work, monitor.work if monitor is not None else None)   # ksp: our reference
     advice = ("set contact = \"implicit\" or reduce [integrator] dt" if settings.contact == "explicit"
               else "reduce [integrator] dt or rtol, or try another scheme")
     check_outcome(steps, reason, stats, settings.t_end, WHAT, advice)

@@ -31,6 +31,12 @@ cdef extern from "rom_core.h":
         PetscReal *B
         PetscReal *Bt
         PetscReal *BT
+        PetscReal *BvT
+        int first
+        PetscReal *Bv
+        PetscReal *Jd
+        PetscReal *Jlu
+        PetscInt *jpiv
         PetscReal *KT
         PetscReal *DT
         PetscReal *Mo
@@ -151,6 +157,7 @@ cdef extern from "rom_core.h":
         PetscVec work
     void RomLaws(RomCtx *, const PetscReal *, const PetscReal *, PetscReal *, PetscReal *, PetscReal *, int)
     int RomFinite(RomCtx *, const PetscReal *)
+    void RomRate(RomCtx *, PetscReal, const PetscReal *, PetscReal *, PetscReal *, PetscReal *, PetscReal *)
     PetscErrorCode RomTakeSamples(RomCtx *, PetscTS, PetscReal, PetscVec, PetscInt *)
     void RomStepStatistics(RomCtx *, PetscReal, const PetscReal *)
     PetscErrorCode RomAttach(RomCtx *, PetscTS, PetscVec, PetscVec, PetscMat, int)
@@ -209,8 +216,10 @@ cdef PetscErrorCode _monitor(PetscTS ts, PetscInt step, PetscReal t, PetscVec u,
 
 cdef class Problem:
     """The C callbacks of one reduced model. `operators` is rom_integrator.ReducedProblem (the model's
-    matrices with M_r^-1 applied); the arrays are kept alive here as long as the Problem lives, which
-    must be as long as the TS it is attached to."""
+    matrices with M_r^-1 applied), or for the first-order form of a gyroscopic structure (model.form
+    "state_space") state_space.StateSpaceProblem (B_r, the contact's A_r^-1 B_v^T and the loads with
+    A_r^-1 applied; the state is eta, r = model.size values); the arrays are kept alive here as long
+    as the Problem lives, which must be as long as the TS it is attached to."""
     cdef RomCtx c
     cdef list keep
     cdef object rows_arr, prev_arr, work_prev_arr
@@ -249,21 +258,33 @@ cdef class Problem:
         if d not in (1, 2):
             raise TypeError(f"constraints of {d} directions have no C implementation")
         c.r, c.nl, c.dim, c.ncon = r, nl, d, nl // d
-        K, D = np.asarray(operators.K, float), np.asarray(operators.D, float)
+        first = getattr(model, "form", "") == "state_space"
+        c.first = int(first)
+        if first:   # F = eta' + K eta - Bt^T N: K = A_r^-1 B_r, no D; the stage solve is a dense LU (Jd, Jlu)
+            K, D = np.asarray(operators.Bs, float), np.zeros((r, r))
+        else:
+            K, D = np.asarray(operators.K, float), np.asarray(operators.D, float)
         c.K, c.D = self.dptr(K), self.dptr(D)
         c.KT, c.DT = self.dptr(K.T), self.dptr(D.T)
         # the stage solve factors A(s) = s^2 M + s D + K of the model's own matrices, symmetric to the
         # projection's round-off for a symmetric structure: then the Cholesky of their symmetric part,
         # within SYMMETRY_TOL of the exact one (Newton's residual removes the difference)
-        Mo, Do, Ko = (np.asarray(a, float) for a in (model.M, model.damping, model.K))
+        Mo, Do, Ko = ((np.eye(r), np.zeros((r, r)), K) if first else
+                      (np.asarray(a, float) for a in (model.M, model.damping, model.K)))
         c.Mo, c.Do, c.Ko, c.MoT, c.DoT = self.dptr(Mo), self.dptr(Do), self.dptr(Ko), self.dptr(Mo.T), self.dptr(Do.T)
         c.Ms, c.Ds, c.Ks = self.dptr(0.5 * (Mo + Mo.T)), self.dptr(0.5 * (Do + Do.T)), self.dptr(0.5 * (Ko + Ko.T))
         asym = lambda A: np.abs(A - A.T).max(initial=0.0) <= SYMMETRY_TOL * max(np.abs(A).max(initial=0.0), 1e-300)
         c.sym_ok = int(asym(Mo) and asym(Do) and asym(Ko))
         c.m_identity = int(np.array_equal(Mo, np.eye(r)))
         B = np.asarray(model.B, float).reshape(nl, r)
-        Bt = np.ascontiguousarray(np.asarray(operators.Bt, float).reshape(r, nl).T)
+        Bt = np.ascontiguousarray(np.asarray(operators.Bvt if first else operators.Bt, float).reshape(r, nl).T)
         c.B, c.BT = self.dptr(B), self.dptr(B.T)
+        if first:   # v from the velocity part's rows
+            Bv = np.asarray(model.B_velocity, float).reshape(nl, r)
+            c.Bv, c.BvT = self.dptr(Bv), self.dptr(Bv.T)
+            c.Jd, c.Jlu, c.jpiv = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r)), self.iptr(np.zeros(r))
+        else:
+            c.Bv, c.BvT = c.B, c.BT
         c.Bt = c.B if np.array_equal(B, Bt) else self.dptr(Bt)
         c.rc = self.dptr(model.r_c)
         c.base_load, c.force_shape = self.dptr(operators.base_load), self.dptr(operators.force_shape)  # (r,) or (r, m)
@@ -312,7 +333,7 @@ cdef class Problem:
         c.L, c.U, c.AinvB = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * n))
         c.Cap, c.Mcap = self.dptr(np.zeros(n * n)), self.dptr(np.zeros(n * n))
         c.piv, c.lpiv, c.act = self.iptr(np.zeros(n)), self.iptr(np.zeros(r)), self.iptr(np.zeros(n))
-        c.am = self.arrow_found = arrow_size(K, D, Mo, Do, Ko)
+        c.am = self.arrow_found = 0 if first else arrow_size(K, D, Mo, Do, Ko)
         c.ad, c.A12 = self.dptr(np.zeros(r)), self.dptr(np.zeros(r * r))
         c.SL, c.SU = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r))
         c.arrow_ok = 0
@@ -566,8 +587,13 @@ cdef class Problem:
             PyErr_CheckSignals()    # Python's signal handlers run here (SIGTERM asks for a checkpoint)
             hook = self.on_step is not None and (self.due is None or t >= self.due())
             if self.commit is not None or hook:   # the state as numpy arrays only when Python needs it
-                state = np.asarray(<PetscReal[:2 * c.r]>(<PetscReal *>a))
-                q, p = state[:c.r].copy(), state[c.r:].copy()
+                if c.first:   # (eta, eta'), eta' from the equation (StateSpaceProblem.coordinates)
+                    q = np.asarray(<PetscReal[:c.r]>(<PetscReal *>a)).copy()
+                    p = np.zeros(c.r)
+                    RomRate(c, t, a, c.z, c.v, c.N, <PetscReal *><size_t>p.ctypes.data)
+                else:
+                    state = np.asarray(<PetscReal[:2 * c.r]>(<PetscReal *>a))
+                    q, p = state[:c.r].copy(), state[c.r:].copy()
                 if self.commit is not None:
                     self.commit(t, q, p)
                 if hook:

@@ -194,18 +194,21 @@ void RomLaws(RomCtx *c, const PetscReal *z, const PetscReal *v, PetscReal *N, Pe
 }
 
 /* z = B q + r_c Omega, v = B p + r_c Omega' (by columns of B: BT is B^T row-major, vectorized over
-   the constraints) */
+   the constraints); the first-order form: q = p = eta, v from its own rows (BvT) */
 static inline void constraint_state(const RomCtx *c, PetscReal t, const PetscReal *q, const PetscReal *p, PetscReal *z, PetscReal *v)
 {
   const PetscInt r = c->r, nl = c->nl;
   const PetscReal om = omega_(c, t), omd = omega_rate(c, t);
   for (PetscInt j = 0; j < nl; j++) { z[j] = 0.0; v[j] = 0.0; }
   for (PetscInt i = 0; i < r; i++) {
-    const PetscReal *b = c->BT + i * nl, qi = q[i], pi = p[i];
-    for (PetscInt j = 0; j < nl; j++) { z[j] += b[j] * qi; v[j] += b[j] * pi; }
+    const PetscReal *b = c->BT + i * nl, *bv = c->BvT + i * nl, qi = q[i], pi = p[i];
+    for (PetscInt j = 0; j < nl; j++) { z[j] += b[j] * qi; v[j] += bv[j] * pi; }
   }
   for (PetscInt j = 0; j < nl; j++) { z[j] += c->rc[j] * om; v[j] += c->rc[j] * omd; }
 }
+
+/* the velocity part of a state u: p (second-order form, u = [q, p]) or eta itself (first-order form) */
+static inline const PetscReal *pstate(const RomCtx *c, const PetscReal *u) { return c->first ? u : u + c->r; }
 
 /* y += A x with A given by its transpose AT (row-major), i.e. column by column: the inner loop is an
    axpy over contiguous memory, which the compiler vectorizes without reordering any sum */
@@ -251,6 +254,24 @@ static inline void add_BtN(const RomCtx *c, const PetscReal *N, PetscReal sign, 
   }
 }
 
+/* the first-order form's rate eta' = -K eta + f(t) + Bt^T N(z, v) at eta = q (state_space.StateSpaceProblem.rate),
+   with z, v, N (nl each) at q as by-products */
+void RomRate(RomCtx *c, PetscReal t, const PetscReal *q, PetscReal *z, PetscReal *v, PetscReal *N, PetscReal *out)
+{
+  const PetscInt r = c->r;
+  PetscReal *kq = c->tmp2;
+  RomForcing(c, t, out);
+  for (PetscInt i = 0; i < r; i++) kq[i] = 0.0;
+  matvec_add(c->KT, r, q, kq);
+  for (PetscInt i = 0; i < r; i++) out[i] = -kq[i] + out[i];
+  constraint_state(c, t, q, q, z, v);
+  RomLaws(c, z, v, N, NULL, NULL, 0);
+  for (PetscInt j = 0; j < c->nl; j++) {
+    const PetscReal *b = c->Bt + j * r, nj = N[j];
+    for (PetscInt i = 0; i < r; i++) out[i] += b[i] * nj;
+  }
+}
+
 /* ---------------------------------------------------------------- TS callbacks */
 PetscErrorCode RomIFunction(TS ts, PetscReal t, Vec U, Vec Udot, Vec F, void *ctx)
 {
@@ -263,6 +284,19 @@ PetscErrorCode RomIFunction(TS ts, PetscReal t, Vec U, Vec Udot, Vec F, void *ct
   PetscCall(VecGetArrayRead(U, &u));
   PetscCall(VecGetArrayRead(Udot, &ud));
   PetscCall(VecGetArrayWrite(F, &f));
+  if (c->first) {   /* F = eta' + K eta - Bt^T N(z, v) */
+    for (PetscInt i = 0; i < r; i++) f[i] = ud[i];
+    matvec_add(c->KT, r, u, f);
+    if (c->implicit_contact) {
+      constraint_state(c, t, u, u, c->z, c->v);
+      RomLaws(c, c->z, c->v, c->N, NULL, NULL, 0);
+      add_BtN(c, c->N, -1.0, f);
+    }
+    PetscCall(VecRestoreArrayRead(U, &u));
+    PetscCall(VecRestoreArrayRead(Udot, &ud));
+    PetscCall(VecRestoreArrayWrite(F, &f));
+    PetscFunctionReturn(0);
+  }
   const PetscReal *q = u, *p = u + r, *qd = ud, *pd = ud + r;
   PetscReal *fq = f, *fp = f + r;
   for (PetscInt i = 0; i < r; i++) { fq[i] = qd[i] - p[i]; fp[i] = pd[i]; }
@@ -288,14 +322,15 @@ PetscErrorCode RomRHSFunction(TS ts, PetscReal t, Vec U, Vec G, void *ctx)
   PetscFunctionBeginUser;
   c->n_rhs++;
   PetscCall(VecGetArrayWrite(G, &g));
-  for (PetscInt i = 0; i < r; i++) g[i] = 0.0;
-  RomForcing(c, t, g + r);
+  PetscReal *gp = c->first ? g : g + r;   /* the first-order form: G = f(t) on all of eta */
+  if (!c->first) for (PetscInt i = 0; i < r; i++) g[i] = 0.0;
+  RomForcing(c, t, gp);
   if (!c->implicit_contact && c->nl) {
     const PetscReal *u;
     PetscCall(VecGetArrayRead(U, &u));
-    constraint_state(c, t, u, u + r, c->z, c->v);
+    constraint_state(c, t, u, pstate(c, u), c->z, c->v);
     RomLaws(c, c->z, c->v, c->N, NULL, NULL, 0);
-    add_BtN(c, c->N, 1.0, g + r);
+    add_BtN(c, c->N, 1.0, gp);
     PetscCall(VecRestoreArrayRead(U, &u));
   }
   PetscCall(VecRestoreArrayWrite(G, &g));
@@ -321,13 +356,35 @@ static PetscErrorCode linearize(RomCtx *c, PetscReal t, Vec U, PetscReal shift)
     PetscFunctionReturn(0);
   }
   PetscCall(VecGetArrayRead(U, &u));
-  constraint_state(c, t, u, u + c->r, c->z, c->v);
+  constraint_state(c, t, u, pstate(c, u), c->z, c->v);
   PetscCall(VecRestoreArrayRead(U, &u));
   RomLaws(c, c->z, c->v, c->N, c->NzJ, c->NvJ, 1);
   for (PetscInt j = 0; j < nb; j++) c->W[j] = c->NzJ[j] + shift * c->NvJ[j];
   if (c->dim == 1)
     for (PetscInt j = 0; j < nl; j++) c->sides[j] = side_of(c, j, c->z[j]);
   PetscFunctionReturn(0);
+}
+
+/* the first-order form's stage Jacobian Jd = shift I + K - Bt^T (N_z B + N_v Bv) (row-major r x r) at the
+   last linearization (state_space.StateSpaceProblem.ijacobian) */
+static void first_jacobian(RomCtx *c, PetscReal shift)
+{
+  const PetscInt r = c->r, d = c->dim;
+  for (PetscInt i = 0; i < r; i++)
+    for (PetscInt j = 0; j < r; j++) {
+      PetscReal s = c->K[i * r + j] + (i == j ? shift : 0.0);
+      if (c->implicit_contact)
+        for (PetscInt l = 0; l < c->ncon; l++)
+          for (PetscInt a = 0; a < d; a++) {
+            const PetscReal bt = c->Bt[(l * d + a) * r + i];
+            if (bt == 0.0) continue;
+            PetscReal g = 0.0;
+            for (PetscInt b = 0; b < d; b++)
+              g += c->NzJ[(l * d + a) * d + b] * c->B[(l * d + b) * r + j] + c->NvJ[(l * d + a) * d + b] * c->Bv[(l * d + b) * r + j];
+            s -= bt * g;
+          }
+      c->Jd[i * r + j] = s;
+    }
 }
 
 /* the dense 2r x 2r Jacobian, for PETSc's own solvers (callbacks = "c" with a dense matrix) */
@@ -342,6 +399,11 @@ PetscErrorCode RomIJacobianDense(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal 
   PetscCall(linearize(c, t, U, shift));
   PetscCall(MatDenseGetLDA(P, &lda));
   PetscCall(MatDenseGetArrayWrite(P, &a));
+  if (c->first) {   /* r x r, column-major */
+    first_jacobian(c, shift);
+    for (PetscInt j = 0; j < r; j++)
+      for (PetscInt i = 0; i < r; i++) a[i + j * lda] = c->Jd[i * r + j];
+  } else {
   for (PetscInt j = 0; j < n; j++) memset(a + j * lda, 0, sizeof(PetscScalar) * n);
   for (PetscInt i = 0; i < r; i++) { a[i + i * lda] = shift; a[i + (r + i) * lda] = -1.0; }
   for (PetscInt j = 0; j < r; j++)
@@ -357,6 +419,7 @@ PetscErrorCode RomIJacobianDense(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal 
       a[(r + i) + j * lda] = kz;
       a[(r + i) + (r + j) * lda] = dv;
     }
+  }
   PetscCall(MatDenseRestoreArrayWrite(P, &a));
   PetscCall(MatAssemblyBegin(P, MAT_FINAL_ASSEMBLY));
   PetscCall(MatAssemblyEnd(P, MAT_FINAL_ASSEMBLY));
@@ -550,6 +613,13 @@ PetscErrorCode RomIJacobianShell(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal 
   PetscFunctionBeginUser;
   c->n_ijac++;
   PetscCall(linearize(c, t, U, shift));
+  if (c->first) {   /* the dense stage Jacobian and its LU (the exact solve) */
+    first_jacobian(c, shift);
+    memcpy(c->Jlu, c->Jd, sizeof(PetscReal) * c->r * c->r);
+    c->n_fact++;
+    if (lu(c->Jlu, c->r, c->jpiv)) SETERRQ(PETSC_COMM_SELF, PETSC_ERR_MAT_LU_ZRPVT, "singular stage Jacobian of the state-space form");
+    PetscFunctionReturn(0);
+  }
   if (shift != c->fact_shift) PetscCall(factor(c, shift));
   for (PetscInt j = 0; j < c->ncon; j++) {
     int on = 0;
@@ -591,6 +661,13 @@ PetscErrorCode RomApplyInverse(RomCtx *c, Vec X, Vec Y)
   c->n_apply++;
   PetscCall(VecGetArrayRead(X, &x));
   PetscCall(VecGetArrayWrite(Y, &y));
+  if (c->first) {   /* the LU of the last IJacobian */
+    memcpy(y, x, sizeof(PetscReal) * r);
+    lu_solve(c->Jlu, r, c->jpiv, y);
+    PetscCall(VecRestoreArrayRead(X, &x));
+    PetscCall(VecRestoreArrayWrite(Y, &y));
+    PetscFunctionReturn(0);
+  }
   const PetscReal *a = x, *b = x + r;
   PetscReal *dq = y, *dp = y + r, *tmp = c->tmp, *w = c->tmp2;
   if (c->m_identity) for (PetscInt i = 0; i < r; i++) dq[i] = b[i] + s * a[i];
@@ -673,6 +750,16 @@ static PetscErrorCode RomMatMult(Mat A, Vec X, Vec Y)
   c->n_mult++;
   PetscCall(VecGetArrayRead(X, &x));
   PetscCall(VecGetArrayWrite(Y, &y));
+  if (c->first) {   /* the dense Jacobian of the last IJacobian */
+    for (PetscInt i = 0; i < r; i++) {
+      PetscReal v = 0.0;
+      for (PetscInt j = 0; j < r; j++) v += c->Jd[i * r + j] * x[j];
+      y[i] = v;
+    }
+    PetscCall(VecRestoreArrayRead(X, &x));
+    PetscCall(VecRestoreArrayWrite(Y, &y));
+    PetscFunctionReturn(0);
+  }
   const PetscReal *a = x, *b = x + r;
   PetscReal *yq = y, *yp = y + r;
   for (PetscInt i = 0; i < r; i++) {
@@ -786,7 +873,8 @@ static PetscErrorCode RomSNESSolve(SNES snes, Vec X)
 /* ---------------------------------------------------------------- the monitor's arithmetic */
 int RomFinite(RomCtx *c, const PetscReal *u)
 {
-  for (PetscInt i = 0; i < 2 * c->r; i++) if (!isfinite(u[i])) return 0;
+  const PetscInt n = c->first ? c->r : 2 * c->r;
+  for (PetscInt i = 0; i < n; i++) if (!isfinite(u[i])) return 0;
   return 1;
 }
 
@@ -814,11 +902,14 @@ PetscErrorCode RomTakeSamples(RomCtx *c, TS ts, PetscReal t, Vec U, PetscInt *ta
     PetscReal *row = c->rows + (size_t)c->nrows * c->row_len;
     PetscCall(VecGetArrayRead(src, &u));
     row[0] = ts_;
-    memcpy(row + 1, u, sizeof(PetscReal) * 2 * r);
+    memcpy(row + 1, u, sizeof(PetscReal) * (c->first ? r : 2 * r));
     PetscCall(VecRestoreArrayRead(src, &u));
     PetscReal *z = row + 1 + 2 * r, *v = z + nl, *N = v + nl, *pk = N + nl, *probe = pk + nl;
-    constraint_state(c, ts_, row + 1, row + 1 + r, z, v);
-    RomLaws(c, z, v, N, NULL, NULL, 0);
+    if (c->first) RomRate(c, ts_, row + 1, z, v, N, row + 1 + r);   /* p = eta' from the equation */
+    else {
+      constraint_state(c, ts_, row + 1, row + 1 + r, z, v);
+      RomLaws(c, z, v, N, NULL, NULL, 0);
+    }
     track_peak(c, N);
     for (PetscInt j = 0; j < nl; j++) { pk[j] = c->peak[j]; c->peak[j] = 0.0; }
     const PetscReal om = omega_(c, ts_);
@@ -868,7 +959,7 @@ static void step_statistics_planar(RomCtx *c, PetscReal t, const PetscReal *u)
 {
   const PetscInt nc = c->ncon;
   PetscReal *z = c->z, *v = c->v, *N = c->N;
-  constraint_state(c, t, u, u + c->r, z, v);
+  constraint_state(c, t, u, pstate(c, u), z, v);
   RomLaws(c, z, v, N, NULL, NULL, 0);
   const PetscReal half = c->acc_started ? 0.5 * (t - c->acc_t_prev) : 0.0;
   for (PetscInt j = 0; j < nc; j++) {
@@ -898,7 +989,7 @@ void RomStepStatistics(RomCtx *c, PetscReal t, const PetscReal *u)
   if (c->dim == 2 && nl) { step_statistics_planar(c, t, u); return; }
   PetscReal *z = c->z, *v = c->v, *N = c->N;
   if (!nl) { c->acc_t0 = c->acc_started ? c->acc_t0 : t; c->acc_t_prev = t; c->acc_started = 1; return; }
-  constraint_state(c, t, u, u + c->r, z, v);
+  constraint_state(c, t, u, pstate(c, u), z, v);
   RomLaws(c, z, v, N, NULL, NULL, 0);
   const PetscReal half = c->acc_started ? 0.5 * (t - c->acc_t_prev) : 0.0;
   for (PetscInt j = 0; j < nl; j++) {
@@ -925,7 +1016,7 @@ PetscErrorCode RomAttach(RomCtx *c, TS ts, Vec F, Vec G, Mat J, int shell)
 }
 PetscErrorCode RomCreateShellMat(RomCtx *c, Mat *A)
 {
-  const PetscInt n = 2 * c->r;
+  const PetscInt n = c->first ? c->r : 2 * c->r;
   PetscFunctionBeginUser;
   PetscCall(MatCreateShell(PETSC_COMM_SELF, n, n, n, n, c, A));
   PetscCall(MatShellSetOperation(*A, MATOP_MULT, (void (*)(void))RomMatMult));

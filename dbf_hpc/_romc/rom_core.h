@@ -21,6 +21,12 @@ typedef struct {
   PetscInt r, nl, nprobe;
   PetscInt dim, ncon;                      /* d (1 or 2) and N_L = nl / d */
   PetscReal *K, *D, *B, *Bt, *BT;         /* r*r, r*r, nl*r, nl*r, r*nl (B^T row-major) */
+  PetscReal *BvT;                         /* r*nl: the rows giving v (B^T, the same array, in the second-order form) */
+  /* first = 1: the state-space form of a gyroscopic structure (state_space.py): y = eta (r states),
+     F = eta' + K eta - Bt^T N(z, v), z = B eta + r_c Omega, v = Bv eta + r_c Omega', G = f(t); K = A_r^-1 B_r,
+     Bt = (A_r^-1 B_v^T)^T, D unused. The stage Jacobian shift I + K - Bt^T (N_z B + N_v Bv) is formed
+     densely (Jd, row-major) and factored by LU (Jlu, jpiv) at each IJacobian. */
+  int first; PetscReal *Bv, *Jd, *Jlu; PetscInt *jpiv;
   PetscReal *KT, *DT;                     /* K^T, D^T row-major (column access for the matrix-vector products) */
   /* the stage solve works on the model's own M_r, D = C_r + G_r, K_r (symmetric for a symmetric structure) */
   PetscReal *Mo, *Do, *Ko, *MoT, *DoT;     /* r*r each; MoT, DoT transposed (column access) */
@@ -85,6 +91,7 @@ int RomFinite(RomCtx *, const PetscReal *u);
 PetscErrorCode RomTakeSamples(RomCtx *, TS, PetscReal t, Vec U, PetscInt *taken);
 void RomStepStatistics(RomCtx *, PetscReal t, const PetscReal *u);
 void RomForcing(RomCtx *, PetscReal t, PetscReal *g);
+void RomRate(RomCtx *, PetscReal t, const PetscReal *q, PetscReal *z, PetscReal *v, PetscReal *N, PetscReal *out);
 
 /* wiring */
 PetscErrorCode RomAttach(RomCtx *, TS, Vec F, Vec G, Mat J, int shell);
