@@ -32,7 +32,9 @@ cdef extern from "rom_core.h":
         PetscReal *Bt
         PetscReal *BT
         PetscReal *BvT
-        int first
+        int first, jlu_ok
+        PetscReal *jNz
+        PetscReal *jNv
         PetscReal *Bv
         PetscReal *Jd
         PetscReal *Jlu
@@ -283,6 +285,7 @@ cdef class Problem:
             Bv = np.asarray(model.B_velocity, float).reshape(nl, r)
             c.Bv, c.BvT = self.dptr(Bv), self.dptr(Bv.T)
             c.Jd, c.Jlu, c.jpiv = self.dptr(np.zeros(r * r)), self.dptr(np.zeros(r * r)), self.iptr(np.zeros(r))
+            c.jNz, c.jNv, c.jlu_ok = self.dptr(np.zeros(nl * d)), self.dptr(np.zeros(nl * d)), 0
         else:
             c.Bv, c.BvT = c.B, c.BT
         c.Bt = c.B if np.array_equal(B, Bt) else self.dptr(Bt)

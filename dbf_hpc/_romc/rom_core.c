@@ -401,6 +401,7 @@ PetscErrorCode RomIJacobianDense(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal 
   PetscCall(MatDenseGetArrayWrite(P, &a));
   if (c->first) {   /* r x r, column-major */
     first_jacobian(c, shift);
+    c->jlu_ok = 0;   /* Jd is no longer the factored matrix */
     for (PetscInt j = 0; j < r; j++)
       for (PetscInt i = 0; i < r; i++) a[i + j * lda] = c->Jd[i * r + j];
   } else {
@@ -613,11 +614,20 @@ PetscErrorCode RomIJacobianShell(TS ts, PetscReal t, Vec U, Vec Udot, PetscReal 
   PetscFunctionBeginUser;
   c->n_ijac++;
   PetscCall(linearize(c, t, U, shift));
-  if (c->first) {   /* the dense stage Jacobian and its LU (the exact solve) */
+  if (c->first) {   /* the dense stage Jacobian and its LU (the exact solve), unless the last one is this one */
+    const PetscInt nb = c->ncon * d * d;
+    int same = c->jlu_ok && shift == c->fact_shift;
+    for (PetscInt j = 0; j < nb && same; j++) same = c->NzJ[j] == c->jNz[j] && c->NvJ[j] == c->jNv[j];
+    if (same) PetscFunctionReturn(0);   /* the same matrix: the same factor, bit for bit */
+    c->jlu_ok = 0;
     first_jacobian(c, shift);
     memcpy(c->Jlu, c->Jd, sizeof(PetscReal) * c->r * c->r);
     c->n_fact++;
     if (lu(c->Jlu, c->r, c->jpiv)) SETERRQ(PETSC_COMM_SELF, PETSC_ERR_MAT_LU_ZRPVT, "singular stage Jacobian of the state-space form");
+    memcpy(c->jNz, c->NzJ, sizeof(PetscReal) * nb);
+    memcpy(c->jNv, c->NvJ, sizeof(PetscReal) * nb);
+    c->fact_shift = shift;
+    c->jlu_ok = 1;
     PetscFunctionReturn(0);
   }
   if (shift != c->fact_shift) PetscCall(factor(c, shift));

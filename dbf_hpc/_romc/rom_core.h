@@ -25,8 +25,9 @@ typedef struct {
   /* first = 1: the state-space form of a gyroscopic structure (state_space.py): y = eta (r states),
      F = eta' + K eta - Bt^T N(z, v), z = B eta + r_c Omega, v = Bv eta + r_c Omega', G = f(t); K = A_r^-1 B_r,
      Bt = (A_r^-1 B_v^T)^T, D unused. The stage Jacobian shift I + K - Bt^T (N_z B + N_v Bv) is formed
-     densely (Jd, row-major) and factored by LU (Jlu, jpiv) at each IJacobian. */
-  int first; PetscReal *Bv, *Jd, *Jlu; PetscInt *jpiv;
+     densely (Jd, row-major) and factored by LU (Jlu, jpiv) at an IJacobian whose shift or law
+     linearization (N_z, N_v blocks) differs from the last factored one (fact_shift, jNz, jNv; jlu_ok). */
+  int first, jlu_ok; PetscReal *Bv, *Jd, *Jlu, *jNz, *jNv; PetscInt *jpiv;
   PetscReal *KT, *DT;                     /* K^T, D^T row-major (column access for the matrix-vector products) */
   /* the stage solve works on the model's own M_r, D = C_r + G_r, K_r (symmetric for a symmetric structure) */
   PetscReal *Mo, *Do, *Ko, *MoT, *DoT;     /* r*r each; MoT, DoT transposed (column access) */
