@@ -160,9 +160,14 @@ SECTIONS = {
                                            "prssp2, 3, bpr3, ars443, 4, 5"),
         "adaptive": Key((bool,), True, "", "adaptive steps (error control by rtol, atol) or the fixed step dt"),
         "rtol": Key(NUMBER, 1e-6, "1", "relative tolerance of the adaptive steps"),
-        "atol": Key(NUMBER, 1e-9, "", "absolute tolerance of the adaptive steps, in the units of the M-orthonormal "
-                                      "q (m kg^(1/2)) and q' (m kg^(1/2)/s): a displacement tolerance times the "
-                                      "square root of the modal mass"),
+        "atol": Key(NUMBER, 1e-9, "", "absolute tolerance of the reduced model's adaptive steps, the same number "
+                                      "for every state, in modal units, not physical ones: the second-order form's "
+                                      "M-orthonormal q (m kg^(1/2), a displacement tolerance times the square root "
+                                      "of the modal mass) and q' (m kg^(1/2)/s: on a column of frequency omega it "
+                                      "is a displacement tolerance of atol / omega, so the velocities of the high "
+                                      "columns limit the step, docs/design.md); gyroscopic_form = \"state_space\": "
+                                      "the A-orthonormal states (J^(1/2), |eta|^2 twice the energy); --method full "
+                                      "does not use it (fixed step dt)"),
         "contact": Key((str,), "implicit", "", '"implicit" (with its exact Jacobian) or "explicit" (the paper\'s '
                                                'IMEX split)'),
         "callbacks": Key((str,), "auto", "", 'the reduced model\'s TS callbacks: "c" (compiled, fast), "python" '
