@@ -42,8 +42,8 @@ CALLBACKS = ("auto", "c", "python")
 ADAPT_DEFAULTS = {"ts_adapt_safety": "0.8", "ts_adapt_clip": "0.1,1.5"}
 # TS options that [integrator] sets (option -> its key). The reduced run's error estimate integrates a
 # richer model with settings derived from [integrator] (accuracy.rich_settings: rtol and atol 10 times
-# tighter, a fixed step 4 times shorter): such an option would set the run and the richer run alike,
-# and the stored estimate would claim a tolerance neither had (red team: -rom_ts_rtol 0.1 was
+# tighter, a fixed step or the adaptive step's upper limit 4 times shorter): such an option would set
+# the run and the richer run alike, and the stored estimate would claim a tolerance neither had (red team: -rom_ts_rtol 0.1 was
 # estimated "against 13 basis vectors at rtol 1e-07"). They are refused by name (refuse_settings_options).
 SETTINGS_OPTIONS = {"ts_rtol": "rtol", "ts_atol": "atol", "ts_dt": "dt", "ts_max_time": "t_end"}
 
@@ -55,7 +55,9 @@ class IntegratorSettings:
     full-order loop takes fixed steps dt); rtol, atol: the adaptive error control; contact: the
     contact force on the "implicit" or "explicit" side of the reduced model's IMEX split;
     sample_dt: the output interval (s); callbacks: the reduced model's TS callbacks, "c" (the compiled
-    fast path), "python" (the reference) or "auto" (C when built)."""
+    fast path), "python" (the reference) or "auto" (C when built); max_step_scale: the adaptive step's
+    upper limit (10 samples, or -<prefix>ts_adapt_dt_max) times this, in (0, 1] (the error estimate's
+    richer run takes accuracy.RICH_STEP times shorter steps where the run's are at the limit)."""
 
     t_end: float
     dt: float = 1e-4
@@ -66,11 +68,16 @@ class IntegratorSettings:
     contact: str = "implicit"
     sample_dt: float = 1e-3
     callbacks: str = "auto"
+    max_step_scale: float = 1.0
 
     def __post_init__(self):
         for name in ("t_end", "dt", "sample_dt", "atol"):
             object.__setattr__(self, name, check_number(f"IntegratorSettings {name}", getattr(self, name), 0.0,
                                                         above=True))
+        object.__setattr__(self, "max_step_scale", check_number("IntegratorSettings max_step_scale",
+                                                                self.max_step_scale, 0.0, above=True))
+        if self.max_step_scale > 1:
+            raise InputError(f"IntegratorSettings max_step_scale must be at most 1, got {self.max_step_scale!r}")
         object.__setattr__(self, "rtol", check_number("IntegratorSettings rtol", self.rtol))   # its range: below
         object.__setattr__(self, "scheme", str(self.scheme).lower())
         if not isinstance(self.adaptive, (bool, np.bool_)):
@@ -173,6 +180,9 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
     with options_defaults(prefix, defaults):
         ts.setOptionsPrefix(prefix)
         ts.setFromOptions()
+    if adaptive and settings.max_step_scale < 1:   # after the options: it scales -<prefix>ts_adapt_dt_max too
+        low, high = ts.getStepLimits()
+        ts.setStepLimits(low, max(low, high * settings.max_step_scale))
     if adaptive and steps is not None:
         # the floor the controller has, which -<prefix>ts_adapt_dt_min raises (a crawl there went
         # unseen; red team); below dt x MIN_STEP_FRACTION a run crawls whatever the floor

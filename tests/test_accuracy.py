@@ -511,3 +511,24 @@ def test_the_tolerance_modes_candidate_bases_factor_k_for_the_exact_flexibility_
             assert f["basis/omega"].size > 6, "more than one candidate was built"
             f_exact = f["basis/flexibility_exact"][()]
         assert np.allclose(f_exact, 0.25**2 * 0.75**2 / (3 * EI), rtol=1e-8), f_exact
+
+
+
+def test_the_estimate_sees_the_step_error_of_a_run_whose_tolerances_let_every_step_grow_to_the_limit(
+        shared_tmp_path):
+    # At atol 1e300 the error control is off: every step is at the limit of 10 samples (1e-3 s). The
+    # richer run's atol / 10 was off too, on the same steps, blind to their error: the pipe's estimate
+    # was 0.018 % against 8.6 % over its window. The richer run's limit is now RICH_STEP times lower, as
+    # a fixed step's richer run is RICH_STEP times shorter (measured 8.64 % against 8.59 %).
+    from dbf_hpc.accuracy import relative_difference
+
+    pipe = ["integrator.t_end=0.1"]
+    truth, _ = _w(shared_tmp_path, "pipe-truth.h5", *pipe, "integrator.dt=1e-5", "basis.estimate=false",
+                  method="full", scene="pipe_conveying_fluid.toml")
+    w, summary = _w(shared_tmp_path, "pipe-loose.h5", *pipe, "integrator.atol=1e300",
+                    scene="pipe_conveying_fluid.toml")
+    window = summary["estimated_error_window"]
+    k = int(round(window / 1e-4)) + 1
+    true = relative_difference(w[:k], truth[:k])
+    assert summary["stats"]["steps"] <= 0.1 / 1e-3 + 5   # at the limit all along: the test's premise
+    assert true > 0.05 and 0.5 < summary["estimated_error"] / true < 2, (summary["estimated_error"], true)

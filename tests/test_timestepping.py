@@ -113,3 +113,37 @@ def test_a_step_held_at_the_controllers_floor_for_floor_steps_stops_the_run_nami
         if dt_min is not None:
             options.delValue("rom_ts_adapt_dt_min")
         ts.destroy()
+
+
+@pytest.mark.parametrize("scale", [0.0, -0.25, 1.5, float("nan"), True])
+def test_an_upper_step_limit_scale_outside_0_to_1_is_refused(scale):
+    with pytest.raises(InputError, match="max_step_scale"):
+        IntegratorSettings(t_end=1.0, max_step_scale=scale)
+
+
+@pytest.mark.parametrize("dt_max,limit", [(None, 10 * 1e-3 / 4), (0.5, 0.5 / 4)])
+def test_the_richer_runs_upper_step_limit_is_rich_step_times_lower_than_the_runs_even_under_dt_max(dt_max, limit):
+    # A run at the upper limit (10 samples, or -rom_ts_adapt_dt_max) has no error control there: the
+    # estimate's richer run must take shorter steps there, not the same ones (accuracy.rich_settings).
+    from petsc4py import PETSc
+
+    from dbf_hpc.accuracy import RICH_STEP, rich_settings
+    from dbf_hpc.timestepping import configure
+
+    assert RICH_STEP == 4
+    options = PETSc.Options()
+    if dt_max is not None:
+        options.setValue("rom_ts_adapt_dt_max", dt_max)
+    try:
+        settings = IntegratorSettings(t_end=1.0, sample_dt=1e-3)
+        for which, expected in ((settings, 4 * limit), (rich_settings(settings, 0.5), limit)):
+            ts = PETSc.TS().create(comm=PETSc.COMM_SELF)
+            ts.setType(PETSc.TS.Type.ARKIMEX)
+            try:
+                configure(ts, which, "rom_", {"ts_adapt_type": "basic"}, True)
+                assert ts.getStepLimits()[1] == pytest.approx(expected, rel=1e-12)
+            finally:
+                ts.destroy()
+    finally:
+        if dt_max is not None:
+            options.delValue("rom_ts_adapt_dt_max")
