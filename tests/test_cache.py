@@ -401,3 +401,20 @@ def test_a_static_option_the_exact_flexibility_was_computed_under_is_part_of_eve
     exact, state = flexibility(shared_tmp_path)
     assert state == "stored", "a basis stored under other static_ options was reused"
     assert np.all(np.isfinite(exact) & (exact > 0))   # the pinned-pinned beam's K is regular
+
+
+def test_a_free_free_beams_basis_with_rigid_body_modes_is_reused_from_the_cache(shared_tmp_path):
+    """A free-free beam has two rigid-body modes, omega^2 at round-off (1e-7 rad^2/s^2 against the
+    largest 1e6): reloading its basis recomputes diag(V^T K V) with another round-off, which a
+    purely relative check took for a stale file (red team: every run said "corrupt or stale" and
+    rebuilt). The frequencies are checked to round-off of the largest one kept."""
+    free = {"structure": {"kind": "beam", "length": 1.0, "E": 7e10, "I": 1e-10, "A": 1e-4, "rho": 2700.0,
+                          "elements": 40, "left": "free", "right": "free"}}   # an aluminium bar
+    s = validate({**free, "constraint": [{"x": v, "law": "linear", "k": 2e3} for v in (0.0, 1.0)]
+                  + [{"x": 0.5, "law": "deadband", "clearance": 1e-3, "k": 1e5}],
+                  "basis": {"modes": 6}, "excitation": {"kind": "none"}}, "cache-test.toml")
+    first, solves, state = obtain(s, shared_tmp_path)
+    assert solves > 0 and state == "stored"
+    second, solves, state = obtain(s, shared_tmp_path)
+    assert solves == 0 and state == "hit"
+    assert np.allclose(first, second, rtol=1e-13, atol=0)
