@@ -641,11 +641,11 @@ def _estimate_statistics(estimator, estimate, writer, constraints, settings, tim
 
 
 def _first_contact(writer, times: np.ndarray, block: int = 1 << 16):
-    """The first sample time with a nonzero constraint force in a written output (read in blocks)."""
+    """The first impact in a written output (accuracy.first_contact; read in blocks)."""
     writer.flush()
     series = writer.series[layout.CONSTRAINT_FORCE_PEAK]
     for lo in range(0, times.size, block):
-        t = first_contact(times[lo:lo + block], series[lo:lo + block])
+        t = first_contact(times[lo:lo + block], series[lo:lo + block], None if lo == 0 else series[lo - 1])
         if t is not None:
             return t
     return None

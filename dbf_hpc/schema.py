@@ -130,7 +130,9 @@ SECTIONS = {
                                            "--method full the same model at a 4x shorter step; sweeps and scenes "
                                            "without constraints do not make it"),
         "estimate_window": Key(NUMBER, None, "s", "the window [0, T] the estimate holds over (default twice the time "
-                                                  "of the first contact, or t_end / 10 without contact)"),
+                                                  "of the first impact, or t_end / 10 without one; a constraint "
+                                                  "in force from the start is no impact until it lets go and "
+                                                  "touches again)"),
         "estimate_statistics_window": Key(NUMBER, None, "s", "a long run's (t_end over 5 estimate windows) "
                                                              "statistics window [0, T]: the richer model's impact "
                                                              "statistics over it against the run's give their model "

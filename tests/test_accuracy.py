@@ -532,3 +532,44 @@ def test_the_estimate_sees_the_step_error_of_a_run_whose_tolerances_let_every_st
     true = relative_difference(w[:k], truth[:k])
     assert summary["stats"]["steps"] <= 0.1 / 1e-3 + 5   # at the limit all along: the test's premise
     assert true > 0.05 and 0.5 < summary["estimated_error"] / true < 2, (summary["estimated_error"], true)
+
+
+def test_the_first_contact_is_the_first_impact_not_a_spring_engaged_from_the_start():
+    # A linear spring (or an interference fit) carries force from the first interval on; the stop first
+    # touches at 0.3 s. Taking the spring's force for the first contact gave the window t_end / 10, before
+    # the impacts (red team: 0.02 % estimated against 2.2 % true over twice the stop's first contact).
+    from dbf_hpc.accuracy import first_contact
+
+    times = np.linspace(0.0, 1.0, 11)
+    force = np.zeros((11, 2))
+    force[1:, 0] = 1.0          # the spring, engaged from the first interval on
+    force[3:5, 1] = 2.0         # the stop: first impact at 0.3 s
+    assert first_contact(times, force) == pytest.approx(0.3)
+    assert first_contact(times, force[:, :1]) is None          # only the spring: no impact
+    force[6, 0] = 0.0           # the spring's force passes zero at 0.6 s and returns: an onset, not the first
+    assert first_contact(times, force) == pytest.approx(0.3)
+    # read in blocks: a block continuing contacts already made has no onset; the spring's return at 0.7 s is one
+    assert first_contact(times[4:6], force[4:6], before=force[3]) is None
+    assert first_contact(times[4:], force[4:], before=force[3]) == pytest.approx(0.7)
+    force2d = np.zeros((11, 1, 2))
+    force2d[7:, 0, 1] = 1.0     # a 2-D support touched along z at 0.7 s
+    assert first_contact(times, force2d) == pytest.approx(0.7)
+
+
+def test_a_spring_engaged_from_the_start_does_not_cut_the_estimate_window_before_the_impacts(shared_tmp_path):
+    # The paper's beam with a soft linear spring added at 0.75 m (10 N/m, in force from the first
+    # instant): the stop's impacts from 0.105 s are what the estimate must see (6 modes: 13.6 % over 0.2 s).
+    from mpi4py import MPI
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_run import ROOT
+
+    scene = shared_tmp_path / "spring.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        text = open(f"{ROOT}/jobs/paper_beam.toml").read()
+        scene.write_text(text + '\n[[constraint]]\nx = 0.75\nlaw = "linear"\nk = 10.0\n')
+    MPI.COMM_WORLD.barrier()
+    summary = run(load_scene(str(scene), WINDOW), str(shared_tmp_path / "spring.h5"), progress=False)
+    assert summary["estimated_error_window"] == pytest.approx(0.2)   # min(2 x 0.105 s, t_end), not 0.02 s
+    assert summary["estimated_error"] > 0.05
