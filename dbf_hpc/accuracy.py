@@ -160,8 +160,13 @@ class Estimate:
     def line(self) -> str:
         if not math.isfinite(self.value):
             return f"estimated error: not available ({self.note})"
-        return (f"estimated error: {self.value:.3g} ({self.value:.2%} of the largest |w| at the constraints) over "
+        return (f"estimated error: {self.value:.3g} ({percent(self.value)} of the largest |w| at the constraints) over "
                 f"[0, {self.window:g}] s ({self.note}; {self.seconds:.2f} s)")
+
+
+def percent(value: float) -> str:
+    """A relative error as a percentage of three significant digits ("0.0027%", not "0.00%")."""
+    return f"{100 * value:.3g}%"
 
 
 def blind_to_contact(estimate: Estimate, t_contact: float | None) -> Estimate:

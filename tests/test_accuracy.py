@@ -573,3 +573,12 @@ def test_a_spring_engaged_from_the_start_does_not_cut_the_estimate_window_before
     summary = run(load_scene(str(scene), WINDOW), str(shared_tmp_path / "spring.h5"), progress=False)
     assert summary["estimated_error_window"] == pytest.approx(0.2)   # min(2 x 0.105 s, t_end), not 0.02 s
     assert summary["estimated_error"] > 0.05
+
+
+def test_a_small_estimate_is_printed_as_a_nonzero_percentage():
+    # A rotated-DOF solid's estimate of 2.7e-5 printed "(0.00% of the largest |w| ...)": a user reading
+    # the percentage saw an exact zero (red team). The percentage keeps three significant digits.
+    from dbf_hpc.accuracy import Estimate, percent
+
+    assert "(0.0027% of the largest" in Estimate(2.7e-5, 0.1, note="x").line()
+    assert percent(0.1104) == "11%" and percent(0.00107) == "0.107%" and percent(0.0) == "0%"
