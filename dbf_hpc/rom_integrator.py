@@ -241,10 +241,11 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
     called (the C callbacks call it only then; -inf: at the end of this step).
     `resume` (from a checkpoint taken at the end of a step: t, dt, steps, next_sample, q, p and the
     failure counts so far) continues exactly where that step ended: same steps, same answer.
-    Progress lines go to say(line) when given. Returns solver statistics. Runs on COMM_SELF."""
-    if getattr(model, "form", "") == "state_space":   # a gyroscopic structure's first-order form
-        from .state_space import integrate_state_space
-        return integrate_state_space(model, settings, record, on_step, say, resume, recorder=recorder, due=due)
+    Progress lines go to say(line) when given. Returns solver statistics. Runs on COMM_SELF.
+    A state_space.StateSpaceModel (a gyroscopic structure's first-order form) integrates y = eta
+    (its q; p is eta' from the equation) with StateSpaceProblem's callbacks or the C core's
+    first-order mode, on the same TS, options and statistics."""
+    first_order = getattr(model, "form", "") == "state_space"
     if (record is None) == (recorder is None):
         raise TypeError("integrate_reduced takes either record or recorder")
     if recorder is not None:
@@ -252,10 +253,17 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
     core = c_core(settings.callbacks, model.constraints.dimension)
     r = model.size
     implicit = settings.contact == "implicit"
-    problem = ReducedProblem(model, implicit)
+    if first_order:
+        from .state_space import StateSpaceProblem
+
+        problem, n = StateSpaceProblem(model, implicit), r
+        start = resume["q"] if resume else model.q0
+    else:
+        problem, n = ReducedProblem(model, implicit), 2 * r
+        start = np.concatenate((resume["q"], resume["p"]) if resume else (model.q0, model.p0))
     comm = PETSc.COMM_SELF
-    y = PETSc.Vec().createSeq(2 * r, comm=comm)
-    y.getArray()[:r], y.getArray()[r:] = (resume["q"], resume["p"]) if resume else (model.q0, model.p0)
+    y = PETSc.Vec().createSeq(n, comm=comm)
+    y.getArray()[:] = start
     F, G, work = y.duplicate(), y.duplicate(), y.duplicate()
     ts = PETSc.TS().create(comm=comm)
     J = fast = monitor = ksp = None
@@ -267,7 +275,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
         ksp = ts.getSNES().getKSP()
         ksp.setType(PETSc.KSP.Type.PREONLY)
         if core is None:
-            J = PETSc.Mat().createDense((2 * r, 2 * r), comm=comm)
+            J = PETSc.Mat().createDense((n, n), comm=comm)
             J.setUp()
             ts.setIFunction(problem.ifunction, F)
             ts.setIJacobian(problem.ijacobian, J, J)
@@ -293,7 +301,8 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
             ts.setMonitor(monitor)
         else:
             stateful = getattr(model.constraints, "stateful", False)
-            commit = (lambda t, q, p: model.constraints.commit(*model.constraint_state(t, q, p))) if stateful else None
+            state = (lambda t, q, p: model.constraint_state(t, q)) if first_order else model.constraint_state
+            commit = (lambda t, q, p: model.constraints.commit(*state(t, q, p))) if stateful else None
             steps.ts = ts
             fast.set_monitor(ts, work, steps, times, dense, record, recorder, on_step, due, commit, bool(resume))
         # Full Newton steps: a backtracking line search stalls on the kinks of piecewise laws
@@ -338,7 +347,8 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
                  "scheme": ts.getARKIMEXType(), "final_time": ts.getTime(),
                  "adaptive": settings.adaptive, "contact": settings.contact,
                  "callbacks": "python" if fast is None else "c",
-                 "newton": "petsc" if fast is None or not c_newton else "c"}
+                 "newton": "petsc" if fast is None or not c_newton else "c",
+                 **({"form": "state_space"} if first_order else {})}
         stats["newton_iterations"] = ts.getSNESIterations() + int(before.get("newton_iterations", 0))
         if fast is not None:   # a resumed run's whole, as the other counts
             done = before.get("c_counters")
