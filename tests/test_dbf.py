@@ -721,16 +721,21 @@ class _Refusing:
         raise PETSc.Error(55)
 
 
+def _with_refusing_m(ops):
+    """The operators `ops` with an M whose copies fail (fault injection for the error paths)."""
+    import types
+
+    return types.SimpleNamespace(comm=ops.comm, K=ops.K, M=_Refusing(), rigid_modes=ops.rigid_modes,
+                                 eigen_scale=ops.eigen_scale)
+
+
 def test_the_pinned_eigenvalue_frees_its_index_set_and_k_submatrix_when_m_submatrix_fails(paper, capfd):
     # Review: the index set and K's submatrix were made outside the try that frees them, so a
     # failure of M's submatrix left both behind (in parallel: in PETSc's garbage).
-    import types
-
     from conftest import petsc_garbage
 
     ops, _, row = paper
-    broken = types.SimpleNamespace(comm=ops.comm, K=ops.K, M=_Refusing(), rigid_modes=ops.rigid_modes,
-                                   eigen_scale=ops.eigen_scale)
+    broken = _with_refusing_m(ops)
     PETSc.garbage_cleanup()
     before = undestroyed_petsc_objects()
     with pytest.raises(PETSc.Error):
@@ -743,13 +748,10 @@ def test_the_pinned_eigenvalue_frees_its_index_set_and_k_submatrix_when_m_submat
 def test_a_group_whose_copy_of_m_fails_frees_its_copy_of_k_and_its_communicator(paper, capfd):
     # Review: _group_operators made the group's copy of K, then of M, outside any try: a failed copy of
     # M left K's copy (and the split communicator) behind.
-    import types
-
     from conftest import petsc_garbage
 
     ops, _, _ = paper
-    broken = types.SimpleNamespace(comm=ops.comm, K=ops.K, M=_Refusing(), rigid_modes=ops.rigid_modes,
-                                   eigen_scale=ops.eigen_scale)
+    broken = _with_refusing_m(ops)
     PETSc.garbage_cleanup()
     before = undestroyed_petsc_objects()
     with pytest.raises(PETSc.Error):
