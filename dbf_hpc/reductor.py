@@ -52,6 +52,8 @@ class Reductor:
     def reduce(self, field: bool = False) -> ReducedModel:
         """Project the full-order model onto the basis. With field, also the basis at the field
         points, for snapshots. Collective."""
+        if not isinstance(field, (bool, np.bool_)):   # "no" would be truthy
+            raise InputError(f"Reductor.reduce field: give True or False, got {field!r}")
         fom, basis = self.fom, self.basis()
         if getattr(basis, "form", "") == "state_space":   # the paper's first-order form (state_space.py)
             from .state_space import reduce_state_space

@@ -142,7 +142,8 @@ SECTIONS = {
                                             "at most twofold) and rtol (tolerance / 100) are picked so that the "
                                             "estimate over the window is below 0.75 x this relative error in w at "
                                             "the constraints; an error if it cannot be met (`run` only: `dbf-hpc "
-                                            "basis` builds the first candidate)"),
+                                            "basis` builds the first candidate; refused for a gyroscopic "
+                                            "structure)"),
     }),
     "damping": ("Linear damping of the structure (none by default, as in the paper).", {
         "zeta": Key((*NUMBER, list), 0.0, "1", "modal damping ratio, 0 to 100, one for all or one per basis "

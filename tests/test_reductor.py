@@ -105,6 +105,14 @@ def test_an_initial_state_beyond_double_precision_is_refused_naming_the_initial_
         assert_all(np.isfinite(reductor.reduce().q0).all())   # large, finite: the integration's to judge
 
 
+def test_reduce_refuses_a_field_flag_that_is_not_a_bool():
+    # the API edge: field="no" was truthy, so it projected the field points it was asked not to
+    with FullOrderModel.build(BEAM, [STOP]) as fom, Reductor(fom, BasisSettings(modes=4)) as reductor:
+        with pytest.raises(InputError, match=r"^Reductor.reduce field: give True or False, got 'no'$"):
+            reductor.reduce(field="no")
+        assert reductor.reduce(field=False).field is None
+
+
 def test_projection_defects_above_the_tolerance_are_kept_as_projected():
     # a reduced model is cleaned only of the eigensolver's and Gram-Schmidt's residuals, never of a
     # real coupling: a 1e-6 mode-mode coupling and a 1e-6 mass defect stay
