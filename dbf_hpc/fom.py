@@ -279,9 +279,13 @@ class FullOrderModel:
         from .gyroscopic import mode_state
 
         u, v = mode_state(self.operators, self.initial.mode)
-        scale = self.initial.amplitude / field_peak(self.operators, u)
-        u.scale(scale)
-        v.scale(scale)
+        try:
+            scale = self.initial.amplitude / field_peak(self.operators, u)
+            u.scale(scale)
+            v.scale(scale)
+        except BaseException:
+            destroy(u, v)
+            raise
         return u, v
 
     def two_plane_state(self) -> tuple:
@@ -292,14 +296,20 @@ class FullOrderModel:
         # the planar mode first: a mode the basis does not have is an InputError with no Vec made yet
         y, z = planar_mode(self.operators, init.mode) if init.amplitude or init.velocity else (None, None)
         u, v = self.operators.K.createVecLeft(), self.operators.K.createVecLeft()
-        u.zeroEntries()
-        v.zeroEntries()
-        if y is not None:
-            for vec, scale, (dy, dz) in ((u, init.amplitude, init.direction), (v, init.velocity,
-                                                                            init.velocity_direction)):
-                vec.axpy(scale * dy, y)
-                vec.axpy(scale * dz, z)
-            destroy(y, z)
+        try:
+            u.zeroEntries()
+            v.zeroEntries()
+            if y is not None:
+                for vec, scale, (dy, dz) in ((u, init.amplitude, init.direction), (v, init.velocity,
+                                                                                init.velocity_direction)):
+                    vec.axpy(scale * dy, y)
+                    vec.axpy(scale * dz, z)
+        except BaseException:
+            destroy(u, v)
+            raise
+        finally:
+            if y is not None:
+                destroy(y, z)
         return u, v
 
     def velocity_matrix(self) -> PETSc.Mat | None:

@@ -1535,3 +1535,20 @@ def test_pipe_complex_modes_are_the_dense_companion_eigenpairs_and_omega_1_falls
 
 def to_dense(mat):
     return mat.copy().convert("dense").getDenseArray().copy()
+
+
+def test_a_failure_scaling_the_complex_mode_start_leaves_no_petsc_object(monkeypatch):
+    # Review: the gyroscopic start made u and u' (the complex mode's free vibration), then scaled them
+    # to the amplitude; a failure there left both undestroyed (in parallel: PETSc's garbage).
+    import dbf_hpc.fom
+    from conftest import undestroyed_petsc_objects
+
+    def fails(ops, u):
+        raise RuntimeError("injected")
+
+    with moving_fom(30.0, elements=20) as fom:
+        before = undestroyed_petsc_objects()
+        monkeypatch.setattr(dbf_hpc.fom, "field_peak", fails)
+        with pytest.raises(RuntimeError, match="injected") as refused:
+            fom.initial_state()
+        assert_all(refused.value is not None and undestroyed_petsc_objects() == before)
