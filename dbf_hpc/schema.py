@@ -125,7 +125,7 @@ SECTIONS = {
         "cache": Key((str,), "~/.cache/dbf_hpc", "", 'directory of cached bases, or "off"'),
         "estimate": Key((bool,), True, "", "the a-posteriori error estimate of a run (the attribute estimated_error: "
                                            "the largest error in w at any constraint over the largest |w| at any "
-                                           "constraint): the same scene on twice the modes with the same enrichment "
+                                           "constraint): the same scene on max(2N, N + N_L) modes with the same enrichment "
                                            "at a 10x tighter rtol, over estimate_window (docs/accuracy.md); with "
                                            "--method full the same model at a 4x shorter step; sweeps and scenes "
                                            "without constraints do not make it"),

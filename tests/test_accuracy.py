@@ -582,3 +582,85 @@ def test_a_small_estimate_is_printed_as_a_nonzero_percentage():
 
     assert "(0.0027% of the largest" in Estimate(2.7e-5, 0.1, note="x").line()
     assert percent(0.1104) == "11%" and percent(0.00107) == "0.107%" and percent(0.0) == "0%"
+
+
+# A clamped-clamped steel beam under base motion against 30 stops at unequal gaps (the far side of each
+# stop 1.7 times its near side), some at nodes and some between: more stops than the run has modes.
+MANY_X = [0.05, 0.1, 0.181034, 0.233333, 0.312069, 0.366667, 0.443103, 0.5, 0.574138, 0.633333, 0.705172,
+          0.766667, 0.836207, 0.9, 0.967241, 1.033333, 1.098276, 1.166667, 1.22931, 1.3, 1.360345, 1.433333,
+          1.491379, 1.566667, 1.622414, 1.7, 1.753448, 1.833333, 1.884483, 1.933333]
+MANY_GAP = [2.685e-4, 3.894e-4, 8.41e-4, 6.657e-4, 2.753e-4, 5.465e-4, 5.832e-4, 3.278e-4, 7.877e-4, 2.909e-4,
+            5.13e-4, 6.134e-4, 5.445e-4, 6.694e-4, 7.903e-4, 9.65e-4, 4.274e-4, 7.188e-4, 7.57e-4, 4.342e-4,
+            2.012e-4, 9.788e-4, 4.387e-4, 4.512e-4, 9.134e-4, 6.681e-4, 5.77e-4, 8.186e-4, 2.243e-4, 7.656e-4]
+MANY_STOPS = """[structure]
+kind = "beam"
+length = 2.0
+elements = 60
+E = 2.1e11
+I = 2.0e-11
+A = 5.0e-5
+rho = 7850.0
+left = "clamped"
+right = "clamped"
+[excitation]
+kind = "base"
+end = "left"
+amplitude = 2e-3
+frequency_hz = 8.0
+[damping]
+rayleigh_beta = 1e-5
+[integrator]
+t_end = 0.02
+[output]
+sample_dt = 1e-5
+snapshots = 0
+""" + "".join(f'[[constraint]]\nx = {x}\nlaw = "deadband"\nclearance_minus = {gap}\nclearance_plus = {1.7 * gap:.4g}\n'
+              f'k = 3e5\n' for x, gap in zip(MANY_X, MANY_GAP))
+
+
+def test_with_more_stops_than_modes_the_estimate_sees_the_error_against_the_full_order_model(shared_tmp_path):
+    # The run's 30 DBFs already hold the static response to every contact force, so a richer model of twice
+    # its 6 modes (12 modes + the 30 DBFs) added too little to see what the run misses: it estimated 0.45 %
+    # against a true 1.01 % (0.45x; 3 modes: 0.27x). The richer model has N + N_L = 36 modes (rich_modes):
+    # measured 1.012 % against 1.008 % (1.00x). The truth: the full-order model at 5 us steps, within 1e-5
+    # of one at 0.5 us over the window (twice the first impact, 4.6 ms).
+    import h5py
+    from mpi4py import MPI
+
+    from dbf_hpc.accuracy import relative_difference, rich_modes
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    assert rich_modes(6, 30) == 36 and rich_modes(20, 12) == 40 and rich_modes(6, 1) == 12
+    scene = shared_tmp_path / "many_stops.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        scene.write_text(MANY_STOPS)
+    MPI.COMM_WORLD.barrier()
+    paths = {method: str(shared_tmp_path / f"many-{method}.h5") for method in ("rom", "full")}
+    summary = run(load_scene(str(scene), ["basis.modes=6", "basis.cache=off"]), paths["rom"], progress=False)
+    run(load_scene(str(scene), ["integrator.t_end=0.01", "integrator.dt=5e-6", "basis.estimate=false"]),
+        paths["full"], progress=False, method="full")
+    ratio = None
+    if MPI.COMM_WORLD.rank == 0:
+        window = summary["estimated_error_window"]
+        with h5py.File(paths["rom"], "r") as rom, h5py.File(paths["full"], "r") as full:
+            k = int(np.searchsorted(rom["time"][:], window * (1 + 1e-12), side="right"))
+            assert np.allclose(rom["time"][:k], full["time"][:k], rtol=0, atol=1e-12) and window < 0.01
+            true = relative_difference(rom["constraints/displacement"][:k], full["constraints/displacement"][:k])
+        ratio = (summary["estimated_error"] / true, true)
+    ratio, true = MPI.COMM_WORLD.bcast(ratio, root=0)
+    assert_all(true > 0.005 and 0.8 < ratio < 1.25)
+
+
+def test_a_structure_too_small_for_n_plus_nl_richer_modes_keeps_its_estimate_against_twice_the_modes():
+    # 16 DOFs, 7 stops, 3 modes: N + N_L = 10 modes and the 7 DBF columns exceed the DOFs, so the richer
+    # basis is the 2N = 6 modes and the 7 columns it was before (13 vectors), not "no richer basis".
+    from dbf_hpc import accuracy
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=6)
+    stops = [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=x) for x in (0.1, 0.2, 0.35, 0.45, 0.6, 0.75, 0.9)]
+    with FullOrderModel.build(beam, stops, BaseMotion(5e-3, 1.0)) as fom, \
+            Reductor(fom, BasisSettings(modes=3)) as reductor:
+        assert_all(accuracy.rich_modes(3, 7) + 7 > fom.size == 16)
+        rich = accuracy.richer_model(fom, reductor.basis())
+        assert_all(not isinstance(rich, str) and rich.size == 2 * 3 + 7)
