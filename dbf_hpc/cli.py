@@ -609,13 +609,39 @@ def _warn_unused(petsc_options, comm) -> None:
              f"modes_, dbf_, static_, buckling_, rom_, full_)", comm)
 
 
+TERMINATED = ("stopped by a termination signal before the integration began; nothing was written: rerun to start "
+              "again (the basis cache keeps what was finished)")
+# A communicator of its own for the ranks signalled outside an integration (_terminated; made in main)
+_SIGNALLED = None
+
+
 def _terminated(signum, frame):
     """SIGTERM outside an integration (a batch system's time limit during the basis, say): stop with
-    one line instead of dying silently."""
+    one line instead of dying silently. On one rank, errors.Interrupted. On several, the exception
+    would leave this rank alone at an arbitrary point of collective work (red team: SIGTERM to rank 1
+    alone during a gyroscopic basis raised in its eigensolve, whose cleanup, a collective MUMPS
+    destroy, then waited for ever while rank 0 waited in its next collective call: the job hung). So
+    the ranks stop where they are: they meet in a non-blocking barrier on a communicator of their own,
+    as cli._finish does; when every rank was signalled (a batch system's limit), rank 0 prints the line,
+    else after 10 s this rank prints it with its number; then the job aborts. A rank that mpirun
+    signals as it ends the job after another rank's error is killed within those 10 s, silently.
+    Nothing is written before the integration but the basis cache (a temporary file, then a rename)."""
     from .errors import Interrupted
 
-    raise Interrupted("stopped by a termination signal before the integration began; nothing was written: rerun "
-                      "to start again (the basis cache keeps what was finished)")
+    world = _SIGNALLED
+    if world is None or world.size == 1:
+        raise Interrupted(TERMINATED)
+    request = world.Ibarrier()
+    deadline = time.monotonic() + 10.0
+    while not request.Test():
+        if time.monotonic() > deadline:
+            print(f"dbf-hpc: error: (rank {world.rank}) {TERMINATED}", file=sys.stderr, flush=True)
+            world.Abort(1)
+        time.sleep(0.005)
+    if world.rank == 0:
+        print(f"dbf-hpc: error: {TERMINATED}", file=sys.stderr, flush=True)
+    world.Barrier()   # the line before the abort
+    world.Abort(1)
 
 
 def _quiet_write_failures(unraisable) -> None:
@@ -658,6 +684,9 @@ def main(argv=None) -> int:
     # _finish's own communicator: its barrier on COMM_WORLD met a rank still waiting in one of the
     # library's (errors.wait_for_rank0) after rank 0 failed alone, and the job hung (red team)
     ending = comm.Dup()
+    global _SIGNALLED
+    if _SIGNALLED is None:   # once a process (main runs many times in the tests)
+        _SIGNALLED = comm.Dup()
     for signum in termination_signals():   # SIGTERM, and Ctrl-C; integrations and sweeps install their own
         signal.signal(signum, _terminated)
     try:

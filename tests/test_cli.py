@@ -99,6 +99,46 @@ def test_an_error_on_rank_0_alone_while_rank_1_waits_in_a_barrier_ends_the_job_w
     assert "Traceback" not in out.stderr
 
 
+_RANK1_TERMINATED_IN_EIGENSOLVE = """
+import os, signal, sys
+from mpi4py import MPI
+from dbf_hpc import cli, gyroscopic
+
+solve = gyroscopic._solve
+
+def terminated_on_rank_1(*args, **kwargs):   # the signal lands in gyroscopic_modes, its PEP still alive
+    solved = solve(*args, **kwargs)
+    if MPI.COMM_WORLD.rank == 1:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return solved
+
+gyroscopic._solve = terminated_on_rank_1
+sys.exit(cli.main(["run", sys.argv[1], "-q", "-o", sys.argv[2], "--set", 'basis.gyroscopic_form="state_space"',
+                   "--set", "basis.cache=off", "--set", "integrator.t_end=0.01"]))
+"""
+
+
+def test_sigterm_to_rank_1_alone_in_a_collective_basis_ends_the_job_with_one_line(tmp_path):
+    # Red team: SIGTERM to rank 1 alone while the pipe's gyroscopic basis was computed (the quadratic
+    # eigensolve, every rank) raised there; its cleanup (the PEP's collective MUMPS destroy) waited for
+    # rank 0, which had gone on to its next collective call: the job hung for ever. A termination
+    # signal outside an integration on one of several ranks prints its line and aborts the job;
+    # nothing is written (the output does not exist).
+    script = tmp_path / "rank1_terminated.py"
+    script.write_text(_RANK1_TERMINATED_IN_EIGENSOLVE)
+    out_path = tmp_path / "pipe.h5"
+    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script),
+                          os.path.join(ROOT, "jobs", "pipe_conveying_fluid.toml"), str(out_path)],
+                         capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+    lines = [line for line in out.stderr.splitlines() if line.startswith("dbf-hpc")]
+    assert out.returncode != 0 and lines == [
+        "dbf-hpc: error: (rank 1) stopped by a termination signal before the integration began; nothing was written: "
+        "rerun to start again (the basis cache keeps what was finished)"], out.stderr
+    assert "Traceback" not in out.stderr
+    assert not any(os.path.exists(f"{out_path}{tail}") for tail in ("", ".partial", ".checkpoint"))
+
+
 def test_modes_of_the_paper_beam_are_the_euler_bernoulli_frequencies():
     out = dbf_hpc("modes", PAPER, "--set", "basis.modes=4", "-modes_eps_tol", "1e-12")
     assert out.returncode == 0, out.stderr
