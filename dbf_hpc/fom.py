@@ -29,7 +29,7 @@ from .excitation import (BaseMotion, CorrelatedProcess, NoExcitation, PointForce
 from .laws import ConstraintLaws, PlanarLaws
 from .matrices import MatrixFiles, load_operators
 from .operators import Operators, PointValues
-from .petsctools import destroy, petsc_errors_as_one_line, values_at
+from .petsctools import destroy, petsc_comm, petsc_errors_as_one_line, values_at
 from .structure import Beam, assemble_beam, distributed_load, span_node_loads
 
 
@@ -100,12 +100,7 @@ class FullOrderModel:
         constraints (Constraint descriptions), loads and probes on them. Collective on comm
         (a petsc4py or mpi4py communicator, default COMM_WORLD). Bad placements are InputErrors,
         and nothing is leaked."""
-        comm = comm or PETSc.COMM_WORLD
-        if isinstance(comm, MPI.Comm):   # an mpi4py communicator: the same, as petsc4py takes it
-            comm = PETSc.Comm(comm)
-        if not isinstance(comm, PETSc.Comm):
-            raise InputError(f"FullOrderModel.build: comm must be a petsc4py or mpi4py communicator, got "
-                             f"{type(comm).__name__}")
+        comm = petsc_comm(comm, "FullOrderModel.build")
         if not isinstance(structure, (Beam, MatrixFiles)):
             raise InputError(f"FullOrderModel.build: a structure is a Beam or MatrixFiles, got {type(structure).__name__}")
         for name, value, kinds in (("excitation", excitation, EXCITATIONS), ("damping", damping, (Damping,)),

@@ -24,7 +24,7 @@ from petsc4py import PETSc
 
 from .errors import InputError, decided_on_rank0, warn
 from .operators import Operators, PointValues
-from .petsctools import aij_from_owned_triplets, owned_rows
+from .petsctools import aij_from_owned_triplets, owned_rows, petsc_comm
 
 # ||A - A^T||_F / ||A||_F above this is not a symmetric operator.
 SYMMETRY_TOL = 1e-10
@@ -105,7 +105,7 @@ def _check_index_range(path: str, what: str, size: int, nnz: int) -> None:
 
 def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
     """A distributed AIJ matrix from a Matrix Market or PETSc binary file. Collective."""
-    comm = comm or PETSc.COMM_WORLD
+    comm = petsc_comm(comm, "load_matrix")
     _readable(path, what)
     if path.endswith(".mtx"):
         shape, rows, cols, values, symmetry = _read_matrix_market(path, what)
@@ -400,7 +400,7 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
     Sizes must agree, K, M (and C) must be symmetric and G skew-symmetric; anything else is an InputError, and what
     was loaded before it is freed.
     """
-    comm = comm or PETSc.COMM_WORLD
+    comm = petsc_comm(comm, "load_operators")
     if files.base_mass_load and not files.influence:
         raise InputError("a base mass load needs the influence vector as well")
     ops = Operators(comm=comm, K=load_matrix(files.stiffness, comm, "stiffness"), M=None)

@@ -19,6 +19,31 @@ from petsc4py import PETSc
 from ._petsc import SOLVER_PREFIXES, option_pairs
 
 
+def petsc_comm(comm, where: str) -> PETSc.Comm:
+    """The petsc4py communicator an API call runs on: None is COMM_WORLD, a petsc4py or mpi4py
+    intracommunicator is taken as it is (PETSC_COMM_SELF, a Split's sub-communicator for a
+    task-parallel study). A null communicator (what MPI.Comm.Split gives a rank it leaves out,
+    color = MPI.UNDEFINED) or anything else is an InputError naming `where`. Red team: `comm or
+    COMM_WORLD` read a null communicator, which is falsy, as none given, and ran that rank's case
+    collectively on COMM_WORLD, which the other ranks, busy on their own communicators, never join
+    (a hang); an mpi4py communicator given to run() was a traceback. Not collective."""
+    from mpi4py import MPI
+
+    from .errors import InputError
+
+    if comm is None:
+        return PETSc.COMM_WORLD
+    if isinstance(comm, MPI.Comm) and comm != MPI.COMM_NULL and not comm.Is_inter():
+        return PETSc.Comm(comm)
+    if isinstance(comm, PETSc.Comm) and comm != PETSc.COMM_NULL and not comm.tompi4py().Is_inter():
+        return comm
+    what = ("a null communicator (a rank that MPI.Comm.Split left out has no case to run)"
+            if isinstance(comm, (MPI.Comm, PETSc.Comm)) and not comm else
+            "an intercommunicator" if isinstance(comm, (MPI.Comm, PETSc.Comm)) else type(comm).__name__)
+    raise InputError(f"{where}: comm must be a petsc4py or mpi4py communicator (PETSc.COMM_SELF, "
+                     f"MPI.COMM_WORLD.Split(...)) or None for COMM_WORLD, got {what}")
+
+
 def owned_rows(n: int, comm) -> tuple[int, int]:
     """The rows [start, end) this rank owns in PETSc's default layout of n rows. Collective."""
     n_local, _ = PETSc.Sys.splitOwnership(n, comm=comm)

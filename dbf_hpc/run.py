@@ -37,7 +37,7 @@ from .fom_integrator import options as full_options
 from .modes import counters
 from .output import (SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space, check_output_path,
                      free_bytes, is_dbf_checkpoint, is_dbf_partial, output_bytes)
-from .petsctools import petsc_errors_as_one_line
+from .petsctools import petsc_comm, petsc_errors_as_one_line
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
@@ -92,7 +92,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         raise InputError(f"--method {method!r}: choose rom or full")
     if method == "full" and initial_state is not None:
         raise InputError("--method full starts from [initial] (or resumes from its checkpoint), not from a reduced state")
-    comm = comm or PETSc.COMM_WORLD
+    comm = petsc_comm(comm, "run")
     say = (lambda m: PETSc.Sys.Print(m, comm=comm)) if progress else None
     # rank 0 writes the output, so its look at the files decides (red team: each rank looked itself)
     path = decided_on_rank0(comm, output_path, scene, out, resume)

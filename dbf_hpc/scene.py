@@ -277,11 +277,11 @@ def load_scene_collective(path: str, overrides=(), comm=None) -> Scene:
     """load_scene with the file read by rank 0 of `comm` (default COMM_WORLD) and its bytes
     broadcast: every rank validates the same scene, also when the file is edited while the job
     starts or is not readable on every node. Collective."""
-    from mpi4py import MPI
-
     from .errors import decided_on_rank0
+    from .petsctools import petsc_comm
 
-    return load_scene(path, overrides, raw=decided_on_rank0(comm or MPI.COMM_WORLD, read_scene_bytes, path))
+    return load_scene(path, overrides, raw=decided_on_rank0(petsc_comm(comm, "load_scene_collective"),
+                                                            read_scene_bytes, path))
 
 
 def _check_one_unit_of_k(c: dict, index: int, given: set) -> None:

@@ -37,7 +37,7 @@ from slepc4py import SLEPc
 
 from .errors import InputError, SolverError, check_number
 from .operators import Operators, PointValues
-from .petsctools import aij_from_owned_triplets, destroy, direct_solver, owned_rows
+from .petsctools import aij_from_owned_triplets, destroy, direct_solver, owned_rows, petsc_comm
 
 W, THETA = 0, 1
 BOUNDARIES = {"pinned": (W,), "clamped": (W, THETA), "free": (), "sliding": (THETA,)}
@@ -395,7 +395,7 @@ def assemble_beam(beam: Beam, comm=None, points=(), base_end: str | None = None,
               excitation of that end's transverse support (see influence_vector).
     direction (dy, dz), a unit vector: the direction the support moves on a beam of two planes
     """
-    comm = comm or PETSc.COMM_WORLD
+    comm = petsc_comm(comm, "assemble_beam")
     mesh = BeamMesh(beam, points)
 
     def stiffness(h):

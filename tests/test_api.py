@@ -358,3 +358,82 @@ def test_run_imported_from_the_package_runs_a_scene(tmp_path):
     with pytest.raises(InputError, match="no_such_dir"):
         run(scene, str(tmp_path / "no_such_dir" / "out.h5"), progress=False)
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("entry", ["FullOrderModel.build", "run", "load_scene_collective"])
+@pytest.mark.parametrize("null", ["mpi4py", "petsc4py"])
+def test_a_null_communicator_is_refused_not_read_as_comm_world(entry, null, tmp_path):
+    # Red team: `comm or COMM_WORLD` read a null communicator (falsy; what MPI.Comm.Split gives a rank
+    # it leaves out) as none given, and ran that rank's case collectively on COMM_WORLD, where the
+    # other ranks, on cases of their own communicators, never come: a hang. Refused on the rank that
+    # gave it, before any collective call.
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    from dbf_hpc import Beam, FullOrderModel, InputError, load_scene, run
+    from dbf_hpc.scene import load_scene_collective
+
+    comm = MPI.COMM_NULL if null == "mpi4py" else PETSc.COMM_NULL
+    scene_file = os.path.join(ROOT, "jobs", "paper_beam.toml")
+    call = {"FullOrderModel.build": lambda: FullOrderModel.build(
+                Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=4), comm=comm),
+            "run": lambda: run(load_scene(scene_file, ["basis.cache=off"]), str(tmp_path / "never.h5"), progress=False,
+                                comm=comm),
+            "load_scene_collective": lambda: load_scene_collective(scene_file, comm=comm)}[entry]
+    with pytest.raises(InputError, match=f"^{entry}: comm must be a petsc4py or mpi4py communicator .* got a null "
+                                         f"communicator"):
+        call()
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parallel
+def test_each_rank_runs_its_own_scene_on_its_own_communicator_and_gets_the_answer_of_that_scene_alone(
+        shared_tmp_path):
+    # Task parallelism (README "Python API"): on 2 ranks each rank runs a different case of the paper's
+    # beam (another stop, gap and t_end) on a communicator of its own (petsc4py's COMM_SELF, and a Split
+    # of COMM_WORLD given as an mpi4py communicator, which run() took as a traceback before), both at
+    # once, writing to one basis cache directory; then each runs the other rank's case. A case's
+    # output must be the same bits whichever rank ran it, and beside which other case: nothing of one
+    # case (a collective call, an option, a cache file) reaches the other.
+    import h5py
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    from dbf_hpc import load_scene, run
+
+    world = MPI.COMM_WORLD
+    cases = [["constraint.x=0.25", "constraint.clearance=2.5e-3", "integrator.t_end=0.12"],
+             ["constraint.x=0.3", "constraint.clearance=2e-3", "integrator.t_end=0.1"]]
+    cache = str(shared_tmp_path / "cache")
+
+    def case(index, comm, tag):
+        scene = load_scene(os.path.join(ROOT, "jobs", "paper_beam.toml"),
+                           cases[index] + [f"basis.cache={cache}", "output.snapshots=0"])
+        out = str(shared_tmp_path / f"case{index}-{tag}.h5")
+        summary = run(scene, out, progress=False, comm=comm)
+        with h5py.File(out, "r") as f:
+            data = {}
+            f.visititems(lambda name, obj: data.__setitem__(name, obj[...]) if isinstance(obj, h5py.Dataset) else None)
+        return summary, data
+
+    mine = world.rank % 2
+    split = world.Split(world.rank, 0)
+    try:
+        first = case(mine, PETSc.COMM_SELF, f"self-on-{world.rank}")
+        other = case(1 - mine, split, f"split-on-{world.rank}")
+    finally:
+        split.Free()
+    everything = world.allgather({mine: first, 1 - mine: other})
+    for index in (0, 1):
+        (s0, d0), (s1, d1) = everything[0][index], everything[1][index]
+        assert s0["stats"]["steps"] == s1["stats"]["steps"] and s0["final_state"] == s1["final_state"]
+        assert s0["estimated_error"] == s1["estimated_error"]
+        assert sorted(d0) == sorted(d1) and "time" in d0
+        for name in d0:
+            assert np.array_equal(d0[name], d1[name]), f"case {index + 1}: {name} differs between the ranks"
+    # the two cases are different questions with different answers (the comparison could fail), and the
+    # first reaches its stop
+    assert everything[0][0][0]["final_state"] != everything[0][1][0]["final_state"]
+    assert everything[0][0][0]["constraint_stats"]["impacts"][0] >= 1
+    # two stops, two bases, each built once or shared, none left half-written
+    assert len(os.listdir(cache)) == 2 and not [name for name in os.listdir(cache) if ".tmp" in name]
