@@ -165,7 +165,10 @@ def constraint_groups(world_size: int, n_constraints: int, requested: int = 0) -
     one per constraint (each group's share differs by at most one constraint)."""
     if requested:
         if requested > world_size:
-            raise InputError(f"basis groups = {requested} exceeds the {world_size} MPI ranks")
+            # red team: a case on COMM_SELF under mpirun -n 2 read "exceeds the 1 MPI ranks"
+            raise InputError(f"[basis] groups = {requested} exceeds the {world_size} MPI rank(s) of the communicator the "
+                             f"basis is built on (one for a case on COMM_SELF): give at most {world_size}, or 0 for "
+                             f"one group per rank")
         return requested
     return max(1, min(world_size, n_constraints))
 

@@ -129,6 +129,21 @@ def test_constraint_groups_balance_the_constraints():
         constraint_groups(2, 9, requested=3)
 
 
+def test_more_groups_than_the_ranks_of_a_case_on_comm_self_names_that_communicator_not_the_job():
+    # A task-parallel study under mpirun -n 2 runs each case on COMM_SELF: one rank builds its basis,
+    # so 2 groups cannot be made; the line said "exceeds the 1 MPI ranks" of a job of two. Nothing of
+    # the basis is left behind.
+    before = undestroyed_petsc_objects()
+    ops = assemble_beam(Beam(**TABLE1, elements=20), comm=PETSc.COMM_SELF, points=[0.25, 0.5])
+    try:
+        with pytest.raises(InputError, match="^\\[basis\\] groups = 2 exceeds the 1 MPI rank\\(s\\) of the communicator "
+                                             "the basis is built on \\(one for a case on COMM_SELF\\): give at most 1"):
+            build_basis(ops, [ops.mesh.w_row(0.25), ops.mesh.w_row(0.5)], BasisSettings(modes=4, groups=2))
+    finally:
+        ops.destroy()
+    assert undestroyed_petsc_objects() == before
+
+
 def test_two_constraints_on_one_dof_are_rejected_before_any_solve():
     ops = assemble_beam(Beam(**TABLE1, elements=20), points=[0.25])
     row = ops.mesh.w_row(0.25)
