@@ -437,3 +437,38 @@ def test_each_rank_runs_its_own_scene_on_its_own_communicator_and_gets_the_answe
     assert everything[0][0][0]["constraint_stats"]["impacts"][0] >= 1
     # two stops, two bases, each built once or shared, none left half-written
     assert len(os.listdir(cache)) == 2 and not [name for name in os.listdir(cache) if ".tmp" in name]
+
+
+def test_cases_one_after_another_in_a_process_take_only_their_own_settings_and_options():
+    # README "Many small cases at once": a reduced case at rtol 1e-3, one at 1e-8, one with a PETSc
+    # option of its own (-rom_ts_arkimex_type 4, deleted after it), then rtol 1e-3 again: the last is
+    # the first bit for bit (no rtol, step or default of the code left in the options database), and the
+    # options database ends as it began.
+    from petsc4py import PETSc
+
+    from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, FullOrderModel, IntegratorSettings, Reductor,
+                         law, simulate_reduced)
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=40)
+    stop = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
+    with FullOrderModel.build(beam, [stop], BaseMotion(amplitude=5e-3, frequency_hz=1.0), comm=PETSc.COMM_SELF) as fom:
+        with Reductor(fom, BasisSettings(modes=6)) as reductor:
+            rom = reductor.reduce()
+    options = PETSc.Options()
+    before = options.getAll()
+
+    def case(rtol):
+        return simulate_reduced(rom, IntegratorSettings(t_end=0.12, sample_dt=1e-4, rtol=rtol))
+
+    first, tight = case(1e-3), case(1e-8)
+    options.setValue("rom_ts_arkimex_type", "4")
+    try:
+        other_scheme = case(1e-3)
+    finally:
+        options.delValue("rom_ts_arkimex_type")
+    again = case(1e-3)
+    assert np.abs(first.displacement).max() >= 2.5e-3   # the stop is reached: contact in every case
+    assert tight.solver["steps"] > first.solver["steps"] and other_scheme.solver["steps"] != first.solver["steps"]
+    untimed = lambda result: {k: v for k, v in result.solver.items() if k != "time_integration"}   # noqa: E731
+    assert untimed(again) == untimed(first) and np.array_equal(again.displacement, first.displacement)
+    assert np.array_equal(again.q, first.q) and options.getAll() == before
