@@ -388,13 +388,14 @@ def test_a_null_communicator_is_refused_not_read_as_comm_world(entry, null, tmp_
 
 @pytest.mark.parallel
 def test_each_rank_runs_its_own_scene_on_its_own_communicator_and_gets_the_answer_of_that_scene_alone(
-        shared_tmp_path):
+        shared_tmp_path, capfd):
     # Task parallelism (README "Python API"): on 2 ranks each rank runs a different case of the paper's
     # beam (another stop, gap and t_end) on a communicator of its own (petsc4py's COMM_SELF, and a Split
     # of COMM_WORLD given as an mpi4py communicator, which run() took as a traceback before), both at
     # once, writing to one basis cache directory; then each runs the other rank's case. A case's
     # output must be the same bits whichever rank ran it, and beside which other case: nothing of one
-    # case (a collective call, an option, a cache file) reaches the other.
+    # case (a collective call, an option, a cache file) reaches the other. Each rank prints its own
+    # case's progress (PETSc.Sys.Print on the case's communicator, whose rank 0 it is).
     import h5py
     from mpi4py import MPI
     from petsc4py import PETSc
@@ -406,11 +407,11 @@ def test_each_rank_runs_its_own_scene_on_its_own_communicator_and_gets_the_answe
              ["constraint.x=0.3", "constraint.clearance=2e-3", "integrator.t_end=0.1"]]
     cache = str(shared_tmp_path / "cache")
 
-    def case(index, comm, tag):
+    def case(index, comm, tag, progress=False):
         scene = load_scene(os.path.join(ROOT, "jobs", "paper_beam.toml"),
                            cases[index] + [f"basis.cache={cache}", "output.snapshots=0"])
         out = str(shared_tmp_path / f"case{index}-{tag}.h5")
-        summary = run(scene, out, progress=False, comm=comm)
+        summary = run(scene, out, progress=progress, comm=comm)
         with h5py.File(out, "r") as f:
             data = {}
             f.visititems(lambda name, obj: data.__setitem__(name, obj[...]) if isinstance(obj, h5py.Dataset) else None)
@@ -419,11 +420,15 @@ def test_each_rank_runs_its_own_scene_on_its_own_communicator_and_gets_the_answe
     mine = world.rank % 2
     split = world.Split(world.rank, 0)
     try:
-        first = case(mine, PETSc.COMM_SELF, f"self-on-{world.rank}")
+        capfd.readouterr()
+        first = case(mine, PETSc.COMM_SELF, f"self-on-{world.rank}", progress=True)
+        printed = capfd.readouterr().out
         other = case(1 - mine, split, f"split-on-{world.rank}")
     finally:
         split.Free()
     everything = world.allgather({mine: first, 1 - mine: other})
+    assert_all("1 rank(s)" in printed and f"wrote {shared_tmp_path / f'case{mine}-self-on-{world.rank}.h5'}" in printed,
+               f"rank {world.rank} did not print its own case's progress: {printed!r}")
     for index in (0, 1):
         (s0, d0), (s1, d1) = everything[0][index], everything[1][index]
         assert s0["stats"]["steps"] == s1["stats"]["steps"] and s0["final_state"] == s1["final_state"]
