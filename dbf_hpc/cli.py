@@ -403,25 +403,50 @@ def _is_stiffness_table(path: str) -> bool:
 
 def _write_shapes(path: str, fom, reductor, basis) -> None:
     """The basis vectors at the field points as an XDMF time series (step i: basis vector i + 1) and
-    its HDF5 file (_check_shapes_path checked both). Collective (rank 0 writes)."""
+    its HDF5 file (_check_shapes_path checked both). Both are written to temporary files and renamed
+    into place together: a write that fails (a full disk) leaves neither a partial file nor a new
+    .h5 beside an old .xdmf, and is one DbfError on every rank. Collective (rank 0 writes)."""
     import h5py
     import numpy as np
     from petsc4py import PETSc
 
     from . import xdmf
-    from .errors import replacing
+    from .errors import WRITE_ERRORS, DbfError, park, write_failure
 
     h5 = os.path.splitext(path)[0] + ".h5"
     values = reductor.field_values()
-    if PETSc.COMM_WORLD.getRank() == 0:
+    world = PETSc.COMM_WORLD.tompi4py()
+    error = None
+    if world.rank == 0:
+        # Red team: a full disk at the .h5 was "internal error (RuntimeError)" from h5py, then a
+        # segfault as the failed file was freed (serial), with the .h5.tmp file left behind.
+        tmp_h5, tmp_xdmf = f"{h5}.tmp-{os.getpid()}", f"{path}.tmp-{os.getpid()}"
         geometry = fom.operators.field_map().geometry()
-        with replacing(h5) as tmp, h5py.File(tmp, "w") as f:
+        f = None
+        try:
+            f = h5py.File(tmp_h5, "w")
             for name, data in {**xdmf.geometry_datasets(geometry, "shapes"),
                                **xdmf.node_vectors(geometry, values.T, "shapes", "shape")}.items():
                 f.create_dataset(name, data=data)
             f["shapes/omega"] = np.concatenate([basis.omega, basis.enrichment_omega])
             f.attrs["dbf_hpc_version"] = __version__
-        xdmf.write(path, h5, "shapes", geometry[0], geometry[1].shape[0], np.arange(1, values.shape[1] + 1), "shape")
+            f.close()
+            f = None
+            xdmf.write(tmp_xdmf, h5, "shapes", geometry[0], geometry[1].shape[0],
+                       np.arange(1, values.shape[1] + 1), "shape")
+            os.replace(tmp_h5, h5)
+            os.replace(tmp_xdmf, path)
+        except (DbfError, *WRITE_ERRORS) as e:
+            park(f)   # an HDF5 file whose flush failed crashes when freed (errors.PARKED)
+            error = f"cannot write {path} and {h5}: " + (str(e).split(": ", 1)[-1] if isinstance(e, DbfError)
+                                                          else write_failure(e))
+            for tmp in (tmp_h5, tmp_xdmf):
+                if os.path.exists(tmp):
+                    os.remove(tmp)
+    error = world.bcast(error, root=0)
+    if error:
+        raise DbfError(error)
+    if world.rank == 0:
         print(f"wrote {path} and {h5} ({values.shape[1]} shapes)")
 
 

@@ -624,6 +624,30 @@ def test_a_disk_too_small_or_filling_up_is_one_line_never_a_crash(small_disk):
     assert not [p for p in os.listdir(small_disk) if ".tmp" in p]
 
 
+@pytest.mark.parametrize("ranks", [1, 2])
+def test_mode_shapes_and_a_stiffness_table_on_a_full_disk_are_one_line_and_leave_the_old_files(small_disk, ranks):
+    # Red team: basis --xdmf on a full disk was "internal error (RuntimeError)" from h5py, then (1 rank)
+    # a segfault as the failed HDF5 file was freed, with its .tmp file left behind.
+    shapes = small_disk / "shapes.xdmf"
+    assert dbf_hpc("basis", PAPER, "--xdmf", str(shapes), "--no-cache", ranks=ranks).returncode == 0
+    before = {name: (small_disk / name).read_bytes() for name in ("shapes.h5", "shapes.xdmf")}
+    with open(small_disk / "filler", "wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(b"\0" * 4096)
+        except OSError:
+            pass
+    out = dbf_hpc("stiffness", PAPER, "--k", "1:1e9:400", "-o", str(small_disk / "k.csv"), ranks=ranks)
+    assert _one_line(out) and "No space left on device" in out.stderr, out.stderr
+    # room for the file to open and take part of the shapes (0.2 MB): the write fails in the middle
+    os.truncate(small_disk / "filler", os.path.getsize(small_disk / "filler") - 2**17)
+    out = dbf_hpc("basis", PAPER, "--xdmf", str(shapes), "--no-cache", "--set", "structure.elements=300",
+                  "--set", "basis.modes=30", ranks=ranks)
+    assert _one_line(out) and "No space left on device" in out.stderr, out.stderr
+    assert {name: (small_disk / name).read_bytes() for name in before} == before   # the old pair, whole
+    assert sorted(os.listdir(small_disk)) == ["filler", "shapes.h5", "shapes.xdmf"]
+
+
 def test_a_full_order_run_the_disk_fills_under_stops_in_one_line_and_resumes_to_the_uninterrupted_result(
         small_disk, tmp_path):
     # The full-order reference writes from inside its integrator's callbacks; a write the full disk
