@@ -35,6 +35,12 @@ STEPS_PER_PERIOD = 20
 # with no error: FLOOR_STEPS steps in a row there stop the run (StepMonitor.report).
 MIN_STEP_FRACTION = 1e-8
 FLOOR_STEPS = 1000
+# A run whose steps hover just above the floor crawls as well (red team: 1e12 N on the paper's beam under
+# -rom_snes_max_it 1 with the Python callbacks took steps of 5e-11 to 1.5e-10 s, 50 to 150 times the
+# floor, at t = 0.0212 s for 10 minutes, ETA growing): STALL_STEPS steps that together advance less
+# than STALL_STEPS x dt x STALL_FRACTION (a mean step below dt x 1e-5) stop it too.
+STALL_FRACTION = 1e-5
+STALL_STEPS = 10000
 MAX_SAMPLES = 1e9           # 8 GB a series
 CALLBACKS = ("auto", "c", "python")
 # The step controller's defaults for the reduced model (scoped to -rom_, the user's options win):
@@ -188,6 +194,7 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
         # unseen; red team); below dt x MIN_STEP_FRACTION a run crawls whatever the floor
         nominal, floor = settings.dt * MIN_STEP_FRACTION, ts.getStepLimits()[0]
         steps.ts, steps.floor = ts, max(floor, nominal)
+        steps.stall_step = max(steps.floor, settings.dt * STALL_FRACTION)
         steps.floor_source = (f"-{prefix}ts_adapt_dt_min" if floor > nominal else
                               f"[integrator] dt x {MIN_STEP_FRACTION:g}")
         # a user's Newton or step options can starve the step too (-rom_snes_max_it 1): name them
@@ -214,6 +221,7 @@ class StepMonitor:
         self.first_step = self.first_time = None
         self.tol = 1e-9 * max(times[-1], 1.0)
         self.ts = self.floor = self.floor_since = None   # configure sets ts and floor on an adaptive run
+        self.stall_step, self.window = None, None        # configure sets stall_step; window: (step, t)
         self.floor_source, self.floor_options = "", []
 
     def samples_due(self, t: float):
@@ -266,6 +274,23 @@ class StepMonitor:
         elif step - self.floor_since >= FLOOR_STEPS:
             self.stop(self.ts, t, _floor_message(self.floor, self.floor_source, step - self.floor_since, t,
                                                  self.floor_options))
+            return
+        if self.stall_step is None:
+            return
+        if self.window is None:
+            self.window = (step, t)
+        elif step - self.window[0] >= STALL_STEPS:
+            steps, advanced = step - self.window[0], t - self.window[1]
+            if advanced < steps * self.stall_step:
+                given = f"the options given ({' '.join(self.floor_options)}), " if self.floor_options else ""
+                self.stop(self.ts, t, f"the time step stayed near its floor for {steps} steps up to t = {t:.6g} s "
+                                      f"(a mean step of {advanced / steps:.3g} s, below [integrator] dt x "
+                                      f"{STALL_FRACTION:g}), where the error cannot be kept within rtol and atol "
+                                      f"and the run would crawl: check {given}the constraint laws' stiffness and "
+                                      f"damping (k, alpha, c) and the loads against the structure's own scales and "
+                                      f"units, or lower [integrator] dt if the model is that fast")
+            else:
+                self.window = (step, t)
 
 
 def _floor_message(floor: float, source: str, steps: int, t: float, options=()) -> str:

@@ -115,6 +115,40 @@ def test_a_step_held_at_the_controllers_floor_for_floor_steps_stops_the_run_nami
         ts.destroy()
 
 
+def test_steps_hovering_just_above_the_floor_stop_the_run_as_a_crawl_and_healthy_short_steps_do_not():
+    # Red team: 1e12 N on the paper's beam under -rom_snes_max_it 1 with the Python callbacks took steps
+    # of 5e-11 to 1.5e-10 s (50 to 150 times the 1e-12 s floor, never at it) at t = 0.0212 s for 10
+    # minutes: the floor's watch never counted them. A mean step below dt x STALL_FRACTION over
+    # STALL_STEPS steps advances the run by nothing it could finish: it stops with the cause.
+    import numpy as np
+    from petsc4py import PETSc
+
+    from dbf_hpc.timestepping import STALL_FRACTION, STALL_STEPS, StepMonitor, configure
+
+    ts = PETSc.TS().create(comm=PETSc.COMM_SELF)
+    ts.setType(PETSc.TS.Type.ARKIMEX)
+    try:
+        settings = IntegratorSettings(t_end=1.0, dt=1e-4, adaptive=True)
+        monitor = StepMonitor(np.linspace(0.0, 1.0, 11))
+        configure(ts, settings, "rom_", {"ts_adapt_type": "basic"}, True, steps=monitor)
+        healthy = 1e-4 * STALL_FRACTION * 2          # short steps that still advance: an impact resolved
+        ts.setTimeStep(healthy)
+        for step in range(0, 3 * STALL_STEPS, 64):   # the C callbacks report every 64 steps
+            monitor.report(step, 0.5 + step * healthy)
+        assert monitor.failure is None
+        hover, t0, first = 100 * monitor.floor, 0.5 + 3 * STALL_STEPS * healthy, 3 * STALL_STEPS
+        ts.setTimeStep(hover)
+        for step in range(first, first + 2 * STALL_STEPS + 1):
+            monitor.report(step, t0 + (step - first) * hover)
+            if monitor.failure:
+                break
+        assert monitor.failure is not None and step - first <= 2 * STALL_STEPS
+        assert re.search(r"stayed near its floor for \d+ steps up to t = 0\.5\d* s \(a mean step of 1e-10 s",
+                         monitor.failure), monitor.failure
+    finally:
+        ts.destroy()
+
+
 @pytest.mark.parametrize("scale", [0.0, -0.25, 1.5, float("nan"), True])
 def test_an_upper_step_limit_scale_outside_0_to_1_is_refused(scale):
     with pytest.raises(InputError, match="max_step_scale"):
