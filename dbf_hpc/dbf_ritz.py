@@ -63,7 +63,7 @@ from petsc4py import PETSc
 
 from . import _romc
 from .dbf import DERIVATIVE_BACKWARD_TOL, EIGEN_TOL
-from .dbf_shared import SharedFactor, SharedSolver
+from .dbf_shared import SharedFactor, SharedSolver, check_amplification
 from .modes import normalize
 from .operators import Operators
 from .petsctools import destroy, unit_vector
@@ -283,7 +283,9 @@ class RitzSpace:
             for j in moved:                    # mu_m known: the stiffness (dbf.dbf_source)
                 k_auto[j] = auto_stiffness(lam[j], reference[branch[j] - 1], cluster[j])
                 k[j] = k_auto[j] if stiffness == "auto" else float(stiffness)
-            self._spring_stage(np.flatnonzero(stage == 1), q, C, S, gz, k, branch, stage, lam, Y, DY)
+            spring = np.flatnonzero(stage == 1)
+            check_amplification(k[spring], gz[spring], rows[spring])
+            self._spring_stage(spring, q, C, S, gz, k, branch, stage, lam, Y, DY)
             if p + 1 >= P_MAX:
                 stage[(stage == 0) | (stage == 1)] = -1      # P_MAX reached: the shared path
         done = np.flatnonzero(stage == 2)
@@ -674,6 +676,7 @@ class RitzSolver:
         return self.space.sigma + 1.0 / nu[m], [y], converged
 
     def _spring_reduced(self, k: float, branch: int):
+        check_amplification(k, self.gz, self.row)
         c = k / (1.0 + k * self.gz)
         dc = (1.0 / (1.0 + k * self.gz)) ** 2              # d c / dk (squared after the division: no overflow)
         nu, W, beta_row = self._reduced(c, branch)

@@ -58,6 +58,27 @@ EIGEN_NCV = 4            # Krylov-Schur subspace beyond the branch index: conver
 FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering_type": "natural",
                    "pc_factor_zeropivot": "0.0"}
 
+# k g^T A^-1 g above this is refused on the shared and ritz paths: their rank-one (Sherman-Morrison)
+# updates subtract k/(1 + k g^T A^-1 g) terms that cancel as k grows, and the DBF loses about
+# 1e-16 x this amplification to round-off while every backward error still passes. Red team, the
+# paper's 4-stop beam (g^T A^-1 g = 83 to 187 m/N) against the factored path, which gives the same DBFs
+# to 2e-10 from 1e6 to 1e14 N/m: 1.6e-9 at k = 1e7 N/m (amplification 8e8), 1.5e-7 at 1e8 (8e9),
+# 1.6e-4 at 1e10 (8e11), silently. "auto" puts k at the transition (an amplification of order 1-100).
+AMPLIFICATION_LIMIT = 1e9
+
+
+def check_amplification(k, gz, rows) -> None:
+    """SolverError if k g^T A^-1 g > AMPLIFICATION_LIMIT for any of the constraints (k, gz, rows arrays
+    or scalars alike). Not collective: every rank of the group holds the same k and gz."""
+    a = np.atleast_1d(np.asarray(k, dtype=float) * np.asarray(gz, dtype=float))
+    over = np.flatnonzero(np.isfinite(a) & (a > AMPLIFICATION_LIMIT))
+    if over.size:
+        row = int(np.atleast_1d(rows)[over[0]])
+        raise SolverError(f"DBF at row {row}: k g^T (K - sigma M)^-1 g = {a[over[0]]:.3g} is above "
+                          f"{AMPLIFICATION_LIMIT:g}, where the shared factorization's rank-one update loses the "
+                          f"DBF to round-off; use [basis] dbf_solver = \"factor\"")
+
+
 # Work done by this process on the shared path (tests and benchmarks read it).
 counters = {"factorizations": 0, "solves": 0}
 
@@ -192,6 +213,7 @@ class SharedSolver:
 
     def eigenpair(self, k: float, branch: int):
         """(lambda_m, phi_m) of (K + k g g^T, M), phi M-normalized as on the factored path. Collective."""
+        check_amplification(k, self.inverse.gz, self.row)
         Kk = with_spring(self.ops.K, self.row, k)
         self.inverse.set_stiffness(k)
         try:
@@ -205,6 +227,7 @@ class SharedSolver:
 
     def derivative(self, k: float, lam: float, phi: PETSc.Vec) -> PETSc.Vec:
         """d phi/dk from the deflated derivative equation by preconditioned GMRES (module docstring)."""
+        check_amplification(k, self.inverse.gz, self.row)
         A, rhs, Mphi = derivative_system(self.ops, self.row, k, lam, phi)
         self.inverse.set_stiffness(k)
         self.inverse.deflate(phi, Mphi)

@@ -1,5 +1,7 @@
 """One DBF per constraint (dbf.py): the spring-perturbed problem against the exact spring-supported
 beam, the stiffness rule, and the two derivatives."""
+import re
+
 import numpy as np
 import pytest
 import scipy.io
@@ -758,6 +760,30 @@ def test_a_group_whose_copy_of_m_fails_frees_its_copy_of_k_and_its_communicator(
         enrichment._group_operators(broken, MPI.COMM_WORLD.size)
     assert_all(undestroyed_petsc_objects() == before, "the group's copy of K was destroyed")
     assert petsc_garbage(capfd) == 0, "nothing was left in PETSc's garbage"
+
+
+@pytest.mark.parametrize("solver", ["ritz", "shared"])
+def test_a_stiff_given_dbf_stiffness_gives_the_factored_paths_dbf_or_is_refused_on_the_shared_factor(paper, solver):
+    # The DBF at a given k is one vector whatever the solver. Red team: on the paper's 4-stop beam the
+    # factored path gave the same DBFs to 2e-10 from 1e6 to 1e14 N/m, while ritz and shared drifted from
+    # it silently as k g^T (K - sigma M)^-1 g grew (1.5e-7 at 1e8 N/m, 1.6e-4 at 1e10) with every
+    # backward error passing: their rank-one updates cancel. Below the limit they agree to 1e-8; above
+    # it they refuse, naming the factored path.
+    from dbf_hpc.dbf_shared import AMPLIFICATION_LIMIT
+
+    ops, modes, row = paper
+    factor = DbfEnrichment(stiffness=1e5, solver="factor").columns(ops, np.array([row]), modes)
+    shared = DbfEnrichment(stiffness=1e5, solver=solver).columns(ops, np.array([row]), modes)
+    try:
+        a, b = normalized_columns(ops, shared), normalized_columns(ops, factor)
+        assert np.max(np.abs(a - b)) < 1e-8 * np.max(np.abs(b)), np.max(np.abs(a - b)) / np.max(np.abs(b))
+    finally:
+        for c in (factor, shared):
+            c.matrix.destroy()
+    with pytest.raises(SolverError, match=re.escape(f"is above {AMPLIFICATION_LIMIT:g}") + r", where the shared factorization's "
+                                          r"rank-one update loses the DBF to round-off; use \[basis\] dbf_solver "
+                                          r"= \"factor\".*dbf_stiffness = 1e\+10 N/m"):
+        DbfEnrichment(stiffness=1e10, solver=solver).columns(ops, np.array([row]), modes)
 
 
 @pytest.mark.parametrize("solver", ["ritz", "factor"])
