@@ -344,12 +344,13 @@ def check_pairs(ops: Operators, count: int | None) -> None:
                          f"max_frequency_hz")
 
 
-def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None) -> ReducedBasis:
+def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None, reference=None) -> ReducedBasis:
     """The reference modes 1..`modes` (more than basis has) and basis's own enrichment columns,
     M-orthonormalized: span(basis) lies inside the result's span, so the difference between the two
     reduced models measures what the missing modes change (the error estimate, accuracy.py). No
     enrichment is recomputed; the indicator is carried over (f_exact) and recomputed (captured).
-    Collective on ops.comm."""
+    `reference`: the reference modes already solved (a ModalBasis of at least `modes`, kept: the
+    estimate's two richer bases share one eigensolve), else they are solved here. Collective on ops.comm."""
     if getattr(basis, "form", "") == "state_space":
         from .state_space import richer_state_space_basis
         return richer_state_space_basis(ops, basis, modes)
@@ -358,7 +359,9 @@ def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None) -
         return richer_gyroscopic_basis(ops, basis, modes)
     rows = basis.constraint_rows
     N, NL = basis.mode_count, basis.enrichment_count
-    more = reference_modes(ops, count=modes)
+    if reference is not None and reference.count < modes:
+        raise ValueError(f"richer_basis: {reference.count} reference modes given for {modes}")
+    more = reference if reference is not None else reference_modes(ops, count=modes)
     V = _basis_vectors(ops, modes + NL)
     try:
         _insert_columns(V, 0, more.vectors, modes, ops)
@@ -372,9 +375,10 @@ def richer_basis(ops: Operators, basis: ReducedBasis, modes: int, labels=None) -
         V.destroy()
         raise
     finally:
-        destroy(more)
+        if reference is None:
+            destroy(more)
     settings = replace(basis.settings, modes=modes, max_frequency_hz=None)
-    rich = ReducedBasis(vectors=V, omega=more.omega.copy(), enrichment_omega=np.zeros(NL), dbf_k=basis.dbf_k,
+    rich = ReducedBasis(vectors=V, omega=more.omega[:modes].copy(), enrichment_omega=np.zeros(NL), dbf_k=basis.dbf_k,
                         dbf_branch=basis.dbf_branch, constraint_rows=rows, dbf_k_auto=basis.dbf_k_auto,
                         settings=settings, stats={"cache": "off"})
     try:

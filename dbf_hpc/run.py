@@ -26,7 +26,7 @@ from . import __version__, layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
 from .accuracy import (RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window, first_contact,
                        flexibility_warning, is_long, nested_estimate, pick_basis, relative_difference, reused_estimate,
-                       richer_model, statistics_estimate, statistics_window, zeta_per_vector)
+                       richer_models, statistics_estimate, statistics_window, zeta_per_vector)
 from .basis import SUSPICIOUS_HZ
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
@@ -204,16 +204,17 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             cache_state = basis.stats.get("cache", "")
             timings["reduce"] = time.perf_counter() - t
             rich, window = (pick.estimate, pick.estimate.window) if pick else (None, estimate.window)
+            second = None   # the estimate's second richer model (accuracy.nested_estimate)
             if estimate.enabled and initial_state is None and pick is None and fom.constraints.count:
                 t = time.perf_counter()
-                rich = richer_model(fom, basis)
+                rich, second = richer_models(fom, basis)
                 timings["estimate_basis"] = time.perf_counter() - t
     if initial_state is not None:
         model = _continue_from(model, initial_state)
     ident = run_identity(scene, basis_key, comm, "rom", model.coordinates_digest(), request, digests)
     return _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident,
                         {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state},
-                        (rich, window, estimate.statistics_window) if rich is not None and initial_state is None
+                        (rich, window, estimate.statistics_window, second) if rich is not None and initial_state is None
                         else None)
 
 
@@ -502,7 +503,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     a run, or any rank of a sweep). Checkpoints every [output] checkpoint_dt; SIGTERM checkpoints
     and stops (errors.Interrupted); with resume, continues from a valid checkpoint. With estimator =
     (the richer reduced model, or the tolerance mode's calibration Estimate, or why there is none;
-    window or None), the output carries the a-posteriori estimate (accuracy.py). Returns the
+    window or None; the statistics window or None; the second richer model or None), the output carries the a-posteriori estimate (accuracy.py). Returns the
     summary with the final state and excitation phase (for continuation). keep False (a sweep's
     case without keep_outputs): the samples go to path.partial for the checkpoints alone, and the
     finished run writes no output (finish). `remote`: how rank 0 of a run hears of a termination
@@ -594,7 +595,7 @@ def _estimate(estimator, writer, settings, timings: dict, say):
     or None without an estimator. Not collective."""
     if estimator is None:
         return None
-    rich, window, _ = estimator
+    rich, window, second = estimator[0], estimator[1], estimator[3] if len(estimator) > 3 else None
     times = writer.series_data(layout.TIME)
     if isinstance(rich, str):   # why there is no richer model: said like an estimate, not only stored
         estimate = Estimate(np.nan, 0.0, 0.0, rich)
@@ -608,7 +609,7 @@ def _estimate(estimator, writer, settings, timings: dict, say):
     if isinstance(rich, Estimate):   # the tolerance mode's calibration: its richer run is reused
         estimate = reused_estimate(rich, times[:k], w)
     else:
-        estimate = nested_estimate(rich, settings, times[:k], w, end)
+        estimate = nested_estimate(rich, settings, times[:k], w, end, second)
     estimate = blind_to_contact(estimate, contact)
     timings["estimate"] = estimate.seconds
     _say(say, estimate.line())
