@@ -153,7 +153,7 @@ def reference() -> str:
               "identity computes nothing again), and `complete = true` once the run finished. A run of a scene with constraints also has its "
               "a-posteriori error estimate (docs/accuracy.md; not with `[basis] estimate = false`): "
               "`estimated_error` (1, the largest |w - w_rich| at any constraint over the largest |w_rich| at any "
-              "constraint, against max(2N, N + N_L) modes, and also 3N where that differs by 2 % or more (the larger "
+              "constraint, against max(2N, N + N_L) modes, and also 1.5 times those where that differs by 2 % or more (the larger "
               "difference; a reduced run), or a 4 times shorter step (a full-order run: "
               "its step's error, not its mesh's), NaN if it could not be made), `estimated_error_window` (s, "
               "the estimate holds over [0, it]) and `estimated_error_note` (how it was made, or why not). A long "

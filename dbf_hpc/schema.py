@@ -126,7 +126,7 @@ SECTIONS = {
         "estimate": Key((bool,), True, "", "the a-posteriori error estimate of a run (the attribute estimated_error: "
                                            "the largest error in w at any constraint over the largest |w| at any "
                                            "constraint): the same scene on max(2N, N + N_L) modes with the same enrichment "
-                                           "(and on 3N where that differs by 2 % or more: the larger) "
+                                           "(and on 1.5 times those modes where that differs by 2 % or more: the larger) "
                                            "at a 10x tighter rtol, over estimate_window (docs/accuracy.md); with "
                                            "--method full the same model at a 4x shorter step; sweeps and scenes "
                                            "without constraints do not make it"),

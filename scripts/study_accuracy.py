@@ -587,7 +587,7 @@ def estimate_summary(rows: list) -> tuple:
 def estimate_lines(table: list, truths: dict) -> list:
     """The estimate (root attribute estimated_error, over the trusted horizon) against the true error."""
     lines = ["## The a-posteriori estimate against the truth", "",
-             "Every case's estimate (`estimated_error`, the richer basis of max(2N, N + N_L) modes, and 3N where "
+             "Every case's estimate (`estimated_error`, the richer basis of max(2N, N + N_L) modes, and 1.5 times those where "
              "that differs by 2 % or more, at a 10 times tighter rtol, over the truth's trusted horizon: `estimate_window`) next to its true error in the same measure "
              "(error in w: the largest |w - w_truth| at any constraint over the largest |w_truth| at any "
              "constraint). \"each\" is the former per-constraint measure (each constraint over its own peak), for "
