@@ -613,7 +613,7 @@ def _finish(comm, failure: str | None) -> int:
     while not request.Test():
         if failure and time.monotonic() > deadline:
             print(f"dbf-hpc: error: (rank {comm.rank}) {failure}", file=sys.stderr, flush=True)
-            comm.Abort(1)
+            _abort(comm, 1)
         time.sleep(0.005)
     failures = comm.allgather(failure)
     first = next((i for i, f in enumerate(failures) if f), None)
@@ -638,6 +638,7 @@ TERMINATED = ("stopped by a termination signal before the integration began; not
               "again (the basis cache keeps what was finished)")
 # A communicator of its own for the ranks signalled outside an integration (_terminated; made in main)
 _SIGNALLED = None
+_STOPPING = False   # _terminated is under way on this rank (several ranks: it ends in an abort)
 
 
 def _terminated(signum, frame):
@@ -653,20 +654,48 @@ def _terminated(signum, frame):
     Nothing is written before the integration but the basis cache (a temporary file, then a rename)."""
     from .errors import Interrupted
 
+    global _STOPPING
     world = _SIGNALLED
     if world is None or world.size == 1:
         raise Interrupted(TERMINATED)
+    # a second signal while this rank waits below (a batch system signals mpirun, which passes it on, and
+    # the ranks; Ctrl-C pressed again) would start a second barrier inside the first, which the other
+    # ranks' one signal never meets: 10 s more and the job ended as if they had not been signalled (red team)
+    if _STOPPING:
+        return
+    _STOPPING = True
+    # the job ends here whatever the others do (or mpirun, ending it, kills this rank): rank 0's output
+    # lock goes now, where no `finally` will run (red team: OUT.h5.lock was left beside the output);
+    # another rank removes rank 0's just before it aborts the job (_abort), not while rank 0 may go on
+    _release_locks(others=False)
     request = world.Ibarrier()
     deadline = time.monotonic() + 10.0
     while not request.Test():
         if time.monotonic() > deadline:
             print(f"dbf-hpc: error: (rank {world.rank}) {TERMINATED}", file=sys.stderr, flush=True)
-            world.Abort(1)
+            _abort(world, 1)
         time.sleep(0.005)
     if world.rank == 0:
         print(f"dbf-hpc: error: {TERMINATED}", file=sys.stderr, flush=True)
     world.Barrier()   # the line before the abort
-    world.Abort(1)
+    _abort(world, 1)
+
+
+def _release_locks(others: bool = True) -> None:
+    """Remove the output locks this process holds (output.HELD; rank 0's), and with `others` those
+    rank 0 holds (OutputLock.share): before an abort, which runs no `finally`."""
+    from .output import release_held_locks
+
+    try:
+        release_held_locks(others)
+    except Exception:   # the abort must happen whatever the file system says
+        pass
+
+
+def _abort(comm, code: int) -> None:
+    """comm.Abort(code), this process's output locks removed first."""
+    _release_locks()
+    comm.Abort(code)
 
 
 def _quiet_write_failures(unraisable) -> None:
@@ -733,7 +762,7 @@ def main(argv=None) -> int:
               f"traceback.",
               file=sys.stderr, flush=True)
         if comm.size > 1:
-            comm.Abort(70)
+            _abort(comm, 70)
         ending.Free()
         return 70
     code = _finish(ending, failure)

@@ -152,15 +152,48 @@ def series_shapes(constraint_shape: tuple, n_probes: int, r: int) -> dict:
     return shapes
 
 
+# The locks this process holds (OutputLock.acquire adds, release removes): the command removes them
+# before it aborts the job (cli: a termination signal outside an integration on several ranks, a
+# rank's error while another is stuck), where no `finally` runs (red team: SIGTERM during the basis
+# on 2 ranks left OUT.h5.lock beside the output)
+HELD: dict = {}
+
+
+def release_held_locks(others: bool = True) -> None:
+    """Remove every lock this process holds (its own only: the file still names this process), and
+    with `others` those rank 0 of this job holds that this rank knows of (OutputLock.share: a rank
+    that aborts the job ends rank 0 too, which may be stuck where it cannot remove its own). Not
+    collective."""
+    for lock in list(HELD.values()):
+        if others or not lock.shared:
+            lock.release()
+
+
 class OutputLock:
     """An exclusive claim on an output: `PATH.lock`, created atomically (O_CREAT | O_EXCL works on
     NFS and Lustre, where HDF5's own file locking is often switched off), holding the host and pid
     of the job. A second job on the same output is refused; a lock whose job is gone (same host, no
-    such process) is taken over. Rank 0 only."""
+    such process) is taken over. Rank 0 only. A lock made is registered in HELD at once (before its
+    content is written), so that a stop at any point removes it."""
 
     def __init__(self, path: str, what: str = "output"):
         self.path, self.lock, self.what = path, f"{path}.lock", what
-        self.held = False
+        self.held, self.owner, self.written, self.shared = False, None, False, False
+
+    def share(self, comm) -> None:
+        """Every rank of `comm` learns the lock rank 0 holds (collective, after rank 0 acquired it): a
+        rank that aborts the job removes it (release_held_locks), as rank 0 may not get to. Rank 0's
+        own release stays the normal way; the others end with forget()."""
+        world = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+        owner = world.bcast(self.owner if world.rank == 0 else None, root=0)
+        if world.rank != 0 and owner is not None:
+            self.held, self.owner, self.written, self.shared = True, owner, True, True
+            HELD[id(self)] = self
+
+    def forget(self) -> None:
+        """Stop knowing a lock another rank holds (share), without touching it."""
+        HELD.pop(id(self), None)
+        self.held = self.shared = False
 
     def acquire(self) -> None:
         owner = f"{socket.gethostname()} {os.getpid()}\n"
@@ -176,13 +209,18 @@ class OutputLock:
                                  f"wait for it, or remove {self.lock} if that job is gone") from None
             except OSError as e:
                 raise InputError(f"{self.what} {self.path!r}: cannot create {self.lock}: {e.strerror or e}") from None
+            self.held, self.owner, self.written = True, owner, False
+            HELD[id(self)] = self
             try:
                 with os.fdopen(fd, "w") as f:
                     f.write(owner)
+                self.written = True
             except OSError as e:
-                os.remove(self.lock)
+                self.release()
                 raise InputError(f"{self.what} {self.path!r}: cannot write {self.lock}: {e.strerror or e}") from None
-            self.held = True
+            except BaseException:   # a termination signal (errors.Interrupted) between the create and the write
+                self.release()
+                raise
             return
         raise InputError(f"{self.what} {self.path!r}: cannot take the lock {self.lock}; remove it if no job runs")
 
@@ -242,10 +280,18 @@ class OutputLock:
             os.remove(aside)
 
     def release(self) -> None:
+        """Remove the lock if this process holds it (and its file is still ours: naming this process,
+        or not yet written; a lock removed by hand and made again by another job stays)."""
+        HELD.pop(id(self), None)
         if self.held:
             try:
-                os.remove(self.lock)
+                with open(self.lock) as f:
+                    ours = f.read() == self.owner or not self.written
+                if ours:
+                    os.remove(self.lock)
             except FileNotFoundError:
+                pass
+            except OSError:
                 pass
         self.held = False
 

@@ -71,10 +71,13 @@ def claimed(path: str, comm):
     lock = OutputLock(path)
     decided_on_rank0(comm, lock.acquire)
     try:
+        lock.share(comm)   # a rank that aborts the job removes it (cli._abort)
         yield
     finally:
         if comm.getRank() == 0:
             lock.release()
+        else:
+            lock.forget()
 
 
 @petsc_errors_as_one_line()

@@ -626,10 +626,13 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     if problem:
         raise InputError(problem)
     try:
+        lock.share(world)   # a rank that aborts the job removes it (cli._abort)
         return _sweep(sweep, folder, output, world, say, progress)
     finally:
         if world.rank == 0:
             lock.release()
+        else:
+            lock.forget()
 
 
 def _sweep(sweep, folder, output, world, say, progress) -> dict:

@@ -139,6 +139,53 @@ def test_sigterm_to_rank_1_alone_in_a_collective_basis_ends_the_job_with_one_lin
     assert not any(os.path.exists(f"{out_path}{tail}") for tail in ("", ".partial", ".checkpoint"))
 
 
+_TERMINATED_IN_THE_BASIS = """
+import os, signal, sys, threading, time
+from mpi4py import MPI
+from dbf_hpc import basis, cli
+
+modes = basis.reference_modes
+who = sys.argv[3]
+
+def terminated(*args, **kwargs):   # the signal lands as the reference modes are done (collective work follows)
+    found = modes(*args, **kwargs)
+    rank = MPI.COMM_WORLD.rank
+    if who == "rank 1" and rank == 1:
+        os.kill(os.getpid(), signal.SIGTERM)
+    if who == "both, rank 0 twice":   # mpirun passes the batch system's signal on, which also signals rank 0
+        if rank == 0:   # its second while it waits for rank 1, whose one comes later
+            threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM)).start()
+        else:
+            time.sleep(1.0)
+        os.kill(os.getpid(), signal.SIGTERM)
+    return found
+
+basis.reference_modes = terminated
+sys.exit(cli.main(["run", sys.argv[1], "-q", "-o", sys.argv[2], "--set", "basis.cache=off"]))
+"""
+
+
+@pytest.mark.parametrize("who", ["rank 1", "both, rank 0 twice"])
+def test_a_termination_signal_before_the_integration_on_two_ranks_leaves_no_lock_and_one_line(tmp_path, who):
+    # Red team: SIGTERM during the basis on 2 ranks ended in MPI_Abort, which runs no `finally`: OUT.h5.lock
+    # stayed beside the output (rank 0, stuck in the collective eigensolve when rank 1 alone was signalled,
+    # never got to remove it). And a second signal to rank 0 while it waited for the others started a
+    # barrier inside the first: the job ended 10 s later with rank 0's line instead of the common one.
+    script = tmp_path / "terminated.py"
+    script.write_text(_TERMINATED_IN_THE_BASIS)
+    out_path = tmp_path / "beam.h5"
+    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script), PAPER, str(out_path), who],
+                         capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+    lines = [line for line in out.stderr.splitlines() if line.startswith("dbf-hpc")]
+    prefix = "(rank 1) " if who == "rank 1" else ""
+    assert out.returncode != 0 and lines == [
+        f"dbf-hpc: error: {prefix}stopped by a termination signal before the integration began; nothing was "
+        f"written: rerun to start again (the basis cache keeps what was finished)"], out.stderr
+    assert "Traceback" not in out.stderr
+    assert sorted(os.listdir(tmp_path)) == ["terminated.py"], "nothing written, and no lock left"
+
+
 def test_modes_of_the_paper_beam_are_the_euler_bernoulli_frequencies():
     out = dbf_hpc("modes", PAPER, "--set", "basis.modes=4", "-modes_eps_tol", "1e-12")
     assert out.returncode == 0, out.stderr

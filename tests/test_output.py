@@ -155,6 +155,22 @@ def test_a_lock_left_by_a_dead_job_on_this_host_is_taken_over(tmp_path):
         OutputLock(target).acquire()
 
 
+def test_the_locks_a_process_holds_are_removed_before_an_abort_but_never_another_jobs(tmp_path):
+    # An abort (cli._abort) runs no `finally`: the locks this process holds are released from
+    # output.HELD first. Only its own: a lock removed by hand and made again by another job stays.
+    from dbf_hpc.output import HELD, release_held_locks
+
+    ours, theirs = OutputLock(str(tmp_path / "a.h5")), OutputLock(str(tmp_path / "b.h5"))
+    ours.acquire()
+    theirs.acquire()
+    os.remove(theirs.lock)
+    with open(theirs.lock, "w") as f:
+        f.write("another-host 12345\n")
+    release_held_locks()
+    assert not os.path.exists(ours.lock) and not HELD
+    assert open(theirs.lock).read() == "another-host 12345\n"
+
+
 def test_every_dataset_of_a_run_carries_its_unit(shared_tmp_path):
     import h5py
 
