@@ -53,7 +53,8 @@ def termination_signals() -> tuple:
 class _Termination:
     """Whether this process received a termination signal during the integration under way: run.py's
     handlers set it on every rank (rank 0's also asks its own checkpoint), and the integrations tell
-    rank 0 of another rank's (fom_integrator's control points, run.RemoteStop). Red team: a SIGTERM to
+    rank 0 of another rank's (fom_integrator's control points, run.RemoteStop; a sweep's ranks tell
+    each other, sweep._Stop). Red team: a SIGTERM to
     rank 1 alone of a 2-rank run was ignored, and the job ran on to its end."""
 
     requested = False

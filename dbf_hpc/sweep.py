@@ -35,8 +35,10 @@ How it runs (collective on COMM_WORLD):
    with the identity of the case (its validated scene, the bytes of the files it reads, the rank
    count and callbacks, and in a chain its predecessors' identities): a rerun skips the cases that
    are done and still the same (with keep_outputs, whose complete output of that identity is still
-   beside it), and reruns the others (on another rank count: all, and says why). SIGTERM stops every rank at its next step (a running case is
-   checkpointed); rerun the same command to go on. The base scene is read once, at the start.
+   beside it), and reruns the others (on another rank count: all, and says why). A termination signal (SIGTERM, Ctrl-C) on any rank, even
+   one rank alone, stops every rank at its running case's next step (checkpointed, no record) or
+   before its next case; the command ends with one line and exit status 1; rerun the same command
+   to go on. The base scene is read once, at the start.
    A full disk (a record or a case's HDF5 file that cannot be written) stops every rank.
 5. Rank 0 writes the summary. The summary is locked while a sweep runs: a second sweep on the
    same output is refused.
@@ -63,14 +65,14 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
-from .errors import (PARKED, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park, replacing,
-                     decided_on_rank0, is_number, termination_signals, warn, write_failure)
+from .errors import (PARKED, TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park,
+                     replacing, decided_on_rank0, is_number, termination_signals, warn, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import (coarse_samples_warning, coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks,
-                  idle_warnings, run_case, scene_callbacks, unresolved_warnings)
+from .run import (STOP_TAG, coarse_samples_warning, coarse_step_warning, finished_output, forcing_warning,
+                  gyroscopic_checks, idle_warnings, run_case, scene_callbacks, unresolved_warnings)
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -461,12 +463,24 @@ def _final_excitation(model, t_end: float) -> dict:
 
 
 class _Stop:
-    """SIGTERM during a sweep: no new case starts (a running case checkpoints and stops itself)."""
+    """A termination signal during a sweep, on any rank, stops every rank (red team: SIGTERM to rank 1
+    alone stopped rank 1, and rank 0 ran all its remaining cases before the sweep ended). The
+    signalled rank tells every other rank with a message (STOP_TAG, on a communicator of the sweep's
+    own) as soon as it sees its signal: between cases, at its running case's steps (run_case's
+    `remote`: Checkpointing polls `poll`), or while it waits for the others at the end (finish). A
+    rank that hears it checkpoints its running case at the end of the step, as at its own signal, or
+    starts no new case. finish receives every message sent: none is left in MPI. Collective: made,
+    finished and closed on every rank."""
 
-    def __init__(self):
-        self.requested = False
+    POLL = 0.05   # s of wall time between looks for a message during a case (as run.RemoteStop)
+
+    def __init__(self, world):
+        self.comm = world.Dup()
+        self.requested = self.heard = False
+        self.sends, self.received, self.last = [], 0, -float("inf")
 
     def __enter__(self):
+        TERMINATION.requested = False
         self.previous = {}
         try:
             for signum in termination_signals():   # SIGTERM, and Ctrl-C
@@ -477,6 +491,45 @@ class _Stop:
 
     def _handle(self, signum, frame):
         self.requested = True
+
+    def tell(self) -> None:
+        """Tell every other rank that this one was signalled (once)."""
+        self.requested = True
+        if not self.sends and self.comm.size > 1:
+            self.sends = [self.comm.isend(True, dest=rank, tag=STOP_TAG) for rank in range(self.comm.size)
+                          if rank != self.comm.rank]
+
+    def poll(self, wait: bool = True) -> bool:
+        """Whether the sweep is to stop: this rank's signal (the sweep's handler, or the running case's:
+        errors.TERMINATION), told to the others, or another rank's message, looked for at most every
+        POLL s (wait False: now). Not collective."""
+        if self.requested or TERMINATION.requested:
+            self.tell()
+            return True
+        now = time.perf_counter()
+        if not self.heard and (not wait or now - self.last >= self.POLL):
+            self.last = now
+            while self.comm.iprobe(source=MPI.ANY_SOURCE, tag=STOP_TAG):
+                self.comm.recv(source=MPI.ANY_SOURCE, tag=STOP_TAG)
+                self.received, self.heard = self.received + 1, True
+        return self.heard
+
+    def finish(self) -> bool:
+        """Every rank, its cases done or stopped: wait for the others without blocking (a signal
+        meanwhile is told to them, who may still be running cases), then receive the messages still
+        on their way. Returns whether any rank was signalled. Collective."""
+        request = self.comm.Ibarrier()
+        while not request.Test():
+            self.poll()
+            time.sleep(0.02)
+        told = self.comm.allgather(bool(self.sends))
+        while self.received < sum(told) - told[self.comm.rank]:
+            self.comm.recv(source=MPI.ANY_SOURCE, tag=STOP_TAG)
+            self.received += 1
+        MPI.Request.Waitall(self.sends)
+        self.sends = []
+        self.comm.Free()   # here, not in __exit__: an exception on one rank must not meet a collective call
+        return any(told)
 
     def __exit__(self, *exc):
         for signum, previous in self.previous.items():
@@ -489,8 +542,9 @@ def _record(sweep, index: int, identity: str, continued: bool) -> dict:
             **_setup(sweep["scenes"][index])}
 
 
-def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dict:
-    """One case on this rank: its record (status ok or failed), or Interrupted."""
+def _run_one(sweep, index, folder, cache_dir, models, identity, previous, stop=None) -> dict:
+    """One case on this rank: its record (status ok or failed), or Interrupted (a signal on this rank
+    or, through `stop` (_Stop), another's)."""
     record = _record(sweep, index, identity, previous is not None)
     t = time.perf_counter()
     case_out = os.path.join(folder, f"case-{index:05d}.h5")
@@ -506,10 +560,10 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous) -> dic
         _drop_stale_checkpoint(case_out, ident)
         keep = sweep["keep_outputs"]
         try:
-            summary = run_case(scene, model, case_out, resume=True, ident=ident, keep=keep)
+            summary = run_case(scene, model, case_out, resume=True, ident=ident, keep=keep, remote=stop)
         except Unresumable:   # a valid checkpoint, a .partial that cannot continue: the case starts again
             _remove(f"{case_out}.partial", f"{case_out}.checkpoint")
-            summary = run_case(scene, model, case_out, resume=True, ident=ident, keep=keep)
+            summary = run_case(scene, model, case_out, resume=True, ident=ident, keep=keep, remote=stop)
         record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
                       solver=summary["stats"], final_state=summary["final_state"],
                       coordinates=model.coordinates_digest(), warnings=_case_warnings(scene, model, summary),
@@ -561,7 +615,7 @@ def _remove(*paths: str) -> None:
 
 def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, stop, tell) -> int:
     """This rank's chains; returns how many cases it ran; tell(line) reports each case (from any
-    rank). Stops at SIGTERM (Interrupted)."""
+    rank). Stops at a termination signal on any rank (`stop`, _Stop: Interrupted)."""
     done = 0
     for chain in mine:
         previous = broken = None
@@ -570,7 +624,7 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
                 previous = _read_json(_case_file(folder, index))
                 previous = previous if previous and previous.get("status") == "ok" else None
                 continue
-            if stop.requested:
+            if stop.poll(wait=False):
                 raise Interrupted("stopped by a termination signal")
             parked = len(PARKED)
             if broken is not None:
@@ -580,7 +634,7 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
                           "error": f"not run: case {broken + 1}, the step before it in its continuation chain, failed"}
             else:
                 record = _run_one(sweep, index, folder, cache_dir, models, identities[index],
-                                  previous if len(chain) > 1 else None)
+                                  previous if len(chain) > 1 else None, stop)
             _write_json(_case_file(folder, index), record)
             previous = record if record["status"] == "ok" else None
             if record["status"] != "ok" and len(chain) > 1 and broken is None:
@@ -675,14 +729,17 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     chains = [c for c in sweep["chains"] if any(i in pending for i in c)]
     mine = chains[world.rank::world.size]
     stopped = unwritten = None
-    with _Stop() as stop:
+    with _Stop(world) as stop:
         try:
             tell = (lambda m: print(m, flush=True)) if progress else (lambda m: None)   # every rank's cases
             _run_chains(sweep, mine, set(pending), folder, cache_dir, models, identities, stop, tell)
         except Interrupted:
             stopped = True
+            if not stop.heard:   # this rank's own signal (also one that stopped its case after the integration)
+                stop.tell()
         except DbfError as e:   # a case's record, or a case's HDF5 file, could not be written (a full disk)
             unwritten = str(e)
+        stop.finish()   # a rank that had run out of cases, signalled while it waited, stops the others too
     # every rank hears of either (red team: a record that failed on one rank left the other in this
     # reduction, and the job ended in the command's 10 s timeout and MPI_Abort, the lock left behind)
     unwritten = next((p for p in world.allgather(unwritten) if p), None)

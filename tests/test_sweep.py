@@ -652,6 +652,58 @@ def test_a_case_stopped_on_two_ranks_is_not_continued_in_the_basis_one_rank_rebu
         assert np.array_equal(finished[name], uninterrupted[name], equal_nan=True), name
 
 
+def _rank_pids(launcher) -> dict:
+    """{rank: pid} of the processes mpirun `launcher` started (their OMPI_COMM_WORLD_RANK)."""
+    import subprocess
+
+    pids = {}
+    for pid in subprocess.run(["pgrep", "-P", str(launcher.pid)], capture_output=True, text=True).stdout.split():
+        with open(f"/proc/{pid}/environ", "rb") as f:
+            env = dict(item.split(b"=", 1) for item in f.read().split(b"\0") if b"=" in item)
+        if b"OMPI_COMM_WORLD_RANK" in env:
+            pids[int(env[b"OMPI_COMM_WORLD_RANK"])] = int(pid)
+    return pids
+
+
+@pytest.mark.launcher
+def test_a_termination_signal_to_rank_1_alone_stops_the_case_rank_0_is_running(tmp_path):
+    # Red team: SIGTERM to rank 1 alone of a 2-rank sweep stopped rank 1 only; rank 0 ran every case it had
+    # left (hours, on a real study) before the sweep said it was stopped. Here rank 1's one short case is
+    # done and it waits at the end: its signal stops rank 0's long case at a step, checkpointed (no record:
+    # it is not finished), one line, exit 1; the rerun resumes it and finishes both.
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    path = tmp_path / "stop.toml"
+    path.write_text(f'scene = "{PAPER}"\noutput = "stop.h5"\n[[case]]\n"integrator.t_end" = 40.0\n'
+                    '"output.checkpoint_dt" = 1.0\n[[case]]\n"integrator.t_end" = 0.5\n')
+    env = {**os.environ, "OMPI_MCA_orte_execute_quiet": "1", "OMPI_MCA_rmaps_base_oversubscribe": "1",
+           "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    cmd = ["mpirun", "-n", "2", sys.executable, "-m", "dbf_hpc.cli", "sweep", str(path), "-q"]
+    job = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    folder = tmp_path / "stop.h5.cases"
+    deadline = time.monotonic() + 120
+    while not (folder / "case-00001.json").exists():   # rank 1's case (cases are dealt round-robin)
+        assert job.poll() is None and time.monotonic() < deadline, "rank 1's case did not finish"
+        time.sleep(0.02)
+    os.kill(_rank_pids(job)[1], signal.SIGTERM)
+    _, err = job.communicate(timeout=120)
+    lines = [line for line in err.splitlines() if line.startswith("dbf-hpc")]
+    assert job.returncode == 1 and lines == [
+        "dbf-hpc: error: sweep stopped by a termination signal with 1 of 2 cases done; rerun the same command to "
+        "continue (finished cases are kept, a running one resumes from its checkpoint)"], err
+    assert not (folder / "case-00000.json").exists(), "rank 0's case was stopped, not run to its end"
+    with h5py.File(folder / "case-00000.h5.checkpoint") as f:   # the simulated time it stopped at
+        assert 0 < f["t"][()] < 40.0
+    assert not (tmp_path / "stop.h5.lock").exists()
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    with h5py.File(tmp_path / "stop.h5") as f:
+        assert [s.decode() for s in f["cases/status"][:]] == ["ok", "ok"]
+
+
 def test_a_case_whose_model_cannot_be_built_is_recorded_and_the_others_go_on(shared_tmp_path):
     path = write_sweep(shared_tmp_path, SMALL + '[[case]]\n"basis.modes" = 500\n"integrator.t_end" = 0.3\n')
     result = run_sweep(path, progress=False)
