@@ -555,7 +555,8 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     stats.update(extra_stats or {})
     try:
         with _stop_on_sigterm(estimator is not None, "stopped by a termination signal during the error estimates, "
-                              "after the integration; rerun with --resume to finish from the last checkpoint"):
+                              "after the integration; rerun with --resume to finish from the last checkpoint",
+                              remote):
             estimate = _estimate(estimator, writer, settings, timings, say)
             long_run = _estimate_statistics(estimator, estimate, writer, model.constraints, settings, timings, say)
     except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
@@ -825,14 +826,41 @@ def _wait_telling(world) -> int:
     return sent
 
 
-def _stop_on_sigterm(active: bool, message: str):
+@contextlib.contextmanager
+def _stop_on_sigterm(active: bool, message: str, remote: RemoteStop | None = None):
     """While the block runs (rank 0's error estimates after its integration, when active), SIGTERM
     stops it with errors.Interrupted(message) instead of the command's message for a job that has
-    not integrated yet."""
+    not integrated yet. With `remote`, another rank's signal too: the estimates integrate a richer
+    model with no hook of ours (they may cost what the run did: a long run's statistics), so an alarm
+    (SIGALRM, every ALARM s of wall time, system calls restarted) looks for the message and raises
+    as the signal would (red team: a SIGTERM to rank 1 alone in the estimate was not acted on)."""
     def handler(signum, frame):
         raise Interrupted(message)
 
-    return _on_sigterm(handler if active else None)
+    def alarm(signum, frame):
+        if remote.poll():
+            raise Interrupted(message)
+
+    with _on_sigterm(handler if active else None):
+        armed = previous = None
+        if active and remote is not None:
+            try:
+                previous = signal.signal(signal.SIGALRM, alarm)
+                signal.siginterrupt(signal.SIGALRM, False)
+                armed = signal.setitimer(signal.ITIMER_REAL, ALARM, ALARM)
+            except ValueError:  # not the main thread
+                pass
+        try:
+            yield
+        finally:
+            if armed is not None:
+                try:   # the timer off first: SIGALRM's default action ends the process
+                    signal.setitimer(signal.ITIMER_REAL, *armed)
+                finally:
+                    signal.signal(signal.SIGALRM, previous)
+
+
+ALARM = 0.1   # s: how often rank 0's error estimates look for another rank's termination signal
 
 
 def sample_work_rate_ci95(writer, constraints) -> np.ndarray:

@@ -549,6 +549,51 @@ def test_sigterm_to_rank_1_alone_stops_a_reduced_run_for_resume(shared_tmp_path,
     _same_samples(whole, out, ("time", "constraints/displacement", "constraints/force", "reduced/q"))
 
 
+def test_sigterm_to_rank_1_alone_during_the_error_estimate_stops_the_run_for_resume(shared_tmp_path, monkeypatch):
+    # Red team: rank 0 makes a reduced run's estimates alone after its integration (a long run's
+    # statistics cost about what the run did), and a SIGTERM to rank 1 alone then was not acted on: the
+    # job ran on to its end. Rank 1's word now stops the estimate as rank 0's own signal does: the line
+    # says so on every rank, the samples and the checkpoint stay, and the resume is the uninterrupted run.
+    if MPI.COMM_WORLD.size < 2:
+        pytest.skip("a signal to another rank than 0: run on 2 ranks")
+    from dbf_hpc import run as run_module
+
+    world, in_estimate = MPI.COMM_WORLD, 7302
+    sets = ["integrator.t_end=0.05", "output.checkpoint_dt=0.01", f"basis.cache={shared_tmp_path / 'cache'}"]
+    whole, out = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
+    run(load_scene(PAPER, sets), whole, progress=False)
+    if world.rank == 0:
+        original = run_module._estimate
+
+        def estimate_after_the_word(*args, **kwargs):   # rank 1 is signalled once rank 0 is in its estimate
+            world.send(True, dest=1, tag=in_estimate)
+            deadline = time.monotonic() + 60   # the alarm raises in this wait (bounded: no hang if it does not)
+            while time.monotonic() < deadline:
+                time.sleep(0.01)
+            return original(*args, **kwargs)
+
+        monkeypatch.setattr(run_module, "_estimate", estimate_after_the_word)
+    elif world.rank == 1:
+        wait = run_module._wait_telling
+
+        def signalled_in_the_estimate(comm):
+            comm.recv(source=0, tag=in_estimate)
+            os.kill(os.getpid(), signal.SIGTERM)   # the handler the run installed takes it
+            return wait(comm)
+
+        monkeypatch.setattr(run_module, "_wait_telling", signalled_in_the_estimate)
+    with pytest.raises(SolverError, match="during the error estimates, after the integration; rerun with --resume "
+                                          r"to finish from the last checkpoint \(samples so far in .*partial"):
+        run(load_scene(PAPER, sets), out, progress=False)
+    monkeypatch.undo()
+    assert signal.getsignal(signal.SIGALRM) in (signal.SIG_DFL, None) and signal.getitimer(signal.ITIMER_REAL)[0] == 0
+    assert_all(not os.path.exists(out) and os.path.exists(out + ".partial") and os.path.exists(out + ".checkpoint"))
+    resume(sets, out)
+    _same_samples(whole, out, ("time", "constraints/displacement", "constraints/force", "reduced/q"))
+    with h5py.File(whole) as a, h5py.File(out) as b:
+        assert a.attrs["estimated_error"] == b.attrs["estimated_error"]
+
+
 def test_sigterm_to_rank_1_alone_stops_a_full_order_run_for_resume(shared_tmp_path, monkeypatch):
     # Red team: only rank 0's signal stopped a full-order run; every rank integrates it, and rank 1's
     # flag reaches rank 0 at the next control point, where every rank stops after rank 0's checkpoint.
