@@ -652,9 +652,11 @@ def _terminated(signum, frame):
     else after 10 s this rank prints it with its number; then the job aborts. A rank that mpirun
     signals as it ends the job after another rank's error is killed within those 10 s, silently.
     Nothing is written before the integration but the basis cache (a temporary file, then a rename)."""
-    from .errors import Interrupted
+    from .errors import TERMINATION, Interrupted
 
     global _STOPPING
+    if TERMINATION.finished:   # the output is complete on every rank: the command ends at once (red team:
+        return                 # it said "nothing was written", exit 1, and on 2 ranks aborted after 10 s)
     world = _SIGNALLED
     if world is None or world.size == 1:
         raise Interrupted(TERMINATED)
@@ -731,7 +733,7 @@ def main(argv=None) -> int:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from .errors import DbfError, petsc_failure, termination_signals
+    from .errors import TERMINATION, DbfError, petsc_failure, termination_signals
     from .petsctools import command_options
 
     comm = MPI.COMM_WORLD
@@ -741,6 +743,7 @@ def main(argv=None) -> int:
     global _SIGNALLED
     if _SIGNALLED is None:   # once a process (main runs many times in the tests)
         _SIGNALLED = comm.Dup()
+    TERMINATION.finished = False
     for signum in termination_signals():   # SIGTERM, and Ctrl-C; integrations and sweeps install their own
         signal.signal(signum, _terminated)
     try:

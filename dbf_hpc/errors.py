@@ -58,6 +58,9 @@ class _Termination:
     rank 1 alone of a 2-rank run was ignored, and the job ran on to its end."""
 
     requested = False
+    # The command's output is complete, and every rank knows it (run.run, sweep.run_sweep): a termination
+    # signal from now on is not acted on, the command ends at once (cli._terminated)
+    finished = False
 
 
 TERMINATION = _Termination()

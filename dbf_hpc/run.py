@@ -108,6 +108,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     if method == "full" or not settings.adaptive:
         _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
     _warn_coarse_samples(settings, scene.fastest_forcing_hz(), comm)
+    TERMINATION.finished = False
     with claimed(path, comm):
         digests = scene.file_digests(comm)   # once: the request and the run's identity hold the same bytes
         request = request_identity(scene, comm, method, initial_state, digests)
@@ -117,6 +118,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
                 _drop_leftover_checkpoint(path)
             _say(say, f"{path} is already complete for this scene and setup: nothing to resume (`dbf-hpc info "
                       f"{path}` shows it; rerun without --resume to compute it again)")
+            TERMINATION.finished = True
             return done
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
     _warn_idle(summary, scene.constraints, comm)
@@ -484,19 +486,25 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
                                ranks=world.size, timings=timings, estimator=estimator, remote=remote)
         except DbfError as exc:
             failure = (type(exc).__name__, str(exc))
-    else:
-        with _interrupt_on_sigterm(None):   # a signal here is sent to rank 0 (RemoteStop)
+    # The other ranks: a signal while rank 0 runs is sent to it (RemoteStop). Once rank 0's run has
+    # ended, the outcome is its: a signal on any rank is not acted on until every rank knows it (red
+    # team: the command's handler, taking it here, said "before the integration began; nothing was
+    # written" of a finished output, and on 2 ranks waited 10 s and aborted)
+    with _interrupt_on_sigterm(None):
+        if world.rank == 0:
+            wait_for_rank0(world)
+        else:
             sent = _wait_telling(world)
-    if world.rank == 0:
-        wait_for_rank0(world)
-    sent = world.reduce(sent, root=0)
-    if remote is not None:
-        remote.drain(sent)
-    failure = world.bcast(failure, root=0)
+        sent = world.reduce(sent, root=0)
+        if remote is not None:
+            remote.drain(sent)
+        failure = world.bcast(failure, root=0)
+        summary = world.bcast(summary if not failure else None, root=0)
     if failure:
         kinds = {kind.__name__: kind for kind in (InputError, Unresumable, SolverError, Interrupted)}
         raise kinds.get(failure[0], DbfError)(failure[1])
-    return world.bcast(summary, root=0)
+    TERMINATION.finished = True
+    return summary
 
 
 def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: bool = False, ident=None,
@@ -1227,6 +1235,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     if failure:
         kinds = {kind.__name__: kind for kind in (InputError, Unresumable, SolverError, Interrupted)}
         raise kinds.get(failure[0], DbfError)(failure[1])
+    TERMINATION.finished = True
     return summary
 
 

@@ -35,10 +35,12 @@ How it runs (collective on COMM_WORLD):
    with the identity of the case (its validated scene, the bytes of the files it reads, the rank
    count and callbacks, and in a chain its predecessors' identities): a rerun skips the cases that
    are done and still the same (with keep_outputs, whose complete output of that identity is still
-   beside it), and reruns the others (on another rank count: all, and says why). A termination signal (SIGTERM, Ctrl-C) on any rank, even
-   one rank alone, stops every rank at its running case's next step (checkpointed, no record) or
-   before its next case; the command ends with one line and exit status 1; rerun the same command
-   to go on. The base scene is read once, at the start.
+   beside it), and reruns the others (on another rank count: all, and says why). A termination
+   signal (SIGTERM, Ctrl-C) on any rank, even one rank alone, stops every rank at its running case's
+   next step (checkpointed, no record) or before its next case; the command ends with one line and
+   exit status 1; rerun the same command to go on. Once every rank has stopped or finished its
+   cases, a signal is not acted on (the summary is written). The base scene is read once, at the
+   start.
    A full disk (a record or a case's HDF5 file that cannot be written) stops every rank.
 5. Rank 0 writes the summary. The summary is locked while a sweep runs: a second sweep on the
    same output is refused.
@@ -71,8 +73,8 @@ from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import (STOP_TAG, coarse_samples_warning, coarse_step_warning, finished_output, forcing_warning,
-                  gyroscopic_checks, idle_warnings, run_case, scene_callbacks, unresolved_warnings)
+from .run import (STOP_TAG, _interrupt_on_sigterm, coarse_samples_warning, coarse_step_warning, finished_output,
+                  forcing_warning, gyroscopic_checks, idle_warnings, run_case, scene_callbacks, unresolved_warnings)
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -658,6 +660,7 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     # rank 0 reads the sweep file and its scenes, every rank runs them: each rank's own read could
     # differ (a file edited while the job started) or fail alone (a node that cannot read the path)
     sweep = decided_on_rank0(world, load_sweep, path, overrides)
+    TERMINATION.finished = False
     output, folder = sweep["output"], sweep["output"] + ".cases"
     say = (lambda m: PETSc.Sys.Print(m)) if progress else (lambda m: None)
     lock = OutputLock(output, "sweep summary")
@@ -740,31 +743,39 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
         except DbfError as e:   # a case's record, or a case's HDF5 file, could not be written (a full disk)
             unwritten = str(e)
         stop.finish()   # a rank that had run out of cases, signalled while it waited, stops the others too
-    # every rank hears of either (red team: a record that failed on one rank left the other in this
-    # reduction, and the job ended in the command's 10 s timeout and MPI_Abort, the lock left behind)
-    unwritten = next((p for p in world.allgather(unwritten) if p), None)
-    if unwritten:
-        raise DbfError(f"{unwritten}; the cases recorded so far are kept in {folder}: free some space, then rerun "
-                       f"the same command")
-    stopped = world.allreduce(bool(stopped), op=MPI.LOR)
-    if stopped:
-        finished = [_read_json(_case_file(folder, i)) or {} for i in range(n)]
-        done = sum(r.get("identity") == identities[i] and r.get("status") == "ok" for i, r in enumerate(finished))
-        raise Interrupted(f"sweep stopped by a termination signal with {done} of {n} cases done; rerun the same "
-                          f"command to continue (finished cases are kept, a running one resumes from its checkpoint)")
-    failed = problem = None
-    if world.rank == 0:
-        try:
-            failed = _write_summary(sweep, folder, output)
-        except WRITE_ERRORS as e:   # every rank hears of it (the case files stay: a rerun only writes this)
-            if os.path.isfile(f"{output}.partial") and not os.path.islink(f"{output}.partial"):
-                os.remove(f"{output}.partial")
-            problem = f"cannot write the sweep summary {output}: {write_failure(e)}; the cases are kept in {folder}"
-        if progress and problem is None:
-            print(f"dbf-hpc sweep: wrote {output} ({n} cases, {failed} failed)", flush=True)
-    failed, problem = world.bcast((failed, problem), root=0)
+    # After the agreement point a signal is not acted on (the summary is written, or every rank stops
+    # alike): the command's handler, taking it, said "before the integration began; nothing was written"
+    # and, on several ranks, aborted the job after 10 s, its summary half written (red team)
+    with _interrupt_on_sigterm(None):
+        # every rank hears of either (red team: a record that failed on one rank left the other in this
+        # reduction, and the job ended in the command's 10 s timeout and MPI_Abort, the lock left behind)
+        unwritten = next((p for p in world.allgather(unwritten) if p), None)
+        if unwritten:
+            raise DbfError(f"{unwritten}; the cases recorded so far are kept in {folder}: free some space, then "
+                           f"rerun the same command")
+        stopped = world.allreduce(bool(stopped), op=MPI.LOR)
+        if stopped:
+            finished = [_read_json(_case_file(folder, i)) or {} for i in range(n)]
+            done = sum(r.get("identity") == identities[i] and r.get("status") == "ok"
+                       for i, r in enumerate(finished))
+            raise Interrupted(f"sweep stopped by a termination signal with {done} of {n} cases done; rerun the "
+                              f"same command to continue (finished cases are kept, a running one resumes from its "
+                              f"checkpoint)")
+        failed = problem = None
+        if world.rank == 0:
+            try:
+                failed = _write_summary(sweep, folder, output)
+            except WRITE_ERRORS as e:   # every rank hears of it (the case files stay: a rerun only writes this)
+                if os.path.isfile(f"{output}.partial") and not os.path.islink(f"{output}.partial"):
+                    os.remove(f"{output}.partial")
+                problem = (f"cannot write the sweep summary {output}: {write_failure(e)}; the cases are kept in "
+                           f"{folder}")
+            if progress and problem is None:
+                print(f"dbf-hpc sweep: wrote {output} ({n} cases, {failed} failed)", flush=True)
+        failed, problem = world.bcast((failed, problem), root=0)
     if problem:
         raise DbfError(problem)
+    TERMINATION.finished = True
     first = next(((i, r) for i, r in enumerate(_read_json(_case_file(folder, i)) or {} for i in range(n))
                   if r.get("status") == "failed"), None) if failed else None
     return {"output": output, "cases": n, "failed": failed,

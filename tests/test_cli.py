@@ -186,6 +186,53 @@ def test_a_termination_signal_before_the_integration_on_two_ranks_leaves_no_lock
     assert sorted(os.listdir(tmp_path)) == ["terminated.py"], "nothing written, and no lock left"
 
 
+_TERMINATED_AT_THE_END = """
+import os, signal, sys
+from mpi4py import MPI
+from dbf_hpc import cli, run, sweep
+
+who, command = int(sys.argv[1]), sys.argv[2:]
+module, name = (run, "_warn_idle") if command[0] == "run" else (sweep, "_write_summary")
+original = getattr(module, name)
+
+def terminated(*args, **kwargs):   # run: the output is complete; sweep: the summary is being written
+    if MPI.COMM_WORLD.rank == who:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return original(*args, **kwargs)
+
+setattr(module, name, terminated)
+sys.exit(cli.main(command))
+"""
+
+
+@pytest.mark.parametrize("command,ranks,who", [("run", 1, 0), ("run", 2, 0), ("run", 2, 1), ("sweep", 2, 0)])
+def test_a_termination_signal_after_the_output_is_complete_lets_the_command_end_as_it_would(tmp_path, command,
+                                                                                              ranks, who):
+    # Red team: a signal after the run's output was written (or while a sweep's summary was written) met
+    # the command's own handler, which said "stopped ... before the integration began; nothing was
+    # written" with exit 1 beside the finished output; on 2 ranks it waited 10 s and aborted the job
+    # (two error lines; a sweep's summary half written). The output is the answer: the command ends as
+    # it would have, exit 0, no error line.
+    import h5py
+
+    script = tmp_path / "late.py"
+    script.write_text(_TERMINATED_AT_THE_END)
+    out = tmp_path / "out.h5"
+    if command == "run":
+        args = ["run", PAPER, "-q", "-o", str(out), "--set", "integrator.t_end=0.2"]
+    else:
+        (tmp_path / "sweep.toml").write_text(f'scene = "{PAPER}"\noutput = "out.h5"\n[axes]\n'
+                                             '"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.2]\n')
+        args = ["sweep", str(tmp_path / "sweep.toml"), "-q"]
+    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
+    done = subprocess.run(["mpirun", "-n", str(ranks), sys.executable, str(script), str(who), *args],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+    assert done.returncode == 0 and "error" not in done.stderr, done.stderr
+    with h5py.File(out) as f:
+        assert bool(f.attrs["complete"])
+    assert not os.path.exists(f"{out}.lock") and not os.path.exists(f"{out}.partial")
+
+
 def test_modes_of_the_paper_beam_are_the_euler_bernoulli_frequencies():
     out = dbf_hpc("modes", PAPER, "--set", "basis.modes=4", "-modes_eps_tol", "1e-12")
     assert out.returncode == 0, out.stderr
