@@ -606,16 +606,33 @@ def _finish(comm, failure: str | None) -> int:
     that succeeded waits as long as it takes (rank 0 may still be writing). A rank that failed waits
     10 s: if the others do not arrive, they are stuck in a collective call this rank will never make,
     so it prints its error and aborts the job. When all arrive, the first failing rank prints its one
-    line and every rank exits 1.
+    line and every rank exits 1. A termination signal meanwhile does not change the outcome (red
+    team: one during a failed rank's 10 s took the command's handler, whose line replaced the error
+    with "stopped ... before the integration began; nothing was written"): a rank that succeeded
+    and is signalled waits 10 s more for the others, then aborts the job as a failed one does.
     """
-    request = comm.Ibarrier()
-    deadline = time.monotonic() + 10.0
-    while not request.Test():
-        if failure and time.monotonic() > deadline:
-            print(f"dbf-hpc: error: (rank {comm.rank}) {failure}", file=sys.stderr, flush=True)
-            _abort(comm, 1)
-        time.sleep(0.005)
-    failures = comm.allgather(failure)
+    from .errors import termination_signals
+
+    signalled, previous = [], {}
+    try:
+        for signum in termination_signals():
+            previous[signum] = signal.signal(signum, lambda number, frame: signalled.append(time.monotonic()))
+    except ValueError:  # not the main thread
+        pass
+    try:
+        request = comm.Ibarrier()
+        deadline = time.monotonic() + 10.0
+        while not request.Test():
+            now = time.monotonic()
+            if (failure and now > deadline) or (signalled and now > signalled[0] + 10.0):
+                cause = failure or "stopped by a termination signal while the other ranks had not ended"
+                print(f"dbf-hpc: error: (rank {comm.rank}) {cause}", file=sys.stderr, flush=True)
+                _abort(comm, 1)
+            time.sleep(0.005)
+        failures = comm.allgather(failure)
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
     first = next((i for i, f in enumerate(failures) if f), None)
     if first is None:
         return 0

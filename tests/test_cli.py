@@ -99,6 +99,25 @@ def test_an_error_on_rank_0_alone_while_rank_1_waits_in_a_barrier_ends_the_job_w
     assert "Traceback" not in out.stderr
 
 
+def test_a_termination_signal_while_a_failed_rank_waits_for_the_others_keeps_its_error_line(tmp_path):
+    # Red team: rank 0 failed alone and waited its 10 s for rank 1 (stuck in a collective call); a
+    # SIGTERM then (a batch system's limit) took the command's handler, whose line "stopped by a
+    # termination signal before the integration began; nothing was written" replaced the error. The
+    # signal does not change the outcome: the error's line, and the job aborted.
+    script = tmp_path / "rank0_fails.py"
+    script.write_text(_RANK0_FAILS_ALONE.replace(
+        '        raise InputError("rank 0 alone refused")',
+        '        import os, signal, threading\n'
+        '        threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGTERM)).start()   # in the 10 s wait\n'
+        '        raise InputError("rank 0 alone refused")'))
+    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=120, cwd=ROOT, env=env)
+    lines = [line for line in out.stderr.splitlines() if line.startswith("dbf-hpc")]
+    assert out.returncode != 0 and lines == ["dbf-hpc: error: (rank 0) rank 0 alone refused"], out.stderr
+    assert "Traceback" not in out.stderr
+
+
 _RANK1_TERMINATED_IN_EIGENSOLVE = """
 import os, signal, sys
 from mpi4py import MPI
