@@ -22,6 +22,9 @@ PAPER = os.path.join(ROOT, "jobs", "paper_beam.toml")
 
 def write_sweep(folder, body):
     path = folder / "sweep.toml"
+    # every rank is done with the file this one replaces (red team, 2 ranks on a loaded machine: rank 1 still
+    # read the first sweep of a test when rank 0 wrote the second, failed alone, and the job hung)
+    MPI.COMM_WORLD.Barrier()
     if MPI.COMM_WORLD.rank == 0:
         path.write_text(f'scene = "{PAPER}"\noutput = "summary.h5"\n' + body)
     MPI.COMM_WORLD.Barrier()
