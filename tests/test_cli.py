@@ -766,10 +766,12 @@ def test_a_full_order_run_the_disk_fills_under_stops_in_one_line_and_resumes_to_
     # The full-order reference writes from inside its integrator's callbacks; a write the full disk
     # refused ended the run on both ranks, but closed the .partial (a close after a failed write has
     # crashed HDF5) instead of parking it as the reduced run does. Either way: one line, exit 1, and a
-    # rerun with room resumes to the uninterrupted run's samples bit for bit.
+    # rerun with room resumes to the uninterrupted run's samples bit for bit. 3 s (1501 samples): the
+    # disk fills just after the first checkpoint (0.5 s), so the run has four more checkpoints and a
+    # block of 1024 samples to write into it, and the resumed run writes a whole block too.
     import h5py
 
-    common = ("-q", "--method", "full", "--set", "basis.cache=off", "--set", "integrator.t_end=10",
+    common = ("-q", "--method", "full", "--set", "basis.cache=off", "--set", "integrator.t_end=3",
               "--set", "output.checkpoint_dt=0.5", "--set", "output.snapshots=0", "--set", "output.sample_dt=0.002")
     target = small_disk / "out.h5"
     run = _start("run", PAPER, "-o", str(target), *common)
