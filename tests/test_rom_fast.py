@@ -237,7 +237,8 @@ def test_a_non_identity_reduced_mass_is_integrated_alike_by_both_callbacks(mass)
 def test_a_run_stopped_at_a_checkpoint_resumes_to_the_uninterrupted_result_bit_for_bit(shared_tmp_path, callbacks,
                                                                                        monkeypatch):
     # Both callbacks: the C monitor keeps the impact statistics and the peak force in the recorder's
-    # arrays, and a checkpoint must hold all of it.
+    # arrays, and a checkpoint must hold all of it. No error estimate: it writes attributes only (no
+    # dataset compared here) and took half of each run.
     import h5py
     from mpi4py import MPI
 
@@ -248,7 +249,7 @@ def test_a_run_stopped_at_a_checkpoint_resumes_to_the_uninterrupted_result_bit_f
     if callbacks == "c" and _romc.core is None:
         pytest.skip(_romc.why)
     sets = ["basis.cache=off", "integrator.t_end=0.6", "output.checkpoint_dt=0.2", "output.snapshots=5",
-            f"integrator.callbacks={callbacks}"]
+            "basis.estimate=false", f"integrator.callbacks={callbacks}"]
     reference, target = str(shared_tmp_path / f"ref-{callbacks}.h5"), str(shared_tmp_path / f"cut-{callbacks}.h5")
     run_module.run(load_scene(PAPER, sets), reference, progress=False)
     original = run_module.Checkpointing.on_step
