@@ -589,8 +589,9 @@ def richer_models(fom, basis):
     second_modes reference modes (1.5 times the first's) and the same enrichment columns, where the
     structure holds them; both from one eigensolve. None for a gyroscopic or
     state-space basis (complex modes: their richer model alone, as before), and where the second's
-    projection keeps defects above reductor.PROJECTION_TOL (its highest modes solved less exactly: the
-    paper's beam at N = 40, 120 modes), whose unstructured stage solves cost 24 times the first's.
+    projection keeps defects above reductor.PROJECTION_TOL that the reductor could not turn away
+    (reductor._turn_in_span), whose unstructured stage solves cost 24 times the first's (the paper's
+    beam at N = 40, 120 modes, before such bases were turned).
     Collective."""
     from .basis import richer_basis
     from .errors import DbfError
@@ -621,8 +622,9 @@ def richer_models(fom, basis):
     if not built:
         return richer_model(fom, basis), None
     second = built[1] if len(built) > 1 else None
-    if second is not None and max(second.basis_info.get("mass_orthonormality_defect", 0.0),
-                                  second.basis_info.get("mode_coupling_defect", 0.0)) > PROJECTION_TOL:
+    if second is not None and not second.basis_info.get("turned_in_span") and max(
+            second.basis_info.get("mass_orthonormality_defect", 0.0),
+            second.basis_info.get("mode_coupling_defect", 0.0)) > PROJECTION_TOL:
         second = None   # its stage solves would be dense (reductor._clean_projection): 121 vectors 7.9 s, 81 0.33 s
     return built[0], second
 

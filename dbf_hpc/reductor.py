@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 
 import numpy as np
+from petsc4py import PETSc
 
 from .basis import BasisSettings, ReducedBasis
 from .cache import obtain_basis
@@ -109,8 +110,10 @@ class Reductor:
         the eigensolver's and the Gram-Schmidt's residuals instead (measured: mode-mode couplings up
         to 5e-10 of sqrt(K_ii K_jj), |M_r - I| up to 1e-10); below PROJECTION_TOL they are set to their
         exact values in place, which gives the stage solve its structure (a diagonal mode block
-        bordered by the enrichment columns: rom_core.c). Larger defects are kept as they are. Returns
-        the defects found (basis_info)."""
+        bordered by the enrichment columns: rom_core.c). Larger defects (a fine beam mesh, where
+        V^T K V carries the round-off of an ill-conditioned K: 1e-7 on a tube of 800 elements) turn
+        the basis within its own span (_turn_in_span): the same Galerkin model, with that structure
+        exactly. Returns the defects found on the basis as built (basis_info). Collective."""
         m = basis.mode_count
         defect_M = float(np.abs(M - np.eye(M.shape[0])).max(initial=0.0))
         diagonal = np.abs(np.diag(K)[:m])
@@ -124,7 +127,46 @@ class Reductor:
             M[...] = np.eye(M.shape[0])
         if defect_K <= PROJECTION_TOL:
             K[:m, :m] = np.diag(np.diag(K)[:m])
-        return {"mass_orthonormality_defect": defect_M, "mode_coupling_defect": defect_K}
+        turned = max(defect_M, defect_K) > PROJECTION_TOL and Reductor._turn_in_span(basis, K, M)
+        return {"mass_orthonormality_defect": defect_M, "mode_coupling_defect": defect_K, "turned_in_span": turned}
+
+    @staticmethod
+    def _turn_in_span(basis: ReducedBasis, K: np.ndarray, M: np.ndarray) -> bool:
+        """V <- V T with T = L^-T Q: L L^T = M_r (Cholesky; L^-T is upper triangular, so a mode column
+        stays in the modes' span and an enrichment column gains only earlier columns: Gram-Schmidt in
+        the reduced M inner product), then Q the eigenvectors of the modes' block of L^-1 K_r L^-T
+        (Rayleigh-Ritz on the modes' span: their Ritz values are the new omega^2). The span is the
+        same, so is the Galerkin model (K_r -> T^T K_r T, M_r -> I); only the coordinates change, to
+        ones where M_r = I and the mode block is diagonal, exactly: the structured stage solve, not the
+        dense one (measured: 5x the integration time of a tube of 112 vectors at 800 elements, 24x at
+        121 on the paper's beam). In place on V, K, M and basis.omega; False (nothing changed) where
+        M_r is not positive definite to working precision. Collective (the same T on every rank:
+        K and M are allreduced projections)."""
+        m, r = basis.mode_count, M.shape[0]
+        try:
+            L = np.linalg.cholesky(0.5 * (M + M.T))
+        except np.linalg.LinAlgError:
+            return False
+        T = np.linalg.inv(L).T
+        K1 = T.T @ K @ T
+        w, Q = np.linalg.eigh(0.5 * (K1[:m, :m] + K1[:m, :m].T))
+        Q *= np.where(np.diag(Q) < 0.0, -1.0, 1.0)   # each mode keeps its orientation
+        T[:, :m] = T[:, :m] @ Q
+        if not np.all(np.isfinite(T)):
+            return False
+        Tm = PETSc.Mat().createDense((r, r), comm=PETSc.COMM_SELF)
+        try:
+            Tm.setUp()
+            Tm.getDenseArray()[...] = T
+            Tm.assemble()
+            basis.vectors.multInPlace(Tm, 0, r)
+        finally:
+            Tm.destroy()
+        K[...] = T.T @ K @ T
+        K[:m, :m] = np.diag(w)
+        M[...] = np.eye(r)
+        basis.omega = np.sqrt(np.clip(w, 0.0, None))
+        return True
 
     def _initial_coordinates(self) -> tuple:
         """(q(0), q'(0)): zero, or the initial amplitude (m, peak over the field) in a reference mode;

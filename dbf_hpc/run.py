@@ -943,6 +943,8 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
         for key in ("mass_orthonormality_defect", "mode_coupling_defect"):
             if key in info:
                 attrs[f"basis_{key}"] = float(info[key])
+        if "turned_in_span" in info:
+            attrs["basis_turned_in_span"] = bool(info["turned_in_span"])
         if info.get("complex_modes"):   # a gyroscopic basis: Re and Im columns of each complex mode and DBF
             attrs["basis_complex_modes"] = int(info["complex_modes"])
             attrs["reduced_form"] = info.get("form", "second_order")
