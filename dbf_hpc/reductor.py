@@ -143,24 +143,31 @@ class Reductor:
         M_r is not positive definite to working precision. Collective (the same T on every rank:
         K and M are allreduced projections)."""
         m, r = basis.mode_count, M.shape[0]
-        try:
-            L = np.linalg.cholesky(0.5 * (M + M.T))
-        except np.linalg.LinAlgError:
-            return False
-        T = np.linalg.inv(L).T
+        identity = np.array_equal(M, np.eye(r))   # the usual case: only the modes' block turns (n m^2 flops)
+        if identity:
+            T = np.eye(r)
+        else:
+            try:
+                T = np.linalg.inv(np.linalg.cholesky(0.5 * (M + M.T))).T
+            except np.linalg.LinAlgError:
+                return False
         K1 = T.T @ K @ T
         w, Q = np.linalg.eigh(0.5 * (K1[:m, :m] + K1[:m, :m].T))
         Q *= np.where(np.diag(Q) < 0.0, -1.0, 1.0)   # each mode keeps its orientation
         T[:, :m] = T[:, :m] @ Q
         if not np.all(np.isfinite(T)):
             return False
-        Tm = PETSc.Mat().createDense((r, r), comm=PETSc.COMM_SELF)
+        k = m if identity else r                      # T = blockdiag(Q, I) when M_r = I
+        Tm = PETSc.Mat().createDense((k, k), comm=PETSc.COMM_SELF)
+        active = basis.vectors.getActiveColumns()
         try:
             Tm.setUp()
-            Tm.getDenseArray()[...] = T
+            Tm.getDenseArray()[...] = T[:k, :k]
             Tm.assemble()
-            basis.vectors.multInPlace(Tm, 0, r)
+            basis.vectors.setActiveColumns(0, k)
+            basis.vectors.multInPlace(Tm, 0, k)
         finally:
+            basis.vectors.setActiveColumns(*active)
             Tm.destroy()
         K[...] = T.T @ K @ T
         K[:m, :m] = np.diag(w)
