@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import socket
+import time
 
 import h5py
 import numpy as np
@@ -169,6 +170,11 @@ def release_held_locks(others: bool = True) -> None:
             lock.release()
 
 
+# s after which a lock with no content counts as stale: acquire writes the host and pid the moment it
+# creates the file, so an empty one that old was left by a job killed in between (SIGKILL)
+EMPTY_LOCK_AGE = 60.0
+
+
 class OutputLock:
     """An exclusive claim on an output: `PATH.lock`, created atomically (O_CREAT | O_EXCL works on
     NFS and Lustre, where HDF5's own file locking is often switched off), holding the host and pid
@@ -202,7 +208,7 @@ class OutputLock:
                 fd = os.open(self.lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
                 stale = self._stale()
-                if stale:
+                if stale is not None:   # "" too: an empty lock
                     self._take_over(stale)
                     continue
                 raise InputError(f"{self.what} {self.path!r} is being written by another job ({self._holder()}); "
@@ -227,7 +233,11 @@ class OutputLock:
     def _holder(self) -> str:
         try:
             with open(self.lock) as f:
-                host, pid = f.read().split()
+                text = f.read()
+            if not text.strip():
+                return (f"an empty lock, made by a job now starting or killed as it made it; it counts as gone "
+                        f"{EMPTY_LOCK_AGE:g} s after it was made")
+            host, pid = text.split()
             return f"pid {pid} on {host}"
         except (OSError, ValueError):
             return "unknown job"
@@ -235,7 +245,7 @@ class OutputLock:
     def live_holder(self) -> str | None:
         """The job holding the lock ("pid N on HOST") if the lock exists and its job is not known to
         be gone (on another host it cannot be told), else None. Not collective."""
-        if not os.path.isfile(self.lock) or self._stale():
+        if not os.path.isfile(self.lock) or self._stale() is not None:
             return None
         return self._holder()
 
@@ -245,6 +255,9 @@ class OutputLock:
         try:
             with open(self.lock) as f:
                 text = f.read()
+            if not text.strip():   # made, never written: its job was killed between the two (red team), or is
+                # writing it now, which takes microseconds: older than EMPTY_LOCK_AGE it is gone
+                return text if time.time() - os.stat(self.lock).st_mtime > EMPTY_LOCK_AGE else None
             host, pid = text.split()
             if host != socket.gethostname():
                 return None

@@ -2,6 +2,7 @@
 one output where HDF5's own file locking is switched off (Lustre, NFS)."""
 import os
 import socket
+import time
 
 import pytest
 from mpi4py import MPI
@@ -138,6 +139,25 @@ def test_info_on_a_partial_its_run_still_writes_says_so_instead_of_advising_a_re
         f.write(f"{socket.gethostname()} {2**22 + 12345}\n")
     lines = describe(target)
     assert "the run did not finish" in lines[0] and "rerun with --resume to continue" in lines[1]
+
+
+def test_an_empty_lock_of_a_job_killed_as_it_made_it_is_taken_over_once_older_than_any_live_write(tmp_path):
+    # red team: SIGKILL between the lock's creation and its write left an empty OUT.h5.lock, refused as
+    # "unknown job" for ever; a job writes it within microseconds, so one older than EMPTY_LOCK_AGE is gone
+    from dbf_hpc.output import EMPTY_LOCK_AGE
+
+    target = str(tmp_path / "empty.h5")
+    open(target + ".lock", "w").close()
+    with pytest.raises(InputError, match=r"being written by another job \(an empty lock, made by a job now starting "
+                                         r"or killed as it made it; it counts as gone 60 s after it was made\)"):
+        OutputLock(target).acquire()
+    old = time.time() - EMPTY_LOCK_AGE - 1.0
+    os.utime(target + ".lock", (old, old))
+    lock = OutputLock(target)
+    lock.acquire()
+    assert open(target + ".lock").read().split()[1] == str(os.getpid())
+    lock.release()
+    assert not os.path.exists(target + ".lock")
 
 
 def test_a_lock_left_by_a_dead_job_on_this_host_is_taken_over(tmp_path):
