@@ -113,7 +113,7 @@ def save(basis: ReducedBasis, path: str, key: str, comm, defect: float = 0.0) ->
     local = dense.getDenseArray().copy()
     basis.vectors.restoreMat(dense)
     n = basis.vectors.getSizes()[0][1]
-    tmp = f"{path}.tmp-{os.getpid()}"
+    tmp = f"{path}.tmp-{temporary_tag()}"
     error, f, V = None, None, None
     if world.rank == 0:
         try:
@@ -340,8 +340,17 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
 DEFAULT_DIR = "~/.cache/dbf_hpc"
 
 
-# The names save() gives: basis-<20 hex of the key>.h5, and its temporary basis-....h5.tmp-<pid>
-_NAME = re.compile(r"^basis-([0-9a-f]{20})\.h5(\.tmp-\d+)?$")
+# The names save() gives: basis-<20 hex of the key>.h5, and its temporary basis-....h5.tmp-<host>-<pid>
+# (.tmp-<pid> before 0.2.2)
+_NAME = re.compile(r"^basis-([0-9a-f]{20})\.h5(\.tmp-(?:[A-Za-z0-9._-]+-)?\d+)?$")
+
+
+def temporary_tag() -> str:
+    """<host>-<pid> of this process, for a temporary file's name: jobs on two hosts sharing a cache
+    directory (a parallel file system) may have one pid (red team). Not collective."""
+    import socket
+
+    return f"{re.sub(r'[^A-Za-z0-9.-]', '_', socket.gethostname())}-{os.getpid()}"
 # A temporary file untouched this long is a killed job's (a write of 10^5 x 1000 columns takes seconds);
 # a younger one may be another job's write in progress, and is kept
 STALE_TEMPORARY_S = 600.0

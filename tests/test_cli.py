@@ -898,17 +898,20 @@ def test_cache_clear_removes_only_the_files_the_cache_wrote(tmp_path):
         f.attrs["key"] = "0123456789abcdef89ab"
         f.create_group("V")
     stale, fresh = tmp_path / f"{cached.name}.tmp-11", tmp_path / f"{cached.name}.tmp-12"
-    stale.write_bytes(b"x")
-    fresh.write_bytes(b"x")
+    stale_host = tmp_path / f"{cached.name}.tmp-node-7.cluster-13"   # since 0.2.2 the host is in the name
+    for p in (stale, fresh, stale_host):
+        p.write_bytes(b"x")
     os.utime(stale, (1e9, 1e9))
+    os.utime(stale_host, (1e9, 1e9))
     listed = dbf_hpc("cache", "list", "--dir", str(tmp_path), ranks=1)
-    assert listed.returncode == 0 and "6 file(s)" in listed.stdout and "not a basis this cache wrote" in listed.stdout
+    assert listed.returncode == 0 and "7 file(s)" in listed.stdout and "not a basis this cache wrote" in listed.stdout
     # A basis used today is not "unused for a day", however long ago it was written
     os.utime(cached, (1e9, 1e9))
     out = dbf_hpc("basis", PAPER, "--set", "basis.modes=2", "--set", f"basis.cache={tmp_path}", ranks=1)
     assert out.returncode == 0 and cached.stat().st_mtime > 1e9 + 86400, out.stdout
     out = dbf_hpc("cache", "clear", "--dir", str(tmp_path), "--older-than", "1", ranks=1)
-    assert out.returncode == 0 and "removed 1 file(s)" in out.stdout and cached.exists() and not stale.exists()
+    assert out.returncode == 0 and "removed 2 file(s)" in out.stdout and cached.exists() and not stale.exists()
+    assert not stale_host.exists()
     out = dbf_hpc("cache", "clear", "--dir", str(tmp_path), ranks=1)
     assert out.returncode == 0 and "removed 1 file(s)" in out.stdout, out.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["basis-0123456789abcdef0123.h5", "basis-notes.txt",
