@@ -81,6 +81,8 @@ def _solve_flexibility(ops, rows: np.ndarray) -> np.ndarray:
 
     try:
         psi = static_modes(ops, rows)
+    except Interrupted:   # a termination signal is not a failed solve
+        raise
     except SolverError:   # decided on every rank alike (a collective residual norm)
         return np.full(rows.size, np.nan)
     try:
@@ -570,6 +572,8 @@ def richer_model(fom, basis):
         try:
             rich = richer_basis(fom.operators, basis, count, labels)
             break
+        except Interrupted:   # a termination signal is not a basis the DOFs cannot hold
+            raise
         except DbfError as e:  # the same on every rank: too few DOFs, or a column the richer modes hold
             failure = e
     else:
@@ -606,6 +610,8 @@ def richer_models(fom, basis):
         return richer_model(fom, basis), None
     try:
         more = reference_modes(fom.operators, count=count)
+    except Interrupted:
+        raise
     except DbfError:   # the same on every rank
         return richer_model(fom, basis), None
     try:
@@ -613,6 +619,8 @@ def richer_models(fom, basis):
         for size in (rich_modes(modes, len(labels)), count):
             try:
                 rich = richer_basis(fom.operators, basis, size, labels, reference=more)
+            except Interrupted:
+                raise
             except DbfError:   # a column the richer modes hold: the first as richer_model makes it, no second
                 break
             with Reductor(fom, rich.settings, basis=rich) as reductor:

@@ -22,7 +22,7 @@ from slepc4py import SLEPc
 
 from .accuracy import basis_flexibility, captured, exact_flexibility
 from .enrichment import STRATEGIES, DbfEnrichment, Enrichment
-from .errors import InputError, SolverError, check_number
+from .errors import InputError, Interrupted, SolverError, check_number
 from .modes import bv_rows, normalize, reference_modes
 from .operators import Operators
 from .petsctools import destroy
@@ -302,7 +302,7 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
         orthonormalize(V, N, rows, labels, strategy.column_name or "column")
     except SolverError as exc:   # every rank's (enrichment.raise_agreed), with the same modes
         V.destroy()
-        hint = _units_hint(ops, modes.frequency_hz)
+        hint = None if isinstance(exc, Interrupted) else _units_hint(ops, modes.frequency_hz)
         if not hint:
             raise
         raise SolverError(f"{exc}{hint}") from None

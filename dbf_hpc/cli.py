@@ -653,6 +653,11 @@ def _warn_unused(petsc_options, comm) -> None:
 
 TERMINATED = ("stopped by a termination signal before the integration began; nothing was written: rerun to start "
               "again (the basis cache keeps what was finished)")
+# A sweep stopped before its cases ran: the records of an earlier run of it stay (red team: it said
+# "nothing was written" beside them)
+TERMINATED_SWEEP = ("stopped by a termination signal before this sweep's cases began; the cases recorded before are "
+                    "kept: rerun the same command to go on (the basis cache keeps what was finished)")
+_COMMAND = None   # the command main runs (the line _terminated prints)
 # A communicator of its own for the ranks signalled outside an integration (_terminated; made in main)
 _SIGNALLED = None
 _STOPPING = False   # _terminated is under way on this rank (several ranks: it ends in an abort)
@@ -675,8 +680,9 @@ def _terminated(signum, frame):
     if TERMINATION.finished:   # the output is complete on every rank: the command ends at once (red team:
         return                 # it said "nothing was written", exit 1, and on 2 ranks aborted after 10 s)
     world = _SIGNALLED
+    line = TERMINATED_SWEEP if _COMMAND == "sweep" else TERMINATED
     if world is None or world.size == 1:
-        raise Interrupted(TERMINATED)
+        raise Interrupted(line)
     # a second signal while this rank waits below (a batch system signals mpirun, which passes it on, and
     # the ranks; Ctrl-C pressed again) would start a second barrier inside the first, which the other
     # ranks' one signal never meets: 10 s more and the job ended as if they had not been signalled (red team)
@@ -691,11 +697,11 @@ def _terminated(signum, frame):
     deadline = time.monotonic() + 10.0
     while not request.Test():
         if time.monotonic() > deadline:
-            print(f"dbf-hpc: error: (rank {world.rank}) {TERMINATED}", file=sys.stderr, flush=True)
+            print(f"dbf-hpc: error: (rank {world.rank}) {line}", file=sys.stderr, flush=True)
             _abort(world, 1)
         time.sleep(0.005)
     if world.rank == 0:
-        print(f"dbf-hpc: error: {TERMINATED}", file=sys.stderr, flush=True)
+        print(f"dbf-hpc: error: {line}", file=sys.stderr, flush=True)
     world.Barrier()   # the line before the abort
     _abort(world, 1)
 
@@ -757,7 +763,8 @@ def main(argv=None) -> int:
     # _finish's own communicator: its barrier on COMM_WORLD met a rank still waiting in one of the
     # library's (errors.wait_for_rank0) after rank 0 failed alone, and the job hung (red team)
     ending = comm.Dup()
-    global _SIGNALLED
+    global _SIGNALLED, _COMMAND
+    _COMMAND = args.command
     if _SIGNALLED is None:   # once a process (main runs many times in the tests)
         _SIGNALLED = comm.Dup()
     TERMINATION.finished = False

@@ -24,7 +24,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
-from .errors import InputError, SolverError
+from .errors import InputError, Interrupted, SolverError
 from .operators import Operators
 from .petsctools import destroy, direct_solver, options_defaults
 
@@ -242,6 +242,8 @@ def check_stable(ops: Operators, count: int, speed: str, prefix: str = "modes_")
     SolverError of a near-singular K, with the critical speed. Collective."""
     try:
         modes = gyroscopic_modes(ops, count=min(count, ops.size), prefix=prefix)
+    except Interrupted:   # a termination signal is not a near-singular K
+        raise
     except SolverError as e:
         note = critical_speed_note(ops)
         raise SolverError(f"{e}; the critical speed is{note}" if note else str(e)) from None

@@ -31,7 +31,7 @@ import numpy as np
 from petsc4py import PETSc
 from slepc4py import SLEPc
 
-from .errors import DbfError, InputError, SolverError
+from .errors import DbfError, InputError, Interrupted, SolverError
 from .operators import Operators
 from .petsctools import destroy, direct_solver, frames_released, options_defaults, release_frames
 
@@ -379,6 +379,8 @@ def _element_limit(ops: Operators, count: int, estimate: float, tol: float, pref
                 normalize(x, coarse.M)
             estimate = float(np.max(accuracy(coarse, values, vectors)[0]))
             elements = COARSE_ELEMENTS
+        except Interrupted:   # a termination signal, not a coarse mesh that failed
+            raise
         except DbfError:
             pass    # keep the fine mesh's (optimistic) estimate
         finally:

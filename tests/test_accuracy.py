@@ -730,3 +730,31 @@ def test_the_second_richer_model_has_half_as_many_modes_again_as_the_first_where
                 Reductor(fom, BasisSettings(modes=modes)) as reductor:
             first, second = accuracy.richer_models(fom, reductor.basis())
             assert_all((first.size, None if second is None else second.size) == sizes)
+
+
+def test_a_termination_signal_while_the_estimates_richer_basis_is_built_stops_the_run(tmp_path, monkeypatch, capsys):
+    # Red team: the command's handler raised Interrupted in the richer basis's eigensolve, and the
+    # estimate took it for a basis the DOFs cannot hold ("no richer basis: stopped by a termination
+    # signal ..."): the signal was lost, the run went on and ended with exit 0. It stops the run now.
+    import os
+    import signal
+
+    from mpi4py import MPI
+
+    from dbf_hpc import basis, cli
+
+    if MPI.COMM_WORLD.size > 1:
+        pytest.skip("one rank: on several the signalled rank ends the job (test_cli)")
+    real = basis.richer_basis
+
+    def signalled(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(basis, "richer_basis", signalled)
+    out = str(tmp_path / "beam.h5")
+    job = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "jobs", "paper_beam_4.toml")
+    assert cli.main(["run", job, "-q", "-o", out, "--set", "integrator.t_end=0.1"]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"dbf-hpc: error: {cli.TERMINATED}"], err
+    assert sorted(os.listdir(tmp_path)) == [], "nothing written, no lock"

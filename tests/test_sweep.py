@@ -1182,3 +1182,27 @@ def test_a_case_whose_output_is_not_kept_writes_none_and_its_statistics_are_the_
     assert summaries["false"]["impacts"].sum() > 0
     for name, value in summaries["true"].items():
         np.testing.assert_array_equal(summaries["false"][name], value, err_msg=name)
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="one rank: on several the signalled rank ends the job (test_cli)")
+def test_a_termination_signal_while_the_sweep_prepares_its_models_stops_it_and_records_no_case(tmp_path, monkeypatch,
+                                                                                               capsys):
+    # Red team: the signal's Interrupted, raised by the command's handler while a model was built, was
+    # taken for that model's failure: every case of it was recorded "failed" with the signal's line, and
+    # the sweep went on to its other models and wrote a summary. A batch system's time limit stops it.
+    import signal
+
+    from dbf_hpc import cli, sweep
+
+    class Signalled(sweep.Reductor):
+        def __init__(self, *args, **kwargs):
+            os.kill(os.getpid(), signal.SIGTERM)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(sweep, "Reductor", Signalled)
+    path = write_sweep(tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.2]\n')
+    assert cli.main(["sweep", path, "-q"]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"dbf-hpc: error: {cli.TERMINATED_SWEEP}"], err
+    assert not list(tmp_path.glob("summary.h5.cases/case-*")) and not list(tmp_path.glob("summary.h5*.lock"))
+    assert not (tmp_path / "summary.h5").exists()
