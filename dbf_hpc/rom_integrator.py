@@ -313,7 +313,9 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
         defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic"}
         if settings.adaptive:
             defaults.update(ADAPT_DEFAULTS)
-        configure(ts, settings, PREFIX, defaults, settings.adaptive, resume, steps)
+        omega = np.abs(np.asarray(model.basis_info.get("omega", ()), dtype=complex))
+        configure(ts, settings, PREFIX, defaults, settings.adaptive, resume, steps,
+                  float(omega.max()) / (2 * np.pi) if omega.size else 0.0)
         c_newton = c_newton and ts.getSNES().getType() == "shell"
         if c_newton and not _user_viewers():
             # the *ViewFromOptions queries inside every stage solve cost more than the solve: off

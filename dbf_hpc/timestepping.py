@@ -38,7 +38,10 @@ FLOOR_STEPS = 1000
 # A run whose steps hover just above the floor crawls as well (red team: 1e12 N on the paper's beam under
 # -rom_snes_max_it 1 with the Python callbacks took steps of 5e-11 to 1.5e-10 s, 50 to 150 times the
 # floor, at t = 0.0212 s for 10 minutes, ETA growing): STALL_STEPS steps that together advance less
-# than STALL_STEPS x dt x STALL_FRACTION (a mean step below dt x 1e-5) stop it too.
+# than STALL_STEPS x dt x STALL_FRACTION (a mean step below dt x 1e-5) stop it too. dt is the user's first
+# step: where it exceeds 1/STEPS_PER_PERIOD of the period of the model's highest reference mode, that
+# step is the scale instead (red team: the 9-stop paper beam at 150 modes, 6235 Hz, with dt = 1 s took
+# its healthy 5e-6 s steps, 1e-4 of the period, and was stopped as a crawl; it finishes in 8 s).
 STALL_FRACTION = 1e-5
 STALL_STEPS = 10000
 MAX_SAMPLES = 1e9           # 8 GB a series
@@ -162,12 +165,14 @@ def checked_by_the_integrator(callback):
 
 
 def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults: dict, adaptive: bool,
-              start: dict | None = None, steps: "StepMonitor | None" = None) -> None:
+              start: dict | None = None, steps: "StepMonitor | None" = None, fastest_hz: float = 0.0) -> None:
     """What every integrator's TS gets: time span, first step, tolerances, the failure policy, the
     Newton tolerances, then the code's defaults (scoped to `prefix`, only where the user set
     nothing) and the user's options; a user option [integrator] sets is refused
     (refuse_settings_options). `start` (t, dt, steps) continues a checkpointed run. `steps`, on an
-    adaptive run, watches the step-size floor (FLOOR_STEPS)."""
+    adaptive run, watches the step-size floor (FLOOR_STEPS) and the crawl just above it (STALL_STEPS),
+    whose scale is dt or, where smaller, 1/STEPS_PER_PERIOD of the period of `fastest_hz` (Hz, the
+    model's highest reference mode; 0: dt alone)."""
     refuse_settings_options(prefix, adaptive)
     ts.setTime(start["t"] if start else 0.0)
     ts.setTimeStep(start["dt"] if start else settings.dt)
@@ -194,7 +199,10 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
         # unseen; red team); below dt x MIN_STEP_FRACTION a run crawls whatever the floor
         nominal, floor = settings.dt * MIN_STEP_FRACTION, ts.getStepLimits()[0]
         steps.ts, steps.floor = ts, max(floor, nominal)
-        steps.stall_step = max(steps.floor, settings.dt * STALL_FRACTION)
+        scale = settings.dt
+        if fastest_hz > 0 and math.isfinite(fastest_hz):
+            scale = min(scale, 1.0 / (STEPS_PER_PERIOD * fastest_hz))
+        steps.stall_step, steps.stall_scale = max(steps.floor, scale * STALL_FRACTION), scale
         steps.floor_source = (f"-{prefix}ts_adapt_dt_min" if floor > nominal else
                               f"[integrator] dt x {MIN_STEP_FRACTION:g}")
         # a user's Newton or step options can starve the step too (-rom_snes_max_it 1): name them
@@ -222,6 +230,7 @@ class StepMonitor:
         self.tol = 1e-9 * max(times[-1], 1.0)
         self.ts = self.floor = self.floor_since = None   # configure sets ts and floor on an adaptive run
         self.stall_step, self.window = None, None        # configure sets stall_step; window: (step, t)
+        self.stall_scale = None                          # the step stall_step is STALL_FRACTION of
         self.floor_source, self.floor_options = "", []
 
     def samples_due(self, t: float):
@@ -284,9 +293,10 @@ class StepMonitor:
             if advanced < steps * self.stall_step:
                 given = f"the options given ({' '.join(self.floor_options)}), " if self.floor_options else ""
                 self.stop(self.ts, t, f"the time step stayed near its floor for {steps} steps up to t = {t:.6g} s "
-                                      f"(a mean step of {advanced / steps:.3g} s, below [integrator] dt x "
-                                      f"{STALL_FRACTION:g}), where the error cannot be kept within rtol and atol "
-                                      f"and the run would crawl: check {given}the constraint laws' stiffness and "
+                                      f"(a mean step of {advanced / steps:.3g} s, below {STALL_FRACTION:g} x "
+                                      f"{self.stall_scale:.3g} s, the smaller of [integrator] dt and 1/"
+                                      f"{STEPS_PER_PERIOD} of the highest reference mode's period), where the "
+                                      f"error cannot be kept within rtol and atol and the run would crawl: check {given}the constraint laws' stiffness and "
                                       f"damping (k, alpha, c) and the loads against the structure's own scales and "
                                       f"units, or lower [integrator] dt if the model is that fast")
             else:

@@ -115,6 +115,39 @@ def test_a_step_held_at_the_controllers_floor_for_floor_steps_stops_the_run_nami
         ts.destroy()
 
 
+def test_a_large_first_step_does_not_make_the_fast_modes_healthy_steps_a_crawl():
+    # Red team: the 9-stop paper beam at 150 modes (highest 6235 Hz) with [integrator] dt = 1 s (the
+    # first step of an adaptive run) took its healthy steps of 5e-6 s, 1/32 of that mode's period, and
+    # was stopped as a crawl (a mean step below dt x 1e-5 = 1e-5 s); it finishes in 8 s. The crawl's
+    # scale is the smaller of dt and 1/STEPS_PER_PERIOD of the highest mode's period: steps that resolve
+    # the model's own fastest vibration never stop it, and steps 1e-5 times below still do.
+    import numpy as np
+    from petsc4py import PETSc
+
+    from dbf_hpc.timestepping import STALL_FRACTION, STALL_STEPS, STEPS_PER_PERIOD, StepMonitor, configure
+
+    fastest = 6235.0
+    scale = 1.0 / (STEPS_PER_PERIOD * fastest)
+    # healthy steps under dt = 1 s; steps above the floor (dt x 1e-8) but 2e5 times below the scale under dt = 1 ms
+    for dt, hover, stops in ((1.0, 1.0 / (32 * fastest), False), (1e-3, 0.5 * scale * STALL_FRACTION, True)):
+        ts = PETSc.TS().create(comm=PETSc.COMM_SELF)
+        ts.setType(PETSc.TS.Type.ARKIMEX)
+        try:
+            settings = IntegratorSettings(t_end=1.0, dt=dt, adaptive=True)
+            monitor = StepMonitor(np.linspace(0.0, 1.0, 11))
+            configure(ts, settings, "rom_", {"ts_adapt_type": "basic"}, True, steps=monitor, fastest_hz=fastest)
+            ts.setTimeStep(hover)
+            for step in range(0, 3 * STALL_STEPS, 64):   # the C callbacks report every 64 steps
+                monitor.report(step, 0.1 + step * hover)
+                if monitor.failure:
+                    break
+            assert (monitor.failure is not None) == stops, (hover, monitor.failure)
+            if stops:
+                assert f"below {STALL_FRACTION:g} x {scale:.3g} s" in monitor.failure, monitor.failure
+        finally:
+            ts.destroy()
+
+
 def test_steps_hovering_just_above_the_floor_stop_the_run_as_a_crawl_and_healthy_short_steps_do_not():
     # Red team: 1e12 N on the paper's beam under -rom_snes_max_it 1 with the Python callbacks took steps
     # of 5e-11 to 1.5e-10 s (50 to 150 times the 1e-12 s floor, never at it) at t = 0.0212 s for 10
