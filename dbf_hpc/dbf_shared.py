@@ -65,18 +65,36 @@ FACTOR_DEFAULTS = {"pc_factor_mat_solver_type": "petsc", "pc_factor_mat_ordering
 # to 2e-10 from 1e6 to 1e14 N/m: 1.6e-9 at k = 1e7 N/m (amplification 8e8), 1.5e-7 at 1e8 (8e9),
 # 1.6e-4 at 1e10 (8e11), silently. "auto" puts k at the transition (an amplification of order 1-100).
 AMPLIFICATION_LIMIT = 1e9
+# The factored path's DBFs agreed to 2e-10 up to 1e14 N/m on the paper's 4-stop beam (k g^T A^-1 g up
+# to 2e16); beyond, the refusal also says that d phi/dk is round-off on any path (enrichment.py).
+FACTOR_AMPLIFICATION = 1e16
+
+
+class AmplificationError(SolverError):
+    """check_amplification's refusal: the DBF stiffness given is too large for the rank-one update
+    (the remedy is a smaller [basis] dbf_stiffness or dbf_solver = "factor", not "auto" alone);
+    `amplification` is k g^T A^-1 g."""
+
+    def __init__(self, message: str, amplification: float):
+        super().__init__(message)
+        self.amplification = amplification
 
 
 def check_amplification(k, gz, rows) -> None:
-    """SolverError if k g^T A^-1 g > AMPLIFICATION_LIMIT for any of the constraints (k, gz, rows arrays
-    or scalars alike). Not collective: every rank of the group holds the same k and gz."""
+    """AmplificationError if k g^T A^-1 g > AMPLIFICATION_LIMIT for any of the constraints (k, gz, rows
+    arrays or scalars alike), naming the largest k the rank-one update takes there. Not collective:
+    every rank of the group holds the same k and gz."""
     a = np.atleast_1d(np.asarray(k, dtype=float) * np.asarray(gz, dtype=float))
     over = np.flatnonzero(np.isfinite(a) & (a > AMPLIFICATION_LIMIT))
     if over.size:
-        row = int(np.atleast_1d(rows)[over[0]])
-        raise SolverError(f"DBF at row {row}: k g^T (K - sigma M)^-1 g = {a[over[0]]:.3g} is above "
-                          f"{AMPLIFICATION_LIMIT:g}, where the shared factorization's rank-one update loses the "
-                          f"DBF to round-off; use [basis] dbf_solver = \"factor\"")
+        j = over[0]
+        row = int(np.atleast_1d(rows)[j])
+        kj, gj = float(np.atleast_1d(k)[j]), float(np.atleast_1d(gz)[j])
+        raise AmplificationError(
+            f"DBF at row {row}: k g^T (K - sigma M)^-1 g = {a[j]:.3g} (k = {kj:.3g} N/m) is above "
+            f"{AMPLIFICATION_LIMIT:g}, where the shared factorization's rank-one update loses the DBF to "
+            f"round-off; give [basis] dbf_stiffness at most {AMPLIFICATION_LIMIT / gj:.3g} N/m (or \"auto\") "
+            f"or use [basis] dbf_solver = \"factor\"", float(a[j]))
 
 
 # Work done by this process on the shared path (tests and benchmarks read it).

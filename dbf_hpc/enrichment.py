@@ -34,7 +34,7 @@ from petsc4py import PETSc
 from .dbf import STIFFNESS_RANGE, dbf_source, participation
 from . import dbf_ritz
 from .dbf_ritz import PREFETCH_BLOCK, RitzSolver, RitzSpace, reference_vectors
-from .dbf_shared import SharedFactor, SharedSolver
+from .dbf_shared import FACTOR_AMPLIFICATION, AmplificationError, SharedFactor, SharedSolver
 from .errors import DbfError, InputError, SolverError
 from .modes import ModalBasis
 from .operators import Operators
@@ -287,7 +287,10 @@ def _dbf_sources(ops: Operators, rows: np.ndarray, modes: ModalBasis, settings: 
                     src.derivative.destroy()
         except Exception as e:   # whatever ends one group: every rank hears of it (raise_agreed)
             failure, mine = group_failure(e, world), e
-            if isinstance(e, SolverError) and settings.stiffness != "auto":
+            # (not on an amplification refusal the factored path would take: red team, 1e7 N/m on the paper
+            # beam was told "use factor" and "d phi/dk is lost in round-off" at once; factor builds it)
+            if isinstance(e, SolverError) and settings.stiffness != "auto" and not (
+                    isinstance(e, AmplificationError) and e.amplification <= FACTOR_AMPLIFICATION):
                 # red team: dbf_stiffness = 1e300 failed with "use dbf_solver = factor", which failed with
                 # "try central": d phi/dk ~ 1/k^2 is round-off there whatever the solver
                 failure = (False, f"{failure[1]} (with the given [basis] dbf_stiffness = {settings.stiffness:g} "

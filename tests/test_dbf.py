@@ -780,10 +780,35 @@ def test_a_stiff_given_dbf_stiffness_gives_the_factored_paths_dbf_or_is_refused_
     finally:
         for c in (factor, shared):
             c.matrix.destroy()
-    with pytest.raises(SolverError, match=re.escape(f"is above {AMPLIFICATION_LIMIT:g}") + r", where the shared factorization's "
-                                          r"rank-one update loses the DBF to round-off; use \[basis\] dbf_solver "
-                                          r"= \"factor\".*dbf_stiffness = 1e\+10 N/m"):
+    with pytest.raises(SolverError, match=r"\(k = 1e\+10 N/m\) " + re.escape(f"is above {AMPLIFICATION_LIMIT:g}") +
+                       r", where the shared factorization's rank-one update loses the DBF to round-off; give "
+                       r"\[basis\] dbf_stiffness at most \S+ N/m \(or \"auto\"\) or use \[basis\] dbf_solver "
+                       r"= \"factor\"$"):
         DbfEnrichment(stiffness=1e10, solver=solver).columns(ops, np.array([row]), modes)
+
+
+@pytest.mark.parametrize("solver", ["ritz", "shared"])
+def test_the_amplification_refusal_names_the_largest_stiffness_the_shared_factor_takes_and_no_contrary_advice(
+        paper, solver):
+    # Red team: dbf_stiffness = 1e7 N/m (ten times the paper beam's own stop) was refused on the default
+    # path with "use dbf_solver = factor" followed by "(... d phi/dk is lost in round-off; try
+    # dbf_stiffness = auto)": the factored path computes that DBF well, and the line named no stiffness
+    # the shared factor would take. It names one now, k_max = 1e9 / (g^T (K - sigma M)^-1 g): just
+    # below it the DBF is built, just above it is refused, and the contrary advice is gone.
+    from dbf_hpc.dbf_shared import AMPLIFICATION_LIMIT
+
+    ops, modes, row = paper
+    with pytest.raises(SolverError) as refused:
+        DbfEnrichment(stiffness=1e10, solver=solver).columns(ops, np.array([row]), modes)
+    line = str(refused.value)
+    assert "lost in round-off; try" not in line and "\n" not in line, line
+    k_max = float(re.search(r"dbf_stiffness at most (\S+) N/m", line).group(1))
+    a = float(re.search(r"g = (\S+) \(k = 1e\+10", line).group(1))
+    assert k_max == pytest.approx(1e10 * AMPLIFICATION_LIMIT / a, rel=1e-2), (k_max, a)
+    below = DbfEnrichment(stiffness=0.98 * k_max, solver=solver).columns(ops, np.array([row]), modes)
+    below.matrix.destroy()
+    with pytest.raises(SolverError, match="dbf_stiffness at most"):
+        DbfEnrichment(stiffness=1.02 * k_max, solver=solver).columns(ops, np.array([row]), modes)
 
 
 @pytest.mark.parametrize("solver", ["ritz", "factor"])
