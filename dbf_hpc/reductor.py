@@ -24,6 +24,28 @@ from .rom import ReducedField, ReducedModel
 PROJECTION_TOL = 1e-8   # relative defects of the projected M_r, K_r set to the method's exact values
 
 
+def _turn(K: np.ndarray, M: np.ndarray, m: int, identity: bool):
+    """(T, w, T^T K T with its modes' block diag(w)) for Reductor._turn_in_span, or None where M is not
+    positive definite to working precision. Not collective."""
+    r = M.shape[0]
+    if identity:
+        T = np.eye(r)
+    else:
+        try:
+            T = np.linalg.inv(np.linalg.cholesky(0.5 * (M + M.T))).T
+        except np.linalg.LinAlgError:
+            return None
+    K1 = T.T @ K @ T
+    w, Q = np.linalg.eigh(0.5 * (K1[:m, :m] + K1[:m, :m].T))
+    Q *= np.where(np.diag(Q) < 0.0, -1.0, 1.0)   # each mode keeps its orientation
+    T[:, :m] = T[:, :m] @ Q
+    if not np.all(np.isfinite(T)):
+        return None
+    K_turned = T.T @ K @ T
+    K_turned[:m, :m] = np.diag(w)
+    return T, w, K_turned
+
+
 class Reductor:
     """Owns the basis it obtains (destroyed with the reductor)."""
 
@@ -144,19 +166,19 @@ class Reductor:
         K and M are allreduced projections)."""
         m, r = basis.mode_count, M.shape[0]
         identity = np.array_equal(M, np.eye(r))   # the usual case: only the modes' block turns (n m^2 flops)
-        if identity:
-            T = np.eye(r)
-        else:
+        # rank 0's numbers on every rank, as the DBFs' small problems (dbf_ritz): LAPACK on unlike nodes
+        # may differ in the last bits, and each rank turns its own rows of V
+        comm = basis.vectors.getComm().tompi4py()
+        turn = None
+        if comm.rank == 0:
             try:
-                T = np.linalg.inv(np.linalg.cholesky(0.5 * (M + M.T))).T
-            except np.linalg.LinAlgError:
-                return False
-        K1 = T.T @ K @ T
-        w, Q = np.linalg.eigh(0.5 * (K1[:m, :m] + K1[:m, :m].T))
-        Q *= np.where(np.diag(Q) < 0.0, -1.0, 1.0)   # each mode keeps its orientation
-        T[:, :m] = T[:, :m] @ Q
-        if not np.all(np.isfinite(T)):
+                turn = _turn(K, M, m, identity)
+            except (np.linalg.LinAlgError, ValueError):   # eigh did not converge: kept as projected, on every rank
+                turn = None
+        turn = comm.bcast(turn, root=0)
+        if turn is None:
             return False
+        T, w, K_turned = turn
         k = m if identity else r                      # T = blockdiag(Q, I) when M_r = I
         Tm = PETSc.Mat().createDense((k, k), comm=PETSc.COMM_SELF)
         active = basis.vectors.getActiveColumns()
@@ -169,8 +191,7 @@ class Reductor:
         finally:
             basis.vectors.setActiveColumns(*active)
             Tm.destroy()
-        K[...] = T.T @ K @ T
-        K[:m, :m] = np.diag(w)
+        K[...] = K_turned
         M[...] = np.eye(r)
         basis.omega = np.sqrt(np.clip(w, 0.0, None))
         return True
