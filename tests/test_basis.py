@@ -429,3 +429,14 @@ def test_a_static_solver_option_petsc_refuses_leaves_no_petsc_object(enrichment_
     finally:
         PETSc.Options().delValue("-static_ksp_type")
         ops.destroy()
+
+
+def test_a_refused_dbf_names_the_constraint_as_the_scene_placed_it_not_only_its_dof_row():
+    # Red team: "DBF at row 49: ... give [basis] dbf_stiffness at most ..." named a DOF row the user never
+    # wrote; the stop is the one at x = 0.25 m. The row stays in brackets; the refusal is the same.
+    ops = assemble_beam(Beam(**TABLE1, elements=40), points=[0.25, 0.6])
+    rows = [ops.mesh.w_row(0.25), ops.mesh.w_row(0.6)]
+    with pytest.raises(SolverError, match=rf"^DBF at the constraint at x = 0.25 m \(row {rows[0]}\): k g\^T "
+                                          r"\(K - sigma M\)\^-1 g = .* is above 1e\+09"):
+        build_basis(ops, rows, BasisSettings(modes=4, dbf_stiffness=1e8), labels=["x = 0.25 m", "x = 0.6 m"])
+    ops.destroy()
