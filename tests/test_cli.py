@@ -24,6 +24,15 @@ def mpi_env() -> dict:
     return {**os.environ, "OMPI_MCA_orte_execute_quiet": "1", "OMPI_MCA_rmaps_base_oversubscribe": "1"}
 
 
+def mpirun_script(script, *args, ranks=2, timeout=300):
+    """A test's Python script under mpirun, this checkout first on the path: the finished process and
+    the dbf-hpc lines of its stderr."""
+    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run(["mpirun", "-n", str(ranks), sys.executable, str(script), *map(str, args)],
+                         capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=env)
+    return out, [line for line in out.stderr.splitlines() if line.startswith("dbf-hpc")]
+
+
 def dbf_hpc(*args, ranks=2, timeout=120):
     cmd = ["mpirun", "-n", str(ranks), sys.executable, "-m", "dbf_hpc.cli", *args]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=mpi_env())
@@ -91,10 +100,7 @@ def test_an_error_on_rank_0_alone_while_rank_1_waits_in_a_barrier_ends_the_job_w
     # barrier is on a communicator of its own: it finds rank 1 absent, prints its line and aborts.
     script = tmp_path / "rank0_fails.py"
     script.write_text(_RANK0_FAILS_ALONE)
-    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script)], capture_output=True, text=True,
-                         timeout=120, cwd=ROOT, env=env)
-    lines = [line for line in out.stderr.splitlines() if line.startswith("dbf-hpc")]
+    out, lines = mpirun_script(script, timeout=120)
     assert out.returncode != 0 and lines == ["dbf-hpc: error: (rank 0) rank 0 alone refused"], out.stderr
     assert "Traceback" not in out.stderr
 
@@ -110,10 +116,7 @@ def test_a_termination_signal_while_a_failed_rank_waits_for_the_others_keeps_its
         '        import os, signal, threading\n'
         '        threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGTERM)).start()   # in the 10 s wait\n'
         '        raise InputError("rank 0 alone refused")'))
-    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script)], capture_output=True, text=True,
-                         timeout=120, cwd=ROOT, env=env)
-    lines = [line for line in out.stderr.splitlines() if line.startswith("dbf-hpc")]
+    out, lines = mpirun_script(script, timeout=120)
     assert out.returncode != 0 and lines == ["dbf-hpc: error: (rank 0) rank 0 alone refused"], out.stderr
     assert "Traceback" not in out.stderr
 
@@ -146,11 +149,7 @@ def test_sigterm_to_rank_1_alone_in_a_collective_basis_ends_the_job_with_one_lin
     script = tmp_path / "rank1_terminated.py"
     script.write_text(_RANK1_TERMINATED_IN_EIGENSOLVE)
     out_path = tmp_path / "pipe.h5"
-    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script),
-                          os.path.join(ROOT, "jobs", "pipe_conveying_fluid.toml"), str(out_path)],
-                         capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
-    lines = [line for line in out.stderr.splitlines() if line.startswith("dbf-hpc")]
+    out, lines = mpirun_script(script, os.path.join(ROOT, "jobs", "pipe_conveying_fluid.toml"), out_path)
     assert out.returncode != 0 and lines == [
         "dbf-hpc: error: (rank 1) stopped by a termination signal before the integration began; nothing was written: "
         "rerun to start again (the basis cache keeps what was finished)"], out.stderr
@@ -193,10 +192,7 @@ def test_a_termination_signal_before_the_integration_on_two_ranks_leaves_no_lock
     script = tmp_path / "terminated.py"
     script.write_text(_TERMINATED_IN_THE_BASIS)
     out_path = tmp_path / "beam.h5"
-    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script), PAPER, str(out_path), who],
-                         capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
-    lines = [line for line in out.stderr.splitlines() if line.startswith("dbf-hpc")]
+    out, lines = mpirun_script(script, PAPER, out_path, who)
     prefix = "(rank 1) " if who == "rank 1" else ""
     assert out.returncode != 0 and lines == [
         f"dbf-hpc: error: {prefix}stopped by a termination signal before the integration began; nothing was "
@@ -243,9 +239,7 @@ def test_a_termination_signal_after_the_output_is_complete_lets_the_command_end_
         (tmp_path / "sweep.toml").write_text(f'scene = "{PAPER}"\noutput = "out.h5"\n[axes]\n'
                                              '"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [0.2]\n')
         args = ["sweep", str(tmp_path / "sweep.toml"), "-q"]
-    env = {**mpi_env(), "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
-    done = subprocess.run(["mpirun", "-n", str(ranks), sys.executable, str(script), str(who), *args],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+    done, _ = mpirun_script(script, who, *args, ranks=ranks)
     assert done.returncode == 0 and "error" not in done.stderr, done.stderr
     with h5py.File(out) as f:
         assert bool(f.attrs["complete"])
