@@ -73,8 +73,9 @@ from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import (STOP_TAG, _interrupt_on_sigterm, coarse_samples_warning, coarse_step_warning, finished_output,
-                  forcing_warning, gyroscopic_checks, idle_warnings, run_case, scene_callbacks, unresolved_warnings)
+from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, coarse_samples_warning, coarse_step_warning,
+                  finished_output, forcing_warning, gyroscopic_checks, idle_warnings, run_case, scene_callbacks,
+                  unresolved_warnings)
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -466,22 +467,22 @@ def _final_excitation(model, t_end: float) -> dict:
             "final_support": [float(model.support.value(t_end)), float(model.support.rate(t_end))]}
 
 
-class _Stop:
+class _Stop(RemoteStop):
     """A termination signal during a sweep, on any rank, stops every rank (red team: SIGTERM to rank 1
     alone stopped rank 1, and rank 0 ran all its remaining cases before the sweep ended). The
     signalled rank tells every other rank with a message (STOP_TAG, on a communicator of the sweep's
     own) as soon as it sees its signal: between cases, at its running case's steps (run_case's
     `remote`: Checkpointing polls `poll`), or while it waits for the others at the end (finish). A
     rank that hears it checkpoints its running case at the end of the step, as at its own signal, or
-    starts no new case. finish receives every message sent: none is left in MPI. Collective: made,
-    finished and closed on every rank."""
-
-    POLL = 0.05   # s of wall time between looks for a message during a case (as run.RemoteStop)
+    starts no new case. finish receives every message sent: none is left in MPI. run.RemoteStop's
+    polling and draining on a communicator of the sweep's own. Collective: made, finished and closed
+    on every rank."""
 
     def __init__(self, world):
         self.comm = world.Dup()
+        super().__init__(self.comm)
         self.requested = self.heard = False
-        self.sends, self.received, self.last = [], 0, -float("inf")
+        self.sends = []
 
     def __enter__(self):
         TERMINATION.requested = False
@@ -510,12 +511,10 @@ class _Stop:
         if self.requested or TERMINATION.requested:
             self.tell()
             return True
-        now = time.perf_counter()
-        if not self.heard and (not wait or now - self.last >= self.POLL):
-            self.last = now
-            while self.comm.iprobe(source=MPI.ANY_SOURCE, tag=STOP_TAG):
-                self.comm.recv(source=MPI.ANY_SOURCE, tag=STOP_TAG)
-                self.received, self.heard = self.received + 1, True
+        if not self.heard:
+            if not wait:
+                self.last = -float("inf")
+            self.heard = super().poll()
         return self.heard
 
     def finish(self) -> bool:
@@ -527,9 +526,7 @@ class _Stop:
             self.poll()
             time.sleep(0.02)
         told = self.comm.allgather(bool(self.sends))
-        while self.received < sum(told) - told[self.comm.rank]:
-            self.comm.recv(source=MPI.ANY_SOURCE, tag=STOP_TAG)
-            self.received += 1
+        self.drain(sum(told) - told[self.comm.rank])
         MPI.Request.Waitall(self.sends)
         self.sends = []
         self.comm.Free()   # here, not in __exit__: an exception on one rank must not meet a collective call
