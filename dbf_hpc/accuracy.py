@@ -594,8 +594,8 @@ def richer_models(fom, basis):
     structure holds them; both from one eigensolve. None for a gyroscopic or
     state-space basis (complex modes: their richer model alone, as before), and where the second's
     projection keeps defects above reductor.PROJECTION_TOL that the reductor could not turn away
-    (reductor._turn_in_span), whose unstructured stage solves cost 24 times the first's (the paper's
-    beam at N = 40, 120 modes, before such bases were turned).
+    (reductor._turn_in_span), whose unstructured stage solves are slow (the paper's beam at N = 40
+    before such bases were turned: 7.9 s for 121 vectors against 0.33 s for 81 with the structure).
     Collective."""
     from .basis import richer_basis
     from .errors import DbfError

@@ -160,8 +160,8 @@ class Reductor:
         (Rayleigh-Ritz on the modes' span: their Ritz values are the new omega^2). The span is the
         same, so is the Galerkin model (K_r -> T^T K_r T, M_r -> I); only the coordinates change, to
         ones where M_r = I and the mode block is diagonal, exactly: the structured stage solve, not the
-        dense one (measured: 5x the integration time of a tube of 112 vectors at 800 elements, 24x at
-        121 on the paper's beam). In place on V, K, M and basis.omega; False (nothing changed) where
+        dense one (measured: 2.26 s against 0.46 s of integration on a tube of 112 vectors at 800
+        elements, one CLI run each). In place on V, K, M and basis.omega; False (nothing changed) where
         M_r is not positive definite to working precision. Collective (the same T on every rank:
         K and M are allreduced projections)."""
         m, r = basis.mode_count, M.shape[0]
