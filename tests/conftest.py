@@ -2,7 +2,8 @@
 
 Under MPI every rank runs every test. Rules that keep a failure from hanging the job:
 - assert only on values every rank agrees on, or reduce the condition first (`assert_all`);
-- use `shared_tmp_path` (rank 0's tmp_path) for files all ranks read or write.
+- use `shared_tmp_path` (rank 0's tmp_path) for files all ranks read or write;
+- look at the files a collective call left behind with `rank0_files` (rank 0 writes and removes them).
 """
 import contextlib
 import subprocess
@@ -70,6 +71,18 @@ def comm():
 def shared_tmp_path(tmp_path):
     """Rank 0's tmp_path, the same directory on every rank."""
     return MPI.COMM_WORLD.bcast(tmp_path, root=0)
+
+
+def rank0_files(folder) -> list:
+    """The names in `folder` as rank 0 sees them once it is back from the collective call before,
+    sorted, the same on every rank. Rank 0 writes and removes a run's files (the output, its .partial
+    and checkpoint, the OUT.h5.lock it releases last): rank 1 can return from the same call, or from its
+    error, before rank 0 has removed them, as no collective follows the release (a barrier there would
+    hang a job where one rank raises alone). A look from rank 1 then still saw OUT.h5.lock (failed on
+    rank 1 only, under load). Collective."""
+    import os
+
+    return MPI.COMM_WORLD.bcast(sorted(os.listdir(folder)) if MPI.COMM_WORLD.rank == 0 else None, root=0)
 
 
 def assert_all(condition, message=""):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from conftest import assert_all
+from conftest import assert_all, rank0_files
 from dbf_hpc.errors import InputError
 from dbf_hpc.laws import ConstraintLaws
 from dbf_hpc.run import run
@@ -142,7 +142,7 @@ def test_failed_run_leaves_no_output_and_never_clobbers(shared_tmp_path):
     with pytest.raises(InputError):
         paper_run(shared_tmp_path, "integrator.scheme=ars443", name="keep.h5")
     assert_all(target.read_bytes() == b"previous results")
-    assert_all(not os.path.exists(str(target) + ".partial"))
+    assert rank0_files(shared_tmp_path) == ["keep.h5"], "no .partial, no lock"
 
 
 
@@ -157,7 +157,7 @@ def test_a_basis_option_petsc_refuses_is_one_line_from_run_and_leaves_no_file(sh
         paper_run(shared_tmp_path, "integrator.t_end=0.01", name="refused.h5")
     line = str(refused.value)
     assert_all("\n" not in line and "EPSSetType" in line and "(given: -modes_eps_type bogus)" in line, line)
-    assert_all(not any(p.name.startswith("refused") for p in shared_tmp_path.iterdir()))
+    assert not any(name.startswith("refused") for name in rank0_files(shared_tmp_path)), "no output, no lock"
 
 
 @pytest.mark.parametrize("suffix", [".partial", ".checkpoint"])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from conftest import assert_all
+from conftest import assert_all, rank0_files
 from dbf_hpc.errors import DbfError, InputError
 from dbf_hpc.modes import counters
 from dbf_hpc.report import describe
@@ -270,7 +270,7 @@ def test_a_summary_that_would_not_fit_on_the_disk_is_refused_before_hdf5_writes_
     monkeypatch.setattr(sweep_module, "free_bytes", lambda folder: 200 * 2**10)   # what the disk had left
     with pytest.raises(DbfError, match="cannot write the sweep summary .*: No space left on device; the cases are kept"):
         run_sweep(path, progress=False)
-    assert_all(sorted(os.listdir(shared_tmp_path)) == ["summary.h5.cases", "sweep.toml"], "no summary, .partial or lock")
+    assert rank0_files(shared_tmp_path) == ["summary.h5.cases", "sweep.toml"], "no summary, .partial or lock"
     records = [str(summary) + f".cases/case-0000{i}.json" for i in range(2)]
     stamps = [os.path.getmtime(name) for name in records]
     monkeypatch.undo()
