@@ -29,19 +29,25 @@ RTOL_FLOOR = 1e-14          # a relative error control tighter than this is belo
 # are more than two days); STEPS_PER_PERIOD steps resolve one period of the fastest forcing.
 MAX_STEPS = 1e10
 STEPS_PER_PERIOD = 20
-# An adaptive step is kept between [integrator] dt x MIN_STEP_FRACTION and 10 samples. PETSc accepts a
-# step at that floor even when its error is above rtol/atol, so a model that wants steps below it
-# (a contact law far too stiff or damped for its time scale, an extreme load) crawls at the floor
-# with no error: FLOOR_STEPS steps in a row there stop the run (StepMonitor.report).
+# Both stall guards of an adaptive run measure its steps against one scale (step_scale): [integrator]
+# dt, the user's first step, or where smaller 1/STEPS_PER_PERIOD of the period of the model's highest
+# reference mode (red team: the 9-stop paper beam at 150 modes, 6235 Hz, with dt = 1 s took its healthy
+# 5e-6 s steps, 1e-4 of the period, and was stopped as a crawl; it finishes in 8 s).
+# An adaptive step is kept between the scale x MIN_STEP_FRACTION and 10 samples. PETSc accepts a step
+# at that floor even when its error is above rtol/atol, so a model that wants steps below it (a
+# contact law far too stiff or damped for its time scale, an extreme load) crawls at the floor with no
+# error: FLOOR_STEPS steps in a row there stop the run (StepMonitor.report). The floor was dt x 1e-8
+# alone (red team: the paper's beam with 1e12 N/m stops and dt = 1 s, whose impacts want 3e-10 s steps,
+# took 12 steps at 1e-8 s without error control and finished with exit 0, w at the stop 1.4 % of its
+# peak off the same run at dt = 1e-4 s). It never falls below TIME_ULPS rounding units of t_end, where
+# t + step could not be told from t.
 MIN_STEP_FRACTION = 1e-8
+TIME_ULPS = 16
 FLOOR_STEPS = 1000
 # A run whose steps hover just above the floor crawls as well (red team: 1e12 N on the paper's beam under
 # -rom_snes_max_it 1 with the Python callbacks took steps of 5e-11 to 1.5e-10 s, 50 to 150 times the
 # floor, at t = 0.0212 s for 10 minutes, ETA growing): STALL_STEPS steps that together advance less
-# than STALL_STEPS x dt x STALL_FRACTION (a mean step below dt x 1e-5) stop it too. dt is the user's first
-# step: where it exceeds 1/STEPS_PER_PERIOD of the period of the model's highest reference mode, that
-# step is the scale instead (red team: the 9-stop paper beam at 150 modes, 6235 Hz, with dt = 1 s took
-# its healthy 5e-6 s steps, 1e-4 of the period, and was stopped as a crawl; it finishes in 8 s).
+# than STALL_STEPS x scale x STALL_FRACTION (a mean step below the scale x 1e-5) stop it too.
 STALL_FRACTION = 1e-5
 STALL_STEPS = 10000
 MAX_SAMPLES = 1e9           # 8 GB a series
@@ -164,15 +170,25 @@ def checked_by_the_integrator(callback):
     return quiet
 
 
+def step_scale(dt: float, fastest_hz: float = 0.0) -> float:
+    """The step an adaptive run's stall guards measure against (s): [integrator] dt, or where smaller
+    1/STEPS_PER_PERIOD of the period of `fastest_hz` (the model's highest reference mode; 0: dt). The
+    floor is MIN_STEP_FRACTION of it, a crawl a mean step below STALL_FRACTION of it."""
+    if fastest_hz > 0 and math.isfinite(fastest_hz):
+        return min(dt, 1.0 / (STEPS_PER_PERIOD * fastest_hz))
+    return dt
+
+
 def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults: dict, adaptive: bool,
               start: dict | None = None, steps: "StepMonitor | None" = None, fastest_hz: float = 0.0) -> None:
     """What every integrator's TS gets: time span, first step, tolerances, the failure policy, the
     Newton tolerances, then the code's defaults (scoped to `prefix`, only where the user set
     nothing) and the user's options; a user option [integrator] sets is refused
     (refuse_settings_options). `start` (t, dt, steps) continues a checkpointed run. `steps`, on an
-    adaptive run, watches the step-size floor (FLOOR_STEPS) and the crawl just above it (STALL_STEPS),
-    whose scale is dt or, where smaller, 1/STEPS_PER_PERIOD of the period of `fastest_hz` (Hz, the
-    model's highest reference mode; 0: dt alone)."""
+    adaptive run, watches the step-size floor (FLOOR_STEPS) and the crawl just above it (STALL_STEPS).
+    Both, and the controller's own floor, scale with step_scale(dt, fastest_hz): dt or, where smaller,
+    1/STEPS_PER_PERIOD of the period of `fastest_hz` (Hz, the model's highest reference mode; 0: dt
+    alone)."""
     refuse_settings_options(prefix, adaptive)
     ts.setTime(start["t"] if start else 0.0)
     ts.setTimeStep(start["dt"] if start else settings.dt)
@@ -185,8 +201,10 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
     ts.setErrorIfStepFails(False)
     ts.setMaxSNESFailures(-1 if adaptive else 1)
     ts.setMaxStepRejections(50)  # consecutive, within one step: bounds the retries of a hopeless step
+    scale = step_scale(settings.dt, fastest_hz)
+    nominal = max(scale * MIN_STEP_FRACTION, TIME_ULPS * float(np.spacing(settings.t_end)))
     if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples)
-        ts.setStepLimits(settings.dt * MIN_STEP_FRACTION, max(settings.dt, settings.sample_dt * 10))
+        ts.setStepLimits(nominal, max(settings.dt, settings.sample_dt * 10))
     ts.getSNES().setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
     with options_defaults(prefix, defaults):
         ts.setOptionsPrefix(prefix)
@@ -196,15 +214,19 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
         ts.setStepLimits(low, max(low, high * settings.max_step_scale))
     if adaptive and steps is not None:
         # the floor the controller has, which -<prefix>ts_adapt_dt_min raises (a crawl there went
-        # unseen; red team); below dt x MIN_STEP_FRACTION a run crawls whatever the floor
-        nominal, floor = settings.dt * MIN_STEP_FRACTION, ts.getStepLimits()[0]
+        # unseen; red team); below the nominal floor a run crawls whatever the floor
+        floor = ts.getStepLimits()[0]
         steps.ts, steps.floor = ts, max(floor, nominal)
-        scale = settings.dt
-        if fastest_hz > 0 and math.isfinite(fastest_hz):
-            scale = min(scale, 1.0 / (STEPS_PER_PERIOD * fastest_hz))
         steps.stall_step, steps.stall_scale = max(steps.floor, scale * STALL_FRACTION), scale
-        steps.floor_source = (f"-{prefix}ts_adapt_dt_min" if floor > nominal else
-                              f"[integrator] dt x {MIN_STEP_FRACTION:g}")
+        if floor > nominal:
+            steps.floor_source = f"-{prefix}ts_adapt_dt_min"
+        elif nominal > scale * MIN_STEP_FRACTION:
+            steps.floor_source = f"{TIME_ULPS} rounding units of [integrator] t_end"
+        elif scale < settings.dt:
+            steps.floor_source = (f"{MIN_STEP_FRACTION:g} x 1/{STEPS_PER_PERIOD} of the highest reference mode's "
+                                  f"period")
+        else:
+            steps.floor_source = f"[integrator] dt x {MIN_STEP_FRACTION:g}"
         # a user's Newton or step options can starve the step too (-rom_snes_max_it 1): name them
         steps.floor_options = sorted(f"-{name}" for name in PETSc.Options().getAll()
                                      if name.startswith((prefix + "snes_", prefix + "ksp_", prefix + "ts_")))

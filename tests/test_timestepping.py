@@ -148,6 +148,109 @@ def test_a_large_first_step_does_not_make_the_fast_modes_healthy_steps_a_crawl()
             ts.destroy()
 
 
+@pytest.mark.parametrize("dt,t_end,fastest,floor,source", [
+    (1.0, 1.0, 6235.0, 1e-8 / (20 * 6235.0), r"1e-08 x 1/20 of the highest reference mode's period"),
+    (1e-4, 1.0, 9.8, 1e-12, r"\[integrator\] dt x 1e-08"),
+    (1e-4, 1e6, 0.0, 16 * 2.0**-33, r"16 rounding units of \[integrator\] t_end")])
+def test_the_step_floor_and_the_crawl_are_measured_against_one_scale_the_smaller_of_dt_and_the_fast_modes_period(
+        dt, t_end, fastest, floor, source):
+    # Red team: the crawl's scale was the smaller of dt and 1/20 of the highest mode's period, but the
+    # floor (PETSc's, and the watch's) stayed dt x 1e-8: under dt = 1 s a step of 1e-8 s, 1e-5 of a
+    # 6235 Hz mode's period, was the floor, where PETSc accepts steps without error control. Both are
+    # now fractions of the same scale; a floor never falls below 16 rounding units of t_end (16 x 2^-33 s
+    # at t_end = 1e6 s), where t + step could no longer be told from t.
+    import numpy as np
+    from petsc4py import PETSc
+
+    from dbf_hpc.timestepping import MIN_STEP_FRACTION, STALL_FRACTION, StepMonitor, configure, step_scale
+
+    ts = PETSc.TS().create(comm=PETSc.COMM_SELF)
+    ts.setType(PETSc.TS.Type.ARKIMEX)
+    try:
+        settings = IntegratorSettings(t_end=t_end, dt=dt, adaptive=True, sample_dt=t_end / 10)
+        monitor = StepMonitor(np.linspace(0.0, t_end, 11))
+        configure(ts, settings, "rom_", {"ts_adapt_type": "basic"}, True, steps=monitor, fastest_hz=fastest)
+        scale = step_scale(dt, fastest)
+        assert scale == pytest.approx(min(dt, 1 / (20 * fastest)) if fastest else dt, rel=1e-12)
+        assert ts.getStepLimits()[0] == pytest.approx(floor, rel=1e-12)     # PETSc's floor ...
+        assert monitor.floor == pytest.approx(floor, rel=1e-12)             # ... is the one watched
+        assert re.fullmatch(source, monitor.floor_source), monitor.floor_source
+        assert monitor.stall_step == pytest.approx(max(floor, scale * STALL_FRACTION), rel=1e-12)
+        assert monitor.floor <= scale * MIN_STEP_FRACTION or "rounding" in monitor.floor_source
+    finally:
+        ts.destroy()
+
+
+def test_a_stiff_stops_impacts_take_the_short_steps_they_need_under_a_first_step_of_1_s(shared_tmp_path):
+    # Red team: the paper's beam with 1e12 N/m stops. Its impacts want steps near 3e-10 s; with
+    # [integrator] dt = 1 s (an adaptive run's first step only) the floor was dt x 1e-8 = 1e-8 s, and the
+    # run took 12 steps there without error control and ended with exit 0, w at the stop 1.4 % of its
+    # peak off the same run started at dt = 1e-4 s. The floor is now 1e-8 of 1/20 of the 6th mode's
+    # period (5.1e-11 s): the two first steps give one answer (measured 1.2e-4 apart).
+    import h5py
+    from mpi4py import MPI
+
+    from dbf_hpc.accuracy import relative_difference
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_run import PAPER
+
+    w = {}
+    for dt in (1e-4, 1.0):
+        out = shared_tmp_path / f"dt{dt:g}.h5"
+        run(load_scene(PAPER, ["basis.cache=off", "basis.estimate=false", "output.snapshots=0",
+                               "integrator.t_end=0.2", "constraint.k_minus=1e12", "constraint.k_plus=1e12",
+                               f"integrator.dt={dt}"]), str(out), progress=False)
+        if MPI.COMM_WORLD.rank == 0:
+            with h5py.File(out, "r") as f:
+                w[dt] = f["constraints/displacement"][:]
+    difference = MPI.COMM_WORLD.bcast(relative_difference(w[1.0], w[1e-4]) if w else None, root=0)
+    assert difference < 1e-3, difference
+
+
+def test_a_contact_too_damped_for_any_step_under_a_first_step_of_1_s_stops_at_the_floor_of_the_fast_modes_period(
+        shared_tmp_path):
+    # Hunt-Crossley alpha = 1e308 s/m with dt = 1 s: the floor the run stops at is 1e-8 of 1/20 of the
+    # period of the highest mode of the basis, the pinned beam's 6th, f_6 = (6 pi / L)^2 sqrt(EI / rho A)
+    # / 2 pi = 9.7977 Hz (was dt x 1e-8 = 1e-8 s); one line with what to change, no output, no lock.
+    import math
+
+    from conftest import rank0_files
+    from dbf_hpc.errors import SolverError
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_run import PAPER
+
+    f6 = (6 * math.pi) ** 2 * math.sqrt(117e9 * 8.78e-16 / (11800.0 * 2.9e-7)) / (2 * math.pi)
+    scene = load_scene(PAPER, ["basis.cache=off", "basis.estimate=false", "output.snapshots=0", "integrator.t_end=0.2",
+                               "integrator.dt=1", "constraint.damping=hunt_crossley", "constraint.alpha=1e308"])
+    with pytest.raises(SolverError) as stopped:
+        run(scene, str(shared_tmp_path / "hc.h5"), progress=False)
+    line = str(stopped.value)
+    assert "\n" not in line, line
+    assert f"stayed at its floor ({1e-8 / (20 * f6):.3g} s, 1e-08 x 1/20 of the highest reference mode's period)" \
+        in line, line
+    assert "t = 0.105" in line and "(k, alpha, c)" in line and "lower [integrator] dt" in line, line
+    assert "the samples up to the failure are in" in line and line.endswith("hc.h5.partial)"), line
+    assert rank0_files(shared_tmp_path) == ["hc.h5.partial"], "no output, no lock: the samples named in the line"
+
+
+@pytest.mark.launcher
+def test_a_crawl_under_a_first_step_of_1_s_ends_the_command_on_two_ranks_with_one_line(tmp_path):
+    # The same stop from the command line on 2 ranks: exit 1, one line, no output and no lock.
+    from test_cli import PAPER, dbf_hpc
+
+    done = dbf_hpc("run", PAPER, "-q", "-o", str(tmp_path / "hc.h5"), "--set=basis.cache=off",
+                   "--set=basis.estimate=false", "--set=output.snapshots=0", "--set=integrator.t_end=0.2",
+                   "--set=integrator.dt=1", "--set=constraint.damping=hunt_crossley", "--set=constraint.alpha=1e308",
+                   ranks=2)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and len(lines) == 1, done.stderr
+    assert lines[0].startswith("dbf-hpc: error: the time step stayed at its floor (5.1e-11 s, 1e-08 x 1/20 of the "
+                               "highest reference mode's period)"), lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["hc.h5.partial"]
+
+
 def test_steps_hovering_just_above_the_floor_stop_the_run_as_a_crawl_and_healthy_short_steps_do_not():
     # Red team: 1e12 N on the paper's beam under -rom_snes_max_it 1 with the Python callbacks took steps
     # of 5e-11 to 1.5e-10 s (50 to 150 times the 1e-12 s floor, never at it) at t = 0.0212 s for 10
