@@ -62,6 +62,33 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip_launcher)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def private_default_cache(tmp_path_factory):
+    """A scene that leaves [basis] cache unset caches its bases in the test run's own folder, not in
+    the user's ~/.cache/dbf_hpc: there, other checkouts' test sessions on the same machine (of other
+    code, under the same version) and the user's own runs read and wrote one folder with the tests,
+    so the basis a test got, and whether it was built or found, depended on what ran before (tests of
+    sweeps, of the gyroscopic scenes, ... cached there). The folder is $DBF_HPC_TEST_CACHE
+    (scripts/test: one for both passes, removed at its end), else this session's (rank 0's, every
+    rank the same). The `dbf-hpc` subprocesses of launcher tests keep their own default; they give
+    [basis] cache."""
+    import os
+
+    from dbf_hpc import cache, scene
+
+    folder = None
+    if MPI.COMM_WORLD.rank == 0:
+        folder = os.environ.get("DBF_HPC_TEST_CACHE") or str(tmp_path_factory.mktemp("default-cache"))
+    folder = MPI.COMM_WORLD.bcast(folder, root=0)
+    types, default = scene.SCHEMA["basis"]["cache"]
+    assert default == cache.DEFAULT_DIR, (default, cache.DEFAULT_DIR)
+    scene.SCHEMA["basis"]["cache"], cache.DEFAULT_DIR = (types, folder), folder
+    try:
+        yield folder
+    finally:
+        scene.SCHEMA["basis"]["cache"], cache.DEFAULT_DIR = (types, default), default
+
+
 @pytest.fixture
 def comm():
     return PETSc.COMM_WORLD
