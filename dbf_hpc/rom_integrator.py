@@ -357,6 +357,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
             stats["c_counters"] = {name: value + (int(done[C_COUNTERS.index(name)]) if done is not None else 0)
                                    for name, value in fast.counters.items()}
         reason = ts.getConvergedReason()
+        steps.last_step = ts.getTimeStep()   # check_outcome: a run that failed at its floor says so
     finally:
         # ksp is our reference to the TS's own solver (dropped by Python after the TS, petsc4py 3.18 parks it
         # in PETSc's garbage: one KSP per integration in a long process)

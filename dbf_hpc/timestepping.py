@@ -65,10 +65,10 @@ SETTINGS_OPTIONS = {"ts_rtol": "rtol", "ts_atol": "atol", "ts_dt": "dt", "ts_max
 
 @dataclass(frozen=True)
 class IntegratorSettings:
-    """t_end (s); dt: the fixed step, or the first step of an adaptive run (s); scheme: the
-    ARKIMEX type of the reduced model; adaptive: error-controlled steps (the reduced model; the
-    full-order loop takes fixed steps dt); rtol, atol: the adaptive error control; contact: the
-    contact force on the "implicit" or "explicit" side of the reduced model's IMEX split;
+    """t_end (s); dt: the fixed step, or the first step of an adaptive run (s; at most its upper limit,
+    10 samples); scheme: the ARKIMEX type of the reduced model; adaptive: error-controlled steps (the
+    reduced model; the full-order loop takes fixed steps dt); rtol, atol: the adaptive error control;
+    contact: the contact force on the "implicit" or "explicit" side of the reduced model's IMEX split;
     sample_dt: the output interval (s); callbacks: the reduced model's TS callbacks, "c" (the compiled
     fast path), "python" (the reference) or "auto" (C when built); max_step_scale: the adaptive step's
     upper limit (10 samples, or -<prefix>ts_adapt_dt_max) times this, in (0, 1] (the error estimate's
@@ -203,8 +203,8 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
     ts.setMaxStepRejections(50)  # consecutive, within one step: bounds the retries of a hopeless step
     scale = step_scale(settings.dt, fastest_hz)
     nominal = max(scale * MIN_STEP_FRACTION, TIME_ULPS * float(np.spacing(settings.t_end)))
-    if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples)
-        ts.setStepLimits(nominal, max(settings.dt, settings.sample_dt * 10))
+    if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples); dt does not raise the cap
+        ts.setStepLimits(nominal, max(nominal, settings.sample_dt * 10))
     ts.getSNES().setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
     with options_defaults(prefix, defaults):
         ts.setOptionsPrefix(prefix)
@@ -212,6 +212,8 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
     if adaptive and settings.max_step_scale < 1:   # after the options: it scales -<prefix>ts_adapt_dt_max too
         low, high = ts.getStepLimits()
         ts.setStepLimits(low, max(low, high * settings.max_step_scale))
+    if adaptive and not start:   # the first step is dt, within the limits (PETSc takes it as given)
+        ts.setTimeStep(min(settings.dt, ts.getStepLimits()[1]))
     if adaptive and steps is not None:
         # the floor the controller has, which -<prefix>ts_adapt_dt_min raises (a crawl there went
         # unseen; red team); below the nominal floor a run crawls whatever the floor
@@ -254,6 +256,7 @@ class StepMonitor:
         self.stall_step, self.window = None, None        # configure sets stall_step; window: (step, t)
         self.stall_scale = None                          # the step stall_step is STALL_FRACTION of
         self.floor_source, self.floor_options = "", []
+        self.last_step = None                            # the integrator's TS step when it ended
 
     def samples_due(self, t: float):
         """(index, sample time, whether it is the step's own time) of every sample up to t."""
@@ -347,9 +350,22 @@ def solve(ts: PETSc.TS, y: PETSc.Vec, monitor: StepMonitor, what: str, advice: s
 
 
 def check_outcome(monitor: StepMonitor, reason: int, stats: dict, t_end: float, what: str, advice: str) -> None:
-    """A SolverError if the run stopped (the monitor's message) or did not reach t_end."""
+    """A SolverError if the run stopped (the monitor's message) or did not reach t_end; an adaptive run
+    that failed with its step below the floor (monitor.last_step) gets the floor's message."""
     if monitor.failure:
         raise SolverError(monitor.failure)
+    if reason < 0 and monitor.floor is not None and monitor.last_step is not None and \
+            monitor.last_step < monitor.floor * (1 + 1e-9):
+        # PETSc cuts a step whose Newton failed by 4 without its floor: 50 failures in a row took the
+        # step to 1e-41 s (Hunt-Crossley alpha 1e308 with dt = 1 s), and "reduce [integrator] dt" said
+        # nothing true; it is the floor's stop, with the floor's causes
+        given = f"the options given ({' '.join(monitor.floor_options)}), " if monitor.floor_options else ""
+        raise SolverError(f"the time step fell below its floor ({monitor.floor:.3g} s, {monitor.floor_source}) to "
+                          f"{monitor.last_step:.3g} s at t = {stats['final_time']:.6g} s, the Newton solve failing at "
+                          f"every step ({stats['snes_failures']} Newton failures, {stats['rejected_steps']} rejected "
+                          f"steps): check {given}the constraint laws' stiffness and damping (k, alpha, c) and the "
+                          f"loads against the structure's own scales and units, or lower [integrator] dt if the model "
+                          f"is that fast")
     if reason < 0 or monitor.next < monitor.times.size:
         if stats["final_time"] == monitor.times[0]:
             advice += ("; it failed in its first step, which points to the input: check the excitation's amplitude, "
