@@ -412,6 +412,7 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
 
     from . import xdmf
     from .errors import WRITE_ERRORS, DbfError, park, write_failure
+    from .run import cells_attrs
 
     h5 = os.path.splitext(path)[0] + ".h5"
     values = reductor.field_values()
@@ -421,7 +422,8 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
         # Red team: a full disk at the .h5 was "internal error (RuntimeError)" from h5py, then a
         # segfault as the failed file was freed (serial), with the .h5.tmp file left behind.
         tmp_h5, tmp_xdmf = f"{h5}.tmp-{os.getpid()}", f"{path}.tmp-{os.getpid()}"
-        geometry = fom.operators.field_map().geometry()
+        field = fom.operators.field_map()
+        geometry = field.geometry()
         f = None
         try:
             f = h5py.File(tmp_h5, "w")
@@ -430,10 +432,11 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
                 f.create_dataset(name, data=data)
             f["shapes/omega"] = np.concatenate([basis.omega, basis.enrichment_omega])
             f.attrs["dbf_hpc_version"] = __version__
+            f.attrs.update(cells_attrs(field))
             f.close()
             f = None
             xdmf.write(tmp_xdmf, h5, "shapes", geometry[0], geometry[1].shape[0],
-                       np.arange(1, values.shape[1] + 1), "shape")
+                       np.arange(1, values.shape[1] + 1), "shape", cells=geometry[4])
             os.replace(tmp_h5, h5)
             os.replace(tmp_xdmf, path)
         except (DbfError, *WRITE_ERRORS) as e:

@@ -85,6 +85,8 @@ DATASETS = {
     "snapshots/points": ("m", "node coordinates (nodes x 3): x along a beam; DOF i at (i, 0, 0) without a node map"),
     "snapshots/node": ("1", "the node of each field point (F)"),
     "snapshots/polyline": ("1", "a beam's elements as node pairs, for the XDMF file"),
+    "snapshots/cells": ("1", "a matrix model's cells ([structure] cells: node indices, E x k in XDMF's order), for the "
+                             "XDMF file; absent without them (the XDMF file then shows points)"),
     "snapshots/component": ("1", "the direction of each field point: 0 = x, 1 = y, 2 = z (F)"),
 }
 
@@ -148,7 +150,10 @@ def reference() -> str:
               "gyroscopic_form`; in the state-space form `reduced/q` and `reduced/qdot` are the states eta and "
               "eta', `reduced/M` is Psi^T A Psi, `reduced/K` is B_r of eta' = -B_r eta + ..., `reduced/D` is zero "
               "and `reduced/B` is the displacement part at the constraints; docs/design.md), `field_kind` "
-              "(`beam`, `nodes` or `dofs`), `dbf_hpc_version`, `petsc_version`, "
+              "(`beam`, `nodes` or `dofs`), `field_cells`, `field_cell_count` and `field_cells_sha256` (with "
+              "`[structure] cells`: the XDMF cell type, the number of cells and the sha256 of the cells file; the "
+              "run identity leaves the cells out, as they change no number, and `--resume` computes an output "
+              "whose cells differ again), `dbf_hpc_version`, `petsc_version`, "
               "`slepc_version`, `mpi_ranks`, `solver_stats` and `wall_times` (JSON), `initial_state`, "
               "`run_identity` (JSON: a sha256 of each part of what the run was asked and built: scene, files, "
               "basis, options, ranks, method, version; `dbf-hpc run --resume` on a finished output with the same "
@@ -170,7 +175,11 @@ def reference() -> str:
              "(m^3) with `wear_volume_ci95` for a constraint's `wear_coefficient` K_w (NaN without one) (runs; the "
              "Python API's Result has the work rate only).", "",
              "With snapshots, `OUT.xdmf` beside the output describes `snapshots/points` and "
-             "`snapshots/displacement/NNNNNN` as a time series that ParaView (Xdmf3 reader) and meshio open.", "",
+             "`snapshots/displacement/NNNNNN` as a time series that ParaView (Xdmf3 reader) and meshio open: on "
+             "the cells of `snapshots/cells` when the scene gives `[structure] cells` (a solid's hexahedra), a "
+             "beam's polyline, else points. `dbf-hpc basis --xdmf SHAPES.xdmf` writes the basis vectors alike "
+             "into `SHAPES.h5` (`shapes/points`, `shapes/cells`, `shapes/shape/NNNNNN`, `shapes/omega`, the "
+             "same `field_cells` attributes).", "",
              "A sweep summary (`dbf-hpc sweep`) holds a row per case: `cases/parameters/<section.key>` (NaN or "
              "null where a listed case leaves the base scene's value), `cases/status`, `cases/error`, "
              "`cases/wall_time` (s), `cases/warnings` (what `dbf-hpc run` warns of the case, that its result may be "

@@ -14,6 +14,7 @@ Reading is collective on the communicator it is given (default COMM_WORLD).
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 import warnings
 from dataclasses import dataclass
@@ -303,6 +304,9 @@ class MatrixFiles:
                       columns, m) and for each free DOF its node and direction (a text file, one DOF a
                       row: node index from 0, then x, y, z, rx, ry or rz); outputs and plots then show
                       displacement vectors at the nodes
+    cells             optional, with the node map: the mesh's cells for ParaView (load_cells), so that
+                      its XDMF files show the solid instead of points. Only the display: no number of a
+                      result depends on it, and the basis cache and checkpoints ignore it
     """
 
     stiffness: str
@@ -313,12 +317,14 @@ class MatrixFiles:
     nodes: Optional[str] = None
     dofs: Optional[str] = None
     gyroscopic: Optional[str] = None
+    cells: Optional[str] = None
 
     def __post_init__(self):
         """Each file a path (str or os.PathLike, kept as str), the optional ones None. Red team:
         MatrixFiles(None, None) and MatrixFiles(1, 2) were taken, and FullOrderModel.build failed in
         os.stat with a bare TypeError."""
-        for name in ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes", "dofs", "gyroscopic"):
+        for name in ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes", "dofs", "gyroscopic",
+                     "cells"):
             value = getattr(self, name)
             if value is None and name not in ("stiffness", "mass"):
                 continue
@@ -373,6 +379,91 @@ def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
     return coordinates, node, component
 
 
+def load_cells(path: str, coordinates: np.ndarray) -> tuple:
+    """(cells (E x k, int64), sha256 of the file's bytes) from a cells file: one cell a row, the
+    indices (from 0) of its k nodes in the nodes file, in XDMF's (VTK's) node order; .npy (an integer
+    array E x k) or text (whitespace-separated). k gives the XDMF topology (xdmf.CELL_TYPES: 4 a
+    tetrahedron, 8 a hexahedron ...). Refused: another k, rows of different lengths, an index that is
+    not an integer or not a node, a node twice in a cell, a flat tetrahedron, a hexahedron whose
+    corners are not in XDMF's order (its corner Jacobians change sign: the lexicographic order of
+    many generators draws a twisted brick). Not collective (every rank reads)."""
+    from .xdmf import CELL_TYPES
+
+    _readable(path, "cells")
+    with open(path, "rb") as f:
+        data = f.read()
+    try:
+        if path.endswith(".npy"):
+            table = np.load(io.BytesIO(data), allow_pickle=False)
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                table = np.loadtxt(io.StringIO(data.decode("ascii")), ndmin=2, dtype=float)
+    except (ValueError, OSError, EOFError, UnicodeDecodeError) as e:
+        why = str(e).splitlines()[0].split(";")[0] if str(e) else type(e).__name__   # (not numpy's `usecols` advice)
+        raise InputError(f"cells file {path!r} is malformed ({why}): one cell a row, every row the same number of "
+                         f"node indices") from None
+    table = np.asarray(table)
+    if table.ndim != 2 or table.shape[0] == 0:
+        raise InputError(f"cells file {path!r} holds no table of cells (one cell a row), got shape {table.shape}")
+    if not (np.issubdtype(table.dtype, np.integer) or np.issubdtype(table.dtype, np.floating)) or \
+            not np.all(np.isfinite(table)) or np.any(table != np.floor(table)):
+        raise InputError(f"cells file {path!r}: node indices must be integers (from 0)")
+    k = table.shape[1]
+    if k not in CELL_TYPES:
+        raise InputError(f"cells file {path!r}: rows of {k} nodes are no cell type dbf-hpc writes; give " +
+                         ", ".join(f"{n} ({name})" for n, name in CELL_TYPES.items()) + " nodes a row")
+    n = coordinates.shape[0]
+    outside = np.flatnonzero((table < 0).any(axis=1) | (table >= n).any(axis=1))
+    if outside.size:
+        i = int(outside[0])
+        bad = int(table[i][(table[i] < 0) | (table[i] >= n)][0])
+        raise InputError(f"cells file {path!r}: cell {i} (row {i + 1}) names node {bad}; the nodes file has {n} "
+                         f"nodes (0 to {n - 1})")
+    cells = table.astype(np.int64)
+    ordered = np.sort(cells, axis=1)
+    twice = np.flatnonzero((ordered[:, 1:] == ordered[:, :-1]).any(axis=1))
+    if twice.size:
+        i = int(twice[0])
+        raise InputError(f"cells file {path!r}: cell {i} (row {i + 1}) lists node "
+                         f"{int(ordered[i][1:][ordered[i][1:] == ordered[i][:-1]][0])} twice")
+    kind = CELL_TYPES[k]
+    if kind.startswith(("Tetrahedron", "Hexahedron")):
+        _check_solid_cells(path, kind, cells, coordinates)
+    return cells, hashlib.sha256(data).hexdigest()
+
+
+# XDMF's (VTK's) hexahedron: corners 0-3 around the bottom face, 4-7 above them; each corner's three
+# neighbours, in the order that makes the edge triple's determinant positive for a right-handed brick
+HEX_NEIGHBOURS = np.array([(1, 3, 4), (2, 0, 5), (3, 1, 6), (0, 2, 7), (7, 5, 0), (4, 6, 1), (5, 7, 2), (6, 4, 3)])
+
+
+def _check_solid_cells(path: str, kind: str, cells: np.ndarray, coordinates: np.ndarray) -> None:
+    """An InputError for a flat tetrahedron, or a hexahedron whose 8 corner Jacobians are not all of one
+    sign (a mirrored cell, all negative, ParaView draws as it is)."""
+    corners = 4 if kind.startswith("Tetrahedron") else 8
+    xyz = coordinates[cells[:, :corners]]                                    # (E, corners, 3)
+    scale = np.ptp(xyz, axis=1).max(axis=1) ** 3                             # (E,)
+    if corners == 4:
+        det = np.linalg.det(xyz[:, 1:] - xyz[:, :1])[:, None]                # (E, 1)
+    else:
+        edges = xyz[:, HEX_NEIGHBOURS] - xyz[:, :, None, :]                  # (E, 8, 3, 3)
+        det = np.linalg.det(edges)                                           # (E, 8)
+    tiny = 1e-10 * scale[:, None]
+    flat = np.flatnonzero((np.abs(det) <= tiny).any(axis=1))
+    if flat.size:
+        i = int(flat[0])
+        raise InputError(f"cells file {path!r}: {kind.lower()} {i} (row {i + 1}, nodes "
+                         f"{' '.join(map(str, cells[i]))}) has no volume: a {cells.shape[1]}-node cell is a "
+                         f"{kind.lower()}, its corners apart in 3-D (the nodes file needs z); fix the cell")
+    twisted = np.flatnonzero((det > 0).any(axis=1) & (det < 0).any(axis=1))
+    if twisted.size:
+        i = int(twisted[0])
+        raise InputError(f"cells file {path!r}: hexahedron {i} (row {i + 1}, nodes {' '.join(map(str, cells[i]))}) is "
+                         f"not in XDMF's node order (it would be drawn twisted): list the 4 corners around one face, "
+                         f"then the 4 opposite them in the same turn")
+
+
 def file_digest(path: str, comm, what: str = "input") -> str:
     """sha256 of a file's bytes, read on rank 0 only; a file that cannot be read is every rank's
     InputError naming it (`what` file ...). Collective."""
@@ -403,6 +494,11 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
     comm = petsc_comm(comm, "load_operators")
     if files.base_mass_load and not files.influence:
         raise InputError("a base mass load needs the influence vector as well")
+    if files.cells and not (files.nodes and files.dofs):
+        raise InputError(f"cells file {files.cells!r}: cells are drawn between the nodes of a node map: give "
+                         f"[structure] nodes and dofs as well")
+    if files.cells:
+        _readable(files.cells, "cells")   # before the matrices, which take a while (read in full with the node map)
     ops = Operators(comm=comm, K=load_matrix(files.stiffness, comm, "stiffness"), M=None)
     try:
         ops.M = load_matrix(files.mass, comm, "mass")
@@ -439,8 +535,15 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
         if files.nodes:
             coordinates, node, component = load_node_map(files.nodes, files.dofs, n)
             moves = np.flatnonzero(component < 3)          # translations: what a displacement field shows
+            cells, digest = load_cells(files.cells, coordinates) if files.cells else (None, "")
+            if cells is not None:
+                unseen = np.setdiff1d(node[moves], cells.ravel()).size
+                if unseen:
+                    are = "s with a displacement DOF are" if unseen > 1 else " with a displacement DOF is"
+                    warn(f"{unseen} node{are} in no cell of {files.cells!r}: ParaView shows no displacement there "
+                         f"(give every element's cell)", comm)
             ops.field = PointValues.at_rows(moves, moves, kind="nodes", node=node[moves], component=component[moves],
-                                            coordinates=coordinates)
+                                            coordinates=coordinates, cells=cells, cells_sha256=digest)
         if files.influence:
             ops.influence = load_vector(files.influence, ops.K.createVecRight(), "influence vector", owned=True)
             if files.base_mass_load:

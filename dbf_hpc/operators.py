@@ -30,6 +30,8 @@ class PointValues:
     weights    (P, m) the weights (1 for a node's w; a beam element's Hermite shape functions
                between nodes, so that asking for a value never adds a node to the model)
     moving     (P,) the share of the support motion carried by fixed DOFs (the moving end's w)
+    cells      (E, k) a matrix model's cells for the XDMF files (node indices, XDMF node order), or
+               None (points); cells_sha256 the bytes of the file they came from, which outputs record
     The field of a snapshot is the PointValues of every node; probes are PointValues too.
     """
 
@@ -42,6 +44,8 @@ class PointValues:
     component: Optional[np.ndarray] = None
     coordinates: Optional[np.ndarray] = None
     components: int = 1     # values per point: 2 on a beam of two planes (y, z), point-major
+    cells: Optional[np.ndarray] = None
+    cells_sha256: str = ""
 
     @property
     def shape(self) -> tuple:
@@ -51,21 +55,22 @@ class PointValues:
     @classmethod
     def at_rows(cls, positions, rows, moving=None, **where) -> "PointValues":
         """One DOF per point, weight 1 (a node's w, or a DOF of a matrix model). `where` (kind, node,
-        component, coordinates) says where the points are in space (for the field's output)."""
+        component, coordinates, cells) says where the points are in space (for the field's output)."""
         rows = np.asarray(rows, dtype=np.int64).reshape(-1, 1)
         return cls(positions=np.asarray(positions, dtype=float), rows=rows, weights=np.ones(rows.shape),
                    moving=np.zeros(rows.shape[0]) if moving is None else np.asarray(moving, dtype=float), **where)
 
     def geometry(self) -> tuple:
         """(kind, node coordinates (nodes x 3), node of each point, component of each point: 0 = x,
-        1 = y, 2 = z): what a field output needs to place the values in space. A beam is along x with
-        w along y; a matrix model without a node map puts DOF i at (i, 0, 0), its value along x."""
+        1 = y, 2 = z, cells (E x k node indices) or None): what a field output needs to place the
+        values in space. A beam is along x with w along y; a matrix model without a node map puts
+        DOF i at (i, 0, 0), its value along x."""
         n = self.count
         if self.node is not None:
-            return self.kind, self.coordinates, self.node, self.component
+            return self.kind, self.coordinates, self.node, self.component, self.cells
         xyz = np.zeros((n, 3))
         xyz[:, 0] = self.positions
-        return self.kind, xyz, np.arange(n), np.full(n, 1 if self.kind == "beam" else 0)
+        return self.kind, xyz, np.arange(n), np.full(n, 1 if self.kind == "beam" else 0), None
 
     @property
     def count(self) -> int:

@@ -34,6 +34,7 @@ from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupte
 from .fom import Observation
 from .fom_integrator import integrate_full, step_count
 from .fom_integrator import options as full_options
+from .matrices import file_digest
 from .modes import counters
 from .output import (SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space, check_output_path,
                      free_bytes, is_dbf_checkpoint, is_dbf_partial, output_bytes)
@@ -389,7 +390,8 @@ def scene_callbacks(scene: Scene) -> str:
 def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordinates: str | None = None,
                  request: str | None = None, digests: dict | None = None) -> dict:
     """What a checkpoint must match to be resumed: every part that changes the result: the scene, the
-    bytes of every file it reads, the operators and basis, the PETSc options, the rank count, the
+    bytes of every file it reads (not [structure] cells, which only draw the field: cells_attrs),
+    the operators and basis, the PETSc options, the rank count, the
     method, the callbacks, the package version, and (reduced) what the coordinates q mean
     (ReducedModel.coordinates_digest: a basis rebuilt in another orientation of a repeated frequency
     holds the same key, not the same q); with `request` (request_identity), also the question as it
@@ -397,7 +399,7 @@ def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordi
     file_digests when already made (they are not hashed again). Collective."""
     callbacks = scene_callbacks(scene) if method == "rom" else None
     files = scene.file_digests(comm) if digests is None else digests
-    return identity(scene=[scene.sections, [repr(c) for c in scene.constraints]], files=files,
+    return identity(scene=[scene.result_sections(), [repr(c) for c in scene.constraints]], files=files,
                     structure=basis_key, coordinates=coordinates, options=PETSc.Options().getAll(),
                     ranks=comm.getSize(), method=method, callbacks=callbacks, version=__version__,
                     **({"request": request} if request else {}))
@@ -432,13 +434,30 @@ def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | N
     if scene.output().snapshots and not os.path.isfile(xdmf.sidecar(path)):
         return None
     try:
+        cells = scene.cells_file()
+        cells_digest = file_digest(cells, PETSc.COMM_SELF, "cells") if cells else ""
+    except InputError:   # (the run that follows says so, on every rank)
+        return None
+    try:
         with h5py.File(path, "r") as f:
             stored = json.loads(f.attrs["run_identity"]) if f.attrs.get("complete") else {}
             if not ident or any(stored.get(part) != value for part, value in ident.items()):
                 return None
+            if f.attrs.get("field_cells_sha256", "") != cells_digest:   # its ParaView file shows other cells
+                return None
             return _stored_summary(f, path)
     except (OSError, KeyError, ValueError, TypeError):
         return None
+
+
+def cells_attrs(field) -> dict:
+    """The attributes that say an output's field is drawn with cells ([structure] cells): their XDMF
+    type, count and the sha256 of the cells file; none without cells. The run identity leaves the
+    cells out (they change no number), so finished_output compares these instead."""
+    if field.cells is None:
+        return {}
+    return {"field_cells": xdmf.CELL_TYPES[field.cells.shape[1]], "field_cell_count": int(field.cells.shape[0]),
+            "field_cells_sha256": field.cells_sha256}
 
 
 def _drop_leftover_checkpoint(path: str) -> None:
@@ -930,7 +949,7 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     if snap_t.size:
         datasets.update(node_vectors(geometry, snap_w, "snapshots"))
     datasets.update(extra_datasets or {})
-    attrs = {"field_kind": geometry[0], **(extra_attrs or {})}
+    attrs = {"field_kind": geometry[0], **cells_attrs(field), **(extra_attrs or {})}
     if model is not None:
         info = model.basis_info
         datasets.update({layout.BASIS_OMEGA: info["omega"], layout.BASIS_ENRICHMENT_OMEGA: info["enrichment_omega"],
@@ -987,7 +1006,7 @@ def _write_output(writer, datasets, constraint_stats, scene, method, stats, timi
     if snap_t.size:
         sidecar = xdmf.sidecar(writer.path)
         try:
-            xdmf.write(sidecar, writer.path, "snapshots", geometry[0], geometry[1].shape[0], snap_t)
+            xdmf.write(sidecar, writer.path, "snapshots", geometry[0], geometry[1].shape[0], snap_t, cells=geometry[4])
         except (OSError, DbfError) as exc:   # errors.replacing: a DbfError naming the file and the cause
             # Red team (a disk full at the sidecar): the failure read "cannot write OUT.xdmf" only, and the
             # checkpoint stayed beside the finished output, so --resume refused ("OUT.h5.partial cannot be

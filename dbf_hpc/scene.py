@@ -38,6 +38,10 @@ SCHEMA = {section: {name: (key.types, key.default) for name, key in keys.items()
           for section, (_, keys) in SECTIONS.items()}
 
 
+# Keys that change no number of a result, only how outputs draw it: left out of run and sweep
+# identities (Scene.result_sections, file_digests)
+DISPLAY_ONLY = {"structure": ("cells",)}
+
 # The default checkpoints (every t_end / 10 of simulated time) are written only once this much wall
 # time (s) has passed since the run began or since the last one: a checkpoint costs 10-20 ms (some
 # 30 HDF5 datasets and an fsync), and a short run, a parameter study's case, spent more on its nine
@@ -105,7 +109,20 @@ class Scene:
         s = self["structure"]
         return MatrixFiles(**{key: self.resolve(s[key]) if s[key] else None
                               for key in ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes",
-                                          "dofs", "gyroscopic")})
+                                          "dofs", "gyroscopic", "cells")})
+
+    def cells_file(self) -> Optional[str]:
+        """[structure] cells resolved against the scene's folder, or None."""
+        cells = None if self.is_beam else self["structure"]["cells"]
+        return self.resolve(cells) if cells else None
+
+    def result_sections(self) -> dict:
+        """`sections` without the keys that change no number of a result (DISPLAY_ONLY: the cells
+        ParaView draws): what run and sweep identities hash, so a cells file added or changed keeps a
+        checkpoint resumable and a sweep's records, and the identities of scenes without it are
+        what they were before the key existed."""
+        return {name: {k: v for k, v in keys.items() if k not in DISPLAY_ONLY.get(name, ())}
+                for name, keys in self.sections.items()}
 
     def excitation(self):
         """The excitation description (excitation.py)."""
@@ -187,17 +204,18 @@ class Scene:
         if not self.is_beam:
             s = self["structure"]
             files += [(f"{key} file", self.resolve(s[key])) for key in
-                      ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes", "dofs", "gyroscopic")
-                      if s[key]]
+                      ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes", "dofs", "gyroscopic",
+                       "cells") if s[key]]
         return files
 
     def file_digests(self, comm) -> dict:
         """{path: sha256 of its bytes} of every file this scene reads besides itself (its matrix files,
-        damping, influence, node map ...): a result depends on their contents. Collective."""
+        damping, influence, node map ...): a result depends on their contents. Not the cells file,
+        which only draws the field (result_sections). Collective."""
         from .matrices import file_digest
 
         return {path: file_digest(path, comm, what.removesuffix(" file")) for what, path in self.inputs()
-                if what != "scene"}
+                if what not in ("scene", "cells file")}
 
     def cache_dir(self):
         """The basis cache directory, or None when the scene turns caching off."""

@@ -69,6 +69,13 @@ SECTIONS = {
                                        "columns); with dofs, outputs show displacement vectors at the nodes"),
         "dofs": Key((str,), None, "", "matrices: for each free DOF (one a row, in K's order) its node (from 0) "
                                       "and direction: x, y, z, rx, ry or rz"),
+        "cells": Key((str,), None, "", "matrices: the mesh's cells, so that the ParaView files show the solid "
+                                       "instead of points (needs nodes and dofs): one cell a row, the indices "
+                                       "(from 0) of its nodes in XDMF's (VTK's) order, .npy or text; the node "
+                                       "count picks the type: 2 Polyline, 3 Triangle, 4 Tetrahedron, 5 Pyramid, "
+                                       "6 Wedge, 8 Hexahedron, 10 Tetrahedron_10, 20 Hexahedron_20. Changes no "
+                                       "number: checkpoints and the basis cache ignore it; outputs record it "
+                                       "(field_cells)"),
     }),
     "excitation": ("What drives the structure.", {
         "kind": Key((str,), "none", "", '"none" (free vibration), "base" (support motion), "force" (a point '

@@ -324,7 +324,8 @@ def _read_json(path: str) -> dict | None:
 
 
 def _scene_files(scene) -> list:
-    return [path for what, path in scene.inputs() if what != "scene"]
+    """The files a case's result depends on (not its cells file, which only draws it)."""
+    return [path for what, path in scene.inputs() if what not in ("scene", "cells file")]
 
 
 def _setup(scene) -> dict:
@@ -350,7 +351,7 @@ def _identities(sweep: dict, scenes: list) -> list:
     options = PETSc.Options().getAll()
     out = []
     for scene in scenes:
-        content = [scene.sections, [repr(c) for c in scene.constraints],
+        content = [scene.result_sections(), [repr(c) for c in scene.constraints],
                    {path: digests[path] for path in _scene_files(scene)}, options, __version__, _setup(scene)]
         out.append(hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest())
     # a case of a chain starts from its predecessor's final state: its identity holds the chain's
@@ -378,7 +379,7 @@ def _look(sweep: dict, folder: str, identities: list) -> tuple:
 def _coordinates_key(scene) -> str:
     """What the reduced coordinates q mean: the basis (structure, [basis], constraint positions) and
     the relative coordinates' moving support. A continuation chain must keep it."""
-    parts = {"structure": scene["structure"], "basis": scene["basis"],
+    parts = {"structure": scene.result_sections()["structure"], "basis": scene["basis"],
              "support": [scene["excitation"]["kind"], scene["excitation"]["end"], scene["excitation"]["direction"]],
              "constraints": [(c.x, c.dof) for c in scene.constraints]}
     return json.dumps(parts, sort_keys=True, default=str)

@@ -1,6 +1,7 @@
 """Fields for ParaView: XDMF files that describe, in a few lines of XML, displacement fields stored in
 HDF5 (a run's snapshots, or a basis's mode shapes), as a time series of vectors at the nodes: a
-polyline along x for a beam (w along y), points for a matrix model (at its nodes with a node map,
+polyline along x for a beam (w along y), for a matrix model its cells when [structure] cells gives
+them (hexahedra, tetrahedra ...: ParaView shows the solid), else points (at its nodes with a node map,
 else DOF i at (i, 0, 0)). Open the .xdmf in ParaView ("Xdmf3 Reader") and warp by the vector.
 Nothing here is collective."""
 from __future__ import annotations
@@ -11,11 +12,15 @@ import numpy as np
 
 from .errors import replacing
 
+# XDMF topology of a cell by its node count (one type a mesh; nodes in XDMF's order, which is VTK's)
+CELL_TYPES = {2: "Polyline", 3: "Triangle", 4: "Tetrahedron", 5: "Pyramid", 6: "Wedge", 8: "Hexahedron",
+              10: "Tetrahedron_10", 20: "Hexahedron_20"}
+
 
 def node_vectors(geometry: tuple, values: np.ndarray, prefix: str, name: str = "displacement") -> dict:
     """The datasets `{prefix}/{name}/NNNNNN` (nodes x 3), one per row of values at the field points
     (one dataset a step: readers such as meshio take no hyperslabs)."""
-    _, coordinates, node, component = geometry
+    coordinates, node, component = geometry[1:4]
     out = {}
     for i, row in enumerate(np.atleast_2d(values)):
         vectors = np.zeros((coordinates.shape[0], 3))
@@ -25,10 +30,13 @@ def node_vectors(geometry: tuple, values: np.ndarray, prefix: str, name: str = "
 
 
 def geometry_datasets(geometry: tuple, prefix: str) -> dict:
-    """The datasets that place a field in space: the nodes' coordinates and each value's node and
-    direction (written into the HDF5 file the XDMF points at)."""
-    kind, coordinates, node, component = geometry
+    """The datasets that place a field in space: the nodes' coordinates, each value's node and
+    direction, and a beam's elements or a matrix model's cells (written into the HDF5 file the XDMF
+    points at)."""
+    kind, coordinates, node, component, cells = geometry
     out = {f"{prefix}/points": coordinates, f"{prefix}/node": node, f"{prefix}/component": component}
+    if cells is not None:
+        out[f"{prefix}/cells"] = np.asarray(cells, dtype=np.int64)
     if kind == "beam" and coordinates.shape[0] > 1:
         out[f"{prefix}/polyline"] = np.column_stack([np.arange(coordinates.shape[0] - 1),
                                                      np.arange(1, coordinates.shape[0])])
@@ -70,16 +78,25 @@ def check_sidecar(h5_path: str, inputs=()) -> None:
     check_output_path(path, inputs, replaceable=is_dbf_xdmf)
 
 
-def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, name: str = "displacement") -> None:
+def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, name: str = "displacement",
+          cells=None) -> None:
     """Write the XDMF `path` for `{prefix}/{name}/NNNNNN` (nodes x 3 each) and `{prefix}/points` in
     `h5_file` (referred to by its name: keep the two side by side). `steps` label the time series
-    (times in s, or mode numbers)."""
+    (times in s, or mode numbers). With `cells` (E x k, as `{prefix}/cells`), the topology is those
+    cells (CELL_TYPES by k), else a beam's polyline or points."""
     h5 = os.path.basename(h5_file)
-    topology = (f'<Topology TopologyType="Polyline" NodesPerElement="2" NumberOfElements="{nodes - 1}">'
-                f'<DataItem Format="HDF" Dimensions="{nodes - 1} 2" NumberType="Int" Precision="8">'
-                f'{h5}:/{prefix}/polyline</DataItem></Topology>'
-                if kind == "beam" and nodes > 1 else
-                f'<Topology TopologyType="Polyvertex" NumberOfElements="{nodes}" NodesPerElement="1"/>')
+    if cells is not None:
+        count, k = np.shape(cells)
+        per = f' NodesPerElement="{k}"' if CELL_TYPES[k] == "Polyline" else ""
+        topology = (f'<Topology TopologyType="{CELL_TYPES[k]}" NumberOfElements="{count}"{per}>'
+                    f'<DataItem Format="HDF" Dimensions="{count} {k}" NumberType="Int" Precision="8">'
+                    f'{h5}:/{prefix}/cells</DataItem></Topology>')
+    else:
+        topology = (f'<Topology TopologyType="Polyline" NodesPerElement="2" NumberOfElements="{nodes - 1}">'
+                    f'<DataItem Format="HDF" Dimensions="{nodes - 1} 2" NumberType="Int" Precision="8">'
+                    f'{h5}:/{prefix}/polyline</DataItem></Topology>'
+                    if kind == "beam" and nodes > 1 else
+                    f'<Topology TopologyType="Polyvertex" NumberOfElements="{nodes}" NodesPerElement="1"/>')
     grids = []
     for i, step in enumerate(steps):
         grids.append(

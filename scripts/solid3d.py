@@ -1,17 +1,19 @@
 #!/usr/bin/env python3
 """A 3-D structure at scale: a steel cantilever block (1 m x 0.1 m x 0.1 m) meshed with trilinear
 hexahedra (linear elasticity, 3 DOFs a node, consistent mass, 2x2x2 Gauss), clamped at x = 0,
-written as PETSc binary K and M over the free DOFs, with the node coordinates and the DOF map that
-dbf-hpc uses for its XDMF output, and a scene that runs it: a bar in a guide channel, N_L stops
-with a clearance on the z DOFs of the top centre line, driven by a harmonic force at the tip.
+written as PETSc binary K and M over the free DOFs, with the node coordinates, the DOF map and the
+hexahedra (cells.txt, in XDMF's node order) that dbf-hpc uses for its XDMF output, and a scene
+that runs it: a bar in a guide channel, N_L stops with a clearance on the z DOFs of the top centre
+line, driven by a harmonic force at the tip.
 
     python scripts/solid3d.py OUT_DIR [--elements NX NY NZ] [--stops N] [--surface]
 
 Default 120 x 16 x 16 elements: 104 040 free DOFs, 100 stops. Writes OUT_DIR/K.bin, OUT_DIR/M.bin,
-OUT_DIR/nodes.txt, OUT_DIR/dofs.txt, OUT_DIR/scene.toml and OUT_DIR/dofs.json (the free DOF of each
-node's z displacement along the top edge at y = W/2 (`top_z`, from the clamp to the tip), the tip's
-z DOF (`tip_z`), and the element sizes). jobs/solid_cantilever.toml is that scene for the default
-mesh: `python scripts/solid3d.py jobs/solid_cantilever` writes the matrices it reads.
+OUT_DIR/nodes.txt, OUT_DIR/dofs.txt, OUT_DIR/cells.txt, OUT_DIR/scene.toml and OUT_DIR/dofs.json
+(the free DOF of each node's z displacement along the top edge at y = W/2 (`top_z`, from the clamp
+to the tip), the tip's z DOF (`tip_z`), and the element sizes). jobs/solid_cantilever.toml is that
+scene for the default mesh: `python scripts/solid3d.py jobs/solid_cantilever` writes the matrices,
+node map and cells it reads.
 
 The element is stiff in bending (full integration): the first bending frequency is 87.2, 83.1, 81.9
 and 81.70 Hz on 20x2x2, 40x4x4, 80x8x8 and the default 120x16x16 meshes, converging from above to
@@ -71,8 +73,14 @@ def hex8(dx: float, dy: float, dz: float):
     return K, M
 
 
+# hex8's corners (lexicographic in i, j, k) in XDMF's (VTK's) hexahedron order: around the bottom face,
+# then around the top one above it
+XDMF_ORDER = [0, 1, 3, 2, 4, 5, 7, 6]
+
+
 def assemble(nx: int, ny: int, nz: int):
-    """K, M over all DOFs (scipy CSR) and the node numbering."""
+    """K, M over all DOFs (scipy CSR), the node numbering and the elements' nodes (elements x 8, in
+    XDMF's hexahedron order)."""
     Ke, Me = hex8(LENGTH / nx, WIDTH / ny, HEIGHT / nz)
     node = lambda i, j, k: (k * (ny + 1) + j) * (nx + 1) + i          # noqa: E731
     i, j, k = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
@@ -84,7 +92,7 @@ def assemble(nx: int, ny: int, nz: int):
     n = 3 * (nx + 1) * (ny + 1) * (nz + 1)
     K = sp.csr_matrix((np.tile(Ke.ravel(), len(dofs)), (rows, cols)), shape=(n, n))
     M = sp.csr_matrix((np.tile(Me.ravel(), len(dofs)), (rows, cols)), shape=(n, n))
-    return K, M, node
+    return K, M, node, nodes[:, XDMF_ORDER]
 
 
 def top_z_dofs(nx: int, ny: int, nz: int) -> list:
@@ -118,7 +126,7 @@ def scene_text(top: list, stops: int, surface: list | None = None) -> str:
              f"# {picks.size} stops on the z DOFs of its {where}, driven at the tip. Written by",
              "# scripts/solid3d.py, which also writes the matrices this scene reads.", "",
              "[structure]", 'kind = "matrices"', 'stiffness = "K.bin"', 'mass = "M.bin"',
-             'nodes = "nodes.txt"', 'dofs = "dofs.txt"', "",
+             'nodes = "nodes.txt"', 'dofs = "dofs.txt"', 'cells = "cells.txt"', "",
              "[excitation]", 'kind = "force"', f"dof = {top[-1]}", "amplitude = 1000.0      # N",
              "frequency_hz = 60.0", "", "[basis]", "modes = 20", "", "[damping]", "zeta = 0.01", "",
              "[integrator]", "t_end = 0.2", "", "[output]", 'file = "solid.h5"', "sample_dt = 1e-4",
@@ -133,7 +141,7 @@ def scene_text(top: list, stops: int, surface: list | None = None) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("out", metavar="OUT_DIR", help="where to write K.bin, M.bin, nodes.txt, dofs.txt, "
-                        "dofs.json and scene.toml (made if missing)")
+                        "cells.txt, dofs.json and scene.toml (made if missing)")
     parser.add_argument("--elements", type=int, nargs=3, default=(120, 16, 16), metavar=("NX", "NY", "NZ"),
                         help="hexahedra along x, y, z (NY even; default 120 16 16: 104 040 free DOFs)")
     parser.add_argument("--stops", type=int, default=100, help="stops on the top centre line (default 100)")
@@ -148,7 +156,7 @@ def main(argv=None) -> int:
     top = top_z_dofs(nx, ny, nz)
     scene = scene_text(top, args.stops, top_surface_z_dofs(nx, ny, nz) if args.surface else None)  # checks --stops
     try:
-        K, M, node = assemble(nx, ny, nz)
+        K, M, node, hexahedra = assemble(nx, ny, nz)
     except MemoryError:
         raise SystemExit(f"solid3d: not enough memory to assemble {nx} x {ny} x {nz} elements; use fewer") from None
     n_nodes = (nx + 1) * (ny + 1) * (nz + 1)
@@ -184,9 +192,11 @@ def main(argv=None) -> int:
         np.savetxt(os.path.join(staging, "nodes.txt"), coordinates, fmt="%.9g")
         with open(os.path.join(staging, "dofs.txt"), "w") as f:
             f.writelines(f"{dof // 3} {'xyz'[dof % 3]}\n" for dof in free_dofs)
+        np.savetxt(os.path.join(staging, "cells.txt"), hexahedra, fmt="%d")
         with open(os.path.join(staging, "scene.toml"), "w") as f:
             f.write(scene)
-        for name in ("K.bin", "K.bin.info", "M.bin", "M.bin.info", "dofs.json", "nodes.txt", "dofs.txt", "scene.toml"):
+        for name in ("K.bin", "K.bin.info", "M.bin", "M.bin.info", "dofs.json", "nodes.txt", "dofs.txt", "cells.txt",
+                     "scene.toml"):
             if os.path.exists(os.path.join(staging, name)):
                 os.replace(os.path.join(staging, name), os.path.join(args.out, name))
     except (OSError, PETSc.Error) as e:     # e.g. a full disk, while writing the temporary folder

@@ -426,3 +426,89 @@ def test_matrix_files_refuse_what_is_not_a_path_where_they_are_given(args, messa
 def test_matrix_files_take_a_pathlib_path_as_its_str(tmp_path):
     files = MatrixFiles(tmp_path / "K.mtx", tmp_path / "M.mtx", influence=tmp_path / "r.npy")
     assert (files.stiffness, files.mass, files.influence) == tuple(str(tmp_path / n) for n in ("K.mtx", "M.mtx", "r.npy"))
+
+
+CUBE = np.array([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)], float)
+
+
+def cube_files(folder):
+    """A unit cube's 8 nodes with x, y, z DOFs each (24), K = 2 I and M = I: the paths of a model that
+    takes a cells file."""
+    paths = {name: str(folder / name) for name in ("K.mtx", "M.mtx", "nodes.txt", "dofs.txt")}
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths["K.mtx"], 2.0 * scipy.sparse.identity(24, format="csr"))
+        scipy.io.mmwrite(paths["M.mtx"], scipy.sparse.identity(24, format="csr"))
+        np.savetxt(paths["nodes.txt"], CUBE)
+        open(paths["dofs.txt"], "w").writelines(f"{i // 3} {'xyz'[i % 3]}\n" for i in range(24))
+    return paths
+
+
+def cube_operators(paths, cells=None, nodes=True):
+    return load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["nodes.txt"] if nodes else None,
+                                      dofs=paths["dofs.txt"] if nodes else None, cells=cells))
+
+
+def test_a_cells_file_gives_the_field_its_cells_and_changes_no_fingerprint(shared_tmp_path, capsys):
+    paths = cube_files(shared_tmp_path)
+    hexahedron, mirrored, tetrahedron = (str(shared_tmp_path / name) for name in ("hex.txt", "mirror.npy", "tet.txt"))
+    if MPI.COMM_WORLD.rank == 0:
+        open(hexahedron, "w").write("0 1 2 3 4 5 6 7\n")
+        np.save(mirrored, np.array([[4, 5, 6, 7, 0, 1, 2, 3]], dtype=np.int32))   # upside down: drawn all the same
+        open(tetrahedron, "w").write("0 1 3 4\n")
+    MPI.COMM_WORLD.Barrier()
+    for path, cells in ((hexahedron, [[0, 1, 2, 3, 4, 5, 6, 7]]), (mirrored, [[4, 5, 6, 7, 0, 1, 2, 3]]),
+                        (tetrahedron, [[0, 1, 3, 4]])):
+        ops = cube_operators(paths, path)
+        field = ops.field
+        ops.destroy()
+        assert field.cells.dtype == np.int64
+        np.testing.assert_array_equal(field.cells, cells)
+        assert field.geometry()[4] is field.cells and len(field.cells_sha256) == 64
+    # the tetrahedron leaves 4 of the cube's nodes out: their displacement would not be drawn
+    assert_all(MPI.COMM_WORLD.rank > 0 or "4 nodes with a displacement DOF are in no cell of" in
+               capsys.readouterr().err)
+    plain = MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["nodes.txt"], dofs=paths["dofs.txt"])
+    drawn = MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["nodes.txt"], dofs=paths["dofs.txt"],
+                        cells=hexahedron)
+    assert drawn.fingerprint(PETSc.COMM_WORLD) == plain.fingerprint(PETSc.COMM_WORLD)   # the basis cache's key
+
+
+@pytest.mark.parametrize("name, content, message", [
+    ("out.txt", "0 1 2 3 4 5 6 8\n", "cell 0 \\(row 1\\) names node 8; the nodes file has 8 nodes \\(0 to 7\\)"),
+    ("negative.txt", "0 1 3 4\n0 1 3 -1\n", "cell 1 \\(row 2\\) names node -1; the nodes file has 8 nodes"),
+    ("ragged.txt", "0 1 3 4\n0 1 3\n", "is malformed .*every row the same number of node indices"),
+    ("seven.txt", "0 1 2 3 4 5 6\n", "rows of 7 nodes are no cell type dbf-hpc writes; give 2 \\(Polyline\\).* 8 "
+                                     "\\(Hexahedron\\)"),
+    ("half.txt", "0 1 3 4.5\n", "node indices must be integers"),
+    ("twice.txt", "0 1 2 2 4 5 6 7\n", "cell 0 \\(row 1\\) lists node 2 twice"),
+    ("lexicographic.txt", "0 1 3 2 4 5 7 6\n", "hexahedron 0 \\(row 1, nodes 0 1 3 2 4 5 7 6\\) is not in XDMF's "
+                                               "node order"),
+    ("flat.txt", "0 1 2 3\n", "tetrahedron 0 \\(row 1, nodes 0 1 2 3\\) has no volume: a 4-node cell is a "
+                              "tetrahedron"),
+    ("empty.txt", "", "cells file .*empty.txt' is empty"),
+    ("words.npy", np.array([["a", "b", "c", "d"]]), "node indices must be integers"),
+    ("objects.npy", np.array([[0, 1, 3, None]], dtype=object), "is malformed"),
+    ("scalar.npy", np.array(3), "holds no table of cells"),
+])
+def test_a_cells_file_that_is_not_a_mesh_of_the_nodes_is_refused_in_one_line(shared_tmp_path, name, content,
+                                                                              message):
+    # A cell drawn between wrong or missing nodes, or a hexahedron in the lexicographic corner order of
+    # many generators (drawn twisted), would be a wrong picture without a word
+    paths = cube_files(shared_tmp_path)
+    path = str(shared_tmp_path / name)
+    if MPI.COMM_WORLD.rank == 0:
+        if name.endswith(".npy"):
+            np.save(path, content, allow_pickle=True)
+        else:
+            open(path, "w").write(content)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=message) as error:
+        cube_operators(paths, path)
+    assert "\n" not in str(error.value)
+
+
+def test_cells_without_a_node_map_are_refused_before_the_matrices_are_read(shared_tmp_path):
+    paths = cube_files(shared_tmp_path)
+    with pytest.raises(InputError, match="cells are drawn between the nodes of a node map: give \\[structure\\] "
+                                         "nodes and dofs as well"):
+        load_operators(MatrixFiles(str(shared_tmp_path / "missing.mtx"), paths["M.mtx"], cells=paths["K.mtx"]))

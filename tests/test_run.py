@@ -411,3 +411,51 @@ def test_the_default_checkpoints_of_a_short_run_are_skipped_and_change_no_sample
             assert all(np.array_equal(data[n], first[n]) for n in names)
     else:
         assert counts == [0, 0, 0]
+
+
+def test_a_cells_file_changes_no_run_identity_but_a_finished_output_drawn_without_it_is_computed_again(
+        shared_tmp_path):
+    # [structure] cells only draw the field: a checkpoint stays resumable when they are added (the
+    # identity holds neither the key nor the file's bytes). But `--resume` on an output finished
+    # without them (a Polyvertex in ParaView) must not call it complete for a scene that draws cells:
+    # the output records its cells (field_cells_sha256), and one that differs is computed again. (The
+    # finished check is called directly: a second run in one process sees the -matload_block_size
+    # option the first one's PETSc binary .info file added, so its request differs anyway.)
+    from petsc4py import PETSc
+
+    from dbf_hpc.run import finished_output, request_identity, run_identity
+    from test_xdmf import solid
+
+    out = shared_tmp_path / "bar.h5"
+    cells, points = load_scene(solid(shared_tmp_path)), load_scene(solid(shared_tmp_path, cells=False))
+    comm = PETSc.COMM_WORLD
+    assert cells.cells_file() == str(shared_tmp_path / "cells.txt") and points.cells_file() is None
+    assert run_identity(cells, None, comm, "rom") == run_identity(points, None, comm, "rom")
+    assert request_identity(cells, comm, "rom") == request_identity(points, comm, "rom")
+    without = set(cells.file_digests(comm))
+    assert str(shared_tmp_path / "cells.txt") not in without and str(shared_tmp_path / "K.bin") in without
+    assert ("cells file", str(shared_tmp_path / "cells.txt")) in cells.inputs()   # never written over
+    assert "cells" in cells["structure"] and all("cells" not in keys for keys in cells.result_sections().values())
+
+    def stored(path):
+        """The request part of the output's stored run identity (what `--resume` compares)."""
+        with h5py.File(path) as f:
+            return {"request": json.loads(f.attrs["run_identity"])["request"]}
+
+    run(points, str(out), progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        ident = stored(out)
+        assert finished_output(str(out), ident, points) is not None
+        assert finished_output(str(out), ident, cells) is None        # drawn as points: not this scene's output
+    run(cells, str(out), progress=False, resume=True)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(out) as f:
+            assert f.attrs["field_cells"] == "Hexahedron" and f["snapshots/cells"].shape == (16, 8)
+        assert 'TopologyType="Hexahedron"' in open(shared_tmp_path / "bar.xdmf").read()
+        ident = stored(out)
+        assert finished_output(str(out), ident, cells) is not None
+        assert finished_output(str(out), ident, points) is None
+        (shared_tmp_path / "cells.txt").write_text(open(shared_tmp_path / "cells.txt").read() + "0 1 6 5 15 16 21 20\n")
+        assert finished_output(str(out), ident, cells) is None        # other cells since
+        os.remove(shared_tmp_path / "cells.txt")
+        assert finished_output(str(out), ident, cells) is None        # (the run says what is missing)

@@ -72,7 +72,8 @@ def test_the_guide_channel_scene_runs_with_a_dbf_per_stop_and_writes_paraview_fi
         assert f.attrs["complete"] and f["basis/enrichment_omega"].shape == (5,)
         assert np.all(f["basis/dbf_k"][:] > 0)              # every stop got a DBF of its own
         assert f["snapshots/points"].shape[1] == 3
-    assert os.path.exists(tmp_path / "bar.xdmf")
+        assert f["snapshots/cells"].shape == (80, 8) and f.attrs["field_cells"] == "Hexahedron"   # the solid, drawn
+    assert 'TopologyType="Hexahedron" NumberOfElements="80"' in (tmp_path / "bar.xdmf").read_text()
 
 
 def test_the_shipped_solid_job_is_the_generators_default_scene_with_100_stops():
@@ -88,6 +89,8 @@ def test_the_shipped_solid_job_is_the_generators_default_scene_with_100_stops():
     assert shipped["constraint"] == expected["constraint"] and len(shipped["constraint"]) == 100
     assert shipped["output"]["probes"] == expected["output"]["probes"]
     assert shipped["structure"]["stiffness"] == "solid_cantilever/K.bin"
+    assert expected["structure"]["cells"] == "cells.txt"
+    assert shipped["structure"]["cells"] == "solid_cantilever/cells.txt"
 
 
 def load_scene_text(text):

@@ -1206,3 +1206,16 @@ def test_a_termination_signal_while_the_sweep_prepares_its_models_stops_it_and_r
     assert err.splitlines() == [f"dbf-hpc: error: {cli.TERMINATED_SWEEP}"], err
     assert not list(tmp_path.glob("summary.h5.cases/case-*")) and not list(tmp_path.glob("summary.h5*.lock"))
     assert not (tmp_path / "summary.h5").exists()
+
+
+def test_a_cells_file_changes_no_case_identity(shared_tmp_path):
+    # [structure] cells only draw a case's field: a sweep's finished records stay reused when they
+    # are added or changed (a kept output drawn without them is rerun: finished_output, test_run)
+    from dbf_hpc.scene import load_scene
+    from dbf_hpc.sweep import _coordinates_key, _identities
+    from test_xdmf import solid
+
+    cells, points = load_scene(solid(shared_tmp_path)), load_scene(solid(shared_tmp_path, cells=False))
+    assert _identities({"chains": []}, [cells]) == _identities({"chains": []}, [points])
+    assert _coordinates_key(cells) == _coordinates_key(points)
+    assert _identities({"chains": []}, [cells]) != _identities({"chains": []}, [cells.with_values("basis", modes=3)])
