@@ -87,7 +87,9 @@ def _run_lines(path: str, f) -> list:
                          + ", ".join(f"{v:.4f}" for v in flex))
     else:
         lines.append(f"  full-order model: {stats.get('dofs', '?')} DOFs")
-    lines.append(f"  samples: {t.size} from {t[0]:g} to {t[-1]:g} s; snapshots: {f[layout.SNAPSHOT_TIME].size}")
+    drawn = (f" (drawn on {f.attrs['field_cell_count']} {f.attrs['field_cells']} cells)"
+             if "field_cells" in f.attrs and f[layout.SNAPSHOT_TIME].size else "")
+    lines.append(f"  samples: {t.size} from {t[0]:g} to {t[-1]:g} s; snapshots: {f[layout.SNAPSHOT_TIME].size}{drawn}")
     scheme = "generalized-alpha" if stats["scheme"] == "alpha2" else f"ARKIMEX {stats['scheme']}"
     lines.append(f"  integrator: {scheme}, contact {stats['contact']}, {stats['steps']} steps, "
                  f"{stats['rejected_steps']} rejected, {stats['snes_failures']} Newton failures")

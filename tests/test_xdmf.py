@@ -16,6 +16,7 @@ from petsc4py import PETSc
 
 from dbf_hpc import xdmf
 from dbf_hpc.cli import main
+from dbf_hpc.report import describe
 from dbf_hpc.run import run
 from dbf_hpc.scene import load_scene
 
@@ -138,6 +139,7 @@ def test_a_solid_with_hexahedra_shows_its_cells_in_paraview_swinging_in_its_firs
             t = f["snapshots/time"][:]
             vectors = [f[f"snapshots/displacement/{i:06d}"][:] for i in range(t.size)]
         assert t.size == 5 and t[-1] == pytest.approx(0.01)
+        assert "snapshots: 5 (drawn on 16 Hexahedron cells)" in "\n".join(describe(str(out)))   # `dbf-hpc info`
         clamped = points[:, 0] == 0.0
         u0 = vectors[0][node, direction]                # the free DOFs, read back from the vectors at the nodes
         # t = 0: the first mode (K u = omega_1^2 M u: a DOF drawn at a wrong node or direction breaks
@@ -179,6 +181,7 @@ def test_without_cells_a_matrix_model_stays_points(shared_tmp_path):
         assert {t.get("NumberOfElements") for t in root.iter("Topology")} == {"45"}
         with h5py.File(out) as f:
             assert "snapshots/cells" not in f and "field_cells" not in f.attrs and f.attrs["field_kind"] == "nodes"
+        assert "snapshots: 5\n" in "\n".join(describe(str(out))) + "\n"
 
 
 def test_the_xdmf_topology_of_a_cell_follows_its_node_count(tmp_path):
