@@ -436,7 +436,8 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
             f.close()
             f = None
             xdmf.write(tmp_xdmf, h5, "shapes", geometry[0], geometry[1].shape[0],
-                       np.arange(1, values.shape[1] + 1), "shape", cells=geometry[4])
+                       np.arange(1, values.shape[1] + 1), "shape", cells=geometry[4],
+                       cell_type=geometry[5])
             os.replace(tmp_h5, h5)
             os.replace(tmp_xdmf, path)
         except (DbfError, *WRITE_ERRORS) as e:

@@ -307,6 +307,8 @@ class MatrixFiles:
     cells             optional, with the node map: the mesh's cells for ParaView (load_cells), so that
                       its XDMF files show the solid instead of points. Only the display: no number of a
                       result depends on it, and the basis cache and checkpoints ignore it
+    cell_type         the cells' XDMF type (xdmf.XDMF_TYPES, not a file) when their node count is not
+                      enough: "Quadrilateral" for 4 nodes a row (else tetrahedra) ...; default by count
     """
 
     stiffness: str
@@ -318,6 +320,7 @@ class MatrixFiles:
     dofs: Optional[str] = None
     gyroscopic: Optional[str] = None
     cells: Optional[str] = None
+    cell_type: Optional[str] = None
 
     def __post_init__(self):
         """Each file a path (str or os.PathLike, kept as str), the optional ones None. Red team:
@@ -332,6 +335,14 @@ class MatrixFiles:
             if not isinstance(path, str) or not path:
                 raise InputError(f"MatrixFiles {name}: give the path of a file (a str), got {value!r}")
             object.__setattr__(self, name, path)
+        from .xdmf import XDMF_TYPES
+
+        if self.cell_type is not None and self.cell_type not in XDMF_TYPES:
+            raise InputError(f"cell_type {self.cell_type!r} is no XDMF cell type dbf-hpc writes; give one of "
+                             f"{', '.join(XDMF_TYPES)} (or none: the node count decides)")
+        if self.cell_type is not None and not self.cells:
+            raise InputError(f"cell_type {self.cell_type!r} names the type of the cells of [structure] cells: "
+                             f"give that file as well")
 
     def fingerprint(self, comm) -> dict:
         """What identifies the operators for the basis cache: the bytes of K and M (and G). Collective."""
@@ -379,15 +390,16 @@ def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
     return coordinates, node, component
 
 
-def load_cells(path: str, coordinates: np.ndarray) -> tuple:
-    """(cells (E x k, int64), sha256 of the file's bytes) from a cells file: one cell a row, the
-    indices (from 0) of its k nodes in the nodes file, in XDMF's (VTK's) node order; .npy (an integer
-    array E x k) or text (whitespace-separated). k gives the XDMF topology (xdmf.CELL_TYPES: 4 a
-    tetrahedron, 8 a hexahedron ...). Refused: another k, rows of different lengths, an index that is
-    not an integer or not a node, a node twice in a cell, a flat tetrahedron, a hexahedron whose
-    corners are not in XDMF's order (its corner Jacobians change sign: the lexicographic order of
-    many generators draws a twisted brick). Not collective (every rank reads)."""
-    from .xdmf import CELL_TYPES
+def load_cells(path: str, coordinates: np.ndarray, cell_type: Optional[str] = None) -> tuple:
+    """(cells (E x k, int64), their XDMF type, sha256 of the file's bytes) from a cells file: one
+    cell a row, the indices (from 0) of its k nodes in the nodes file, in XDMF's (VTK's) node order;
+    .npy (an integer array E x k) or text (whitespace-separated). `cell_type` (xdmf.XDMF_TYPES), or
+    else k, gives the XDMF topology (xdmf.CELL_TYPES: 4 a tetrahedron, 8 a hexahedron ...). Refused:
+    another k, rows of different lengths, an index that is not an integer or not a node, a node twice
+    in a cell, a flat tetrahedron, a hexahedron whose corners are not in XDMF's order (its corner
+    Jacobians change sign: the lexicographic order of many generators draws a twisted brick), a
+    quadrilateral whose corners do not go round it. Not collective (every rank reads)."""
+    from .xdmf import CELL_TYPES, XDMF_TYPES
 
     _readable(path, "cells")
     with open(path, "rb") as f:
@@ -410,6 +422,9 @@ def load_cells(path: str, coordinates: np.ndarray) -> tuple:
             not np.all(np.isfinite(table)) or np.any(table != np.floor(table)):
         raise InputError(f"cells file {path!r}: node indices must be integers (from 0)")
     k = table.shape[1]
+    if cell_type is not None and XDMF_TYPES[cell_type] != k:
+        raise InputError(f"cells file {path!r} has {k} nodes a row, but a {cell_type} (cell_type) has "
+                         f"{XDMF_TYPES[cell_type]}")
     if k not in CELL_TYPES:
         raise InputError(f"cells file {path!r}: rows of {k} nodes are no cell type dbf-hpc writes; give " +
                          ", ".join(f"{n} ({name})" for n, name in CELL_TYPES.items()) + " nodes a row")
@@ -427,10 +442,12 @@ def load_cells(path: str, coordinates: np.ndarray) -> tuple:
         i = int(twice[0])
         raise InputError(f"cells file {path!r}: cell {i} (row {i + 1}) lists node "
                          f"{int(ordered[i][1:][ordered[i][1:] == ordered[i][:-1]][0])} twice")
-    kind = CELL_TYPES[k]
+    kind = cell_type or CELL_TYPES[k]
     if kind.startswith(("Tetrahedron", "Hexahedron")):
-        _check_solid_cells(path, kind, cells, coordinates)
-    return cells, hashlib.sha256(data).hexdigest()
+        _check_solid_cells(path, kind, cells, coordinates, cell_type is None)
+    elif kind.startswith("Quadrilateral"):
+        _check_quadrilaterals(path, cells, coordinates)
+    return cells, kind, hashlib.sha256(data).hexdigest()
 
 
 # XDMF's (VTK's) hexahedron: corners 0-3 around the bottom face, 4-7 above them; each corner's three
@@ -438,9 +455,10 @@ def load_cells(path: str, coordinates: np.ndarray) -> tuple:
 HEX_NEIGHBOURS = np.array([(1, 3, 4), (2, 0, 5), (3, 1, 6), (0, 2, 7), (7, 5, 0), (4, 6, 1), (5, 7, 2), (6, 4, 3)])
 
 
-def _check_solid_cells(path: str, kind: str, cells: np.ndarray, coordinates: np.ndarray) -> None:
+def _check_solid_cells(path: str, kind: str, cells: np.ndarray, coordinates: np.ndarray, by_count: bool) -> None:
     """An InputError for a flat tetrahedron, or a hexahedron whose 8 corner Jacobians are not all of one
-    sign (a mirrored cell, all negative, ParaView draws as it is)."""
+    sign (a mirrored cell, all negative, ParaView draws as it is). `by_count`: the type came from the
+    node count (a flat cell may be a quadrilateral: cell_type says so)."""
     corners = 4 if kind.startswith("Tetrahedron") else 8
     xyz = coordinates[cells[:, :corners]]                                    # (E, corners, 3)
     scale = np.ptp(xyz, axis=1).max(axis=1) ** 3                             # (E,)
@@ -453,15 +471,34 @@ def _check_solid_cells(path: str, kind: str, cells: np.ndarray, coordinates: np.
     flat = np.flatnonzero((np.abs(det) <= tiny).any(axis=1))
     if flat.size:
         i = int(flat[0])
+        flat_type = {4: "Quadrilateral", 8: "Quadrilateral_8"}.get(cells.shape[1]) if by_count else None
+        what = "quadrilaterals" if cells.shape[1] == 4 else "8-node quadrilaterals"
+        hint = f"; for {what} give [structure] cell_type = \"{flat_type}\"" if flat_type else ""
         raise InputError(f"cells file {path!r}: {kind.lower()} {i} (row {i + 1}, nodes "
-                         f"{' '.join(map(str, cells[i]))}) has no volume: a {cells.shape[1]}-node cell is a "
-                         f"{kind.lower()}, its corners apart in 3-D (the nodes file needs z); fix the cell")
+                         f"{' '.join(map(str, cells[i]))}) has no volume: its corners must be apart in 3-D (the "
+                         f"nodes file needs z){hint}")
     twisted = np.flatnonzero((det > 0).any(axis=1) & (det < 0).any(axis=1))
     if twisted.size:
         i = int(twisted[0])
         raise InputError(f"cells file {path!r}: hexahedron {i} (row {i + 1}, nodes {' '.join(map(str, cells[i]))}) is "
                          f"not in XDMF's node order (it would be drawn twisted): list the 4 corners around one face, "
                          f"then the 4 opposite them in the same turn")
+
+
+def _check_quadrilaterals(path: str, cells: np.ndarray, coordinates: np.ndarray) -> None:
+    """An InputError for a quadrilateral without area or whose corners do not go round it (the normals
+    at its 4 corners disagree: drawn as a bow tie)."""
+    xyz = coordinates[cells[:, :4]]                                          # (E, 4, 3)
+    normals = np.cross(np.roll(xyz, -1, axis=1) - xyz, np.roll(xyz, 1, axis=1) - xyz)   # (E, 4, 3)
+    total = normals.sum(axis=1)                                              # (E, 3)
+    agree = np.einsum("ecd,ed->ec", normals, total)                          # (E, 4)
+    scale = np.ptp(xyz, axis=1).max(axis=1) ** 2
+    bad = np.flatnonzero((agree <= 1e-10 * scale[:, None] ** 2).any(axis=1))
+    if bad.size:
+        i = int(bad[0])
+        raise InputError(f"cells file {path!r}: quadrilateral {i} (row {i + 1}, nodes {' '.join(map(str, cells[i]))}) "
+                         f"has no area or its corners do not go round it (it would be drawn as a bow tie): list "
+                         f"them in turn")
 
 
 def file_digest(path: str, comm, what: str = "input") -> str:
@@ -535,7 +572,8 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
         if files.nodes:
             coordinates, node, component = load_node_map(files.nodes, files.dofs, n)
             moves = np.flatnonzero(component < 3)          # translations: what a displacement field shows
-            cells, digest = load_cells(files.cells, coordinates) if files.cells else (None, "")
+            cells, cell_type, digest = (load_cells(files.cells, coordinates, files.cell_type) if files.cells
+                                        else (None, "", ""))
             if cells is not None:
                 unseen = np.setdiff1d(node[moves], cells.ravel()).size
                 if unseen:
@@ -543,7 +581,8 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
                     warn(f"{unseen} node{are} in no cell of {files.cells!r}: ParaView shows no displacement there "
                          f"(give every element's cell)", comm)
             ops.field = PointValues.at_rows(moves, moves, kind="nodes", node=node[moves], component=component[moves],
-                                            coordinates=coordinates, cells=cells, cells_sha256=digest)
+                                            coordinates=coordinates, cells=cells, cell_type=cell_type,
+                                            cells_sha256=digest)
         if files.influence:
             ops.influence = load_vector(files.influence, ops.K.createVecRight(), "influence vector", owned=True)
             if files.base_mass_load:

@@ -31,7 +31,8 @@ class PointValues:
                between nodes, so that asking for a value never adds a node to the model)
     moving     (P,) the share of the support motion carried by fixed DOFs (the moving end's w)
     cells      (E, k) a matrix model's cells for the XDMF files (node indices, XDMF node order), or
-               None (points); cells_sha256 the bytes of the file they came from, which outputs record
+               None (points); cell_type their XDMF type; cells_sha256 the bytes of the file they
+               came from, which outputs record
     The field of a snapshot is the PointValues of every node; probes are PointValues too.
     """
 
@@ -45,6 +46,7 @@ class PointValues:
     coordinates: Optional[np.ndarray] = None
     components: int = 1     # values per point: 2 on a beam of two planes (y, z), point-major
     cells: Optional[np.ndarray] = None
+    cell_type: str = ""
     cells_sha256: str = ""
 
     @property
@@ -62,15 +64,15 @@ class PointValues:
 
     def geometry(self) -> tuple:
         """(kind, node coordinates (nodes x 3), node of each point, component of each point: 0 = x,
-        1 = y, 2 = z, cells (E x k node indices) or None): what a field output needs to place the
-        values in space. A beam is along x with w along y; a matrix model without a node map puts
-        DOF i at (i, 0, 0), its value along x."""
+        1 = y, 2 = z, cells (E x k node indices) or None, their XDMF type or ""): what a field output
+        needs to place the values in space. A beam is along x with w along y; a matrix model without
+        a node map puts DOF i at (i, 0, 0), its value along x."""
         n = self.count
         if self.node is not None:
-            return self.kind, self.coordinates, self.node, self.component, self.cells
+            return self.kind, self.coordinates, self.node, self.component, self.cells, self.cell_type
         xyz = np.zeros((n, 3))
         xyz[:, 0] = self.positions
-        return self.kind, xyz, np.arange(n), np.full(n, 1 if self.kind == "beam" else 0), None
+        return self.kind, xyz, np.arange(n), np.full(n, 1 if self.kind == "beam" else 0), None, ""
 
     @property
     def count(self) -> int:

@@ -445,6 +445,9 @@ def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | N
                 return None
             if f.attrs.get("field_cells_sha256", "") != cells_digest:   # its ParaView file shows other cells
                 return None
+            if cells_digest and f.attrs.get("field_cells") != (scene["structure"]["cell_type"] or xdmf.CELL_TYPES.get(
+                    int(f.attrs.get("field_cell_nodes", 0)))):                    # or of another type
+                return None
             return _stored_summary(f, path)
     except (OSError, KeyError, ValueError, TypeError):
         return None
@@ -452,12 +455,12 @@ def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | N
 
 def cells_attrs(field) -> dict:
     """The attributes that say an output's field is drawn with cells ([structure] cells): their XDMF
-    type, count and the sha256 of the cells file; none without cells. The run identity leaves the
+    type, nodes a cell, count and the sha256 of the cells file; none without cells. The run identity leaves the
     cells out (they change no number), so finished_output compares these instead."""
     if field.cells is None:
         return {}
-    return {"field_cells": xdmf.CELL_TYPES[field.cells.shape[1]], "field_cell_count": int(field.cells.shape[0]),
-            "field_cells_sha256": field.cells_sha256}
+    return {"field_cells": field.cell_type, "field_cell_nodes": int(field.cells.shape[1]),
+            "field_cell_count": int(field.cells.shape[0]), "field_cells_sha256": field.cells_sha256}
 
 
 def _drop_leftover_checkpoint(path: str) -> None:
@@ -1006,7 +1009,8 @@ def _write_output(writer, datasets, constraint_stats, scene, method, stats, timi
     if snap_t.size:
         sidecar = xdmf.sidecar(writer.path)
         try:
-            xdmf.write(sidecar, writer.path, "snapshots", geometry[0], geometry[1].shape[0], snap_t, cells=geometry[4])
+            xdmf.write(sidecar, writer.path, "snapshots", geometry[0], geometry[1].shape[0], snap_t,
+                       cells=geometry[4], cell_type=geometry[5])
         except (OSError, DbfError) as exc:   # errors.replacing: a DbfError naming the file and the cause
             # Red team (a disk full at the sidecar): the failure read "cannot write OUT.xdmf" only, and the
             # checkpoint stayed beside the finished output, so --resume refused ("OUT.h5.partial cannot be

@@ -40,7 +40,7 @@ SCHEMA = {section: {name: (key.types, key.default) for name, key in keys.items()
 
 # Keys that change no number of a result, only how outputs draw it: left out of run and sweep
 # identities (Scene.result_sections, file_digests)
-DISPLAY_ONLY = {"structure": ("cells",)}
+DISPLAY_ONLY = {"structure": ("cells", "cell_type")}
 
 # The default checkpoints (every t_end / 10 of simulated time) are written only once this much wall
 # time (s) has passed since the run began or since the last one: a checkpoint costs 10-20 ms (some
@@ -109,7 +109,7 @@ class Scene:
         s = self["structure"]
         return MatrixFiles(**{key: self.resolve(s[key]) if s[key] else None
                               for key in ("stiffness", "mass", "damping", "influence", "base_mass_load", "nodes",
-                                          "dofs", "gyroscopic", "cells")})
+                                          "dofs", "gyroscopic", "cells")}, cell_type=s["cell_type"] or None)
 
     def cells_file(self) -> Optional[str]:
         """[structure] cells resolved against the scene's folder, or None."""

@@ -73,9 +73,14 @@ SECTIONS = {
                                        "instead of points (needs nodes and dofs): one cell a row, the indices "
                                        "(from 0) of its nodes in XDMF's (VTK's) order, .npy or text; the node "
                                        "count picks the type: 2 Polyline, 3 Triangle, 4 Tetrahedron, 5 Pyramid, "
-                                       "6 Wedge, 8 Hexahedron, 10 Tetrahedron_10, 20 Hexahedron_20. Changes no "
-                                       "number: checkpoints and the basis cache ignore it; outputs record it "
-                                       "(field_cells)"),
+                                       "6 Wedge, 8 Hexahedron, 10 Tetrahedron_10, 20 Hexahedron_20 (cell_type "
+                                       "for others). Changes no number: checkpoints and the basis cache ignore "
+                                       "it; outputs record it (field_cells)"),
+        "cell_type": Key((str,), None, "", "matrices: with cells, their XDMF type where the node count alone "
+                                           "does not say it: Quadrilateral (4 nodes: a shell's), Triangle_6 (6), "
+                                           "Quadrilateral_8 (8), or any of Polyline, Triangle, Tetrahedron, "
+                                           "Pyramid, Wedge, Hexahedron, Tetrahedron_10, Hexahedron_20 with its "
+                                           "node count"),
     }),
     "excitation": ("What drives the structure.", {
         "kind": Key((str,), "none", "", '"none" (free vibration), "base" (support motion), "force" (a point '

@@ -15,6 +15,9 @@ from .errors import replacing
 # XDMF topology of a cell by its node count (one type a mesh; nodes in XDMF's order, which is VTK's)
 CELL_TYPES = {2: "Polyline", 3: "Triangle", 4: "Tetrahedron", 5: "Pyramid", 6: "Wedge", 8: "Hexahedron",
               10: "Tetrahedron_10", 20: "Hexahedron_20"}
+# every type [structure] cell_type may name, with its node count (4, 6 and 8 nodes are each two types)
+XDMF_TYPES = {"Polyline": 2, "Triangle": 3, "Quadrilateral": 4, "Tetrahedron": 4, "Pyramid": 5, "Wedge": 6,
+              "Triangle_6": 6, "Hexahedron": 8, "Quadrilateral_8": 8, "Tetrahedron_10": 10, "Hexahedron_20": 20}
 
 
 def node_vectors(geometry: tuple, values: np.ndarray, prefix: str, name: str = "displacement") -> dict:
@@ -33,7 +36,7 @@ def geometry_datasets(geometry: tuple, prefix: str) -> dict:
     """The datasets that place a field in space: the nodes' coordinates, each value's node and
     direction, and a beam's elements or a matrix model's cells (written into the HDF5 file the XDMF
     points at)."""
-    kind, coordinates, node, component, cells = geometry
+    kind, coordinates, node, component, cells = geometry[:5]
     out = {f"{prefix}/points": coordinates, f"{prefix}/node": node, f"{prefix}/component": component}
     if cells is not None:
         out[f"{prefix}/cells"] = np.asarray(cells, dtype=np.int64)
@@ -79,16 +82,17 @@ def check_sidecar(h5_path: str, inputs=()) -> None:
 
 
 def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, name: str = "displacement",
-          cells=None) -> None:
+          cells=None, cell_type: str = "") -> None:
     """Write the XDMF `path` for `{prefix}/{name}/NNNNNN` (nodes x 3 each) and `{prefix}/points` in
     `h5_file` (referred to by its name: keep the two side by side). `steps` label the time series
     (times in s, or mode numbers). With `cells` (E x k, as `{prefix}/cells`), the topology is those
-    cells (CELL_TYPES by k), else a beam's polyline or points."""
+    cells, of `cell_type` (default CELL_TYPES by k), else a beam's polyline or points."""
     h5 = os.path.basename(h5_file)
     if cells is not None:
         count, k = np.shape(cells)
-        per = f' NodesPerElement="{k}"' if CELL_TYPES[k] == "Polyline" else ""
-        topology = (f'<Topology TopologyType="{CELL_TYPES[k]}" NumberOfElements="{count}"{per}>'
+        cell_type = cell_type or CELL_TYPES[k]
+        per = f' NodesPerElement="{k}"' if cell_type == "Polyline" else ""
+        topology = (f'<Topology TopologyType="{cell_type}" NumberOfElements="{count}"{per}>'
                     f'<DataItem Format="HDF" Dimensions="{count} {k}" NumberType="Int" Precision="8">'
                     f'{h5}:/{prefix}/cells</DataItem></Topology>')
     else:

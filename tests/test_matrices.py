@@ -483,8 +483,8 @@ def test_a_cells_file_gives_the_field_its_cells_and_changes_no_fingerprint(share
     ("twice.txt", "0 1 2 2 4 5 6 7\n", "cell 0 \\(row 1\\) lists node 2 twice"),
     ("lexicographic.txt", "0 1 3 2 4 5 7 6\n", "hexahedron 0 \\(row 1, nodes 0 1 3 2 4 5 7 6\\) is not in XDMF's "
                                                "node order"),
-    ("flat.txt", "0 1 2 3\n", "tetrahedron 0 \\(row 1, nodes 0 1 2 3\\) has no volume: a 4-node cell is a "
-                              "tetrahedron"),
+    ("flat.txt", "0 1 2 3\n", "tetrahedron 0 \\(row 1, nodes 0 1 2 3\\) has no volume: its corners must be apart "
+                              "in 3-D .*; for quadrilaterals give \\[structure\\] cell_type = \"Quadrilateral\""),
     ("empty.txt", "", "cells file .*empty.txt' is empty"),
     ("words.npy", np.array([["a", "b", "c", "d"]]), "node indices must be integers"),
     ("objects.npy", np.array([[0, 1, 3, None]], dtype=object), "is malformed"),
@@ -505,6 +505,33 @@ def test_a_cells_file_that_is_not_a_mesh_of_the_nodes_is_refused_in_one_line(sha
     with pytest.raises(InputError, match=message) as error:
         cube_operators(paths, path)
     assert "\n" not in str(error.value)
+
+
+def test_a_cell_type_draws_four_nodes_as_a_quadrilateral_and_must_fit_the_rows(shared_tmp_path):
+    # 4 nodes a row are tetrahedra by default; a shell's quadrilaterals say so with cell_type
+    paths = cube_files(shared_tmp_path)
+    faces, bow_tie = str(shared_tmp_path / "faces.txt"), str(shared_tmp_path / "bow_tie.txt")
+    if MPI.COMM_WORLD.rank == 0:
+        open(faces, "w").write("0 1 2 3\n4 5 6 7\n0 1 5 4\n")      # bottom, top, front
+        open(bow_tie, "w").write("0 1 3 2\n")
+    MPI.COMM_WORLD.Barrier()
+    ops = load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["nodes.txt"], dofs=paths["dofs.txt"],
+                                     cells=faces, cell_type="Quadrilateral"))
+    field = ops.field
+    ops.destroy()
+    assert field.cell_type == "Quadrilateral" and field.geometry()[5] == "Quadrilateral" and field.cells.shape == (3, 4)
+    for cells, cell_type, message in (
+            (bow_tie, "Quadrilateral", "quadrilateral 0 \\(row 1, nodes 0 1 3 2\\) has no area or its corners do "
+                                       "not go round it"),
+            (faces, "Hexahedron", "has 4 nodes a row, but a Hexahedron \\(cell_type\\) has 8")):
+        with pytest.raises(InputError, match=message):
+            load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["nodes.txt"],
+                                       dofs=paths["dofs.txt"], cells=cells, cell_type=cell_type))
+    with pytest.raises(InputError, match="cell_type 'Quad' is no XDMF cell type dbf-hpc writes; give one of "
+                                         "Polyline, "):
+        MatrixFiles(paths["K.mtx"], paths["M.mtx"], cells=faces, cell_type="Quad")
+    with pytest.raises(InputError, match="give that file as well"):
+        MatrixFiles(paths["K.mtx"], paths["M.mtx"], cell_type="Quadrilateral")
 
 
 def test_cells_without_a_node_map_are_refused_before_the_matrices_are_read(shared_tmp_path):

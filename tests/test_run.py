@@ -431,6 +431,8 @@ def test_a_cells_file_changes_no_run_identity_but_a_finished_output_drawn_withou
     comm = PETSc.COMM_WORLD
     assert cells.cells_file() == str(shared_tmp_path / "cells.txt") and points.cells_file() is None
     assert run_identity(cells, None, comm, "rom") == run_identity(points, None, comm, "rom")
+    typed = load_scene(cells.path, ['structure.cell_type="Quadrilateral_8"'])
+    assert run_identity(typed, None, comm, "rom") == run_identity(points, None, comm, "rom")
     assert request_identity(cells, comm, "rom") == request_identity(points, comm, "rom")
     without = set(cells.file_digests(comm))
     assert str(shared_tmp_path / "cells.txt") not in without and str(shared_tmp_path / "K.bin") in without
@@ -455,6 +457,10 @@ def test_a_cells_file_changes_no_run_identity_but_a_finished_output_drawn_withou
         ident = stored(out)
         assert finished_output(str(out), ident, cells) is not None
         assert finished_output(str(out), ident, points) is None
+        typed = [load_scene(cells.path, [f'structure.cell_type="{name}"'])
+                 for name in ("Hexahedron", "Quadrilateral_8")]
+        assert finished_output(str(out), ident, typed[0]) is not None     # the type the node count gave
+        assert finished_output(str(out), ident, typed[1]) is None         # the same file drawn as another type
         (shared_tmp_path / "cells.txt").write_text(open(shared_tmp_path / "cells.txt").read() + "0 1 6 5 15 16 21 20\n")
         assert finished_output(str(out), ident, cells) is None        # other cells since
         os.remove(shared_tmp_path / "cells.txt")

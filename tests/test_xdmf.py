@@ -192,3 +192,8 @@ def test_the_xdmf_topology_of_a_cell_follows_its_node_count(tmp_path):
         assert topology.get("TopologyType") == name and topology.get("NumberOfElements") == "3"
         assert topology.find("DataItem").get("Dimensions") == f"3 {k}"
         assert topology.get("NodesPerElement") == ("2" if k == 2 else None)
+    for name, k in xdmf.XDMF_TYPES.items():       # a cell_type given: the types 4, 6 and 8 nodes share
+        path = tmp_path / f"{name}.xdmf"
+        xdmf.write(str(path), str(tmp_path / "x.h5"), "shapes", "nodes", 30, [1], "shape", np.zeros((2, k), int), name)
+        topology = ET.parse(path).getroot().find(".//Topology")
+        assert topology.get("TopologyType") == name and topology.find("DataItem").get("Dimensions") == f"2 {k}"
