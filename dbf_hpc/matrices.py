@@ -398,7 +398,8 @@ def load_cells(path: str, coordinates: np.ndarray, cell_type: Optional[str] = No
     another k, rows of different lengths, an index that is not an integer or not a node, a node twice
     in a cell, a flat tetrahedron, a hexahedron whose corners are not in XDMF's order (its corner
     Jacobians change sign: the lexicographic order of many generators draws a twisted brick), a
-    quadrilateral whose corners do not go round it. Not collective (every rank reads)."""
+    quadrilateral whose corners do not go round it. Not collective (load_operators calls it on rank 0
+    and broadcasts what it finds)."""
     from .xdmf import CELL_TYPES, XDMF_TYPES
 
     _readable(path, "cells")
@@ -534,8 +535,8 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
     if files.cells and not (files.nodes and files.dofs):
         raise InputError(f"cells file {files.cells!r}: cells are drawn between the nodes of a node map: give "
                          f"[structure] nodes and dofs as well")
-    if files.cells:
-        _readable(files.cells, "cells")   # before the matrices, which take a while (read in full with the node map)
+    if files.cells:   # before the matrices, which take a while (read in full with the node map)
+        decided_on_rank0(comm, _readable, files.cells, "cells")
     ops = Operators(comm=comm, K=load_matrix(files.stiffness, comm, "stiffness"), M=None)
     try:
         ops.M = load_matrix(files.mass, comm, "mass")
@@ -572,8 +573,10 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
         if files.nodes:
             coordinates, node, component = load_node_map(files.nodes, files.dofs, n)
             moves = np.flatnonzero(component < 3)          # translations: what a displacement field shows
-            cells, cell_type, digest = (load_cells(files.cells, coordinates, files.cell_type) if files.cells
-                                        else (None, "", ""))
+            # read and checked on rank 0, which every rank follows (a rank that could not read it alone
+            # would have left the others waiting)
+            cells, cell_type, digest = (decided_on_rank0(comm, load_cells, files.cells, coordinates, files.cell_type)
+                                        if files.cells else (None, "", ""))
             if cells is not None:
                 unseen = np.setdiff1d(node[moves], cells.ravel()).size
                 if unseen:
