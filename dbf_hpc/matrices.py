@@ -13,6 +13,7 @@ Reading is collective on the communicator it is given (default COMM_WORLD).
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import os
@@ -124,7 +125,8 @@ def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
     A = PETSc.Mat().create(comm=comm)
     A.setType(PETSc.Mat.Type.AIJ)
     try:
-        A.load(viewer)
+        with options_as_they_were():
+            A.load(viewer)
     except PETSc.Error:
         A.destroy()
         raise InputError(f"{what} file {path!r} is not a PETSc binary matrix") from None
@@ -135,6 +137,27 @@ def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
         A.destroy()
         raise InputError(f"{what} file {path!r} is {m} x {n}, not square")
     return A
+
+
+@contextlib.contextmanager
+def options_as_they_were():
+    """The PETSc options database as it was before the block, whatever the block added or changed.
+    Loading a PETSc binary file reads the `.info` file beside it into the database (`petsc4py`'s
+    ASCII writer adds one with `-matload_block_size 1`); the options are part of every run, cache
+    and sweep identity, so a second run in one process (a study script) asked another question than
+    the first, and an output or checkpoint it made was not recognised by a fresh process (red team).
+    The load has read them by then. Not collective (every rank loads)."""
+    options = PETSc.Options()
+    before = options.getAll()
+    try:
+        yield
+    finally:
+        after = options.getAll()
+        for name, value in after.items():
+            if name not in before:
+                options.delValue(name)
+            elif before[name] != value:
+                options.setValue(name, before[name])
 
 
 def load_vector(path: str, template: PETSc.Vec, what: str = "vector", owned: bool = False) -> PETSc.Vec:
@@ -174,7 +197,8 @@ def _load_vector(path: str, template: PETSc.Vec, what: str) -> PETSc.Vec:
         return vec
     viewer = PETSc.Viewer().createBinary(path, mode="r", comm=template.getComm())
     try:
-        loaded = PETSc.Vec().load(viewer)
+        with options_as_they_were():
+            loaded = PETSc.Vec().load(viewer)
     except PETSc.Error:
         raise InputError(f"{what} file {path!r} is not a PETSc binary vector") from None
     finally:

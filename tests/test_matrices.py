@@ -558,3 +558,27 @@ def test_a_cells_file_is_read_on_rank_0_and_every_rank_follows_it(shared_tmp_pat
     ops.destroy()
     np.testing.assert_array_equal(field.cells, [[0, 1, 2, 3, 4, 5, 6, 7]])
     assert field.cell_type == "Hexahedron"
+
+
+def test_loading_a_petsc_binary_matrix_leaves_the_options_so_a_second_run_in_one_process_asks_the_same_question(
+        shared_tmp_path):
+    # PETSc reads a binary file's .info beside it into the options database (-matload_block_size 1);
+    # the options are part of every run identity, so a study script's second run of one scene did
+    # not recognise the output its first run had finished (`resume` computed it again)
+    import os
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_xdmf import solid
+
+    scene = load_scene(solid(shared_tmp_path))
+    assert "matload_block_size" in (shared_tmp_path / "K.bin.info").read_text()   # the generator's files carry it
+    before = PETSc.Options().getAll()
+    load_matrix(str(shared_tmp_path / "K.bin")).destroy()
+    assert PETSc.Options().getAll() == before
+    out = shared_tmp_path / "bar.h5"
+    run(scene, str(out), progress=False)
+    written = os.stat(out).st_mtime_ns if MPI.COMM_WORLD.rank == 0 else None
+    run(scene, str(out), progress=False, resume=True)
+    if MPI.COMM_WORLD.rank == 0:
+        assert os.stat(out).st_mtime_ns == written                # kept, not computed and renamed again

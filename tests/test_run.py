@@ -418,9 +418,8 @@ def test_a_cells_file_changes_no_run_identity_but_a_finished_output_drawn_withou
     # [structure] cells only draw the field: a checkpoint stays resumable when they are added (the
     # identity holds neither the key nor the file's bytes). But `--resume` on an output finished
     # without them (a Polyvertex in ParaView) must not call it complete for a scene that draws cells:
-    # the output records its cells (field_cells_sha256), and one that differs is computed again. (The
-    # finished check is called directly: a second run in one process sees the -matload_block_size
-    # option the first one's PETSc binary .info file added, so its request differs anyway.)
+    # the output records its cells (field_cells_sha256), and one that differs is computed again (the
+    # finished check is also called directly, with the scenes swapped).
     from petsc4py import PETSc
 
     from dbf_hpc.run import finished_output, request_identity, run_identity
