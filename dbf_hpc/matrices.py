@@ -379,7 +379,8 @@ COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
 
 def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
     """(coordinates (nodes x 3), node of each DOF (n,), direction of each DOF (n,), 0..5 as
-    COMPONENTS) from the two text files of MatrixFiles. Not collective (every rank reads)."""
+    COMPONENTS) from the two text files of MatrixFiles. Not collective (load_operators calls it on
+    rank 0 and broadcasts)."""
     for path, what in ((nodes, "nodes"), (dofs, "dofs")):
         _readable(path, what)
     try:
@@ -595,10 +596,10 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
         if bool(files.nodes) != bool(files.dofs):
             raise InputError("a node map needs both [structure] nodes and dofs")
         if files.nodes:
-            coordinates, node, component = load_node_map(files.nodes, files.dofs, n)
+            # the node map and the cells are read and checked on rank 0, which every rank follows (a
+            # rank that could not read them alone would have left the others waiting)
+            coordinates, node, component = decided_on_rank0(comm, load_node_map, files.nodes, files.dofs, n)
             moves = np.flatnonzero(component < 3)          # translations: what a displacement field shows
-            # read and checked on rank 0, which every rank follows (a rank that could not read it alone
-            # would have left the others waiting)
             cells, cell_type, digest = (decided_on_rank0(comm, load_cells, files.cells, coordinates, files.cell_type)
                                         if files.cells else (None, "", ""))
             if cells is not None:

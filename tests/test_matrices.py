@@ -541,9 +541,9 @@ def test_cells_without_a_node_map_are_refused_before_the_matrices_are_read(share
         load_operators(MatrixFiles(str(shared_tmp_path / "missing.mtx"), paths["M.mtx"], cells=paths["K.mtx"]))
 
 
-def test_a_cells_file_is_read_on_rank_0_and_every_rank_follows_it(shared_tmp_path, monkeypatch):
-    # Each rank read the cells file itself: a rank that could not (a node without the file) raised
-    # alone and left the others waiting. Here another rank that tried to read it would fail.
+def test_a_node_map_and_a_cells_file_are_read_on_rank_0_and_every_rank_follows_them(shared_tmp_path, monkeypatch):
+    # Each rank read the node map and the cells file itself: a rank that could not (a node without
+    # the file) raised alone and left the others waiting. Here another rank that tried would fail.
     from dbf_hpc import matrices
 
     paths = cube_files(shared_tmp_path)
@@ -552,6 +552,7 @@ def test_a_cells_file_is_read_on_rank_0_and_every_rank_follows_it(shared_tmp_pat
         open(hexahedron, "w").write("0 1 2 3 4 5 6 7\n")
     else:
         monkeypatch.setattr(matrices, "load_cells", lambda *args: pytest.fail("a rank other than 0 read the cells"))
+        monkeypatch.setattr(matrices, "load_node_map", lambda *args: pytest.fail("a rank other than 0 read the node map"))
     MPI.COMM_WORLD.Barrier()
     ops = cube_operators(paths, hexahedron)
     field = ops.field
