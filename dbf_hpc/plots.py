@@ -71,7 +71,13 @@ def parse_window(text: str | None):
         return None
     start, colon, end = text.partition(":")
     if not colon:   # "5" alone read as "from 5 s on" (new-user pass): say which end is meant
-        raise InputError(f"--window {text!r}: give T0:T1 in seconds, e.g. {text}: (from {text} s) or :{text} (to it)")
+        try:
+            example = f"{float(text):g}"
+        except ValueError:   # not a time at all: an example built on it would read "a: (from a s)"
+            raise InputError(f"--window {text!r}: give T0:T1 in seconds, e.g. 9: (from 9 s), :1 (to 1 s) "
+                             "or 0.5:2") from None
+        raise InputError(f"--window {text!r}: give T0:T1 in seconds, e.g. {example}: (from {example} s) "
+                         f"or :{example} (to it)")
     try:
         window = (float(start) if start else -np.inf, float(end) if end else np.inf)
     except ValueError:
