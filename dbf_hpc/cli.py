@@ -260,8 +260,12 @@ def _plot(args) -> int:
     if MPI.COMM_WORLD.rank == 0:
         try:
             os.makedirs(args.directory, exist_ok=True)
-        except OSError as e:
-            problem = f"plot directory {args.directory!r} cannot be made: {e.strerror or e}"
+        except OSError as e:   # new-user pass: "-d run.h5" said "cannot be made: File exists"
+            if os.path.lexists(args.directory) and not os.path.isdir(args.directory):
+                problem = (f"plot directory {args.directory!r} is a file, not a directory: give -d a folder "
+                           f"(made if missing)")
+            else:
+                problem = f"plot directory {args.directory!r} cannot be made: {e.strerror or e}"
     problem = MPI.COMM_WORLD.bcast(problem, root=0)
     if problem:
         raise InputError(problem)

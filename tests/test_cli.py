@@ -1090,6 +1090,16 @@ def test_a_plot_window_without_samples_is_refused(tmp_path):
         assert _one_line(out), (window, out.stderr)
 
 
+def test_a_plot_directory_that_is_a_file_is_refused_saying_so_and_the_file_is_kept(tmp_path):
+    # New-user pass: "plot run.h5 -d run.h5" said "cannot be made: File exists".
+    run_out = tmp_path / "w.h5"
+    assert dbf_hpc("run", PAPER, "-o", str(run_out), *SHORT).returncode == 0
+    before = run_out.read_bytes()
+    out = dbf_hpc("plot", str(run_out), "-d", str(run_out), ranks=1)
+    assert _one_line(out) and "is a file, not a directory" in out.stderr, out.stderr
+    assert run_out.read_bytes() == before
+
+
 def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp_path):
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "w.h5"), *SHORT)
     assert out.returncode == 0, out.stderr
