@@ -57,6 +57,20 @@ def test_the_help_of_info_and_plot_names_the_sweep_summaries_and_partial_runs_th
     assert "sweep's summary" in plot and "orbits" in plot, plot
 
 
+def test_the_readme_options_table_and_the_help_name_every_solver_prefix():
+    # New-user pass: the README's table of options prefixes ("each solver under its prefix (table
+    # below)") lacked buckling_, which --help and the "was not used" warning name.
+    from dbf_hpc._petsc import SOLVER_PREFIXES
+    from dbf_hpc.cli import build_parser
+
+    readme = open(os.path.join(ROOT, "README.md")).read()
+    table = set(re.findall(r"^\| `(\w+_)` \|", readme, re.M))
+    helptext = " ".join(build_parser().format_help().split())
+    for prefix in SOLVER_PREFIXES:
+        assert prefix in table, (prefix, sorted(table))
+        assert f"{prefix} (" in helptext, (prefix, helptext)
+
+
 def test_a_word_the_command_does_not_take_is_named_with_that_command():
     out = dbf_hpc("run", PAPER, "--bogus")
     assert out.returncode == 2 and out.stderr.strip() == (
