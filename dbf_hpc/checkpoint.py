@@ -95,7 +95,13 @@ class Checkpoint:
             return None
         problem = sealed.seal_problem(self.path, SEAL)   # before HDF5 parses it (it may crash on damage)
         if problem:
-            raise InputError(f"{self.path} {problem}; remove it or rerun without --resume")
+            from .output import is_dbf_checkpoint
+
+            # new-user pass: a foreign file there was told "or rerun without --resume", which then
+            # refuses it too ("exists and is not a dbf-hpc output"); only a checkpoint of an older
+            # version (or a damaged one) is set aside by a run from t = 0
+            advice = "rerun without --resume" if is_dbf_checkpoint(self.path) else "choose another output name"
+            raise InputError(f"{self.path} {problem}; remove it or {advice}")
         try:
             with h5py.File(self.path, "r") as f:
                 if f.attrs.get("format") != FORMAT:

@@ -96,8 +96,27 @@ def test_a_crafted_file_in_place_of_the_checkpoint_is_refused(stopped):
         with open(checkpoint, "wb") as f:                  # e.g. a pickle that would run code
             f.write(b"\x80\x04\x95cos\nsystem\n(S'echo owned'\ntR.")
     MPI.COMM_WORLD.Barrier()
-    with pytest.raises(InputError, match="has no file checksum \\(.*not by dbf-hpc\\)"):
+    # the advice is one that works (new-user pass: it was "or rerun without --resume", and that run
+    # refuses a foreign file there too)
+    with pytest.raises(InputError, match="has no file checksum \\(.*not by dbf-hpc\\); remove it or choose "
+                                         "another output name$"):
         resume(sets, out)
+    with pytest.raises(InputError, match="exists and is not a dbf-hpc output"):
+        run(load_scene(PAPER, sets), out, progress=False)
+
+
+def test_an_unsealed_checkpoint_of_dbf_hpc_is_refused_and_a_run_from_the_start_replaces_it(stopped):
+    # An older version's checkpoint: dbf-hpc's HDF5, without the seal. Its refusal advises a run
+    # without --resume, and that run indeed starts from t = 0 over it.
+    sets, out, checkpoint = stopped
+    if MPI.COMM_WORLD.rank == 0:
+        with open(checkpoint, "r+b") as f:
+            f.write(b"\0" * len(SEAL))
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match="has no file checksum .*; remove it or rerun without --resume$"):
+        resume(sets, out)
+    summary = run(load_scene(PAPER, sets), out, progress=False)
+    assert summary["stats"]["final_time"] == pytest.approx(2.0)
 
 
 def test_a_changed_scene_or_changed_petsc_options_are_refused_naming_what_differs(stopped):
