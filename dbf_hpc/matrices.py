@@ -383,13 +383,20 @@ def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
     rank 0 and broadcasts)."""
     for path, what in ((nodes, "nodes"), (dofs, "dofs")):
         _readable(path, what)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+    # new-user pass: a parse error read "node map: could not convert string 'x' to float64 at row 0,
+    # column 2." (the two files swapped), naming neither file nor what a row holds
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
             xyz = np.loadtxt(nodes, ndmin=2, dtype=float)
+        except ValueError as e:
+            raise InputError(f"nodes file {nodes!r}: {str(e).rstrip('.')}; it holds one node a row, 1 to 3 "
+                             f"coordinates (m)") from None
+        try:
             table = np.loadtxt(dofs, ndmin=2, dtype=str)
-    except ValueError as e:
-        raise InputError(f"node map: {e}") from None
+        except ValueError as e:
+            raise InputError(f"dofs file {dofs!r}: {str(e).rstrip('.')}; it holds one DOF a row: its node "
+                             f"index from 0, then x, y, z, rx, ry or rz") from None
     if not 1 <= xyz.shape[1] <= 3 or not np.all(np.isfinite(xyz)):
         raise InputError(f"nodes file {nodes!r} must hold 1 to 3 finite coordinates a row (m)")
     if table.shape != (n, 2):

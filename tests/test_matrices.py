@@ -11,7 +11,7 @@ from petsc4py import PETSc
 
 from conftest import assert_all, to_numpy
 from dbf_hpc.errors import DbfError, InputError
-from dbf_hpc.matrices import MatrixFiles, file_digest, load_matrix, load_operators
+from dbf_hpc.matrices import MatrixFiles, file_digest, load_matrix, load_node_map, load_operators
 from dbf_hpc.modes import reference_modes
 from dbf_hpc.scene import validate
 from dbf_hpc.structure import Beam, assemble_beam
@@ -181,6 +181,21 @@ def test_a_node_map_that_gives_two_dofs_one_node_and_direction_is_refused(shared
     MPI.COMM_WORLD.Barrier()
     with pytest.raises(InputError, match="DOF 2 \\(row 3\\) repeats node 1 y"):
         load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["nodes.txt"], dofs=paths["dofs.txt"]))
+
+
+def test_a_node_map_file_that_does_not_parse_is_refused_naming_that_file_and_its_rows(tmp_path):
+    # New-user pass: the nodes and dofs files swapped was "node map: could not convert string 'x'
+    # to float64 at row 0, column 2." (neither file named). Not collective: each rank its own files.
+    nodes, dofs, ragged = (str(tmp_path / name) for name in ("nodes.txt", "dofs.txt", "ragged.txt"))
+    np.savetxt(nodes, [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    open(dofs, "w").write("0 y\n1 y\n")
+    open(ragged, "w").write("0 y\n1 y z\n")
+    assert load_node_map(nodes, dofs, 2)[0].shape == (2, 3)
+    with pytest.raises(InputError, match=f"^nodes file {re.escape(repr(dofs))}: could not convert .*; it holds one "
+                                         f"node a row, 1 to 3 coordinates \\(m\\)$"):
+        load_node_map(dofs, nodes, 2)
+    with pytest.raises(InputError, match=f"^dofs file {re.escape(repr(ragged))}: .*; it holds one DOF a row"):
+        load_node_map(nodes, ragged, 2)
 
 
 def test_missing_or_foreign_files_are_errors(shared_tmp_path):
