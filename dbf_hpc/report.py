@@ -42,9 +42,18 @@ def open_output(path: str):
                          f"{target!r} is not an HDF5 file") from None
     if layout.TIME not in f and "cases" not in f:
         shapes = "shapes" in f and "dbf_hpc_version" in f.attrs
+        # new-user pass: `info OUT.h5.checkpoint` and `info` on a cached basis said only "is not a
+        # dbf-hpc output"; name what the file is and what reads it
+        checkpoint = str(f.attrs.get("format", "")).startswith("dbf-hpc-checkpoint")
+        cached = "V" in f and "key" in f.attrs and "dbf_hpc_version" in f.attrs
         f.close()
+        run = target[:-len(".checkpoint")] if target.endswith(".checkpoint") else "OUT.h5"
         raise InputError(f"{target!r} holds the mode shapes of a `dbf-hpc basis --xdmf`, not a run: open its .xdmf "
-                         f"in ParaView" if shapes else f"{target!r} is not a dbf-hpc output")
+                         f"in ParaView" if shapes else
+                         f"{target!r} is a run's checkpoint (its state, not its samples): give the run's output, "
+                         f"{run!r}" if checkpoint else
+                         f"{target!r} is a cached basis, not a run: `dbf-hpc cache list` describes it" if cached else
+                         f"{target!r} is not a dbf-hpc output")
     return f, bool(f.attrs.get("complete", False)) and not target.endswith(".partial")
 
 
