@@ -339,20 +339,27 @@ def _setup(scene) -> dict:
     return {"ranks": MPI.COMM_WORLD.size, "callbacks": callbacks}
 
 
-def _identities(sweep: dict, scenes: list) -> list:
-    """Per case, the sha256 of what its result depends on: the validated scene (`scenes`, as the
-    cases run it), the bytes of every file it reads (hashed once, on rank 0), the PETSc options, the
-    package version, the rank count and the callbacks (_setup), and in a continuation chain its
-    predecessors'. A sweep rerun on another rank count reruns its finished cases, as a run's --resume
-    on another rank count starts again: a summary mixing both would be neither's answer, and no rerun
-    of the command would reproduce it (red team). Collective."""
+def _file_digests(scenes: list) -> dict:
+    """The sha256 of every file the cases read (hashed once, on rank 0). Collective."""
     files = sorted({path for scene in scenes for path in _scene_files(scene)})
-    digests = {path: file_digest(path, PETSc.COMM_WORLD) for path in files}
+    return {path: file_digest(path, PETSc.COMM_WORLD) for path in files}
+
+
+def _identities(sweep: dict, scenes: list, digests: dict | None = None, setups: list | None = None) -> list:
+    """Per case, the sha256 of what its result depends on: the validated scene (`scenes`, as the
+    cases run it), the bytes of every file it reads (`digests`, _file_digests), the PETSc options, the
+    package version, the rank count and the callbacks (_setup, or `setups`[i] where given: the
+    identity the case would have on that setup), and in a continuation chain its predecessors'. A
+    sweep rerun on another rank count reruns its finished cases, as a run's --resume on another rank
+    count starts again: a summary mixing both would be neither's answer, and no rerun of the command
+    would reproduce it (red team). Collective without `digests`, else not."""
+    digests = _file_digests(scenes) if digests is None else digests
     options = PETSc.Options().getAll()
     out = []
-    for scene in scenes:
+    for i, scene in enumerate(scenes):
+        setup = _setup(scene) if setups is None or setups[i] is None else setups[i]
         content = [scene.result_sections(), [repr(c) for c in scene.constraints],
-                   {path: digests[path] for path in _scene_files(scene)}, options, __version__, _setup(scene)]
+                   {path: digests[path] for path in _scene_files(scene)}, options, __version__, setup]
         out.append(hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest())
     # a case of a chain starts from its predecessor's final state: its identity holds the chain's
     for chain in sweep["chains"]:
@@ -699,15 +706,23 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     # sweep ran; the summary mixed clearances, and the records, under the old scene's identity, were
     # reused once restored)
     scenes = sweep["scenes"]
-    identities = _identities(sweep, scenes)
+    digests = _file_digests(scenes)
+    identities = _identities(sweep, scenes, digests)
     # rank 0's reading for all: which cases are pending decides collective calls (_prepare_models)
     records, unkept = world.bcast(_look(sweep, folder, identities) if world.rank == 0 else None)
     # a failed case is retried: its cause may have been the machine's (a full disk), since mended
     pending = {i for i in range(n) if records[i].get("identity") != identities[i] or records[i].get("status") != "ok"}
     pending |= unkept
     retried = sum(records[i].get("identity") == identities[i] for i in pending)
+    # the finished cases that rerun for their setup alone: on the setup they ran on, their identity
+    # would be the one recorded (new-user pass: a sweep rerun on 1 rank with --set integrator.t_end=1,
+    # another question, said "18 finished case(s) rerun: they ran on 2 rank(s) ... (rerun on that
+    # setup to reuse them)", advice that would not have reused them either)
+    recorded = [{"ranks": r["ranks"], "callbacks": r.get("callbacks")} if "ranks" in r else None for r in records]
+    as_recorded = _identities(sweep, scenes, digests, recorded)
     moved = [i for i in pending if records[i].get("status") == "ok" and "ranks" in records[i] and
-             (records[i]["ranks"], records[i].get("callbacks")) != tuple(_setup(scenes[i]).values())]
+             (records[i]["ranks"], records[i].get("callbacks")) != tuple(_setup(scenes[i]).values())
+             and records[i].get("identity") == as_recorded[i]]
     for chain in sweep["chains"]:   # a step rerun starts the steps after it anew (they began from rest before)
         for k, index in enumerate(chain):
             if index in pending:

@@ -145,6 +145,30 @@ def test_a_sweep_rerun_on_another_rank_count_or_callbacks_reruns_its_finished_ca
             in out, out
 
 
+def test_finished_cases_of_another_question_are_not_said_to_rerun_for_the_rank_count(shared_tmp_path, monkeypatch,
+                                                                                     capsys):
+    # New-user pass: a sweep rerun on 1 rank with --set integrator.t_end=1 (another question) said
+    # "18 finished case(s) rerun: they ran on 2 rank(s) ... (rerun on that setup to reuse them)": the
+    # rank count was not why they reran, and that setup would not have reused them. Only the cases
+    # whose recorded identity their recorded setup reproduces rerun for their setup.
+    import dbf_hpc.sweep as sweep
+
+    body = '[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n"integrator.t_end" = [{}]\n'
+    path, files = _swept(shared_tmp_path, body.format(0.05), 2)
+    first = [json.load(open(name)) for name in files]
+    callbacks = sweep.scene_callbacks(load_sweep(path)["scenes"][0])
+    assert write_sweep(shared_tmp_path, body.format(0.06)) == path   # the same summary, another t_end
+    capsys.readouterr()
+    monkeypatch.setattr(sweep, "_setup", lambda scene: {"ranks": MPI.COMM_WORLD.size + 1, "callbacks": callbacks})
+    other = run_sweep(path)
+    out = capsys.readouterr().out
+    assert other["failed"] == 0
+    assert_all(all(json.load(open(name))["identity"] != r["identity"] for name, r in zip(files, first)))
+    if MPI.COMM_WORLD.rank == 0:
+        assert "2 cases, 0 already done" in out, out
+        assert "finished case(s) rerun" not in out, out
+
+
 def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_record(shared_tmp_path):
     # Red team: cases that failed on a full disk stayed failed after the disk was freed ("6 already
     # done"), and a case file holding valid JSON that is not a record was an internal error.
