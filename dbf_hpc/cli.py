@@ -251,6 +251,9 @@ def _plot(args) -> int:
     sweep = "cases" in f
     span = (float(f["time"][0]), float(f["time"][-1])) if not sweep and f["time"].size else None
     f.close()
+    if window and sweep:   # new-user pass: it was ignored, the figures drawn whole without a word
+        raise InputError(f"--window {args.window}: a sweep's summary has no time axis (its figures are against the "
+                         f"swept parameters); leave --window out, or plot a case's own output (keep_outputs = true)")
     if window and span and (window[0] > span[1] or window[1] < span[0]):
         raise InputError(f"--window {args.window}: no samples there (the run spans {span[0]:g} to {span[1]:g} s)")
     if not (complete or sweep):

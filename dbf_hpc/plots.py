@@ -307,7 +307,8 @@ def plot_sweep(path: str, folder: str, window=None) -> list:
     peak displacement at each constraint and probe (a frequency response when the parameter is the
     excitation frequency), impact rate, contact fraction (supports of two directions: the normal work
     rate, with its 95 % confidence intervals as error bars) and peak force. Failed cases are marked
-    with a red cross on the axis. (`window` is for runs; a sweep has no time axis.)"""
+    with a red cross on the axis. (`window` is for runs; a sweep has no time axis: `dbf-hpc plot`
+    refuses --window for a summary.)"""
     import h5py
 
     with h5py.File(path, "r") as f:

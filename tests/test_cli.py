@@ -1114,6 +1114,18 @@ def test_a_plot_directory_that_is_a_file_is_refused_saying_so_and_the_file_is_ke
     assert run_out.read_bytes() == before
 
 
+def test_a_plot_window_on_a_sweep_summary_is_refused_not_ignored(tmp_path):
+    # New-user pass: `plot SUMMARY.h5 --window 1:2` drew the whole figures without a word.
+    sweep = tmp_path / "s.toml"
+    sweep.write_text(f'scene = "{PAPER}"\noutput = "s.h5"\n[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n'
+                     '"integrator.t_end" = [0.01]\n')
+    assert dbf_hpc("sweep", str(sweep), "-q", "--set", f"basis.cache={tmp_path}", ranks=1).returncode == 0
+    out = dbf_hpc("plot", str(tmp_path / "s.h5"), "-d", str(tmp_path / "figs"), "--window", "0:0.005", ranks=1)
+    assert _one_line(out) and "a sweep's summary has no time axis" in out.stderr, out.stderr
+    assert not (tmp_path / "figs").exists()
+    assert dbf_hpc("plot", str(tmp_path / "s.h5"), "-d", str(tmp_path / "figs"), ranks=1).returncode == 0
+
+
 def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp_path):
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "w.h5"), *SHORT)
     assert out.returncode == 0, out.stderr
