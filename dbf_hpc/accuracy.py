@@ -553,13 +553,16 @@ def rich_modes(modes: int, components: int) -> int:
     return max(RICH_MODES * modes, modes + components)
 
 
-def richer_model(fom, basis):
+def richer_model(fom, basis, cache_dir: str | None = None):
     """The reduced model of the estimate's richer basis (rich_modes: max(2N, N + N_L) modes, the same
     enrichment columns, each named by its constraint component), or the reason it cannot be made (a
     string). Where the structure has too few DOFs for N + N_L modes and the columns, twice the modes
-    (RICH_MODES) as before. Collective."""
+    (RICH_MODES) as before. With cache_dir, its reference modes come from the basis cache
+    (cache.obtain_modes; not for complex modes). Collective."""
     from .basis import richer_basis
+    from .cache import obtain_modes
     from .errors import DbfError
+    from .petsctools import destroy
     from .reductor import Reductor
 
     if zeta_per_vector(fom):
@@ -568,14 +571,22 @@ def richer_model(fom, basis):
     # a gyroscopic basis has two columns (Re, Im) per complex mode: twice the complex modes
     modes = basis.stats.get("complex_modes", basis.mode_count)
     labels = fom.constraints.component_labels
+    cached = cache_dir and fom.operators.G is None and getattr(basis, "form", "") != "state_space"
     for count in dict.fromkeys((rich_modes(modes, len(labels)), RICH_MODES * modes)):
+        more = None
         try:
-            rich = richer_basis(fom.operators, basis, count, labels)
+            if cached:
+                more = obtain_modes(fom.operators, count, fom.fingerprint, cache_dir)
+                rich = richer_basis(fom.operators, basis, count, labels, reference=more)
+            else:
+                rich = richer_basis(fom.operators, basis, count, labels)
             break
         except Interrupted:   # a termination signal is not a basis the DOFs cannot hold
             raise
         except DbfError as e:  # the same on every rank: too few DOFs, or a column the richer modes hold
             failure = e
+        finally:
+            destroy(more)
     else:
         return f"no richer basis: {failure}"
     with Reductor(fom, rich.settings, basis=rich) as reductor:
@@ -588,18 +599,20 @@ def second_modes(modes: int, components: int) -> int:
     return int(math.ceil(SECOND_MODES * rich_modes(modes, components) - 1e-9))
 
 
-def richer_models(fom, basis):
+def richer_models(fom, basis, cache_dir: str | None = None):
     """(richer_model's model or its reason, the second richer model or None): the second has
     second_modes reference modes (1.5 times the first's) and the same enrichment columns, where the
-    structure holds them; both from one eigensolve. None for a gyroscopic or
+    structure holds them; both from one eigensolve, kept in the basis cache with cache_dir
+    (cache.obtain_modes: a run whose basis is cached solves no eigenproblem for its estimate either,
+    and gets the same models bit for bit). None for a gyroscopic or
     state-space basis (complex modes: their richer model alone, as before), and where the second's
     projection keeps defects above reductor.PROJECTION_TOL that the reductor could not turn away
     (reductor._turn_in_span), whose unstructured stage solves are slow (the paper's beam at N = 40
     before such bases were turned: 7.9 s for 121 vectors against 0.33 s for 81 with the structure).
     Collective."""
     from .basis import richer_basis
+    from .cache import obtain_modes
     from .errors import DbfError
-    from .modes import reference_modes
     from .reductor import PROJECTION_TOL, Reductor
 
     labels = fom.constraints.component_labels
@@ -607,13 +620,13 @@ def richer_models(fom, basis):
     count = second_modes(modes, len(labels))
     if (zeta_per_vector(fom) or fom.operators.G is not None or getattr(basis, "form", "") == "state_space"
             or count + basis.enrichment_count > fom.size):
-        return richer_model(fom, basis), None
+        return richer_model(fom, basis, cache_dir), None
     try:
-        more = reference_modes(fom.operators, count=count)
+        more = obtain_modes(fom.operators, count, fom.fingerprint, cache_dir)
     except Interrupted:
         raise
     except DbfError:   # the same on every rank
-        return richer_model(fom, basis), None
+        return richer_model(fom, basis, cache_dir), None
     try:
         built = []
         for size in (rich_modes(modes, len(labels)), count):
@@ -628,7 +641,7 @@ def richer_models(fom, basis):
     finally:
         more.destroy()
     if not built:
-        return richer_model(fom, basis), None
+        return richer_model(fom, basis, cache_dir), None
     second = built[1] if len(built) > 1 else None
     if second is not None and not second.basis_info.get("turned_in_span") and max(
             second.basis_info.get("mass_orthonormality_defect", 0.0),
@@ -706,7 +719,7 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
 
     with Reductor(fom, basis_settings, cache_dir) as reductor:
         model = reductor.reduce()
-        rich = richer_model(fom, reductor.basis())
+        rich = richer_model(fom, reductor.basis(), cache_dir)
     world = comm.tompi4py()
     result = failure = None
     if world.rank == 0:

@@ -17,7 +17,9 @@ cannot check (k_j, k_auto, the branches, f_exact) carries a sha256 written with 
 holds the kind of enrichment and only the settings and solver options that kind uses. A gyroscopic
 basis in the second-order form (gyroscopic_basis.py) is cached too: its file adds the complex-mode
 count and the columns of each constraint, and on load its reduced model must still have the stored
-complex frequencies; the state-space basis (state_space.py) is not cached.
+complex frequencies; the state-space basis (state_space.py) is not cached. The error estimate's richer
+bases take their reference modes from the cache too (obtain_modes): an entry of that many modes without
+enrichment or constraint rows.
 
 All functions are collective on ops.comm.
 """
@@ -307,9 +309,10 @@ def _prepare_directory(cache_dir: str, comm) -> str | None:
 
 
 def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dict, cache_dir: str | None,
-                 labels=None) -> ReducedBasis:
+                 labels=None, quiet: bool = False) -> ReducedBasis:
     """The basis from the cache when a valid one exists, else built (and cached if cache_dir). A
-    cache that cannot be written is a warning (every rank agrees), never an error. Collective."""
+    cache that cannot be written is a warning (every rank agrees; none with quiet), never an error.
+    Collective."""
     check_pairs(ops, settings.modes)   # before a cache hit too: one stored before the check
     rows = np.asarray(rows, dtype=np.int64)
     gyroscopic = ops.G is not None
@@ -330,11 +333,33 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
     defect = float(np.abs(basis.project(ops.M) - np.eye(basis.size)).max(initial=0.0))
     error = _prepare_directory(cache_dir, ops.comm) or save(basis, path, key, ops.comm, defect)
     if error:
-        warn(f"cannot write the basis cache in {cache_dir}: {error}", ops.comm)
+        if not quiet:
+            warn(f"cannot write the basis cache in {cache_dir}: {error}", ops.comm)
         basis.stats["cache"] = "unwritable"
     else:
         basis.stats.update(cache="stored", cache_file=path)
     return basis
+
+
+def obtain_modes(ops: Operators, count: int, fingerprint: dict, cache_dir: str | None):
+    """The lowest `count` reference modes (modes.reference_modes; a ModalBasis the caller destroys),
+    kept in the cache as a basis of `count` modes without enrichment or constraint rows. The error
+    estimate's richer bases (accuracy.richer_models) solve 1.5 to 3 times the run's modes, which a
+    run whose own basis is cached solved again at every run. The entry is a basis like any other: its
+    key holds the operators, `count`, the modes_ and static_ options and the version, and it is checked
+    on load (V^T M V = I, the frequencies); it holds the very numbers the solve gave, so a richer basis
+    made from it is the one a solve makes, bit for bit. Solved without the cache where there is none,
+    on a gyroscopic structure (its richer bases solve their own complex modes) and for an odd count on
+    a beam of two planes (basis.check_pairs refuses such a basis). A cache that cannot be written keeps
+    nothing and says nothing: the run's own basis has warned of it, or was read from it. Collective."""
+    from .basis import modes_per_frequency
+    from .modes import ModalBasis, reference_modes
+
+    if not cache_dir or ops.G is not None or count % modes_per_frequency(ops):
+        return reference_modes(ops, count=count)
+    basis = obtain_basis(ops, np.zeros(0, dtype=np.int64), BasisSettings(modes=count, enrichment="none"),
+                         fingerprint, cache_dir, quiet=True)
+    return ModalBasis(omega=basis.omega, vectors=basis.vectors)
 
 
 DEFAULT_DIR = "~/.cache/dbf_hpc"

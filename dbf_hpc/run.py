@@ -213,7 +213,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             second = None   # the estimate's second richer model (accuracy.nested_estimate)
             if estimate.enabled and initial_state is None and pick is None and fom.constraints.count:
                 t = time.perf_counter()
-                rich, second = richer_models(fom, basis)
+                rich, second = richer_models(fom, basis, scene.cache_dir())
                 timings["estimate_basis"] = time.perf_counter() - t
     if initial_state is not None:
         model = _continue_from(model, initial_state)
