@@ -44,6 +44,9 @@ def test_help_and_version_print_once_under_mpirun():
     assert "modes" in out.stdout and "basis" in out.stdout and "stiffness" in out.stdout
     out = dbf_hpc("--version")
     assert out.returncode == 0 and out.stdout.splitlines() == [f"dbf-hpc {dbf_hpc_version}"], out.stdout
+    package = subprocess.run([sys.executable, "-m", "dbf_hpc", "--version"], capture_output=True, text=True,
+                             timeout=60, cwd=ROOT, env=mpi_env())        # `python -m dbf_hpc` is dbf-hpc too
+    assert package.returncode == 0 and package.stdout == out.stdout, package.stderr
 
 
 def test_the_help_of_info_and_plot_names_the_sweep_summaries_and_partial_runs_they_read():
