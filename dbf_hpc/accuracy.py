@@ -766,6 +766,7 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
     tolerance cannot be met: at the largest basis, or as soon as the estimates' trend puts it beyond
     reach (hopeless). Collective."""
     from .basis import modes_per_frequency
+    from .modes import RepeatedCut
 
     tol = estimate.tolerance
     if not fom.constraints.count:
@@ -785,7 +786,17 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
                          f"give fewer [basis] modes, or a finer mesh")
     while modes <= limit:
         candidate = dataclasses.replace(basis_settings, modes=modes, max_frequency_hz=None)
-        measured = _measure(fom, candidate, cache_dir, settings, window, comm)
+        try:
+            measured = _measure(fom, candidate, cache_dir, settings, window, comm)
+        except RepeatedCut as cut:   # every rank's (rank 0's cut): the candidate keeps the repeated frequency whole
+            if cut.whole <= limit:
+                modes = cut.whole
+            elif cut.first > (tried[-1][0] if tried else 0):
+                modes = cut.first
+            else:
+                raise InputError(f"[basis] tolerance: the candidate of {modes} modes ends inside a repeated frequency "
+                                 f"that ends beyond the largest basis tried, {limit} modes: {cut}") from None
+            continue
         window = measured.window     # every candidate over the first one's window
         tried.append((modes, measured.value))
         if say is not None:

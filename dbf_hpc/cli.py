@@ -589,7 +589,7 @@ def _real_sweep(ops, row: int, basis, ks, constraint: int) -> tuple:
     from .errors import InputError
     from .modes import reference_modes
 
-    modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"])
+    modes = reference_modes(ops, count=basis["modes"], max_frequency_hz=basis["max_frequency_hz"], whole="refuse")
     part = participation(modes, np.array([row]))[0]
     omega_free = modes.omega
     modes.destroy()

@@ -50,6 +50,10 @@ TRUST_TOL = 1e-5
 # Elements of the coarse mesh on which _element_limit measures the estimate.
 COARSE_ELEMENTS = 100
 
+# Reference eigenvalues closer than this (relative) are one repeated eigenvalue, whose modes are any mix of
+# its eigenspace (a round tube's y and z, a square bar's two bending modes): the same as dbf.CLUSTER_TOL.
+REPEATED_TOL = 1e-6
+
 # Eigen-solves performed by this process (lets tests and reports see that a cached basis needed none).
 counters = {"eigen_solves": 0}
 
@@ -71,6 +75,41 @@ class ModalBasis:
 
     def destroy(self) -> None:
         self.vectors.destroy()
+
+
+class RepeatedCut(InputError):
+    """A count of reference modes that keeps part of a repeated eigenvalue's modes: `first` modes lie
+    below it and `whole` take all of it (the nearest counts that keep it whole)."""
+
+    def __init__(self, message: str, first: int, whole: int):
+        super().__init__(message)
+        self.first, self.whole = first, whole
+
+
+def whole_count(values, count: int, rigid: int = 0) -> int:
+    """The smallest count >= `count` of the sorted eigenvalues `values` that does not end inside a
+    repeated eigenvalue (a cluster within REPEATED_TOL, or the `rigid` rigid-body modes, zero to
+    round-off): `count` itself unless values[count] repeats values[count - 1]. len(values) when the
+    repeated eigenvalue reaches the last value given (more may follow). Not collective."""
+    lam = np.asarray(values, dtype=float)
+    end = count
+    while 0 < end < lam.size:
+        a, b = lam[end - 1], lam[end]
+        if not (end < rigid or abs(b - a) <= REPEATED_TOL * max(abs(a), abs(b))):
+            break
+        end += 1
+    return end
+
+
+def cluster_start(values, count: int, rigid: int = 0) -> int:
+    """The first index of the repeated eigenvalue (as whole_count) that values[count - 1] belongs to
+    (count - 1 when it is simple). Not collective."""
+    lam = np.asarray(values, dtype=float)
+    start = count - 1
+    while start > 0 and (start < rigid or abs(lam[start] - lam[start - 1]) <= REPEATED_TOL * max(
+            abs(lam[start]), abs(lam[start - 1]))):
+        start -= 1
+    return start
 
 
 def _massless_rows(M: PETSc.Mat) -> int:
@@ -150,9 +189,10 @@ class LowestModes:
         pc.setType(PETSc.PC.Type.PYTHON)
         pc.setPythonContext(inverse)
 
-    def solve(self, nev: int, what: str, ncv: int | None = None) -> tuple[np.ndarray, list]:
+    def solve(self, nev: int, what: str, ncv: int | None = None, least: int | None = None) -> tuple[np.ndarray, list]:
         """The nev lowest converged eigenpairs, sorted by eigenvalue (new Vecs, the caller's); ncv the
-        code's default Krylov subspace size (None: SLEPc's). Collective."""
+        code's default Krylov subspace size (None: SLEPc's); least (default nev): fewer converged than
+        this is an error, between least and nev those converged are returned. Collective."""
         eps = self.eps
         options = PETSc.Options(self.prefix)  # keep the user's -eps_ncv, -eps_mpd (setDimensions resets them)
         eps.setDimensions(nev, options.getInt("eps_ncv", ncv or PETSc.DEFAULT),
@@ -169,7 +209,9 @@ class LowestModes:
                               f"-{self.prefix}st_pc_type cholesky)") from None
         counters["eigen_solves"] += 1
         nconv = eps.getConverged()
-        if nconv < nev:
+        least = nev if least is None else least
+        if nconv < least:
+            nev = least
             _, M = eps.getOperators()
             n, massless = M.getSize()[0], _massless_rows(M)
             if massless and nev > n - massless:   # infinite eigenvalues: no iteration finds more
@@ -187,6 +229,10 @@ class LowestModes:
         order = np.argsort(values)[:nev]
         destroy(*(vectors[i] for i in set(range(nconv)) - set(order)))
         return np.asarray(values)[order], [vectors[i] for i in order]
+
+    def converged_values(self) -> np.ndarray:
+        """Every eigenvalue the last solve converged, sorted (often more than it was asked for). Collective."""
+        return np.sort([complex(self.eps.getEigenvalue(i)).real for i in range(self.eps.getConverged())])
 
     def below_shift(self) -> int | None:
         """How many eigenvalues of (K, M) lie below the target, from the inertia of the factorized
@@ -255,32 +301,78 @@ def bv_rows(bv: SLEPc.BV, rows) -> np.ndarray:
 
 
 def _solve_reference(ops: Operators, count, max_frequency_hz, prefix: str):
-    """(eigenvalues, vectors, eigenvalues below the shift) of the reference problem."""
-    n = ops.size
+    """(eigenvalues, vectors, eigenvalues below the shift, asked, whole, seen): the `asked` lowest
+    eigenpairs (`count`, or those below max_frequency_hz: on a beam of two planes whole y-z pairs),
+    `whole` >= asked the count that keeps the repeated eigenvalue at the cut whole (whole_count, rank
+    0's on every rank; the caller refuses or extends, _extend) and `seen` the lowest `whole`
+    eigenvalues. The solve of the asked pairs is the one made without the check (the same vectors): the
+    eigenvalue beyond the cut is one it converged besides (usually), else a second solve on the same
+    factorization gives it (values only)."""
+    n, comm = ops.size, ops.comm.tompi4py()
     with LowestModes(ops, ops.K, prefix) as solver:
         if count is not None:
+            asked = count
             values, vectors = solver.solve(count, "reference modes")
-            return values, vectors, solver.below_shift()
-        lam_max = (2 * np.pi * max_frequency_hz) ** 2
-        nev = min(8, n)
-        while True:
-            values, vectors = solver.solve(nev, "reference modes")
-            if values[-1] > lam_max or nev == n:
-                break
+        else:
+            lam_max = (2 * np.pi * max_frequency_hz) ** 2
+            nev = min(8, n)
+            while True:
+                values, vectors = solver.solve(nev, "reference modes")
+                if values[-1] > lam_max or nev == n:
+                    break
+                destroy(*vectors)
+                nev = min(2 * nev, n)
+            asked = int(np.count_nonzero(values <= lam_max))
+            # A beam of two planes has every frequency twice (y and z alike, equal to round-off): a cut
+            # between the two keeps one in a direction set by round-off (basis.check_pairs), so keep both.
+            pairs = getattr(ops.mesh, "planes", 1)
+            if asked % pairs and asked < values.size:
+                asked += pairs - asked % pairs
+            if asked == 0:
+                destroy(*vectors)
+                raise InputError(f"no mode below max_frequency_hz = {max_frequency_hz} Hz "
+                                 f"(the lowest is {np.sqrt(max(values[0], 0)) / (2 * np.pi):.6g} Hz)")
+        below = solver.below_shift()
+        seen = solver.converged_values()
+        try:
+            while True:
+                whole = comm.bcast(whole_count(seen, asked, ops.rigid_modes), root=0)
+                if whole < seen.size or seen.size >= n:
+                    break
+                # the last value seen belongs to the repeated eigenvalue at the cut (or none lies beyond
+                # the cut): solve for more, values only (massless DOFs may leave none: infinite ones)
+                more = min(max(whole + 1, 2 * seen.size), n)
+                destroy(*solver.solve(more, "reference modes beyond the cut", least=seen.size)[1])
+                if solver.eps.getConverged() <= seen.size:
+                    break
+                seen = solver.converged_values()
+        except Interrupted:   # a termination signal, not a check that could not be made
             destroy(*vectors)
-            nev = min(2 * nev, n)
-        below = int(np.count_nonzero(values <= lam_max))
-        # A beam of two planes has every frequency twice (y and z alike, equal to round-off): a cut
-        # between the two keeps one in a direction set by round-off (basis.check_pairs), so keep both.
-        pairs = getattr(ops.mesh, "planes", 1)
-        if below % pairs and below < values.size:
-            below += pairs - below % pairs
-        if below == 0:
-            destroy(*vectors)
-            raise InputError(f"no mode below max_frequency_hz = {max_frequency_hz} Hz "
-                             f"(the lowest is {np.sqrt(max(values[0], 0)) / (2 * np.pi):.6g} Hz)")
-        destroy(*vectors[below:])
-        return values[:below], vectors[:below], solver.below_shift()
+            raise
+        except SolverError:   # the cut cannot be checked (a -modes_eps_ncv too small for more): as before
+            whole = asked
+        seen = seen[:whole]
+    destroy(*vectors[asked:])
+    return values[:asked], vectors[:asked], below, asked, whole, seen
+
+
+def _extend(ops: Operators, count: int, prefix: str):
+    """(eigenvalues, vectors) of the lowest `count` pairs, `count` at the end of a repeated eigenvalue
+    (_solve_reference's whole)."""
+    with LowestModes(ops, ops.K, prefix) as solver:
+        return solver.solve(count, "reference modes")
+
+
+def _repeated_cut(ops: Operators, values: np.ndarray, count: int) -> RepeatedCut:
+    """The refusal of `count` modes that end inside the repeated eigenvalue up to values[-1]."""
+    first, end = cluster_start(values, count, ops.rigid_modes), values.size
+    what = ("the rigid-body modes (zero frequency)" if count <= ops.rigid_modes else
+            f"one repeated frequency, {np.sqrt(max(values[count - 1], 0.0)) / (2 * np.pi):.6g} Hz")
+    counts = f"{first} or {end}" if first else f"{end}"
+    return RepeatedCut(f"[basis] modes = {count} keeps {count - first} of the {end - first} modes of {what} (modes "
+                       f"{first + 1} to {end}: any mix of their directions, so those kept lie in a direction set by "
+                       f"round-off, and the reduced model changes with it); give {counts} modes, or "
+                       f"max_frequency_hz", first, end)
 
 
 def _absolute(A: PETSc.Mat) -> PETSc.Mat:
@@ -409,12 +501,22 @@ def _check_definite(ops: Operators, values, negative, estimate, scale) -> None:
 
 
 def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: float | None = None,
-                    prefix: str = "modes_") -> ModalBasis:
+                    prefix: str = "modes_", whole: str = "extend") -> ModalBasis:
     """The lowest reference modes: `count` of them, or every mode below `max_frequency_hz`.
+
+    A repeated eigenvalue (REPEATED_TOL; a round tube's y-z pairs, a square bar's bending pairs, the
+    rigid-body modes) is kept whole: its modes are any mix of its eigenspace, so part of them is a
+    direction set by round-off, and a reduced model on it changes with the rank count. Where `count`
+    ends inside one, whole = "refuse" raises RepeatedCut (an InputError naming the frequency and the
+    counts that keep it whole: the user's [basis] modes, build_basis), "extend" (the default) returns
+    the modes up to its end (the estimate's richer bases). Below max_frequency_hz the repeated
+    eigenvalue at the cutoff is kept whole.
 
     Collective on ops.comm. Raises SolverError if the solver converges fewer pairs than needed,
     refuses pairs that cannot be trusted to TRUST_TOL (trust_check), and an indefinite K.
     """
+    if whole not in ("refuse", "extend"):
+        raise ValueError(f"reference_modes whole: 'refuse' or 'extend', got {whole!r}")
     if (count is None) == (max_frequency_hz is None):
         raise InputError("give the number of modes or a maximum frequency, not both")
     n = ops.size
@@ -422,7 +524,13 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
         raise InputError(f"number of modes must be between 1 and {n} (the free DOFs), got {count}")
     if max_frequency_hz is not None and not max_frequency_hz > 0:
         raise InputError(f"max_frequency_hz must be positive, got {max_frequency_hz}")
-    values, vectors, negative = _solve_reference(ops, count, max_frequency_hz, prefix)
+    values, vectors, negative, asked, end, seen = _solve_reference(ops, count, max_frequency_hz, prefix)
+    if end > asked:
+        if count is not None and whole == "refuse":
+            destroy(*vectors)
+            raise _repeated_cut(ops, seen, asked)
+        destroy(*vectors)
+        values, vectors = _extend(ops, end, prefix)
     bv = None
     try:
         for x in vectors:

@@ -112,7 +112,9 @@ SECTIONS = {
     }),
     "basis": ("Reference modes and one enrichment column per constraint.", {
         "modes": Key((int,), None, "", "number of reference modes (6 if neither this nor max_frequency_hz); "
-                                       "even on a beam of two planes (its frequencies come in y-z pairs)"),
+                                       "even on a beam of two planes (its frequencies come in y-z pairs), and on "
+                                       "any structure not ending inside a repeated frequency (refused, naming the "
+                                       "counts that keep it whole)"),
         "max_frequency_hz": Key(NUMBER, None, "Hz", "every mode below this frequency instead of a count (on a beam of two planes, whole y-z pairs)"),
         "enrichment": Key((str,), "dbf", "", '"dbf" (the method), "static" (static attachment modes K^-1 g) or '
                                              '"none" (modes alone); the last two are comparators'),

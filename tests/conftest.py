@@ -8,6 +8,7 @@ Under MPI every rank runs every test. Rules that keep a failure from hanging the
 import contextlib
 import subprocess
 
+import numpy as np
 import pytest
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -218,3 +219,23 @@ def undestroyed_petsc_objects() -> int:
 
     gc.collect()
     return sum(1 for o in gc.get_objects() if isinstance(o, PETSc.Object) and o.handle)
+
+
+def twin_chains(directory):
+    """Operators of two identical, uncoupled spring-mass chains (a symmetric structure that is not a beam:
+    every eigenvalue twice, as a square bar's bending pairs) and the half chain's dense K and M."""
+    import scipy.io
+    import scipy.sparse
+    from mpi4py import MPI
+
+    from dbf_hpc.matrices import MatrixFiles, load_operators
+
+    n = 10
+    K = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr() * 1e5
+    M = scipy.sparse.diags(np.linspace(1.0, 2.0, n)).tocsr()
+    paths = [str(directory / name) for name in ("K.mtx", "M.mtx")]
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths[0], scipy.sparse.block_diag([K, K]).tocsr(), precision=17)
+        scipy.io.mmwrite(paths[1], scipy.sparse.block_diag([M, M]).tocsr(), precision=17)
+    MPI.COMM_WORLD.Barrier()
+    return load_operators(MatrixFiles(*paths)), K.toarray(), M.toarray()

@@ -760,6 +760,68 @@ def test_the_second_richer_model_of_a_beam_of_two_planes_holds_whole_y_z_pairs_a
     assert_all(np.allclose(w["world"], w["self"], rtol=0, atol=1e-8 * np.abs(w["self"]).max()),
                f"rank {MPI.COMM_WORLD.rank}: {np.abs(w['world'] - w['self']).max():.3g} apart")
 
+def test_the_second_richer_model_of_a_two_plane_tube_keeps_whole_y_z_pairs(comm):
+    # 4 modes and 3 round holes (6 DBF columns): the first richer basis has N + N_L = 10 modes, 1.5 times
+    # that is 15, which kept one of the 8th y-z pair in a direction set by round-off (red team); the second
+    # takes the pair whole: 16 modes + 6, its frequencies in equal pairs.
+    from dbf_hpc import accuracy
+
+    tube = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20, planes=2)
+    holes = [Constraint(law("circular", clearance=2.5e-3, k=1e6), x=x) for x in (0.25, 0.5, 0.7)]
+    with FullOrderModel.build(tube, holes, BaseMotion(5e-3, 1.0), comm=comm) as fom, \
+            Reductor(fom, BasisSettings(modes=4)) as reductor:
+        first, second = accuracy.richer_models(fom, reductor.basis())
+        assert_all((first.size, second.size) == (10 + 6, 16 + 6), (first.size, second.size))
+        for model in (first, second):
+            omega = model.basis_info["omega"]
+            assert_all(np.allclose(omega[0::2], omega[1::2], rtol=1e-9, atol=0), omega)
+
+
+def test_the_tolerance_modes_candidate_keeps_a_repeated_frequency_whole(shared_tmp_path):
+    # Two identical chains (every frequency twice, not a beam of two planes): a first candidate of 3 modes
+    # would keep one of the second pair in a direction set by round-off; it becomes 4 (the user's own
+    # [basis] modes = 3 without a tolerance is refused, tests/test_modes.py).
+    import h5py
+    from mpi4py import MPI
+
+    from conftest import twin_chains
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    twin_chains(shared_tmp_path)[0].destroy()
+    scene = shared_tmp_path / "twins.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        scene.write_text(f"""[structure]
+kind = "matrices"
+stiffness = "{shared_tmp_path / 'K.mtx'}"
+mass = "{shared_tmp_path / 'M.mtx'}"
+[excitation]
+kind = "force"
+dof = 5
+amplitude = 1.0
+frequency_hz = 5.0
+[[constraint]]
+dof = 3
+law = "deadband"
+clearance = 5e-6
+k = 1e4
+[basis]
+modes = 3
+tolerance = 0.05
+cache = "off"
+[integrator]
+t_end = 0.5
+[output]
+sample_dt = 1e-3
+""")
+    MPI.COMM_WORLD.Barrier()
+    out = shared_tmp_path / "twins.h5"
+    run(load_scene(str(scene)), str(out), progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(out) as f:
+            omega = f["basis/omega"][:]
+        assert omega.size % 2 == 0 and np.allclose(omega[0::2], omega[1::2], rtol=1e-9, atol=0), omega
+
 
 def test_a_termination_signal_while_the_estimates_richer_basis_is_built_stops_the_run(tmp_path, monkeypatch, capsys):
     # Red team: the command's handler raised Interrupted in the richer basis's eigensolve, and the

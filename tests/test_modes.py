@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from conftest import petsc_options
+from conftest import petsc_options, twin_chains
 from dbf_hpc.errors import InputError, SolverError
 from dbf_hpc.modes import reference_modes
 from dbf_hpc.structure import Beam, assemble_beam
@@ -212,3 +212,52 @@ def test_an_eigensolver_refused_by_its_options_is_freed_with_its_spectral_transf
         with petsc_options(modes_eps_type="no_such_solver"), pytest.raises(PETSc.Error):
             reference_modes(ops, count=4)
     assert petsc_garbage(capfd) == 0, "the refused eigensolver was left in PETSc's garbage"
+
+
+def test_a_count_ending_inside_a_repeated_frequency_is_refused_naming_it_or_takes_it_whole(shared_tmp_path):
+    # Two identical chains: each frequency twice, its modes any mix of the two chains. A count that keeps one
+    # of a pair keeps a direction set by round-off (the reduced model changed with the rank count on the
+    # 2-D tube): the user's count is refused naming the pair and the counts that keep it whole, an
+    # internal one (the estimate's richer bases) takes the pair whole. Against scipy's eigenpairs.
+    import scipy.linalg
+
+    from dbf_hpc.modes import RepeatedCut
+
+    ops, K, M = twin_chains(shared_tmp_path)
+    try:
+        lam, phi = scipy.linalg.eigh(K, M)
+        hz = np.sqrt(lam[1]) / (2 * np.pi)
+        with pytest.raises(RepeatedCut, match=re.escape(f"[basis] modes = 3 keeps 1 of the 2 modes of one repeated "
+                                                        f"frequency, {hz:.6g} Hz (modes 3 to 4: any mix of their "
+                                                        f"directions") + ".*give 2 or 4 modes, or max_frequency_hz"):
+            reference_modes(ops, count=3, whole="refuse")
+        modes = reference_modes(ops, count=3)
+        try:
+            assert modes.count == 4
+            np.testing.assert_allclose(modes.omega, np.sqrt(np.repeat(lam[:2], 2)), rtol=1e-9)
+            # the pair's span is the whole eigenspace: both chains' second mode, in any mix
+            from dbf_hpc.modes import bv_rows
+            V = bv_rows(modes.vectors, np.arange(ops.size))[:, 2:]
+            exact = np.zeros((ops.size, 2))
+            exact[:10, 0], exact[10:, 1] = phi[:, 1], phi[:, 1]
+            Mfull = scipy.linalg.block_diag(M, M)
+            np.testing.assert_allclose(V @ V.T @ Mfull @ exact, exact, atol=1e-8 * np.abs(exact).max())
+        finally:
+            modes.destroy()
+        whole = reference_modes(ops, count=4, whole="refuse")   # whole pairs: accepted as asked
+        assert whole.count == 4
+        whole.destroy()
+    finally:
+        ops.destroy()
+
+
+def test_a_basis_whose_mode_count_cuts_a_repeated_frequency_is_refused_before_its_enrichment(shared_tmp_path):
+    from dbf_hpc.basis import BasisSettings, build_basis
+
+    ops, _, _ = twin_chains(shared_tmp_path)
+    try:
+        with pytest.raises(InputError, match=r"\[basis\] modes = 5 keeps 1 of the 2 modes .*\(modes 5 to 6: "
+                                             r".*give 4 or 6 modes"):
+            build_basis(ops, [3, 14], BasisSettings(modes=5))
+    finally:
+        ops.destroy()
