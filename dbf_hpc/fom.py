@@ -322,10 +322,15 @@ class FullOrderModel:
     def initial_displacement(self) -> PETSc.Vec:
         """u(0): zero, or `initial.amplitude` m peak (over the field's DOFs) in reference mode
         `initial.mode`."""
-        from .modes import reference_modes
+        from .modes import reference_modes, repeated_mode_refusal
 
         # the modes first: an [initial] mode the structure does not have is an InputError with no Vec made yet
         modes = reference_modes(self.operators, count=self.initial.mode) if self.initial.amplitude else None
+        if modes is not None:   # the modes of a repeated frequency taken whole (reference_modes)
+            refusal = repeated_mode_refusal(modes.omega ** 2, self.initial.mode, self.operators.rigid_modes)
+            if refusal:
+                modes.destroy()
+                raise InputError(refusal)
         u = self.operators.K.createVecRight()
         u.zeroEntries()
         if modes is None:

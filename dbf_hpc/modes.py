@@ -112,6 +112,22 @@ def cluster_start(values, count: int, rigid: int = 0) -> int:
     return start
 
 
+def repeated_mode_refusal(values, mode: int, rigid: int = 0) -> str | None:
+    """Why [initial] mode = `mode` (from 1) is refused (what follows "[initial] mode = M: "), when it
+    is one of a repeated eigenvalue's modes (values: the sorted eigenvalues, repeated ones whole as
+    reference_modes returns them), else None: its shape is any mix of them, chosen by round-off, so
+    the reduced model (its basis's mode) and the full-order model (an eigensolve of its own) start
+    from different shapes. Not collective."""
+    first, end = cluster_start(values, mode, rigid), whole_count(values, mode, rigid)
+    if end - first < 2:
+        return None
+    what = ("the rigid-body modes (zero frequency)" if mode <= rigid else
+            f"one repeated frequency, {np.sqrt(max(values[mode - 1], 0.0)) / (2 * np.pi):.6g} Hz")
+    return (f"one of the {end - first} modes of {what} (modes {first + 1} to {end}): its "
+            f"shape is any mix of them, a direction set by round-off, so the reduced and the full-order model (and "
+            f"runs on other rank counts) would start from different shapes; start from a mode of a simple frequency")
+
+
 def _massless_rows(M: PETSc.Mat) -> int:
     """How many diagonal entries of M are exactly 0 (massless DOFs, e.g. rotations under a lumped
     mass): each one is an infinite eigenvalue of (K, M). Collective."""

@@ -18,6 +18,7 @@ from .basis import BasisSettings, ReducedBasis
 from .cache import obtain_basis
 from .errors import InputError
 from .fom import FullOrderModel
+from .modes import repeated_mode_refusal
 from .petsctools import destroy, petsc_errors_as_one_line
 from .rom import ReducedField, ReducedModel
 
@@ -231,6 +232,9 @@ class Reductor:
         elif initial.amplitude:
             if not 1 <= initial.mode <= basis.mode_count:
                 raise InputError(f"[initial] mode = {initial.mode}: the basis has {basis.mode_count} reference modes")
+            refusal = repeated_mode_refusal(basis.omega ** 2, initial.mode, self.fom.operators.rigid_modes)
+            if refusal:   # the basis holds whole repeated frequencies (modes.reference_modes): the same on every rank
+                raise InputError(f"[initial] mode = {initial.mode}: {refusal}")
             column = self._basis_at(self.fom.operators.field_map())[:, initial.mode - 1]
             q0[initial.mode - 1] = initial.amplitude / np.abs(column).max()
         return q0, p0

@@ -193,7 +193,9 @@ SECTIONS = {
                                              '(the reference) or "auto" (C when built, else Python with a warning)'),
     }),
     "initial": ("The state at t = 0 (at rest in relative coordinates by default).", {
-        "mode": Key((int,), 1, "", "reference mode of the initial displacement, counted from 1"),
+        "mode": Key((int,), 1, "", "reference mode of the initial displacement, counted from 1 (not one of a "
+                                   "repeated frequency's modes, whose shape round-off picks; a beam of two "
+                                   "planes counts its pairs)"),
         "amplitude": Key(NUMBER, 0.0, "m", "peak initial displacement in that mode"),
         "direction": Key((list,), [], "1", "beam of two planes: [dy, dz], the direction of the initial "
                                            "displacement (mode counts the y-z pairs; default [1, 0])"),

@@ -241,3 +241,24 @@ def test_other_laws_of_the_wrong_count_or_kind_are_one_input_error(laws, message
     with FullOrderModel.build(BEAM, [STOP], BaseMotion(5e-3, 1.0)) as fom:
         with pytest.raises(InputError, match=f"with_laws: {message}; give one law\\(...\\) per constraint"):
             fom.constraints.with_laws(laws)
+
+
+def test_an_initial_mode_of_a_repeated_frequency_is_refused_by_both_models(shared_tmp_path):
+    # Two identical chains: mode 1 is any mix of the chains' first modes. The full-order model took the
+    # mix of its own eigensolve and the reduced model its basis's: on 2 ranks they started one at
+    # -9.3e-5 m, the other at +4.7e-4 m on the second chain (1 rank: -3.8e-4 m for both). Both refuse it,
+    # naming the pair; mode 4 too (the second of its pair, which no count of modes cuts).
+    from conftest import twin_chains
+    from dbf_hpc.matrices import MatrixFiles
+
+    twin_chains(shared_tmp_path)[0].destroy()
+    files = MatrixFiles(str(shared_tmp_path / "K.mtx"), str(shared_tmp_path / "M.mtx"))
+    stop = Constraint(law("deadband", clearance=1e-3, k=1e6), dof=3)
+    for mode, pair in ((1, "modes 1 to 2"), (4, "modes 3 to 4")):
+        with FullOrderModel.build(files, [stop], initial=InitialState(mode=mode, amplitude=1e-3)) as fom:
+            with pytest.raises(InputError, match=rf"\[initial\] mode = {mode}: one of the 2 modes of one repeated "
+                                                 rf"frequency, .* Hz \({pair}\): its shape is any mix of them"):
+                fom.initial_state()
+            with Reductor(fom, BasisSettings(modes=4)) as reductor, \
+                    pytest.raises(InputError, match=rf"\[initial\] mode = {mode}: one of the 2 modes .*\({pair}\)"):
+                reductor.reduce()
