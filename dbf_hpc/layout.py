@@ -69,7 +69,9 @@ DATASETS = {
     # V^T M V = I makes V's columns kg^-1/2 (M in kg), so q = V^T M u is m kg^1/2 and B = G^T V is kg^-1/2:
     # w = B q in m (red team: the outputs said q in 1 and B in m, so q looked like a displacement)
     REDUCED_Q: ("m kg^(1/2)", "reduced coordinates q of the M-orthonormal basis, u = V q (nt x r; width 0 for a "
-                              "full-order run)"),
+                              "full-order run); the columns of a repeated frequency (a round tube's y-z pairs) are "
+                              "a mix of its modes that round-off chooses, other on another rank count: read "
+                              "their sum of squares, or the probes, not one of them"),
     REDUCED_QDOT: ("m kg^(1/2)/s", "reduced velocities q' (nt x r; width 0 for a full-order run)"),
     REDUCED_M: ("1", "reduced mass V^T M V (r x r; I to round-off)"),
     REDUCED_K: ("1/s^2", "reduced stiffness V^T K V (r x r)"),

@@ -121,7 +121,7 @@ def repeated_mode_refusal(values, mode: int, rigid: int = 0) -> str | None:
     first, end = cluster_start(values, mode, rigid), whole_count(values, mode, rigid)
     if end - first < 2:
         return None
-    what = ("the rigid-body modes (zero frequency)" if mode <= rigid else
+    what = ("zero frequency, the rigid-body modes" if mode <= rigid else
             f"one repeated frequency, {np.sqrt(max(values[mode - 1], 0.0)) / (2 * np.pi):.6g} Hz")
     return (f"one of the {end - first} modes of {what} (modes {first + 1} to {end}): its "
             f"shape is any mix of them, a direction set by round-off, so the reduced and the full-order model (and "
@@ -382,7 +382,7 @@ def _extend(ops: Operators, count: int, prefix: str):
 def _repeated_cut(ops: Operators, values: np.ndarray, count: int) -> RepeatedCut:
     """The refusal of `count` modes that end inside the repeated eigenvalue up to values[-1]."""
     first, end = cluster_start(values, count, ops.rigid_modes), values.size
-    what = ("the rigid-body modes (zero frequency)" if count <= ops.rigid_modes else
+    what = ("zero frequency, the rigid-body modes" if count <= ops.rigid_modes else
             f"one repeated frequency, {np.sqrt(max(values[count - 1], 0.0)) / (2 * np.pi):.6g} Hz")
     counts = f"{first} or {end}" if first else f"{end}"
     return RepeatedCut(f"[basis] modes = {count} keeps {count - first} of the {end - first} modes of {what} (modes "
