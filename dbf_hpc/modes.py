@@ -317,13 +317,15 @@ def bv_rows(bv: SLEPc.BV, rows) -> np.ndarray:
 
 
 def _solve_reference(ops: Operators, count, max_frequency_hz, prefix: str):
-    """(eigenvalues, vectors, eigenvalues below the shift, asked, whole, seen): the `asked` lowest
-    eigenpairs (`count`, or those below max_frequency_hz: on a beam of two planes whole y-z pairs),
-    `whole` >= asked the count that keeps the repeated eigenvalue at the cut whole (whole_count, rank
-    0's on every rank; the caller refuses or extends, _extend) and `seen` the lowest `whole`
-    eigenvalues. The solve of the asked pairs is the one made without the check (the same vectors): the
-    eigenvalue beyond the cut is one it converged besides (usually), else a second solve on the same
-    factorization gives it (values only)."""
+    """(eigenvalues, vectors, eigenvalues below the shift, asked, (first, whole)): the `asked` lowest
+    eigenpairs (`count`, or those below max_frequency_hz: on a beam of two planes whole y-z pairs), and
+    the repeated eigenvalue at the cut as the converged values show it: the `first` eigenvalues lie
+    below it, `whole` >= asked up to its end (the same on every rank). The solve of the asked pairs is
+    the one made without the check (the same vectors). The values beyond the cut are those the solve
+    converged besides, or a second solve's on the same factorization (values only); a Krylov space may
+    hold only part of a repeated eigenvalue, so reference_modes counts by the inertia where it can
+    (_cut_by_inertia), and uses these for the rigid-body modes (zero to round-off) and where MUMPS cannot
+    tell."""
     n, comm = ops.size, ops.comm.tompi4py()
     with LowestModes(ops, ops.K, prefix) as solver:
         if count is not None:
@@ -367,23 +369,59 @@ def _solve_reference(ops: Operators, count, max_frequency_hz, prefix: str):
             raise
         except SolverError:   # the cut cannot be checked (a -modes_eps_ncv too small for more): as before
             whole = asked
-        seen = seen[:whole]
+        first = cluster_start(seen, asked, ops.rigid_modes)
     destroy(*vectors[asked:])
-    return values[:asked], vectors[:asked], below, asked, whole, seen
+    return values[:asked], vectors[:asked], below, asked, (first, whole)
 
 
-def _extend(ops: Operators, count: int, prefix: str):
-    """(eigenvalues, vectors) of the lowest `count` pairs, `count` at the end of a repeated eigenvalue
-    (_solve_reference's whole)."""
-    with LowestModes(ops, ops.K, prefix) as solver:
-        return solver.solve(count, "reference modes")
+def count_below(ops: Operators, sigma: float) -> int | None:
+    """How many eigenvalues of (K, M) lie below sigma: the negative pivots of K - sigma M factored by
+    MUMPS (Sylvester's law of inertia; exact counts, unlike a Krylov solve, which may converge two of
+    a triple eigenvalue's modes and go on to the next one: measured on three identical chains). None
+    where the factorization cannot tell. Collective on ops.comm."""
+    A = ops.K.duplicate(copy=True)
+    ksp = PETSc.KSP().create(comm=ops.comm)
+    try:
+        A.axpy(-sigma, ops.M, PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+        ksp.setOperators(A)
+        direct_solver(ksp, PETSc.PC.Type.CHOLESKY)
+        pc = ksp.getPC()
+        pc.setFactorSetUpSolverType()
+        F = pc.getFactorMatrix()
+        F.setMumpsIcntl(13, 1)    # the inertia on every rank count (no ScaLAPACK root)
+        F.setMumpsIcntl(24, 1)    # a null pivot (sigma on an eigenvalue) is detected, not a failure
+        ksp.setUp()
+        negative, _, _ = pc.getFactorMatrix().getInertia()
+        return int(negative)
+    except PETSc.Error:
+        return None
+    finally:
+        destroy(ksp, A)
 
 
-def _repeated_cut(ops: Operators, values: np.ndarray, count: int) -> RepeatedCut:
-    """The refusal of `count` modes that end inside the repeated eigenvalue up to values[-1]."""
-    first, end = cluster_start(values, count, ops.rigid_modes), values.size
+def _cut_by_inertia(ops: Operators, values: np.ndarray, asked: int):
+    """(first, whole) of the repeated eigenvalue around lam = values[asked - 1], the last of the asked
+    lowest eigenvalues the solve returned: the eigenvalues below lam (1 - REPEATED_TOL) and below
+    lam (1 + REPEATED_TOL), counted by count_below (rank 0's on every rank); (asked - 1, asked) where
+    none is beyond the asked ones; None where the inertia is not available. A SolverError where the
+    solve missed an eigenvalue below the repeated one (the returned ones are not the lowest)."""
+    comm, lam = ops.comm.tompi4py(), float(values[asked - 1])
+    whole = comm.bcast(count_below(ops, lam + REPEATED_TOL * abs(lam)), root=0)
+    if whole is None or whole <= asked:
+        return None if whole is None else (asked - 1, asked)
+    first = comm.bcast(count_below(ops, lam - REPEATED_TOL * abs(lam)), root=0)
+    returned = int(np.count_nonzero(values[:asked] < lam - REPEATED_TOL * abs(lam)))
+    if first is not None and first != returned:
+        raise SolverError(f"reference modes: the eigensolver returned {returned} eigenvalues below "
+                          f"{np.sqrt(max(lam, 0.0)) / (2 * np.pi):.6g} Hz where (K, M) has {first} (a repeated "
+                          f"eigenvalue's modes missed); raise -modes_eps_ncv or tighten -modes_eps_tol")
+    return (returned if first is None else first), whole
+
+
+def _repeated_cut(ops: Operators, lam: float, count: int, first: int, end: int) -> RepeatedCut:
+    """The refusal of `count` modes that end inside the repeated eigenvalue lam of modes first + 1 to end."""
     what = ("zero frequency, the rigid-body modes" if count <= ops.rigid_modes else
-            f"one repeated frequency, {np.sqrt(max(values[count - 1], 0.0)) / (2 * np.pi):.6g} Hz")
+            f"one repeated frequency, {np.sqrt(max(lam, 0.0)) / (2 * np.pi):.6g} Hz")
     counts = f"{first} or {end}" if first else f"{end}"
     return RepeatedCut(f"[basis] modes = {count} keeps {count - first} of the {end - first} modes of {what} (modes "
                        f"{first + 1} to {end}: any mix of their directions, so those kept lie in a direction set by "
@@ -540,13 +578,7 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
         raise InputError(f"number of modes must be between 1 and {n} (the free DOFs), got {count}")
     if max_frequency_hz is not None and not max_frequency_hz > 0:
         raise InputError(f"max_frequency_hz must be positive, got {max_frequency_hz}")
-    values, vectors, negative, asked, end, seen = _solve_reference(ops, count, max_frequency_hz, prefix)
-    if end > asked:
-        if count is not None and whole == "refuse":
-            destroy(*vectors)
-            raise _repeated_cut(ops, seen, asked)
-        destroy(*vectors)
-        values, vectors = _extend(ops, end, prefix)
+    values, vectors, negative, asked, seen = _solve_reference(ops, count, max_frequency_hz, prefix)
     bv = None
     try:
         for x in vectors:
@@ -556,6 +588,16 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
         # shows as negative pivots or eigenvalues.
         trust_check(ops, values, estimate, residual, prefix)
         _check_definite(ops, values, negative, estimate, scale)
+        # then whether the cut falls inside a repeated eigenvalue (trusted pairs only: about an eigenvalue
+        # of an inexact solve the counts mean nothing)
+        cut = None if asked <= ops.rigid_modes else _cut_by_inertia(ops, values, asked)
+        first, end = cut if cut is not None else seen
+        if end > asked and count is not None and whole == "refuse":
+            raise _repeated_cut(ops, float(values[asked - 1]), asked, first, end)
+        if end > asked:   # the modes up to the repeated eigenvalue's end, checked alike
+            destroy(*vectors)
+            vectors = []
+            return reference_modes(ops, count=end, prefix=prefix, whole="extend")
         bv = SLEPc.BV().create(comm=ops.comm)
         bv.setSizesFromVec(vectors[0], len(vectors))
         bv.setType(SLEPc.BV.Type.SVEC)

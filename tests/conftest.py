@@ -221,9 +221,9 @@ def undestroyed_petsc_objects() -> int:
     return sum(1 for o in gc.get_objects() if isinstance(o, PETSc.Object) and o.handle)
 
 
-def twin_chains(directory):
-    """Operators of two identical, uncoupled spring-mass chains (a symmetric structure that is not a beam:
-    every eigenvalue twice, as a square bar's bending pairs) and the half chain's dense K and M."""
+def twin_chains(directory, copies: int = 2):
+    """Operators of two (`copies`) identical, uncoupled spring-mass chains (a symmetric structure that is
+    not a beam: every eigenvalue twice, as a square bar's bending pairs) and one chain's dense K and M."""
     import scipy.io
     import scipy.sparse
     from mpi4py import MPI
@@ -235,7 +235,7 @@ def twin_chains(directory):
     M = scipy.sparse.diags(np.linspace(1.0, 2.0, n)).tocsr()
     paths = [str(directory / name) for name in ("K.mtx", "M.mtx")]
     if MPI.COMM_WORLD.rank == 0:
-        scipy.io.mmwrite(paths[0], scipy.sparse.block_diag([K, K]).tocsr(), precision=17)
-        scipy.io.mmwrite(paths[1], scipy.sparse.block_diag([M, M]).tocsr(), precision=17)
+        scipy.io.mmwrite(paths[0], scipy.sparse.block_diag([K] * copies).tocsr(), precision=17)
+        scipy.io.mmwrite(paths[1], scipy.sparse.block_diag([M] * copies).tocsr(), precision=17)
     MPI.COMM_WORLD.Barrier()
     return load_operators(MatrixFiles(*paths)), K.toarray(), M.toarray()
