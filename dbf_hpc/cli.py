@@ -319,7 +319,9 @@ def _modes(args) -> int:
         say(f"dbf-hpc {__version__}: {scene.path} on {comm.getSize()} rank(s)")
         say(f"structure: {what}, {ops.size} free DOFs, nonzeros K {int(ops.K.getInfo()['nz_used'])}")
         say(f"reference modes{' (gyroscopic, complex)' if gyroscopic else ''}: {modes.count}"
-            + (f" below {basis['max_frequency_hz']:g} Hz" if basis["max_frequency_hz"] else ""))
+            + (f" below {basis['max_frequency_hz']:g} Hz" if basis["max_frequency_hz"] else "")
+            + (f" ({basis['modes']} asked: the repeated frequency at the cut taken whole; `run` refuses "
+               f"{basis['modes']})" if basis["modes"] and not gyroscopic and modes.count > basis["modes"] else ""))
         say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
         for i, (f, w) in enumerate(zip(modes.frequency_hz, modes.omega)):
             say(f"{i + 1:>6} {f:>14.8g} {w:>16.8g}")

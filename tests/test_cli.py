@@ -274,6 +274,17 @@ def test_modes_of_the_paper_beam_are_the_euler_bernoulli_frequencies():
     assert "on 2 rank(s)" in out.stdout
 
 
+def test_modes_of_a_two_plane_tube_list_whole_pairs_and_say_a_cut_was_taken_whole():
+    # 3 modes of a round tube end inside the second y-z pair: the summary lists both (the second in a
+    # direction round-off sets, alone), and says 3 were asked and that `run` refuses them
+    out = dbf_hpc("modes", os.path.join(ROOT, "jobs", "steam_generator_tube_2d.toml"), "--set", "basis.modes=3",
+                  "--set", "structure.elements=40")
+    assert out.returncode == 0, out.stderr
+    assert "reference modes: 4 (3 asked: the repeated frequency at the cut taken whole; `run` refuses 3)" in out.stdout
+    hz = np.array([float(r) for r in re.findall(r"^\s+\d+\s+([\d.e+-]+)\s+[\d.e+-]+$", out.stdout, re.M)])
+    assert hz.size == 4 and np.allclose(hz[0::2], hz[1::2], rtol=1e-8), hz
+
+
 def test_modes_of_a_gyroscopic_structure_say_when_its_damping_makes_one_grow(tmp_path):
     # The listed gyroscopic modes are undamped: a K held only by G (Kelvin-Tait-Chetaev) listed stable
     # modes while `run` refused the damped structure. `modes` says it too, with the growth rate that
