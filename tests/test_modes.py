@@ -275,6 +275,22 @@ def test_a_cut_inside_a_triple_frequency_is_found_where_the_eigensolver_converge
         ops.destroy()
 
 
+def test_modes_that_are_not_the_lowest_because_a_krylov_space_missed_part_of_a_repeated_frequency_are_refused(
+        shared_tmp_path):
+    # Three identical chains with a Krylov space of 8 vectors: asked for 3, the solve returned 11.65 Hz
+    # twice and 23.24 Hz, not the third mode of 11.65 Hz: before, a basis of "the 3 lowest modes"
+    # without one of them. The inertia of K - sigma M counts 3 eigenvalues below 23.24 Hz: refused,
+    # naming the options that give the solve room.
+    ops, _, _ = twin_chains(shared_tmp_path, copies=3)
+    try:
+        with petsc_options(modes_eps_ncv="8"), pytest.raises(
+                SolverError, match=r"reference modes: the eigensolver returned 2 eigenvalues below 23\.2361 Hz where "
+                                   r"\(K, M\) has 3 \(a repeated eigenvalue's modes missed\); raise -modes_eps_ncv"):
+            reference_modes(ops, count=3)
+    finally:
+        ops.destroy()
+
+
 def test_a_basis_whose_mode_count_cuts_a_repeated_frequency_is_refused_before_its_enrichment(shared_tmp_path):
     from dbf_hpc.basis import BasisSettings, build_basis
 
