@@ -299,7 +299,13 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     _check_rows(ops, rows)
     strategy.check(ops)  # before any eigen-solve
     t0 = time.perf_counter()
-    modes = reference_modes(ops, count=settings.modes, max_frequency_hz=settings.max_frequency_hz, whole="refuse")
+    try:
+        modes = reference_modes(ops, count=settings.modes, max_frequency_hz=settings.max_frequency_hz,
+                                whole="refuse")
+    except SolverError as exc:   # modes that are not the lowest (modes._cut_by_inertia): K and M swapped, say
+        if hasattr(exc, "frequency_hz"):
+            exc.args = (str(exc) + _units_hint(ops, exc.frequency_hz),)
+        raise
     t1 = time.perf_counter()
     N, NL = modes.count, strategy.count(rows.size)
     if NL and N >= ops.size:

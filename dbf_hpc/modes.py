@@ -412,9 +412,11 @@ def _cut_by_inertia(ops: Operators, values: np.ndarray, asked: int):
     first = comm.bcast(count_below(ops, lam - REPEATED_TOL * abs(lam)), root=0)
     returned = int(np.count_nonzero(values[:asked] < lam - REPEATED_TOL * abs(lam)))
     if first is not None and first != returned:
-        raise SolverError(f"reference modes: the eigensolver returned {returned} eigenvalues below "
-                          f"{np.sqrt(max(lam, 0.0)) / (2 * np.pi):.6g} Hz where (K, M) has {first} (a repeated "
-                          f"eigenvalue's modes missed); raise -modes_eps_ncv or tighten -modes_eps_tol")
+        missed = SolverError(f"reference modes: the eigensolver returned {returned} eigenvalues below "
+                             f"{np.sqrt(max(lam, 0.0)) / (2 * np.pi):.6g} Hz where (K, M) has {first} (a repeated "
+                             f"eigenvalue's modes missed); raise -modes_eps_ncv or tighten -modes_eps_tol")
+        missed.frequency_hz = np.sqrt(np.clip(values[:asked], 0.0, None)) / (2 * np.pi)   # basis._units_hint
+        raise missed
     return (returned if first is None else first), whole
 
 
