@@ -282,10 +282,13 @@ def _units_hint(ops: Operators, frequency_hz) -> str:
     return ""
 
 
-def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(), labels=None) -> ReducedBasis:
+def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(), labels=None,
+                whole: str = "refuse") -> ReducedBasis:
     """Reference modes and the enrichment columns settings.strategy makes (one per constraint row,
     or none), M-orthonormalized. With a gyroscopic G, the real basis of the complex modes and DBFs
-    (gyroscopic_basis.py). Collective on ops.comm."""
+    (gyroscopic_basis.py). `whole`: a settings.modes that ends inside a repeated frequency is refused
+    (a user's count) or extended to its end ("extend": the estimate's richer modes, cache.obtain_modes);
+    modes.reference_modes. Collective on ops.comm."""
     check_pairs(ops, settings.modes)
     if ops.G is not None:
         from .state_space import build_state_space_basis, check_form
@@ -301,7 +304,7 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     t0 = time.perf_counter()
     try:
         modes = reference_modes(ops, count=settings.modes, max_frequency_hz=settings.max_frequency_hz,
-                                whole="refuse")
+                                whole=whole)
     except SolverError as exc:   # modes that are not the lowest (modes._cut_by_inertia): K and M swapped, say
         if hasattr(exc, "frequency_hz"):
             exc.args = (str(exc) + _units_hint(ops, exc.frequency_hz),)

@@ -309,16 +309,16 @@ def _prepare_directory(cache_dir: str, comm) -> str | None:
 
 
 def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dict, cache_dir: str | None,
-                 labels=None, quiet: bool = False) -> ReducedBasis:
-    """The basis from the cache when a valid one exists, else built (and cached if cache_dir). A
-    cache that cannot be written is a warning (every rank agrees; none with quiet), never an error.
-    Collective."""
+                 labels=None, quiet: bool = False, whole: str = "refuse") -> ReducedBasis:
+    """The basis from the cache when a valid one exists, else built (and cached if cache_dir; `whole`:
+    build_basis's). A cache that cannot be written is a warning (every rank agrees; none with quiet),
+    never an error. Collective."""
     check_pairs(ops, settings.modes)   # before a cache hit too: one stored before the check
     rows = np.asarray(rows, dtype=np.int64)
     gyroscopic = ops.G is not None
     # the state-space basis (state_space.py) is not cached; a gyroscopic second-order one is
     if not cache_dir or (gyroscopic and settings.gyroscopic_form != "second_order"):
-        basis = build_basis(ops, rows, settings, labels)
+        basis = build_basis(ops, rows, settings, labels, whole)
         basis.stats["cache"] = "off"
         return basis
     key = basis_key(fingerprint, rows, settings, gyroscopic)
@@ -329,7 +329,7 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
         if basis is not None:
             _mark_used(solver_options(settings.strategy.solver_prefixes, observers=True))
             return basis
-    basis = build_basis(ops, rows, settings, labels)
+    basis = build_basis(ops, rows, settings, labels, whole)
     defect = float(np.abs(basis.project(ops.M) - np.eye(basis.size)).max(initial=0.0))
     error = _prepare_directory(cache_dir, ops.comm) or save(basis, path, key, ops.comm, defect)
     if error:
@@ -342,23 +342,28 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
 
 
 def obtain_modes(ops: Operators, count: int, fingerprint: dict, cache_dir: str | None):
-    """The lowest `count` reference modes (modes.reference_modes; a ModalBasis the caller destroys),
+    """The lowest `count` reference modes (modes.reference_modes; a ModalBasis the caller destroys; more
+    where `count` ends inside a repeated frequency, up to its end),
     kept in the cache as a basis of `count` modes without enrichment or constraint rows. The error
     estimate's richer bases (accuracy.richer_models) solve 1.5 to 3 times the run's modes, which a
     run whose own basis is cached solved again at every run. The entry is a basis like any other: its
     key holds the operators, `count`, the modes_ and static_ options and the version, and it is checked
     on load (V^T M V = I, the frequencies); it holds the very numbers the solve gave, so a richer basis
-    made from it is the one a solve makes, bit for bit. Solved without the cache where there is none,
-    on a gyroscopic structure (its richer bases solve their own complex modes) and for an odd count on
-    a beam of two planes (basis.check_pairs refuses such a basis). A cache that cannot be written keeps
+    made from it is the one a solve makes, bit for bit. An odd count on a beam of two planes is its
+    whole pairs' (basis.check_pairs). Solved without the cache where there is none and on a gyroscopic
+    structure (its richer bases solve their own complex modes). A cache that cannot be written keeps
     nothing and says nothing: the run's own basis has warned of it, or was read from it. Collective."""
     from .basis import modes_per_frequency
     from .modes import ModalBasis, reference_modes
 
-    if not cache_dir or ops.G is not None or count % modes_per_frequency(ops):
+    if not cache_dir or ops.G is not None:
         return reference_modes(ops, count=count)
+    count += -count % modes_per_frequency(ops)   # whole y-z pairs, as the solve extends them (check_pairs)
+    # a count inside a repeated frequency is extended to its end, as reference_modes does for these
+    # counts (red team: the basis build refused it as a user's [basis] modes, and the estimate of a
+    # symmetric structure with a cache had no richer model)
     basis = obtain_basis(ops, np.zeros(0, dtype=np.int64), BasisSettings(modes=count, enrichment="none"),
-                         fingerprint, cache_dir, quiet=True)
+                         fingerprint, cache_dir, quiet=True, whole="extend")
     return ModalBasis(omega=basis.omega, vectors=basis.vectors)
 
 
