@@ -225,7 +225,7 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
                                        'parallel flats)'),
     "clearance": Key(NUMBER, None, "m", "deadband, power, hertz: gap on both sides (or clearance_minus, "
                                         "clearance_plus; 0 when not given: in contact from z = 0); negative is an "
-                                        "interference fit; circular: the radial clearance (>= 0), flat_bar: the gap "
+                                        "interference fit, at most 1 m deep; circular: the radial clearance (>= 0), flat_bar: the gap "
                                         "to each flat (both required)"),
     "k": Key(NUMBER, None, "N/m^p", "stiffness on both sides (or k_minus, k_plus); linear, cubic: the spring; "
                                     "required but for table and friction (cubic: k and/or k3); circular, flat_bar: "

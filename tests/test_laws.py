@@ -164,6 +164,24 @@ def test_negative_clearance_is_a_preload_both_sides_push_and_the_force_at_zero_i
     assert ConstraintLaws([hc]).force(np.zeros(1), np.ones(1))[0] == pytest.approx(-0.5 * 2e6 * D)
 
 
+def test_an_interference_fit_a_metre_deep_is_an_exact_two_k_spring_and_a_deeper_one_is_refused_naming_the_side():
+    # Both preloads cancel and the sides' slopes add: N = -2 k z on the overlap. At 1 m depth a motion of
+    # 1 um is still resolved to 1e-10 of itself; at 1e10 m the force came in 2 N steps, at 1e100 m it was 0
+    k, z = 1e6, np.array([-1e-6, 3e-7, 1e-6])
+    laws = ConstraintLaws([law_from_dict(1, dict(law="deadband", clearance=-1.0, k=k))] * 3)
+    np.testing.assert_allclose(laws.force(z), -2 * k * z, rtol=1e-9)
+    for params, side in ((dict(law="deadband", clearance=-1e10, k=k), "clearance_minus = -1e+10"),
+                         (dict(law="hertz", clearance_minus=1e-3, clearance_plus=-1.5, k=k), "clearance_plus = -1.5"),
+                         (dict(law="power", clearance=-1e100, k=k, exponent=1.5), "clearance_minus = -1e+100")):
+        with pytest.raises(InputError) as info:
+            law_from_dict(2, params)
+        message = str(info.value)
+        assert message.startswith(f"constraint 2: {side} m: an interference fit") and "deeper than 1 m" in message
+        assert "\n" not in message
+    # a side without stiffness pushes nowhere: its clearance is not a fit
+    law_from_dict(3, dict(law="deadband", clearance_minus=-1e10, clearance_plus=1e-3, k_minus=0.0, k_plus=k))
+
+
 def test_table_interpolates_through_its_points_and_extrapolates_with_the_end_slopes():
     points = ELASTIC["table"][0]["table"]
     law = make("table")
