@@ -25,6 +25,23 @@ from .errors import InputError, check_number
 from .laws import ConstraintLaws, Law, PlanarLaws
 
 
+# The largest Archard wear coefficient K_w (m^3/(N m)) a constraint takes. K_w = k / H: the dimensionless
+# k is 1e-8 (mild) to 1e-2 (severe adhesive wear), the hardness H 1e7 Pa (soft polymers) or more, so no
+# contact pair exceeds 1e-9; a coefficient in mm^3/(N m) given as m^3/(N m) is 1e9 times too large. Red
+# team: 1.7e308 gave a wear volume of 1.6e304 m^3 in 0.05 s of the tube, a longer run inf.
+WEAR_MAX = 1e-6
+
+
+def check_wear_coefficient(where: str, value) -> float:
+    """K_w as a float from 0 to WEAR_MAX, or one InputError naming `where`."""
+    value = check_number(f"{where} wear_coefficient", value, 0.0)
+    if value > WEAR_MAX:
+        raise InputError(f"{where} wear_coefficient = {value:g} m^3/(N m): above {WEAR_MAX:g}, no contact pair's "
+                         f"(Archard's k / H is at most about 1e-9; steam-generator tubes 1e-15 to 1e-13): give it "
+                         f"in m^3/(N m), not mm^3/(N m)")
+    return value
+
+
 @dataclass(frozen=True)
 class Constraint:
     """One discrete constraint as a user describes it: where it acts (x in m on a beam, or the DOF
@@ -48,8 +65,7 @@ class Constraint:
         else:
             object.__setattr__(self, "dof", check_number("Constraint dof", self.dof, 0, integer=True))
         if self.wear_coefficient is not None:
-            object.__setattr__(self, "wear_coefficient",
-                               check_number("Constraint wear_coefficient", self.wear_coefficient, 0.0))
+            object.__setattr__(self, "wear_coefficient", check_wear_coefficient("Constraint", self.wear_coefficient))
 
     @property
     def label(self) -> str:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from .basis import DBF_SOLVERS, ENRICHMENTS, BasisSettings
-from .constraints import Constraint
+from .constraints import Constraint, check_wear_coefficient
 from .damping import Damping
 from .accuracy import EstimateSettings
 from .errors import InputError
@@ -482,7 +482,7 @@ def _constraints(raw, path: str, at: _Positions, kind: str) -> tuple:
                                  f"no sliding")
             if isinstance(wear, bool) or not isinstance(wear, NUMBER) or not (math.isfinite(wear) and wear >= 0):
                 raise InputError(f"{where}: wear_coefficient must be a non-negative number (m^3/(N m)), got {wear!r}")
-            wear = float(wear)
+            wear = check_wear_coefficient(f"{where}:", wear)
         constraints.append(Constraint(law=law, x=float(c["x"]) if at.beam else None, dof=None if at.beam else c["dof"],
                                       wear_coefficient=wear))
     seen = {}

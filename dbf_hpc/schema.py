@@ -248,7 +248,8 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
     "normal_force": Key(NUMBER, None, "N", "friction: the given normal force F_n (required)"),
     "angle": Key(NUMBER, None, "deg", "flat_bar: the direction of the flats' normal, from y towards z (default 0: "
                                       "flats across y, sliding along z); any finite angle, taken modulo 360"),
-    "wear_coefficient": Key(NUMBER, None, "m^3/(N m)", "circular, flat_bar: Archard's wear coefficient K_w; "
+    "wear_coefficient": Key(NUMBER, None, "m^3/(N m)", "circular, flat_bar: Archard's wear coefficient K_w (at "
+                                                       "most 1e-6); "
                                                        "the output's wear_volume = K_w int |F_n| |v_t| dt (NaN "
                                                        "without it)"),
 })

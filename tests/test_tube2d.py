@@ -580,6 +580,24 @@ def test_wear_volume_is_archard_k_w_times_the_run_time_times_the_work_rate_and_n
         load_scene(TUBE_2D, ["constraint.3.wear_coefficient=-1e-14"])
 
 
+@pytest.mark.parametrize("coefficient", [2e-6, 1.7e308])
+def test_a_wear_coefficient_no_contact_pair_has_is_refused_naming_the_constraint_and_the_unit(coefficient):
+    # Archard's K_w = k / H is at most about 1e-9 m^3/(N m); 1.7e308 gave a wear volume of 1.6e304 m^3 in
+    # 0.05 s of the tube (a longer run: inf), and 2e-6 is 2 mm^3/(N m) written as m^3/(N m)
+    from dbf_hpc.constraints import Constraint
+    from dbf_hpc.laws import CircularLaw
+
+    with pytest.raises(InputError) as info:
+        load_scene(TUBE_2D, [f"constraint.3.wear_coefficient={coefficient!r}"])
+    message = str(info.value)
+    assert message.endswith(f"[[constraint]] 3: wear_coefficient = {coefficient:g} m^3/(N m): above 1e-06, no "
+                            f"contact pair's (Archard's k / H is at most about 1e-9; steam-generator tubes 1e-15 "
+                            f"to 1e-13): give it in m^3/(N m), not mm^3/(N m)")
+    with pytest.raises(InputError, match="^Constraint wear_coefficient = .* above 1e-06"):
+        Constraint(CircularLaw(clearance=2e-4, k=1e6), x=1.0, wear_coefficient=coefficient)
+    assert load_scene(TUBE_2D, ["constraint.3.wear_coefficient=1e-6"]).constraints[2].wear_coefficient == 1e-6
+
+
 def work_rate_and_ci95(result, laws):
     """<|F_n| |v_t|> of the first support and its batch-means 95 % half-width (stats.py)."""
     from dbf_hpc.stats import batch_means_ci95
