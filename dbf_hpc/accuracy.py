@@ -234,10 +234,10 @@ def rich_settings(settings, window: float):
     times lower. Without the lower limit a run whose tolerances let every step grow to the limit (10
     samples) had a richer run on the same steps, blind to their error (red team, the pipe at atol 1e-3:
     estimated 2.7 %, 8.6 % against the full-order model at a 100 times shorter step; at 1e300: 0.02 %)."""
-    from .timestepping import RTOL_FLOOR
+    from .timestepping import ATOL_FLOOR, RTOL_FLOOR
 
     return dataclasses.replace(settings, t_end=window, rtol=max(settings.rtol / RICH_RTOL, RTOL_FLOOR),
-                               atol=settings.atol / RICH_RTOL, contact="implicit",
+                               atol=max(settings.atol / RICH_RTOL, ATOL_FLOOR), contact="implicit",
                                dt=settings.dt if settings.adaptive else settings.dt / RICH_STEP,
                                max_step_scale=settings.max_step_scale / RICH_STEP)
 
@@ -767,14 +767,16 @@ def pick_basis(fom, basis_settings, cache_dir, settings, estimate: EstimateSetti
     reach (hopeless). Collective."""
     from .basis import modes_per_frequency
     from .modes import RepeatedCut
+    from .timestepping import ATOL_FLOOR
 
     tol = estimate.tolerance
     if not fom.constraints.count:
         raise InputError("[basis] tolerance bounds the error in w at the constraints; this scene has none")
     # atol in the scene's proportion to rtol: on the paper's beam (40 modes + DBF, rtol 1e-4) the
-    # scene's atol 1e-9 took 1992 steps against 329 at 1e-7, following the high modes' tiny q.
+    # scene's atol 1e-9 took 1992 steps against 329 at 1e-7, following the high modes' tiny q. Not below
+    # ATOL_FLOOR (an error norm that overflows near rest).
     rtol = tolerance_rtol(tol)
-    settings = dataclasses.replace(settings, rtol=rtol, atol=settings.atol * rtol / settings.rtol)
+    settings = dataclasses.replace(settings, rtol=rtol, atol=max(settings.atol * rtol / settings.rtol, ATOL_FLOOR))
     modes, tried, window = max(int(basis_settings.modes or 4), 1), [], estimate.window
     limit = min(MAX_MODES, (fom.size - fom.constraints.count) // RICH_MODES)
     pairs = modes_per_frequency(fom.operators)   # whole y-z pairs on a beam of two planes (basis.check_pairs)

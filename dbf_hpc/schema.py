@@ -179,8 +179,8 @@ SECTIONS = {
                                            "prssp2, 3, bpr3, ars443, 4, 5"),
         "adaptive": Key((bool,), True, "", "adaptive steps (error control by rtol, atol) or the fixed step dt"),
         "rtol": Key(NUMBER, 1e-6, "1", "relative tolerance of the adaptive steps"),
-        "atol": Key(NUMBER, 1e-9, "", "absolute tolerance of the reduced model's adaptive steps, the same number "
-                                      "for every state, in modal units, not physical ones: the second-order form's "
+        "atol": Key(NUMBER, 1e-9, "", "absolute tolerance (at least 1e-30) of the reduced model's adaptive "
+                                      "steps, the same number for every state, in modal units, not physical ones: the second-order form's "
                                       "M-orthonormal q (m kg^(1/2), a displacement tolerance times the square root "
                                       "of the modal mass) and q' (m kg^(1/2)/s: on a column of frequency omega it "
                                       "is a displacement tolerance of atol / omega, so the velocities of the high "

@@ -25,6 +25,13 @@ from .petsctools import frames_released, options_defaults
 ARKIMEX_TYPES = ("1bee", "a2", "l2", "ars122", "2c", "2d", "2e", "prssp2", "3", "bpr3", "ars443", "4", "5")
 NO_DENSE_OUTPUT = ("prssp2", "bpr3", "ars443")  # also without an embedded error estimate
 RTOL_FLOOR = 1e-14          # a relative error control tighter than this is below double precision's reach
+# The least absolute tolerance (modal units, m kg^(1/2)): PETSc's error norm divides by atol + rtol |y| and
+# squares, so near y = 0 (a run from rest) a tiny atol overflows it. Red team: atol = 1e-200 on the paper's
+# beam failed in its first step as "PETSc error 72; reduce [integrator] dt or rtol", advice that cannot help
+# (1e-100 still ran). 1e-30 is below any state a model resolves (a displacement of 1e-30 m is 1e-15 of a
+# proton) and far from the overflow. Derived settings (the error estimate's richer run, the tolerance mode)
+# are kept at it, not refused.
+ATOL_FLOOR = 1e-30
 # A run that must take more steps than this is refused before it starts (at ~20 us a step, 1e10 steps
 # are more than two days); STEPS_PER_PERIOD steps resolve one period of the fastest forcing.
 MAX_STEPS = 1e10
@@ -102,6 +109,10 @@ class IntegratorSettings:
         if self.t_end / self.sample_dt > MAX_SAMPLES:   # before the sample times are made (memory)
             raise InputError(f"[output] sample_dt = {self.sample_dt:g} s gives {self.t_end / self.sample_dt:.2g} "
                              f"samples over t_end = {self.t_end:g} s, more than {MAX_SAMPLES:g}: sample less often")
+        if self.atol < ATOL_FLOOR:
+            raise InputError(f"[integrator] atol = {self.atol:g} is below {ATOL_FLOOR:g}, below any state a model "
+                             f"resolves (modal units, m kg^(1/2)), and overflows the error norm near rest: give at "
+                             f"least {ATOL_FLOOR:g} (rtol alone controls the error where the state is larger)")
         if not RTOL_FLOOR <= self.rtol < 1:
             raise InputError(f"[integrator] rtol = {self.rtol:g} cannot be met in double precision: give a value "
                              f"from {RTOL_FLOOR:g} to 1")

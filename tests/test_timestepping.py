@@ -14,6 +14,20 @@ def test_a_tolerance_double_precision_cannot_meet_is_refused(rtol):
         IntegratorSettings(t_end=1.0, rtol=rtol)
 
 
+def test_an_absolute_tolerance_below_any_resolved_state_is_refused_and_derived_ones_stop_at_the_floor():
+    # Red team: atol = 1e-200 on the paper's beam failed in its first step with "PETSc error 72; reduce
+    # [integrator] dt or rtol" (the error norm over atol overflows near rest), advice that cannot help
+    from dbf_hpc.accuracy import rich_settings
+    from dbf_hpc.timestepping import ATOL_FLOOR
+
+    for atol in (1e-200, 1e-300, 9.9e-31):
+        with pytest.raises(InputError, match=f"^\\[integrator\\] atol = {atol:g} is below 1e-30, below any state"):
+            IntegratorSettings(t_end=1.0, atol=atol)
+    at_floor = IntegratorSettings(t_end=1.0, atol=ATOL_FLOOR)
+    assert rich_settings(at_floor, 0.5).atol == ATOL_FLOOR          # the richer run keeps the floor
+    assert rich_settings(IntegratorSettings(t_end=1.0), 0.5).atol == pytest.approx(1e-10)
+
+
 @pytest.mark.parametrize("settings,fastest,adaptive,message", [
     (dict(t_end=0.1, dt=1e-12), 0.0, False, "a fixed step of 1e-12 s"),
     (dict(t_end=0.1), 1e12, True, "20 steps per period of the 1e\\+12 Hz forcing"),
