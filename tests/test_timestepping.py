@@ -399,3 +399,25 @@ def test_the_richer_runs_upper_step_limit_is_rich_step_times_lower_than_the_runs
     finally:
         if dt_max is not None:
             options.delValue("rom_ts_adapt_dt_max")
+
+
+def test_a_petsc_error_in_the_first_step_points_to_the_input_that_caused_it(shared_tmp_path):
+    # Red team: a random load of psd 1e301 (N/m)^2/Hz on the paper's beam (1e200 on the 2-D tube) failed in
+    # its first step as "PETSc error 72; reduce [integrator] dt or rtol": the load's size, not the step, is at
+    # fault, and a first-step stop that PETSc did not raise already said so
+    import os
+
+    from dbf_hpc.errors import SolverError
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    paper = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "jobs", "paper_beam.toml")
+    scene = load_scene(paper, [f"basis.cache={shared_tmp_path / 'cache'}", "integrator.t_end=0.05",
+                               "excitation.kind=random", "excitation.amplitude=0", "excitation.frequency_hz=0",
+                               "excitation.band=[0.0, 9.0]", "excitation.psd=1e301", "basis.estimate=false"])
+    with pytest.raises(SolverError) as info:
+        run(scene, str(shared_tmp_path / "out.h5"), progress=False)
+    message = str(info.value)
+    assert message.startswith("the time integration failed at t = 0 s: PETSc error")
+    assert "it failed in its first step, which points to the input" in message and "psd" in message
+    assert not os.path.exists(shared_tmp_path / "out.h5")
