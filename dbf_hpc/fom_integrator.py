@@ -889,16 +889,20 @@ class FullIntegrator:
         world = self.world
         result = None
         if world.rank == 0:
-            try:
-                x_pred = y0 + h * v0 + (h * h * (0.5 - P.beta)) * a0
-                if not (math.isfinite(float(yf.sum())) and math.isfinite(float(x_pred.sum()))):
-                    raise SolverError(f"the state is not finite at t = {t:.6g} s; {NOT_FINITE}")
-                z_c = (1 - af) * y0 + self.value(ta) * self.r_c
-                v_c = v0 + (af * h * (1 - P.gamma)) * a0 + self.rate(ta) * self.r_c
-                problem = ContactStep(self.laws, D, yf, z_c, v_c, x_pred, af, sV)
-                _, result = self.newton.solve(problem, yf if lam_prev is None else yf + D @ lam_prev, t)
-            except SolverError as e:
-                result = e
+            # numpy's overflow warnings off: the state and the contact force are checked for finiteness
+            # here and in the Newton loop, which end the run with one line (red team: a base amplitude of
+            # 1e300 m printed "RuntimeWarning: overflow encountered in matmul" and its source lines first)
+            with np.errstate(over="ignore", invalid="ignore"):
+                try:
+                    x_pred = y0 + h * v0 + (h * h * (0.5 - P.beta)) * a0
+                    if not (math.isfinite(float(yf.sum())) and math.isfinite(float(x_pred.sum()))):
+                        raise SolverError(f"the state is not finite at t = {t:.6g} s; {NOT_FINITE}")
+                    z_c = (1 - af) * y0 + self.value(ta) * self.r_c
+                    v_c = v0 + (af * h * (1 - P.gamma)) * a0 + self.rate(ta) * self.r_c
+                    problem = ContactStep(self.laws, D, yf, z_c, v_c, x_pred, af, sV)
+                    _, result = self.newton.solve(problem, yf if lam_prev is None else yf + D @ lam_prev, t)
+                except SolverError as e:
+                    result = e
         if world.size > 1:
             result = world.bcast(result, root=0)
         if isinstance(result, SolverError):

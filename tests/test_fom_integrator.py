@@ -370,3 +370,17 @@ def test_repeated_full_order_runs_leave_no_factor_behind_in_petscs_garbage(capfd
                                   initial=InitialState(amplitude=1e-3)) as fom:
             simulate_full(fom, IntegratorSettings(t_end=1e-4, dt=1e-5, sample_dt=1e-5))
     assert petsc_garbage(capfd) == 0, "a factored matrix of the run was left in PETSc's garbage"
+
+
+def test_a_state_beyond_double_precision_ends_the_run_with_its_one_line_and_no_numpy_warning():
+    # Red team: a base amplitude of 1e300 m under --method full printed numpy's "RuntimeWarning: overflow
+    # encountered in matmul" with its source lines before the one-line error; the state is checked itself
+    import warnings
+
+    from dbf_hpc.errors import SolverError
+
+    with paper_fom(excitation=BaseMotion(amplitude=1e300, frequency_hz=1.0)) as fom:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")   # a RuntimeWarning would be an exception, not the SolverError
+            with pytest.raises(SolverError, match="^the state is not finite at t = 8e-06 s"):
+                simulate_full(fom, IntegratorSettings(t_end=1e-4, dt=2e-6, sample_dt=1e-4))
