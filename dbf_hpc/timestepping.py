@@ -332,19 +332,25 @@ class StepMonitor:
                                       f"(a mean step of {advanced / steps:.3g} s, below {STALL_FRACTION:g} x "
                                       f"{self.stall_scale:.3g} s, the smaller of [integrator] dt and 1/"
                                       f"{STEPS_PER_PERIOD} of the highest reference mode's period), where the "
-                                      f"error cannot be kept within rtol and atol and the run would crawl: check {given}the constraint laws' stiffness and "
-                                      f"damping (k, alpha, c) and the loads against the structure's own scales and "
-                                      f"units, or lower [integrator] dt if the model is that fast")
+                                      f"error cannot be kept within rtol and atol and the run would crawl: check "
+                                      f"{given}{LAW_SCALES} against the structure's own scales and units, or "
+                                      f"lower [integrator] dt if the model is that fast")
             else:
                 self.window = (step, t)
+
+
+# What makes a model too fast for the step floor. Friction's slope at rest is mu F_n / v_reg (mu k delta / v_reg
+# in a round hole): red team, v_reg = 1e-12 m/s crawled at the floor and the line named only k, alpha and c.
+LAW_SCALES = ("the constraint laws' stiffness, damping and friction regularization (k, alpha, c; v_reg) and the "
+              "loads")
 
 
 def _floor_message(floor: float, source: str, steps: int, t: float, options=()) -> str:
     given = f"the options given ({' '.join(options)}), " if options else ""
     return (f"the time step stayed at its floor ({floor:.3g} s, {source}) for {steps} "
             f"steps at t = {t:.6g} s, where the error cannot be kept within rtol and atol and the run would crawl: "
-            f"check {given}the constraint laws' stiffness and damping (k, alpha, c) and the loads against the "
-            f"structure's own scales and units, or lower [integrator] dt if the model is that fast")
+            f"check {given}{LAW_SCALES} against the structure's own scales and units, or lower [integrator] dt if "
+            f"the model is that fast")
 
 
 # What a failure in the first step points to: the input, not the step or the tolerance

@@ -165,3 +165,17 @@ def test_a_run_stopped_at_the_step_floor_names_the_newton_options_the_user_gave(
                                                                            r"options given \(-rom_snes_max_it\)"):
         paper(shared_tmp_path, "hc_options.h5", "integrator.t_end=0.2", "basis.estimate=false",
               "constraint.damping=hunt_crossley", "constraint.alpha=1e308")
+
+
+def test_a_friction_regularized_over_a_vanishing_speed_stops_at_the_step_floor_naming_v_reg(shared_tmp_path):
+    # Coulomb friction's slope at rest is mu F_n / v_reg: v_reg = 1e-12 m/s (0.3 N of friction, a slope of
+    # 3e11 N s/m on the paper's beam) wants steps below the floor. Red team: the line named k, alpha and c only.
+    from dbf_hpc.errors import SolverError
+
+    text = open(PAPER).read()
+    text = text[:text.index("[[constraint]]")] + ('[[constraint]]\nx = 0.25\nlaw = "friction"\nnormal_force = 1.0\n'
+                                                  'mu = 0.3\nv_reg = 1e-12\n\n') + text[text.index("[basis]"):]
+    scene = load_scene(PAPER, [f"basis.cache={shared_tmp_path / 'cache'}", "integrator.t_end=0.2",
+                               "basis.estimate=false"], raw=text.encode())
+    with pytest.raises(SolverError, match=r"at its floor .*friction regularization \(k, alpha, c; v_reg\)"):
+        run(scene, str(shared_tmp_path / "friction.h5"), progress=False)
