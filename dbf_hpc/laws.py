@@ -196,7 +196,9 @@ def _check_representable(law: "Law") -> None:
                 k, p, d = (getattr(law, f"{name}_{side}") for name in ("k", "exponent", "clearance"))
                 if k == 0:
                     continue
-                x = max(-d, 0.0)   # the compression at z = 0 (a negative clearance: a preload)
+                # the compression at z = 0 (a negative clearance: a preload), a numpy float: its power overflows
+                # to inf (a Python float's raised OverflowError, an internal error for clearance = -2 m at p = 2000)
+                x = np.float64(max(-d, 0.0))
                 if not (np.isfinite(k * p) and np.isfinite(k * x ** p) and np.isfinite(k * p * x ** (p - 1.0))):
                     raise InputError(f"k_{side} = {k:g} with exponent_{side} = {p:g} and clearance_{side} = {d:g}: "
                                      f"the force or its slope {_OVERFLOW}")

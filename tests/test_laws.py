@@ -347,6 +347,9 @@ def test_a_two_direction_support_refuses_a_friction_coefficient_no_contact_pair_
     (dict(law="power", clearance=D, k=1e308, exponent=2), "k_minus = 1e+308"),
     # the preload k (-clearance) = inf: N(0) = inf - inf = NaN
     (dict(law="deadband", clearance=-1e308, k=1e6), "clearance_minus = -1e+308"),
+    # the preload's power beyond double precision: 2**2000 (was an OverflowError, an internal error)
+    (dict(law="power", clearance=-2.0, k=1.0, exponent=2000), "clearance_minus = -2"),
+    (dict(law="power", clearance_plus=-1e10, clearance_minus=0.0, k=1.0, exponent=100), "clearance_plus = -1e+10"),
     # a table step of 1e-320 m: an infinite slope
     (dict(law="table", table=[[0.0, 0.0], [1e-320, 1.0]]), "table: the segment from point 1"),
     # a force range beyond double precision: slope and integral overflow
