@@ -332,7 +332,8 @@ def _solve_reference(ops: Operators, count, max_frequency_hz, prefix: str):
             asked = count
             values, vectors = solver.solve(count, "reference modes")
         else:
-            lam_max = (2 * np.pi * max_frequency_hz) ** 2
+            omega_max = 2 * np.pi * max_frequency_hz
+            lam_max = omega_max * omega_max   # inf beyond double precision (a float's ** 2 raised OverflowError)
             nev = min(8, n)
             while True:
                 values, vectors = solver.solve(nev, "reference modes")

@@ -29,6 +29,16 @@ def test_every_mode_below_the_cutoff_and_no_more(ops, f_max):
     modes.destroy()
 
 
+@pytest.mark.parametrize("f_max", [1e10, 1e300, 1.7e308])
+def test_a_cutoff_above_every_frequency_keeps_every_mode_also_beyond_double_precisions_square(f_max):
+    # (2 pi f)^2 overflows from f = 2e153 Hz: 1e300 Hz was an internal OverflowError (exit 70)
+    small = assemble_beam(Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=10))
+    modes = reference_modes(small, max_frequency_hz=f_max)
+    assert modes.count == small.size == 20
+    modes.destroy()
+    small.destroy()
+
+
 def test_modes_are_m_normalized(ops):
     modes = reference_modes(ops, count=4)
     Mx = ops.M.createVecLeft()
