@@ -141,6 +141,25 @@ def step_count(t_end: float, dt: float) -> tuple[int, float]:
     return count, t_end - (count - 1) * dt
 
 
+# The shortest step the full-order loop takes (s). Its shifts grow as 1 / h^2: red team, t_end = dt = 1e-200 s
+# (or t_end = 1e-200 s alone) ended as an internal ZeroDivisionError (h^2 underflowed to 0), and 1e-100 s as
+# "the solve with K_eff ... is not finite: check K, M and C", with a half-written output. No structure moves
+# on such a scale (atoms vibrate over 1e-13 s); 1e-30 s to 1e-80 s ran right, 1e-30 s keeps a margin.
+MIN_STEP = 1e-30
+
+
+def check_step(settings) -> None:
+    """An InputError, before any work, when a step of the fixed-step loop (dt, or the last one, which
+    ends at t_end) is shorter than MIN_STEP. Not collective (the settings are every rank's)."""
+    steps, h_last = step_count(settings.t_end, settings.dt)
+    h = min(settings.dt, h_last) if steps > 1 else h_last
+    if not h >= MIN_STEP:
+        raise InputError(f"--method full: a step of {h:g} s ([integrator] dt = {settings.dt:g} s over t_end = "
+                         f"{settings.t_end:g} s) is below {MIN_STEP:g} s, shorter than anything a structure does, "
+                         f"and the step's shifts 1 / h^2 leave double precision: give dt and t_end of at least "
+                         f"{MIN_STEP:g} s")
+
+
 # -- the distributed side: rows, factorizations ----------------------------------------------------
 
 class ConstraintRows:
@@ -1127,6 +1146,7 @@ def integrate_full(fom: FullOrderModel, settings: IntegratorSettings, rows, on_b
 
     from .errors import Interrupted
 
+    check_step(settings)
     rho = options()["rho"]
     monitor = StepMonitor(settings.sample_times, first_sample=int(resume["next_sample"]) if resume else 0, say=say)
     steps, h_last = step_count(settings.t_end, settings.dt)

@@ -32,7 +32,7 @@ from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
                      decided_on_rank0, petsc_failure, termination_signals, wait_for_rank0, warn, write_failure)
 from .fom import Observation
-from .fom_integrator import integrate_full, step_count
+from .fom_integrator import check_step, integrate_full, step_count
 from .fom_integrator import options as full_options
 from .matrices import file_digest
 from .modes import counters
@@ -102,6 +102,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     path = decided_on_rank0(comm, output_path, scene, out, resume)
     settings = scene.integrator_settings()
     check_work(settings, scene.fastest_forcing_hz(), adaptive=settings.adaptive and method == "rom")
+    if method == "full":     # before the output is claimed (the loop checks again)
+        check_step(settings)
     if method == "rom":      # before the basis is built (the integrator checks again)
         refuse_settings_options("rom_", settings.adaptive)
     # The warnings below say a result may be wrong: -q (progress=False) silences the progress, not them

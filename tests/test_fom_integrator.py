@@ -384,3 +384,26 @@ def test_a_state_beyond_double_precision_ends_the_run_with_its_one_line_and_no_n
             warnings.simplefilter("error")   # a RuntimeWarning would be an exception, not the SolverError
             with pytest.raises(SolverError, match="^the state is not finite at t = 8e-06 s"):
                 simulate_full(fom, IntegratorSettings(t_end=1e-4, dt=2e-6, sample_dt=1e-4))
+
+
+@pytest.mark.parametrize("t_end, dt", [(1e-200, 1e-4), (1e-300, 1e-300), (1e-100, 1e-100), (1.0, 1e-31)])
+def test_a_step_shorter_than_anything_a_structure_does_is_refused_before_any_work(t_end, dt):
+    # Red team: t_end = 1e-200 s was an internal ZeroDivisionError (h^2 underflowed), 1e-100 s "the solve with
+    # K_eff is not finite: check K, M and C" after a .partial was written
+    from dbf_hpc.errors import InputError
+    from dbf_hpc.fom_integrator import check_step
+
+    settings = IntegratorSettings(t_end=t_end, dt=dt, sample_dt=t_end)
+    with pytest.raises(InputError, match=r"^--method full: a step of .* s \(\[integrator\] dt = .* is below 1e-30 s"):
+        check_step(settings)
+    with paper_fom() as fom, pytest.raises(InputError, match="is below 1e-30 s"):
+        simulate_full(fom, settings)
+
+
+def test_the_shortest_step_allowed_moves_the_beam_with_its_support_exactly():
+    # t_end = dt = 1e-30 s: one step, over which the left support moves 5e-3 sin(2 pi t) ~ pi 1e-32 m and the
+    # beam, far too slow to bend, follows as a rigid body pinned at the right: w(x) = (1 - x) Omega(t)
+    with paper_fom(probes=(0.5,)) as fom:
+        result = simulate_full(fom, IntegratorSettings(t_end=1e-30, dt=1e-30, sample_dt=1e-30))
+    omega = 5e-3 * math.sin(2 * math.pi * 1e-30)
+    assert_all(abs(result.probes[-1, 0] - 0.5 * omega) < 1e-6 * abs(omega))
