@@ -358,8 +358,12 @@ def _refuse_inexact(residual: float, description: str, load: str) -> None:
     """A SolverError unless the relative residual of a check solve (on `load`) is finite and at most
     EXACT_SOLVE. Not collective (every rank has the same residual)."""
     if not math.isfinite(residual):
+        # red team: [damping] rayleigh_alpha or rayleigh_beta = 1e300 (finite K, M) read "check K, M and C for entries
+        # that are not finite", with nothing to find there
         raise SolverError(f"the solve with K_eff = K + s_V C + s_A M ({description}) is not finite: check K, M and C "
-                          f"for entries that are not finite")
+                          f"for entries that are not finite or beyond double precision once scaled by the step's "
+                          f"shifts (s_V ~ 1 / dt, s_A ~ 1 / dt^2): with Rayleigh damping C = alpha M + beta K, "
+                          f"[damping] rayleigh_alpha and rayleigh_beta")
     if not residual <= EXACT_SOLVE:
         raise SolverError(f"the -{PREFIX} solver ({description}) is not exact: relative residual {residual:.2e} on "
                           f"{load}; use a direct factorization (-{PREFIX}ksp_type preonly -{PREFIX}pc_type lu "

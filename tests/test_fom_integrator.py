@@ -407,3 +407,18 @@ def test_the_shortest_step_allowed_moves_the_beam_with_its_support_exactly():
         result = simulate_full(fom, IntegratorSettings(t_end=1e-30, dt=1e-30, sample_dt=1e-30))
     omega = 5e-3 * math.sin(2 * math.pi * 1e-30)
     assert_all(abs(result.probes[-1, 0] - 0.5 * omega) < 1e-6 * abs(omega))
+
+
+@pytest.mark.parametrize("coefficients", [dict(rayleigh_alpha=1e300), dict(rayleigh_beta=1e300)])
+def test_a_damping_matrix_beyond_double_precision_is_blamed_on_the_rayleigh_coefficients(coefficients):
+    # Red team: rayleigh_alpha or rayleigh_beta = 1e300 under --method full read "check K, M and C for entries
+    # that are not finite": K and M are fine, C = alpha M + beta K times the step's shift 1 / dt is not
+    from dbf_hpc.damping import Damping
+    from dbf_hpc.errors import SolverError
+
+    beam = Beam(elements=20, **PAPER_BEAM)
+    constraints = [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)]
+    with FullOrderModel.build(beam, constraints, BaseMotion(amplitude=5e-3, frequency_hz=1.0),
+                              Damping(**coefficients)) as fom:
+        with pytest.raises(SolverError, match=r"is not finite: .*\[damping\] rayleigh_alpha and rayleigh_beta$"):
+            simulate_full(fom, IntegratorSettings(t_end=1e-3, dt=1e-5, sample_dt=1e-3))
