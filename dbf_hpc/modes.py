@@ -488,8 +488,13 @@ def trust_check(ops: Operators, values, estimate, residual, prefix: str = "modes
         if ops.mesh is not None:
             elements = ops.mesh.beam.elements
             limit = _element_limit(ops, j + 1, estimate[j], tol, prefix)
+            beam = ops.mesh.beam
+            # red team: a tension of -0.99996 P_cr blamed the mesh alone, and the compression had softened mode 1
+            softened = (f"; the axial compression (tension - m_t U^2 = {beam.axial_force:.6g} N) softens the lowest "
+                        f"modes, the more the nearer the buckling load (or the critical speed): a compression "
+                        f"farther from it also helps" if beam.axial_force < 0 else "")
             raise InputError(f"reference modes: the beam mesh is too fine for double precision: {cause}; "
-                             f"use at most ~{limit} elements, not {elements} (or raise -{prefix}trust_tol)")
+                             f"use at most ~{limit} elements, not {elements} (or raise -{prefix}trust_tol){softened}")
         if estimate[j] > 1:   # the eigenvalue is zero within its own rounding
             raise InputError(f"reference modes: K is singular: eigenvalue {j + 1} ({values[j]:.3g}) is zero within "
                              f"rounding, so the structure has rigid-body modes (it is not fully supported) or a "
