@@ -166,8 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="constraint number (from 1); on a beam of two planes its y direction (the planes "
                             "have the same EI)")
     sweep.add_argument("--k", default="1e-4:1e6:41", metavar="LIST",
-                       help="stiffnesses in N/m: a comma list, or START:STOP:COUNT (log-spaced); "
-                            "default 1e-4:1e6:41")
+                       help="stiffnesses in N/m: a comma list, or START:STOP:COUNT (log-spaced); at most "
+                            "10000; default 1e-4:1e6:41")
     sweep.add_argument("-o", "--output", metavar="CSV", help="write k, omega, f to this CSV file")
     sweep.add_argument("--plot", metavar="PNG", help="write the Fig. 2 plot to this PNG file")
     cache = sub.add_parser("cache", help="list or clear the basis cache",
@@ -504,6 +504,12 @@ def _print_basis(say, basis, labels, dimension: int = 1) -> None:
             say(f"time {what}: {basis.stats[key]:.3f} s")
 
 
+# The most stiffnesses `dbf-hpc stiffness` sweeps: each is an eigen-solve (10 ms on the paper's beam, 30 ms on
+# the 2-D tube), and Fig. 2 needs a few dozen. Red team: --k 1e-4:1e6:100000000 ran for what would have been
+# eleven days, with no word.
+MAX_STIFFNESSES = 10000
+
+
 def parse_stiffnesses(text: str):
     import numpy as np
 
@@ -515,6 +521,10 @@ def parse_stiffnesses(text: str):
             ends = np.array([float(start), float(stop)])
             if not np.all(np.isfinite(ends) & (ends > 0)):   # before log10 (numpy would warn first)
                 raise InputError(f"--k {text!r}: stiffnesses must be positive and finite")
+            if int(count) > MAX_STIFFNESSES:   # before logspace allocates them
+                raise InputError(f"--k {text!r}: {int(count)} stiffnesses, more than {MAX_STIFFNESSES}: each is an "
+                                 f"eigen-solve and the paper's Fig. 2 needs a few dozen; give at most "
+                                 f"{MAX_STIFFNESSES}")
             values = np.logspace(np.log10(ends[0]), np.log10(ends[1]), int(count))
         else:
             values = np.array([float(v) for v in text.split(",")])
@@ -522,6 +532,8 @@ def parse_stiffnesses(text: str):
         raise InputError(f"--k {text!r}: expected a comma list or START:STOP:COUNT") from None
     if values.size == 0 or not np.all(np.isfinite(values) & (values > 0)):
         raise InputError(f"--k {text!r}: stiffnesses must be positive and finite")
+    if values.size > MAX_STIFFNESSES:
+        raise InputError(f"--k: {values.size} stiffnesses, more than {MAX_STIFFNESSES}: give at most {MAX_STIFFNESSES}")
     return values
 
 

@@ -363,6 +363,8 @@ def test_stiffness_of_a_two_plane_tube_sweeps_the_constraint_asked_for():
     (("stiffness", PAPER, "-o", "/nonexistent/dir/sweep.csv"), "does not exist"),
     (("stiffness", PAPER, "--k", "0:1e6:5"), "must be positive and finite"),   # not six numpy warnings first
     (("stiffness", PAPER, "--k", "1,inf"), "must be positive and finite"),
+    # red team: 1e8 eigen-solves ran for what would have been eleven days
+    (("stiffness", PAPER, "--k", "1e-4:1e6:100000000"), "100000000 stiffnesses, more than 10000"),
 ])
 def test_bad_input_is_one_line_and_a_non_zero_exit(args, message):
     out = dbf_hpc(*args)
