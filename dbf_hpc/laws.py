@@ -12,11 +12,11 @@ Conventions (shared with the reduced model and the integrators):
   deadband is power with p = 1 on both sides; hertz is power with p = 1.5 (by default).
 - linear: N = -k z.  cubic: N = -(k z + k3 z^3).  Both have no clearance and are always in contact.
   A Law stores k in k_plus (k_minus is set equal to it).
-- table: piecewise-linear through (z_i, f_i), f the force on the structure; beyond the ends the end
-  segments are extended. dN/dz is the segment slope (at a breakpoint, the segment to the right, so
+- table: piecewise-linear through (z_i, f_i), f the force on the structure, non-increasing in z
+  (restoring: a rising segment is refused); beyond the ends the end segments are extended. dN/dz is the segment slope (at a breakpoint, the segment to the right, so
   at a table's upper contact edge the slope is the contact one, not the deadband law's 0).
 - potential U: elastic N = -dU/dz. For the two-sided kinds, linear and cubic U >= 0 and U = 0 in the
-  deadband; for a table U(z) = -integral_0^z N, which is >= 0 only if the table is restoring.
+  deadband; for a table U(z) = -integral_0^z N, >= 0 when its force is 0 at z = 0.
 - Negative clearance is an interference fit (preload): for -d_minus > d_plus both sides push at once
   on the overlap, N = k_minus (-d_minus - z)^p_minus - k_plus (z - d_plus)^p_plus, so the force at
   z = 0 is the difference of the two preloads. The formula is the same for every clearance: each
@@ -212,6 +212,15 @@ def _check_representable(law: "Law") -> None:
                 i = int(bad[0])
                 raise InputError(f"table: the segment from point {i + 1} (z = {points[i, 0]:g} m) to point {i + 2} "
                                  f"(z = {points[i + 1, 0]:g} m): its slope or the force's integral {_OVERFLOW}")
+            rising = np.flatnonzero(slope > 0)
+            if rising.size:   # red team: a rising segment ran, and the full-order reference's Gauss-Seidel
+                # fallback (which needs N non-increasing in z) was 9.6 % off its own dt / 4 run, estimating 0.5 %
+                i = int(rising[0])
+                raise InputError(f"table: the segment from point {i + 1} (z = {points[i, 0]:g} m, {points[i, 1]:g} N) to "
+                                 f"point {i + 2} (z = {points[i + 1, 0]:g} m, {points[i + 1, 1]:g} N) raises the force "
+                                 f"with z (a negative stiffness, {slope[i]:.3g} N/m): a constraint law must be restoring, "
+                                 f"the force ON the structure non-increasing in z (negative where z presses into the "
+                                 f"stop above); check the forces' sign")
         elif law.kind == "friction" and not np.isfinite(law.mu * law.normal_force / law.v_reg):
             raise InputError(f"mu normal_force / v_reg = {law.mu:g} * {law.normal_force:g} / {law.v_reg:g}, the "
                              f"friction's slope at rest, {_OVERFLOW}")

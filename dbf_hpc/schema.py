@@ -233,7 +233,8 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
     "exponent": Key(NUMBER, None, "", "power: exponent p on both sides (or exponent_minus, exponent_plus); "
                                       "hertz: 1.5"),
     "k3": Key(NUMBER, None, "N/m^3", "cubic: N = -(k z + k3 z^3)"),
-    "table": Key((list,), None, "m, N", "table: [[z, force], ...], piecewise linear"),
+    "table": Key((list,), None, "m, N", "table: [[z, force], ...], piecewise linear, the force on the structure "
+                                    "non-increasing in z (restoring)"),
     "damping": Key((str,), "none", "", 'contact damping: "none", "linear" (-c v) or "hunt_crossley" '
                                        '(-alpha |N| v), in contact only, not clipped: while separating, '
                                        'linear damping pulls where c |v| > |N| and Hunt-Crossley where '

@@ -408,3 +408,21 @@ def test_a_two_direction_support_without_a_stiffness_or_a_gap_is_refused_naming_
         law_from_dict("[[constraint]] 1", {"law": kind, "clearance": 1e-4, "mu": 0.3})
     with pytest.raises(InputError, match=rf"^\[\[constraint\]\] 1: a {kind} law needs clearance \(m, the "):
         law_from_dict("[[constraint]] 1", {"law": kind, "k": 1e6})
+
+
+@pytest.mark.parametrize("table, segment", [
+    ([[-1e-3, 0.0], [1e-3, 0.0], [2e-3, 50.0]], "point 2 (z = 0.001 m, 0 N) to point 3 (z = 0.002 m, 50 N)"),
+    # a stop whose forces were given as the force on the stop (the sign flipped): rising on both sides
+    ([[-2e-3, -40.0], [-1e-3, 0.0], [1e-3, 0.0], [3e-3, 100.0]], "point 1 (z = -0.002 m, -40 N)"),
+])
+def test_a_table_whose_force_rises_with_z_is_refused_naming_the_segment_as_a_negative_stiffness(table, segment):
+    # A table is the force ON the structure: restoring, non-increasing in z. A rising segment is a negative
+    # stiffness, whose contact problem the full-order reference's Gauss-Seidel fallback cannot solve (red
+    # team: it ran 9.6 % off its own dt / 4 run while estimating 0.5 %); flat segments (a deadband) stay
+    with pytest.raises(InputError) as info:
+        law_from_dict(2, dict(law="table", table=table))
+    message = str(info.value)
+    assert message.startswith(f"constraint 2: table: the segment from {segment}") and "\n" not in message
+    assert "negative stiffness" in message and "restoring" in message
+    flat = law_from_dict(2, dict(law="table", table=[[-1e-3, 0.0], [1e-3, 0.0], [2e-3, -50.0]]))
+    assert ConstraintLaws([flat]).force(np.array([1.5e-3]), np.zeros(1))[0] == pytest.approx(-25.0)
