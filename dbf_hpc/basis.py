@@ -289,6 +289,9 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
     (gyroscopic_basis.py). `whole`: a settings.modes that ends inside a repeated frequency is refused
     (a user's count) or extended to its end ("extend": the estimate's richer modes, cache.obtain_modes);
     modes.reference_modes. Collective on ops.comm."""
+    if settings.max_frequency_hz is None and not 1 <= settings.modes <= ops.size:   # named by its key (AX)
+        raise InputError(f"[basis] modes = {settings.modes}: the structure has {ops.size} free DOFs; give 1 to "
+                         f"{ops.size} modes, fewer where constraints add enrichment columns")
     check_pairs(ops, settings.modes)
     if ops.G is not None:
         from .state_space import build_state_space_basis, check_form

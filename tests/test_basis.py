@@ -440,3 +440,13 @@ def test_a_refused_dbf_names_the_constraint_as_the_scene_placed_it_not_only_its_
                                           r"\(K - sigma M\)\^-1 g = .* is above 1e\+09"):
         build_basis(ops, rows, BasisSettings(modes=4, dbf_stiffness=1e8), labels=["x = 0.25 m", "x = 0.6 m"])
     ops.destroy()
+
+
+def test_more_modes_than_the_structure_has_is_refused_naming_the_basis_key():
+    # AX: "number of modes must be between 1 and 200" named nothing the user wrote
+    ops = assemble_beam(Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=10))
+    try:
+        with pytest.raises(InputError, match=r"^\[basis\] modes = 500: the structure has 20 free DOFs; give 1 to 20"):
+            build_basis(ops, [4], BasisSettings(modes=500))
+    finally:
+        ops.destroy()
