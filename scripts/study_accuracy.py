@@ -435,13 +435,17 @@ def tolerance_run(job: dict, info: dict, t_end: float, common: list, out: str, k
 
 FIELDS = ["constraints", "kind", "modes", "basis_size", "rtol", "scheme", "contact", "status", "wall_time", "steps",
           "basis_time", "err_w", "err_w_each", "err_force", "err_rms", "err_impacts", "estimate", "estimate_window",
-          "estimate_ratio", "estimate_time"]
+          "estimate_ratio", "estimate_time", "version"]
 TOLERANCE_FIELDS = ["constraints", "tolerance", "status", "modes", "rtol", "wall_time", "steps", "calibration_time",
                     "basis_time", "err_w", "err_w_each", "estimate", "estimate_window", "estimate_ratio",
-                    "estimate_time"]
+                    "estimate_time", "version"]
 
 
 def write_results(out: str, table: list, truth_rows: list, peer_rows: list, tol_table: list) -> None:
+    from dbf_hpc import __version__
+
+    for row in table + tol_table:   # the report says which estimator measured them
+        row.setdefault("version", __version__)
     for name, rows, fields in (("accuracy.csv", table, FIELDS), ("truth.csv", truth_rows, list(truth_rows[0])),
                                ("peers.csv", peer_rows, list(peer_rows[0])),
                                ("tolerance.csv", tol_table, TOLERANCE_FIELDS)):
@@ -456,7 +460,7 @@ def _read_csv(path: str) -> list:
     rows = []
     with open(path) as f:
         for row in csv.DictReader(f):
-            rows.append({k: _number(v) if k not in ("constraints", "kind", "scheme", "contact", "status") and v != ""
+            rows.append({k: _number(v) if k not in ("constraints", "kind", "scheme", "contact", "status", "version") and v != ""
                          else v for k, v in row.items()})
     return rows
 
@@ -493,7 +497,11 @@ def report(out: str) -> None:
         match = twin(r, rtol)
         return f"{match['err_w']:.2%}" if match else "-"
 
-    lines = ["# Accuracy and cost of the reduced model against the full-order truth", "",
+    versions = sorted({r.get("version") or "" for r in table})
+    measured = (f"Measured with dbf_hpc {', '.join(versions)}." if all(versions) else
+                "Measured by a dbf_hpc that did not record its version (before 0.2.3): its error estimate and "
+                "tolerance mode may differ from today's (docs/accuracy.md).")
+    lines = ["# Accuracy and cost of the reduced model against the full-order truth", "", measured, "",
              "Truths (full-order, generalized-alpha with one factorization and the contact condensed on the "
              "constraint DOFs, each on one rank):", "",
              "| constraints | truth mesh, step | checked against | trusted horizon | truths differ in w | "
