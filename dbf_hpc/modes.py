@@ -386,13 +386,13 @@ def count_below(ops: Operators, sigma: float) -> int | None:
         A.axpy(-sigma, ops.M, PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
         ksp.setOperators(A)
         direct_solver(ksp, PETSc.PC.Type.CHOLESKY)
-        pc = ksp.getPC()
-        pc.setFactorSetUpSolverType()
-        F = pc.getFactorMatrix()
-        F.setMumpsIcntl(13, 1)    # the inertia on every rank count (no ScaLAPACK root)
-        F.setMumpsIcntl(24, 1)    # a null pivot (sigma on an eigenvalue) is detected, not a failure
+        # the PC and its factor only through the KSP, no reference of ours: one that outlived the KSP
+        # would park them in PETSc's garbage (petsc4py 3.18), a factor per reference_modes of a study
+        ksp.getPC().setFactorSetUpSolverType()
+        ksp.getPC().getFactorMatrix().setMumpsIcntl(13, 1)   # the inertia on every rank count (no ScaLAPACK root)
+        ksp.getPC().getFactorMatrix().setMumpsIcntl(24, 1)   # a null pivot (sigma on an eigenvalue) is detected
         ksp.setUp()
-        negative, _, _ = pc.getFactorMatrix().getInertia()
+        negative, _, _ = ksp.getPC().getFactorMatrix().getInertia()
         return int(negative)
     except PETSc.Error:
         return None
