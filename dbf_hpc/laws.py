@@ -13,8 +13,9 @@ Conventions (shared with the reduced model and the integrators):
 - linear: N = -k z.  cubic: N = -(k z + k3 z^3).  Both have no clearance and are always in contact.
   A Law stores k in k_plus (k_minus is set equal to it).
 - table: piecewise-linear through (z_i, f_i), f the force on the structure, non-increasing in z
-  (restoring: a rising segment is refused); beyond the ends the end segments are extended. dN/dz is the segment slope (at a breakpoint, the segment to the right, so
-  at a table's upper contact edge the slope is the contact one, not the deadband law's 0).
+  (restoring: a rising segment is refused); beyond the ends the end segments are extended. dN/dz
+  is the segment slope (at a breakpoint, the segment to the right, so at a table's upper contact
+  edge the slope is the contact one, not the deadband law's 0).
 - potential U: elastic N = -dU/dz. For the two-sided kinds, linear and cubic U >= 0 and U = 0 in the
   deadband; for a table U(z) = -integral_0^z N, >= 0 when its force is 0 at z = 0.
 - Negative clearance is an interference fit (preload): for -d_minus > d_plus both sides push at once

@@ -390,9 +390,8 @@ def check_outcome(monitor: StepMonitor, reason: int, stats: dict, t_end: float, 
         raise SolverError(f"the time step fell below its floor ({monitor.floor:.3g} s, {monitor.floor_source}) to "
                           f"{monitor.last_step:.3g} s at t = {stats['final_time']:.6g} s, the Newton solve failing at "
                           f"every step ({stats['snes_failures']} Newton failures, {stats['rejected_steps']} rejected "
-                          f"steps): check {given}the constraint laws' stiffness and damping (k, alpha, c) and the "
-                          f"loads against the structure's own scales and units, or lower [integrator] dt if the model "
-                          f"is that fast")
+                          f"steps): check {given}{LAW_SCALES} against the structure's own scales and units, or lower "
+                          f"[integrator] dt if the model is that fast")
     if reason < 0 or monitor.next < monitor.times.size:
         if stats["final_time"] == monitor.times[0]:
             advice += FIRST_STEP_HINT

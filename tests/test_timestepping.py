@@ -241,7 +241,8 @@ def test_a_run_whose_newton_failures_cut_the_step_below_its_floor_is_the_floors_
     stats = {"final_time": 0.105, "snes_failures": 103, "rejected_steps": 103}
     for last, expected in ((1e-41, r"^the time step fell below its floor \(1e-12 s, \[integrator\] dt x 1e-08\) to 1e-41 s "
                                     r"at t = 0.105 s, the Newton solve failing at every step \(103 Newton failures, 103 "
-                                    r"rejected steps\): check the constraint laws' stiffness and damping \(k, alpha, c\)"),
+                                    r"rejected steps\): check the constraint laws' stiffness, damping and friction "
+                                    r"regularization \(k, alpha, c; v_reg\)"),
                            (1e-6, r"^the reduced integration stopped at t = 0.105 s of 0.2 s \(TS reason -2, .*: reduce")):
         ts = PETSc.TS().create(comm=PETSc.COMM_SELF)
         ts.setType(PETSc.TS.Type.ARKIMEX)
@@ -312,7 +313,7 @@ def test_a_contact_too_damped_for_any_step_under_a_first_step_of_1_s_stops_at_th
     assert re.match(rf"the time step (stayed at|fell below) its floor \({1e-8 / (20 * f6):.3g} s, 1e-08 x 1/20 of the "
                     rf"highest reference mode's period\)", line), line
     assert "reduce [integrator] dt or rtol" not in line, line
-    assert "t = 0.105" in line and "(k, alpha, c)" in line and "lower [integrator] dt" in line, line
+    assert "t = 0.105" in line and "(k, alpha, c; v_reg)" in line and "lower [integrator] dt" in line, line
     assert "the samples up to the failure are in" in line and line.endswith("hc.h5.partial)"), line
     assert rank0_files(shared_tmp_path) == ["hc.h5.partial"], "no output, no lock: the samples named in the line"
 
