@@ -317,16 +317,12 @@ def bv_rows(bv: SLEPc.BV, rows) -> np.ndarray:
 
 
 def _solve_reference(ops: Operators, count, max_frequency_hz, prefix: str):
-    """(eigenvalues, vectors, eigenvalues below the shift, asked, (first, whole)): the `asked` lowest
-    eigenpairs (`count`, or those below max_frequency_hz: on a beam of two planes whole y-z pairs), and
-    the repeated eigenvalue at the cut as the converged values show it: the `first` eigenvalues lie
-    below it, `whole` >= asked up to its end (the same on every rank). The solve of the asked pairs is
-    the one made without the check (the same vectors). The values beyond the cut are those the solve
-    converged besides, or a second solve's on the same factorization (values only); a Krylov space may
-    hold only part of a repeated eigenvalue, so reference_modes counts by the inertia where it can
-    (_cut_by_inertia), and uses these for the rigid-body modes (zero to round-off) and where MUMPS cannot
-    tell."""
-    n, comm = ops.size, ops.comm.tompi4py()
+    """(eigenvalues, vectors, eigenvalues below the shift, asked, seen): the `asked` lowest eigenpairs
+    (`count`, or those below max_frequency_hz: on a beam of two planes whole y-z pairs), and `seen`,
+    every eigenvalue the solve converged (often more than asked; _cut_by_values). Whether the cut
+    falls inside a repeated eigenvalue is reference_modes' question, answered by the inertia where it
+    can (_cut_by_inertia)."""
+    n = ops.size
     with LowestModes(ops, ops.K, prefix) as solver:
         if count is not None:
             asked = count
@@ -353,26 +349,35 @@ def _solve_reference(ops: Operators, count, max_frequency_hz, prefix: str):
                                  f"(the lowest is {np.sqrt(max(values[0], 0)) / (2 * np.pi):.6g} Hz)")
         below = solver.below_shift()
         seen = solver.converged_values()
+    destroy(*vectors[asked:])
+    return values[:asked], vectors[:asked], below, asked, seen
+
+
+def _cut_by_values(ops: Operators, seen: np.ndarray, asked: int, prefix: str) -> tuple:
+    """(first, whole) of the repeated eigenvalue at the cut after `asked` modes, as converged values
+    show it (`seen`, sorted): the `first` eigenvalues lie below it, `whole` >= asked up to its end (rank
+    0's on every rank). Where the last value seen belongs to it (or none lies beyond the cut), a solve
+    for more, values only. For the rigid-body modes (zero to round-off, which the inertia cannot split)
+    and where MUMPS cannot count (_cut_by_inertia gives None): a Krylov space may hold only part of a
+    repeated eigenvalue. Collective."""
+    n, comm, rigid = ops.size, ops.comm.tompi4py(), ops.rigid_modes
+    whole = comm.bcast(whole_count(seen, asked, rigid), root=0)
+    if whole >= seen.size and seen.size < n:
         try:
-            while True:
-                whole = comm.bcast(whole_count(seen, asked, ops.rigid_modes), root=0)
-                if whole < seen.size or seen.size >= n:
-                    break
-                # the last value seen belongs to the repeated eigenvalue at the cut (or none lies beyond
-                # the cut): solve for more, values only (massless DOFs may leave none: infinite ones)
-                more = min(max(whole + 1, 2 * seen.size), n)
-                destroy(*solver.solve(more, "reference modes beyond the cut", least=seen.size)[1])
-                if solver.eps.getConverged() <= seen.size:
-                    break
-                seen = solver.converged_values()
+            with LowestModes(ops, ops.K, prefix) as solver:
+                while whole >= seen.size and seen.size < n:
+                    # massless DOFs may leave no more values (infinite ones)
+                    more = min(max(whole + 1, 2 * seen.size), n)
+                    destroy(*solver.solve(more, "reference modes beyond the cut", least=seen.size)[1])
+                    if solver.eps.getConverged() <= seen.size:
+                        break
+                    seen = solver.converged_values()
+                    whole = comm.bcast(whole_count(seen, asked, rigid), root=0)
         except Interrupted:   # a termination signal, not a check that could not be made
-            destroy(*vectors)
             raise
         except SolverError:   # the cut cannot be checked (a -modes_eps_ncv too small for more): as before
             whole = asked
-        first = cluster_start(seen, asked, ops.rigid_modes)
-    destroy(*vectors[asked:])
-    return values[:asked], vectors[:asked], below, asked, (first, whole)
+    return cluster_start(seen, asked, rigid), whole
 
 
 def count_below(ops: Operators, sigma: float) -> int | None:
@@ -599,7 +604,7 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
         # then whether the cut falls inside a repeated eigenvalue (trusted pairs only: about an eigenvalue
         # of an inexact solve the counts mean nothing)
         cut = None if asked <= ops.rigid_modes else _cut_by_inertia(ops, values, asked)
-        first, end = cut if cut is not None else seen
+        first, end = cut if cut is not None else _cut_by_values(ops, seen, asked, prefix)
         if end > asked and count is not None and whole == "refuse":
             raise _repeated_cut(ops, float(values[asked - 1]), asked, first, end)
         if end > asked:   # the modes up to the repeated eigenvalue's end, checked alike
