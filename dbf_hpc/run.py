@@ -68,7 +68,9 @@ def output_path(scene: Scene, override: str | None, resume: bool = False) -> str
 @contextlib.contextmanager
 def claimed(path: str, comm):
     """Rank 0 holds the output's lock (output.OutputLock) for the block; every rank learns at once
-    whether it could. Collective."""
+    whether it could. Collective. On a normal exit every rank leaves after the lock is gone (a
+    script that looks for OUT.h5.lock on another rank right after run() returns finds none); on an
+    exception no rank waits for the others (they may be inside another collective)."""
     lock = OutputLock(path)
     decided_on_rank0(comm, lock.acquire)
     try:
@@ -79,6 +81,7 @@ def claimed(path: str, comm):
             lock.release()
         else:
             lock.forget()
+    comm.barrier()
 
 
 @petsc_errors_as_one_line()

@@ -691,12 +691,14 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
         raise InputError(problem)
     try:
         lock.share(world)   # a rank that aborts the job removes it (cli._abort)
-        return _sweep(sweep, folder, output, world, say, progress)
+        result = _sweep(sweep, folder, output, world, say, progress)
     finally:
         if world.rank == 0:
             lock.release()
         else:
             lock.forget()
+    world.Barrier()   # as run.claimed: a returned sweep has released its lock on every rank
+    return result
 
 
 def _sweep(sweep, folder, output, world, say, progress) -> dict:

@@ -104,10 +104,10 @@ def shared_tmp_path(tmp_path):
 def rank0_files(folder) -> list:
     """The names in `folder` as rank 0 sees them once it is back from the collective call before,
     sorted, the same on every rank. Rank 0 writes and removes a run's files (the output, its .partial
-    and checkpoint, the OUT.h5.lock it releases last): rank 1 can return from the same call, or from its
-    error, before rank 0 has removed them, as no collective follows the release (a barrier there would
-    hang a job where one rank raises alone). A look from rank 1 then still saw OUT.h5.lock (failed on
-    rank 1 only, under load). Collective."""
+    and checkpoint, the OUT.h5.lock it releases last): rank 1 can return from the same call's error
+    before rank 0 has removed them, as no collective follows the release on the error path (a barrier
+    there would hang a job where one rank raises alone; run.claimed has one on the normal path only).
+    A look from rank 1 then still saw OUT.h5.lock (failed on rank 1 only, under load). Collective."""
     import os
 
     return MPI.COMM_WORLD.bcast(sorted(os.listdir(folder)) if MPI.COMM_WORLD.rank == 0 else None, root=0)

@@ -146,6 +146,14 @@ def test_failed_run_leaves_no_output_and_never_clobbers(shared_tmp_path):
 
 
 
+def test_a_returned_run_has_released_its_output_lock_on_every_rank(shared_tmp_path):
+    # Each rank looks itself, right after run() returns: a parameter-study script on rank 1 that
+    # checks for OUT.h5.lock, or starts the next case, must not find the lock rank 0 is still removing.
+    paper_run(shared_tmp_path, "integrator.t_end=0.01", name="done.h5")
+    seen = sorted(os.listdir(shared_tmp_path))
+    assert_all(seen == ["done.h5", "done.xdmf"], seen)
+
+
 def test_a_basis_option_petsc_refuses_is_one_line_from_run_and_leaves_no_file(shared_tmp_path):
     # Red team: run() from Python let a refused -modes_ option out as a bare petsc4py.PETSc.Error with
     # PETSc's multi-line traceback (only the command line made it one line). Every rank raises the

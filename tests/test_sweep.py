@@ -47,6 +47,8 @@ def test_sweep_runs_every_case_shares_one_basis_and_records_failures(shared_tmp_
     before = counters["eigen_solves"]
     result = run_sweep(path, progress=False)
     solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
+    # each rank's own look, right after the return: the summary's lock is gone everywhere
+    assert_all("summary.h5.lock" not in os.listdir(shared_tmp_path), "a returned sweep left its lock")
     assert result["cases"] == 6 and result["failed"] == 1
     # the command's one line names the first failure's cause (red team: "6 of 6 cases failed" hid a full disk)
     assert result["first_failure"].startswith("case 5: ") and "ars443" in result["first_failure"]
