@@ -297,9 +297,9 @@ def build_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
         from .state_space import build_state_space_basis, check_form
         check_form(settings.gyroscopic_form)
         if settings.gyroscopic_form == "state_space":
-            return build_state_space_basis(ops, rows, settings, labels)
+            return build_state_space_basis(ops, rows, settings, labels, whole)
         from .gyroscopic_basis import build_gyroscopic_basis
-        return build_gyroscopic_basis(ops, rows, settings, labels)
+        return build_gyroscopic_basis(ops, rows, settings, labels, whole)
     strategy = settings.strategy
     rows = np.asarray(rows, dtype=np.int64)
     _check_rows(ops, rows)

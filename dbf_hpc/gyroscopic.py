@@ -182,19 +182,32 @@ def normalize_complex(xr: PETSc.Vec, xi: PETSc.Vec, M: PETSc.Mat) -> None:
 
 
 def gyroscopic_modes(ops: Operators, count: int | None = None, max_frequency_hz: float | None = None,
-                     prefix: str = "modes_", tol: float = 1e-12) -> GyroscopicModes:
+                     prefix: str = "modes_", tol: float = 1e-12, whole: str | None = None) -> GyroscopicModes:
     """The lowest complex modes of M u'' + G u' + K u = 0 (ops.G set): `count` of them, or every mode
     below `max_frequency_hz`, diverging and fluttering modes included (GyroscopicModes.unstable).
+
+    A repeated frequency (|lambda|^2 within modes.REPEATED_TOL, relative: a round shaft at rest, the
+    two planes of a pipe; modes.whole_count) is kept whole as modes.reference_modes keeps it: its
+    modes are any mix of its eigenspace, so part of them lies in a direction set by round-off. Below
+    max_frequency_hz the repeated frequency at the cutoff is always kept whole. Where `count` ends
+    inside one, whole = "refuse" raises modes.RepeatedCut (the user's [basis] modes), "extend" returns
+    the modes up to its end (the estimate's richer bases), None returns exactly `count` (the internal
+    counts of a branch: the spring-perturbed and pinned problems, mode_state, check_stable).
     Collective on ops.comm."""
+    from .modes import _repeated_cut, cluster_start, whole_count
+
     if ops.G is None:
         raise InputError("gyroscopic modes need a gyroscopic matrix G")
     if (count is None) == (max_frequency_hz is None):
         raise InputError("give the number of modes or a maximum frequency, not both")
+    if whole not in (None, "refuse", "extend"):
+        raise ValueError(f"gyroscopic_modes whole: None, 'refuse' or 'extend', got {whole!r}")
     n = ops.size
     if count is not None and not 1 <= count <= n:
         raise InputError(f"number of modes must be between 1 and {n} (the free DOFs), got {count}")
     pep = _pep(ops, prefix, tol)
     values, xr, xi = np.zeros(0, complex), [], []
+    rounded = whole is not None or count is None
     try:
         nev = min(2 * count + 2 if count else 16, 2 * n)
         while True:
@@ -202,13 +215,20 @@ def gyroscopic_modes(ops: Operators, count: int | None = None, max_frequency_hz:
             values, xr, xi = _solve(pep, ops, nev, prefix)
             enough = (values.size >= count if count else
                       values.size and values[-1].imag > 2 * np.pi * max_frequency_hz)
-            if enough or nev >= 2 * n:
+            keep = count if count else int(np.count_nonzero(values.imag <= 2 * np.pi * max_frequency_hz))
+            # |lambda|^2: omega^2 of a stable mode (the real modes' lambda), sigma^2 of a diverging one
+            end = whole_count(np.abs(values) ** 2, keep) if rounded and enough and keep else keep
+            # the repeated frequency reaches the last value converged: more may follow (one plane's mode)
+            if (enough and not (rounded and keep and end >= values.size)) or nev >= 2 * n:
                 break
             nev = min(2 * nev, 2 * n)
-        keep = count if count else int(np.count_nonzero(values.imag <= 2 * np.pi * max_frequency_hz))
         if values.size < keep or keep == 0:
             raise SolverError(f"gyroscopic modes: only {values.size} modes converged" if count else
                               f"no mode below max_frequency_hz = {max_frequency_hz} Hz")
+        if end > keep and count is not None and whole == "refuse":
+            lam = np.abs(values) ** 2
+            raise _repeated_cut(ops, float(lam[keep - 1]), keep, cluster_start(lam, keep), end)
+        keep = end
         destroy(*xr[keep:], *xi[keep:])
         values, xr, xi = values[:keep], xr[:keep], xi[:keep]
         for a, b in zip(xr, xi):

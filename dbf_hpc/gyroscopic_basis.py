@@ -71,12 +71,13 @@ SPRING_RATIO_MAX = 1e4
 
 
 def stable_modes(ops: Operators, count: int | None = None, max_frequency_hz: float | None = None, prefix="modes_",
-                 problem: str | None = None):
-    """gyroscopic_modes, or an InputError naming the first unstable mode (a basis of growing modes
-    has no meaning): of the structure, or of the `problem` (words: a spring-perturbed or pinned one,
-    which the axial speed is not to blame for). Collective."""
+                 problem: str | None = None, whole: str | None = None):
+    """gyroscopic_modes (`whole`: a count ending inside a repeated frequency, as there), or an
+    InputError naming the first unstable mode (a basis of growing modes has no meaning): of the
+    structure, or of the `problem` (words: a spring-perturbed or pinned one, which the axial speed is
+    not to blame for). Collective."""
     counters["eigen_solves"] += 1
-    modes = gyroscopic_modes(ops, count=count, max_frequency_hz=max_frequency_hz, prefix=prefix)
+    modes = gyroscopic_modes(ops, count=count, max_frequency_hz=max_frequency_hz, prefix=prefix, whole=whole)
     if modes.unstable:
         j = modes.unstable[0]
         text = modes.describe(j)
@@ -423,9 +424,11 @@ def _add_modes(builder: _Builder, ops: Operators, modes) -> list:
     return omega
 
 
-def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(), labels=None) -> ReducedBasis:
+def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(), labels=None,
+                           whole: str = "refuse") -> ReducedBasis:
     """The reduced basis of a gyroscopic structure (module docstring): Re/Im of the complex modes and
-    of one complex DBF per constraint ("dbf"), or one static mode K^-1 g ("static"), or none.
+    of one complex DBF per constraint ("dbf"), or one static mode K^-1 g ("static"), or none. `whole`:
+    settings.modes ending inside a repeated frequency is refused or extended (basis.build_basis).
     Collective on ops.comm."""
     strategy = settings.strategy
     rows = np.asarray(rows, dtype=np.int64)
@@ -433,7 +436,7 @@ def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = Basis
     strategy.check(ops)
     labels = labels or [f"row {r}" for r in rows]
     t0 = time.perf_counter()
-    modes = stable_modes(ops, count=settings.modes, max_frequency_hz=settings.max_frequency_hz)
+    modes = stable_modes(ops, count=settings.modes, max_frequency_hz=settings.max_frequency_hz, whole=whole)
     t1 = time.perf_counter()
     NL = rows.size if strategy.kind != "none" else 0
     builder = _Builder(ops, 2 * modes.count + 2 * NL)
@@ -494,11 +497,13 @@ def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = Basis
 
 
 def richer_gyroscopic_basis(ops: Operators, basis: ReducedBasis, modes: int) -> ReducedBasis:
-    """The complex modes 1..`modes` and basis's own enrichment columns, M-orthonormalized (what
-    basis.richer_basis is for the error estimate). Collective."""
+    """The complex modes 1..`modes` (more where `modes` ends inside a repeated frequency, up to its end)
+    and basis's own enrichment columns, M-orthonormalized (what basis.richer_basis is for the error
+    estimate). Collective."""
     from dataclasses import replace
 
-    more = stable_modes(ops, count=modes)
+    more = stable_modes(ops, count=modes, whole="extend")
+    modes = more.count
     first = basis.mode_count
     builder = _Builder(ops, 2 * modes + basis.enrichment_count)
     template = ops.K.createVecRight()

@@ -363,9 +363,9 @@ def conservative_state_matrix(basis: StateSpaceBasis, ops: Operators) -> np.ndar
 
 
 def build_state_space_basis(ops: Operators, rows, settings: BasisSettings = BasisSettings(),
-                            labels=None) -> StateSpaceBasis:
+                            labels=None, whole: str = "refuse") -> StateSpaceBasis:
     """The A-orthonormal state-space basis of the complex modes and one complex state DBF per
-    constraint (module docstring). Collective on ops.comm."""
+    constraint (module docstring); `whole` as in basis.build_basis. Collective on ops.comm."""
     from .gyroscopic_basis import stable_modes
 
     rows = np.asarray(rows, dtype=np.int64)
@@ -373,7 +373,7 @@ def build_state_space_basis(ops: Operators, rows, settings: BasisSettings = Basi
     settings.strategy.check(ops)
     labels = labels or [f"row {r}" for r in rows]
     t0 = time.perf_counter()
-    modes = stable_modes(ops, count=settings.modes, max_frequency_hz=settings.max_frequency_hz)
+    modes = stable_modes(ops, count=settings.modes, max_frequency_hz=settings.max_frequency_hz, whole=whole)
     seconds = time.perf_counter() - t0
     try:
         basis = _basis(ops, rows, settings, labels, modes, None)
@@ -388,7 +388,8 @@ def richer_state_space_basis(ops: Operators, basis: StateSpaceBasis, modes: int)
     error estimate's richer basis, accuracy.py). Collective."""
     from .gyroscopic_basis import stable_modes
 
-    more = stable_modes(ops, count=modes)
+    more = stable_modes(ops, count=modes, whole="extend")   # a repeated frequency at the cut taken whole
+    modes = more.count
     settings = dataclasses.replace(basis.settings, modes=modes, max_frequency_hz=None)
     labels = [f"row {r}" for r in basis.constraint_rows]
     try:

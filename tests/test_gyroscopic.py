@@ -1552,3 +1552,51 @@ def test_a_failure_scaling_the_complex_mode_start_leaves_no_petsc_object(monkeyp
         with pytest.raises(RuntimeError, match="injected") as refused:
             fom.initial_state()
         assert_all(refused.value is not None and undestroyed_petsc_objects() == before)
+
+
+def shaft_at_rest(split: float):
+    """A round shaft at rest as 8 uncoupled DOFs (M = I, G = 0: no spin): frequencies 10 Hz times 1, 2,
+    2 (1 + split / 2) (the two bending planes of mode 2, lambda split by `split` relative), 3 ... 7."""
+    from dbf_hpc.operators import Operators
+
+    lam = (2 * np.pi * 10.0) ** 2 * np.array([1, 4, 4 * (1 + split), 9, 16, 25, 36, 49], dtype=float)
+    mats = []
+    for diagonal in (lam, np.ones(8), np.zeros(8)):
+        mat = PETSc.Mat().createAIJ(size=8, nnz=1, comm=PETSc.COMM_WORLD)
+        lo, hi = mat.getOwnershipRange()
+        for i in range(lo, hi):
+            mat.setValue(i, i, diagonal[i])
+        mat.assemble()
+        mats.append(mat)
+    return Operators(comm=PETSc.COMM_WORLD, K=mats[0], M=mats[1], G=mats[2]), np.sqrt(lam) / (2 * np.pi)
+
+
+def test_a_round_shaft_at_rest_keeps_both_bending_planes_of_a_frequency_at_the_cutoff_or_refuses_the_count():
+    from dbf_hpc.modes import RepeatedCut
+
+    ops, exact = shaft_at_rest(4e-7)   # within REPEATED_TOL (1e-6 in lambda): one repeated frequency
+    try:
+        # a cutoff between the two planes' frequencies (20 Hz and 20 (1 + 2e-7) Hz) keeps both
+        modes = gyroscopic_modes(ops, max_frequency_hz=20.0 * (1 + 1e-7))
+        assert modes.count == 3 and np.allclose(modes.frequency_hz, exact[:3], rtol=1e-10)
+        modes.destroy()
+        with pytest.raises(RepeatedCut, match=r"modes = 2 keeps 1 of the 2 modes of one repeated frequency, 20 Hz "
+                                              r"\(modes 2 to 3.*give 1 or 3 modes") as cut:
+            gyroscopic_modes(ops, count=2, whole="refuse")
+        assert (cut.value.first, cut.value.whole) == (1, 3)
+        for whole, count in (("extend", 3), (None, 2)):   # None: an internal branch count, as asked
+            modes = gyroscopic_modes(ops, count=2, whole=whole)
+            assert modes.count == count and np.allclose(modes.frequency_hz, exact[:count], rtol=1e-10)
+            modes.destroy()
+    finally:
+        ops.destroy()
+    ops, exact = shaft_at_rest(3e-6)   # beyond REPEATED_TOL: two frequencies, cut between them as asked
+    try:
+        modes = gyroscopic_modes(ops, max_frequency_hz=20.0 * (1 + 7.5e-7))
+        assert modes.count == 2 and np.allclose(modes.frequency_hz, exact[:2], rtol=1e-10)
+        modes.destroy()
+        modes = gyroscopic_modes(ops, count=2, whole="refuse")
+        assert modes.count == 2
+        modes.destroy()
+    finally:
+        ops.destroy()
