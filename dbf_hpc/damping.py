@@ -110,17 +110,17 @@ def _real(value) -> bool:
     return is_number(value) and bool(np.isfinite(value))
 
 
-REPEATED_TOL = 1e-6   # relative: frequencies this close are one repeated frequency (a round tube's pairs)
-
-
 def _check_repeated(ratios: np.ndarray, omega: np.ndarray) -> None:
     """A repeated frequency's modes are any mix of its eigenspace (a tube's y and z, turned as the
     eigensolver chose): one ratio each, or the damping depends on the load's direction (red team: zeta
-    on mode 1 damped z and not y)."""
+    on mode 1 damped z and not y). Repeated as the reference modes count it (modes.repeated, on
+    omega^2: it was 1e-6 relative in omega here, twice the modes' band)."""
+    from .modes import repeated
+
     order = np.argsort(omega)
     w, r = omega[order], ratios[order]
     for i in range(w.size - 1):
-        if abs(w[i + 1] - w[i]) <= REPEATED_TOL * max(abs(w[i + 1]), 1e-300) and r[i + 1] != r[i]:
+        if repeated(w[i] ** 2, w[i + 1] ** 2) and r[i + 1] != r[i]:
             raise InputError(f"damping zeta: basis vectors {order[i] + 1} and {order[i + 1] + 1} share the frequency "
                              f"{w[i] / (2 * np.pi):.6g} Hz (a repeated mode, any mix of its directions) but have the "
                              f"ratios {r[i]:g} and {r[i + 1]:g}: give them one ratio")

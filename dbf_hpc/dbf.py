@@ -39,7 +39,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .errors import SolverError
-from .modes import ModalBasis, bv_rows, lowest_eigenpair, normalize
+from .modes import REPEATED_TOL, ModalBasis, bv_rows, lowest_eigenpair, normalize
 from .operators import Operators
 from .petsctools import destroy, direct_solver, frames_released, values_at
 
@@ -49,8 +49,9 @@ PREFIX = "dbf_"
 PARTICIPATION_TOL = 1e-6
 # A given k_j more than this factor away from the transition is outside Fig. 2's useful range.
 STIFFNESS_RANGE = 1e2
-# Reference eigenvalues closer than this (relative) are one repeated eigenvalue (branch_of).
-CLUSTER_TOL = 1e-6
+# Reference eigenvalues closer than this (relative in lambda) are one repeated eigenvalue (branch_of): the
+# reference modes' own (modes.REPEATED_TOL), so that a cluster here is one whole there.
+CLUSTER_TOL = REPEATED_TOL
 CENTRAL_STEP = 1e-3  # relative step h of the central difference in k
 EIGEN_TOL = 1e-12    # tighter than the reference modes: derivatives amplify eigenvector errors
 DERIVATIVE_BACKWARD_TOL = 1e-10  # a backward-stable solve gives ~1e-16

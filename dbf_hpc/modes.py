@@ -50,8 +50,12 @@ TRUST_TOL = 1e-5
 # Elements of the coarse mesh on which _element_limit measures the estimate.
 COARSE_ELEMENTS = 100
 
-# Reference eigenvalues closer than this (relative) are one repeated eigenvalue, whose modes are any mix of
-# its eigenspace (a round tube's y and z, a square bar's two bending modes): the same as dbf.CLUSTER_TOL.
+# Two eigenvalues lambda = omega^2 closer than this, relative in lambda (|a - b| <= REPEATED_TOL max(|a|,
+# |b|): frequencies within about half of it), are one repeated eigenvalue, whose modes are any mix of its
+# eigenspace (a round tube's y and z, a square bar's two bending modes). The one quantity of every such
+# decision (repeated): the cut of the reference modes (whole_count, cluster_start, the inertia window
+# lam (1 +- REPEATED_TOL) of _cut_by_inertia), the DBF branch (dbf.CLUSTER_TOL), one damping ratio per
+# repeated frequency (damping), the gyroscopic modes' cut (on |lambda|^2).
 REPEATED_TOL = 1e-6
 
 # Eigen-solves performed by this process (lets tests and reports see that a cached basis needed none).
@@ -86,6 +90,12 @@ class RepeatedCut(InputError):
         self.first, self.whole = first, whole
 
 
+def repeated(a: float, b: float) -> bool:
+    """Whether the eigenvalues a and b (lambda = omega^2, not frequencies) are one repeated eigenvalue:
+    |a - b| <= REPEATED_TOL max(|a|, |b|) (two zeros are). Not collective."""
+    return abs(b - a) <= REPEATED_TOL * max(abs(a), abs(b))
+
+
 def whole_count(values, count: int, rigid: int = 0) -> int:
     """The smallest count >= `count` of the sorted eigenvalues `values` that does not end inside a
     repeated eigenvalue (a cluster within REPEATED_TOL, or the `rigid` rigid-body modes, zero to
@@ -95,7 +105,7 @@ def whole_count(values, count: int, rigid: int = 0) -> int:
     end = count
     while 0 < end < lam.size:
         a, b = lam[end - 1], lam[end]
-        if not (end < rigid or abs(b - a) <= REPEATED_TOL * max(abs(a), abs(b))):
+        if not (end < rigid or repeated(a, b)):
             break
         end += 1
     return end
@@ -106,8 +116,7 @@ def cluster_start(values, count: int, rigid: int = 0) -> int:
     (count - 1 when it is simple). Not collective."""
     lam = np.asarray(values, dtype=float)
     start = count - 1
-    while start > 0 and (start < rigid or abs(lam[start] - lam[start - 1]) <= REPEATED_TOL * max(
-            abs(lam[start]), abs(lam[start - 1]))):
+    while start > 0 and (start < rigid or repeated(lam[start - 1], lam[start])):
         start -= 1
     return start
 

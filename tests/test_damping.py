@@ -87,3 +87,19 @@ def test_rayleigh_coefficients_that_damp_a_reference_mode_far_above_critical_are
     for kwargs in (dict(rayleigh_alpha=1e300), dict(rayleigh_beta=1e300), dict(rayleigh_alpha=2001.0)):
         with pytest.raises(InputError, match="damping ratio of .* at most 100"):
             Damping(**kwargs).check_rayleigh(omega)
+
+
+@pytest.mark.parametrize("gap, one", [(0.4e-6, True), (0.6e-6, False)])
+def test_damping_takes_a_frequency_as_repeated_exactly_where_the_reference_modes_do(gap, one):
+    # relative gap in omega: 0.4e-6 is 0.8e-6 in lambda (one repeated frequency for modes.whole_count, one
+    # ratio), 0.6e-6 is 1.2e-6 (two frequencies, two ratios); the check was 1e-6 in omega and refused both
+    from dbf_hpc.modes import whole_count
+
+    omega = np.array([10.0, 10.0 * (1 + gap), 40.0])
+    assert whole_count(omega ** 2, 1) == (2 if one else 1)
+    damping = Damping(zeta=(0.05, 0.0, 0.0))
+    if one:
+        with pytest.raises(InputError, match="basis vectors 1 and 2 share the frequency"):
+            damping.modal_coefficients(omega)
+    else:
+        np.testing.assert_allclose(damping.modal_coefficients(omega), [1.0, 0.0, 0.0])

@@ -343,3 +343,21 @@ def test_a_compression_near_the_buckling_load_is_named_beside_the_mesh_limit_it_
     message = str(info.value)
     assert message.startswith("reference modes: the beam mesh is too fine for double precision")
     assert "the axial compression (tension - m_t U^2 = -0.0010138 N) softens the lowest modes" in message
+
+
+@pytest.mark.parametrize("gap, one", [(0.9e-6, True), (1.1e-6, False)])
+def test_eigenvalues_within_repeated_tol_relative_in_lambda_are_one_repeated_frequency_for_the_cut_and_the_dbf_branch(
+        gap, one):
+    # REPEATED_TOL is relative in lambda = omega^2 everywhere: the cut (whole_count, cluster_start) and the
+    # DBF branch's clusters (dbf._cluster_starts) split at the same gap
+    from dbf_hpc.dbf import _cluster_starts
+    from dbf_hpc.modes import REPEATED_TOL, cluster_start, repeated, whole_count
+
+    assert REPEATED_TOL == 1e-6
+    lam = np.array([1.0, 4.0, 4.0 * (1 + gap), 9.0])
+    assert repeated(lam[1], lam[2]) == one
+    assert whole_count(lam, 2) == (3 if one else 2) and cluster_start(lam, 3) == (1 if one else 2)
+    assert list(_cluster_starts(4, lam)) == ([0, 1, 3, 4] if one else [0, 1, 2, 3, 4])
+    # in frequencies the band is about half: omega 0.6e-6 apart is 1.2e-6 in lambda, two frequencies
+    omega = np.array([1.0, 2.0, 2.0 * (1 + gap / 2), 3.0])
+    assert whole_count(omega ** 2, 2) == (3 if one else 2)
