@@ -595,7 +595,8 @@ def richer_model(fom, basis, cache_dir: str | None = None):
 
 def second_modes(modes: int, components: int) -> int:
     """The reference modes of the estimate's second richer basis: SECOND_MODES times the first's (rich_modes),
-    rounded up (richer_models rounds it up to whole y-z pairs on a beam of two planes). Not collective."""
+    rounded up (the modes solved for it keep a repeated frequency at the cut whole: richer_models). Not
+    collective."""
     return int(math.ceil(SECOND_MODES * rich_modes(modes, components) - 1e-9))
 
 
@@ -610,7 +611,7 @@ def richer_models(fom, basis, cache_dir: str | None = None):
     (reductor._turn_in_span), whose unstructured stage solves are slow (the paper's beam at N = 40
     before such bases were turned: 7.9 s for 121 vectors against 0.33 s for 81 with the structure).
     Collective."""
-    from .basis import modes_per_frequency, richer_basis
+    from .basis import richer_basis
     from .cache import obtain_modes
     from .errors import DbfError
     from .reductor import PROJECTION_TOL, Reductor
@@ -618,18 +619,20 @@ def richer_models(fom, basis, cache_dir: str | None = None):
     labels = fom.constraints.component_labels
     modes = basis.mode_count
     count = second_modes(modes, len(labels))
-    # whole y-z pairs on a beam of two planes (basis.check_pairs): 1.5 (N + N_L) can be odd (2 modes and 2
-    # round holes: 9), and the last pair's kept member then lay in a direction set by round-off (red team:
-    # that scene's estimate read 55.2 % on 1 rank and 69.3 % on 2; with 10 modes 70.3 % on both)
-    count += -count % modes_per_frequency(fom.operators)
     if (zeta_per_vector(fom) or fom.operators.G is not None or getattr(basis, "form", "") == "state_space"
             or count + basis.enrichment_count > fom.size):
         return richer_model(fom, basis, cache_dir), None
+    # A count ending inside a repeated frequency (1.5 (N + N_L) can be odd on a beam of two planes: 2 modes
+    # and 2 round holes give 9, whose last y-z pair was cut, red team: 55.2 % on 1 rank, 69.3 % on 2) comes
+    # back whole (obtain_modes, reference_modes' whole="extend": 10), and richer_basis takes it whole
     try:
         more = obtain_modes(fom.operators, count, fom.fingerprint, cache_dir)
     except Interrupted:
         raise
     except DbfError:   # the same on every rank
+        return richer_model(fom, basis, cache_dir), None
+    if more.count + basis.enrichment_count > fom.size:   # the whole repeated frequency does not fit
+        more.destroy()
         return richer_model(fom, basis, cache_dir), None
     try:
         built = []

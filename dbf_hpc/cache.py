@@ -358,7 +358,9 @@ def obtain_modes(ops: Operators, count: int, fingerprint: dict, cache_dir: str |
 
     if not cache_dir or ops.G is not None:
         return reference_modes(ops, count=count)
-    count += -count % modes_per_frequency(ops)   # whole y-z pairs, as the solve extends them (check_pairs)
+    # whole y-z pairs, as the solve extends them: build_basis refuses an odd count on a beam of two planes
+    # before any solve (check_pairs), and the key of 9 is the key of 10
+    count += -count % modes_per_frequency(ops)
     # a count inside a repeated frequency is extended to its end, as reference_modes does for these
     # counts (red team: the basis build refused it as a user's [basis] modes, and the estimate of a
     # symmetric structure with a cache had no richer model)

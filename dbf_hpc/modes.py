@@ -585,8 +585,9 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
     direction set by round-off, and a reduced model on it changes with the rank count. Where `count`
     ends inside one, whole = "refuse" raises RepeatedCut (an InputError naming the frequency and the
     counts that keep it whole: the user's [basis] modes, build_basis), "extend" (the default) returns
-    the modes up to its end (the estimate's richer bases). Below max_frequency_hz the repeated
-    eigenvalue at the cutoff is kept whole.
+    the modes up to its end (the estimate's richer bases; an odd count on a beam of two planes is
+    rounded up to whole y-z pairs before the solve, which would otherwise find the pair cut and
+    solve again). Below max_frequency_hz the repeated eigenvalue at the cutoff is kept whole.
 
     Collective on ops.comm. Raises SolverError if the solver converges fewer pairs than needed,
     refuses pairs that cannot be trusted to TRUST_TOL (trust_check), and an indefinite K.
@@ -600,6 +601,8 @@ def reference_modes(ops: Operators, count: int | None = None, max_frequency_hz: 
         raise InputError(f"number of modes must be between 1 and {n} (the free DOFs), got {count}")
     if max_frequency_hz is not None and not max_frequency_hz > 0:
         raise InputError(f"max_frequency_hz must be positive, got {max_frequency_hz}")
+    if count is not None and whole == "extend":   # a beam of two planes: every frequency a y-z pair, known before
+        count = min(count + -count % getattr(ops.mesh, "planes", 1), n)
     values, vectors, negative, asked, seen = _solve_reference(ops, count, max_frequency_hz, prefix)
     bv = None
     try:

@@ -361,3 +361,23 @@ def test_eigenvalues_within_repeated_tol_relative_in_lambda_are_one_repeated_fre
     # in frequencies the band is about half: omega 0.6e-6 apart is 1.2e-6 in lambda, two frequencies
     omega = np.array([1.0, 2.0, 2.0 * (1 + gap / 2), 3.0])
     assert whole_count(omega ** 2, 2) == (3 if one else 2)
+
+
+def test_an_odd_count_extended_on_a_beam_of_two_planes_is_its_whole_pairs_from_one_eigensolve():
+    # whole="extend" (the estimate's richer modes) rounds an odd count up to whole y-z pairs before the
+    # solve: the same 10 modes as asking for 10, without solving 9, finding the 5th pair cut, and solving again
+    from dbf_hpc.modes import counters
+
+    ops = assemble_beam(Beam(length=1.0, E=2e11, I=1e-8, A=1e-4, rho=7800.0, elements=40, planes=2, tension=100.0))
+    try:
+        omega = {}
+        for count in (9, 10):
+            before = counters["eigen_solves"]
+            modes = reference_modes(ops, count=count, whole="extend")
+            omega[count], solves = modes.omega.copy(), counters["eigen_solves"] - before
+            modes.destroy()
+            assert (omega[count].size, solves) == (10, 1)
+        np.testing.assert_allclose(omega[9], omega[10], rtol=1e-12)
+        np.testing.assert_allclose(omega[9][0::2], omega[9][1::2], rtol=1e-9)
+    finally:
+        ops.destroy()
