@@ -410,11 +410,40 @@ def _is_stiffness_table(path: str) -> bool:
         return False
 
 
+def _shape_notes(fom, basis) -> tuple:
+    """(shapes/repeated, {shape index: note}, lines to print) of a real basis's shapes: the modes of a
+    repeated frequency are drawn as the eigensolver returned them, any orthonormal mix of their
+    eigenspace (a direction set by round-off, which another rank count may turn). (None, {}, []) for
+    complex modes (their columns are Re and Im of each). Not collective."""
+    import numpy as np
+
+    from .modes import repeated_groups
+
+    if basis.complex_modes:
+        return None, {}, []
+    N = basis.mode_count
+    groups = np.concatenate([repeated_groups(basis.omega ** 2, fom.operators.rigid_modes),
+                             np.zeros(basis.size - N, dtype=np.int64)])
+    notes, lines = {}, []
+    for first in np.unique(groups[groups > 0]):
+        members = np.flatnonzero(groups == first)
+        what = (f"shapes {members[0] + 1} to {members[-1] + 1}: one repeated frequency, "
+                f"{basis.omega[members[0]] / (2 * np.pi):.6g} Hz, drawn in the directions the eigensolver returned "
+                f"(any mix of them, set by round-off: another rank count may turn them)")
+        lines.append(what)
+        notes.update({int(j): what for j in members})
+    return groups, notes, lines
+
+
 def _write_shapes(path: str, fom, reductor, basis) -> None:
     """The basis vectors at the field points as an XDMF time series (step i: basis vector i + 1) and
-    its HDF5 file (_check_shapes_path checked both). Both are written to temporary files and renamed
-    into place together: a write that fails (a full disk) leaves neither a partial file nor a new
-    .h5 beside an old .xdmf, and is one DbfError on every rank. Collective (rank 0 writes)."""
+    its HDF5 file (_check_shapes_path checked both). The modes of a repeated frequency are the basis's
+    own, as the eigensolver returned them, not turned to the axes: they are the vectors a run's
+    reduced q multiplies, and a symmetric structure's eigenspace may have no direction a node map
+    prefers. They are marked (shapes/repeated, an XDMF note on each, a printed line). Both files are
+    written to temporary files and renamed into place together: a write that fails (a full disk)
+    leaves neither a partial file nor a new .h5 beside an old .xdmf, and is one DbfError on every
+    rank. Collective (rank 0 writes)."""
     import h5py
     import numpy as np
     from petsc4py import PETSc
@@ -426,6 +455,7 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
     h5 = os.path.splitext(path)[0] + ".h5"
     values = reductor.field_values()
     world = PETSc.COMM_WORLD.tompi4py()
+    groups, notes, lines = _shape_notes(fom, basis)
     error = None
     if world.rank == 0:
         # Red team: a full disk at the .h5 was "internal error (RuntimeError)" from h5py, then a
@@ -440,13 +470,19 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
                                **xdmf.node_vectors(geometry, values.T, "shapes", "shape")}.items():
                 f.create_dataset(name, data=data)
             f["shapes/omega"] = np.concatenate([basis.omega, basis.enrichment_omega])
+            if groups is not None:
+                f["shapes/repeated"] = groups
+                f["shapes/repeated"].attrs["description"] = (
+                    "per shape, the number (from 1) of the first shape of its repeated frequency, 0 for a simple "
+                    "mode or an enrichment column: the shapes of one repeated frequency are any orthonormal mix "
+                    "of its eigenspace, as the eigensolver returned them")
             f.attrs["dbf_hpc_version"] = __version__
             f.attrs.update(cells_attrs(field))
             f.close()
             f = None
             xdmf.write(tmp_xdmf, h5, "shapes", geometry[0], geometry[1].shape[0],
                        np.arange(1, values.shape[1] + 1), "shape", cells=geometry[4],
-                       cell_type=geometry[5])
+                       cell_type=geometry[5], notes=notes)
             os.replace(tmp_h5, h5)
             os.replace(tmp_xdmf, path)
         except (DbfError, *WRITE_ERRORS) as e:
@@ -461,6 +497,8 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
         raise DbfError(error)
     if world.rank == 0:
         print(f"wrote {path} and {h5} ({values.shape[1]} shapes)")
+        for line in lines:
+            print(line)
 
 
 def _print_basis(say, basis, labels, dimension: int = 1) -> None:

@@ -182,7 +182,12 @@ def reference() -> str:
              "the cells of `snapshots/cells` when the scene gives `[structure] cells` (a solid's hexahedra), a "
              "beam's polyline, else points. `dbf-hpc basis --xdmf SHAPES.xdmf` writes the basis vectors alike "
              "into `SHAPES.h5` (`shapes/points`, `shapes/cells`, `shapes/shape/NNNNNN`, `shapes/omega`, the "
-             "same `field_cells` attributes).", "",
+             "same `field_cells` attributes). The shapes are the basis's own vectors: those of a repeated frequency "
+             "(a round tube's y-z pair, a square bar's bending pair) are drawn as the eigensolver returned them, any "
+             "orthonormal mix of its eigenspace (set by round-off, another on another rank count), not turned to the "
+             "axes; `shapes/repeated` gives per shape the number of the first shape of its repeated frequency (0: "
+             "simple mode or enrichment column; not written for complex modes), each such grid of the XDMF file "
+             "carries an Information `note` saying so, and `basis --xdmf` prints a line per repeated frequency.", "",
              "A sweep summary (`dbf-hpc sweep`) holds a row per case: `cases/parameters/<section.key>` (NaN or "
              "null where a listed case leaves the base scene's value), `cases/status`, `cases/error`, "
              "`cases/wall_time` (s), `cases/warnings` (what `dbf-hpc run` warns of the case, that its result may be "

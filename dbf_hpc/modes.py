@@ -121,6 +121,19 @@ def cluster_start(values, count: int, rigid: int = 0) -> int:
     return start
 
 
+def repeated_groups(values, rigid: int = 0) -> np.ndarray:
+    """For each of the sorted eigenvalues `values` (repeated ones whole, as reference_modes returns
+    them), the number (from 1) of the first mode of its repeated eigenvalue (whole_count's clusters,
+    the `rigid` rigid-body modes one), 0 for a simple one. Not collective."""
+    lam = np.asarray(values, dtype=float)
+    out = np.zeros(lam.size, dtype=np.int64)
+    for j in range(lam.size):
+        first, end = cluster_start(lam, j + 1, rigid), whole_count(lam, j + 1, rigid)
+        if end - first >= 2:
+            out[j] = first + 1
+    return out
+
+
 def repeated_mode_refusal(values, mode: int, rigid: int = 0) -> str | None:
     """Why [initial] mode = `mode` (from 1) is refused (what follows "[initial] mode = M: "), when it
     is one of a repeated eigenvalue's modes (values: the sorted eigenvalues, repeated ones whole as

@@ -82,11 +82,16 @@ def check_sidecar(h5_path: str, inputs=()) -> None:
 
 
 def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, name: str = "displacement",
-          cells=None, cell_type: str = "") -> None:
+          cells=None, cell_type: str = "", notes=None) -> None:
     """Write the XDMF `path` for `{prefix}/{name}/NNNNNN` (nodes x 3 each) and `{prefix}/points` in
     `h5_file` (referred to by its name: keep the two side by side). `steps` label the time series
     (times in s, or mode numbers). With `cells` (E x k, as `{prefix}/cells`), the topology is those
-    cells, of `cell_type` (default CELL_TYPES by k), else a beam's polyline or points."""
+    cells, of `cell_type` (default CELL_TYPES by k), else a beam's polyline or points. `notes`: {step
+    index: text}, an XDMF Information element "note" in that step's grid (a shape of a repeated
+    frequency)."""
+    from xml.sax.saxutils import quoteattr
+
+    notes = notes or {}
     h5 = os.path.basename(h5_file)
     if cells is not None:
         count, k = np.shape(cells)
@@ -104,7 +109,8 @@ def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, na
     grids = []
     for i, step in enumerate(steps):
         grids.append(
-            f'<Grid Name="{name} {i}" GridType="Uniform"><Time Value="{float(step):.12g}"/>{topology}'
+            f'<Grid Name="{name} {i}" GridType="Uniform"><Time Value="{float(step):.12g}"/>'
+            + (f'<Information Name="note" Value={quoteattr(notes[i])}/>' if i in notes else "") + f'{topology}'
             f'<Geometry GeometryType="XYZ"><DataItem Format="HDF" Dimensions="{nodes} 3" NumberType="Float" '
             f'Precision="8">{h5}:/{prefix}/points</DataItem></Geometry>'
             f'<Attribute Name="{name}" AttributeType="Vector" Center="Node">'

@@ -4,6 +4,7 @@ name), and the vectors they show are the structure's motion: a free vibration in
 checked against a dense eigensolution of the K and M files."""
 import hashlib
 import os
+import re
 import sys
 import xml.etree.ElementTree as ET
 
@@ -153,11 +154,20 @@ def test_a_solid_with_hexahedra_shows_its_cells_in_paraview_swinging_in_its_lowe
             assert np.abs(v[node, direction] - u0 * np.cos(np.sqrt(omega2) * t[i])).max() <= 1e-3 * AMPLITUDE, i
 
 
-def test_the_mode_shapes_of_a_solid_with_hexahedra_are_drawn_on_its_cells(shared_tmp_path):
+def test_the_mode_shapes_of_a_solid_with_hexahedra_are_drawn_on_its_cells_its_bending_pairs_marked_as_any_mix(
+        shared_tmp_path, capfd):
     folder = shared_tmp_path
     shapes = folder / "shapes.xdmf"
+    capfd.readouterr()
     assert main(["basis", solid(folder), "--xdmf", str(shapes), "--no-cache"]) == 0
+    printed = capfd.readouterr().out
     if MPI.COMM_WORLD.rank == 0:
+        # the square section's bending pairs, modes 1-2 and 4-5, are drawn as the eigensolver returned them:
+        # marked in the .h5, the XDMF grids and the printout; mode 3 (simple) is not
+        assert re.search(r"shapes 1 to 2: one repeated frequency, [0-9.]+ Hz, drawn in the directions", printed)
+        assert re.search(r"shapes 4 to 5: one repeated frequency", printed) and "shapes 3 " not in printed
+        notes = [g.find("Information") for g in ET.parse(shapes).getroot().iter("Grid") if g.get("GridType") == "Uniform"]
+        assert [n is not None and "any mix of them" in n.get("Value") for n in notes] == [True, True, False, True, True]
         K, M = dense(folder / "K.bin"), dense(folder / "M.bin")
         omega2 = scipy.linalg.eigh(K, M, eigvals_only=True, subset_by_index=[0, 4])
         node, direction = free_dofs(folder)
@@ -166,6 +176,7 @@ def test_the_mode_shapes_of_a_solid_with_hexahedra_are_drawn_on_its_cells(shared
             check_paraview_file(shapes, f, "shapes", "shape", 5)
             check_bricks(f["shapes/points"][:], f["shapes/cells"][:])
             np.testing.assert_allclose(f["shapes/omega"][:] ** 2, omega2, rtol=1e-8)
+            assert list(f["shapes/repeated"][:]) == [1, 1, 0, 4, 4]
             for i in range(5):     # shape i is mode i + 1 (M-normalized; of a pair, any mix)
                 u = f[f"shapes/shape/{i:06d}"][:][node, direction]
                 assert np.linalg.norm(K @ u - omega2[i] * M @ u) <= 1e-7 * np.linalg.norm(K @ u), i
