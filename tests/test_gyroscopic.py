@@ -1600,3 +1600,22 @@ def test_a_round_shaft_at_rest_keeps_both_bending_planes_of_a_frequency_at_the_c
         modes.destroy()
     finally:
         ops.destroy()
+
+
+@pytest.mark.parametrize("form", ["second_order", "state_space"])
+def test_a_basis_counts_each_complex_mode_of_a_pair_of_bit_equal_frequencies(form):
+    # a round shaft at rest with its two planes exactly alike: modes 2 and 3 share omega to the bit; the count
+    # of complex modes (the estimate's richer model takes twice it) counted distinct frequencies: 2, not 3
+    from dbf_hpc.basis import BasisSettings, build_basis
+
+    ops, exact = shaft_at_rest(0.0)
+    try:
+        basis = build_basis(ops, [], BasisSettings(modes=3, enrichment="none", gyroscopic_form=form))
+        try:
+            assert basis.complex_modes == 3
+            f = basis.omega / (2 * np.pi)
+            assert np.all(np.min(np.abs(f[:, None] / exact[None, :2] - 1), axis=1) < 1e-10), f
+        finally:
+            basis.destroy()
+    finally:
+        ops.destroy()
