@@ -301,8 +301,16 @@ def check_damped_stable(ops: Operators, damped: PETSc.Mat, count: int, speed: st
 
 def mode_state(ops: Operators, mode: int, prefix: str = "modes_") -> tuple:
     """(u, v): the free vibration of complex mode `mode` (from 1) at t = 0, u = Re x, v = Re(lambda x)
-    (x normalized as in normalize_complex; new Vecs, the caller's). Collective."""
-    modes = gyroscopic_modes(ops, count=mode, prefix=prefix)
+    (x normalized as in normalize_complex; new Vecs, the caller's). A mode of a repeated frequency is
+    refused as for the real modes (modes.repeated_mode_refusal: its shape is a mix set by round-off,
+    another on another rank count). Collective."""
+    from .modes import repeated_mode_refusal
+
+    modes = gyroscopic_modes(ops, count=mode, prefix=prefix, whole="extend")
+    refusal = repeated_mode_refusal(np.abs(modes.eigenvalues) ** 2, mode)   # the same values on every rank
+    if refusal:
+        modes.destroy()
+        raise InputError(refusal)
     try:
         lam = modes.eigenvalues[mode - 1]
         u, v = modes.real[mode - 1].copy(), modes.real[mode - 1].copy()
