@@ -277,20 +277,20 @@ def mass_outside_stiffness(K: PETSc.Mat, M: PETSc.Mat) -> int:
     return comm.allreduce(outside)
 
 
-def _check_dissipative(C: PETSc.Mat, path: str) -> None:
-    """An InputError for a damping matrix that is visibly not positive semi-definite: a negative
-    diagonal entry, or an entry with c_ij^2 > c_ii c_jj (a 2 x 2 principal minor below 0, so
-    C has a negative eigenvalue and the damping feeds energy in). Necessary conditions, checked in
-    O(nnz). Collective."""
-    diagonal = C.getDiagonal()
+def _semidefinite_violation(A: PETSc.Mat, tol: float):
+    """The first visible sign that the symmetric A is not positive semi-definite, on every rank:
+    ("diagonal", row, value) for a negative diagonal entry, ("minor", i, j, a_ij, a_ii, a_jj) for
+    an entry with a_ij^2 > a_ii a_jj (a 2 x 2 principal minor below 0, so A has a negative
+    eigenvalue), `tol` the relative excess allowed for rounding; None if neither. Necessary
+    conditions, checked in O(nnz). Collective."""
+    diagonal = A.getDiagonal()
     try:
         lowest = diagonal.min()
         scale = diagonal.norm(PETSc.NormType.NORM_INFINITY)
         if lowest[1] < -1e-12 * scale:
-            raise InputError(f"damping matrix {path!r} has a negative diagonal entry ({lowest[1]:.3g} in row "
-                             f"{lowest[0]}): damping must dissipate (C positive semi-definite)")
-        lo, hi = C.getOwnershipRange()
-        indptr, cols, values = C.getValuesCSR()
+            return ("diagonal", int(lowest[0]), float(lowest[1]))
+        lo, hi = A.getOwnershipRange()
+        indptr, cols, values = A.getValuesCSR()
         rows = np.repeat(np.arange(lo, hi), np.diff(indptr))
         needed = np.unique(cols).astype(PETSc.IntType)
         index = PETSc.IS().createGeneral(needed, comm=PETSc.COMM_SELF)
@@ -301,17 +301,54 @@ def _check_dissipative(C: PETSc.Mat, path: str) -> None:
         d_row = diagonal.getArray(readonly=True)[rows - lo]
         scatter.destroy(), index.destroy(), local.destroy()
         excess = values**2 - np.maximum(d_row, 0.0) * np.maximum(d_col, 0.0)
-        bad = np.flatnonzero(excess > 1e-10 * np.maximum(values**2, 1e-300))
+        bad = np.flatnonzero(excess > tol * np.maximum(values**2, 1e-300))
         first = (int(rows[bad[0]]), int(cols[bad[0]]), float(values[bad[0]]),
                  float(d_row[bad[0]]), float(d_col[bad[0]])) if bad.size else None
-        found = [f for f in C.getComm().tompi4py().allgather(first) if f is not None]
+        found = [f for f in A.getComm().tompi4py().allgather(first) if f is not None]
     finally:
         diagonal.destroy()
+    return ("minor", *found[0]) if found else None
+
+
+def _check_dissipative(C: PETSc.Mat, path: str) -> None:
+    """An InputError for a damping matrix that is visibly not positive semi-definite (a negative
+    diagonal entry, or a 2 x 2 principal minor below 0: _semidefinite_violation), so that C has a
+    negative eigenvalue and the damping feeds energy in. Collective."""
+    found = _semidefinite_violation(C, 1e-10)
+    if found and found[0] == "diagonal":
+        raise InputError(f"damping matrix {path!r} has a negative diagonal entry ({found[2]:.3g} in row "
+                         f"{found[1]}): damping must dissipate (C positive semi-definite)")
     if found:
-        i, j, c, ci, cj = found[0]
+        _, i, j, c, ci, cj = found
         raise InputError(f"damping matrix {path!r} has |C[{i}, {j}]| = {abs(c):.3g} above sqrt(C[{i}, {i}] "
                          f"C[{j}, {j}]) = {np.sqrt(max(ci, 0.0) * max(cj, 0.0)):.3g}: C is indefinite and would feed "
                          f"energy in (damping must dissipate: C positive semi-definite)")
+
+
+# The relative excess a_ij^2 / (a_ii a_jj) - 1 a mass matrix may show for rounding: a point mass on
+# an offset (a rank-one 2 x 2 block, a_ij^2 = a_ii a_jj exactly) written with 6 significant digits
+# can exceed 1 by a few 1e-6; an indefinite M from a sign error or a corrupt file exceeds it by far.
+MASS_MINOR_TOL = 1e-4
+
+
+def _check_mass(M: PETSc.Mat, path: str) -> None:
+    """An InputError for a mass matrix that is visibly not positive semi-definite (a negative diagonal
+    entry or 2 x 2 principal minor: _semidefinite_violation). Red team (new user): an M with one
+    negated diagonal entry ran the reduced model with no word (its negative-mass eigenvalue, far from
+    0, is not among the lowest modes the eigensolver finds) and the full-order model grew without
+    bound to "the state is not finite". Zero rows (massless DOFs, a lumped M without rotary inertia)
+    pass. Collective."""
+    found = _semidefinite_violation(M, MASS_MINOR_TOL)
+    if found and found[0] == "diagonal":
+        raise InputError(f"mass matrix {path!r} has a negative diagonal entry ({found[2]:.3g} in row {found[1]}): "
+                         f"a mass matrix is positive semi-definite (kinetic energy >= 0); check the file and how "
+                         f"it was exported")
+    if found:
+        _, i, j, m, mi, mj = found
+        raise InputError(f"mass matrix {path!r} has |M[{i}, {j}]| = {abs(m):.3g} above sqrt(M[{i}, {i}] "
+                         f"M[{j}, {j}]) = {np.sqrt(max(mi, 0.0) * max(mj, 0.0)):.3g}: M is indefinite (a negative "
+                         f"kinetic energy); a mass matrix is positive semi-definite: check the file and how it was "
+                         f"exported")
 
 
 @dataclass(frozen=True)
@@ -558,8 +595,9 @@ def _digest(path: str, what: str) -> str:
 def load_operators(files: MatrixFiles, comm=None) -> Operators:
     """Operators of an external FE model. Collective on comm (default COMM_WORLD).
 
-    Sizes must agree, K, M (and C) must be symmetric and G skew-symmetric; anything else is an InputError, and what
-    was loaded before it is freed.
+    Sizes must agree, K, M (and C) must be symmetric and G skew-symmetric, M and C show no sign of being
+    indefinite (_check_mass, _check_dissipative); anything else is an InputError, and what was loaded
+    before it is freed.
     """
     comm = petsc_comm(comm, "load_operators")
     if files.base_mass_load and not files.influence:
@@ -587,6 +625,7 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
             skew = asymmetry(A) if A is not None else 0.0
             if skew > SYMMETRY_TOL:
                 raise InputError(f"{name} matrix {path!r} is not symmetric (||A - A^T|| / ||A|| = {skew:.3g})")
+        _check_mass(ops.M, files.mass)
         outside = mass_outside_stiffness(ops.K, ops.M)
         if outside:
             warn(f"the mass matrix {files.mass!r} has {outside} non-zero entries where the stiffness "

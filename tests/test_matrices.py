@@ -260,7 +260,7 @@ def test_a_matrix_file_the_run_cannot_hash_is_an_input_error_on_every_rank(share
 
 
 @pytest.mark.parametrize("which,message", [("K", "stiffness matrix is not positive semi-definite"),
-                                           ("M", "check that M is positive definite")])
+                                           ("M", r"mass matrix '.*Mbad.mtx' has a negative diagonal entry")])
 def test_indefinite_operators_are_an_error(shared_tmp_path, beam_files, which, message):
     _, K, M, paths = beam_files
     bad = str(shared_tmp_path / f"{which}bad.mtx")
@@ -269,7 +269,12 @@ def test_indefinite_operators_are_an_error(shared_tmp_path, beam_files, which, m
         A[5, 5] = -abs(A[5, 5]) * 10      # one negative diagonal entry: symmetric but indefinite
         scipy.io.mmwrite(bad, A.tocsr(), precision=17)
     MPI.COMM_WORLD.Barrier()
-    loaded = load_operators(MatrixFiles(bad if which == "K" else paths["K.bin"], bad if which == "M" else paths["M.bin"]))
+    files = MatrixFiles(bad if which == "K" else paths["K.bin"], bad if which == "M" else paths["M.bin"])
+    if which == "M":     # refused as it is read (test_an_indefinite_mass_matrix_is_refused_as_it_is_read)
+        with pytest.raises(InputError, match=message):
+            load_operators(files)
+        return
+    loaded = load_operators(files)
     with pytest.raises(DbfError, match=message):
         reference_modes(loaded, count=4)
     loaded.destroy()
@@ -405,6 +410,40 @@ def test_a_damping_matrix_with_a_negative_eigenvalue_and_a_positive_diagonal_is_
         load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], damping=paths["C.mtx"]))
     for name in ("D.mtx", "R.mtx"):
         load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], damping=paths[name])).destroy()
+
+
+def test_an_indefinite_mass_matrix_is_refused_as_it_is_read_and_a_massless_dof_is_not(shared_tmp_path, beam_files):
+    # Red team (new user): the beam's M with one diagonal entry negated (a sign slip in an export) ran
+    # the reduced model with no word: its negative eigenvalue lies far from 0, beyond the lowest modes
+    # the eigensolver finds; the full-order model grew until "the state is not finite". An M with a
+    # positive diagonal and a 2 x 2 minor below 0 is indefinite as well. A lumped M without rotary
+    # inertia (zero rows) and a point mass on an offset (a rank-one block, m [[1, e], [e, e^2]]) written
+    # with 6 digits are positive semi-definite and stay accepted.
+    _, K, M, paths = beam_files
+    negated = M.tolil()
+    negated[7, 7] = -negated[7, 7]
+    n = 12
+    chain = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr() * 1e5
+    minor = scipy.sparse.identity(n, format="lil")
+    minor[4, 5] = minor[5, 4] = 1.5
+    offset = scipy.sparse.diags(np.where(np.arange(n) % 2, 0.0, 2.0)).tolil()   # odd rows massless
+    offset[8, 8], offset[8, 9], offset[9, 8], offset[9, 9] = 1 / 3, 0.1, 0.1, 0.03   # e = 0.3, m = 1/3
+    assert np.linalg.eigvalsh(negated.toarray()).min() < 0 and np.linalg.eigvalsh(minor.toarray()).min() < 0
+    names = ("negated.mtx", "minor.mtx", "offset.mtx", "chain.mtx")
+    files = {name: str(shared_tmp_path / name) for name in names}
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(files["negated.mtx"], negated.tocsr(), precision=17)
+        scipy.io.mmwrite(files["minor.mtx"], minor.tocsr(), precision=17)
+        scipy.io.mmwrite(files["offset.mtx"], offset.tocsr(), precision=6)
+        scipy.io.mmwrite(files["chain.mtx"], chain, precision=17)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"^mass matrix '.*negated.mtx' has a negative diagonal entry \(-[0-9.e-]+ "
+                                         r"in row 7\): a mass matrix is positive semi-definite"):
+        load_operators(MatrixFiles(paths["K.bin"], files["negated.mtx"]))
+    with pytest.raises(InputError, match=r"^mass matrix '.*minor.mtx' has \|M\[4, 5\]\| = 1.5 above "
+                                         r"sqrt\(M\[4, 4\] M\[5, 5\]\) = 1: M is indefinite"):
+        load_operators(MatrixFiles(files["chain.mtx"], files["minor.mtx"]))
+    load_operators(MatrixFiles(files["chain.mtx"], files["offset.mtx"])).destroy()
 
 
 def test_a_mass_matrix_of_another_dof_numbering_draws_a_warning(shared_tmp_path, beam_files, capfd):
