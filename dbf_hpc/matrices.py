@@ -255,6 +255,40 @@ def asymmetry(A: PETSc.Mat, skew: bool = False) -> float:
     return value
 
 
+def one_triangle(A: PETSc.Mat) -> Optional[str]:
+    """"lower" or "upper" when every non-zero off-diagonal entry of A lies in that triangle (and there
+    is one), else None. Collective."""
+    from mpi4py import MPI
+
+    lo, hi = A.getOwnershipRange()
+    indptr, cols, values = A.getValuesCSR()
+    rows = np.repeat(np.arange(lo, hi), np.diff(indptr))
+    stored = values != 0
+    below = int(np.count_nonzero(stored & (cols < rows)))
+    above = int(np.count_nonzero(stored & (cols > rows)))
+    below, above = A.getComm().tompi4py().allreduce(np.array([below, above]), op=MPI.SUM)
+    return "lower" if below and not above else "upper" if above and not below else None
+
+
+def _not_symmetric(name: str, path: str, A: PETSc.Mat, skew: bool, value: float, letter: str = "A") -> InputError:
+    """The error for a matrix that is not (skew-)symmetric, naming the likeliest cause when it holds one
+    triangle only: a symmetric matrix stored as one triangle (as FE codes do) and written with a
+    Matrix Market "general" header or as a full PETSc matrix. Collective."""
+    what = "skew-symmetric" if skew else "symmetric"
+    norm = f"||{letter} + {letter}^T||" if skew else f"||{letter} - {letter}^T||"
+    message = f"{name} matrix {path!r} is not {what} ({norm} / ||{letter}|| = {value:.3g})"
+    triangle = one_triangle(A)
+    if triangle:
+        message += f": it holds only its {triangle} triangle, "
+        if path.endswith(".mtx"):
+            message += (f"under a \"general\" header, which means every entry is listed; write the header as "
+                        f"\"%%MatrixMarket matrix coordinate real {what}\" (one triangle stored, the other implied) "
+                        f"or write both triangles")
+        else:
+            message += "the way symmetric storage keeps it; write both triangles"
+    return InputError(message)
+
+
 def mass_outside_stiffness(K: PETSc.Mat, M: PETSc.Mat) -> int:
     """How many non-zero entries of M lie outside K's stored pattern (0 for K and M of one FE mesh and
     DOF numbering: an element's mass couples no DOFs its stiffness does not). Red team: a K and an M
@@ -624,7 +658,7 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
                 _check_finite(name, path, A)
             skew = asymmetry(A) if A is not None else 0.0
             if skew > SYMMETRY_TOL:
-                raise InputError(f"{name} matrix {path!r} is not symmetric (||A - A^T|| / ||A|| = {skew:.3g})")
+                raise _not_symmetric(name, path, A, False, skew)
         _check_mass(ops.M, files.mass)
         outside = mass_outside_stiffness(ops.K, ops.M)
         if outside:
@@ -637,8 +671,7 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
             _check_finite("gyroscopic", files.gyroscopic, ops.G)
             skew = asymmetry(ops.G, skew=True)
             if skew > SYMMETRY_TOL:
-                raise InputError(f"gyroscopic matrix {files.gyroscopic!r} is not skew-symmetric "
-                                 f"(||G + G^T|| / ||G|| = {skew:.3g})")
+                raise _not_symmetric("gyroscopic", files.gyroscopic, ops.G, True, skew, "G")
         if bool(files.nodes) != bool(files.dofs):
             raise InputError("a node map needs both [structure] nodes and dofs")
         if files.nodes:

@@ -117,6 +117,40 @@ def test_non_symmetric_stiffness_is_an_error(shared_tmp_path, beam_files):
         load_operators(MatrixFiles(bad, paths["M.bin"]))
 
 
+def test_one_triangle_of_a_symmetric_matrix_written_as_a_whole_one_is_refused_naming_the_header_to_write(
+        shared_tmp_path, beam_files):
+    # Red team (new user): K's lower triangle under a "general" header (an FE code keeps one triangle)
+    # was refused as "not symmetric (||A - A^T|| / ||A|| = 0.63)", with nothing on the cause or the fix.
+    # The same triangle as a whole PETSc binary matrix is named too; G's gets the skew-symmetric header.
+    ops, K, _, paths = beam_files
+    lower = scipy.sparse.tril(K).tocsr()
+    files = {name: str(shared_tmp_path / name) for name in ("Kl.mtx", "Kl.bin", "Gu.mtx")}
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(files["Kl.mtx"], lower, precision=17)    # scipy writes a general header
+        scipy.io.mmwrite(files["Gu.mtx"], scipy.sparse.triu(K, 1).tocsr(), precision=17)
+        assert "general" in open(files["Kl.mtx"]).readline()
+    lo, hi = ops.K.getOwnershipRange()
+    indptr, cols, values = ops.K.getValuesCSR()
+    rows = np.repeat(np.arange(lo, hi), np.diff(indptr))
+    triangle = PETSc.Mat().createAIJ(ops.K.getSizes(), csr=(indptr, cols, np.where(cols > rows, 0.0, values)),
+                                     comm=ops.comm)      # the upper triangle zeroed, the pattern kept
+    viewer = PETSc.Viewer().createBinary(files["Kl.bin"], mode="w", comm=ops.comm)
+    triangle.view(viewer)
+    viewer.destroy(), triangle.destroy()
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"^stiffness matrix '.*Kl.mtx' is not symmetric \(.*\): it holds only its "
+                                         r"lower triangle, under a \"general\" header, .* write the header as "
+                                         r"\"%%MatrixMarket matrix coordinate real symmetric\""):
+        load_operators(MatrixFiles(files["Kl.mtx"], paths["M.bin"]))
+    with pytest.raises(InputError, match=r"^stiffness matrix '.*Kl.bin' is not symmetric \(.*\): it holds only its "
+                                         r"lower triangle, .* write both triangles$"):
+        load_operators(MatrixFiles(files["Kl.bin"], paths["M.bin"]))
+    with pytest.raises(InputError, match=r"^gyroscopic matrix '.*Gu.mtx' is not skew-symmetric \(\|\|G \+ G\^T\|\| "
+                                         r"/ \|\|G\|\| = .*\): it holds only its upper triangle, .* "
+                                         r"\"%%MatrixMarket matrix coordinate real skew-symmetric\""):
+        load_operators(MatrixFiles(paths["K.bin"], paths["M.bin"], gyroscopic=files["Gu.mtx"]))
+
+
 @pytest.mark.parametrize("content,message", [
     ("", "not a Matrix Market matrix"),
     ("%%MatrixMarket matrix array real general\n2 2\n1\n0\n0\n1\n", "only real coordinate"),
