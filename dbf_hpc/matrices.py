@@ -1,8 +1,8 @@
 """External structural operators: K, M (and optionally C) from files, for any FE model.
 
 The matrices are over the structure's free DOFs (boundary conditions already applied). Formats,
-chosen by the file name:
-    *.mtx                 Matrix Market, coordinate (general or symmetric), real
+chosen by the file's first bytes, then its name (any case):
+    %%MatrixMarket, *.mtx  Matrix Market, coordinate (general, symmetric or skew-symmetric), real
     anything else         PETSc binary (MatView/VecView with a binary viewer)
 Vectors (influence vector, support-motion mass load) may also be *.npy or *.txt (one value a line).
 
@@ -37,8 +37,23 @@ def _readable(path: str, what: str) -> None:
         raise InputError(f"{what} file {path!r} " + ("is a directory" if os.path.isdir(path) else "does not exist"))
     if not os.access(path, os.R_OK):
         raise InputError(f"{what} file {path!r} is not readable")
-    if os.path.getsize(path) == 0 and not path.endswith(".mtx"):   # (an empty .mtx has no header: said so)
+    if os.path.getsize(path) == 0 and _format(path) != "mtx":   # (an empty .mtx has no header: said so)
         raise InputError(f"{what} file {path!r} is empty")
+
+
+def _format(path: str) -> str:
+    """"mtx", "npy", "txt" or "petsc" (PETSc binary, or anything else): a file that begins with
+    Matrix Market's header is one whatever its name, otherwise the name's ending in any case decides.
+    Red team (new user): a Matrix Market file named K.MTX (or K.mm) was refused as "not a PETSc
+    binary matrix". Not collective (every rank reads the same bytes)."""
+    try:
+        with open(path, "rb") as f:
+            if f.read(14).lower() == b"%%matrixmarket":
+                return "mtx"
+    except OSError:
+        pass
+    lower = path.lower()
+    return next((ext for ext in ("mtx", "npy", "txt") if lower.endswith("." + ext)), "petsc")
 
 
 def _check_finite(what: str, path: str, A) -> None:
@@ -109,7 +124,7 @@ def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
     """A distributed AIJ matrix from a Matrix Market or PETSc binary file. Collective."""
     comm = petsc_comm(comm, "load_matrix")
     _readable(path, what)
-    if path.endswith(".mtx"):
+    if _format(path) == "mtx":
         shape, rows, cols, values, symmetry = _read_matrix_market(path, what)
         if shape[0] != shape[1]:
             raise InputError(f"{what} file {path!r} is {shape[0]} x {shape[1]}, not square")
@@ -129,7 +144,9 @@ def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
             A.load(viewer)
     except PETSc.Error:
         A.destroy()
-        raise InputError(f"{what} file {path!r} is not a PETSc binary matrix") from None
+        raise InputError(f"{what} file {path!r} is not a PETSc binary matrix, nor Matrix Market (it does not begin "
+                         f"with %%MatrixMarket): a matrix is read in one of those two formats (not .npy or text "
+                         f"tables)") from None
     finally:
         viewer.destroy()
     m, n = A.getSize()
@@ -173,11 +190,12 @@ def load_vector(path: str, template: PETSc.Vec, what: str = "vector", owned: boo
 def _load_vector(path: str, template: PETSc.Vec, what: str) -> PETSc.Vec:
     _readable(path, what)
     n = template.getSize()
-    if path.endswith((".npy", ".txt", ".mtx")):
+    kind = _format(path)
+    if kind != "petsc":
         try:
-            if path.endswith(".npy"):
+            if kind == "npy":
                 values = np.load(path, allow_pickle=False)
-            elif path.endswith(".txt"):
+            elif kind == "txt":
                 values = np.loadtxt(path, ndmin=1)
             else:
                 values = _read_matrix_market_vector(path, what)

@@ -1,5 +1,6 @@
 """External operators from files: exact round trips, the same modes as the beam they came from,
 and clear errors for files that cannot be operators."""
+import os
 import re
 
 import numpy as np
@@ -242,6 +243,34 @@ def test_missing_or_foreign_files_are_errors(shared_tmp_path):
     with pytest.raises(InputError, match="not a PETSc binary matrix"):
         load_matrix(str(junk))
     assert_all(True)
+
+
+def test_a_matrix_market_file_is_read_as_one_whatever_its_name_and_a_table_is_refused_naming_the_formats(
+        shared_tmp_path, beam_files):
+    # Red team (new user): the beam's K and M in Matrix Market named K.MTX and M.mm were refused as
+    # "not a PETSc binary matrix"; a dense text table (numpy.savetxt) drew the same line, naming no
+    # format that is read.
+    _, K, M, paths = beam_files
+    files = {name: str(shared_tmp_path / name) for name in ("K.MTX", "M.mm", "r.NPY", "K.txt")}
+    if MPI.COMM_WORLD.rank == 0:
+        for A, name in ((K, "K.MTX"), (M, "M.mm")):     # (scipy's writer appends .mtx to other names)
+            scipy.io.mmwrite(str(shared_tmp_path / "written.mtx"), A, precision=17)
+            os.replace(shared_tmp_path / "written.mtx", files[name])
+        with open(files["r.NPY"], "wb") as f:
+            np.save(f, np.load(paths["r.npy"]))
+        np.savetxt(files["K.txt"], K.toarray())
+    MPI.COMM_WORLD.Barrier()
+    loaded = load_operators(MatrixFiles(files["K.MTX"], files["M.mm"], influence=files["r.NPY"]))
+    try:
+        assert abs(to_scipy(loaded.K) - K).max() <= 1e-12 * abs(K).max()
+        assert abs(to_scipy(loaded.M) - M).max() <= 1e-12 * abs(M).max()
+        assert np.array_equal(to_numpy(loaded.influence), np.load(paths["r.npy"]))
+    finally:
+        loaded.destroy()
+    with pytest.raises(InputError, match=r"^stiffness file '.*K.txt' is not a PETSc binary matrix, nor Matrix Market "
+                                         r"\(it does not begin with %%MatrixMarket\): a matrix is read in one of "
+                                         r"those two formats"):
+        load_operators(MatrixFiles(files["K.txt"], paths["M.bin"]))
 
 
 def test_a_run_whose_scene_names_a_missing_matrix_file_is_one_input_error_on_every_rank(shared_tmp_path, beam_files):
