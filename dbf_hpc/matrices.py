@@ -487,7 +487,10 @@ def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
             raise InputError(f"dofs file {dofs!r}: {str(e).rstrip('.')}; it holds one DOF a row: its node "
                              f"index from 0, then x, y, z, rx, ry or rz") from None
     if not 1 <= xyz.shape[1] <= 3 or not np.all(np.isfinite(xyz)):
-        raise InputError(f"nodes file {nodes!r} must hold 1 to 3 finite coordinates a row (m)")
+        numbered = numbered_nodes(xyz) if xyz.shape[1] == 4 and np.all(np.isfinite(xyz)) else ""
+        hint = (f"; its first column is {numbered}, as node numbers are: remove it (a node's row, from 0, is its "
+                f"number)" if numbered else "")
+        raise InputError(f"nodes file {nodes!r} must hold 1 to 3 finite coordinates a row (m){hint}")
     if table.shape != (n, 2):
         raise InputError(f"dofs file {dofs!r} must have one row 'node direction' for each of the {n} DOFs, "
                          f"got {table.shape[0]} rows of {table.shape[1] if table.ndim == 2 else 0}")
@@ -509,6 +512,22 @@ def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
     coordinates = np.zeros((xyz.shape[0], 3))
     coordinates[:, :xyz.shape[1]] = xyz
     return coordinates, node, component
+
+
+def numbered_nodes(coordinates: np.ndarray) -> str:
+    """"0, 1, ..., N-1" or "1, 2, ..., N" when the nodes' x are exactly the row numbers (from 0 or 1)
+    and another coordinate is not all 0: a nodes file written with a node-number column first (the
+    "id x y" of many FE exports) read as x = id, y = x, z = y; else "". A chain of nodes 1 m apart
+    along x alone is not flagged. Not collective. Red team (new user): such a file was taken with no
+    word and every displacement was drawn at another place."""
+    n = coordinates.shape[0]
+    x, rest = coordinates[:, 0], coordinates[:, 1:]
+    if n < 3 or not np.any(rest != 0):
+        return ""
+    for first in (0, 1):
+        if np.array_equal(x, np.arange(first, first + n, dtype=float)):
+            return f"{first}, {first + 1}, ..., {first + n - 1}"
+    return ""
 
 
 def load_cells(path: str, coordinates: np.ndarray, cell_type: Optional[str] = None) -> tuple:
@@ -696,6 +715,11 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
             # the node map and the cells are read and checked on rank 0, which every rank follows (a
             # rank that could not read them alone would have left the others waiting)
             coordinates, node, component = decided_on_rank0(comm, load_node_map, files.nodes, files.dofs, n)
+            numbered = numbered_nodes(coordinates)
+            if numbered:
+                warn(f"the first column of the nodes file {files.nodes!r} is {numbered}, as node numbers are: a row "
+                     f"holds a node's coordinates only (its row, from 0, is its number); if that column numbers the "
+                     f"nodes, remove it, or the outputs draw every node elsewhere", comm)
             moves = np.flatnonzero(component < 3)          # translations: what a displacement field shows
             cells, cell_type, digest = (decided_on_rank0(comm, load_cells, files.cells, coordinates, files.cell_type)
                                         if files.cells else (None, "", ""))

@@ -66,7 +66,9 @@ SECTIONS = {
         "base_mass_load": Key((str,), None, "", "matrices: M_(free, all) r_all with the coupling to the moving "
                                                 "support (default M r)"),
         "nodes": Key((str,), None, "m", "matrices: node coordinates, a text file with one node a row (1 to 3 "
-                                       "columns); with dofs, outputs show displacement vectors at the nodes"),
+                                       "columns, coordinates only: the row, from 0, is the node's number; a first "
+                                       "column 0, 1, 2 ... draws a warning); with dofs, outputs show displacement "
+                                       "vectors at the nodes"),
         "dofs": Key((str,), None, "", "matrices: for each free DOF (one a row, in K's order) its node (from 0) "
                                       "and direction: x, y, z, rx, ry or rz"),
         "cells": Key((str,), None, "", "matrices: the mesh's cells, so that the ParaView files show the solid "

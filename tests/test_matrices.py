@@ -529,6 +529,43 @@ def test_a_mass_matrix_of_another_dof_numbering_draws_a_warning(shared_tmp_path,
 
 
 
+def test_a_nodes_file_with_a_node_number_column_draws_a_warning_or_names_it_in_its_refusal(shared_tmp_path, capfd):
+    # Red team (new user): "id x y" rows (a node-number column first, as many FE codes export them)
+    # were read as x = id, y = x, z = y with no word, so every displacement was drawn elsewhere; "id x
+    # y z" was refused as "must hold 1 to 3 finite coordinates a row" without the reason. A frame's
+    # "x y" rows and a chain of nodes 1 m apart along x (x = 0, 1, 2 and y = 0) draw no warning.
+    n = 4
+    paths = {name: str(shared_tmp_path / name) for name in ("K.mtx", "M.mtx", "dofs.txt")}
+    tables = {"ids.txt": [[i, 0.1 * i, 0.5] for i in range(n)], "ids1.txt": [[i + 1, 0.1 * i, 0.5] for i in range(n)],
+              "xy.txt": [[0.1 * i, 0.5] for i in range(n)], "chain.txt": [[float(i), 0.0] for i in range(n)],
+              "ids3d.txt": [[i, 0.1 * i, 0.5, 0.0] for i in range(n)]}
+    for name in tables:
+        paths[name] = str(shared_tmp_path / name)
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(paths["K.mtx"], scipy.sparse.diags([2.0, 3.0, 4.0, 5.0]).tocsr())
+        scipy.io.mmwrite(paths["M.mtx"], scipy.sparse.identity(n, format="csr"))
+        open(paths["dofs.txt"], "w").write("".join(f"{i} y\n" for i in range(n)))
+        for name, rows in tables.items():
+            np.savetxt(paths[name], rows)
+    MPI.COMM_WORLD.Barrier()
+
+    def warning(nodes):
+        capfd.readouterr()
+        load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths[nodes], dofs=paths["dofs.txt"])).destroy()
+        return capfd.readouterr().err
+
+    for nodes, numbers in (("ids.txt", "0, 1, ..., 3"), ("ids1.txt", "1, 2, ..., 4")):
+        err = warning(nodes)
+        if MPI.COMM_WORLD.rank == 0:
+            assert re.search(rf"warning: the first column of the nodes file '.*{nodes}' is {re.escape(numbers)}, as node "
+                             rf"numbers are: .* remove it", err), err
+    for nodes in ("xy.txt", "chain.txt"):
+        assert "first column" not in warning(nodes)
+    with pytest.raises(InputError, match=r"must hold 1 to 3 finite coordinates a row \(m\); its first column is "
+                                         r"0, 1, \.\.\., 3, as node numbers are: remove it"):
+        load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["ids3d.txt"], dofs=paths["dofs.txt"]))
+
+
 @pytest.mark.parametrize("args,message", [((None, None), "MatrixFiles stiffness: give the path of a file"),
                                           (("K.mtx", 2), "MatrixFiles mass: give the path of a file .* got 2"),
                                           (("K.mtx", ""), "MatrixFiles mass: give the path of a file .* got ''"),
