@@ -288,6 +288,41 @@ def one_triangle(A: PETSc.Mat) -> Optional[str]:
     return "lower" if below and not above else "upper" if above and not below else None
 
 
+def decoupled_dofs(K: PETSc.Mat, M: PETSc.Mat) -> tuple:
+    """(how many DOFs K and M couple to no other DOF, the first few of them with their sqrt(k_ii /
+    m_ii) in rad/s (inf where m_ii = 0)), counted only when other DOFs are coupled (a diagonal model
+    is all decoupled, and says nothing). Such a DOF in a coupled model is an oscillator of its own,
+    not part of the structure: the mark of a boundary condition kept in the matrices as a zeroed row
+    and column with a diagonal (1 in K and M: a spurious mode at 1 rad/s). Red team (new user): a
+    frame exported so had its 6 reference modes all at 0.159 Hz, and the run failed on a DBF's
+    stiffness, naming neither. Collective (0 and () when K and M are not laid out alike)."""
+    from mpi4py import MPI
+
+    comm = K.getComm().tompi4py()
+    if not comm.allreduce(int(K.getOwnershipRange() == M.getOwnershipRange()), op=MPI.MIN):
+        return 0, ()
+    lo, hi = K.getOwnershipRange()
+    coupled = np.zeros(hi - lo, dtype=bool)
+    diagonal = {}
+    for name, A in (("K", K), ("M", M)):
+        indptr, cols, values = A.getValuesCSR()
+        rows = np.repeat(np.arange(lo, hi), np.diff(indptr))
+        off = (cols != rows) & (values != 0)
+        coupled[np.unique(rows[off]) - lo] = True
+        d = np.zeros(hi - lo)
+        on = (cols == rows)
+        d[rows[on] - lo] = values[on]
+        diagonal[name] = d
+    lonely = np.flatnonzero(~coupled)
+    counts = comm.allreduce(np.array([lonely.size, int(coupled.sum())]))
+    if not counts[0] or not counts[1]:
+        return 0, ()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        omega = np.sqrt(np.abs(diagonal["K"][lonely]) / diagonal["M"][lonely])
+    first = [(int(i) + lo, float(w)) for i, w in zip(lonely[:6], omega[:6])]
+    return int(counts[0]), tuple(sorted(sum(comm.allgather(first), []))[:6])
+
+
 def _not_symmetric(name: str, path: str, A: PETSc.Mat, skew: bool, value: float, letter: str = "A") -> InputError:
     """The error for a matrix that is not (skew-)symmetric, naming the likeliest cause when it holds one
     triangle only: a symmetric matrix stored as one triangle (as FE codes do) and written with a
@@ -697,6 +732,13 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
             if skew > SYMMETRY_TOL:
                 raise _not_symmetric(name, path, A, False, skew)
         _check_mass(ops.M, files.mass)
+        lonely, first = decoupled_dofs(ops.K, ops.M)
+        if lonely:
+            listed = ", ".join(f"{i} ({w / (2 * np.pi):.4g} Hz)" for i, w in first) + (", ..." if lonely > len(first) else "")
+            warn(f"{lonely} DOF(s) of {files.stiffness!r} and {files.mass!r} are coupled to no other DOF: {listed}; each "
+                 f"is an oscillator of its own, not part of the structure, with a mode of the model at that frequency "
+                 f"(a boundary condition kept as a zeroed row and column with a diagonal?): remove fixed DOFs from "
+                 f"K, M and the other files", comm)
         outside = mass_outside_stiffness(ops.K, ops.M)
         if outside:
             warn(f"the mass matrix {files.mass!r} has {outside} non-zero entries where the stiffness "

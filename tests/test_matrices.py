@@ -566,6 +566,39 @@ def test_a_nodes_file_with_a_node_number_column_draws_a_warning_or_names_it_in_i
         load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["ids3d.txt"], dofs=paths["dofs.txt"]))
 
 
+def test_dofs_a_coupled_model_does_not_couple_draw_a_warning_naming_them_and_their_frequency(shared_tmp_path, capfd):
+    # Red team (new user): a frame exported with its supports kept as zeroed rows and columns with 1 on
+    # the diagonal of K and M had its 6 reference modes all at 1 rad/s (0.159 Hz), the isolated DOFs;
+    # the run then failed on a DBF's stiffness, naming neither. A diagonal model (all DOFs decoupled)
+    # and the chain without those rows draw no warning.
+    n = 12
+    chain = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).toarray() * 1e5
+    mass = np.eye(n)
+    kept_k, kept_m = chain.copy(), mass.copy()
+    for i in (0, n - 1):                     # a boundary condition kept in the matrices
+        kept_k[i, :] = kept_k[:, i] = kept_m[i, :] = kept_m[:, i] = 0.0
+        kept_k[i, i] = kept_m[i, i] = 1.0
+    matrices = {"K.mtx": chain, "M.mtx": mass, "Kbc.mtx": kept_k, "Mbc.mtx": kept_m, "D.mtx": np.diag([2.0, 3.0, 4.0]),
+                "I.mtx": np.eye(3)}
+    paths = {name: str(shared_tmp_path / name) for name in matrices}
+    if MPI.COMM_WORLD.rank == 0:
+        for name, A in matrices.items():
+            scipy.io.mmwrite(paths[name], scipy.sparse.csr_matrix(A), precision=17)
+    MPI.COMM_WORLD.Barrier()
+
+    def warnings_of(K, M):
+        capfd.readouterr()
+        load_operators(MatrixFiles(paths[K], paths[M])).destroy()
+        return capfd.readouterr().err
+
+    err = warnings_of("Kbc.mtx", "Mbc.mtx")
+    if MPI.COMM_WORLD.rank == 0:
+        assert re.search(r"warning: 2 DOF\(s\) of '.*Kbc.mtx' and '.*Mbc.mtx' are coupled to no other DOF: "
+                         r"0 \(0.1592 Hz\), 11 \(0.1592 Hz\); .* remove fixed DOFs", err), err
+    for K, M in (("K.mtx", "M.mtx"), ("D.mtx", "I.mtx")):
+        assert "coupled to no other DOF" not in warnings_of(K, M)
+
+
 @pytest.mark.parametrize("args,message", [((None, None), "MatrixFiles stiffness: give the path of a file"),
                                           (("K.mtx", 2), "MatrixFiles mass: give the path of a file .* got 2"),
                                           (("K.mtx", ""), "MatrixFiles mass: give the path of a file .* got ''"),
