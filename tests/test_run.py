@@ -1,5 +1,6 @@
 """Reduced nonlinear dynamics (reduced.py, integrate.py, run.py, output.py) against exact answers:
 the closed-form linear response of the pinned beam, the paper's impacting beam, energy conservation."""
+import dataclasses
 import json
 import os
 
@@ -472,3 +473,48 @@ def test_a_cells_file_changes_no_run_identity_but_a_finished_output_drawn_withou
         assert finished_output(str(out), ident, cells) is None        # other cells since
         os.remove(shared_tmp_path / "cells.txt")
         assert finished_output(str(out), ident, cells) is None        # (the run says what is missing)
+
+
+def test_an_absolute_tolerance_loose_against_small_masses_and_clearances_draws_a_warning_whose_atol_is_enough(
+        shared_tmp_path):
+    # Red team (new user): a structure of small masses and displacements in SI units (here a spring chain
+    # of 1e-9 kg masses, 1e-4 N/m springs, a stop 1 um away) ran at the default atol = 1e-9 in modal units
+    # (m kg^(1/2)), looser than its q ~ 1e-11, with no word: steps at their upper limit, w far from the
+    # same model in kg (same frequencies, displacements and estimate window). The warning names an atol
+    # that brings the run to the kg run; the same chain in kg is not warned.
+    import scipy.io
+    import scipy.sparse
+
+    from dbf_hpc import (BasisSettings, Constraint, FullOrderModel, IntegratorSettings, MatrixFiles, PointForce,
+                         Reductor, law, simulate_reduced)
+    from dbf_hpc.run import loose_atol
+
+    n = 10
+    K = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr() * 1e5
+    M = scipy.sparse.diags(np.linspace(1.0, 2.0, n)).tocsr()
+    results, messages = {}, {}
+    for scale in (1.0, 1e-9):
+        paths = [str(shared_tmp_path / f"{name}{scale:g}.mtx") for name in ("K", "M")]
+        if MPI.COMM_WORLD.rank == 0:
+            scipy.io.mmwrite(paths[0], K * scale, precision=17)
+            scipy.io.mmwrite(paths[1], M * scale, precision=17)
+        MPI.COMM_WORLD.Barrier()
+        stop = Constraint(law("deadband", clearance=1e-6, k=1e6 * scale), dof=5)
+        with FullOrderModel.build(MatrixFiles(*paths), [stop], PointForce(amplitude=0.5 * scale, frequency_hz=10.0,
+                                                                          dof=2)) as fom:
+            with Reductor(fom, BasisSettings(modes=4)) as reductor:      # (no cache directory: none)
+                model = reductor.reduce()
+        messages[scale] = loose_atol(model, 1e-9, [stop])
+        settings = IntegratorSettings(t_end=0.05, sample_dt=1e-4)
+        results[scale] = simulate_reduced(model, settings).displacement[:, 0]
+        if messages[scale]:
+            atol = float(messages[scale].rsplit("atol = ", 1)[1].split()[0])
+            results["advised"] = simulate_reduced(model, dataclasses.replace(settings, atol=atol)).displacement[:, 0]
+    assert messages[1.0] is None
+    assert messages[1e-9] is not None and messages[1e-9].startswith("[integrator] atol = 1e-09 (modal units, m kg^(1/2)) "
+                                                                    "lets w at constraint 1 err by up to")
+    truth = results[1.0]
+    assert np.abs(truth).max() > 1e-6                                   # it hits the stop
+    error = lambda w: np.abs(w - truth).max() / np.abs(truth).max()     # noqa: E731
+    assert error(results[1e-9]) > 0.02 and error(results["advised"]) < 1e-3, (error(results[1e-9]),
+                                                                              error(results["advised"]))
