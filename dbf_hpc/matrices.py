@@ -535,9 +535,16 @@ def load_node_map(nodes: str, dofs: str, n: int) -> tuple:
         raise InputError(f"dofs file {dofs!r}: the first column must be node indices (from 0)") from None
     names = np.char.lower(table[:, 1])
     bad = [d for d in set(names) if d not in COMPONENTS]
-    if bad or node.min(initial=0) < 0 or node.max(initial=0) >= xyz.shape[0]:
-        raise InputError(f"dofs file {dofs!r}: nodes must be 0 to {xyz.shape[0] - 1} and directions one of "
-                         f"{', '.join(COMPONENTS)}" + (f" (got {bad[0]!r})" if bad else ""))
+    if bad:
+        raise InputError(f"dofs file {dofs!r}: directions must be one of {', '.join(COMPONENTS)} (got {bad[0]!r})")
+    outside = np.flatnonzero((node < 0) | (node >= xyz.shape[0]))
+    if outside.size:   # new-user pass: the nodes file went unnamed, and a count from 1 unsaid
+        i = int(outside[0])
+        from_one = node.min() == 1 and node.max() == xyz.shape[0]
+        raise InputError(f"dofs file {dofs!r}: DOF {i} (row {i + 1}) names node {node[i]}, but the nodes file "
+                         f"{nodes!r} has {xyz.shape[0]} nodes, 0 to {xyz.shape[0] - 1}" +
+                         ("; node numbers count from 0 (if these count from 1, subtract 1; if not, the two files "
+                          "describe different meshes)" if from_one else ": the two files must describe one mesh"))
     component = np.array([COMPONENTS.index(d) for d in names], dtype=np.int64)
     keys, first = np.unique(node * len(COMPONENTS) + component, return_index=True)
     if keys.size != n:     # one DOF's value would be shown for another's (red team)

@@ -218,6 +218,27 @@ def test_a_node_map_that_gives_two_dofs_one_node_and_direction_is_refused(shared
         load_operators(MatrixFiles(paths["K.mtx"], paths["M.mtx"], nodes=paths["nodes.txt"], dofs=paths["dofs.txt"]))
 
 
+@pytest.mark.parametrize("dofs,message", [
+    ("1 y\n2 y\n3 y\n", r"DOF 2 \(row 3\) names node 3, but the nodes file '.*nodes.txt' has 3 nodes, 0 to 2; node "
+                         r"numbers count from 0 \(if these count from 1, subtract 1; if not, the two files describe different "
+                         r"meshes\)$"),
+    ("0 y\n1 y\n7 y\n", r"DOF 2 \(row 3\) names node 7, but the nodes file '.*nodes.txt' has 3 nodes, 0 to 2: the two "
+                         r"files must describe one mesh$"),
+    ("0 y\n1 uy\n2 y\n", r"directions must be one of x, y, z, rx, ry, rz \(got 'uy'\)$"),
+])
+def test_a_dofs_file_that_names_a_node_the_nodes_file_lacks_is_refused_naming_both_files(shared_tmp_path, dofs,
+                                                                                          message):
+    # New-user pass: a node map counted from 1, or a nodes file of another mesh, was "nodes must be 0 to 2
+    # and directions one of x, y, ...", naming neither the nodes file nor the row nor the count from 1
+    nodes, dofs_path = str(shared_tmp_path / "nodes.txt"), str(shared_tmp_path / "dofs.txt")
+    if MPI.COMM_WORLD.rank == 0:
+        np.savetxt(nodes, [[0.0], [0.5], [1.0]])
+        open(dofs_path, "w").write(dofs)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"^dofs file '.*dofs.txt': " + message):
+        load_node_map(nodes, dofs_path, 3)
+
+
 def test_a_node_map_file_that_does_not_parse_is_refused_naming_that_file_and_its_rows(tmp_path):
     # New-user pass: the nodes and dofs files swapped was "node map: could not convert string 'x'
     # to float64 at row 0, column 2." (neither file named). Not collective: each rank its own files.
