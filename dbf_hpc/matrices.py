@@ -120,14 +120,22 @@ def _check_index_range(path: str, what: str, size: int, nnz: int) -> None:
                          f"{np.dtype(PETSc.IntType).itemsize * 8}-bit indices can address ({limit})")
 
 
-def load_matrix(path: str, comm=None, what: str = "matrix") -> PETSc.Mat:
-    """A distributed AIJ matrix from a Matrix Market or PETSc binary file. Collective."""
+def load_matrix(path: str, comm=None, what: str = "matrix", diagonal: bool = False) -> PETSc.Mat:
+    """A distributed AIJ matrix from a Matrix Market or PETSc binary file. Collective. With `diagonal`
+    (a stiffness), a Matrix Market file must hold a non-zero diagonal entry in every row: one
+    without is a DOF nothing holds (K singular), and a size line far above the entries (a typo,
+    8700000 for 87) is refused before the matrix's rows are allocated (37 GB for 870 million)."""
     comm = petsc_comm(comm, "load_matrix")
     _readable(path, what)
     if _format(path) == "mtx":
         shape, rows, cols, values, symmetry = _read_matrix_market(path, what)
         if shape[0] != shape[1]:
             raise InputError(f"{what} file {path!r} is {shape[0]} x {shape[1]}, not square")
+        held = np.unique(rows[(rows == cols) & (values != 0)]).size if diagonal else shape[0]
+        if held < shape[0]:
+            raise InputError(f"{what} file {path!r} declares {shape[0]} rows, but only {held} of them have a non-zero "
+                             f"diagonal entry: a row without one is a DOF nothing holds (the matrix is singular); "
+                             f"check the size line and that every DOF is in the file")
         if symmetry != "general":   # the other triangle, mirrored (negated for skew-symmetric)
             off = rows != cols
             sign = -1.0 if symmetry == "skew-symmetric" else 1.0
@@ -720,7 +728,7 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
                          f"[structure] nodes and dofs as well")
     if files.cells:   # before the matrices, which take a while (read in full with the node map)
         decided_on_rank0(comm, _readable, files.cells, "cells")
-    ops = Operators(comm=comm, K=load_matrix(files.stiffness, comm, "stiffness"), M=None)
+    ops = Operators(comm=comm, K=load_matrix(files.stiffness, comm, "stiffness", diagonal=True), M=None)
     try:
         ops.M = load_matrix(files.mass, comm, "mass")
         ops.C = load_matrix(files.damping, comm, "damping") if files.damping else None

@@ -152,6 +152,30 @@ def test_one_triangle_of_a_symmetric_matrix_written_as_a_whole_one_is_refused_na
         load_operators(MatrixFiles(paths["K.bin"], paths["M.bin"], gyroscopic=files["Gu.mtx"]))
 
 
+def test_a_stiffness_whose_size_line_exceeds_its_diagonal_is_refused_before_its_rows_are_allocated(shared_tmp_path,
+                                                                                                  beam_files):
+    # Red team (new user): a size line typed 8700000 for 87 allocated 8.7 million rows (0.37 GB; 870
+    # million would take 37 GB) before "mass matrix is 87 x 87; the stiffness is 8700000 x 8700000".
+    # A K row without a diagonal entry is a DOF nothing holds. M may have empty rows (massless DOFs).
+    _, K, M, paths = beam_files
+    n = K.shape[0]
+    typo, massless = str(shared_tmp_path / "K_typo.mtx"), str(shared_tmp_path / "M_massless.mtx")
+    if MPI.COMM_WORLD.rank == 0:
+        lines = open(paths["K.mtx"]).read().splitlines(keepends=True)
+        size = next(i for i, line in enumerate(lines) if not line.startswith("%"))
+        lines[size] = lines[size].replace(f"{n} {n} ", f"{n}00000 {n}00000 ", 1)
+        open(typo, "w").writelines(lines)
+        lumped = M.tolil()
+        lumped[3, :] = 0.0
+        lumped[:, 3] = 0.0
+        scipy.io.mmwrite(massless, lumped.tocsr(), precision=17)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=rf"^stiffness file '.*K_typo.mtx' declares {n}00000 rows, but only {n} of them "
+                                         rf"have a non-zero diagonal entry: .* check the size line"):
+        load_operators(MatrixFiles(typo, paths["M.bin"]))
+    load_operators(MatrixFiles(paths["K.mtx"], massless)).destroy()
+
+
 @pytest.mark.parametrize("content,message", [
     ("", "not a Matrix Market matrix"),
     ("%%MatrixMarket matrix array real general\n2 2\n1\n0\n0\n1\n", "only real coordinate"),
