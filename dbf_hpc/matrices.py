@@ -120,6 +120,50 @@ def _check_index_range(path: str, what: str, size: int, nnz: int) -> None:
                          f"{np.dtype(PETSc.IntType).itemsize * 8}-bit indices can address ({limit})")
 
 
+# The first 4 bytes of a PETSc binary matrix (MAT_FILE_CLASSID, big-endian)
+MAT_CLASSID = (1211216).to_bytes(4, "big")
+VEC_CLASSID = (1211214).to_bytes(4, "big")     # and of a vector (VEC_FILE_CLASSID)
+
+
+def _begins_with(path: str, head: bytes) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(head)) == head
+    except OSError:
+        return False
+
+
+def _check_petsc_binary_length(path: str, what: str) -> None:
+    """An InputError for a file that begins as a PETSc binary matrix (this PETSc's integer and scalar
+    sizes) but is shorter than its header says: rows M, columns N, nz entries, then M row lengths, nz
+    column indices and nz values (nz < 0: dense, M N values); or as a vector: n, then n values. Red team (new user): a K.bin cut short
+    (a copy that ran out of space) was "(rank 0) ... not a PETSc binary matrix" after 10 s on 2
+    ranks: MatLoad failed on rank 0, which reads, while rank 1 waited for its rows. Not collective
+    (load_matrix runs it on rank 0 and every rank follows)."""
+    vector = _begins_with(path, VEC_CLASSID)
+    if not (vector or _begins_with(path, MAT_CLASSID)):
+        return
+    isize, ssize = np.dtype(PETSc.IntType).itemsize, np.dtype(PETSc.ScalarType).itemsize
+    count = 2 if vector else 4
+    with open(path, "rb") as f:
+        raw = f.read(count * isize)
+    header = np.frombuffer(raw[:len(raw) - len(raw) % isize], dtype=np.dtype(f">i{isize}"))
+    if header.size < count:
+        raise InputError(f"{what} file {path!r} is cut short: it ends inside its PETSc binary header; write it again")
+    size = os.path.getsize(path)
+    if vector:
+        n = int(header[1])
+        if n >= 0 and size < 2 * isize + n * ssize:
+            raise InputError(f"{what} file {path!r} is cut short: {size} bytes, where its PETSc binary header ({n} "
+                             f"entries) needs {2 * isize + n * ssize}; write it again")
+        return
+    m, n, nz = (int(v) for v in header[1:4])
+    needed = 4 * isize + ((m + nz) * isize + nz * ssize if nz >= 0 else m * n * ssize)
+    if m >= 0 and n >= 0 and size < needed:
+        raise InputError(f"{what} file {path!r} is cut short: {size} bytes, where its PETSc binary header ({m} x {n}, "
+                         f"{nz} entries) needs {needed}; write it again")
+
+
 def load_matrix(path: str, comm=None, what: str = "matrix", diagonal: bool = False) -> PETSc.Mat:
     """A distributed AIJ matrix from a Matrix Market or PETSc binary file. Collective. With `diagonal`
     (a stiffness), a Matrix Market file must hold a non-zero diagonal entry in every row: one
@@ -144,6 +188,7 @@ def load_matrix(path: str, comm=None, what: str = "matrix", diagonal: bool = Fal
         start, end = owned_rows(shape[0], comm)
         mine = (rows >= start) & (rows < end)
         return aij_from_owned_triplets(comm, shape[0], rows[mine], cols[mine], values[mine])
+    decided_on_rank0(comm, _check_petsc_binary_length, path, what)
     viewer = PETSc.Viewer().createBinary(path, mode="r", comm=comm)
     A = PETSc.Mat().create(comm=comm)
     A.setType(PETSc.Mat.Type.AIJ)
@@ -152,6 +197,11 @@ def load_matrix(path: str, comm=None, what: str = "matrix", diagonal: bool = Fal
             A.load(viewer)
     except PETSc.Error:
         A.destroy()
+        if _begins_with(path, MAT_CLASSID):
+            raise InputError(f"{what} file {path!r} begins as a PETSc binary matrix but cannot be read: it is "
+                             f"damaged, or was written by a PETSc with other integer or scalar sizes "
+                             f"(this one: {np.dtype(PETSc.IntType).itemsize * 8}-bit indices, real "
+                             f"{np.dtype(PETSc.ScalarType).itemsize * 8}-bit); write it again") from None
         raise InputError(f"{what} file {path!r} is not a PETSc binary matrix, nor Matrix Market (it does not begin "
                          f"with %%MatrixMarket): a matrix is read in one of those two formats (not .npy or text "
                          f"tables)") from None
@@ -221,6 +271,7 @@ def _load_vector(path: str, template: PETSc.Vec, what: str) -> PETSc.Vec:
         start, end = vec.getOwnershipRange()
         vec.array[:] = values[start:end]
         return vec
+    decided_on_rank0(template.getComm(), _check_petsc_binary_length, path, what)
     viewer = PETSc.Viewer().createBinary(path, mode="r", comm=template.getComm())
     try:
         with options_as_they_were():

@@ -77,6 +77,34 @@ def test_an_influence_vector_in_petsc_binary_is_the_written_one(shared_tmp_path,
         loaded.destroy()
 
 
+def test_a_petsc_binary_file_cut_short_is_refused_on_every_rank_naming_its_length(shared_tmp_path, beam_files):
+    # Red team (new user): K.bin cut short (a copy that ran out of space) was "(rank 0) ... is not a PETSc
+    # binary matrix" after 10 s on 2 ranks (MatLoad failed on rank 0, which reads, while rank 1 waited
+    # for its rows), and a K.bin that ends inside its header was an internal error. Now every rank
+    # raises the same InputError at once (pytest.raises on each rank), for matrices and vectors alike.
+    ops, _, _, paths = beam_files
+    r_bin = str(shared_tmp_path / "r.bin")
+    viewer = PETSc.Viewer().createBinary(r_bin, mode="w", comm=ops.comm)
+    ops.influence.view(viewer)
+    viewer.destroy()
+    cut = {name: str(shared_tmp_path / name) for name in ("K_half.bin", "K_header.bin", "r_half.bin")}
+    if MPI.COMM_WORLD.rank == 0:
+        k_bytes, r_bytes = open(paths["K.bin"], "rb").read(), open(r_bin, "rb").read()
+        open(cut["K_half.bin"], "wb").write(k_bytes[:len(k_bytes) // 2])
+        open(cut["K_header.bin"], "wb").write(k_bytes[:10])
+        open(cut["r_half.bin"], "wb").write(r_bytes[:len(r_bytes) // 2])
+    MPI.COMM_WORLD.Barrier()
+    n, nz = ops.K.getSize()[0], int(ops.K.getInfo()["nz_used"])     # (summed over the ranks)
+    with pytest.raises(InputError, match=rf"^stiffness file '.*K_half.bin' is cut short: \d+ bytes, where its PETSc "
+                                         rf"binary header \({n} x {n}, {nz} entries\) needs {16 + 4 * (n + nz) + 8 * nz}"):
+        load_operators(MatrixFiles(cut["K_half.bin"], paths["M.bin"]))
+    with pytest.raises(InputError, match=r"^stiffness file '.*K_header.bin' is cut short: it ends inside its PETSc"):
+        load_operators(MatrixFiles(cut["K_header.bin"], paths["M.bin"]))
+    with pytest.raises(InputError, match=rf"^influence vector file '.*r_half.bin' is cut short: \d+ bytes, where its "
+                                         rf"PETSc binary header \({n} entries\) needs {8 + 8 * n}"):
+        load_operators(MatrixFiles(paths["K.bin"], paths["M.bin"], influence=cut["r_half.bin"]))
+
+
 def test_loaded_operators_have_the_beams_frequencies(beam_files):
     ops, _, _, paths = beam_files
     loaded = load_operators(MatrixFiles(paths["K.mtx"], paths["M.bin"]))
