@@ -308,7 +308,8 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float, rigi
     elastic = f[rigid_modes:] if rigid_modes else f[f > 1e-9 * f[-1]] if f[-1] > 0 else f
     if elastic.size and elastic[0] < SUSPICIOUS_HZ:
         warnings.append(f"the lowest elastic frequency is {elastic[0]:.3g} Hz: check the structure's units (SI: E in "
-                        f"Pa, lengths in m, rho in kg/m^3; matrices in N/m and kg)")
+                        f"Pa, lengths in m, rho in kg/m^3; matrices in N/m and kg, and the stiffness and mass files "
+                        f"not swapped)")
     above = forcing_warning(forcing_hz, basis.omega)
     if above:
         warnings.append(above)

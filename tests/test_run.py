@@ -518,3 +518,30 @@ def test_an_absolute_tolerance_loose_against_small_masses_and_clearances_draws_a
     error = lambda w: np.abs(w - truth).max() / np.abs(truth).max()     # noqa: E731
     assert error(results[1e-9]) > 0.02 and error(results["advised"]) < 1e-3, (error(results[1e-9]),
                                                                               error(results["advised"]))
+
+
+def test_stiffness_and_mass_files_swapped_draw_the_unit_warning_naming_the_swap(shared_tmp_path, capfd):
+    # Red team (new user): a frame's K and M given as each other ran with "the lowest elastic frequency
+    # is 1.8e-06 Hz: check the structure's units (...; matrices in N/m and kg)", which names no swap
+    # (the failure path's hint, basis._units_hint, does). The files in their places draw no warning.
+    import scipy.io
+    import scipy.sparse
+
+    n = 10
+    K = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr() * 1e5
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(str(shared_tmp_path / "K.mtx"), K, precision=17)
+        scipy.io.mmwrite(str(shared_tmp_path / "M.mtx"), scipy.sparse.identity(n, format="csr"))
+        for name, (stiffness, mass) in (("right.toml", ("K", "M")), ("swapped.toml", ("M", "K"))):
+            (shared_tmp_path / name).write_text(
+                f'[structure]\nkind = "matrices"\nstiffness = "{stiffness}.mtx"\nmass = "{mass}.mtx"\n'
+                f'[excitation]\nkind = "force"\ndof = 2\namplitude = 1.0\nfrequency_hz = 1e-5\n'
+                f'[[constraint]]\ndof = 5\nclearance = 1e-3\nk = 1e5\n[basis]\nmodes = 4\ncache = "off"\n'
+                f'estimate = false\n[integrator]\nt_end = 0.01\n')
+    MPI.COMM_WORLD.Barrier()
+    for name, warned in (("right.toml", False), ("swapped.toml", True)):
+        capfd.readouterr()
+        run(load_scene(str(shared_tmp_path / name)), str(shared_tmp_path / f"{name}.h5"), progress=False)
+        err = capfd.readouterr().err
+        if MPI.COMM_WORLD.rank == 0:
+            assert ("lowest elastic frequency" in err and "the stiffness and mass files not swapped" in err) == warned, err
