@@ -25,7 +25,7 @@ def test_an_absolute_tolerance_below_any_resolved_state_is_refused_and_derived_o
             IntegratorSettings(t_end=1.0, atol=atol)
     at_floor = IntegratorSettings(t_end=1.0, atol=ATOL_FLOOR)
     assert rich_settings(at_floor, 0.5).atol == ATOL_FLOOR          # the richer run keeps the floor
-    assert rich_settings(IntegratorSettings(t_end=1.0), 0.5).atol == pytest.approx(1e-10)
+    assert rich_settings(IntegratorSettings(t_end=1.0), 0.5).atol == pytest.approx(1e-10, abs=0)
 
 
 @pytest.mark.parametrize("settings,fastest,adaptive,message", [
@@ -112,7 +112,7 @@ def test_a_step_held_at_the_controllers_floor_for_floor_steps_stops_the_run_nami
         settings = IntegratorSettings(t_end=1.0, dt=1e-4, adaptive=True)
         monitor = StepMonitor(np.linspace(0.0, 1.0, 11))
         configure(ts, settings, "rom_", {"ts_adapt_type": "basic"}, True, steps=monitor)
-        assert monitor.floor == pytest.approx(floor, rel=1e-12)
+        assert monitor.floor == pytest.approx(floor, rel=1e-12, abs=0)
         ts.setTimeStep(2 * floor)                       # above the floor: no count
         for step in range(2 * FLOOR_STEPS):
             monitor.report(step, 0.5)
@@ -185,11 +185,11 @@ def test_the_step_floor_and_the_crawl_are_measured_against_one_scale_the_smaller
         monitor = StepMonitor(np.linspace(0.0, t_end, 11))
         configure(ts, settings, "rom_", {"ts_adapt_type": "basic"}, True, steps=monitor, fastest_hz=fastest)
         scale = step_scale(dt, fastest)
-        assert scale == pytest.approx(min(dt, 1 / (20 * fastest)) if fastest else dt, rel=1e-12)
-        assert ts.getStepLimits()[0] == pytest.approx(floor, rel=1e-12)     # PETSc's floor ...
-        assert monitor.floor == pytest.approx(floor, rel=1e-12)             # ... is the one watched
+        assert scale == pytest.approx(min(dt, 1 / (20 * fastest)) if fastest else dt, rel=1e-12, abs=0)
+        assert ts.getStepLimits()[0] == pytest.approx(floor, rel=1e-12, abs=0)     # PETSc's floor ...
+        assert monitor.floor == pytest.approx(floor, rel=1e-12, abs=0)             # ... is the one watched
         assert re.fullmatch(source, monitor.floor_source), monitor.floor_source
-        assert monitor.stall_step == pytest.approx(max(floor, scale * STALL_FRACTION), rel=1e-12)
+        assert monitor.stall_step == pytest.approx(max(floor, scale * STALL_FRACTION), rel=1e-12, abs=0)
         assert monitor.floor <= scale * MIN_STEP_FRACTION or "rounding" in monitor.floor_source
     finally:
         ts.destroy()

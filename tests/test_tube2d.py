@@ -570,7 +570,10 @@ def test_wear_volume_is_archard_k_w_times_the_run_time_times_the_work_rate_and_n
     from dbf_hpc.stats import wear_volume
 
     volume, ci = wear_volume([2e-14, None, 0.0], 3.0, [1e-3, 5e-3, 2e-3], [4e-4, 1e-3, 1e-3])
-    assert volume[0] == pytest.approx(2e-14 * 3.0 * 1e-3, rel=1e-15) and ci[0] == pytest.approx(2e-14 * 3.0 * 4e-4)
+    # abs=0: pytest.approx's default absolute tolerance (1e-12) passes any number within 1e-12 of a 6e-17 m^3
+    # volume, so without it a wear volume or interval off by any factor passed
+    assert volume[0] == pytest.approx(2e-14 * 3.0 * 1e-3, rel=1e-15, abs=0)
+    assert ci[0] == pytest.approx(2e-14 * 3.0 * 4e-4, rel=1e-15, abs=0)
     assert np.isnan(volume[1]) and np.isnan(ci[1]) and volume[2] == 0.0
     scene = load_scene(TUBE_2D)
     assert [c.wear_coefficient for c in scene.constraints] == [2e-14] * 12
