@@ -126,6 +126,32 @@ def test_circular_gap_pushes_back_along_the_radius_and_friction_opposes_sliding(
     assert np.isclose(laws.potential(u)[0], 0.5 * k * 1e-6)
 
 
+@pytest.mark.parametrize("kind", ["circular", "flat_bar"])
+def test_contact_damping_of_a_two_direction_support_acts_along_the_normal_and_friction_follows_the_elastic_force(kind):
+    # The docstring's law by hand, at a point in contact pressing in (v_n > 0) and sliding (v_t):
+    # F.n = -(k delta + c v_n) (linear), -(k delta + alpha k delta v_n) (Hunt-Crossley), and the
+    # friction F.t = -mu k delta tanh(v_t / v_reg), proportional to the elastic normal force alone.
+    # The damping was checked only for agreement with its own Jacobian (and with the C callbacks):
+    # a factor 2 on c or alpha in both force and Jacobian passed every test of this file.
+    k, gap, mu, v_reg, c, alpha, delta = 1e5, 1e-3, 0.3, 1e-2, 40.0, 0.5, 4e-4
+    angle = 0.7 if kind == "circular" else math.radians(30.0)
+    n, t = np.array([math.cos(angle), math.sin(angle)]), np.array([-math.sin(angle), math.cos(angle)])
+    u = (gap + delta) * n + (2e-3 * t if kind == "flat_bar" else 0.0)   # flat bars: anywhere along the flats
+    vn, vt = 0.2, -0.05
+    v = vn * n + vt * t
+    flat = {"kind": "flat_bar", "angle": 30.0} if kind == "flat_bar" else {}
+    linear = CircularLaw(clearance=gap, k=k, mu=mu, v_reg=v_reg, damping="linear", c=c, **flat)
+    hunt = CircularLaw(clearance=gap, k=k, mu=mu, v_reg=v_reg, damping="hunt_crossley", alpha=alpha, **flat)
+    friction = -mu * k * delta * math.tanh(vt / v_reg)
+    for support, normal in ((linear, -(k * delta + c * vn)), (hunt, -k * delta * (1 + alpha * vn))):
+        laws = PlanarLaws([support])
+        for f in (laws.force(u, v), laws.force_and_jacobian(u, v)[0]):
+            assert np.isclose(f @ n, normal, rtol=1e-12, atol=0) and np.isclose(f @ t, friction, rtol=1e-12, atol=0)
+        assert np.isclose(laws.force(u) @ n, -k * delta, rtol=1e-12, atol=0)   # v = None: elastic only
+        inside = u - 2 * delta * n                                             # out of contact: no damping
+        assert not np.any(laws.force(inside, v)) and not np.any(laws.force_and_jacobian(inside, v)[0])
+
+
 def test_work_rate_of_a_forced_orbit_is_normal_force_times_sliding_speed():
     # u(t) = R (cos wt, sin wt) outside a hole of radius c: F_n = k (R - c), v_t = R w, so the normal
     # work rate <|F_n| |v_t|> is k (R - c) R w, and the impact power |F_n v_n| is 0 (no radial motion)
