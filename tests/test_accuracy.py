@@ -425,6 +425,29 @@ def test_the_contact_fractions_batch_interval_is_the_batch_means_interval_of_the
     assert ci["contact_fraction"][0] > 0 and values["impact_rate"][1] == 0 and ci["impact_rate"][1] == 0
 
 
+def test_the_statistics_estimates_work_rate_of_a_steady_orbit_is_normal_force_times_sliding_speed_in_every_batch():
+    # A tube orbiting at radius R > c in a round hole, u = R (cos wt, sin wt), from t = 0.3 s on non-uniform
+    # samples: |F_n| = k (R - c) and |v_t| = R w at every sample, so the work rate over the window and over
+    # each of its batches is k (R - c) R w exactly, and its batch-means half-width is 0. The statistics
+    # estimate's work rate (accuracy._statistics) divided the integral by t_end and not by the span: a
+    # window or batch that does not start at 0 read a smaller rate, and no test ran one.
+    from dbf_hpc.accuracy import window_statistics
+    from dbf_hpc.laws import CircularLaw, PlanarLaws
+
+    k, c, R, w, mu, v_reg = 1e6, 2e-4, 3e-4, 2 * math.pi * 7.0, 0.3, 1e-3
+    laws = PlanarLaws([CircularLaw(clearance=c, k=k, mu=mu, v_reg=v_reg)])
+    t = 0.3 + np.cumsum(np.random.default_rng(4).uniform(0.5e-4, 1.5e-4, 3001))
+    z = R * np.column_stack((np.cos(w * t), np.sin(w * t)))
+    v = R * w * np.column_stack((-np.sin(w * t), np.cos(w * t)))
+    force = np.array([laws.force(zi, vi) for zi, vi in zip(z, v)])
+    values, ci = window_statistics(t, z, v, force, laws)
+    work = k * (R - c) * R * w
+    assert np.isclose(values["work_rate"][0], work, rtol=1e-12, atol=0) and ci["work_rate"][0] < 1e-12 * work
+    assert values["contact_fraction"][0] == 1.0 and np.isclose(values["displacement_rms"][0], R, rtol=1e-12, atol=0)
+    assert np.isclose(values["force_rms"][0], k * (R - c) * math.hypot(1.0, mu * math.tanh(R * w / v_reg)),
+                      rtol=1e-12, atol=0)
+
+
 def test_a_long_run_sampled_coarsely_gets_a_statistics_window_its_batch_means_can_measure(shared_tmp_path):
     # 0.2 s sampled every 2 ms is a long run (its pointwise window ~0.02 s); t_end / 4 held 26 samples,
     # and at 1 ms and 0.05 s (the two-plane tube, red team) 13: fewer than the 2 x 10 batch means need,
