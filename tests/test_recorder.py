@@ -1,5 +1,6 @@
 """The recorder (recorder.py): a full-order run hands its steps and samples over in blocks; what it
-writes must be what step-by-step recording writes."""
+writes must be what step-by-step recording writes. The per-support statistics of supports of two
+directions against their closed forms."""
 import numpy as np
 
 from dbf_hpc.constraints import ConstraintSet
@@ -58,3 +59,33 @@ def test_blocks_of_steps_and_samples_record_what_step_by_step_recording_does():
     for name in STATISTICS:
         np.testing.assert_allclose(got[name], expected[name], rtol=1e-12, atol=1e-18, err_msg=name)
     np.testing.assert_array_equal(blocks.peak, one.peak)
+
+
+def test_two_direction_supports_impact_power_is_normal_force_times_normal_speed_and_friction_adds_nothing():
+    # A tube in a round hole with friction on a spiral always in contact: r(t) = R + a sin(W t) > c, angle w t.
+    # Then |F_n| = k (r - c), v_n = r', v_t = r w, so the impact power <|F_n v_n|> is the trapezoid mean of
+    # k (r - c) |r'| and the work rate that of k (r - c) r w, whatever the friction force mu k (r - c) tanh(..)
+    # along t adds to |F|. The only two-direction test of the impact power had v_n = 0 (the circular orbit of
+    # test_tube2d.py: 0 for any force), so recording |F| |v_n| (friction included) passed every test.
+    from dbf_hpc.laws import CircularLaw, PlanarLaws
+
+    k, c, mu, R, a, W, w = 1e6, 2e-4, 0.4, 3e-4, 5e-5, 2 * np.pi * 11.0, 2 * np.pi * 7.0
+    laws = PlanarLaws([CircularLaw(clearance=c, k=k, mu=mu)])
+    constraints = ConstraintSet(rows=[[0, 1]], laws=laws, labels=("a",), positions=np.zeros(1))
+    t = np.cumsum(np.random.default_rng(2).uniform(0.5e-4, 1.5e-4, 4000))
+    r, dr = R + a * np.sin(W * t), a * W * np.cos(W * t)
+    e, et = np.column_stack((np.cos(w * t), np.sin(w * t))), np.column_stack((-np.sin(w * t), np.cos(w * t)))
+    z, v = r[:, None] * e, dr[:, None] * e + (r * w)[:, None] * et
+    power = np.trapz(k * (r - c) * np.abs(dr), t) / (t[-1] - t[0])
+    work = np.trapz(k * (r - c) * r * w, t) / (t[-1] - t[0])
+    for by_blocks in (True, False):
+        recorder = SampleRecorder(MemoryWriter(constraints.shape, 0, 0), constraints)
+        if by_blocks:
+            recorder.steps(t, z, v)
+        else:
+            for i in range(t.size):
+                recorder.step(t[i], z[i], v[i])
+        stats = recorder.impacts.result()
+        assert np.isclose(stats["impact_power_mean"][0], power, rtol=1e-10, atol=0)
+        assert np.isclose(stats["work_rate"][0], work, rtol=1e-10, atol=0)
+        assert stats["impacts"][0] == 1 and stats["contact_fraction"][0] == 1.0
