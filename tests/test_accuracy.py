@@ -384,6 +384,21 @@ def test_a_long_runs_statistics_plus_minus_their_estimated_errors_hold_the_full_
         assert np.all(rom[f"error/{name}_model"] != 0)   # the richer model does differ
         assert np.allclose(error, np.abs(rom[f"error/{name}_model"]) + rom[f"error/{name}_sampling_ci95"]
                            + rom[f"error/{name}_window_reduced_ci95"] + rom[f"error/{name}_window_rich_ci95"])
+    # The window's datasets are what they are named: the reduced run's statistics over its own samples in
+    # [0, window] (recomputed here from the file's samples; a mutation writing the richer run's values under
+    # _window_reduced passed), the richer run's differing from them by _model, and the run's sampling interval
+    # over [0, 2] s is the batch-means interval of its samples.
+    k = int(np.searchsorted(rom["time"], rom["attrs"]["estimated_statistics_window"] * (1 + 1e-12), side="right"))
+    window, window_ci = window_statistics(*(rom[key][:k] for key in ("time", "constraints/displacement",
+                                                                     "constraints/velocity", "constraints/force")))
+    _, sampling = window_statistics(*(rom[k] for k in ("time", "constraints/displacement", "constraints/velocity",
+                                                        "constraints/force")))
+    for name in ESTIMATED_STATISTICS:
+        assert np.allclose(rom[f"error/{name}_window_reduced"], window[name], rtol=1e-12, atol=0), name
+        assert np.allclose(rom[f"error/{name}_window_reduced_ci95"], window_ci[name], rtol=1e-12, atol=0), name
+        assert np.allclose(rom[f"error/{name}_window_rich"] - rom[f"error/{name}_window_reduced"],
+                           rom[f"error/{name}_model"], rtol=1e-12, atol=0), name
+        assert np.allclose(rom[f"error/{name}_sampling_ci95"], sampling[name], rtol=1e-12, atol=0), name
 
 
 def test_without_contact_the_contact_statistics_errors_are_exactly_zero(shared_tmp_path):
