@@ -76,15 +76,20 @@ def _mark_used(options: dict) -> None:
         database.getString(name, "")
 
 
-def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool = False) -> str:
+def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool = False,
+              whole: str = "refuse") -> str:
     """sha256 of everything that determines the basis (the options only of the solvers its kind uses),
     and the package version (a release may build it otherwise without a new ALGORITHM).
     A gyroscopic basis (second-order form) has its own algorithm name: its operators' fingerprint
-    already holds U, m_t and T (a beam) or G's bytes (matrices)."""
+    already holds U, m_t and T (a beam) or G's bytes (matrices). `whole` = "extend" (obtain_modes: a
+    count inside a repeated frequency taken to its end) is part of the key; a user's count ("refuse")
+    keeps the key it had (red team: the estimate's 6 modes stored for a count of 5 served a run asking
+    5 modes alone, which without the cache is refused, as 5 cut a pair)."""
     content = {"algorithm": ALGORITHM + ("-gyroscopic" if gyroscopic else ""), "version": __version__,
                "operators": fingerprint,
                "rows": [int(r) for r in rows], "settings": settings.key(),
-               "options": solver_options(settings.strategy.solver_prefixes)}
+               "options": solver_options(settings.strategy.solver_prefixes),
+               **({"whole": whole} if whole != "refuse" else {})}
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -172,10 +177,12 @@ def _close_and_rename(f, V, tmp: str, path: str, error: str | None) -> str | Non
     return error
 
 
-def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings, checked: bytes):
+def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings, checked: bytes,
+          whole: str = "refuse"):
     """(problem or None, the small arrays, this rank's block of V) of a cache file whose user block
     is `checked` (the file rank 0 checked: another job may have stored the entry again since, and
-    each rank would read its own file, a mix of two bases)."""
+    each rank would read its own file, a mix of two bases). A count of modes asked (not
+    max_frequency_hz) must be the count held, or with `whole` = "extend" at most it."""
     lo, hi = ops.K.getOwnershipRange()
     try:
         with h5py.File(path, "r") as f:
@@ -210,21 +217,29 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings, ch
                     or any(arrays[name].size != enriched for name in ("dbf_k", "dbf_k_auto", "dbf_branch"))
                     or arrays["flexibility_exact"].size != len(rows)):
                 return "has the wrong shape", {}, None
+            held = arrays["omega"].size
+            if ops.G is None and settings.max_frequency_hz is None and (
+                    held < settings.modes or (whole == "refuse" and held != settings.modes)):
+                # an entry of 0.2.3's error estimate (a repeated frequency taken whole) under a run's key
+                return f"holds {held} modes, not the {settings.modes} asked", {}, None
             return None, {**arrays, "orthonormality_defect": defect}, f["V"][lo:hi, :]
     except (OSError, KeyError, ValueError) as e:
         return f"cannot be read ({lock_problem(e) or type(e).__name__})", {}, None
 
 
-def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows) -> ReducedBasis | None:
+def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows,
+         whole: str = "refuse") -> ReducedBasis | None:
     """The cached basis if `path` holds a valid one for `key` and `rows` on these operators, else
     None (and a line saying why). Everything it carries is checked against what is asked now: the
-    key, the constraint rows, the shapes, V^T M V = I and the frequencies on these operators."""
+    key, the constraint rows, the shapes (the count of modes, `whole` as build_basis's), V^T M V = I
+    and the frequencies on these operators."""
     world = ops.comm.tompi4py()
     # the seal first, on rank 0 alone: HDF5 must not parse a damaged file (it may crash the process)
     problem, checked = world.bcast(sealed.check(path, SEAL, "this cache") if world.rank == 0 else None, root=0)
     arrays, block = {}, None
     if not problem:
-        problem, arrays, block = _read(path, key, ops, np.asarray(rows, dtype=np.int64), settings, checked)
+        problem, arrays, block = _read(path, key, ops, np.asarray(rows, dtype=np.int64), settings, checked,
+                                       whole)
     problem = next((p for p in world.allgather(problem) if p), None)
     if problem:
         _say(ops.comm, f"basis cache {path} {problem}; rebuilding it")
@@ -321,11 +336,11 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
         basis = build_basis(ops, rows, settings, labels, whole)
         basis.stats["cache"] = "off"
         return basis
-    key = basis_key(fingerprint, rows, settings, gyroscopic)
+    key = basis_key(fingerprint, rows, settings, gyroscopic, whole)
     path = cache_path(cache_dir, key)
     exists = ops.comm.tompi4py().bcast(os.path.exists(path) if ops.comm.rank == 0 else None, root=0)
     if exists:
-        basis = load(path, key, ops, settings, rows)
+        basis = load(path, key, ops, settings, rows, whole)
         if basis is not None:
             _mark_used(solver_options(settings.strategy.solver_prefixes, observers=True))
             return basis

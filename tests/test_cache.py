@@ -514,3 +514,40 @@ def test_the_estimates_richer_modes_of_a_symmetric_structure_take_a_repeated_fre
             assert (counters["eigen_solves"] == before) == stored
     finally:
         ops.destroy()
+
+
+def test_the_estimates_whole_pair_in_the_cache_does_not_serve_a_run_asking_a_count_that_cuts_it(shared_tmp_path):
+    # The estimate's richer modes take a repeated frequency whole (5 asked, 6 stored) in an entry of modes
+    # alone without constraint rows: the key of a run of the same structure asking 5 modes alone. That run
+    # read the 6 modes from the cache, where without it 5 is refused (a pair cut: a direction set by
+    # round-off). The estimate's entry has its own key; a run's count must be the count an entry holds.
+    from dbf_hpc.basis import BasisSettings
+    from dbf_hpc.cache import cache_path, basis_key, obtain_basis, obtain_modes
+    from dbf_hpc.errors import InputError
+    from conftest import twin_chains
+
+    ops, _, _ = twin_chains(shared_tmp_path)
+    fingerprint, cache = {"structure": "twin chains"}, str(shared_tmp_path / "cache")
+    none, five = np.zeros(0, dtype=np.int64), BasisSettings(modes=5, enrichment="none")
+
+    def refused():
+        try:
+            obtain_basis(ops, none, five, fingerprint, cache).destroy()
+        except InputError as e:
+            return "keeps 1 of the 2 modes" in str(e)
+        return False
+
+    try:
+        obtain_modes(ops, 5, fingerprint, cache).destroy()
+        assert refused(), "with the estimate's entry in the cache, as without a cache"
+        # an entry stored under the run's own key (by 0.2.3, which keyed both alike) is not used either
+        moved = False
+        if MPI.COMM_WORLD.rank == 0:
+            stored = glob.glob(os.path.join(cache, "basis-*.h5"))
+            if len(stored) == 1:
+                os.rename(stored[0], cache_path(cache, basis_key(fingerprint, none, five)))
+                moved = True
+        assert MPI.COMM_WORLD.bcast(moved, root=0), "one entry, the estimate's"
+        assert refused()
+    finally:
+        ops.destroy()
