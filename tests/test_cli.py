@@ -218,6 +218,23 @@ def test_a_termination_signal_before_the_integration_on_two_ranks_leaves_no_lock
     assert sorted(os.listdir(tmp_path)) == ["terminated.py"], "nothing written, and no lock left"
 
 
+
+def test_a_termination_signal_while_the_command_still_imports_its_modules_is_no_internal_error(monkeypatch):
+    # Red team: SIGTERM to rank 1 of `mpirun -n 2 dbf-hpc run` in its first seconds (under load: the
+    # imports) ended the job with "internal error (ImportError) on rank 1: cannot import name
+    # 'release_held_locks' from partially initialized module 'dbf_hpc.output'": the signal handler
+    # (cli._terminated) imported it to remove the output locks while the command was importing that very
+    # module, and the ImportError rose into the command. A module not yet made holds no lock: nothing to do.
+    import types
+
+    from dbf_hpc import cli
+
+    half = types.ModuleType("dbf_hpc.output")   # what sys.modules holds while output.py runs its imports
+    monkeypatch.setitem(sys.modules, "dbf_hpc.output", half)
+    cli._release_locks()
+    cli._release_locks(others=False)
+    assert sys.modules["dbf_hpc.output"] is half
+
 _TERMINATED_AT_THE_END = """
 import os, signal, sys
 from mpi4py import MPI
