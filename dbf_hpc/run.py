@@ -469,7 +469,8 @@ def request_identity(scene: Scene, comm, method: str, initial_state=None, digest
 def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | None:
     """The summary of `path` if it is a finished output of this very run, else None: complete, no
     .partial beside it, its stored run identity equal to `ident` on every part `ident` names, and its
-    ParaView file present when the scene asks for snapshots. A checkpoint beside it does not count:
+    ParaView file present when the scene asks for snapshots, and the one its run wrote for it (not an
+    earlier run's, left where this run's write failed: xdmf.describes). A checkpoint beside it does not count:
     without its .partial it cannot be resumed, and a run killed between the output's rename and the
     checkpoint's removal leaves one (red team: a requeued `--resume` then refused the finished run).
     The summary is read back from the file (the same keys and values the run returned; "final_state"
@@ -494,6 +495,8 @@ def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | N
             if not ident or any(stored.get(part) != value for part, value in ident.items()):
                 return None
             if f.attrs.get("field_cells_sha256", "") != cells_digest:   # its ParaView file shows other cells
+                return None
+            if scene.output().snapshots and not xdmf.describes(xdmf.sidecar(path), f):   # an earlier run's
                 return None
             if cells_digest and f.attrs.get("field_cells") != (scene["structure"]["cell_type"] or xdmf.CELL_TYPES.get(
                     int(f.attrs.get("field_cell_nodes", 0)))):                    # or of another type

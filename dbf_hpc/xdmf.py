@@ -85,10 +85,34 @@ def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, na
           cells=None, cell_type: str = "", notes=None) -> None:
     """Write the XDMF `path` for `{prefix}/{name}/NNNNNN` (nodes x 3 each) and `{prefix}/points` in
     `h5_file` (referred to by its name: keep the two side by side). `steps` label the time series
-    (times in s, or mode numbers). With `cells` (E x k, as `{prefix}/cells`), the topology is those
-    cells, of `cell_type` (default CELL_TYPES by k), else a beam's polyline or points. `notes`: {step
-    index: text}, an XDMF Information element "note" in that step's grid (a shape of a repeated
-    frequency)."""
+    (times in s, or mode numbers). With `cells` (E x k, as `{prefix}/cells`; only its shape is read),
+    the topology is those cells, of `cell_type` (default CELL_TYPES by k), else a beam's polyline or
+    points. `notes`: {step index: text}, an XDMF Information element "note" in that step's grid (a
+    shape of a repeated frequency)."""
+    content = text(h5_file, prefix, kind, nodes, steps, name, cells, cell_type, notes)
+    with replacing(path) as tmp, open(tmp, "w") as f:
+        f.write(content)
+
+
+def describes(path: str, h5) -> bool:
+    """Whether the XDMF `path` is the one write() makes for the snapshots of the open run output `h5`
+    (its times, nodes, field kind and cells): a rerun whose ParaView file was not written (a full
+    disk, a kill after the output's rename) leaves an earlier run's beside a complete output, with
+    that run's times and snapshot count (red team). Not collective."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            found = f.read()
+        cells = h5.get("snapshots/cells")
+        expected = text(h5.filename, "snapshots", str(h5.attrs["field_kind"]), h5["snapshots/points"].shape[0],
+                        h5["snapshots/time"][()], cells=cells, cell_type=str(h5.attrs.get("field_cells", "")))
+    except (OSError, KeyError, ValueError, UnicodeDecodeError):
+        return False
+    return found == expected
+
+
+def text(h5_file: str, prefix: str, kind: str, nodes: int, steps, name: str = "displacement", cells=None,
+         cell_type: str = "", notes=None) -> str:
+    """The XDMF document write() writes."""
     from xml.sax.saxutils import quoteattr
 
     notes = notes or {}
@@ -116,8 +140,6 @@ def write(path: str, h5_file: str, prefix: str, kind: str, nodes: int, steps, na
             f'<Attribute Name="{name}" AttributeType="Vector" Center="Node">'
             f'<DataItem Format="HDF" Dimensions="{nodes} 3" NumberType="Float" Precision="8">'
             f'{h5}:/{prefix}/{name}/{i:06d}</DataItem></Attribute></Grid>')
-    text = (f'<?xml version="1.0" ?>\n{MARK}\n<Xdmf Version="3.0"><Domain>'
+    return (f'<?xml version="1.0" ?>\n{MARK}\n<Xdmf Version="3.0"><Domain>'
             f'<Grid Name="{name}" GridType="Collection" CollectionType="Temporal">\n'
             + "\n".join(grids) + "\n</Grid></Domain></Xdmf>\n")
-    with replacing(path) as tmp, open(tmp, "w") as f:
-        f.write(text)

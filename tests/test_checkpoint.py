@@ -2,6 +2,7 @@
 from data that is what was written. Corrupt, crafted or foreign checkpoints are refused in one line
 naming the cause; nothing read from disk is trusted unchecked."""
 import os
+import re
 import shutil
 import signal
 import threading
@@ -386,6 +387,42 @@ def test_a_resume_of_a_finished_run_asked_differently_computes_it_again(shared_t
     run(load_scene(PAPER, ["integrator.t_end=0.2", *sets[1:]]), out, progress=False, resume=True)
     assert_all(os.stat(out).st_mtime_ns != stamp and os.path.exists(str(shared_tmp_path / "run.xdmf")))
 
+
+
+def test_an_earlier_runs_paraview_file_beside_a_rerun_whose_own_was_not_written_is_not_taken_as_finished(
+        shared_tmp_path, monkeypatch):
+    # A rerun (another t_end) finished its output, and its ParaView file could not be written (a full disk;
+    # or a kill after the output's rename): the earlier run's run.xdmf stayed beside it, with that run's
+    # snapshot times. A requeued --resume said "already complete" and kept it: ParaView showed the new
+    # snapshots at the old times. The sidecar must be the output's own, or the run is computed again.
+    import errno
+
+    from dbf_hpc import xdmf
+
+    sets = ["output.snapshots=3", "basis.estimate=false", f"basis.cache={shared_tmp_path / 'cache'}"]
+    out, sidecar = str(shared_tmp_path / "run.h5"), str(shared_tmp_path / "run.xdmf")
+    run(load_scene(PAPER, ["integrator.t_end=0.1", *sets]), out, progress=False)
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    longer = load_scene(PAPER, ["integrator.t_end=0.2", *sets])
+    with monkeypatch.context() as patched:
+        patched.setattr(xdmf, "write", full_disk)
+        with pytest.raises(SolverError, match="but not its ParaView file"):
+            run(longer, out, progress=False)
+    MPI.COMM_WORLD.Barrier()
+    summary = run(longer, out, progress=False, resume=True)
+    assert summary["stats"]["final_time"] == pytest.approx(0.2)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(out, "r") as f:
+            times = f["snapshots/time"][()]
+            described = xdmf.describes(sidecar, f)
+        with open(sidecar) as f:
+            shown = [float(t) for t in re.findall(r'<Time Value="([^"]+)"', f.read())]
+    ok = MPI.COMM_WORLD.bcast(described and np.array_equal(shown, times) and times[-1] == 0.2 if
+                              MPI.COMM_WORLD.rank == 0 else None, root=0)
+    assert ok, "the ParaView file shows the output's own snapshot times"
 
 def test_ctrl_c_checkpoints_and_stops_as_sigterm_does_and_the_resume_is_the_uninterrupted_run(shared_tmp_path):
     # Red team: Ctrl-C (SIGINT to the foreground job) during the integration ended in a
