@@ -275,7 +275,11 @@ def _plot(args) -> int:
     if MPI.COMM_WORLD.rank == 0:
         try:
             written = (plot_sweep if sweep else plot_run)(args.output, args.directory, window=window)
-        except (KeyError, RuntimeError) as e:   # a dataset missing or unreadable (as `info` says it)
+        except (KeyError, RuntimeError, OSError) as e:   # a dataset missing or unreadable (as `info` says it)
+            if isinstance(e, OSError) and e.errno is not None:   # a figure that cannot be written: not the file
+                raise
+            # h5py's OSError without errno: HDF5 could not read a dataset's data ("Can't read data (addr
+            # overflow ...)": a damaged data address), which was an internal error (red team)
             raise InputError(f"{args.output!r} is damaged ({str(e).splitlines()[0]})") from None
         for path in written:
             print(f"wrote {path}")

@@ -66,8 +66,11 @@ def describe(path: str) -> list:
             if "cases" in f:
                 return _sweep_lines(path, f)
             return _run_lines(path, f) if complete else _partial_lines(run, f)
-        except (RuntimeError, KeyError) as e:   # HDF5's metadata damaged (a write that failed on a full disk)
-            raise InputError(f"{f.filename!r} is damaged ({str(e).splitlines()[0]})") from None
+        # HDF5's metadata damaged (a write that failed on a full disk), a dataset's data address (an OSError:
+        # "Can't read data (addr overflow ...)", which was an internal error; red team), an attribute's bytes
+        except (RuntimeError, KeyError, OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise InputError(f"{f.filename!r} is damaged ({str(e).splitlines()[0] if str(e) else type(e).__name__})") \
+                from None
 
 
 def _run_lines(path: str, f) -> list:

@@ -239,3 +239,22 @@ def twin_chains(directory, copies: int = 2):
         scipy.io.mmwrite(paths[1], scipy.sparse.block_diag([M] * copies).tocsr(), precision=17)
     MPI.COMM_WORLD.Barrier()
     return load_operators(MatrixFiles(*paths)), K.toarray(), M.toarray()
+
+
+def damage_data_address(path, dataset: str) -> None:
+    """Point the (contiguous) `dataset` of the HDF5 file `path` at data far beyond the file's end: it
+    opens, and its data cannot be read ("Can't read data (addr overflow ...)"), as after damage to
+    its layout message. Not collective."""
+    import struct
+
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        offset = f[dataset].id.get_offset()
+    data = open(path, "rb").read()
+    needle = struct.pack("<Q", offset)
+    assert offset is not None and data.count(needle) == 1, "the data address appears once"
+    at = data.index(needle)
+    with open(path, "r+b") as f:
+        f.seek(at)
+        f.write(struct.pack("<Q", offset + 2**40))

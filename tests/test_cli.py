@@ -1147,6 +1147,19 @@ def test_a_plot_directory_that_is_a_file_is_refused_saying_so_and_the_file_is_ke
     assert run_out.read_bytes() == before
 
 
+
+def test_a_run_whose_snapshot_data_cannot_be_read_is_plotted_as_one_line_naming_it_damaged(tmp_path):
+    # Red team: an output that opens but whose snapshots' data address points past its end (damage to its
+    # layout message) ended `dbf-hpc plot` in "internal error (OSError) on rank 0: Can't read data (addr
+    # overflow ...)". It is the line a damaged file gets, as in `info`.
+    from conftest import damage_data_address
+
+    run_out = tmp_path / "w.h5"
+    assert dbf_hpc("run", PAPER, "-o", str(run_out), "--set", "basis.estimate=false", *SHORT, ranks=1).returncode == 0
+    damage_data_address(str(run_out), "snapshots/w")
+    out = dbf_hpc("plot", str(run_out), "-d", str(tmp_path / "figs"), ranks=1)
+    assert _one_line(out) and "is damaged (Can't read data (addr overflow" in out.stderr, out.stderr
+
 def test_a_plot_window_on_a_sweep_summary_is_refused_not_ignored(tmp_path):
     # New-user pass: `plot SUMMARY.h5 --window 1:2` drew the whole figures without a word.
     sweep = tmp_path / "s.toml"

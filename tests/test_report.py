@@ -34,3 +34,25 @@ def test_a_cached_basis_given_to_info_is_named_a_cached_basis(shared_tmp_path):
     assert len(stored) == 1, stored
     with pytest.raises(InputError, match="is a cached basis, not a run: `dbf-hpc cache list` describes it$"):
         open_output(stored[0])
+
+
+def test_an_output_whose_statistics_cannot_be_read_is_named_damaged_not_an_internal_error(shared_tmp_path):
+    # Red team (bytes flipped across a finished output's metadata): where the file opens but a dataset's
+    # data address points past its end, `dbf-hpc info` ended in "internal error (OSError) on rank 0: Can't
+    # read data (addr overflow ...)". It is one line naming the file damaged.
+    import os
+
+    from conftest import damage_data_address
+    from dbf_hpc.report import describe
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    paper = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "jobs", "paper_beam.toml")
+    out = str(shared_tmp_path / "run.h5")
+    run(load_scene(paper, ["integrator.t_end=0.01", "basis.estimate=false", "basis.cache=off"]), out, progress=False)
+    assert any("impacts" in line for line in describe(out))
+    if MPI.COMM_WORLD.rank == 0:
+        damage_data_address(out, "constraints/stats/impacts")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"is damaged \(Can't read data \(addr overflow"):
+        describe(out)
