@@ -95,10 +95,15 @@ def _written_by_us(path: str, ours, damaged: bool = False) -> bool:
     """Whether `path` is an HDF5 file that `ours` (given the open file) accepts; with `damaged`, also a
     damaged HDF5 file (a write that failed on a full disk: a run's own .partial or checkpoint).
     Another kind of file is not ours. A file system that refuses locks is one line, never "not ours"
-    (that would advise removing a good file)."""
+    (that would advise removing a good file). A file that opens but whose metadata `ours` cannot read
+    (h5py's RuntimeError: "Unable to get link info (bad local heap signature)") is a damaged one:
+    red team, a rerun onto a damaged output was "internal error (RuntimeError)"."""
     try:
         with h5py.File(path, "r") as f:
-            return bool(ours(f))
+            try:
+                return bool(ours(f))
+            except (RuntimeError, KeyError):
+                return damaged
     except (OSError, ValueError) as e:
         if lock_problem(e):
             raise InputError(f"cannot open {path!r}: {lock_problem(e)}") from None

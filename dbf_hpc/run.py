@@ -502,7 +502,7 @@ def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | N
                     int(f.attrs.get("field_cell_nodes", 0)))):                    # or of another type
                 return None
             return _stored_summary(f, path)
-    except (OSError, KeyError, ValueError, TypeError):
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError):   # RuntimeError: damaged metadata
         return None
 
 

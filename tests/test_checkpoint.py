@@ -1,6 +1,7 @@
 """Checkpoints (checkpoint.py, run.py): a resume continues only the run that wrote the checkpoint,
 from data that is what was written. Corrupt, crafted or foreign checkpoints are refused in one line
 naming the cause; nothing read from disk is trusted unchecked."""
+import json
 import os
 import re
 import shutil
@@ -423,6 +424,37 @@ def test_an_earlier_runs_paraview_file_beside_a_rerun_whose_own_was_not_written_
     ok = MPI.COMM_WORLD.bcast(described and np.array_equal(shown, times) and times[-1] == 0.2 if
                               MPI.COMM_WORLD.rank == 0 else None, root=0)
     assert ok, "the ParaView file shows the output's own snapshot times"
+
+
+def test_a_finished_output_whose_statistics_group_is_damaged_is_not_finished_and_raises_nothing(shared_tmp_path):
+    # finished_output reads the statistics back (the summary a requeued --resume returns, a sweep's kept case
+    # outputs); where the group's link names cannot be read (its local heap damaged) it raised h5py's
+    # RuntimeError, an internal error of the command. Such an output is not finished: it is computed again.
+    import struct
+
+    from dbf_hpc.run import finished_output
+
+    sets = ["integrator.t_end=0.05", "basis.estimate=false", f"basis.cache={shared_tmp_path / 'cache'}"]
+    out = str(shared_tmp_path / "run.h5")
+    scene = load_scene(PAPER, sets)
+    run(scene, out, progress=False)
+    found = None
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(out, "r") as f:
+            ident = {"request": json.loads(f.attrs["run_identity"])["request"]}
+        assert finished_output(out, ident, scene) is not None
+        data = open(out, "rb").read()
+        at = data.find(b"HEAP")
+        while at >= 0:   # the local heap whose data segment holds the statistics' names
+            size, address = struct.unpack("<Q", data[at + 8:at + 16])[0], struct.unpack("<Q", data[at + 24:at + 32])[0]
+            if b"impact_duration_max" in data[address:address + size]:
+                break
+            at = data.find(b"HEAP", at + 4)
+        with open(out, "r+b") as f:
+            f.seek(at)
+            f.write(b"XXXX")
+        found = finished_output(out, ident, scene)
+    assert MPI.COMM_WORLD.bcast(found, root=0) is None
 
 def test_ctrl_c_checkpoints_and_stops_as_sigterm_does_and_the_resume_is_the_uninterrupted_run(shared_tmp_path):
     # Red team: Ctrl-C (SIGINT to the foreground job) during the integration ended in a

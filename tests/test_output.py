@@ -47,6 +47,25 @@ def test_an_existing_file_that_is_not_a_dbf_output_is_not_replaced(shared_tmp_pa
     assert_all(target.read_text() == "my notes")
 
 
+
+@pytest.mark.parametrize("resume", [False, True])
+def test_a_rerun_onto_an_output_whose_metadata_is_damaged_is_one_line_and_leaves_it(shared_tmp_path, resume):
+    # Red team (bytes flipped across a finished output): where the file opens but its root group's links
+    # cannot be read, a rerun onto it, with or without --resume, ended in "internal error (RuntimeError) on
+    # rank 0: Unable to get link info (...)", from the look at whether the file is dbf-hpc's. A damaged
+    # file is refused as other files that are not a readable output are, before any work, and kept.
+    out = shared_tmp_path / "run.h5"
+    run(load_scene(PAPER, SHORT), str(out), progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        data = out.read_bytes()
+        at = data.index(b"HEAP")   # the root group's local heap (its link names), the file's first
+        out.write_bytes(data[:at] + b"XXXX" + data[at + 4:])
+    MPI.COMM_WORLD.Barrier()
+    before = out.read_bytes()
+    with pytest.raises(InputError, match="exists and is not a dbf-hpc output: remove it or choose another name"):
+        run(load_scene(PAPER, SHORT), str(out), progress=False, resume=resume)
+    assert_all(out.read_bytes() == before and not list(shared_tmp_path.glob("run.h5.*")))
+
 def test_a_second_job_on_an_output_being_written_is_refused_naming_the_first(shared_tmp_path, monkeypatch):
     monkeypatch.setenv("HDF5_USE_FILE_LOCKING", "FALSE")
     target = str(shared_tmp_path / "busy.h5")
