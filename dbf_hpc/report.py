@@ -40,12 +40,19 @@ def open_output(path: str):
                          if target.endswith(".partial") and has_hdf5_signature(target) else
                          f"{target!r} is damaged ({why})" if has_hdf5_signature(target) else
                          f"{target!r} is not an HDF5 file") from None
-    if layout.TIME not in f and "cases" not in f:
-        shapes = "shapes" in f and "dbf_hpc_version" in f.attrs
-        # new-user pass: `info OUT.h5.checkpoint` and `info` on a cached basis said only "is not a
-        # dbf-hpc output"; name what the file is and what reads it
-        checkpoint = str(f.attrs.get("format", "")).startswith("dbf-hpc-checkpoint")
-        cached = "V" in f and "key" in f.attrs and "dbf_hpc_version" in f.attrs
+    try:
+        holds_run = layout.TIME in f or "cases" in f
+        if not holds_run:
+            shapes = "shapes" in f and "dbf_hpc_version" in f.attrs
+            # new-user pass: `info OUT.h5.checkpoint` and `info` on a cached basis said only "is not a
+            # dbf-hpc output"; name what the file is and what reads it
+            checkpoint = str(f.attrs.get("format", "")).startswith("dbf-hpc-checkpoint")
+            cached = "V" in f and "key" in f.attrs and "dbf_hpc_version" in f.attrs
+        complete = bool(f.attrs.get("complete", False))
+    except (RuntimeError, KeyError) as e:   # it opens, and its root group's links or attributes cannot be read:
+        f.close()                           # "internal error (RuntimeError)" in info and plot (red team)
+        raise InputError(f"{target!r} is damaged ({str(e).splitlines()[0]})") from None
+    if not holds_run:
         f.close()
         run = target[:-len(".checkpoint")] if target.endswith(".checkpoint") else "OUT.h5"
         raise InputError(f"{target!r} holds the mode shapes of a `dbf-hpc basis --xdmf`, not a run: open its .xdmf "
@@ -54,7 +61,7 @@ def open_output(path: str):
                          f"{run!r}" if checkpoint else
                          f"{target!r} is a cached basis, not a run: `dbf-hpc cache list` describes it" if cached else
                          f"{target!r} is not a dbf-hpc output")
-    return f, bool(f.attrs.get("complete", False)) and not target.endswith(".partial")
+    return f, complete and not target.endswith(".partial")
 
 
 def describe(path: str) -> list:

@@ -56,3 +56,25 @@ def test_an_output_whose_statistics_cannot_be_read_is_named_damaged_not_an_inter
     MPI.COMM_WORLD.Barrier()
     with pytest.raises(InputError, match=r"is damaged \(Can't read data \(addr overflow"):
         describe(out)
+
+
+def test_an_output_whose_root_links_cannot_be_read_is_named_damaged_by_info_and_plot(shared_tmp_path):
+    # Red team: an output whose root group's link names cannot be read (its local heap damaged) opens, and
+    # the look at what it holds raised h5py's RuntimeError: "internal error (RuntimeError) on rank 0: Unable
+    # to get link info (bad local heap signature)" from `info` and `plot` (both open it with open_output).
+    import os
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    paper = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "jobs", "paper_beam.toml")
+    out = shared_tmp_path / "run.h5"
+    run(load_scene(paper, ["integrator.t_end=0.01", "basis.estimate=false", "basis.cache=off"]), str(out),
+        progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        data = out.read_bytes()
+        at = data.index(b"HEAP")   # the root group's local heap, the file's first
+        out.write_bytes(data[:at] + b"XXXX" + data[at + 4:])
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"is damaged \(Unable to get link info \(bad local heap signature"):
+        open_output(str(out))
