@@ -29,7 +29,11 @@ Conventions (shared with the reduced model and the integrators):
   dissipates at its balance point. Either is dissipative: F_d v <= 0. Neither is clipped, so while the
   constraint separates either can pull (an adhesive force, N of the sign opposite to N_el): linear
   damping as soon as c |v| > |N_el| (always just before the contact ends, where N_el -> 0),
-  Hunt-Crossley only at separation speeds |v| > 1 / alpha.
+  Hunt-Crossley only at separation speeds |v| > 1 / alpha. Hunt & Crossley's alpha comes from the
+  coefficient of restitution, e = 1 - (2/3) alpha v_impact, valid for alpha v small: at alpha v = 3/2
+  e = 0, and within that range the separation speed keeps alpha |v| < 3/8, so it never pulls. A run
+  whose alpha |v| in contact exceeds 1.5 warns (run.HUNT_CROSSLEY_MAX: the contact is overdamped, and
+  its short stopping phase makes the full-order force depend on dt).
 - A two-sided law may have k = 0 on one side: a one-sided stop.
 - friction: Coulomb friction alone against a given normal force F_n (N), regularized over the
   sliding speed v_reg (m/s): N = -mu F_n tanh(v / v_reg), dN/dv = -(mu F_n / v_reg) sech^2(v / v_reg),

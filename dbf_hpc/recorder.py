@@ -31,6 +31,11 @@ class SampleRecorder:
         self.impacts = ImpactAccumulator(constraints.count, work=True) if self.planar else ImpactAccumulator(n)
         self.peak = np.zeros(n)  # signed largest |N| at the steps since the previous sample
         self._tiled = {}         # block length -> the laws repeated for a block (steps)
+        # Hunt-Crossley: the largest alpha |v| (alpha |v_n| on a support of two directions) at a step in contact,
+        # per constraint (0 without Hunt-Crossley damping): the run warns above run.HUNT_CROSSLEY_MAX
+        self.alpha = np.array([getattr(law, "alpha", 0.0) for law in constraints.laws.laws], dtype=float)
+        self.hunt_crossley = bool(np.any(self.alpha > 0))
+        self.alpha_speed = np.zeros(constraints.count)
 
     def _track_peak(self, force) -> None:
         larger = np.abs(force) > np.abs(self.peak)
@@ -49,9 +54,20 @@ class SampleRecorder:
         if self.planar:
             r, vn, f, fn, vt, contact = (a[0] for a in self.constraints.laws.radial(z[None], v[None], force[None]))
             self.impacts.add(t, r, vn, f, contact, power=fn * np.abs(vn), work=fn * vt)
+            self._track_alpha_speed(vn, contact)
         else:
             self.impacts.add(t, z, v, force)
+            self._track_alpha_speed(v, force != 0)
         self._track_peak(force)
+
+    def _track_alpha_speed(self, v, contact) -> None:
+        """alpha_speed = max(alpha_speed, alpha |v|) over the points in contact (v, contact: (n,) or (k, n))."""
+        if not self.hunt_crossley:
+            return
+        speed = np.where(contact, self.alpha * np.abs(v), 0.0).reshape(-1, self.alpha.size)
+        larger = speed.max(axis=0, initial=0.0)
+        bad = np.isnan(speed).any(axis=0) | np.isnan(self.alpha_speed)   # a NaN is kept, as in the C callbacks
+        self.alpha_speed[:] = np.where(bad, np.nan, np.fmax(self.alpha_speed, larger))   # in place: C holds it
 
     def steps(self, t, z, v) -> None:
         """`step` for a block of k steps: t (k,), z and v (k, N_L d), in step order. One vectorized
@@ -73,10 +89,12 @@ class SampleRecorder:
         n = self.peak.size
         force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
         if self.planar:
-            r, vn, f, fn, vt, _ = self.constraints.laws.radial(z, v, force)
+            r, vn, f, fn, vt, contact = self.constraints.laws.radial(z, v, force)
             self.impacts.add_block(t, r, vn, f, power=fn * np.abs(vn), work=fn * vt)
+            self._track_alpha_speed(vn, contact)
         else:
             self.impacts.add_block(t, z, v, force)
+            self._track_alpha_speed(v, force != 0)
         return force
 
     def _block_laws(self, k: int):
@@ -90,10 +108,13 @@ class SampleRecorder:
 
     def state(self) -> dict:
         """The recorder's part of a checkpoint (arrays)."""
-        return {"peak": self.peak.copy(), **{f"impacts/{k}": v for k, v in self.impacts.state().items()}}
+        return {"peak": self.peak.copy(), "alpha_speed": self.alpha_speed.copy(),
+                **{f"impacts/{k}": v for k, v in self.impacts.state().items()}}
 
     def restore(self, state: dict) -> None:
         self.peak = np.array(state["peak"], dtype=float)
+        if "alpha_speed" in state:   # (a checkpoint written before it was recorded: from 0)
+            self.alpha_speed[:] = np.asarray(state["alpha_speed"], dtype=float)
         self.impacts = ImpactAccumulator.from_state({k[len("impacts/"):]: v for k, v in state.items()
                                                      if k.startswith("impacts/")})
 
@@ -235,6 +256,9 @@ class Result:
     solver: dict = field(default_factory=dict)   # steps, rejections, Newton failures, wall time
     snapshot_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
     snapshot_w: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))   # S x F, at the field points
+    # per constraint, the largest alpha |v| of Hunt-Crossley damping at a step in contact (|v.n| on a support of
+    # two directions; 0 without it): above run.HUNT_CROSSLEY_MAX (1.5) the law is outside its range
+    alpha_speed: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @classmethod
     def from_recorder(cls, recorder: SampleRecorder, solver: dict) -> "Result":
@@ -243,4 +267,4 @@ class Result:
                    velocity=data[layout.CONSTRAINT_VELOCITY], force=data[layout.CONSTRAINT_FORCE],
                    force_peak=data[layout.CONSTRAINT_FORCE_PEAK], probes=data[layout.PROBE_DISPLACEMENT],
                    q=data[layout.REDUCED_Q], qdot=data[layout.REDUCED_QDOT],
-                   statistics=recorder.impacts.result(), solver=dict(solver))
+                   statistics=recorder.impacts.result(), solver=dict(solver), alpha_speed=recorder.alpha_speed.copy())

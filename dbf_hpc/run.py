@@ -128,6 +128,8 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
             return done
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
     _warn_idle(summary, scene.constraints, comm)
+    for message in hunt_crossley_warnings(summary, scene.constraints, method):
+        warn(message, comm)
     if method == "full" or not settings.adaptive:
         _warn_unresolved(summary, scene.constraints, settings.dt, comm, "" if method == "full" else
                          ", or set [integrator] adaptive = true")
@@ -387,6 +389,37 @@ def unresolved_warnings(summary: dict, constraints, dt: float, also: str = "") -
             f"and times depend on dt; reduce [integrator] dt (5 to 10 steps an impact){also}"
             for j, (impacts, duration) in enumerate(zip(stats["impacts"], stats["impact_duration_mean"]))
             if impacts > 0 and duration < STEPS_PER_IMPACT * dt]
+
+
+# The largest alpha |v| a Hunt-Crossley contact damping is meant for. Hunt & Crossley (1975) derived alpha from
+# the coefficient of restitution, e = 1 - (2/3) alpha v_impact, for alpha v small; it reaches e = 0, a perfectly
+# plastic impact, at alpha v = 3/2, and within it the separation speed e v_impact keeps alpha v below 3/8, so the
+# law never pulls (it does beyond 1). Above it the contact is overdamped: the impact stops in a phase shorter than
+# the elastic impact (by about 1 / sqrt(alpha v)) and a fixed step that resolves the impact does not resolve it
+# (measured, the paper's beam at alpha = 1000 s/m, alpha v = 24: the full-order peak force 0.146 N at dt = 2e-6 s,
+# 0.299 N at 5e-7 s, 0.303 N at 1.25e-7 s, and the impact power twice as large, with 120 steps an impact; at
+# alpha v = 2.4, 7 %; at 0.24, 0.2 %).
+HUNT_CROSSLEY_MAX = 1.5
+
+
+def hunt_crossley_warnings(summary: dict, constraints, method: str) -> list:
+    """A warning for each Hunt-Crossley constraint whose alpha |v| (|v_n| on a support of two directions)
+    at a step in contact exceeded HUNT_CROSSLEY_MAX (the recorders' alpha_speed, over the solver's steps).
+    Not collective: the summary is every rank's (a sweep warns them for its cases too)."""
+    out = []
+    for j, speed in enumerate(summary.get("alpha_speed", ())):
+        if not speed > HUNT_CROSSLEY_MAX:
+            continue
+        constraint = constraints[j]
+        alpha = constraint.law.alpha
+        steps = (", and the full-order force and dissipated energy depend on dt (by a factor of 2 on the paper's beam "
+                 "at alpha v = 24, with 120 steps an impact)" if method == "full" else "")
+        out.append(f"constraint {j + 1} at {constraint.label}: Hunt-Crossley damping reached alpha |v| = {speed:.3g} "
+                   f"in contact (alpha = {alpha:g} s/m, |v| = {speed / alpha:.3g} m/s), above {HUNT_CROSSLEY_MAX:g}, "
+                   f"where Hunt & Crossley's restitution e = 1 - (2/3) alpha v falls to 0: the contact is overdamped, "
+                   f"outside the law's range{steps}; give alpha = 3 (1 - e) / (2 v) for the restitution e at the "
+                   f"impact speed v, at most {HUNT_CROSSLEY_MAX * alpha / speed:.3g} s/m here")
+    return out
 
 
 # A stop is suspected of a clearance in the wrong unit when the motion there stays below this fraction of
@@ -990,7 +1023,8 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
             constraint_stats["work_rate"], constraint_stats["work_rate_ci95"])
     probe_peak = np.abs(writer.series_data(layout.PROBE_DISPLACEMENT)).max(axis=0, initial=0.0)
     summary = {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
-               "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()}}
+               "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()},
+               "alpha_speed": recorder.alpha_speed.tolist()}
     if not write:   # some 80 datasets with their units, 50 ms a case, written to be removed (sweep._run_one)
         writer.discard()
         return summary

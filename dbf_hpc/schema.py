@@ -244,7 +244,10 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
                                        'linear damping pulls where c |v| > |N| and Hunt-Crossley where '
                                        '|v| > 1 / alpha'),
     "c": Key(NUMBER, None, "N s/m", "linear contact damping"),
-    "alpha": Key(NUMBER, None, "s/m", "Hunt-Crossley contact damping"),
+    "alpha": Key(NUMBER, None, "s/m", "Hunt-Crossley contact damping: alpha = 3 (1 - e) / (2 v) for a restitution "
+                                      "e at the impact speed v (Hunt & Crossley); a run whose alpha |v| in contact "
+                                      "exceeds 1.5 (e = 0) warns: the law is then outside its range, and the full-order "
+                                      "force depends on dt"),
     "mu": Key(NUMBER, None, "1", "circular, flat_bar: Coulomb friction coefficient (default 0, at most 10), "
                                  "F_t = -mu k (|u| - c) tanh(v_t / v_reg); friction: N = -mu normal_force "
                                  "tanh(v / v_reg) (required)"),

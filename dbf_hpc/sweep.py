@@ -75,7 +75,7 @@ from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
 from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, coarse_samples_warning, coarse_step_warning,
                   finished_output, forcing_warning, gyroscopic_checks, idle_warnings, run_case, scene_callbacks,
-                  unresolved_warnings)
+                  unresolved_warnings, hunt_crossley_warnings)
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -601,7 +601,7 @@ def _case_warnings(scene, model, summary: dict) -> list:
     warned, and a sweep of the same cases said nothing): printed by the rank that ran the case, and
     kept in its record and the summary (cases/warnings)."""
     settings = scene.integrator_settings()
-    out = idle_warnings(summary, scene.constraints)
+    out = idle_warnings(summary, scene.constraints) + hunt_crossley_warnings(summary, scene.constraints, "rom")
     if not settings.adaptive:
         out += unresolved_warnings(summary, scene.constraints, settings.dt)
     above = forcing_warning(scene.fastest_forcing_hz(), model.basis_info.get("omega", ()))

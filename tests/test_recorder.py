@@ -89,3 +89,33 @@ def test_two_direction_supports_impact_power_is_normal_force_times_normal_speed_
         assert np.isclose(stats["impact_power_mean"][0], power, rtol=1e-10, atol=0)
         assert np.isclose(stats["work_rate"][0], work, rtol=1e-10, atol=0)
         assert stats["impacts"][0] == 1 and stats["contact_fraction"][0] == 1.0
+
+
+def test_the_recorder_keeps_the_largest_hunt_crossley_alpha_v_in_contact_over_the_steps_in_blocks_as_one_by_one():
+    # run.hunt_crossley_warnings reads it: alpha |v| at the steps where the law pushes, never out of contact
+    rng = np.random.default_rng(3)
+    alpha = 40.0
+    laws = ConstraintLaws([law("deadband", clearance=1e-3, k=1e6),
+                           law("hertz", clearance=2e-3, k=1e8, damping="hunt_crossley", alpha=alpha)])
+    constraints = ConstraintSet(rows=np.array([[3], [9]]), laws=laws, labels=("a", "b"), positions=np.array([1., 2.]))
+    steps = 2000
+    t = np.arange(1, steps + 1) * 1e-5
+    z = 2.5e-3 * np.sin(2 * np.pi * 40 * t[:, None] + np.array([0.0, 1.0]))
+    v = rng.normal(0, 0.1, (steps, 2))
+    v[np.abs(z[:, 1]) <= 2e-3, 1] *= 100.0    # faster out of contact: must not count
+    one = SampleRecorder(MemoryWriter((2,), 0, 0), constraints)
+    for i in range(steps):
+        one.step(t[i], z[i], v[i])
+    observation = Observation.of(np.array([3, 9]), np.zeros(2), PointValues.at_rows([], []), np.zeros(0),
+                                 Harmonic(0.0, 1.0))
+    blocks = FullRecorder(MemoryWriter((2,), 0, 0), constraints, observation)
+    for a, b in ((0, 7), (7, 1000), (1000, steps)):
+        blocks.block((t[a:b], z[a:b], v[a:b]), (np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int)))
+    contact = np.abs(z[:, 1]) > 2e-3
+    expected = alpha * np.abs(v[contact, 1]).max()
+    assert contact.sum() > 100 and expected < alpha * np.abs(v[:, 1]).max() / 10
+    np.testing.assert_array_equal(one.alpha_speed, [0.0, expected])
+    np.testing.assert_array_equal(blocks.alpha_speed, one.alpha_speed)
+    fresh = SampleRecorder(MemoryWriter((2,), 0, 0), constraints)   # and a checkpoint keeps it
+    fresh.restore(one.state())
+    np.testing.assert_array_equal(fresh.alpha_speed, one.alpha_speed)

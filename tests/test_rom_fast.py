@@ -163,6 +163,26 @@ def test_c_callbacks_give_the_python_trajectory_before_the_first_impact_and_the_
 
 
 @needs_c
+def test_c_callbacks_record_the_hunt_crossley_alpha_v_in_contact_that_the_python_ones_do(paper):
+    # run.hunt_crossley_warnings reads it from the C monitor's steps as from recorder.py's: the paper's
+    # beam strikes its stop at 0.024 m/s, so alpha = 1000 s/m reaches alpha v = 24, far outside the
+    # law's range (1.5), and alpha = 1 s/m stays inside it
+    model, settings = paper
+    settings = dataclasses.replace(settings, t_end=0.12)
+    for alpha, inside in ((1000.0, False), (1.0, True)):
+        hc = law("deadband", clearance=2.5e-3, k=1e6, damping="hunt_crossley", alpha=alpha)
+        case = model.with_case(constraints=model.constraints.with_laws([hc]))
+        a, b = (simulate_reduced(case, dataclasses.replace(settings, callbacks=cb)) for cb in ("python", "c"))
+        assert b.solver["callbacks"] == "c" and a.statistics["impacts"][0] >= 1
+        np.testing.assert_allclose(b.alpha_speed, a.alpha_speed, rtol=1e-6)
+        assert (a.alpha_speed[0] <= 1.5) == inside, a.alpha_speed
+        # at most alpha times the largest speed at the stop, and alpha |v| at the samples in contact to 1 %
+        # (a sample between two steps may be a little faster than both)
+        v = np.abs(a.velocity[:, 0])
+        assert 0.99 * alpha * v[a.force[:, 0] != 0].max(initial=0.0) <= a.alpha_speed[0] <= alpha * v.max() * (1 + 1e-6)
+
+
+@needs_c
 @pytest.mark.parametrize("scheme", ARKIMEX_TYPES)
 def test_every_arkimex_type_runs_with_the_c_callbacks_as_with_the_python_ones(paper, scheme):
     model, settings = paper
@@ -457,3 +477,14 @@ def test_c_callbacks_follow_the_python_trajectory_of_a_two_plane_beam_under_turb
     laws_force = [tube2d.constraints.force(z, v) for z, v in zip(b.displacement.reshape(31, -1),
                                                                  b.velocity.reshape(31, -1))]
     np.testing.assert_allclose(b.force.reshape(31, -1), laws_force, rtol=0, atol=1e-13 * np.abs(b.force).max())
+
+
+@needs_c
+def test_c_callbacks_record_the_normal_alpha_v_of_a_two_direction_support_that_the_python_ones_do(tube2d):
+    # The third support (flat bars, Hunt-Crossley alpha = 0.2 s/m) is the only damped one: alpha |v.n| over
+    # the steps in contact, the same in C as in recorder.py, 0 at the others
+    settings = IntegratorSettings(t_end=0.03, dt=2e-5, adaptive=False, sample_dt=1e-3)
+    a, b = (simulate_reduced(tube2d, dataclasses.replace(settings, callbacks=cb)) for cb in ("python", "c"))
+    assert b.solver["callbacks"] == "c" and a.statistics["impacts"][2] >= 1
+    assert a.alpha_speed[2] > 0 and np.array_equal(a.alpha_speed[[0, 1, 3]], np.zeros(3))
+    np.testing.assert_allclose(b.alpha_speed, a.alpha_speed, rtol=1e-6, atol=0)

@@ -545,3 +545,23 @@ def test_stiffness_and_mass_files_swapped_draw_the_unit_warning_naming_the_swap(
         err = capfd.readouterr().err
         if MPI.COMM_WORLD.rank == 0:
             assert ("lowest elastic frequency" in err and "the stiffness and mass files not swapped" in err) == warned, err
+
+
+@pytest.mark.parametrize("method", ["rom", "full"])
+def test_hunt_crossley_damping_beyond_its_restitution_range_warns_once_and_only_there(shared_tmp_path, capfd, method):
+    # The paper's beam strikes its stop at 0.024 m/s: alpha = 1000 s/m is alpha v = 24, where Hunt &
+    # Crossley's e = 1 - (2/3) alpha v is long past 0 and the full-order peak force doubled from dt = 2e-6 s
+    # to 5e-7 s with no word (red team); alpha = 10 s/m (alpha v = 0.24) is inside the law's range.
+    for alpha, warned in ((1000.0, True), (10.0, False)):
+        s = load_scene(PAPER, ["integrator.t_end=0.12", "integrator.dt=1e-5", "basis.estimate=false",
+                               "output.snapshots=0", "constraint.damping=\"hunt_crossley\"", f"constraint.alpha={alpha}"])
+        run(s, str(shared_tmp_path / f"hc-{method}-{alpha:g}.h5"), progress=False, method=method)
+        err = capfd.readouterr().err
+        count = err.count("Hunt-Crossley damping reached alpha |v|")
+        if MPI.COMM_WORLD.rank == 0:
+            assert count == (1 if warned else 0), err
+            if warned:
+                assert "constraint 1 at x = 0.25 m" in err and "above 1.5" in err and "at most 6" in err, err
+                assert ("depend on dt" in err) == (method == "full"), err
+        else:
+            assert count == 0, err   # one line from the job, not one per rank

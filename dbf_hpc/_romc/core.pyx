@@ -150,6 +150,7 @@ cdef extern from "rom_core.h":
         int acc_started
         PetscReal *acc_work
         PetscReal *acc_work_prev
+        PetscReal *alpha_speed
         PetscReal *sample_t
         PetscReal sample_tol
         PetscInt nsample, next_sample
@@ -540,6 +541,12 @@ cdef class Problem:
         c.acc_impacts, c.acc_contact_time, c.acc_run = <PetscReal *>ptrs[1], <PetscReal *>ptrs[2], <PetscReal *>ptrs[3]
         c.acc_duration_max, c.acc_f2, c.acc_z2 = <PetscReal *>ptrs[4], <PetscReal *>ptrs[5], <PetscReal *>ptrs[6]
         c.acc_power, c.acc_force_peak, c.acc_displacement_peak = <PetscReal *>ptrs[7], <PetscReal *>ptrs[8], <PetscReal *>ptrs[9]
+        speed = rec.alpha_speed   # Hunt-Crossley's alpha |v| in contact: tracked only where some alpha > 0
+        if not (isinstance(speed, np.ndarray) and speed.dtype == np.float64 and speed.flags.c_contiguous
+                and speed.size == c.ncon):
+            raise TypeError("the recorder's alpha_speed must be float64, contiguous, one value per constraint")
+        self.keep.append(speed)
+        c.alpha_speed = <PetscReal *><size_t>speed.ctypes.data if (rec.hunt_crossley and speed.size) else NULL
         c.acc_started = acc.prev is not None
         if c.acc_started:
             c.acc_t0, c.acc_t_prev = acc.t0, acc.t_prev

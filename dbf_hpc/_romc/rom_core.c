@@ -986,6 +986,10 @@ static void step_statistics_planar(RomCtx *c, PetscReal t, const PetscReal *u)
     const PetscReal af = fabs(f), az = fabs(r);
     if (af > c->acc_force_peak[j] || isnan(af)) c->acc_force_peak[j] = af;
     if (az > c->acc_displacement_peak[j] || isnan(az)) c->acc_displacement_peak[j] = az;
+    if (c->alpha_speed && contact) {   /* recorder.SampleRecorder._track_alpha_speed */
+      const PetscReal s = c->pl_alpha[j] * fabs(vn);
+      if (s > c->alpha_speed[j] || isnan(s)) c->alpha_speed[j] = s;
+    }
     accumulate(c, j, contact, half, f2, z2, pw_);
   }
   if (!c->acc_started) { c->acc_t0 = t; c->acc_started = 1; }
@@ -1008,6 +1012,10 @@ void RomStepStatistics(RomCtx *c, PetscReal t, const PetscReal *u)
     const PetscReal aN = fabs(N[j]), az = fabs(z[j]);
     if (aN > c->acc_force_peak[j] || isnan(aN)) c->acc_force_peak[j] = aN;
     if (az > c->acc_displacement_peak[j] || isnan(az)) c->acc_displacement_peak[j] = az;
+    if (c->alpha_speed && contact) {   /* recorder.SampleRecorder._track_alpha_speed */
+      const PetscReal s = c->alpha[j] * fabs(v[j]);
+      if (s > c->alpha_speed[j] || isnan(s)) c->alpha_speed[j] = s;
+    }
     accumulate(c, j, contact, half, f2, z2, pw_);
   }
   if (!c->acc_started) { c->acc_t0 = t; c->acc_started = 1; }

@@ -73,6 +73,7 @@ typedef struct {
             *acc_force_peak, *acc_displacement_peak, *acc_prev;  /* nl each; prev 4*nl */
   PetscReal acc_t0, acc_t_prev; int acc_started;
   PetscReal *acc_work, *acc_work_prev;                    /* N_L each, d = 2: the work-rate integral and its last point */
+  PetscReal *alpha_speed;                                 /* N_L (supports): the largest alpha |v| (|v.n|) in contact, or NULL */
   /* samples: times, the next one, rows [t, q, p, z, v, N, peak, probe] buffered for Python */
   PetscReal *sample_t, sample_tol; PetscInt nsample, next_sample; int dense_output;
   PetscReal *rows; PetscInt row_len, row_cap, nrows;
