@@ -160,6 +160,39 @@ def check_step(settings) -> None:
                          f"{MIN_STEP:g} s")
 
 
+# The reduced model's settings the full-order loop does not read, with what it does instead: a user who set one
+# (a tighter rtol, another scheme, [basis] tolerance) would take it for the reference's accuracy or scheme (red
+# team: --method full with rtol = 1e-9, scheme 4, contact = "explicit" and tolerance = 0.01 ran at its fixed
+# step with no word). The keys that define the reduced basis ([basis] modes, enrichment, dbf_*, ...) are not
+# listed: a full-order run has no basis, which no user takes for anything else, and every shipped scene sets them.
+def ignored_settings(values: dict, dt: float, who: str, section: dict) -> list:
+    """One line per reduced-model setting in `values` ({key: value}, the ones a user set) that the
+    full-order run `who` ("--method full", "simulate_full") ignores, naming what it uses instead;
+    `section` maps a key to how the user wrote it ("[integrator] rtol", "IntegratorSettings rtol")."""
+    fixed = f"fixed steps of {section.get('dt', 'dt')} = {dt:g} s"
+    uses = {
+        "rtol": f"it takes {fixed}: halve dt to see its error (its estimate compares a step 4 times shorter)",
+        "atol": f"it takes {fixed}: halve dt to see its error (its estimate compares a step 4 times shorter)",
+        "max_step_scale": f"it takes {fixed}",
+        "scheme": "it integrates with generalized-alpha (-full_alpha_radius)",
+        "contact": "it solves the contact implicitly at every step (Newton condensed on the constraint DOFs)",
+        "callbacks": "it steps in its own loop over PETSc vectors",
+        "tolerance": f"its error is the step's, set by {section.get('dt', 'dt')} = {dt:g} s (the run's estimated error "
+                     f"compares a step 4 times shorter)",
+        "estimate_statistics_window": "it estimates no statistics error (its estimate compares w over "
+                                      "estimate_window)",
+    }
+    out = []
+    for key, value in values.items():
+        if key == "adaptive":
+            if value:
+                out.append(f"{section[key]} = true is the reduced model's; {who} ignores it: it takes {fixed}")
+            continue
+        shown = f'"{value}"' if isinstance(value, str) else f"{value:g}"
+        out.append(f"{section[key]} = {shown} is the reduced model's; {who} ignores it: {uses[key]}")
+    return out
+
+
 # -- the distributed side: rows, factorizations ----------------------------------------------------
 
 class ConstraintRows:

@@ -32,7 +32,7 @@ from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
                      decided_on_rank0, petsc_failure, termination_signals, wait_for_rank0, warn, write_failure)
 from .fom import Observation
-from .fom_integrator import check_step, integrate_full, step_count
+from .fom_integrator import check_step, ignored_settings, integrate_full, step_count
 from .fom_integrator import options as full_options
 from .matrices import file_digest
 from .modes import counters
@@ -107,6 +107,7 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     check_work(settings, scene.fastest_forcing_hz(), adaptive=settings.adaptive and method == "rom")
     if method == "full":     # before the output is claimed (the loop checks again)
         check_step(settings)
+        _warn_ignored_by_full(scene, settings, comm)
     if method == "rom":      # before the basis is built (the integrator checks again)
         refuse_settings_options("rom_", settings.adaptive)
     # The warnings below say a result may be wrong: -q (progress=False) silences the progress, not them
@@ -134,6 +135,21 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
         _warn_unresolved(summary, scene.constraints, settings.dt, comm, "" if method == "full" else
                          ", or set [integrator] adaptive = true")
     return summary
+
+
+# The reduced model's settings a full-order run does not read (fom_integrator.ignored_settings), by section
+REDUCED_ONLY = {"integrator": ("rtol", "atol", "adaptive", "scheme", "contact", "callbacks"),
+                "basis": ("tolerance", "estimate_statistics_window")}
+
+
+def _warn_ignored_by_full(scene: Scene, settings, comm) -> None:
+    """A warning for each reduced-model setting the scene (or a --set) gave that --method full ignores,
+    naming what it does instead. Not collective (every rank has the scene)."""
+    values = {key: scene[section][key] for section, keys in REDUCED_ONLY.items() for key in keys
+              if (section, key) in scene.given}
+    names = {key: f"[{section}] {key}" for section, keys in REDUCED_ONLY.items() for key in keys}
+    for message in ignored_settings(values, settings.dt, "--method full", {**names, "dt": "[integrator] dt"}):
+        warn(message, comm)
 
 
 def _warn_gyroscopically_held(ops) -> None:

@@ -74,6 +74,7 @@ class Scene:
     sections: dict
     constraints: tuple = field(default_factory=tuple)
     overrides: tuple = ()      # the --set items applied to the file's text
+    given: frozenset = frozenset()   # (section, key) of every key the file or a --set wrote, defaults excluded
 
     def effective(self) -> dict:
         """Every value the run uses (the file, the --set items and the defaults), JSON-ready: what an
@@ -724,7 +725,8 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
     _check_excitation(sections["excitation"], s, f"{path}: [excitation]", at)
     _check_basis(sections["basis"], f"{path}: [basis]")
     _check_integrator_and_output(sections, path, at)
-    scene = Scene(path=path, text=text, sections=sections, constraints=constraints)
+    given = frozenset((name, key) for name in SCHEMA if isinstance(data.get(name), dict) for key in data[name])
+    scene = Scene(path=path, text=text, sections=sections, constraints=constraints, given=given)
     if scene.damping().kind != "none" and not at.beam and s["damping"]:  # (also validates the damping section)
         raise InputError(f"{path}: {DAMPING_TWICE}")
     return scene

@@ -9,11 +9,13 @@ Result on every rank. Keep these for runs whose samples fit in memory.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from .errors import InputError, check_number
+from .errors import InputError, check_number, warn
 from .fom import FullOrderModel, Observation
-from .fom_integrator import integrate_full
+from .fom_integrator import ignored_settings, integrate_full
 from .output import MemoryWriter
 from .petsctools import petsc_errors_as_one_line
 from .recorder import FullRecorder, ReducedRecorder, Result
@@ -54,6 +56,13 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     if not isinstance(fom, FullOrderModel):
         raise InputError(f"simulate_full integrates a FullOrderModel (FullOrderModel.build), got {type(fom).__name__}")
     world = fom.comm.tompi4py()
+    # the reduced model's settings given other than their defaults: each a warning (the loop ignores them)
+    defaults = {f.name: f.default for f in dataclasses.fields(IntegratorSettings)}
+    values = {name: getattr(settings, name) for name in ("rtol", "atol", "scheme", "contact", "callbacks",
+                                                         "max_step_scale") if getattr(settings, name) != defaults[name]}
+    names = {name: f"IntegratorSettings {name}" for name in (*values, "dt")}
+    for message in ignored_settings(values, settings.dt, "simulate_full", names):
+        warn(message, fom.comm)
     observation = Observation(fom)
     recorder = FullRecorder(MemoryWriter(fom.constraints.shape, fom.probes.shape, 0), fom.constraints, observation)
     stats = integrate_full(fom, settings, observation.rows, recorder.block, say=say)

@@ -292,3 +292,48 @@ def test_the_full_order_estimate_of_its_step_error_is_within_2x_of_the_error_aga
         assert "fixed step of 2.5e-05 s" in f.attrs["estimated_error_note"]
         assert summary["estimated_error"] == f.attrs["estimated_error"]
         assert "estimated_error" not in truth.attrs             # [basis] estimate = false: none
+
+
+REDUCED_SETTINGS = {"integrator.rtol": "1e-9", "integrator.atol": "1e-10", "integrator.adaptive": "true",
+                    "integrator.scheme": '"4"', "integrator.contact": '"explicit"', "integrator.callbacks": '"python"',
+                    "basis.tolerance": "0.01", "basis.estimate_statistics_window": "0.01"}
+
+
+def test_each_reduced_model_setting_a_full_order_run_ignores_draws_one_warning_naming_what_it_uses(shared_tmp_path,
+                                                                                                   capfd):
+    # Red team: --method full with rtol = 1e-9, scheme 4, contact = "explicit" and [basis] tolerance = 0.01 ran
+    # at its fixed step, its accuracy that of dt, with no word. The keys that define the basis (modes, ...) are
+    # left alone: every shipped scene sets them, and no one takes them for the full-order run's.
+    base = ["integrator.t_end=0.02", "integrator.dt=1e-5", "basis.estimate=false", "output.snapshots=0"]
+    cases = [("all", [f"{k}={v}" for k, v in REDUCED_SETTINGS.items()], set(REDUCED_SETTINGS)),
+             ("none", [], set()), ("fixed", ["integrator.adaptive=false"], set())]
+    for name, sets, expected in cases:
+        run(load_scene(PAPER, [*base, *sets]), str(shared_tmp_path / f"ignored-{name}.h5"), progress=False,
+            method="full")
+        err = capfd.readouterr().err
+        lines = [line for line in err.splitlines() if "is the reduced model's; --method full ignores it" in line]
+        if MPI.COMM_WORLD.rank == 0:
+            named = {f"{line.split('[')[1].split(']')[0]}.{line.split('] ')[1].split(' =')[0]}" for line in lines}
+            assert named == expected and len(lines) == len(expected), err
+            if expected:
+                assert "[integrator] rtol = 1e-09 is the reduced model's; --method full ignores it: it takes fixed " \
+                       "steps of [integrator] dt = 1e-05 s" in err, err
+                assert '[integrator] scheme = "4"' in err and "generalized-alpha" in err, err
+        else:
+            assert not lines, err
+
+
+def test_simulate_full_warns_of_each_reduced_model_setting_given_other_than_its_default(capfd):
+    from dbf_hpc import Beam, Constraint, FullOrderModel, IntegratorSettings, law, simulate_full
+    from dbf_hpc.excitation import BaseMotion
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    stop = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
+    with FullOrderModel.build(beam, [stop], BaseMotion(amplitude=5e-3, frequency_hz=1.0)) as fom:
+        for given, expected in (({}, 0), ({"rtol": 1e-8, "contact": "explicit"}, 2), ({"adaptive": False}, 0)):
+            simulate_full(fom, IntegratorSettings(t_end=1e-3, dt=1e-4, sample_dt=1e-4, **given))
+            err = capfd.readouterr().err
+            count = err.count("is the reduced model's; simulate_full ignores it")
+            assert count == (expected if MPI.COMM_WORLD.rank == 0 else 0), err
+            if expected and MPI.COMM_WORLD.rank == 0:
+                assert "IntegratorSettings rtol = 1e-08" in err and 'IntegratorSettings contact = "explicit"' in err
