@@ -74,6 +74,10 @@ from .fom import FullOrderModel
 from .petsctools import destroy, natural_fill_is_small, options_defaults
 from .timestepping import IntegratorSettings, StepMonitor, check_outcome
 
+# The laws whose force has a kink at a clearance (or a table's breakpoints): each contact that closes there
+# sets the contact's own oscillation ringing, which a step must resolve (a linear, cubic or friction law is
+# smooth: an implicit step that does not resolve a stiff spring damps it, as it should)
+KINKED = ("deadband", "power", "hertz", "table", "circular", "flat_bar")
 PREFIX = "full_"
 WHAT = "full-order integration"
 ADVICE = "reduce [integrator] dt"
@@ -659,6 +663,10 @@ class FullIntegrator:
             self.r_c = fom.influence_at(rows)
             self.free = FreeIntervals(self.laws)
             self.newton = ContactNewton()
+            # per constraint, the largest D_jj |dN/dz| at a step's converged contact (rank 0): the contact's stiffness
+            # against the step's (contact_stiffness_warnings); laws without a clearance's kink count 0
+            self.stiffness = np.zeros(self.crow.n // max(getattr(self.laws, "dimension", 1), 1))
+            self.kinked = np.array([law.kind in KINKED for law in self.laws.laws], dtype=bool)
             self.value, self.rate, loads = _time_functions(fom)
             self.loads = []
             for vec, fn in loads:
@@ -755,7 +763,8 @@ class FullIntegrator:
                 "lam": np.zeros(self.nl) if self.lam is None else self.lam.copy(),
                 "pushing": self.lam is not None,
                 "counters": np.array([self.factorizations, self.contact_steps, self.screened, self.newton.calls,
-                                      self.newton.iterations, self.newton.fallbacks, self.newton.jumps], dtype=np.int64)}
+                                      self.newton.iterations, self.newton.fallbacks, self.newton.jumps], dtype=np.int64),
+                "stiffness": self.stiffness.copy()}
 
     def set_state(self, state: dict) -> None:
         """Continue from get_state's dict (arrays on rank 0; the scalars on every rank). Collective."""
@@ -774,6 +783,8 @@ class FullIntegrator:
             finally:
                 destroy(scatter, whole)
         self.lam = np.array(state["lam"], dtype=float) if bool(state["pushing"]) else None
+        if "stiffness" in state and self.world.rank == 0:   # (a checkpoint written before it was kept: from 0)
+            self.stiffness[:] = np.asarray(state["stiffness"], dtype=float)
         counters = [int(c) for c in state["counters"]]
         (self.factorizations, self.contact_steps, self.screened, self.newton.calls, self.newton.iterations,
          self.newton.fallbacks, self.newton.jumps) = counters
@@ -956,7 +967,9 @@ class FullIntegrator:
                     z_c = (1 - af) * y0 + self.value(ta) * self.r_c
                     v_c = v0 + (af * h * (1 - P.gamma)) * a0 + self.rate(ta) * self.r_c
                     problem = ContactStep(self.laws, D, yf, z_c, v_c, x_pred, af, sV)
-                    _, result = self.newton.solve(problem, yf if lam_prev is None else yf + D @ lam_prev, t)
+                    y, result = self.newton.solve(problem, yf if lam_prev is None else yf + D @ lam_prev, t)
+                    if result is not None:
+                        self._track_stiffness(problem, y, D)
                 except SolverError as e:
                     result = e
         if world.size > 1:
@@ -964,6 +977,20 @@ class FullIntegrator:
         if isinstance(result, SolverError):
             raise SolverError(str(result))
         return result
+
+    def _track_stiffness(self, problem: ContactStep, y, D) -> None:
+        """stiffness = max(stiffness, D_jj |dN/dz|) at a converged contact, per constraint (a support of two
+        directions: its largest entry of either); NaN-free (a non-finite state ends the run elsewhere)."""
+        if not self.kinked.any():
+            return
+        _, Nz, _ = self.laws.force_and_jacobian(*problem.state(y))
+        d = np.diag(D)
+        if np.ndim(Nz) == 3:   # (n, 2, 2) blocks; D's two rows per support
+            ratio = np.abs(Nz).max(axis=(1, 2)) * d.reshape(-1, 2).max(axis=1)
+        else:
+            ratio = np.abs(Nz) * d
+        ratio = np.where(self.kinked & np.isfinite(ratio), ratio, 0.0)
+        np.maximum(self.stiffness, ratio, out=self.stiffness)
 
     def destroy(self) -> None:
         for S in self.systems.values():
@@ -1217,6 +1244,7 @@ def integrate_full(fom: FullOrderModel, settings: IntegratorSettings, rows, on_b
                  "contact": "condensed", "dt": settings.dt, "dofs": fom.size, "alpha_radius": rho,
                  "contact_steps": integ.contact_steps, "contact_free_steps": integ.screened,
                  "contact_solves": integ.newton.calls, "contact_fallbacks": integ.newton.fallbacks,
+                 "contact_stiffness": integ.stiffness.tolist(),
                  "factorization_time": integ.setup_time, "step_time": integ.loop_time,
                  "factorization": ", ".join(sorted({S.description for S in integ.systems.values()}))}
     finally:

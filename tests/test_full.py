@@ -337,3 +337,36 @@ def test_simulate_full_warns_of_each_reduced_model_setting_given_other_than_its_
             assert count == (expected if MPI.COMM_WORLD.rank == 0 else 0), err
             if expected and MPI.COMM_WORLD.rank == 0:
                 assert "IntegratorSettings rtol = 1e-08" in err and 'IntegratorSettings contact = "explicit"' in err
+
+
+def test_a_contact_stiffer_than_the_step_resolves_warns_even_when_it_never_opens(shared_tmp_path, capfd):
+    # Red team: hertz at k = 1e12 N/m and clearance 0 stays closed for the whole run (one impact of 0.12 s, so
+    # the impacts-per-step warning is silent), and its mean impact power was 1.7e-5, 3.2e-4 and 2.0e-3 W at
+    # dt = 1e-5, 2.5e-6 and 6.25e-7 s. The diagnostic's half-period, pi / (omega h) from D_jj |dN/dz|, is the
+    # measured one where impacts do open: the paper's stop at dt = 2e-6 s (its ~15 us impacts, 7 steps).
+    import json
+
+    base = ["integrator.t_end=0.12", "basis.estimate=false", "output.snapshots=0"]
+    cases = (("paper", ["integrator.dt=2e-6"], False),
+             ("hertz", ["integrator.dt=1e-5", 'constraint.law="hertz"', "constraint.k=1e12", "constraint.clearance=0"],
+              True))
+    for name, sets, warned in cases:
+        path = shared_tmp_path / f"stiff-{name}.h5"
+        run(load_scene(PAPER, [*base, *sets]), str(path), progress=False, method="full")
+        err = capfd.readouterr().err
+        count = err.count("is too stiff for dt")
+        if MPI.COMM_WORLD.rank == 0:
+            assert count == (1 if warned else 0) and "fixed steps on average" not in err, err
+            with h5py.File(path) as f:
+                ratio = json.loads(f.attrs["solver_stats"])["contact_stiffness"][0]
+                duration = f["constraints/stats/impact_duration_mean"][0]
+            from dbf_hpc.fom_integrator import Alpha2
+            P = Alpha2(0.9)
+            half_period = np.pi / np.sqrt(ratio * P.am / (P.af * P.beta)) * (1e-5 if warned else 2e-6)
+            if warned:
+                assert "constraint 1 at x = 0.25 m" in err and "half-period of 0.17 fixed steps" in err, err
+                assert duration > 1000 * half_period, "one contact the whole run: its duration says nothing"
+            else:
+                assert 0.8 < half_period / duration < 1.2, (half_period, duration)
+        else:
+            assert count == 0, err
