@@ -262,7 +262,7 @@ class StepMonitor:
         self.say = say
         self.start = self.last_report = time.perf_counter()
         self.first_step = self.first_time = None
-        self.tol = 1e-9 * max(times[-1], 1.0)
+        self.tol = 1e-9 * times[-1]
         self.ts = self.floor = self.floor_since = None   # configure sets ts and floor on an adaptive run
         self.stall_step, self.window = None, None        # configure sets stall_step; window: (step, t)
         self.stall_scale = None                          # the step stall_step is STALL_FRACTION of

@@ -422,3 +422,18 @@ def test_a_petsc_error_in_the_first_step_points_to_the_input_that_caused_it(shar
     assert message.startswith("the time integration failed at t = 0 s: PETSc error")
     assert "it failed in its first step, which points to the input" in message and "psd" in message
     assert not os.path.exists(shared_tmp_path / "out.h5")
+
+
+def test_a_sample_is_taken_at_a_step_only_within_round_off_of_it_however_short_the_run():
+    # Red team: the tolerance was 1e-9 s for every run shorter than 1 s, so a run of 2 us whose steps are 0.1 ns
+    # took each sample up to 10 steps early, as if at the step: a micro-beam's free vibration was 1.4 % off
+    import numpy as np
+
+    from dbf_hpc.timestepping import StepMonitor
+
+    times = np.arange(11) * 1e-8   # t_end = 1e-7 s
+    monitor = StepMonitor(times)
+    assert [(i, exact) for i, _, exact in monitor.samples_due(0.0)] == [(0, True)]
+    assert list(monitor.samples_due(0.95e-8)) == [], "the sample at 1e-8 s is 0.5 ns after this step"
+    assert [(i, exact) for i, _, exact in monitor.samples_due(1e-8 * (1 + 1e-15))] == [(1, True)]
+    assert [i for i, _, exact in monitor.samples_due(3.5e-8) if not exact] == [2, 3]
