@@ -616,6 +616,7 @@ def _stored_summary(f, path: str) -> dict:
     summary = {"path": path, "stats": json.loads(f.attrs["solver_stats"]),
                "timings": json.loads(f.attrs["wall_times"]), "probe_peak": f[layout.PROBE_PEAK][()].tolist(),
                "constraint_stats": {k: v[()].tolist() for k, v in f[layout.CONSTRAINT_STATS].items()}}
+    summary["alpha_speed"] = summary["stats"].get("alpha_speed", [])
     if "estimated_error" in f.attrs:
         summary["estimated_error"] = float(f.attrs["estimated_error"])
         summary["estimated_error_window"] = float(f.attrs["estimated_error_window"])
@@ -1072,9 +1073,12 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
             [c.wear_coefficient for c in scene.constraints], float(t[-1] - t[0]) if t.size else 0.0,
             constraint_stats["work_rate"], constraint_stats["work_rate_ci95"])
     probe_peak = np.abs(writer.series_data(layout.PROBE_DISPLACEMENT)).max(axis=0, initial=0.0)
+    # Hunt-Crossley's largest alpha |v| in contact, also in the output's solver_stats (a finished output's
+    # summary, read back by --resume, warns as the run did)
+    stats = {**stats, "alpha_speed": recorder.alpha_speed.tolist()}
     summary = {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
                "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()},
-               "alpha_speed": recorder.alpha_speed.tolist()}
+               "alpha_speed": stats["alpha_speed"]}
     if not write:   # some 80 datasets with their units, 50 ms a case, written to be removed (sweep._run_one)
         writer.discard()
         return summary

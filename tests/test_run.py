@@ -555,7 +555,7 @@ def test_hunt_crossley_damping_beyond_its_restitution_range_warns_once_and_only_
     for alpha, warned in ((1000.0, True), (10.0, False)):
         s = load_scene(PAPER, ["integrator.t_end=0.12", "integrator.dt=1e-5", "basis.estimate=false",
                                "output.snapshots=0", "constraint.damping=\"hunt_crossley\"", f"constraint.alpha={alpha}"])
-        run(s, str(shared_tmp_path / f"hc-{method}-{alpha:g}.h5"), progress=False, method=method)
+        first = run(s, str(shared_tmp_path / f"hc-{method}-{alpha:g}.h5"), progress=False, method=method)
         err = capfd.readouterr().err
         count = err.count("Hunt-Crossley damping reached alpha |v|")
         if MPI.COMM_WORLD.rank == 0:
@@ -565,3 +565,8 @@ def test_hunt_crossley_damping_beyond_its_restitution_range_warns_once_and_only_
                 assert ("depend on dt" in err) == (method == "full"), err
         else:
             assert count == 0, err   # one line from the job, not one per rank
+    # a requeued --resume of a finished output computes nothing, and its summary, read back from the file's
+    # solver_stats, holds the alpha |v| the run returned
+    summary = run(s, str(shared_tmp_path / f"hc-{method}-10.h5"), progress=False, method=method, resume=True)
+    assert summary["stats"]["time_integration"] == first["stats"]["time_integration"]
+    assert summary["alpha_speed"] == first["alpha_speed"] and 0 < first["alpha_speed"][0] < 1.5
