@@ -130,6 +130,7 @@ def save(basis: ReducedBasis, path: str, key: str, comm, defect: float = 0.0) ->
             arrays = {name: np.asarray(getattr(basis, name)) for name in ARRAYS}
             if basis.complex_modes:   # a gyroscopic basis: Re and Im columns (gyroscopic_basis.py)
                 arrays["constraint_columns"] = np.asarray(basis.stats["constraint_columns"], dtype=np.int64)
+                arrays["complex_omega"] = np.asarray(basis.stats["complex_omega"], dtype=float)
                 arrays["complex_modes"] = np.int64(basis.complex_modes)
                 f.attrs["complex_modes"] = basis.complex_modes
             for name, value in arrays.items():
@@ -201,11 +202,15 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings, ch
             if ops.G is not None:   # one or two real columns per constraint
                 if "constraint_columns" not in f or "complex_modes" not in f.attrs:
                     return "has the wrong shape", {}, None
+                if "complex_omega" not in f:   # each complex mode's frequency: a file without it is rebuilt once
+                    return "was written by an older version (no complex_omega)", {}, None
                 arrays["constraint_columns"] = f["constraint_columns"][...]
                 arrays["complex_modes"] = int(f.attrs["complex_modes"])
+                arrays["complex_omega"] = f["complex_omega"][...]
                 counts = arrays["constraint_columns"]
                 columns = int(counts.sum())
-                if counts.size != enriched or np.any((counts < 1) | (counts > 2)):
+                if (counts.size != enriched or np.any((counts < 1) | (counts > 2))
+                        or arrays["complex_omega"].size != arrays["complex_modes"]):
                     return "has the wrong shape", {}, None
             stored = dict(arrays)
             if "complex_modes" in stored:
@@ -256,7 +261,8 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows,
     template.destroy()
     stats = {"cache": "hit", "cache_file": path}
     if ops.G is not None:
-        stats.update(complex_modes=arrays["complex_modes"], constraint_columns=arrays["constraint_columns"].tolist())
+        stats.update(complex_modes=arrays["complex_modes"], constraint_columns=arrays["constraint_columns"].tolist(),
+                     complex_omega=arrays["complex_omega"].tolist())
     basis = ReducedBasis(vectors=V, settings=settings, stats=stats, **{name: arrays[name] for name in ARRAYS})
     G, Kr = basis.project(ops.M), basis.project(ops.K)
     basis.set_flexibility(arrays["flexibility_exact"], Kr)

@@ -513,8 +513,10 @@ def _print_basis(say, basis, labels, dimension: int = 1) -> None:
 
     import numpy as np
 
-    # a gyroscopic basis has Re and Im columns of each complex mode: its frequencies once each
-    omega = np.unique(basis.omega) if basis.complex_modes else basis.omega
+    # a gyroscopic basis has Re and Im columns of each complex mode (Re alone where Im is dependent): one row per
+    # complex mode, from the modes solved (np.unique of the columns' frequencies printed a pair of bit-equal
+    # frequencies, a round shaft at rest, as one row under a header of N complex modes)
+    omega = np.asarray(basis.stats["complex_omega"]) if basis.complex_modes else basis.omega
     say(f"{'mode':>6} {'f [Hz]':>14} {'omega [rad/s]':>16}")
     for i, w in enumerate(omega):
         say(f"{i + 1:>6} {w / (2 * 3.141592653589793):>14.8g} {w:>16.8g}")

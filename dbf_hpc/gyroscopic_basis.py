@@ -478,7 +478,7 @@ def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = Basis
         raise
     finally:
         destroy(static, *[v for d in dbfs if d is not None for v in d[:2]])
-        n_complex = modes.count
+        n_complex, complex_omega = modes.count, [float(w) for w in modes.omega[:modes.count]]
         modes.destroy()
     basis = ReducedBasis(vectors=V, omega=np.array(omega), enrichment_omega=np.zeros(V.getSizes()[1] - N), dbf_k=k,
                          dbf_branch=branch, constraint_rows=rows, dbf_k_auto=k_auto, settings=settings)
@@ -495,6 +495,9 @@ def build_gyroscopic_basis(ops: Operators, rows, settings: BasisSettings = Basis
                    # the complex modes solved (np.unique of the columns' frequencies counted a pair of
                    # bit-equal frequencies, a round shaft at rest, once: the estimate's richer model had fewer)
                    "time_flexibility": time.perf_counter() - t3, "complex_modes": n_complex,
+                   # each complex mode's frequency (rad/s) once: basis.omega has one per kept column, Re and Im
+                   # of a mode, or Re alone where Im is dependent (a mode at rest): `dbf-hpc basis` prints these
+                   "complex_omega": complex_omega,
                    "constraint_columns": [z[0].size for _, z in groups]}
     return basis
 

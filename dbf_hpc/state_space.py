@@ -348,7 +348,8 @@ def _basis(ops: Operators, rows, settings: BasisSettings, labels, modes, raw: li
         value = B_r[first + 1, first] if count == 2 else 0.0
         basis.enrichment_omega[first - N:first - N + count] = value
     basis.stats = {"time_orthogonalization": gs.seconds, "time_enrichment": t2 - t1 - gs.seconds,
-                   "complex_modes": modes.count, "constraint_columns": [c for _, c in groups],
+                   "complex_modes": modes.count, "complex_omega": [float(w) for w in modes.omega[:modes.count]],
+                   "constraint_columns": [c for _, c in groups],
                    "cache": "off"}
     t3 = time.perf_counter()
     basis.set_flexibility(exact_flexibility(ops, rows), ops)

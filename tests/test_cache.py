@@ -286,6 +286,8 @@ def gyroscopic_basis(cache_dir, speed=30.0, form="second_order", tension=2000.0)
         V = np.vstack(MPI.COMM_WORLD.allgather(dense.getDenseArray().copy()))
         basis.vectors.restoreMat(dense)
         assert basis.complex_modes == 4 and len(basis.stats["constraint_columns"]) == 2
+        # each complex mode's frequency, stored and read back with the basis (`dbf-hpc basis` prints it)
+        assert np.array_equal(np.unique(basis.stats["complex_omega"]), np.unique(basis.omega))
         return V, solves, basis.stats.get("cache"), basis.stats.get("cache_file")
 
 

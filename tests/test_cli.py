@@ -1288,3 +1288,26 @@ def test_a_petsc_options_environment_value_comes_back_after_a_command_that_overr
     assert out.returncode == 0, out.stderr
     assert re.search(r"^\s*tolerance: 1e-09$", out.stdout, re.M), out.stdout[:3000]   # the command's value
     assert "after: 1e-11 0" in out.stdout, out.stdout[-500:]                           # the environment's again
+
+
+@pytest.mark.parametrize("form", ["second_order", "state_space"])
+def test_basis_prints_one_row_per_complex_mode_also_for_a_pair_of_bit_equal_frequencies(form):
+    # a round shaft at rest, its two planes exactly alike: modes 2 and 3 share omega to the bit, and the table
+    # printed np.unique of the columns' frequencies, 2 rows under "3 complex modes"
+    from dbf_hpc.basis import BasisSettings, build_basis
+    from dbf_hpc.cli import _print_basis
+    from test_gyroscopic import shaft_at_rest
+
+    ops, exact = shaft_at_rest(0.0)
+    try:
+        basis = build_basis(ops, [], BasisSettings(modes=3, enrichment="none", gyroscopic_form=form))
+        try:
+            lines = []
+            _print_basis(lines.append, basis, [])
+        finally:
+            basis.destroy()
+    finally:
+        ops.destroy()
+    rows = [line.split() for line in lines[1:] if line.split() and line.split()[0].isdigit()]
+    assert [int(r[0]) for r in rows] == [1, 2, 3]
+    np.testing.assert_allclose([float(r[1]) for r in rows], exact[:3], rtol=1e-7)
