@@ -292,11 +292,11 @@ def _nested(rich_model, settings, times: np.ndarray, w: np.ndarray, end: float) 
     """nested_estimate against one richer model. Not collective."""
     import time
 
-    from .simulate import simulate_reduced
+    from .simulate import integrate_samples
 
     start = time.perf_counter()
     try:
-        result = simulate_reduced(rich_model, rich_settings(settings, end))
+        result = integrate_samples(rich_model, rich_settings(settings, end))
     except Interrupted:
         raise
     except SolverError as e:
@@ -480,7 +480,7 @@ def statistics_estimate(rich_model, settings, read, times, end: float, laws=None
     samples. Not collective."""
     import time
 
-    from .simulate import simulate_reduced
+    from .simulate import integrate_samples
 
     start = time.perf_counter()
     sampling = batch_ci95(read, times.size, laws)
@@ -488,7 +488,7 @@ def statistics_estimate(rich_model, settings, read, times, end: float, laws=None
     reduced, reduced_ci = window_statistics(*read(0, k), laws)
     nan = {name: np.full(value.shape, np.nan) for name, value in reduced.items()}
     try:
-        result = simulate_reduced(rich_model, rich_settings(settings, float(times[k - 1])))
+        result = integrate_samples(rich_model, rich_settings(settings, float(times[k - 1])))
     except Interrupted:
         raise
     except SolverError as e:
@@ -722,7 +722,7 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
     from .errors import DbfError, petsc_failure
     from .reductor import Reductor
     from .errors import wait_for_rank0
-    from .simulate import simulate_reduced
+    from .simulate import integrate_samples
 
     with Reductor(fom, basis_settings, cache_dir) as reductor:
         model = reductor.reduce()
@@ -736,13 +736,13 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
             grid = settings.sample_times   # every probe ends on the run's own samples: the run reuses its w
             for probe in ((window,) if window else (LINEAR_WINDOW * settings.t_end, settings.t_end)):
                 probe = estimate_window(grid, None, settings.t_end, probe)
-                run = simulate_reduced(model, dataclasses.replace(settings, t_end=probe))
+                run = integrate_samples(model, dataclasses.replace(settings, t_end=probe))
                 contact = first_contact(run.time, run.force_peak)
                 if window or contact is not None:
                     break
             want = estimate_window(grid, contact, settings.t_end, window)
             if want > run.time[-1] * (1 + 1e-12):   # twice the first contact is beyond the probe: go on to it
-                run = simulate_reduced(model, dataclasses.replace(settings, t_end=want))
+                run = integrate_samples(model, dataclasses.replace(settings, t_end=want))
             end = estimate_window(run.time, contact, settings.t_end, window)
             result = nested_estimate(rich, settings, run.time, run.displacement, end)
         # every failure of rank 0's integration is every rank's (red team: a PETSc error, a bad -rom_

@@ -259,23 +259,21 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
 ATOL_REACH = 1e-2
 
 
-def loose_atol(model, atol: float, constraints) -> str | None:
-    """A warning when [integrator] atol (modal units) lets w at a constraint (`constraints`, the scene's,
-    in the model's order) err by more than
-    ATOL_REACH of its smallest clearance: atol times the 1-norm of B's row there (w = B q) bounds the
-    w error the error control allows where |q| is small. M-orthonormal q scale as the square root of
-    the mass, so the default 1e-9 is loose for a structure of small masses and displacements in SI
-    (a MEMS part). Red team (new user): the frame of 23 kg with its K and M times 1e-9 and clearances
-    of 1 um ran its steps at the 10-sample limit, 24 % off the same run in kg over the estimate
-    window, while the estimate (its richer run at atol / 10, as loose) said 9.8 %. None for a model
-    without B (the state-space form) or without a clearance. Not collective."""
+def atol_reach(model, atol: float, laws=None) -> tuple | None:
+    """(ratio, j, reach, clearance) of the constraint j where [integrator] atol lets w err most against
+    its smallest clearance (reach = atol times the 1-norm of B's row there, m), if the ratio is over
+    ATOL_REACH; else None. `laws`: one law per constraint in the model's order (None: the model's own,
+    model.constraints.laws). None for a model without B (the state-space form) or without a clearance.
+    Not collective."""
     B = getattr(model, "B", None)
     if B is None or getattr(model, "form", "") == "state_space" or not B.size:
         return None
+    if laws is None:
+        laws = model.constraints.laws.laws
     d = model.constraints.dimension
     worst = None
-    for j, constraint in enumerate(constraints):
-        law = constraint.law
+    for j, law in enumerate(laws):
+        law = getattr(law, "law", law)   # a scene's Constraint, or its law
         ks = (law.k_minus, law.k_plus) if hasattr(law, "k_minus") else (getattr(law, "k", 0.0),) * 2
         gaps = [c for c, k in zip((getattr(law, "clearance_minus", 0.0), getattr(law, "clearance_plus", 0.0)), ks)
                 if k > 0 and c > 0]
@@ -285,9 +283,26 @@ def loose_atol(model, atol: float, constraints) -> str | None:
         ratio = reach / min(gaps)
         if ratio > ATOL_REACH and (worst is None or ratio > worst[0]):
             worst = (ratio, j, reach, min(gaps))
-    if worst is None:
-        return None
-    ratio, j, reach, gap = worst
+    return worst
+
+
+def loose_atol(model, atol: float, constraints=None) -> str | None:
+    """A warning when [integrator] atol (modal units) lets w at a constraint (`constraints`, the scene's,
+    in the model's order; None: the model's own laws) err by more than
+    ATOL_REACH of its smallest clearance: atol times the 1-norm of B's row at the constraint (w = B q) bounds the
+    w error the error control allows where |q| is small. M-orthonormal q scale as the square root of
+    the mass, so the default 1e-9 is loose for a structure of small masses and displacements in SI
+    (a MEMS part). Red team (new user): the frame of 23 kg with its K and M times 1e-9 and clearances
+    of 1 um ran its steps at the 10-sample limit, 24 % off the same run in kg over the estimate
+    window, while the estimate (its richer run at atol / 10, as loose) said 9.8 %. Every entry point
+    that integrates a reduced model says it once: `dbf-hpc run` and run.run (_run), a sweep (one line
+    naming its cases, sweep._warn_loose_atol) and simulate_reduced. Not collective."""
+    worst = atol_reach(model, atol, constraints)
+    return None if worst is None else loose_atol_message(atol, *worst)
+
+
+def loose_atol_message(atol: float, ratio: float, j: int, reach: float, gap: float) -> str:
+    """loose_atol's line for atol_reach's worst constraint."""
     return (f"[integrator] atol = {atol:g} (modal units, m kg^(1/2)) lets w at constraint {j + 1} err by up to "
             f"{reach:.3g} m, {ratio:.3g} x its clearance {gap:g} m: the steps do not control the error there, and "
             f"the estimate's richer run (atol / 10) cannot see it (small masses or displacements in SI units); set "

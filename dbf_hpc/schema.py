@@ -189,8 +189,9 @@ SECTIONS = {
                                       "columns limit the step, docs/design.md); gyroscopic_form = \"state_space\": "
                                       "the A-orthonormal states (J^(1/2), |eta|^2 twice the energy); --method full "
                                       "does not use it (fixed step dt). Small masses and displacements in SI (a MEMS "
-                                      "part) make the default loose: `run` warns where atol lets w at a constraint "
-                                      "err by over 1 % of its clearance, naming the atol to set"),
+                                      "part) make the default loose: `run` (and run.run, simulate_reduced, and a "
+                                      "sweep, once naming its cases) warns where atol lets w at a constraint err by "
+                                      "over 1 % of its clearance, naming the atol to set"),
         "contact": Key((str,), "implicit", "", '"implicit" (with its exact Jacobian) or "explicit" (the paper\'s '
                                                'IMEX split)'),
         "callbacks": Key((str,), "auto", "", 'the reduced model\'s TS callbacks: "c" (compiled, fast), "python" '

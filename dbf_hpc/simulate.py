@@ -31,10 +31,35 @@ def snapshot_samples(count: int, times: np.ndarray) -> np.ndarray:
     return np.unique(np.searchsorted(times, np.linspace(0.0, times[-1], count) - 1e-12 * times[-1]))
 
 
-@petsc_errors_as_one_line("the reduced integration", ("rom_",))
+# the loose-atol lines simulate_reduced has printed in this process: once each (a script's loop of runs)
+_WARNED = set()
+
+
 def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
     """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
-    `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Not collective."""
+    `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Warns, as `dbf-hpc
+    run` does (run.loose_atol), where an adaptive run's atol lets w err by over 1 % of a clearance: once
+    per process and message, on rank 0 of COMM_WORLD (the model is replicated: a script calls this on
+    every rank, and the line is printed once). Not collective."""
+    _check_settings(settings, say, "simulate_reduced")
+    if settings.adaptive and hasattr(model, "probe_sample_shape"):
+        from .run import loose_atol
+
+        loose = loose_atol(model, settings.atol)
+        if loose and loose not in _WARNED:
+            from petsc4py import PETSc
+
+            from .errors import warn
+
+            _WARNED.add(loose)
+            warn(loose, PETSc.COMM_WORLD)
+    return integrate_samples(model, settings, snapshots, say)
+
+
+@petsc_errors_as_one_line("the reduced integration", ("rom_",))
+def integrate_samples(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
+    """simulate_reduced without its warning: the error estimate's richer runs and the tolerance mode's
+    probes (accuracy.py), whose atol the run's own warning or calibration covers. Not collective."""
     _check_settings(settings, say, "simulate_reduced")
     snapshots = check_number("simulate_reduced snapshots", snapshots, 0, integer=True)
     if isinstance(model, FullOrderModel) or not hasattr(model, "probe_sample_shape"):

@@ -73,9 +73,9 @@ from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, coarse_samples_warning, coarse_step_warning,
-                  finished_output, forcing_warning, gyroscopic_checks, idle_warnings, run_case, scene_callbacks,
-                  unresolved_warnings, hunt_crossley_warnings)
+from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, atol_reach, coarse_samples_warning,
+                  coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks, hunt_crossley_warnings,
+                  idle_warnings, loose_atol_message, run_case, scene_callbacks, unresolved_warnings)
 from .scene import load_scene, parse_override
 from . import __version__
 from .schema import unit_of
@@ -595,6 +595,28 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous, stop=N
     return record
 
 
+def _warn_loose_atol(sweep, pending, models: dict, world) -> None:
+    """The warning `dbf-hpc run` prints where atol lets w err by over 1 % of a clearance (run.loose_atol),
+    once for the sweep: one line naming every pending case it concerns, with the worst case's numbers
+    (its advised atol is enough for all). Every rank holds every model (_prepare_models) and computes
+    the same; rank 0 prints. Not collective."""
+    worst, cases = None, []
+    for index in pending:
+        scene = sweep["run_scenes"][index]
+        model, settings = models.get(_model_key(scene)), scene.integrator_settings()
+        if isinstance(model, str) or model is None or not settings.adaptive:
+            continue
+        reach = atol_reach(model, settings.atol, scene.constraints)
+        if reach is not None:
+            cases.append(index + 1)
+            if worst is None or reach[0] > worst[1][0]:
+                worst = (settings.atol, reach, index + 1)
+    if worst is not None:
+        atol, reach, case = worst
+        warn(f"sweep: case{'s' if len(cases) > 1 else ''} {', '.join(map(str, cases))}: "
+             f"{loose_atol_message(atol, *reach)}{f' (case {case}, the worst)' if len(cases) > 1 else ''}", world)
+
+
 def _case_warnings(scene, model, summary: dict) -> list:
     """What `dbf-hpc run` warns of the same case, that its result may be wrong (red team: a clearance
     in mm given as m, a basis below the forcing, impacts a fixed step does not resolve: each run
@@ -746,6 +768,7 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
             f"state a finished step ends in means another state in it")
         pending = sorted(set(pending) | stale)
         _prepare_models(sweep, pending, cache_dir, say, models)
+    _warn_loose_atol(sweep, pending, models, world)
     chains = [c for c in sweep["chains"] if any(i in pending for i in c)]
     mine = chains[world.rank::world.size]
     stopped = unwritten = None

@@ -6,6 +6,7 @@ Under MPI every rank runs every test. Rules that keep a failure from hanging the
 - look at the files a collective call left behind with `rank0_files` (rank 0 writes and removes them).
 """
 import contextlib
+import os
 import subprocess
 
 import numpy as np
@@ -258,3 +259,27 @@ def damage_data_address(path, dataset: str) -> None:
     with open(path, "r+b") as f:
         f.seek(at)
         f.write(struct.pack("<Q", offset + 2**40))
+
+
+def small_mass_chain(folder, atol=None) -> str:
+    """A scene of 10 masses of 1e-9 kg joined by 1e-4 N/m springs, a stop 1 um away (dof 5), forced at dof 2:
+    a part of small masses and displacements in SI (run.loose_atol). With [integrator] atol, when given.
+    The files are written by rank 0; every rank returns after they exist. Returns the scene's path."""
+    import scipy.io
+    import scipy.sparse
+
+    n, path = 10, os.path.join(str(folder), "chain.toml")
+    K = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr() * 1e-4
+    M = scipy.sparse.diags(np.linspace(1.0, 2.0, n)).tocsr() * 1e-9
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(os.path.join(str(folder), "K.mtx"), K, precision=17)
+        scipy.io.mmwrite(os.path.join(str(folder), "M.mtx"), M, precision=17)
+        with open(path, "w") as f:
+            f.write('[structure]\nkind = "matrices"\nstiffness = "K.mtx"\nmass = "M.mtx"\n'
+                    '[excitation]\nkind = "force"\ndof = 2\namplitude = 5e-10\nfrequency_hz = 10.0\n'
+                    '[[constraint]]\ndof = 5\nclearance = 1e-6\nk = 1e-3\n[basis]\nmodes = 4\ncache = "off"\nestimate = false\n'
+                    '[output]\nsample_dt = 1e-4\n[integrator]\nt_end = 0.01\n'
+                    + (f"atol = {atol!r}\n" if atol is not None else ""))
+    MPI.COMM_WORLD.Barrier()
+    return path

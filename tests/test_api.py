@@ -483,3 +483,30 @@ def test_cases_one_after_another_in_a_process_take_only_their_own_settings_and_o
     untimed = lambda result: {k: v for k, v in result.solver.items() if k != "time_integration"}   # noqa: E731
     assert untimed(again) == untimed(first) and np.array_equal(again.displacement, first.displacement)
     assert np.array_equal(again.q, first.q) and options.getAll() == before
+
+
+def test_simulate_reduced_warns_once_where_atol_lets_w_err_by_over_a_percent_of_a_clearance(shared_tmp_path, capfd):
+    # simulate_reduced says what `dbf-hpc run` says (run.loose_atol), on rank 0, once for the same line however
+    # often a script calls it; an atol tight enough draws none
+    import dataclasses
+
+    from mpi4py import MPI
+
+    from conftest import small_mass_chain
+    import dbf_hpc.simulate as simulate
+    from dbf_hpc import Reductor, simulate_reduced
+    from dbf_hpc.scene import load_scene
+
+    scene = load_scene(small_mass_chain(shared_tmp_path))
+    settings = scene.integrator_settings()
+    with scene.full_order_model() as fom, Reductor(fom, scene.basis_settings()) as reductor:
+        model = reductor.reduce()
+    simulate._WARNED.clear()   # an earlier test of this process may have drawn the same line (printed once)
+    capfd.readouterr()
+    for _ in range(2):
+        simulate_reduced(model, settings)
+    simulate_reduced(model, dataclasses.replace(settings, atol=1e-14))
+    err = capfd.readouterr().err
+    count = err.count("dbf-hpc: warning: [integrator] atol = 1e-09 (modal units")
+    assert_all(count == (1 if MPI.COMM_WORLD.rank == 0 else 0), err)
+    assert "atol = 1e-14" not in err

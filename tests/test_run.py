@@ -570,3 +570,16 @@ def test_hunt_crossley_damping_beyond_its_restitution_range_warns_once_and_only_
     summary = run(s, str(shared_tmp_path / f"hc-{method}-10.h5"), progress=False, method=method, resume=True)
     assert summary["stats"]["time_integration"] == first["stats"]["time_integration"]
     assert summary["alpha_speed"] == first["alpha_speed"] and 0 < first["alpha_speed"][0] < 1.5
+
+
+def test_run_from_python_warns_once_where_atol_lets_w_err_by_over_a_percent_of_a_clearance(shared_tmp_path, capfd):
+    # the Python API's run.run says what `dbf-hpc run` says (one line, rank 0), and a tight atol draws none
+    from conftest import small_mass_chain
+
+    for atol, expected in ((None, 1), (1e-14, 0)):
+        scene = load_scene(small_mass_chain(shared_tmp_path, atol))
+        capfd.readouterr()
+        run(scene, str(shared_tmp_path / f"chain-{atol}.h5"), progress=False)
+        err = capfd.readouterr().err
+        count = err.count("dbf-hpc: warning: [integrator] atol = ")
+        assert_all(count == (expected if MPI.COMM_WORLD.rank == 0 else 0), (atol, err))

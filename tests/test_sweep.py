@@ -1245,3 +1245,27 @@ def test_a_cells_file_changes_no_case_identity(shared_tmp_path):
     assert _identities({"chains": []}, [cells]) == _identities({"chains": []}, [points])
     assert _coordinates_key(cells) == _coordinates_key(points)
     assert _identities({"chains": []}, [cells]) != _identities({"chains": []}, [cells.with_values("basis", modes=3)])
+
+
+def test_a_sweep_warns_once_naming_the_cases_whose_atol_lets_w_err_by_over_a_percent_of_a_clearance(
+        shared_tmp_path, capfd):
+    # `dbf-hpc run` warns of a loose atol (run.loose_atol); a sweep of the same cases said nothing. One line
+    # names the cases (1 and 2; case 3's atol is tight enough), printed by rank 0 alone
+    from conftest import small_mass_chain
+
+    scene = small_mass_chain(shared_tmp_path)
+    path = str(shared_tmp_path / "atol.toml")
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "w") as f:
+            f.write(f'scene = "{scene}"\noutput = "atol.h5"\n[axes]\n"integrator.atol" = [1e-9, 1e-10, 1e-14]\n')
+    MPI.COMM_WORLD.Barrier()
+    capfd.readouterr()
+    assert run_sweep(path, progress=False)["failed"] == 0
+    err = capfd.readouterr().err
+    lines = [line for line in err.splitlines() if "[integrator] atol = " in line]
+    if MPI.COMM_WORLD.rank == 0:
+        assert_all(len(lines) == 1 and lines[0].startswith("dbf-hpc: warning: sweep: cases 1, 2: [integrator] "
+                                                           "atol = 1e-09") and "(case 1, the worst)" in lines[0], err)
+    else:
+        assert_all(not lines, err)
