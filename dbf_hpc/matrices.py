@@ -829,6 +829,7 @@ def load_operators(files: MatrixFiles, comm=None) -> Operators:
                      f"holds a node's coordinates only (its row, from 0, is its number); if that column numbers the "
                      f"nodes, remove it, or the outputs draw every node elsewhere", comm)
             moves = np.flatnonzero(component < 3)          # translations: what a displacement field shows
+            ops.rotations = np.flatnonzero(component >= 3)   # rad, not m: the error estimate scales them apart
             cells, cell_type, digest = (decided_on_rank0(comm, load_cells, files.cells, coordinates, files.cell_type)
                                         if files.cells else (None, "", ""))
             if cells is not None:

@@ -129,6 +129,7 @@ class Operators:
     eigen_scale: float = 1.0
     mesh: Optional[object] = None
     field: Optional[PointValues] = None
+    rotations: Optional[np.ndarray] = None   # the rows a node map names rx, ry or rz; None without a node map
     flexibility: dict = dataclass_field(default_factory=dict, repr=False)
 
     @property

@@ -14,6 +14,7 @@ import os
 import numpy as np
 from petsc4py import PETSc
 
+from .accuracy import constraint_kinds
 from .basis import BasisSettings, ReducedBasis
 from .cache import obtain_basis
 from .errors import InputError
@@ -118,7 +119,8 @@ class Reductor:
                 Mr.destroy()
         info = {"omega": basis.omega, "enrichment_omega": basis.enrichment_omega, "dbf_k": basis.dbf_k,
                 "enrichment": basis.enrichment, "flexibility_captured": basis.flexibility_captured,
-                "flexibility_exact": basis.flexibility_exact, "complex_modes": basis.complex_modes, **structure}
+                "flexibility_exact": basis.flexibility_exact, "complex_modes": basis.complex_modes,
+                "constraint_kinds": constraint_kinds(ops, fom.constraints), **structure}
         return ReducedModel(M=M, C=C, K=K, G=G, B=basis.rows(rows), r_c=fom.influence_at(rows), base_load=base_load,
                             force_shape=force_shape, constraints=fom.constraints, support=fom.support,
                             force=fom.force, q0=q0, p0=p0, probe_B=self._basis_at(fom.probes),

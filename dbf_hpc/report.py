@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 
 from . import layout
-from .accuracy import percent
+from .accuracy import KINDS_NOTE, percent
 from .errors import InputError, lock_problem
 from .output import OutputLock, has_hdf5_signature
 
@@ -124,7 +124,8 @@ def _estimate_lines(f) -> list:
     value, window = float(f.attrs["estimated_error"]), float(f.attrs.get("estimated_error_window", np.nan))
     if not np.isfinite(value):
         return [f"  estimated error: not available ({f.attrs.get('estimated_error_note', '')})"]
-    return [f"  estimated error in w at the constraints: {value:.3g} ({percent(value)} of the largest |w| at any "
+    kind = " of its kind" if KINDS_NOTE in str(f.attrs.get("estimated_error_note", "")) else ""
+    return [f"  estimated error in w at the constraints: {value:.3g} ({percent(value)} of the largest |w|{kind} at any "
             f"constraint) over [0, {window:g}] s "
             f"({f.attrs.get('estimated_error_note', '')})"] + _statistics_error_lines(f)
 

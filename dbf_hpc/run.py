@@ -24,9 +24,9 @@ from slepc4py import SLEPc
 
 from . import __version__, layout, xdmf
 from .xdmf import geometry_datasets, node_vectors
-from .accuracy import (RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window, first_contact,
-                       flexibility_warning, is_long, nested_estimate, pick_basis, relative_difference, reused_estimate,
-                       richer_models, statistics_estimate, statistics_window, zeta_per_vector)
+from .accuracy import (KINDS_NOTE, RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_to_contact, estimate_window,
+                       first_contact, constraint_kinds, flexibility_warning, is_long, nested_estimate, pick_basis, relative_difference,
+                       reused_estimate, richer_models, statistics_estimate, statistics_window, zeta_per_vector)
 from .basis import SUSPICIOUS_HZ
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
@@ -1307,6 +1307,8 @@ def _full_estimate(scene: Scene, fom, settings, observation, recorder, timings: 
     if world.rank != 0:
         return None
     note = f"against the same model at a fixed step of {rich.dt:g} s: the step's error, not the mesh's"
+    kinds = constraint_kinds(fom.operators, fom.constraints)
+    note += KINDS_NOTE if kinds else ""
     k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
     if failure:
         estimate = Estimate(np.nan, end, seconds, failure)
@@ -1316,7 +1318,7 @@ def _full_estimate(scene: Scene, fom, settings, observation, recorder, timings: 
     else:
         recorder.writer.flush()
         w = recorder.writer.series[layout.CONSTRAINT_DISPLACEMENT][:k]
-        estimate = Estimate(relative_difference(w, np.concatenate(blocks)), end, seconds, note)
+        estimate = Estimate(relative_difference(w, np.concatenate(blocks), kinds), end, seconds, note, kinds=kinds)
     estimate = blind_to_contact(estimate, contact)
     timings["estimate"] = seconds
     _say(say, estimate.line())

@@ -141,7 +141,8 @@ SECTIONS = {
         "cache": Key((str,), "~/.cache/dbf_hpc", "", 'directory of cached bases, or "off"'),
         "estimate": Key((bool,), True, "", "the a-posteriori error estimate of a run (the attribute estimated_error: "
                                            "the largest error in w at any constraint over the largest |w| at any "
-                                           "constraint): the same scene on max(2N, N + N_L) modes with the same enrichment "
+                                           "constraint, each kind of DOF apart where a node map puts constraints on "
+                                           "rotations and translations): the same scene on max(2N, N + N_L) modes with the same enrichment "
                                            "(and on 1.5 times those modes where that differs by 2 % or more: the larger) "
                                            "at a 10x tighter rtol, over estimate_window (docs/accuracy.md); with "
                                            "--method full the same model at a 4x shorter step; sweeps and scenes "

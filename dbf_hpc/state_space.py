@@ -43,7 +43,7 @@ from typing import Optional
 import numpy as np
 from petsc4py import PETSc
 
-from .accuracy import captured, exact_flexibility
+from .accuracy import captured, constraint_kinds, exact_flexibility
 from .basis import BREAKDOWN_TOL, BasisSettings, _check_rows
 from .constraints import ConstraintSet
 from .errors import InputError, SolverError
@@ -534,7 +534,7 @@ def reduce_state_space(fom, basis: StateSpaceBasis, field: ReducedField | None =
     info = {"omega": basis.omega, "enrichment_omega": basis.enrichment_omega, "dbf_k": basis.dbf_k,
             "enrichment": basis.enrichment, "flexibility_captured": basis.flexibility_captured,
             "flexibility_exact": basis.flexibility_exact, "complex_modes": basis.complex_modes,
-            "form": "state_space"}
+            "constraint_kinds": constraint_kinds(ops, fom.constraints), "form": "state_space"}
 
     def at(points):
         needed = points.needed_rows
