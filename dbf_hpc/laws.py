@@ -102,7 +102,8 @@ class Law:
 
     exponent_minus/plus default to the kind's exponent (1; hertz 1.5); they may differ from 1 only
     for power and hertz. linear and cubic take their k from k_plus (k_minus, if given, must equal
-    it). All-zero stiffness is a valid, force-free law; law_from_dict insists on a stiffness.
+    it). All-zero stiffness is a valid, force-free law; law_from_dict insists on a law that can push
+    (a stiffness, a table with a nonzero force, a friction law with mu and normal_force > 0).
     """
 
     kind: str = "deadband"
@@ -320,6 +321,15 @@ def law_from_dict(index: int | str | None, d: dict):
         for key in ("normal_force", "mu"):
             if key not in d:
                 raise InputError(f"{where}: a friction law needs {key}")
+        zeros = [key for key in ("mu", "normal_force") if d[key] == 0]
+        if zeros:
+            # Refused, not taken as "frictionless": a 1-D friction law is friction alone, N = -mu F_n tanh(v / v_reg),
+            # so with mu F_n = 0 it is no constraint at all, and the reduced model would still carry its DBF (a
+            # basis, and results, that differ from the run without it); a frictionless support is that run
+            named = " and ".join(f"{key} = 0" for key in zeros)
+            raise InputError(f"{where}: {named}: a friction law (N = -mu normal_force tanh(v / v_reg)) would never "
+                             f"push; give mu and normal_force positive values, or remove the constraint for a "
+                             f"frictionless support")
         fields.setdefault("v_reg", DEFAULT_V_REG)
         if d.get("damping", "none") != "none":
             raise InputError(f"{where}: a friction law has no contact damping (it is all dissipation)")
@@ -327,9 +337,15 @@ def law_from_dict(index: int | str | None, d: dict):
     if kind in ("linear", "cubic") and "k_minus" in fields and "k_plus" not in fields:
         fields["k_plus"] = fields["k_minus"]  # a lone k_minus is the one k
     try:
-        return Law(**fields)
+        result = Law(**fields)
     except InputError as e:
         raise InputError(f"{where}: {e}") from None
+    if kind == "table" and all(f == 0 for _, f in result.table):
+        # red team: a table of zero forces was accepted, a constraint that never pushes (and, in the reduced
+        # model, a DBF for nothing), like a deadband with k = 0, which is refused
+        raise InputError(f"{where}: table: every force is 0 N: the constraint would never push; give the forces "
+                         f"of the contact (N on the structure), or remove the constraint")
+    return result
 
 
 def _check_values(where: str, d: dict) -> None:

@@ -240,7 +240,7 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
                                       "hertz: 1.5"),
     "k3": Key(NUMBER, None, "N/m^3", "cubic: N = -(k z + k3 z^3)"),
     "table": Key((list,), None, "m, N", "table: [[z, force], ...], piecewise linear, the force on the structure "
-                                    "non-increasing in z (restoring)"),
+                                    "non-increasing in z (restoring), not all forces 0"),
     "damping": Key((str,), "none", "", 'contact damping: "none", "linear" (-c v) or "hunt_crossley" '
                                        '(-alpha |N| v), in contact only, not clipped: while separating, '
                                        'linear damping pulls where c |v| > |N| and Hunt-Crossley where '
@@ -252,10 +252,10 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
                                       "force depends on dt"),
     "mu": Key(NUMBER, None, "1", "circular, flat_bar: Coulomb friction coefficient (default 0, at most 10), "
                                  "F_t = -mu k (|u| - c) tanh(v_t / v_reg); friction: N = -mu normal_force "
-                                 "tanh(v / v_reg) (required)"),
+                                 "tanh(v / v_reg) (required, > 0: mu = 0 is no constraint)"),
     "v_reg": Key(NUMBER, None, "m/s", "circular, flat_bar, friction: the sliding speed over which friction is "
                                       "regularized (default 1e-3)"),
-    "normal_force": Key(NUMBER, None, "N", "friction: the given normal force F_n (required)"),
+    "normal_force": Key(NUMBER, None, "N", "friction: the given normal force F_n (required, > 0)"),
     "angle": Key(NUMBER, None, "deg", "flat_bar: the direction of the flats' normal, from y towards z (default 0: "
                                       "flats across y, sliding along z); any finite angle, taken modulo 360"),
     "wear_coefficient": Key(NUMBER, None, "m^3/(N m)", "circular, flat_bar: Archard's wear coefficient K_w (at "

@@ -426,3 +426,20 @@ def test_a_table_whose_force_rises_with_z_is_refused_naming_the_segment_as_a_neg
     assert "negative stiffness" in message and "restoring" in message
     flat = law_from_dict(2, dict(law="table", table=[[-1e-3, 0.0], [1e-3, 0.0], [2e-3, -50.0]]))
     assert ConstraintLaws([flat]).force(np.array([1.5e-3]), np.zeros(1))[0] == pytest.approx(-25.0)
+
+
+@pytest.mark.parametrize("params, named", [
+    (dict(law="table", table=[[-1e-3, 0.0], [0.0, 0.0], [1e-3, 0.0]]), "table: every force is 0 N"),
+    (dict(law="table", table=[[0.0, -0.0], [1e-3, 0.0]]), "table: every force is 0 N"),
+    (dict(law="friction", normal_force=10.0, mu=0.0), "mu = 0"),
+    (dict(law="friction", normal_force=0.0, mu=0.3), "normal_force = 0"),
+    (dict(law="friction", normal_force=0.0, mu=0.0), "mu = 0 and normal_force = 0"),
+])
+def test_a_table_of_zero_forces_or_a_friction_law_without_friction_never_pushes_and_is_refused(params, named):
+    # A law whose force is 0 everywhere is no constraint (and would cost the reduced model a DBF for nothing),
+    # refused like a deadband with k = 0; a frictionless 1-D friction support is the run without the constraint.
+    with pytest.raises(InputError, match=rf"^constraint 3: {named}.*would never push.*remove the constraint"):
+        law_from_dict(3, params)
+    # one nonzero force, or any positive mu F_n, is a law that pushes
+    assert law_from_dict(3, dict(law="table", table=[[0.0, 0.0], [1e-3, -1.0]])).table[1] == (1e-3, -1.0)
+    assert law_from_dict(3, dict(law="friction", normal_force=1e-6, mu=1e-6)).mu == 1e-6
