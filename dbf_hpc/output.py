@@ -216,8 +216,7 @@ class OutputLock:
                 if stale is not None:   # "" too: an empty lock
                     self._take_over(stale)
                     continue
-                raise InputError(f"{self.what} {self.path!r} is being written by another job ({self._holder()}); "
-                                 f"wait for it, or remove {self.lock} if that job is gone") from None
+                raise InputError(self._busy(self._holder())) from None
             except OSError as e:
                 raise InputError(f"{self.what} {self.path!r}: cannot create {self.lock}: {e.strerror or e}") from None
             self.held, self.owner, self.written = True, owner, False
@@ -234,6 +233,18 @@ class OutputLock:
                 raise
             return
         raise InputError(f"{self.what} {self.path!r}: cannot take the lock {self.lock}; remove it if no job runs")
+
+    def _busy(self, holder: str) -> str:
+        return (f"{self.what} {self.path!r} is being written by another job ({holder}); wait for it, or remove "
+                f"{self.lock} if that job is gone")
+
+    def refuse_if_held(self) -> None:
+        """An InputError naming the holder (acquire's line) if a live job holds the lock. For a look at
+        the output's files before acquire: HDF5's own lock refuses to open the .partial the holder is
+        writing, and that line named neither the job nor its lock (red team). Not collective."""
+        holder = self.live_holder()
+        if holder is not None:
+            raise InputError(self._busy(holder))
 
     def _holder(self) -> str:
         try:

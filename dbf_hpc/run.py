@@ -52,10 +52,14 @@ from .timestepping import STEPS_PER_PERIOD, check_work, refuse_settings_options
 def output_path(scene: Scene, override: str | None, resume: bool = False) -> str:
     """The run's output file, refused before any work when it, or the .partial and .checkpoint the
     run writes and removes beside it, exists and is not dbf-hpc's (red team: a file named like them
-    was replaced or deleted). A resume reads the checkpoint, and refuses a foreign one itself."""
+    was replaced or deleted). A resume reads the checkpoint, and refuses a foreign one itself. An
+    output another job is writing is refused first, naming that job (its lock, output.OutputLock)."""
     path = override or scene.output().file
     if not path:
         raise InputError("no output file: give [output] file in the scene or -o OUT.h5")
+    # before the files are opened: HDF5 refuses to open the .partial a running job writes, and that line
+    # ("another process has it open for writing") named neither the job nor its lock (red team)
+    OutputLock(path).refuse_if_held()
     check_output_path(path, scene.inputs())
     check_output_path(f"{path}.partial", scene.inputs(), replaceable=is_dbf_partial)
     if not resume:

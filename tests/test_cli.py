@@ -737,6 +737,34 @@ def test_two_jobs_on_one_output_without_hdf5_file_locking_leave_the_first_intact
         assert abs(abs(f["constraints/displacement"][:, 0]).max() / 2.5e-3 - 1) < 0.03
 
 
+def test_a_second_job_on_an_output_being_written_is_refused_naming_the_first_job_on_1_and_2_ranks(tmp_path):
+    # Red team: with HDF5's file locking on (the default), the second job's look at OUT.h5.partial, which
+    # the first job holds open, failed first, as "cannot open 'OUT.h5.partial': another process has it open
+    # for writing", naming neither the job nor its lock. The lock speaks first, and the first job's output
+    # is left intact.
+    import h5py
+
+    target = tmp_path / "shared.h5"
+    common = ("-q", "--set", "integrator.t_end=2", "--set", f"basis.cache={tmp_path}",
+              "--set", "integrator.callbacks=python")
+    first = _start("run", PAPER, "-o", str(target), *common)
+    _wait_for(str(target) + ".partial", first)
+    holder = open(f"{target}.lock").read().split()
+    for ranks in (1, 2):
+        second = dbf_hpc("run", PAPER, "-o", str(target), *common, ranks=ranks)
+        lines = [line for line in second.stderr.splitlines() if line.strip()]
+        assert first.poll() is None, "the first job ended before the second was refused: the test proves nothing"
+        assert second.returncode == 1 and lines == [
+            f"dbf-hpc: error: output {str(target)!r} is being written by another job (pid {holder[1]} on "
+            f"{holder[0]}); wait for it, or remove {target}.lock if that job is gone"], second.stderr
+    first.communicate(timeout=600)
+    assert first.returncode == 0
+    with h5py.File(target) as f:
+        assert f.attrs["complete"] and f["time"].shape == (10001,)
+        assert abs(abs(f["constraints/displacement"][:, 0]).max() / 2.5e-3 - 1) < 0.03
+    assert not os.path.exists(f"{target}.lock") and not os.path.exists(f"{target}.partial")
+
+
 def test_resuming_on_another_number_of_ranks_is_refused(tmp_path):
     # The basis depends on the rank layout through round-off, and the impacting beam amplifies it:
     # a resume on another layout would not continue the same run.
