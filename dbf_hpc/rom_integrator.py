@@ -38,8 +38,8 @@ from petsc4py import PETSc
 from .errors import InputError, SolverError
 from .petsctools import destroy
 from .rom import ReducedModel, applied
-from .timestepping import (ADAPT_DEFAULTS, NO_DENSE_OUTPUT, IntegratorSettings, StepMonitor, check_outcome,
-                           checked_by_the_integrator, configure, solve)
+from .timestepping import (ADAPT_DEFAULTS, LAW_SCALES, NO_DENSE_OUTPUT, IntegratorSettings, StepMonitor,
+                           check_outcome, checked_by_the_integrator, configure, solve)
 
 PREFIX = "rom_"
 WHAT = "time integration"
@@ -185,9 +185,9 @@ class _Monitor:
     problem says what (q, p) a state is (`coordinates`) and keeps the laws' state (`commit`): a
     ReducedProblem, or state_space.StateSpaceProblem (q = eta, p = eta')."""
 
-    def __init__(self, problem, steps: StepMonitor, record, on_step, dense: bool, recorder=None):
+    def __init__(self, problem, steps: StepMonitor, record, on_step, dense: bool, recorder=None, advice=""):
         self.problem, self.steps, self.record, self.on_step, self.dense = problem, steps, record, on_step, dense
-        self.recorder = recorder
+        self.recorder, self.advice = recorder, advice
         self.work = None
 
     def __call__(self, ts, step, t, y):
@@ -195,8 +195,7 @@ class _Monitor:
         if steps.failure:
             return
         a = y.getArray(readonly=True)
-        if not steps.check_finite(ts, step, t, float(np.sum(np.abs(a))),
-                                  "reduce [integrator] dt or rtol, or set contact = \"implicit\""):
+        if not steps.check_finite(ts, step, t, float(np.sum(np.abs(a))), self.advice):
             return
         for _, sample, exact in steps.samples_due(t):
             state = a
@@ -266,7 +265,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
     y.getArray()[:] = start
     F, G, work = y.duplicate(), y.duplicate(), y.duplicate()
     ts = PETSc.TS().create(comm=comm)
-    J = fast = monitor = ksp = None
+    J = fast = monitor = ksp = failed = None
     c_newton = viewers_off = False
     try:
         ts.setProblemType(PETSc.TS.ProblemType.NONLINEAR)
@@ -297,7 +296,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
             ts.setTimeSpan(np.concatenate([[resume["t"]], times[first:]]) if resume else times)
         steps = StepMonitor(times, first, resumed=bool(resume), say=say)
         if fast is None:
-            monitor = _Monitor(problem, steps, record, on_step, dense, recorder)
+            monitor = _Monitor(problem, steps, record, on_step, dense, recorder, step_advice(settings))
             ts.setMonitor(monitor)
         else:
             stateful = getattr(model.constraints, "stateful", False)
@@ -322,7 +321,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
             core.viewers_off()
             viewers_off = True
         try:
-            wall = solve(ts, y, steps, WHAT, "reduce [integrator] dt or rtol")
+            wall = solve(ts, y, steps, WHAT, step_advice(settings))
         except SolverError:
             if fast is not None and fast.error is not None:
                 raise fast.error from None
@@ -338,8 +337,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
             steps.next = fast.next_sample
             if fast.nonfinite is not None:
                 step, t = fast.nonfinite
-                steps.failure = (f"the state is not finite at t = {t:.6g} s (step {step}); reduce [integrator] "
-                                 f"dt or rtol, or set contact = \"implicit\"")
+                steps.failure = f"the state is not finite at t = {t:.6g} s (step {step}); {step_advice(settings)}"
             elif fast.stop_message:
                 steps.failure = fast.stop_message
         before = resume or {}
@@ -358,11 +356,95 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
                                    for name, value in fast.counters.items()}
         reason = ts.getConvergedReason()
         steps.last_step = ts.getTimeStep()   # check_outcome: a run that failed at its floor says so
+        if reason < 0:   # what failed, read before the TS goes (failure_advice)
+            snes = ts.getSNES()
+            failed = dict(snes_reason=snes.getConvergedReason(), snes_its=snes.getIterationNumber(),
+                          step=ts.getTimeStep(), t=ts.getTime(), state=y.getArray(readonly=True).copy())
     finally:
         # ksp is our reference to the TS's own solver (dropped by Python after the TS, petsc4py 3.18 parks it
         # in PETSc's garbage: one KSP per integration in a long process)
         destroy(ts, ksp, y, F, G, J, work, monitor.work if monitor is not None else None)
-    advice = ("set contact = \"implicit\" or reduce [integrator] dt" if settings.contact == "explicit"
-              else "reduce [integrator] dt or rtol, or try another scheme")
+    advice = (failure_advice(model, settings, reason, first_order, **failed) if failed is not None else
+              f"check {LAW_SCALES} against the structure's own scales and units")
     check_outcome(steps, reason, stats, settings.t_end, WHAT, advice)
     return stats
+
+
+def step_advice(settings: IntegratorSettings) -> str:
+    """The change most likely to help a reduced run whose state became non-finite or whose solve PETSc
+    stopped: explicit contact (unstable at steps longer than a contact lasts), a fixed step (too long),
+    or, on adaptive implicit steps, which reject what they cannot resolve, the input's scales. Red team:
+    each said "reduce [integrator] dt or rtol", rtol also for a fixed step, where it does nothing."""
+    if settings.contact == "explicit":
+        return ("set contact = \"implicit\" in [integrator] (an explicit contact force is unstable at steps longer than "
+                "a contact lasts), or lower [integrator] dt")
+    if not settings.adaptive:
+        return (f"lower [integrator] dt (now {settings.dt:g} s), or set [integrator] adaptive = true, whose steps "
+                f"shrink where a Newton solve fails")
+    return (f"check {LAW_SCALES} against the structure's own scales and units (values beyond double precision), or "
+            f"lower [integrator] rtol (now {settings.rtol:g})")
+
+
+SNES_REASONS = {value: name for name, value in vars(PETSc.SNES.ConvergedReason).items() if isinstance(value, int)}
+CONTACTS_NAMED = 3   # constraints in contact a failure line names (the count of the rest)
+
+
+def _nearest_stop(constraints, z) -> str:
+    """", the nearest its stop: constraint J (place, law), X m away" for the one-direction stops (the
+    constraint a failed step most likely reached), or "" where there is none."""
+    if constraints.dimension != 1:
+        return ""
+    gaps = []
+    for j, law in enumerate(constraints.laws.laws):
+        sides = ([law.clearance_plus - z[j]] if law.k_plus > 0 else []) + \
+                ([z[j] + law.clearance_minus] if law.k_minus > 0 else [])
+        if law.kind in ("deadband", "power", "hertz") and sides:
+            gaps.append((min(sides), j))
+    if not gaps:
+        return ""
+    gap, j = min(gaps)
+    return (f", the nearest its stop: constraint {j + 1} ({constraints.labels[j]}, {constraints.laws.laws[j].kind}), "
+            f"{gap:.3g} m away")
+
+
+def failure_advice(model, settings: IntegratorSettings, reason: int, first_order: bool, snes_reason: int, snes_its: int,
+                   step: float, t: float, state: np.ndarray) -> str:
+    """What a reduced run that stopped (TS reason < 0) ran into and the one change most likely to help:
+    the Newton solve's reason and the step it failed on, the constraints in contact at the last accepted
+    state (their place and law), and, in this order, the user's own solver options (-rom_snes_max_it 1),
+    explicit contact, a fixed step (lower dt, or adaptive steps, which shrink where Newton fails), or the
+    laws' and loads' scales. Red team: every such stop said "reduce [integrator] dt or rtol, or try another
+    scheme", rtol also for a fixed step, where it does nothing, and named neither the option that starved
+    the Newton solve nor the constraint."""
+    if reason == PETSc.TS.ConvergedReason.DIVERGED_STEP_REJECTED:
+        what = (f"50 tries in a row at one step were rejected, the last of {step:.3g} s (its Newton solve: "
+                f"{SNES_REASONS.get(snes_reason, snes_reason)}, {snes_its} iterations)")
+    else:
+        what = (f"the Newton solve of a step of {step:.3g} s failed ({SNES_REASONS.get(snes_reason, snes_reason)} after "
+                f"{snes_its} iterations)")
+    constraints = model.constraints
+    if constraints.count:
+        try:
+            r = model.size
+            q, p = (state, None) if first_order else (state[:r], state[r:])
+            z, _ = model.constraint_state(t, q, p)
+            touching = np.flatnonzero(constraints.in_contact(z))
+        except (ValueError, TypeError, FloatingPointError):   # no state to say it from
+            touching = None
+        if touching is not None and touching.size:
+            laws = constraints.laws.laws
+            named = ", ".join(f"constraint {j + 1} ({constraints.labels[j]}, {laws[j].kind})"
+                              for j in touching[:CONTACTS_NAMED])
+            more = f" and {touching.size - CONTACTS_NAMED} more" if touching.size > CONTACTS_NAMED else ""
+            what += f", in contact at its start: {named}{more}"
+        elif touching is not None:
+            what += f", no constraint in contact at its start{_nearest_stop(constraints, z)}"
+    options = sorted(f"-{name}" for name in PETSc.Options().getAll()
+                     if name.startswith(tuple(PREFIX + kind for kind in ("snes_", "ksp_", "pc_", "ts_"))))
+    if options:
+        change = f"check the options given ({' '.join(options)}) first"
+    elif settings.contact == "explicit" or not settings.adaptive:
+        change = step_advice(settings)
+    else:
+        change = f"check {LAW_SCALES} against the structure's own scales and units"
+    return f"{what}; {change}"

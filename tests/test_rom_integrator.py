@@ -1,6 +1,8 @@
 """The reduced integrator (rom_integrator.py) on reduced models built by hand: exact solutions of
 small linear systems, a non-identity reduced mass, implicit and explicit contact, failures that
 say what to change."""
+import re
+
 import numpy as np
 import pytest
 
@@ -106,3 +108,44 @@ def test_an_exception_from_a_record_callback_frees_the_time_stepper(capfd):
             integrate_reduced(oscillator(spring=5.0), IntegratorSettings(t_end=0.1, dt=1e-2, sample_dt=1e-2,
                                                                          adaptive=False, callbacks="python"), record)
     assert petsc_garbage(capfd) == 0, "the failed run's TS was left in PETSc's garbage"
+
+
+def stopped_oscillator():
+    """The oscillator from 1 mm against a stop (1e7 N/m) 0.1 mm away: a contact lasting ~1 ms."""
+    import dataclasses
+
+    stop = ConstraintSet(rows=[[0]], laws=ConstraintLaws([law("deadband", clearance=1e-4, k=1e7)]),
+                         labels=("x = 0.5 m",), positions=np.zeros(1))
+    return dataclasses.replace(oscillator(stiffness=100.0), constraints=stop)
+
+
+@pytest.mark.parametrize("callbacks", ["python", "c"])
+def test_a_fixed_step_whose_newton_solve_fails_names_the_reason_the_step_the_constraint_and_dt_not_rtol(callbacks):
+    # Red team: every such stop said "reduce [integrator] dt or rtol, or try another scheme": rtol does
+    # nothing to a fixed step, and the line named neither the Newton failure nor the constraint.
+    with pytest.raises(SolverError) as info:
+        run(stopped_oscillator(), t_end=1.0, sample_dt=1e-2, adaptive=False, dt=0.05, callbacks=callbacks)
+    line = str(info.value)
+    assert "\n" not in line and "rtol" not in line and "another scheme" not in line, line
+    assert "the Newton solve of a step of 0.05 s failed (DIVERGED_" in line, line
+    # from 1 mm at 10 rad/s, 0.1 s after its last sample; the failed step reaches the stop 0.1 mm away
+    assert re.search(r"no constraint in contact at its start, the nearest its stop: constraint 1 \(x = 0.5 m, "
+                     r"deadband\), [0-9.e-]+ m away;", line), line
+    assert line.endswith("lower [integrator] dt (now 0.05 s), or set [integrator] adaptive = true, whose steps shrink "
+                         "where a Newton solve fails"), line
+
+
+@pytest.mark.parametrize("callbacks", ["python", "c"])
+def test_a_newton_solve_starved_by_the_users_own_option_names_that_option(callbacks):
+    # -rom_snes_max_it 1 stops a run that the defaults finish (the same run without it does): the line
+    # names the option and the Newton solve's reason, not dt or rtol.
+    from conftest import petsc_options
+
+    settings = dict(t_end=0.1, sample_dt=1e-2, adaptive=False, dt=1e-4, callbacks=callbacks)
+    run(stopped_oscillator(), **settings)
+    with petsc_options(rom_snes_max_it=1), pytest.raises(SolverError) as info:
+        run(stopped_oscillator(), **settings)
+    line = str(info.value)
+    assert "(DIVERGED_MAX_IT after 1 iterations)" in line and "check the options given (-rom_snes_max_it) first" in line
+    assert "in contact at its start: constraint 1 (x = 0.5 m, deadband)" in line, line   # the stop's first contact
+    assert "rtol" not in line and "reduce [integrator] dt" not in line, line
