@@ -29,7 +29,8 @@ SECTIONS = {
         "elements": Key((int,), 100, "", "beam: target number of elements (a node is added at every constraint, "
                                          "force, loaded span's end and support; probes are interpolated)"),
         "E": Key(NUMBER, None, "Pa", "beam: Young's modulus (required)"),
-        "I": Key(NUMBER, None, "m^4", "beam: second moment of area (required)"),
+        "I": Key(NUMBER, None, "m^4", "beam: second moment of area (required; sqrt(I / A), the radius of "
+                                             "gyration, at most the length)"),
         "A": Key(NUMBER, None, "m^2", "beam: cross-section area (required)"),
         "rho": Key(NUMBER, None, "kg/m^3", "beam: density (required)"),
         "left": Key((str,), "pinned", "", 'beam: left end, "pinned", "clamped", "free" or "sliding" (slope fixed)'),

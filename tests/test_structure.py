@@ -289,3 +289,14 @@ def test_a_compressed_undamped_moving_beam_solves_its_buckling_load_ei_pi2_over_
         assert fom.operators.mesh.p_cr == solved[0]
     assert len(solved) == 1, solved
     assert abs(solved[0] / (2e11 * 1e-8 * np.pi**2) - 1) < 1e-6
+
+
+@pytest.mark.parametrize("change, radius", [(dict(I=8.78e-4), "55"), (dict(I=1.0, A=1e-3), "31.6")])
+def test_a_section_wider_than_the_beam_is_long_is_refused_as_a_unit_slip(change, radius):
+    # Red team: the paper beam's I = 0.000878 mm^4 given as 0.000878 m^4 (a radius of gyration sqrt(I / A) of
+    # 55 m on a 1 m beam) ran without a word at frequencies 1e6 times the paper's: inside the omega^2 bounds.
+    with pytest.raises(InputError, match=rf"^beam I = .* m\^4 and A = .* m\^2 give a section whose radius of gyration "
+                                         rf"sqrt\(I / A\) = {radius} m exceeds the beam's length 1 m: .*check their units"):
+        beam(elements=10, **change)
+    # a stubby beam whose section is as wide as it is long is still a beam (Euler-Bernoulli's limit, not ours)
+    assert beam(elements=10, I=1e-3, A=1e-3).I == 1e-3
