@@ -366,7 +366,8 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
         destroy(ts, ksp, y, F, G, J, work, monitor.work if monitor is not None else None)
     advice = (failure_advice(model, settings, reason, first_order, **failed) if failed is not None else
               f"check {LAW_SCALES} against the structure's own scales and units")
-    check_outcome(steps, reason, stats, settings.t_end, WHAT, advice)
+    # a failure the user's own solver options explain is not pinned on the input (FIRST_STEP_HINT)
+    check_outcome(steps, reason, stats, settings.t_end, WHAT, advice, input_hint=not _user_options())
     return stats
 
 
@@ -407,6 +408,12 @@ def _nearest_stop(constraints, z) -> str:
             f"{gap:.3g} m away")
 
 
+def _user_options() -> list:
+    """The -rom_snes_/ksp_/pc_/ts_ options the user set, sorted, with their dash."""
+    return sorted(f"-{name}" for name in PETSc.Options().getAll()
+                  if name.startswith(tuple(PREFIX + kind for kind in ("snes_", "ksp_", "pc_", "ts_"))))
+
+
 def failure_advice(model, settings: IntegratorSettings, reason: int, first_order: bool, snes_reason: int, snes_its: int,
                    step: float, t: float, state: np.ndarray) -> str:
     """What a reduced run that stopped (TS reason < 0) ran into and the one change most likely to help:
@@ -439,8 +446,7 @@ def failure_advice(model, settings: IntegratorSettings, reason: int, first_order
             what += f", in contact at its start: {named}{more}"
         elif touching is not None:
             what += f", no constraint in contact at its start{_nearest_stop(constraints, z)}"
-    options = sorted(f"-{name}" for name in PETSc.Options().getAll()
-                     if name.startswith(tuple(PREFIX + kind for kind in ("snes_", "ksp_", "pc_", "ts_"))))
+    options = _user_options()
     if options:
         change = f"check the options given ({' '.join(options)}) first"
     elif settings.contact == "explicit" or not settings.adaptive:

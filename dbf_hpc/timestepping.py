@@ -376,9 +376,12 @@ def solve(ts: PETSc.TS, y: PETSc.Vec, monitor: StepMonitor, what: str, advice: s
     return time.perf_counter() - start
 
 
-def check_outcome(monitor: StepMonitor, reason: int, stats: dict, t_end: float, what: str, advice: str) -> None:
+def check_outcome(monitor: StepMonitor, reason: int, stats: dict, t_end: float, what: str, advice: str,
+                  input_hint: bool = True) -> None:
     """A SolverError if the run stopped (the monitor's message) or did not reach t_end; an adaptive run
-    that failed with its step below the floor (monitor.last_step) gets the floor's message."""
+    that failed with its step below the floor (monitor.last_step) gets the floor's message. A run that
+    stopped in its first step adds FIRST_STEP_HINT unless `input_hint` is False (the advice already names
+    the cause: the user's own solver options)."""
     if monitor.failure:
         raise SolverError(monitor.failure)
     if reason < 0 and monitor.floor is not None and monitor.last_step is not None and \
@@ -393,7 +396,7 @@ def check_outcome(monitor: StepMonitor, reason: int, stats: dict, t_end: float, 
                           f"steps): check {given}{LAW_SCALES} against the structure's own scales and units, or lower "
                           f"[integrator] dt if the model is that fast")
     if reason < 0 or monitor.next < monitor.times.size:
-        if stats["final_time"] == monitor.times[0]:
+        if stats["final_time"] == monitor.times[0] and input_hint:
             advice += FIRST_STEP_HINT
         raise SolverError(f"the {what} stopped at t = {stats['final_time']:.6g} s of {t_end:g} s "
                           f"(TS reason {reason}, {stats['snes_failures']} Newton failures, "
