@@ -90,7 +90,8 @@ SECTIONS = {
                                         'force), "random" (a fully correlated random load along a beam) or '
                                         '"turbulence" (a random load along a beam with partial correlation, '
                                         'independent in y and z with planes = 2)'),
-        "amplitude": Key(NUMBER, 0.0, "m or N", "base: support displacement amplitude; force: force amplitude"),
+        "amplitude": Key(NUMBER, 0.0, "m or N", "base: support displacement amplitude (on a beam at most its "
+                                                    "length); force: force amplitude"),
         "frequency_hz": Key(NUMBER, 0.0, "Hz", "base, force: frequency of the sine"),
         "end": Key((str,), "left", "", 'base: the moving support of a beam, "left" or "right"'),
         "x": Key(NUMBER, None, "m", "force on a beam: where it acts"),
@@ -203,7 +204,8 @@ SECTIONS = {
         "mode": Key((int,), 1, "", "reference mode of the initial displacement, counted from 1 (not one of a "
                                    "repeated frequency's modes, whose shape round-off picks; a beam of two "
                                    "planes counts its pairs)"),
-        "amplitude": Key(NUMBER, 0.0, "m", "peak initial displacement in that mode"),
+        "amplitude": Key(NUMBER, 0.0, "m", "peak initial displacement in that mode (on a beam at most its "
+                                               "length)"),
         "direction": Key((list,), [], "1", "beam of two planes: [dy, dz], the direction of the initial "
                                            "displacement (mode counts the y-z pairs; default [1, 0])"),
         "velocity": Key(NUMBER, 0.0, "m/s", "beam of two planes: peak initial velocity in the same mode shape"),

@@ -1,5 +1,6 @@
 """Scene files: the contract's sections and keys, defaults, overrides, and one clear error per mistake."""
 import os
+import re
 
 import pytest
 
@@ -408,3 +409,19 @@ def test_atol_help_says_it_is_in_modal_units_per_form_and_unused_by_the_full_ord
     help_ = SECTIONS["integrator"][1]["atol"].doc
     for words in ("not physical", "m kg^(1/2)/s", "atol / omega", "state_space", "J^(1/2)", "--method full does not use it"):
         assert words in help_, words
+
+
+@pytest.mark.parametrize("sets, what", [
+    (["excitation.amplitude=5"], r"\[excitation\]: amplitude = 5 m, the support's motion,"),
+    (["excitation.amplitude=-1.5"], r"\[excitation\]: amplitude = -1.5 m, the support's motion,"),
+    (["excitation.kind=none", "initial.amplitude=3"], r"\[initial\]: amplitude = 3 m, the peak initial displacement,"),
+])
+def test_a_displacement_longer_than_the_beam_is_refused_as_a_unit_slip(sets, what):
+    # Red team: the paper beam's 5 mm support motion given as 5 (m), and a 3 m initial displacement of its
+    # 1 m beam, ran to the end without a word: a linear beam model far outside its small deflections.
+    with pytest.raises(InputError, match=rf"^{re.escape(PAPER)}: {what} is more than the beam's length \(1 m\): a "
+                                         rf"linear \(small-deflection\) beam model cannot carry it; check its unit"):
+        load_scene(PAPER, sets)
+    # up to the length it is the user's to judge; the force's amplitude is in N, not checked
+    assert load_scene(PAPER, ["excitation.amplitude=1.0"])["excitation"]["amplitude"] == 1.0
+    assert load_scene(PAPER, ["excitation.kind=force", "excitation.x=0.5", "excitation.amplitude=50.0"])
