@@ -72,7 +72,7 @@ from petsc4py import PETSc
 from .errors import TERMINATION, WRITE_ERRORS, InputError, SolverError, WriteFailed, write_failure
 from .fom import FullOrderModel
 from .petsctools import destroy, natural_fill_is_small, options_defaults
-from .timestepping import IntegratorSettings, StepMonitor, check_outcome
+from .timestepping import LAW_SCALES, IntegratorSettings, StepMonitor, check_outcome
 
 # The laws whose force has a kink at a clearance (or a table's breakpoints): each contact that closes there
 # sets the contact's own oscillation ringing, which a step must resolve (a linear, cubic or friction law is
@@ -520,8 +520,10 @@ class ContactNewton:
     MAX_IT = 20
     SWEEPS = 200
 
-    def __init__(self):
+    def __init__(self, constraints=None):
         self.calls = self.iterations = self.fallbacks = self.jumps = 0
+        self.constraints = constraints   # a ConstraintSet: its labels and laws name a failure
+        self.step = None                 # the step (s) of the problem being solved, for a failure's line
 
     def solve(self, problem: ContactStep, y_start, t: float):
         """(y, lambda) with lambda = None when no constraint pushes."""
@@ -579,7 +581,7 @@ class ContactNewton:
         n = y_free.size
         y, lam = y_free.copy(), np.zeros(n)
         for _ in range(self.SWEEPS):
-            change = 0.0
+            change, moved = 0.0, 0
             for j in range(n):
                 b = y_free[j] + D[j] @ lam - D[j, j] * lam[j]   # y_j = b + D_jj lam_j(y_j)
                 trial = y.copy()
@@ -604,12 +606,30 @@ class ContactNewton:
                     raise SolverError(f"the contact force is not finite at t = {t:.6g} s; {NOT_FINITE}")
                 if abs(r_j(x)) > tol:
                     self.jumps += 1
-                change = max(change, abs(x - y[j]))
+                if abs(x - y[j]) > change:
+                    change, moved = abs(x - y[j]), j
                 y[j], lam[j] = x, (x - b) / D[j, j]
             if change <= tol:
                 return y, lam
         raise SolverError(f"the contact problem at t = {t:.6g} s did not converge ({self.SWEEPS} Gauss-Seidel sweeps "
-                          f"after {self.MAX_IT} Newton iterations); {ADVICE} or soften the stops (a smaller k)")
+                          f"after {self.MAX_IT} Newton iterations){self._culprit(moved, change)}")
+
+    def _culprit(self, component: int, change: float) -> str:
+        """What a failed contact problem names: the constraint that moved most in the last sweep, its
+        law, the step, and what to change. Red team: the line said "reduce [integrator] dt or soften the
+        stops (a smaller k)" when a 2-D support's friction (mu = 5, v_reg = 1e-6 m/s) made it fail, and
+        named neither the constraint nor the step."""
+        step = f" (now {self.step:g} s)" if self.step else ""
+        if self.constraints is None or not self.constraints.count:
+            return f"; lower [integrator] dt{step}, or check {LAW_SCALES}"
+        j = component // self.constraints.dimension
+        law = self.constraints.laws.laws[j]
+        keys = [f"{key} = {getattr(law, key):g}" for key in ("k", "k_minus", "k_plus", "mu", "normal_force", "v_reg",
+                                                                "c", "alpha") if getattr(law, key, 0)]
+        return (f", constraint {j + 1} ({self.constraints.labels[j]}, {law.kind}{': ' if keys else ''}"
+                f"{', '.join(keys)}) moving most in the last sweep ({change:.3g} m): lower [integrator] dt{step}, or "
+                f"check that law's stiffness, damping and friction regularization (k, alpha, c; mu k / v_reg or "
+                f"mu normal_force / v_reg is friction's slope at rest) against the structure's scales and units")
 
 
 # -- the integrator --------------------------------------------------------------------------------
@@ -662,7 +682,7 @@ class FullIntegrator:
             self.laws = fom.constraints.laws
             self.r_c = fom.influence_at(rows)
             self.free = FreeIntervals(self.laws)
-            self.newton = ContactNewton()
+            self.newton = ContactNewton(fom.constraints)
             # per constraint, the largest D_jj |dN/dz| at a step's converged contact (rank 0): the contact's stiffness
             # against the step's (contact_stiffness_warnings); laws without a clearance's kink count 0
             self.stiffness = np.zeros(self.crow.n // max(getattr(self.laws, "dimension", 1), 1))
@@ -967,6 +987,7 @@ class FullIntegrator:
                     z_c = (1 - af) * y0 + self.value(ta) * self.r_c
                     v_c = v0 + (af * h * (1 - P.gamma)) * a0 + self.rate(ta) * self.r_c
                     problem = ContactStep(self.laws, D, yf, z_c, v_c, x_pred, af, sV)
+                    self.newton.step = h
                     y, result = self.newton.solve(problem, yf if lam_prev is None else yf + D @ lam_prev, t)
                     if result is not None:
                         self._track_stiffness(problem, y, D)

@@ -3,6 +3,7 @@ scheme: PETSc's TSALPHA2 before the first impact, a dense generalized-alpha with
 through impacts, finite differences of the condensed contact Jacobian; and its bookkeeping: one
 factorization per step size, the same answer on 1 and 2 ranks."""
 import math
+import re
 
 import numpy as np
 import pytest
@@ -422,3 +423,28 @@ def test_a_damping_matrix_beyond_double_precision_is_blamed_on_the_rayleigh_coef
                               Damping(**coefficients)) as fom:
         with pytest.raises(SolverError, match=r"is not finite: .*\[damping\] rayleigh_alpha and rayleigh_beta$"):
             simulate_full(fom, IntegratorSettings(t_end=1e-3, dt=1e-5, sample_dt=1e-3))
+
+
+def test_a_contact_problem_that_does_not_converge_names_the_constraint_its_law_and_the_step():
+    # Red team: a two-direction support with Coulomb friction far too stiff for the step (mu = 5, v_reg =
+    # 1e-6 m/s, k = 1e9 N/m) ended in "reduce [integrator] dt or soften the stops (a smaller k)": neither the
+    # constraint, nor its friction, nor the step. The same tube and support with the usual friction runs.
+    from dbf_hpc import InitialState
+    from dbf_hpc.errors import SolverError
+
+    tube = Beam(length=1.0, E=2e11, I=1e-9, A=1e-4, rho=7800.0, elements=8, planes=2)
+    start = InitialState(mode=1, amplitude=1e-3, velocity=1.0)
+    settings = IntegratorSettings(t_end=0.02, dt=1e-3, sample_dt=1e-3)
+    usual = Constraint(law("circular", clearance=1e-4, k=1e6, mu=0.3), x=0.5)
+    with FullOrderModel.build(tube, [usual], initial=start) as fom:
+        assert simulate_full(fom, settings).time[-1] == pytest.approx(0.02)
+    stiff = Constraint(law("circular", clearance=1e-4, k=1e9, mu=5.0, v_reg=1e-6), x=0.5)
+    with FullOrderModel.build(tube, [stiff], initial=start) as fom:
+        with pytest.raises(SolverError) as info:
+            simulate_full(fom, settings)
+    line = str(info.value)
+    assert "\n" not in line and "soften the stops" not in line, line
+    assert re.match(r"^the contact problem at t = [0-9.e-]+ s did not converge \(200 Gauss-Seidel sweeps after 20 Newton "
+                    r"iterations\), constraint 1 \(x = 0.5 m, circular: k = 1e\+09, mu = 5, v_reg = 1e-06\) moving most "
+                    r"in the last sweep \([0-9.e-]+ m\): lower \[integrator\] dt \(now 0.001 s\), or check that law's "
+                    r"stiffness, damping and friction regularization", line), line
