@@ -14,7 +14,7 @@ The names below load their modules on first use: PETSc starts then (the command 
 itself first, with the options it was given).
 """
 
-__version__ = "0.2.3"
+__version__ = "0.2.4"
 
 _API = {
     "Beam": "structure", "MatrixFiles": "matrices", "Constraint": "constraints", "ConstraintSet": "constraints",
