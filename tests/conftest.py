@@ -283,3 +283,25 @@ def small_mass_chain(folder, atol=None) -> str:
                     + (f"atol = {atol!r}\n" if atol is not None else ""))
     MPI.COMM_WORLD.Barrier()
     return path
+
+
+def recorded_impacts(constraints, t, z, v, by_blocks: bool) -> dict:
+    """The impact statistics a SampleRecorder gives for the steps (t, z, v) of `constraints`, fed as one
+    block of steps or one step at a time (the two must agree). Not collective."""
+    from dbf_hpc.output import MemoryWriter
+    from dbf_hpc.recorder import SampleRecorder
+
+    recorder = SampleRecorder(MemoryWriter(constraints.shape, 0, 0), constraints)
+    if by_blocks:
+        recorder.steps(t, z, v)
+    else:
+        for i in range(t.size):
+            recorder.step(t[i], z[i], v[i])
+    return recorder.impacts.result()
+
+
+def write_binary_vec(vec, path: str) -> None:
+    """`vec` as a PETSc binary file at `path`. Collective on vec's communicator."""
+    viewer = PETSc.Viewer().createBinary(path, mode="w", comm=vec.getComm())
+    vec.view(viewer)
+    viewer.destroy()

@@ -10,7 +10,7 @@ import scipy.sparse
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from conftest import assert_all, to_numpy
+from conftest import assert_all, to_numpy, write_binary_vec
 from dbf_hpc.errors import DbfError, InputError
 from dbf_hpc.matrices import MatrixFiles, file_digest, load_matrix, load_node_map, load_operators
 from dbf_hpc.modes import reference_modes
@@ -68,9 +68,7 @@ def test_an_influence_vector_in_petsc_binary_is_the_written_one(shared_tmp_path,
     # VecScatterCreate()" (a scatter with default indices on both sides), though the docs offer it.
     ops, _, _, paths = beam_files
     path = str(shared_tmp_path / "r.bin")
-    viewer = PETSc.Viewer().createBinary(path, mode="w", comm=ops.comm)
-    ops.influence.view(viewer)
-    viewer.destroy()
+    write_binary_vec(ops.influence, path)
     for stiffness, mass in ((paths["K.bin"], paths["M.bin"]), (paths["K.mtx"], paths["M.mtx"])):
         loaded = load_operators(MatrixFiles(stiffness, mass, influence=path))
         np.testing.assert_array_equal(to_numpy(loaded.influence), to_numpy(ops.influence))
@@ -84,9 +82,7 @@ def test_a_petsc_binary_file_cut_short_is_refused_on_every_rank_naming_its_lengt
     # raises the same InputError at once (pytest.raises on each rank), for matrices and vectors alike.
     ops, _, _, paths = beam_files
     r_bin = str(shared_tmp_path / "r.bin")
-    viewer = PETSc.Viewer().createBinary(r_bin, mode="w", comm=ops.comm)
-    ops.influence.view(viewer)
-    viewer.destroy()
+    write_binary_vec(ops.influence, r_bin)
     cut = {name: str(shared_tmp_path / name) for name in ("K_half.bin", "K_header.bin", "r_half.bin")}
     if MPI.COMM_WORLD.rank == 0:
         k_bytes, r_bytes = open(paths["K.bin"], "rb").read(), open(r_bin, "rb").read()

@@ -12,6 +12,8 @@ from dbf_hpc.output import MemoryWriter
 from dbf_hpc.recorder import FullRecorder, SampleRecorder
 from dbf_hpc.stats import STATISTICS
 
+from conftest import recorded_impacts
+
 
 def test_blocks_of_steps_and_samples_record_what_step_by_step_recording_does():
     rng = np.random.default_rng(7)
@@ -79,13 +81,7 @@ def test_two_direction_supports_impact_power_is_normal_force_times_normal_speed_
     power = np.trapz(k * (r - c) * np.abs(dr), t) / (t[-1] - t[0])
     work = np.trapz(k * (r - c) * r * w, t) / (t[-1] - t[0])
     for by_blocks in (True, False):
-        recorder = SampleRecorder(MemoryWriter(constraints.shape, 0, 0), constraints)
-        if by_blocks:
-            recorder.steps(t, z, v)
-        else:
-            for i in range(t.size):
-                recorder.step(t[i], z[i], v[i])
-        stats = recorder.impacts.result()
+        stats = recorded_impacts(constraints, t, z, v, by_blocks)
         assert np.isclose(stats["impact_power_mean"][0], power, rtol=1e-10, atol=0)
         assert np.isclose(stats["work_rate"][0], work, rtol=1e-10, atol=0)
         assert stats["impacts"][0] == 1 and stats["contact_fraction"][0] == 1.0

@@ -17,15 +17,13 @@ from dbf_hpc.errors import InputError
 from dbf_hpc.excitation import PointForce
 from dbf_hpc.laws import CircularLaw, PlanarLaws, law_from_dict
 from dbf_hpc.modes import reference_modes
-from dbf_hpc.output import MemoryWriter
-from dbf_hpc.recorder import SampleRecorder
 from dbf_hpc.rom_integrator import ReducedProblem, c_core, effective_callbacks
 from dbf_hpc.run import run
 from dbf_hpc.scene import load_scene
 from dbf_hpc.simulate import simulate_full
 from dbf_hpc.structure import assemble_beam
 
-from conftest import assert_all
+from conftest import assert_all, recorded_impacts
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TUBE_2D = os.path.join(ROOT, "jobs", "steam_generator_tube_2d.toml")
@@ -163,13 +161,7 @@ def test_work_rate_of_a_forced_orbit_is_normal_force_times_sliding_speed():
     speed = R * w * np.column_stack((-np.sin(w * t), np.cos(w * t)))
     z, v = np.hstack((orbit, orbit)), np.hstack((speed, speed))
     for by_blocks in (True, False):
-        recorder = SampleRecorder(MemoryWriter(constraints.shape, 0, 0), constraints)
-        if by_blocks:
-            recorder.steps(t, z, v)
-        else:
-            for i in range(t.size):
-                recorder.step(t[i], z[i], v[i])
-        stats = recorder.impacts.result()
+        stats = recorded_impacts(constraints, t, z, v, by_blocks)
         assert np.isclose(stats["work_rate"][0], k * (R - c) * R * w, rtol=1e-12)
         assert stats["work_rate"][1] == 0.0                                     # never touches its hole
         assert stats["impact_power_mean"][0] < 1e-12 * stats["work_rate"][0]
