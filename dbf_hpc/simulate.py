@@ -49,8 +49,6 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
         if loose and loose not in _WARNED:
             from petsc4py import PETSc
 
-            from .errors import warn
-
             _WARNED.add(loose)
             warn(loose, PETSc.COMM_WORLD)
     return integrate_samples(model, settings, snapshots, say)
