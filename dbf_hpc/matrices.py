@@ -392,7 +392,7 @@ def _not_symmetric(name: str, path: str, A: PETSc.Mat, skew: bool, value: float,
     triangle = one_triangle(A)
     if triangle:
         message += f": it holds only its {triangle} triangle, "
-        if path.endswith(".mtx"):
+        if _format(path) == "mtx":   # as the file was read (K.MTX, K.mm)
             message += (f"under a \"general\" header, which means every entry is listed; write the header as "
                         f"\"%%MatrixMarket matrix coordinate real {what}\" (one triangle stored, the other implied) "
                         f"or write both triangles")

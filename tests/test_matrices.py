@@ -3,6 +3,8 @@ and clear errors for files that cannot be operators."""
 import os
 import re
 
+import shutil
+
 import numpy as np
 import pytest
 import scipy.io
@@ -167,6 +169,14 @@ def test_one_triangle_of_a_symmetric_matrix_written_as_a_whole_one_is_refused_na
                                          r"lower triangle, under a \"general\" header, .* write the header as "
                                          r"\"%%MatrixMarket matrix coordinate real symmetric\""):
         load_operators(MatrixFiles(files["Kl.mtx"], paths["M.bin"]))
+    # the same file under another name is read as Matrix Market (its header), and gets the same advice
+    upper_case = str(shared_tmp_path / "KL.MTX")
+    if MPI.COMM_WORLD.rank == 0:
+        shutil.copy(files["Kl.mtx"], upper_case)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"^stiffness matrix '.*KL.MTX' is not symmetric \(.*\): it holds only its "
+                                         r"lower triangle, under a \"general\" header"):
+        load_operators(MatrixFiles(upper_case, paths["M.bin"]))
     with pytest.raises(InputError, match=r"^stiffness matrix '.*Kl.bin' is not symmetric \(.*\): it holds only its "
                                          r"lower triangle, .* write both triangles$"):
         load_operators(MatrixFiles(files["Kl.bin"], paths["M.bin"]))
