@@ -28,6 +28,7 @@ EPS, as on the factored path).
 from __future__ import annotations
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from .dbf import EIGEN_TOL, PREFIX, derivative_system, refine_derivative, value_at, with_spring
@@ -166,7 +167,10 @@ class SharedFactor:
         finally:
             destroy(B, X)
         counters["solves"] += L
-        if not np.isfinite(out).all():
+        # every rank's rows (red team: a solve that overflowed in one rank's rows, an uncoupled part of
+        # the structure, was that rank's error alone, and the others went on into the group's next
+        # collective call: the job hung)
+        if not comm.tompi4py().allreduce(bool(np.isfinite(out).all()), op=MPI.LAND):
             raise SolverError("a block solve with the shared DBF factorization gave non-finite values")
         return out
 

@@ -119,6 +119,29 @@ def two_beams(path):
     return load_operators(MatrixFiles(*paths)), short_beam, blocks[0][3], blocks[0][3] + blocks[1][2]
 
 
+def test_a_block_solve_that_overflows_in_one_ranks_rows_is_every_ranks_error(shared_tmp_path):
+    # Red team (collective semantics): the shared factorization's block solve checked only this rank's
+    # rows for non-finite values. Two uncoupled beams, on 2 ranks one beam a rank: a load that
+    # overflows the short beam's displacements (rank 1's rows) left rank 1 alone with the error, and
+    # rank 0 went on into its next collective call on the group (the job hung; here rank 0 did not
+    # raise).
+    ops, _, long_dofs, _ = two_beams(shared_tmp_path)
+    factor = SharedFactor(ops)
+    try:
+        lo, hi = ops.K.getOwnershipRange()
+        b = np.where(np.arange(lo, hi) < long_dofs, 1.0, 1e308).reshape(-1, 1)   # finite loads, w overflows
+        raised = None
+        try:
+            factor.solve_block(b)
+        except SolverError as e:
+            raised = str(e)
+        assert_all(raised is not None, "the block solve's overflow was not an error on every rank")
+        assert MPI.COMM_WORLD.allgather(raised) == [raised] * MPI.COMM_WORLD.size
+    finally:
+        factor.destroy()
+        ops.destroy()
+
+
 def test_constraint_at_a_node_of_the_first_mode_follows_the_first_branch_that_moves(shared_tmp_path):
     # Two uncoupled pinned beams, the long one first: mode 1 lives on the long beam only, so a
     # constraint on the short beam sits at a node of mode 1. Its DBF must come from the short beam's
