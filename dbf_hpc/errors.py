@@ -2,8 +2,8 @@
 
 Each carries one line for the user: what is wrong and what to change. The command prints that line
 and exits non-zero; anything else is a bug and ends the whole MPI job. Nothing here is
-collective but decided_on_rank0 and wait_for_rank0: whoever raises makes sure every rank raises the
-same error on the same path.
+collective but decided_on_rank0, agreed and wait_for_rank0: whoever raises makes sure every rank
+raises the same error on the same path.
 """
 import contextlib
 import math
@@ -79,6 +79,24 @@ def decided_on_rank0(comm, decide, *args):
         except InputError as e:
             problem = str(e)
     value, problem = world.bcast((value, problem), root=0)
+    if problem:
+        raise InputError(problem)
+    return value
+
+
+def agreed(comm, work, *args):
+    """work(*args) on every rank of `comm` (petsc4py or mpi4py), each rank's value returned to it, or
+    one InputError raised on every rank: the first failing rank's line, in rank order. For what each
+    rank must read itself (its rows of a file every rank parses): a file one node cannot see, or one
+    replaced while the ranks read it, was that rank's error alone, and the others waited in the next
+    collective call for ever (red team: a stiffness file missing on rank 1's view). Collective."""
+    world = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+    value = problem = None
+    try:
+        value = work(*args)
+    except InputError as e:
+        problem = str(e)
+    problem = next((p for p in world.allgather(problem) if p), None)
     if problem:
         raise InputError(problem)
     return value

@@ -7,7 +7,9 @@ chosen by the file's first bytes, then its name (any case):
 Vectors (influence vector, support-motion mass load) may also be *.npy or *.txt (one value a line).
 
 Every rank reads only its own rows into the distributed matrix; a Matrix Market file is parsed on
-every rank (text is not seekable by row), which is fine for the sizes such files are used for.
+every rank (text is not seekable by row), which is fine for the sizes such files are used for. The
+ranks agree on every check of a file each reads itself (errors.agreed): a file one node cannot read
+is every rank's one-line error, not one rank's while the others wait.
 
 Reading is collective on the communicator it is given (default COMM_WORLD).
 """
@@ -24,7 +26,7 @@ from typing import Optional
 import numpy as np
 from petsc4py import PETSc
 
-from .errors import InputError, decided_on_rank0, warn
+from .errors import InputError, agreed, decided_on_rank0, warn
 from .operators import Operators, PointValues
 from .petsctools import aij_from_owned_triplets, owned_rows, petsc_comm
 
@@ -164,27 +166,43 @@ def _check_petsc_binary_length(path: str, what: str) -> None:
                          f"{nz} entries) needs {needed}; write it again")
 
 
+def _readable_format(path: str, what: str) -> str:
+    """_readable, then _format. Not collective (load_matrix and load_vector agree on it)."""
+    _readable(path, what)
+    return _format(path)
+
+
+def _matrix_market_triplets(path: str, what: str, diagonal: bool) -> tuple:
+    """(shape, rows, cols, values) of a square Matrix Market matrix, both triangles (the other one
+    mirrored, negated for skew-symmetric), or an InputError; with `diagonal`, every row must hold a
+    non-zero diagonal entry (load_matrix). Not collective: every rank parses the file (load_matrix
+    agrees on the outcome)."""
+    shape, rows, cols, values, symmetry = _read_matrix_market(path, what)
+    if shape[0] != shape[1]:
+        raise InputError(f"{what} file {path!r} is {shape[0]} x {shape[1]}, not square")
+    held = np.unique(rows[(rows == cols) & (values != 0)]).size if diagonal else shape[0]
+    if held < shape[0]:
+        raise InputError(f"{what} file {path!r} declares {shape[0]} rows, but only {held} of them have a non-zero "
+                         f"diagonal entry: a row without one is a DOF nothing holds (the matrix is singular); "
+                         f"check the size line and that every DOF is in the file")
+    if symmetry != "general":   # the other triangle, mirrored (negated for skew-symmetric)
+        off = rows != cols
+        sign = -1.0 if symmetry == "skew-symmetric" else 1.0
+        rows, cols, values = (np.concatenate([rows, cols[off]]), np.concatenate([cols, rows[off]]),
+                              np.concatenate([values, sign * values[off]]))
+    return shape, rows, cols, values
+
+
 def load_matrix(path: str, comm=None, what: str = "matrix", diagonal: bool = False) -> PETSc.Mat:
     """A distributed AIJ matrix from a Matrix Market or PETSc binary file. Collective. With `diagonal`
     (a stiffness), a Matrix Market file must hold a non-zero diagonal entry in every row: one
     without is a DOF nothing holds (K singular), and a size line far above the entries (a typo,
     8700000 for 87) is refused before the matrix's rows are allocated (37 GB for 870 million)."""
     comm = petsc_comm(comm, "load_matrix")
-    _readable(path, what)
-    if _format(path) == "mtx":
-        shape, rows, cols, values, symmetry = _read_matrix_market(path, what)
-        if shape[0] != shape[1]:
-            raise InputError(f"{what} file {path!r} is {shape[0]} x {shape[1]}, not square")
-        held = np.unique(rows[(rows == cols) & (values != 0)]).size if diagonal else shape[0]
-        if held < shape[0]:
-            raise InputError(f"{what} file {path!r} declares {shape[0]} rows, but only {held} of them have a non-zero "
-                             f"diagonal entry: a row without one is a DOF nothing holds (the matrix is singular); "
-                             f"check the size line and that every DOF is in the file")
-        if symmetry != "general":   # the other triangle, mirrored (negated for skew-symmetric)
-            off = rows != cols
-            sign = -1.0 if symmetry == "skew-symmetric" else 1.0
-            rows, cols, values = (np.concatenate([rows, cols[off]]), np.concatenate([cols, rows[off]]),
-                                  np.concatenate([values, sign * values[off]]))
+    # rank 0's reading of the kind for all: a rank that took another branch would wait in other collectives
+    kind = comm.tompi4py().bcast(agreed(comm, _readable_format, path, what), root=0)
+    if kind == "mtx":
+        shape, rows, cols, values = agreed(comm, _matrix_market_triplets, path, what, diagonal)
         start, end = owned_rows(shape[0], comm)
         mine = (rows >= start) & (rows < end)
         return aij_from_owned_triplets(comm, shape[0], rows[mine], cols[mine], values[mine])
@@ -245,28 +263,35 @@ def load_vector(path: str, template: PETSc.Vec, what: str = "vector", owned: boo
             template.destroy()
 
 
+def _vector_values(path: str, what: str, kind: str, n: int) -> np.ndarray:
+    """The n finite real values of a .npy, text or Matrix Market vector file, or an InputError. Not
+    collective (every rank reads the file; _load_vector agrees on the outcome)."""
+    try:
+        if kind == "npy":
+            values = np.load(path, allow_pickle=False)
+        elif kind == "txt":
+            values = np.loadtxt(path, ndmin=1)
+        else:
+            values = _read_matrix_market_vector(path, what)
+    except (ValueError, OSError, EOFError) as e:
+        raise InputError(f"{what} file {path!r} is malformed: {e}") from None
+    values = np.asarray(values)
+    if not np.issubdtype(values.dtype, np.number) or np.iscomplexobj(values):
+        raise InputError(f"{what} file {path!r} must hold real numbers, got {values.dtype}")
+    values = values.astype(float).ravel()
+    if not np.all(np.isfinite(values)):
+        raise InputError(f"{what} file {path!r} has NaN or Inf entries")
+    if values.size != n:
+        raise InputError(f"{what} file {path!r} has {values.size} entries; the matrices have {n} rows")
+    return values
+
+
 def _load_vector(path: str, template: PETSc.Vec, what: str) -> PETSc.Vec:
-    _readable(path, what)
+    comm = template.getComm()
     n = template.getSize()
-    kind = _format(path)
+    kind = comm.tompi4py().bcast(agreed(comm, _readable_format, path, what), root=0)
     if kind != "petsc":
-        try:
-            if kind == "npy":
-                values = np.load(path, allow_pickle=False)
-            elif kind == "txt":
-                values = np.loadtxt(path, ndmin=1)
-            else:
-                values = _read_matrix_market_vector(path, what)
-        except (ValueError, OSError, EOFError) as e:
-            raise InputError(f"{what} file {path!r} is malformed: {e}") from None
-        values = np.asarray(values)
-        if not np.issubdtype(values.dtype, np.number) or np.iscomplexobj(values):
-            raise InputError(f"{what} file {path!r} must hold real numbers, got {values.dtype}")
-        values = values.astype(float).ravel()
-        if not np.all(np.isfinite(values)):
-            raise InputError(f"{what} file {path!r} has NaN or Inf entries")
-        if values.size != n:
-            raise InputError(f"{what} file {path!r} has {values.size} entries; the matrices have {n} rows")
+        values = agreed(comm, _vector_values, path, what, kind, n)
         vec = template.duplicate()
         start, end = vec.getOwnershipRange()
         vec.array[:] = values[start:end]

@@ -65,6 +65,45 @@ def test_loaded_operators_equal_the_written_ones(beam_files, fmt):
     loaded.destroy()
 
 
+@pytest.mark.parallel
+@pytest.mark.parametrize("seen,expected", [
+    ("K.mtx missing", "does not exist"), ("K.bin missing", "does not exist"),
+    ("K.mtx cut short", "declares"), ("r.npy missing", "does not exist")],
+    ids=["mtx-missing", "binary-missing", "mtx-cut-short", "npy-missing"])
+def test_a_file_that_rank_1s_node_cannot_read_is_every_ranks_one_line_error(beam_files, seen, expected):
+    # Red team (collective semantics): every rank reads a Matrix Market matrix and a .npy/.txt vector
+    # itself (and checks that a PETSc binary one exists); a file missing or cut short in rank 1's view
+    # (a node that does not see the file system as rank 0 does, a file replaced while the ranks read
+    # it) was rank 1's InputError alone, while rank 0 went on into the matrix's collective assembly:
+    # the job hung. Here rank 1 is given its own path, as its node would see it.
+    import faulthandler
+
+    _, _, _, paths = beam_files
+    name, what = seen.split(" ", 1)
+    folder = os.path.dirname(paths["K.mtx"])
+    mine = dict(paths)
+    if MPI.COMM_WORLD.rank == 1:
+        if what == "missing":
+            mine[name] = os.path.join(folder, "unseen", name)
+        else:   # the file as a copy cut short in its last line
+            with open(paths[name]) as f:
+                text = f.read()
+            mine[name] = os.path.join(folder, "cut-" + name)
+            with open(mine[name], "w") as f:
+                f.write(text[:len(text) // 2].rsplit("\n", 1)[0] + "\n")
+    fmt = "bin" if name == "K.bin" else "mtx"
+    faulthandler.dump_traceback_later(120, exit=True)   # a hang (the bug) ends the job, with where it waited
+    try:
+        with pytest.raises(InputError) as refused:
+            ops = load_operators(MatrixFiles(mine[f"K.{fmt}"], mine[f"M.{fmt}"], influence=mine["r.npy"]))
+            ops.destroy()
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+    line = str(refused.value)
+    assert MPI.COMM_WORLD.allgather(line) == [line] * MPI.COMM_WORLD.size, "the ranks refused with other lines"
+    assert expected in line and "\n" not in line, line
+
+
 def test_an_influence_vector_in_petsc_binary_is_the_written_one(shared_tmp_path, beam_files):
     # Red team: every PETSc binary influence vector was refused with "PETSc error 56 in
     # VecScatterCreate()" (a scatter with default indices on both sides), though the docs offer it.
