@@ -28,7 +28,7 @@ def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf
     a missing or read-only directory, one of the run's inputs ((what, path) pairs), or an existing
     file that `replaceable(path)` (default: is_dbf_output) does not accept: a successful run
     replaces only its own kind of file (`kind`, as the refusal names it). replaceable=False accepts any
-    existing file (CSV, PNG)."""
+    existing regular file (CSV, PNG); a pipe, socket or device is never replaced."""
     folder = os.path.dirname(os.path.abspath(path))
     if os.path.isdir(path):
         raise InputError(f"output {path!r} is a directory: give a file name, e.g. {os.path.join(path, 'out.h5')!r}")
@@ -38,6 +38,9 @@ def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf
         raise InputError(f"output {path!r}: directory {folder!r} is not writable")
     if not os.path.exists(path):
         return path
+    if not os.path.isfile(path):   # red team: a named pipe there hung the look below (its open waits for a writer)
+        raise InputError(f"output {path!r} exists and is not a regular file (a pipe, socket or device): choose another "
+                         f"name")
     for what, source in inputs:
         if source and os.path.exists(source) and os.path.samefile(path, source):
             raise InputError(f"output {path!r} is the {what} this run reads: choose another output name")

@@ -48,6 +48,27 @@ def test_an_existing_file_that_is_not_a_dbf_output_is_not_replaced(shared_tmp_pa
 
 
 
+
+def test_a_pipe_at_the_output_path_is_refused_not_waited_on(shared_tmp_path):
+    # Red team: `-o out.h5` where out.h5 is a named pipe (a FIFO) hung the run before any work, on any
+    # rank count: the look at whether the file is dbf-hpc's opened it, and the open waited for a writer
+    # for ever. A pipe, socket or device is not a file to replace: refused in one line, left as it is.
+    import faulthandler
+    import stat
+
+    target = shared_tmp_path / "out.h5"
+    if MPI.COMM_WORLD.rank == 0:
+        os.mkfifo(target)
+    MPI.COMM_WORLD.Barrier()
+    faulthandler.dump_traceback_later(120, exit=True)   # the bug: a hang, ended here with where it waited
+    try:
+        with pytest.raises(InputError, match="exists and is not a regular file"):
+            run(load_scene(PAPER, SHORT), str(target), progress=False)
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+    assert_all(stat.S_ISFIFO(os.stat(target).st_mode))
+
+
 @pytest.mark.parametrize("resume", [False, True])
 def test_a_rerun_onto_an_output_whose_metadata_is_damaged_is_one_line_and_leaves_it(shared_tmp_path, resume):
     # Red team (bytes flipped across a finished output): where the file opens but its root group's links
