@@ -8,6 +8,7 @@ touches an existing OUT.h5 (a successful rerun replaces it).
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -183,6 +184,15 @@ def release_held_locks(others: bool = True) -> None:
 EMPTY_LOCK_AGE = 60.0
 
 
+def _lock_text(path: str) -> str:
+    """A lock file's text; an OSError where it is not a regular file: opening a named pipe there waited
+    for a writer for ever (red team: a FIFO at OUT.h5.lock hung the run before any work)."""
+    if not os.path.isfile(path):
+        raise OSError(errno.EINVAL, f"{path} is not a regular file")
+    with open(path) as f:
+        return f.read()
+
+
 class OutputLock:
     """An exclusive claim on an output: `PATH.lock`, created atomically (O_CREAT | O_EXCL works on
     NFS and Lustre, where HDF5's own file locking is often switched off), holding the host and pid
@@ -251,8 +261,7 @@ class OutputLock:
 
     def _holder(self) -> str:
         try:
-            with open(self.lock) as f:
-                text = f.read()
+            text = _lock_text(self.lock)
             if not text.strip():
                 return (f"an empty lock, made by a job now starting or killed as it made it; it counts as gone "
                         f"{EMPTY_LOCK_AGE:g} s after it was made")
@@ -272,8 +281,7 @@ class OutputLock:
         """The lock's content when its job is gone: it ran on this host and its process no longer
         exists (or is a zombie, which a killed job's rank can stay as where nothing reaps it)."""
         try:
-            with open(self.lock) as f:
-                text = f.read()
+            text = _lock_text(self.lock)
             if not text.strip():   # made, never written: its job was killed between the two (red team), or is
                 # writing it now, which takes microseconds: older than EMPTY_LOCK_AGE it is gone
                 return text if time.time() - os.stat(self.lock).st_mtime > EMPTY_LOCK_AGE else None
@@ -302,8 +310,7 @@ class OutputLock:
         except FileNotFoundError:   # another job moved it first
             return
         try:
-            with open(aside) as f:
-                moved = f.read()
+            moved = _lock_text(aside)
             if moved != stale:
                 os.link(aside, self.lock)   # a live lock: back in place (fails if yet another was made)
         except OSError:
@@ -317,8 +324,7 @@ class OutputLock:
         HELD.pop(id(self), None)
         if self.held:
             try:
-                with open(self.lock) as f:
-                    ours = f.read() == self.owner or not self.written
+                ours = _lock_text(self.lock) == self.owner or not self.written
                 if ours:
                     os.remove(self.lock)
             except FileNotFoundError:

@@ -69,6 +69,26 @@ def test_a_pipe_at_the_output_path_is_refused_not_waited_on(shared_tmp_path):
     assert_all(stat.S_ISFIFO(os.stat(target).st_mode))
 
 
+def test_a_pipe_at_the_output_lock_is_refused_not_waited_on(shared_tmp_path):
+    # Red team: a named pipe at OUT.h5.lock hung the run before any work: the lock exists, so its
+    # content was read to tell a live job from a stale one, and the open waited for a writer for ever.
+    import faulthandler
+    import stat
+
+    out = shared_tmp_path / "out.h5"
+    lock = shared_tmp_path / "out.h5.lock"
+    if MPI.COMM_WORLD.rank == 0:
+        os.mkfifo(lock)
+    MPI.COMM_WORLD.Barrier()
+    faulthandler.dump_traceback_later(120, exit=True)   # the bug: a hang, ended here with where it waited
+    try:
+        with pytest.raises(InputError, match=f"remove {lock}"):
+            run(load_scene(PAPER, SHORT), str(out), progress=False)
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+    assert_all(stat.S_ISFIFO(os.stat(lock).st_mode) and not out.exists())
+
+
 @pytest.mark.parametrize("resume", [False, True])
 def test_a_rerun_onto_an_output_whose_metadata_is_damaged_is_one_line_and_leaves_it(shared_tmp_path, resume):
     # Red team (bytes flipped across a finished output): where the file opens but its root group's links
