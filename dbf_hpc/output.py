@@ -88,6 +88,8 @@ def output_bytes(samples: int, constraint_values: int, probes: int, r: int, snap
 
 def has_hdf5_signature(path: str) -> bool:
     """Whether the file starts with HDF5's signature: a damaged HDF5 file does, another kind does not."""
+    if not os.path.isfile(path):   # a named pipe's open waits for a writer for ever
+        return False
     try:
         with open(path, "rb") as f:
             return f.read(8) == b"\x89HDF\r\n\x1a\n"
@@ -101,7 +103,11 @@ def _written_by_us(path: str, ours, damaged: bool = False) -> bool:
     Another kind of file is not ours. A file system that refuses locks is one line, never "not ours"
     (that would advise removing a good file). A file that opens but whose metadata `ours` cannot read
     (h5py's RuntimeError: "Unable to get link info (bad local heap signature)") is a damaged one:
-    red team, a rerun onto a damaged output was "internal error (RuntimeError)"."""
+    red team, a rerun onto a damaged output was "internal error (RuntimeError)". A path that is not a
+    regular file is not ours, and is not opened (red team: a named pipe at a checkpoint hung --resume in
+    the open, which waits for a writer)."""
+    if not os.path.isfile(path):
+        return False
     try:
         with h5py.File(path, "r") as f:
             try:
@@ -140,6 +146,8 @@ def is_dbf_checkpoint(path: str) -> bool:
     without HDF5, which may crash on a damaged file), or an older one's attributes."""
     from .checkpoint import SEAL
 
+    if not os.path.isfile(path):   # a named pipe's open waits for a writer for ever
+        return False
     try:
         with open(path, "rb") as f:
             if f.read(len(SEAL)) == SEAL:

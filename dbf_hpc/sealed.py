@@ -7,13 +7,19 @@ Write with h5py.File(path, "w", userblock_size=USERBLOCK), close, then seal(path
 """
 from __future__ import annotations
 
+import errno
 import hashlib
+import os
 
 USERBLOCK = 512   # HDF5's user block, which the library skips: the tag and the sha256 of the rest
 
 
 def _user_block(path: str, tag: bytes) -> tuple:
-    """(the user block the file holds, the one that seals the bytes after it)."""
+    """(the user block the file holds, the one that seals the bytes after it). An OSError for a path
+    that is not a regular file: opening a named pipe there waited for a writer for ever (red team: a
+    FIFO at a basis cache entry hung the run; at a checkpoint, the resume)."""
+    if not os.path.isfile(path):
+        raise OSError(errno.EINVAL, f"{path} is not a regular file")
     digest = hashlib.sha256()
     with open(path, "rb") as handle:
         header = handle.read(USERBLOCK)
@@ -51,6 +57,4 @@ def check(path: str, tag: bytes, writer: str = "dbf-hpc") -> tuple:
 def user_block_of_open(h5file) -> bytes:
     """The user block of a file h5py holds open (its own descriptor: a path replaced since does not
     change what it reads)."""
-    import os
-
     return os.pread(h5file.id.get_vfd_handle(), USERBLOCK, 0)
