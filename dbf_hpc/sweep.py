@@ -308,7 +308,10 @@ RECORD_KEYS_OK = ("stats", "probe_peak", "solver", "final_state", "final_time", 
 
 def _read_json(path: str) -> dict | None:
     """A case's record, or None when it is missing or not one (truncated, edited, a changed digit:
-    its checksum): the case is run again."""
+    its checksum): the case is run again. A path that is not a regular file is not opened (red team: a
+    named pipe there hung the sweep's look at its records, the open waiting for a writer for ever)."""
+    if not os.path.isfile(path):
+        return None
     try:
         with open(path) as f:
             record = json.load(f)

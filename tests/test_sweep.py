@@ -192,6 +192,30 @@ def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_recor
     assert_all(statuses == ["ok"] * 3 and os.path.getmtime(files[2]) == kept, "only the two bad ones rerun")
 
 
+def test_a_named_pipe_in_place_of_a_case_record_reruns_the_case_not_waits_on_it(shared_tmp_path):
+    # Red team: a FIFO at a case's record hung the rerun of the sweep (rank 0's look at the records
+    # opened it, and the open waits for a writer for ever). It is no record: the case runs again.
+    import faulthandler
+    import stat
+
+    path, files = _swept(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n'
+                                          '"integrator.t_end" = [0.05]\n', 2)
+    kept = os.path.getmtime(files[1])
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        os.remove(files[0])
+        os.mkfifo(files[0])
+    MPI.COMM_WORLD.Barrier()
+    faulthandler.dump_traceback_later(120, exit=True)   # the bug: a hang, ended here with where it waited
+    try:
+        second = run_sweep(path, progress=False)
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+    assert second["failed"] == 0
+    assert_all(stat.S_ISREG(os.stat(files[0]).st_mode) and json.load(open(files[0]))["status"] == "ok"
+               and os.path.getmtime(files[1]) == kept, "the case of the pipe reran, the other stayed")
+
+
 def test_a_case_record_the_full_disk_refused_on_one_rank_stops_every_rank_with_one_error(shared_tmp_path,
                                                                                         monkeypatch):
     # Red team (a 3 MB tmpfs filled just before a case's record): the rank whose record failed left
