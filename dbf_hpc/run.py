@@ -44,7 +44,7 @@ from .reductor import Reductor
 from .rom import ReducedModel
 from .rom_integrator import c_counters, effective_callbacks, integrate_reduced
 from .scene import Scene
-from .simulate import snapshot_samples
+from .simulate import snapshot_cap_warning, snapshot_samples
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
 from .timestepping import STEPS_PER_PERIOD, check_work, refuse_settings_options
 
@@ -119,6 +119,9 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     if method == "full" or not settings.adaptive:
         _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
     _warn_coarse_samples(settings, scene.fastest_forcing_hz(), comm)
+    capped = snapshot_cap_warning(scene.output().snapshots, settings)
+    if capped:
+        warn(capped, comm)
     TERMINATION.finished = False
     with claimed(path, comm):
         digests = scene.file_digests(comm)   # once: the request and the run's identity hold the same bytes

@@ -218,7 +218,8 @@ SECTIONS = {
                                             "always the last sample, the last interval shorter when sample_dt does not "
                                             "divide t_end"),
         "probes": Key((list,), [], "m", "x of the probes on a beam (DOFs for matrices): total displacement there"),
-        "snapshots": Key((int,), 0, "", "field snapshots at evenly spaced times"),
+        "snapshots": Key((int,), 0, "", "field snapshots at evenly spaced times, each at an output sample: more "
+                                        "than the samples are all the samples, with a warning"),
         "checkpoint_dt": Key(NUMBER, None, "s", "simulated time between checkpoints (default t_end / 10, none sooner "
                                                 "than 1 s of wall time after the start or the last: a short run "
                                                 "writes none)"),

@@ -21,14 +21,28 @@ from .petsctools import petsc_errors_as_one_line
 from .recorder import FullRecorder, ReducedRecorder, Result
 from .rom import ReducedModel
 from .rom_integrator import integrate_reduced
-from .timestepping import IntegratorSettings
+from .timestepping import IntegratorSettings, sample_count
 
 
 def snapshot_samples(count: int, times: np.ndarray) -> np.ndarray:
-    """The indices of the samples that carry `count` evenly spaced snapshots (run.py's too)."""
+    """The indices of the samples that carry `count` evenly spaced snapshots (run.py's too): every
+    sample when `count` exceeds them (snapshot_cap_warning says so)."""
     if not count:
         return np.zeros(0, dtype=np.int64)
     return np.unique(np.searchsorted(times, np.linspace(0.0, times[-1], count) - 1e-12 * times[-1]))
+
+
+def snapshot_cap_warning(count: int, settings: IntegratorSettings, key: str = "[output] snapshots") -> str | None:
+    """The warning for more snapshots than output samples (each snapshot is one sample, so every
+    sample is taken), or None. Red team: snapshots = 50 on a run shortened to 6 samples wrote 6
+    without a word. A warning, not a refusal: a scene's count is written for its own t_end, and
+    shortening the run on the command line keeps every sample as a snapshot, which is right."""
+    samples = sample_count(settings.t_end, settings.sample_dt)
+    if count <= samples:
+        return None
+    return (f"{key} = {count} is more than the {samples} output samples (t_end = {settings.t_end:g} s at "
+            f"sample_dt = {settings.sample_dt:g} s), the only times a snapshot is taken at: all {samples} are "
+            f"snapshots; for more, reduce sample_dt")
 
 
 # the loose-atol lines simulate_reduced has printed in this process: once each (a script's loop of runs)
@@ -38,8 +52,8 @@ _WARNED = set()
 def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
     """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Warns, as `dbf-hpc
-    run` does (run.loose_atol), where an adaptive run's atol lets w err by over 1 % of a clearance: once
-    per process and message, on rank 0 of COMM_WORLD (the model is replicated: a script calls this on
+    run` does (run.loose_atol), where an adaptive run's atol lets w err by over 1 % of a clearance, and
+    where `snapshots` exceeds the samples (snapshot_cap_warning): once per process and message, on rank 0 of COMM_WORLD (the model is replicated: a script calls this on
     every rank, and the line is printed once). Not collective."""
     _check_settings(settings, say, "simulate_reduced")
     if settings.adaptive and hasattr(model, "probe_sample_shape"):
@@ -51,6 +65,12 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
 
             _WARNED.add(loose)
             warn(loose, PETSc.COMM_WORLD)
+    capped = snapshot_cap_warning(snapshots, settings, "simulate_reduced snapshots") if isinstance(snapshots, int) else None
+    if capped and capped not in _WARNED:
+        from petsc4py import PETSc
+
+        _WARNED.add(capped)
+        warn(capped, PETSc.COMM_WORLD)
     return integrate_samples(model, settings, snapshots, say)
 
 

@@ -77,6 +77,7 @@ from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, atol_reach, coars
                   coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks, hunt_crossley_warnings,
                   idle_warnings, loose_atol_message, run_case, scene_callbacks, unresolved_warnings)
 from .scene import load_scene, parse_override
+from .simulate import snapshot_cap_warning
 from . import __version__
 from .schema import unit_of
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, STATISTICS, STATISTICS_2D, UNITS_2D as UNITS
@@ -206,7 +207,8 @@ def load_sweep(path: str, overrides=()) -> dict:
         # and what a run warns before any work, that its result will be wrong (red team: a fixed dt of 5
         # steps a period ran every case of a sweep silently, where `dbf-hpc run` said so)
         for message in ((None if settings is None or settings.adaptive else coarse_step_warning(settings, fastest)),
-                        None if settings is None else coarse_samples_warning(settings, fastest)):
+                        None if settings is None else coarse_samples_warning(settings, fastest),
+                        None if settings is None else snapshot_cap_warning(loaded.output().snapshots, settings)):
             if message:
                 warnings.setdefault(message, []).append(i + 1)
         sets.append([*overrides, *own])

@@ -151,6 +151,12 @@ def sample_times(t_end: float, sample_dt: float) -> np.ndarray:
     return times if math.isclose(times[-1], t_end) else np.append(times, t_end)
 
 
+def sample_count(t_end: float, sample_dt: float) -> int:
+    """len(sample_times(t_end, sample_dt)), without making the array."""
+    count = int(math.floor(t_end / sample_dt * (1 + 1e-12))) + 1
+    return count if math.isclose((count - 1) * sample_dt, t_end) else count + 1
+
+
 def refuse_settings_options(prefix: str, adaptive: bool) -> None:
     """An InputError naming a -<prefix> option that would override what [integrator] sets (SETTINGS_OPTIONS),
     or a -<prefix>ts_adapt_type that contradicts [integrator] adaptive ("none" on an adaptive run, a

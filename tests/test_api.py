@@ -135,6 +135,31 @@ def test_the_models_are_refused_by_the_simulation_of_the_other_kind():
             simulate_reduced(rom, settings, snapshots=-1)
 
 
+def test_simulate_reduced_takes_every_sample_for_more_snapshots_than_samples_and_warns_once(capfd):
+    # Red team: snapshots=50 over 11 samples returned 11 snapshots without a word.
+    from mpi4py import MPI
+
+    from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, FullOrderModel, IntegratorSettings, Reductor,
+                         law, simulate_reduced)
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    stop = Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)
+    with FullOrderModel.build(beam, [stop], BaseMotion(amplitude=5e-3, frequency_hz=1.0)) as fom:
+        with Reductor(fom, BasisSettings(modes=4)) as reductor:
+            rom = reductor.reduce(field=True)
+    capfd.readouterr()
+    settings = IntegratorSettings(t_end=0.01, sample_dt=1e-3)
+    for _ in range(2):
+        result = simulate_reduced(rom, settings, snapshots=50)
+        assert_all(np.array_equal(result.snapshot_time, settings.sample_times))
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        assert err.count("dbf-hpc: warning: simulate_reduced snapshots = 50 is more than the 11 output samples "
+                         "(t_end = 0.01 s at sample_dt = 0.001 s)") == 1, err
+    assert simulate_reduced(rom, settings, snapshots=11).snapshot_time.size == 11
+    assert "snapshots" not in capfd.readouterr().err
+
+
 def test_a_full_order_model_used_after_its_with_block_is_refused_and_its_reduced_model_lives_on():
     # New-user pass: a Reductor or simulate_full on a closed model touched freed PETSc objects: SEGV.
     from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, FullOrderModel, InputError, IntegratorSettings,

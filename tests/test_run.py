@@ -583,3 +583,21 @@ def test_run_from_python_warns_once_where_atol_lets_w_err_by_over_a_percent_of_a
         err = capfd.readouterr().err
         count = err.count("dbf-hpc: warning: [integrator] atol = ")
         assert_all(count == (expected if MPI.COMM_WORLD.rank == 0 else 0), (atol, err))
+
+
+def test_more_snapshots_than_output_samples_take_every_sample_and_warn_naming_the_key(shared_tmp_path, capfd):
+    # Red team: the paper scene's snapshots = 50 on a run shortened to 0.01 s at sample_dt = 2.5e-3 s
+    # (5 samples) wrote 5 snapshots without a word. Each snapshot is one output sample.
+    s, f, _ = paper_run(shared_tmp_path, "integrator.t_end=0.01", "output.sample_dt=2.5e-3", "basis.modes=4",
+                        "basis.estimate=false", name="capped.h5")
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        assert ("dbf-hpc: warning: [output] snapshots = 50 is more than the 5 output samples (t_end = 0.01 s at "
+                "sample_dt = 0.0025 s), the only times a snapshot is taken at: all 5 are snapshots; for more, reduce "
+                "sample_dt") in err, err
+        assert np.allclose(f["snapshots/time"][:], [0.0, 2.5e-3, 5e-3, 7.5e-3, 1e-2], rtol=0, atol=1e-15)
+        f.close()
+    paper_run(shared_tmp_path, "integrator.t_end=0.01", "output.sample_dt=2e-4", "basis.modes=4",
+              "basis.estimate=false", name="uncapped.h5")    # 51 samples: 50 snapshots, no word
+    err = capfd.readouterr().err
+    assert "snapshots" not in err, err

@@ -489,6 +489,16 @@ def test_a_case_whose_fixed_step_cannot_resolve_its_forcing_is_warned_as_a_run_w
         assert re.search(r"warning: .*: cases 1, 2: \[output\] sample_dt = 0.8 s takes 1.2 samples", err), err
 
 
+def test_a_case_with_more_snapshots_than_samples_is_warned_as_a_run_would(shared_tmp_path, capfd):
+    # the paper scene's 50 snapshots over 0.5 s at 0.05 s are its 11 samples: `dbf-hpc run` says so, a sweep too
+    path = write_sweep(shared_tmp_path, '[axes]\n"integrator.t_end" = [0.5]\n"output.sample_dt" = [0.05, 0.001]\n')
+    load_sweep(path)
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        assert re.search(r"warning: .*: case 1: \[output\] snapshots = 50 is more than the 11 output samples", err), err
+        assert "case 2: [output] snapshots" not in err, err
+
+
 @pytest.mark.parametrize("given", ["constraint.clearance=1e-3", "constraint.1.clearance=1e-3"])
 def test_a_set_of_a_value_the_cases_set_is_refused_instead_of_silently_replaced(shared_tmp_path, given):
     # each case's own value is applied after --set: the clearance from the axis would replace the one the
