@@ -610,7 +610,27 @@ def _check_displacement(value, s: dict, where: str, what: str) -> None:
                          f"unit (m: 5 mm is 5e-3)")
 
 
-def _check_initial(i: dict, s: dict, where: str) -> None:
+# A key of [initial] that only shapes the motion the other key starts (its mode and direction): given
+# with that key left out, it would be ignored, the structure starting at rest
+SHAPES = {"mode": ("amplitude", "velocity"), "direction": ("amplitude",), "velocity_direction": ("velocity",)}
+
+
+def _refuse_ignored_initial_keys(i: dict, given: frozenset, where: str, two: bool) -> None:
+    """[initial] mode, direction or velocity_direction given, and not the amplitude (velocity) they
+    shape: ignored, the run starting at rest (red team: mode = 3 without amplitude ran the structure
+    at rest without a word). An amplitude given as 0 is the user's word that it is at rest (a sweep's
+    case, a --set turning the initial displacement off): then the shape keys are kept. `two`: a beam
+    of two planes, the only structure with an initial velocity."""
+    units = {"amplitude": "amplitude (m)", "velocity": "velocity (m/s)"}
+    for key, moved in SHAPES.items():
+        moved = tuple(m for m in moved if two or m != "velocity")
+        if moved and ("initial", key) in given and not any(("initial", m) in given for m in moved):
+            names = " or ".join(units[m] for m in moved)
+            raise InputError(f"{where}: {key} = {i[key]!r} is given without the {' or '.join(moved)} it shapes: the "
+                             f"structure would start at rest and {key} be ignored; give {names}, or remove {key}")
+
+
+def _check_initial(i: dict, s: dict, where: str, given: frozenset = frozenset()) -> None:
     _check_displacement(i["amplitude"], s, where, "the peak initial displacement")
     two = s["kind"] == "beam" and s["planes"] == 2
     for key in ("direction", "velocity_direction"):
@@ -623,6 +643,7 @@ def _check_initial(i: dict, s: dict, where: str) -> None:
                 raise InputError(f"{where}: {key} must be [dy, dz], two numbers not both 0, got {d!r}")
     if i["velocity"] and not two:
         raise InputError(f"{where}: velocity applies to a beam of two planes (elsewhere start from a displaced mode)")
+    _refuse_ignored_initial_keys(i, given, where, two)
 
 
 def _check_turbulence(e: dict, s: dict, where: str) -> None:
@@ -676,7 +697,7 @@ def _check_basis(b: dict, where: str) -> None:
         raise InputError(f"{where}: enrichment must be one of {accepted}, got {b['enrichment']!r}")
 
 
-def _check_integrator_and_output(sections: dict, path: str, at: _Positions) -> None:
+def _check_integrator_and_output(sections: dict, path: str, at: _Positions, given: frozenset = frozenset()) -> None:
     i, where = sections["integrator"], f"{path}: [integrator]"
     i["scheme"] = str(i["scheme"]).lower()  # --set integrator.scheme=3 arrives as an integer
     for key in ("t_end", "dt", "rtol", "atol"):
@@ -698,7 +719,7 @@ def _check_integrator_and_output(sections: dict, path: str, at: _Positions) -> N
         raise InputError(f"{where}: snapshots must be a count >= 0, got {o['snapshots']}")
     if sections["initial"]["mode"] < 1:
         raise InputError(f"{path}: [initial] mode counts from 1, got {sections['initial']['mode']}")
-    _check_initial(sections["initial"], sections["structure"], f"{path}: [initial]")
+    _check_initial(sections["initial"], sections["structure"], f"{path}: [initial]", given)
 
 
 def _check_statistics_window(window, t_end: float, sample_dt: float, where: str) -> None:
@@ -738,8 +759,8 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
                 f"a beam of two planes takes a 2-D law (law = \"circular\" or \"flat_bar\"), not {c.law.kind}"))
     _check_excitation(sections["excitation"], s, f"{path}: [excitation]", at)
     _check_basis(sections["basis"], f"{path}: [basis]")
-    _check_integrator_and_output(sections, path, at)
     given = frozenset((name, key) for name in SCHEMA if isinstance(data.get(name), dict) for key in data[name])
+    _check_integrator_and_output(sections, path, at, given)
     scene = Scene(path=path, text=text, sections=sections, constraints=constraints, given=given)
     if scene.damping().kind != "none" and not at.beam and s["damping"]:  # (also validates the damping section)
         raise InputError(f"{path}: {DAMPING_TWICE}")

@@ -203,7 +203,8 @@ SECTIONS = {
     "initial": ("The state at t = 0 (at rest in relative coordinates by default).", {
         "mode": Key((int,), 1, "", "reference mode of the initial displacement, counted from 1 (not one of a "
                                    "repeated frequency's modes, whose shape round-off picks; a beam of two "
-                                   "planes counts its pairs)"),
+                                   "planes counts its pairs); refused, as direction and velocity_direction, "
+                                   "without the amplitude or velocity it shapes (0 given is kept: at rest)"),
         "amplitude": Key(NUMBER, 0.0, "m", "peak initial displacement in that mode (on a beam at most its "
                                                "length)"),
         "direction": Key((list,), [], "1", "beam of two planes: [dy, dz], the direction of the initial "

@@ -425,3 +425,27 @@ def test_a_displacement_longer_than_the_beam_is_refused_as_a_unit_slip(sets, wha
     # up to the length it is the user's to judge; the force's amplitude is in N, not checked
     assert load_scene(PAPER, ["excitation.amplitude=1.0"])["excitation"]["amplitude"] == 1.0
     assert load_scene(PAPER, ["excitation.kind=force", "excitation.x=0.5", "excitation.amplitude=50.0"])
+
+
+@pytest.mark.parametrize("planes, initial, message", [
+    (1, {"mode": 3}, r"mode = 3 is given without the amplitude it shapes: the structure would start at rest and "
+                     r"mode be ignored; give amplitude \(m\), or remove mode$"),
+    (2, {"mode": 2}, r"mode = 2 is given without the amplitude or velocity it shapes: .*give amplitude \(m\) or "
+                     r"velocity \(m/s\), or remove mode$"),
+    (2, {"mode": 2, "velocity": 0.1, "direction": [0.0, 1.0]}, r"direction = \[0.0, 1.0\] is given without the "
+                                                                r"amplitude it shapes"),
+    (2, {"amplitude": 1e-3, "velocity_direction": [1.0, 0.0]}, r"velocity_direction = \[1.0, 0.0\] is given "
+                                                                r"without the velocity it shapes"),
+])
+def test_an_initial_shape_given_without_the_motion_it_shapes_is_refused_naming_the_key(planes, initial, message):
+    # Red team: [initial] mode = 3 without amplitude ran the structure at rest without a word.
+    with pytest.raises(InputError, match=r"^test.toml: \[initial\]: " + message):
+        validate({"structure": {**BEAM, "planes": planes}, "initial": initial}, "test.toml")
+    # with the motion it shapes given, also as 0 (a case at rest, a --set turning it off), it is kept
+    moved = {key: 0.0 for key in ("amplitude", "velocity") if planes == 2 or key == "amplitude"}
+    assert validate({"structure": {**BEAM, "planes": planes}, "initial": {**moved, **initial}})["initial"] == \
+        {**SCENE_INITIAL, **moved, **initial}
+    assert load_scene(PAPER, ["initial.mode=3", "initial.amplitude=0"])["initial"]["mode"] == 3
+
+
+SCENE_INITIAL = {"mode": 1, "amplitude": 0.0, "direction": [], "velocity": 0.0, "velocity_direction": []}
