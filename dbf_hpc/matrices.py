@@ -74,6 +74,12 @@ def _read_matrix_market(path: str, what: str):
         if len(header) < 5 or header[0] != "%%matrixmarket" or header[1] != "matrix":
             raise InputError(f"{what} file {path!r} is not a Matrix Market matrix")
         layout, field, symmetry = header[2], header[3], header[4]
+        if layout == "array" and field in ("real", "integer"):
+            # red team: scipy.io.mmwrite of a dense ndarray writes this, and the refusal named no way out
+            raise InputError(f"{what} file {path!r} is a dense Matrix Market array (\"%%MatrixMarket matrix array "
+                             f"...\", every entry listed): only real coordinate Matrix Market is read for a matrix; write it with "
+                             f"scipy.io.mmwrite(path, scipy.sparse.coo_matrix(A)) (mmwrite of a dense ndarray writes "
+                             f"the array format), or as PETSc binary")
         if (layout != "coordinate" or field not in ("real", "integer")
                 or symmetry not in ("general", "symmetric", "skew-symmetric")):
             raise InputError(f"{what} file {path!r}: only real coordinate general, symmetric or skew-symmetric "

@@ -270,6 +270,29 @@ def test_malformed_matrix_market_is_an_error(shared_tmp_path, content, message):
         load_matrix(str(path))
 
 
+def test_a_dense_matrix_market_array_is_refused_with_the_coordinate_writing_that_loads(shared_tmp_path):
+    # Red team: scipy.io.mmwrite of a dense K writes "matrix array real"; the refusal named no way out.
+    # The advice it gives, mmwrite of a scipy.sparse matrix, writes a file that loads with the same entries.
+    K = np.array([[2.0, -1.0, 0.0], [-1.0, 2.0, -1.0], [0.0, -1.0, 2.0]])
+    dense, sparse = shared_tmp_path / "K_dense.mtx", shared_tmp_path / "K_sparse.mtx"
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(str(dense), K)
+        scipy.io.mmwrite(str(sparse), scipy.sparse.coo_matrix(K))
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"^stiffness file '.*K_dense.mtx' is a dense Matrix Market array .*: only "
+                                         r"real coordinate Matrix Market is read for a matrix; write it with "
+                                         r"scipy.io.mmwrite\(path, scipy.sparse.coo_matrix\(A\)\) .*or as PETSc "
+                                         r"binary$"):
+        load_matrix(str(dense), what="stiffness")
+    A = load_matrix(str(sparse), what="stiffness")
+    try:
+        start, end = A.getOwnershipRange()
+        rows = MPI.COMM_WORLD.allgather(A.getValues(range(start, end), range(3)))
+        assert_all(np.array_equal(np.vstack(rows), K))
+    finally:
+        A.destroy()
+
+
 def test_blank_lines_before_the_size_line_of_a_matrix_market_file_are_allowed(shared_tmp_path):
     # Red team: a blank line after the comments (the format allows blank lines; scipy and NIST's
     # mmio read them) was "malformed: not enough values to unpack".
