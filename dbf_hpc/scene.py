@@ -630,6 +630,35 @@ def _refuse_ignored_initial_keys(i: dict, given: frozenset, where: str, two: boo
                              f"structure would start at rest and {key} be ignored; give {names}, or remove {key}")
 
 
+# The laws with a stop at a clearance (table, linear, cubic and friction act from z = 0)
+STOP_LAWS = ("deadband", "power", "hertz", "circular", "flat_bar")
+
+
+def _check_stops_within_reach(constraints, s: dict, path: str) -> None:
+    """A stop farther than the beam's length (on a side that has one: k > 0) is refused, as a support
+    motion or an initial displacement longer than the beam is (_check_displacement): a linear
+    (small-deflection) beam never reaches it, and it is a unit slip (2.5 mm given as 2.5). It only drew
+    the idle-stop warning after the whole run (run.idle_warnings: a linear run's result under a scene
+    that describes impacts). Matrix models have no length here: that warning remains theirs."""
+    if s["kind"] != "beam":
+        return
+    length = float(s["length"])
+    for i, c in enumerate(constraints):
+        law = c.law
+        if law.kind not in STOP_LAWS:
+            continue
+        one_d = hasattr(law, "k_minus")
+        ks = (law.k_minus, law.k_plus) if one_d else (law.k, law.k)
+        gaps = (law.clearance_minus, law.clearance_plus)
+        for side, gap, k in zip(("minus", "plus"), gaps, ks):
+            if k > 0 and gap > length:
+                key = f"clearance_{side}" if one_d and gaps[0] != gaps[1] else "clearance"
+                other = f", or set k_{side} = 0 for a side without a stop" if key != "clearance" else ""
+                raise InputError(f"{path}: [[constraint]] {i + 1}: {key} = {gap:g} m is more than the beam's length "
+                                 f"({length:g} m): a linear (small-deflection) beam never reaches that stop; check its "
+                                 f"unit (m: 2.5 mm is 2.5e-3){other}")
+
+
 def _check_initial(i: dict, s: dict, where: str, given: frozenset = frozenset()) -> None:
     _check_displacement(i["amplitude"], s, where, "the peak initial displacement")
     two = s["kind"] == "beam" and s["planes"] == 2
@@ -757,6 +786,7 @@ def validate(data: dict, path: str = "<scene>", text: str = "") -> Scene:
             raise InputError(f"{path}: [[constraint]] {i + 1}: " + (
                 f"a {c.law.kind} law acts in two directions; it needs [structure] planes = 2" if d == 2 else
                 f"a beam of two planes takes a 2-D law (law = \"circular\" or \"flat_bar\"), not {c.law.kind}"))
+    _check_stops_within_reach(constraints, s, path)
     _check_excitation(sections["excitation"], s, f"{path}: [excitation]", at)
     _check_basis(sections["basis"], f"{path}: [basis]")
     given = frozenset((name, key) for name in SCHEMA if isinstance(data.get(name), dict) for key in data[name])

@@ -237,7 +237,8 @@ CONSTRAINT = ("One table per constraint: where it acts and its law (laws.py).", 
     "clearance": Key(NUMBER, None, "m", "deadband, power, hertz: gap on both sides (or clearance_minus, "
                                         "clearance_plus; 0 when not given: in contact from z = 0); negative is an "
                                         "interference fit, at most 1 m deep; circular: the radial clearance (>= 0), flat_bar: the gap "
-                                        "to each flat (both required)"),
+                                        "to each flat (both required); on a beam at most its length where the "
+                                        "side has a stop (k > 0): a farther one is a unit slip, refused"),
     "k": Key(NUMBER, None, "N/m^p", "stiffness on both sides (or k_minus, k_plus); linear, cubic: the spring; "
                                     "required but for table and friction (cubic: k and/or k3); circular, flat_bar: "
                                     "N/m"),

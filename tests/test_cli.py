@@ -889,7 +889,7 @@ def test_info_reads_statistics_a_sweep_summary_and_a_partial_run(tmp_path):
 
 def test_unused_petsc_options_and_suspicious_units_draw_warnings(tmp_path):
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "w.h5"), "--set", "integrator.t_end=0.2", "--set",
-                  "basis.cache=off", "--set", "structure.E=117", "--set", "constraint.clearance=2.5",
+                  "basis.cache=off", "--set", "structure.E=117", "--set", "constraint.clearance=1.0",
                   "--set", 'basis.gyroscopic_form="state_space"',
                   "-rom_ts_arkimex_typ", "4", "-ts_arkimex_type", "4")
     assert out.returncode == 0, out.stderr

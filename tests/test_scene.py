@@ -449,3 +449,26 @@ def test_an_initial_shape_given_without_the_motion_it_shapes_is_refused_naming_t
 
 
 SCENE_INITIAL = {"mode": 1, "amplitude": 0.0, "direction": [], "velocity": 0.0, "velocity_direction": []}
+
+
+@pytest.mark.parametrize("sets, message", [
+    (["constraint.clearance=2.5"], r"clearance = 2.5 m is more than the beam's length \(1 m\): a linear "
+                                   r"\(small-deflection\) beam never reaches that stop; check its unit \(m: 2.5 mm is "
+                                   r"2.5e-3\)$"),
+    (["constraint.clearance_plus=1.5"], r"clearance_plus = 1.5 m is more than the beam's length \(1 m\).*, or set "
+                                        r"k_plus = 0 for a side without a stop$"),
+    (["structure.length=2e-3", "constraint.x=5e-4", "output.probes=[1e-3]", "excitation.amplitude=1e-3"],
+     r"clearance = 0.0025 m is more than the beam's length \(0.002 m\)"),
+])
+def test_a_stop_farther_than_the_beams_length_is_refused_as_a_unit_slip(sets, message):
+    # Red team: the paper beam's 2.5 mm clearance given as 2.5 (m) ran to the end and only then warned that the
+    # stop was never reached: a linear beam's motion stays far below its length, as a support motion or initial
+    # displacement longer than the beam is refused (test_a_displacement_longer_than_the_beam_is_refused_...).
+    with pytest.raises(InputError, match=rf"^{re.escape(PAPER)}: \[\[constraint\]\] 1: {message}"):
+        load_scene(PAPER, sets)
+    # up to the length it is the user's to judge, and a side without a stop (k = 0) has no reach
+    assert load_scene(PAPER, ["constraint.clearance=1.0"]).constraints[0].law.clearance_plus == 1.0
+    assert load_scene(PAPER, ["constraint.clearance_minus=5.0", "constraint.k_minus=0.0"]).constraints[0].law.k_plus == 1e6
+    tube = {"structure": {**BEAM, "planes": 2}, "constraint": [{"x": 0.3, "law": "circular", "clearance": 2.0, "k": 1e6}]}
+    with pytest.raises(InputError, match=r"\[\[constraint\]\] 1: clearance = 2 m is more than the beam's length"):
+        validate(tube)

@@ -940,15 +940,16 @@ def test_a_stepped_sine_on_a_gyroscopic_structure_keeps_it_where_it_was_in_eithe
 def test_a_case_a_run_would_warn_of_is_warned_and_its_summary_row_says_so(shared_tmp_path, capfd):
     # Red team: a clearance of 2.5 given for 2.5 mm: the stop is never reached, and `dbf-hpc run` warns of the
     # clearance's unit; the sweep's summary showed 0 impacts under "ok" without a word, as it did for a basis
-    # below the forcing (the shipped two-plane sweep had 60 Hz turbulence on modes below 40 Hz)
-    path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [2.5e-3, 2.5]\n"integrator.t_end" = [0.3]\n'
+    # below the forcing (the shipped two-plane sweep had 60 Hz turbulence on modes below 40 Hz). A clearance
+    # beyond the beam's length is refused before any run now: 1 (for 1 mm) on the 1 m beam is let through.
+    path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [2.5e-3, 1.0]\n"integrator.t_end" = [0.3]\n'
                                         '[[case]]\n"integrator.t_end" = 0.3\n"excitation.frequency_hz" = 200.0\n'
                                         '"excitation.amplitude" = 1e-6\n"constraint.clearance" = 2.5e-3\n')
     result = run_sweep(path, progress=False)
     err = MPI.COMM_WORLD.gather(capfd.readouterr().err, root=0)
     if MPI.COMM_WORLD.rank == 0:
         err = "".join(err)
-        assert re.search(r"warning: case 2: constraint 1 at x = 0.25 m never reached its stop .*clearance 2.5 m", err), err
+        assert re.search(r"warning: case 2: constraint 1 at x = 0.25 m never reached its stop .*clearance 1 m", err), err
         assert re.search(r"warning: case 3: the excitation \(200 Hz\) lies above the highest reference mode", err), err
         assert "case 1:" not in err, err
         with h5py.File(result["output"]) as f:
