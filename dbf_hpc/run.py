@@ -44,6 +44,7 @@ from .reductor import Reductor
 from .rom import ReducedModel
 from .rom_integrator import c_counters, effective_callbacks, integrate_reduced
 from .scene import Scene
+from .excitation import Harmonic
 from .simulate import snapshot_cap_warning, snapshot_samples
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
 from .timestepping import STEPS_PER_PERIOD, check_work, refuse_settings_options
@@ -303,9 +304,57 @@ def loose_atol(model, atol: float, constraints=None) -> str | None:
     of 1 um ran its steps at the 10-sample limit, 24 % off the same run in kg over the estimate
     window, while the estimate (its richer run at atol / 10, as loose) said 9.8 %. Every entry point
     that integrates a reduced model says it once: `dbf-hpc run` and run.run (_run), a sweep (one line
-    naming its cases, sweep._warn_loose_atol) and simulate_reduced. Not collective."""
+    naming its cases, sweep._warn_loose_atol) and simulate_reduced. Where no clearance is within
+    reach, the same bound against the motion's own scale (motion_reach: a micro-beam without
+    constraints; `run` and simulate_reduced, not yet a sweep). Not collective."""
     worst = atol_reach(model, atol, constraints)
-    return None if worst is None else loose_atol_message(atol, *worst)
+    if worst is not None:
+        return loose_atol_message(atol, *worst)
+    motion = motion_reach(model, atol)
+    return None if motion is None else loose_motion_message(atol, *motion)
+
+
+def motion_reach(model, atol: float) -> tuple | None:
+    """(ratio, reach, scale, what) where [integrator] atol lets w err by over ATOL_REACH of the motion's
+    own scale (m), else None: the clearance check (atol_reach) has nothing to compare with on a
+    structure without stops, and a micro-beam's whole motion can lie below what atol controls. reach
+    is atol times the largest 1-norm of a row of B, the probes' and the field's rows (w = B q); the
+    scale is the largest of the initial displacement there (its velocity over each column's
+    frequency), the support's amplitude, and the static deflection there under a harmonic force's
+    amplitude (K_r's pseudo-inverse: rigid-body columns take none). A random load has no such
+    scale here: not checked. None for the state-space form and a model at rest. Not collective."""
+    B = getattr(model, "B", None)
+    if B is None or getattr(model, "form", "") == "state_space":
+        return None
+    rows = [a for a in (B, getattr(model, "probe_B", None), getattr(getattr(model, "field", None), "V", None))
+            if a is not None and a.size]
+    if not rows:
+        return None
+    W = np.vstack(rows)
+    reach = atol * float(np.abs(W).sum(axis=1).max())
+    K = np.asarray(model.K)
+    stiff = np.diag(K)
+    omega = np.sqrt(np.where(stiff > 0, stiff, np.inf))
+    scales = {"the initial displacement": max(float(np.abs(W @ model.q0).max()),
+                                              float(np.abs(W @ (model.p0 / omega)).max()))}
+    support = getattr(model, "support", None)
+    scales["the support's motion"] = abs(float(getattr(support, "amplitude", 0.0)))
+    force, shape = getattr(model, "force", None), np.asarray(model.force_shape)
+    if isinstance(force, Harmonic) and shape.ndim == 1 and force.amplitude:
+        static = np.linalg.pinv(K, hermitian=True) @ shape * force.amplitude
+        scales["the static deflection under the force"] = float(np.abs(W @ static).max())
+    what, scale = max(scales.items(), key=lambda item: item[1])
+    if not scale > 0 or reach <= ATOL_REACH * scale:
+        return None
+    return reach / scale, reach, scale, what
+
+
+def loose_motion_message(atol: float, ratio: float, reach: float, scale: float, what: str) -> str:
+    """loose_atol's line for motion_reach's finding."""
+    return (f"[integrator] atol = {atol:g} (modal units, m kg^(1/2)) lets w err by up to {reach:.3g} m, {ratio:.3g} x "
+            f"the motion's scale {scale:.3g} m ({what}): the steps do not control the error, and the estimate's "
+            f"richer run (atol / 10) cannot see it (small masses or displacements in SI units); set [integrator] "
+            f"atol = {atol * ATOL_REACH * 1e-2 / ratio:.2g} or below")
 
 
 def loose_atol_message(atol: float, ratio: float, j: int, reach: float, gap: float) -> str:

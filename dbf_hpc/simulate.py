@@ -52,9 +52,10 @@ _WARNED = set()
 def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
     """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Warns, as `dbf-hpc
-    run` does (run.loose_atol), where an adaptive run's atol lets w err by over 1 % of a clearance, and
-    where `snapshots` exceeds the samples (snapshot_cap_warning): once per process and message, on rank 0 of COMM_WORLD (the model is replicated: a script calls this on
-    every rank, and the line is printed once). Not collective."""
+    run` does (run.loose_atol), where an adaptive run's atol lets w err by over 1 % of a clearance (or
+    of the motion's scale, run.motion_reach), and where `snapshots` exceeds the samples
+    (snapshot_cap_warning): once per process and message, on rank 0 of COMM_WORLD (the model is
+    replicated: a script calls this on every rank, and the line is printed once). Not collective."""
     _check_settings(settings, say, "simulate_reduced")
     if settings.adaptive and hasattr(model, "probe_sample_shape"):
         from .run import loose_atol
