@@ -71,7 +71,8 @@ SECTIONS = {
                                        "column 0, 1, 2 ... draws a warning); with dofs, outputs show displacement "
                                        "vectors at the nodes"),
         "dofs": Key((str,), None, "", "matrices: for each free DOF (one a row, in K's order) its node (from 0) "
-                                      "and direction: x, y, z, rx, ry or rz"),
+                                      "and direction: x, y, z, rx, ry or rz (the error estimate scales rotations, "
+                                      "rad, apart from translations, m, only where this names them)"),
         "cells": Key((str,), None, "", "matrices: the mesh's cells, so that the ParaView files show the solid "
                                        "instead of points (needs nodes and dofs): one cell a row, the indices "
                                        "(from 0) of its nodes in XDMF's (VTK's) order, .npy or text; the node "
@@ -144,7 +145,9 @@ SECTIONS = {
         "estimate": Key((bool,), True, "", "the a-posteriori error estimate of a run (the attribute estimated_error: "
                                            "the largest error in w at any constraint over the largest |w| at any "
                                            "constraint, each kind of DOF apart where a node map puts constraints on "
-                                           "rotations and translations): the same scene on max(2N, N + N_L) modes with the same enrichment "
+                                           "rotations and translations; without a node map every constrained DOF "
+                                           "counts as a translation, so give [structure] nodes and dofs where "
+                                           "constraints act on rotations): the same scene on max(2N, N + N_L) modes with the same enrichment "
                                            "(and on 1.5 times those modes where that differs by 2 % or more: the larger) "
                                            "at a 10x tighter rtol, over estimate_window (docs/accuracy.md); with "
                                            "--method full the same model at a 4x shorter step; sweeps and scenes "
