@@ -119,6 +119,9 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     # (red team: --method full -q at 2.5 steps a period of the forcing wrote a wrong response with no word)
     if method == "full" or not settings.adaptive:
         _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
+    unestimated = unused_estimate_keys_warning(scene)
+    if unestimated:
+        warn(unestimated, comm)
     _warn_coarse_samples(settings, scene.fastest_forcing_hz(), comm)
     capped = snapshot_cap_warning(scene.output().snapshots, settings)
     if capped:
@@ -161,6 +164,26 @@ def _warn_ignored_by_full(scene: Scene, settings, comm) -> None:
     names = {key: f"[{section}] {key}" for section, keys in REDUCED_ONLY.items() for key in keys}
     for message in ignored_settings(values, settings.dt, "--method full", {**names, "dt": "[integrator] dt"}):
         warn(message, comm)
+
+
+def unused_estimate_keys_warning(scene: Scene) -> str | None:
+    """A warning when the scene (or a --set) gives [basis] estimate_window or estimate_statistics_window
+    and the run makes no estimate: [basis] estimate = false (and no tolerance mode, which makes its own),
+    or no constraints. Red team: estimate_window = 0.05 with estimate = false ran without a word, the
+    window read nowhere. A warning, not a refusal: --set basis.estimate=false is the way to skip the
+    estimate of a scene that sets its window. Not collective."""
+    given = [key for key in ("estimate_window", "estimate_statistics_window") if ("basis", key) in scene.given]
+    if not given:
+        return None
+    b = scene["basis"]
+    if not scene.constraints:
+        why = "the scene has no constraints, and the estimate measures w at them"
+    elif not b["estimate"] and b["tolerance"] is None:
+        why = "[basis] estimate = false"
+    else:
+        return None
+    verb, it = ("is", "it") if len(given) == 1 else ("are", "them")
+    return f"[basis] {' and '.join(given)} {verb} not used: {why}, so the run makes no error estimate; remove {it}"
 
 
 def _warn_gyroscopically_held(ops) -> None:

@@ -155,7 +155,9 @@ SECTIONS = {
         "estimate_window": Key(NUMBER, None, "s", "the window [0, T] the estimate holds over (default twice the time "
                                                   "of the first impact, or t_end / 10 without one; a constraint "
                                                   "in force from the start is no impact until it lets go and "
-                                                  "touches again)"),
+                                                  "touches again); a run that makes no estimate (estimate = false, "
+                                                  "no constraints) warns that it, as estimate_statistics_window, "
+                                                  "is not used"),
         "estimate_statistics_window": Key(NUMBER, None, "s", "a long run's (t_end over 5 estimate windows) "
                                                              "statistics window [0, T]: the richer model's impact "
                                                              "statistics over it against the run's give their model "

@@ -652,3 +652,25 @@ def test_an_atol_above_a_micro_beams_whole_motion_is_warned_and_the_advised_one_
             f.close()
     if MPI.COMM_WORLD.rank == 0:
         assert errors[None] > 1e-2 and errors["advised"] < 1e-3, errors    # measured 3.6e-2 and 3.7e-4
+
+
+def test_estimate_windows_given_to_a_run_that_makes_no_estimate_are_warned_as_unused(shared_tmp_path, capfd):
+    # Red team: [basis] estimate_window = 0.05 with estimate = false (or on a scene without constraints) ran
+    # without a word, the window read nowhere.
+    from dbf_hpc.run import unused_estimate_keys_warning
+
+    off = load_scene(PAPER, ["basis.estimate=false", "basis.estimate_window=0.05"])
+    assert unused_estimate_keys_warning(off) == ("[basis] estimate_window is not used: [basis] estimate = false, so "
+                                                 "the run makes no error estimate; remove it")
+    both = load_scene(without_constraints(shared_tmp_path), ["basis.estimate_window=0.05",
+                                                             "basis.estimate_statistics_window=1.0"])
+    assert unused_estimate_keys_warning(both).startswith("[basis] estimate_window and estimate_statistics_window are "
+                                                         "not used: the scene has no constraints")
+    for used in (["basis.estimate_window=0.05"], ["basis.estimate=false"],
+                 ["basis.estimate=false", "basis.estimate_window=0.05", "basis.tolerance=0.05"]):
+        assert unused_estimate_keys_warning(load_scene(PAPER, used)) is None, used
+    paper_run(shared_tmp_path, "integrator.t_end=0.01", "basis.modes=4", "basis.estimate=false",
+              "basis.estimate_window=0.005", name="unestimated.h5")
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        assert "dbf-hpc: warning: [basis] estimate_window is not used: [basis] estimate = false" in err, err
