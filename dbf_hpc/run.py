@@ -44,6 +44,7 @@ from .reductor import Reductor
 from .rom import ReducedModel
 from .rom_integrator import c_counters, effective_callbacks, integrate_reduced
 from .scene import Scene
+from .schema import SECTIONS
 from .excitation import Harmonic
 from .simulate import snapshot_cap_warning, snapshot_samples
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
@@ -119,9 +120,9 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     # (red team: --method full -q at 2.5 steps a period of the forcing wrote a wrong response with no word)
     if method == "full" or not settings.adaptive:
         _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
-    unestimated = unused_estimate_keys_warning(scene)
-    if unestimated:
-        warn(unestimated, comm)
+    for message in (unused_estimate_keys_warning(scene), unused_dbf_keys_warning(scene)):
+        if message:
+            warn(message, comm)
     _warn_coarse_samples(settings, scene.fastest_forcing_hz(), comm)
     capped = snapshot_cap_warning(scene.output().snapshots, settings)
     if capped:
@@ -184,6 +185,25 @@ def unused_estimate_keys_warning(scene: Scene) -> str | None:
         return None
     verb, it = ("is", "it") if len(given) == 1 else ("are", "them")
     return f"[basis] {' and '.join(given)} {verb} not used: {why}, so the run makes no error estimate; remove {it}"
+
+
+# The [basis] keys only the DBFs read (BasisSettings.strategy: DbfEnrichment)
+DBF_KEYS = ("dbf_stiffness", "dbf_derivative", "dbf_solver", "groups")
+
+
+def unused_dbf_keys_warning(scene: Scene) -> str | None:
+    """A warning when the scene (or a --set) gives a DBF key (DBF_KEYS) and [basis] enrichment is not
+    "dbf": the comparators ("static", "none") read none of them. Red team: dbf_stiffness = 1e5 with
+    enrichment = "static" ran without a word. A warning, not a refusal: --set basis.enrichment=static
+    is how one runs the comparator of a scene that tunes its DBFs. Not collective."""
+    enrichment = scene["basis"]["enrichment"]
+    defaults = SECTIONS["basis"][1]
+    given = [key for key in DBF_KEYS if ("basis", key) in scene.given and scene["basis"][key] != defaults[key].default]
+    if enrichment == "dbf" or not given:
+        return None
+    verb, it, they = ("is", "it", "it tunes") if len(given) == 1 else ("are", "them", "they tune")
+    return (f"[basis] {', '.join(given)} {verb} not used by enrichment = \"{enrichment}\" ({they} the DBFs of "
+            f"enrichment = \"dbf\"); remove {it} or set enrichment = \"dbf\"")
 
 
 def _warn_gyroscopically_held(ops) -> None:

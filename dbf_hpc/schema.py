@@ -122,7 +122,9 @@ SECTIONS = {
                                        "counts that keep it whole)"),
         "max_frequency_hz": Key(NUMBER, None, "Hz", "every mode below this frequency instead of a count (on a beam of two planes, whole y-z pairs)"),
         "enrichment": Key((str,), "dbf", "", '"dbf" (the method), "static" (static attachment modes K^-1 g) or '
-                                             '"none" (modes alone); the last two are comparators'),
+                                             '"none" (modes alone); the last two are comparators, which read none of '
+                                             'dbf_stiffness, dbf_derivative, dbf_solver and groups (given, a run '
+                                             'warns)'),
         "dbf_stiffness": Key((str, *NUMBER), "auto", "N/m", 'k_j of the spring-perturbed problem: "auto" (the '
                                                              'corner of the paper\'s Fig. 2) or a number'),
         "dbf_derivative": Key((str,), "analytic", "", '"analytic" (deflated derivative solve) or "central" (the '

@@ -674,3 +674,24 @@ def test_estimate_windows_given_to_a_run_that_makes_no_estimate_are_warned_as_un
     err = capfd.readouterr().err
     if MPI.COMM_WORLD.rank == 0:
         assert "dbf-hpc: warning: [basis] estimate_window is not used: [basis] estimate = false" in err, err
+
+
+def test_dbf_keys_given_to_a_comparator_enrichment_are_warned_as_unused(shared_tmp_path, capfd):
+    # Red team: dbf_stiffness = 1e5 with enrichment = "static" (or "none") ran without a word, the key read
+    # nowhere. The paper scene's own dbf_stiffness = "auto" (the default) under --set basis.enrichment=static
+    # is no such key: no warning.
+    from dbf_hpc.run import unused_dbf_keys_warning
+
+    assert unused_dbf_keys_warning(load_scene(PAPER, ['basis.enrichment="static"', "basis.dbf_stiffness=1e5"])) == (
+        '[basis] dbf_stiffness is not used by enrichment = "static" (it tunes the DBFs of enrichment = "dbf"); remove '
+        'it or set enrichment = "dbf"')
+    assert unused_dbf_keys_warning(load_scene(PAPER, ['basis.enrichment="none"', 'basis.dbf_solver="factor"',
+                                                      "basis.groups=1"])).startswith(
+        '[basis] dbf_solver, groups are not used by enrichment = "none" (they tune')
+    for used in (['basis.enrichment="static"'], ["basis.dbf_stiffness=1e5"]):
+        assert unused_dbf_keys_warning(load_scene(PAPER, used)) is None, used
+    paper_run(shared_tmp_path, "integrator.t_end=0.01", "basis.modes=4", "basis.estimate=false",
+              'basis.enrichment="none"', 'basis.dbf_derivative="central"', name="comparator.h5")
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        assert 'dbf-hpc: warning: [basis] dbf_derivative is not used by enrichment = "none"' in err, err
