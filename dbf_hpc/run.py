@@ -140,16 +140,29 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
             TERMINATION.finished = True
             return done
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
-    _warn_idle(summary, scene.constraints, comm)
-    for message in hunt_crossley_warnings(summary, scene.constraints, method):
-        warn(message, comm)
-    if method == "full" or not settings.adaptive:
-        _warn_unresolved(summary, scene.constraints, settings.dt, comm, "" if method == "full" else
-                         ", or set [integrator] adaptive = true")
-    if method == "full":
-        for message in contact_stiffness_warnings(summary, scene.constraints, settings.dt):
-            warn(message, comm)
+    _warn_result(summary, scene.constraints, method, settings, comm)
     return summary
+
+
+def _warn_result(summary: dict, constraints, method: str, settings, comm) -> None:
+    """result_warnings, each a warning (after the output is complete)."""
+    for message in result_warnings(summary, constraints, method, settings):
+        warn(message, comm)
+
+
+def result_warnings(summary: dict, constraints, method: str, settings) -> list:
+    """What a run warns of its result, from its summary, after the integration: a stop never reached
+    (idle_warnings), Hunt-Crossley damping beyond its range, impacts a fixed step does not resolve, and
+    (full order) a contact stiffer than the step resolves. `constraints`: each with .label and .law, in
+    the model's order. The same lines wherever the same result is produced: run.run (`dbf-hpc run`),
+    and simulate_full / simulate_reduced (simulate.py). Not collective."""
+    out = idle_warnings(summary, constraints) + hunt_crossley_warnings(summary, constraints, method)
+    if method == "full" or not settings.adaptive:
+        out += unresolved_warnings(summary, constraints, settings.dt, "" if method == "full" else
+                                   ", or set [integrator] adaptive = true")
+    if method == "full":
+        out += contact_stiffness_warnings(summary, constraints, settings.dt)
+    return out
 
 
 # The reduced model's settings a full-order run does not read (fom_integrator.ignored_settings), by section
@@ -503,17 +516,12 @@ def coarse_samples_warning(settings, fastest_hz: float) -> str | None:
 STEPS_PER_IMPACT = 3   # fewer on average, at a fixed step: contact forces and times depend on dt
 
 
-def _warn_unresolved(summary: dict, constraints, dt: float, comm, also: str = "") -> None:
-    """A warning for each constraint whose impacts last fewer than STEPS_PER_IMPACT fixed steps on
+def unresolved_warnings(summary: dict, constraints, dt: float, also: str = "") -> list:
+    """A message for each constraint whose impacts last fewer than STEPS_PER_IMPACT fixed steps on
     average (red team: at 1e12 N/m the peak force was k times a penetration set by dt, 96 kN at
     1e-5 s, 3 kN at 5e-7 s, with no word). Durations are measured on the steps (the recorders'
-    impact statistics), so the sample interval does not hide this."""
-    for message in unresolved_warnings(summary, constraints, dt, also):
-        warn(message, comm)
-
-
-def unresolved_warnings(summary: dict, constraints, dt: float, also: str = "") -> list:
-    """_warn_unresolved's messages (a sweep warns them for its cases too)."""
+    impact statistics), so the sample interval does not hide this (a sweep warns them for its cases
+    too)."""
     stats = summary.get("constraint_stats", {})
     if not stats:
         return []
@@ -593,15 +601,10 @@ def contact_stiffness_warnings(summary: dict, constraints, dt: float) -> list:
 IDLE_FRACTION = 0.01
 
 
-def _warn_idle(summary: dict, constraints, comm) -> None:
-    """A warning for each constraint that never touched its stop and whose motion stayed below
-    IDLE_FRACTION of its clearance: often a clearance in the wrong unit."""
-    for message in idle_warnings(summary, constraints):
-        warn(message, comm)
-
-
 def idle_warnings(summary: dict, constraints) -> list:
-    """_warn_idle's messages (a sweep warns them for its cases too)."""
+    """A message for each constraint that never touched its stop and whose motion stayed below
+    IDLE_FRACTION of its clearance: often a clearance in the wrong unit (a sweep warns them for its
+    cases too)."""
     out = []
     stats = summary.get("constraint_stats", {})
     for j, constraint in enumerate(constraints):

@@ -10,8 +10,10 @@ Result on every rank. Keep these for runs whose samples fit in memory.
 from __future__ import annotations
 
 import dataclasses
+import types
 
 import numpy as np
+from petsc4py import PETSc
 
 from .errors import InputError, check_number, warn
 from .fom import FullOrderModel, Observation
@@ -55,24 +57,38 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
     run` does (run.loose_atol), where an adaptive run's atol lets w err by over 1 % of a clearance (or
     of the motion's scale, run.motion_reach), and where `snapshots` exceeds the samples
     (snapshot_cap_warning): once per process and message, on rank 0 of COMM_WORLD (the model is
-    replicated: a script calls this on every rank, and the line is printed once). Not collective."""
+    replicated: a script calls this on every rank, and the line is printed once). After the integration
+    it warns of the result as `dbf-hpc run` does (run.result_warnings: a stop never reached,
+    Hunt-Crossley damping beyond its range, impacts a fixed step does not resolve), on rank 0 of
+    COMM_WORLD, each call. Not collective."""
     _check_settings(settings, say, "simulate_reduced")
     if settings.adaptive and hasattr(model, "probe_sample_shape"):
         from .run import loose_atol
 
         loose = loose_atol(model, settings.atol)
         if loose and loose not in _WARNED:
-            from petsc4py import PETSc
-
             _WARNED.add(loose)
             warn(loose, PETSc.COMM_WORLD)
     capped = snapshot_cap_warning(snapshots, settings, "simulate_reduced snapshots") if isinstance(snapshots, int) else None
     if capped and capped not in _WARNED:
-        from petsc4py import PETSc
-
         _WARNED.add(capped)
         warn(capped, PETSc.COMM_WORLD)
-    return integrate_samples(model, settings, snapshots, say)
+    result = integrate_samples(model, settings, snapshots, say)
+    warn_result(result, model.constraints, "rom", settings, PETSc.COMM_WORLD)
+    return result
+
+
+def warn_result(result: Result, constraints, method: str, settings: IntegratorSettings, comm) -> None:
+    """The warnings `dbf-hpc run` prints of the same result (run.result_warnings), from a Result and the
+    model's ConstraintSet; each [integrator] key they advise is named as the IntegratorSettings field.
+    Not collective: every rank of `comm` calls it with the same Result (rank 0 prints)."""
+    from .run import result_warnings
+
+    summary = {"constraint_stats": result.statistics, "alpha_speed": np.asarray(result.alpha_speed).tolist(),
+               "stats": result.solver}
+    named = [types.SimpleNamespace(label=label, law=law) for label, law in zip(constraints.labels, constraints.laws.laws)]
+    for message in result_warnings(summary, named, method, settings):
+        warn(message.replace("[integrator] ", "IntegratorSettings "), comm)
 
 
 @petsc_errors_as_one_line("the reduced integration", ("rom_",))
@@ -95,7 +111,9 @@ def integrate_samples(model: ReducedModel, settings: IntegratorSettings, snapsho
 @petsc_errors_as_one_line("the full-order integration", ("full_",))
 def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -> Result:
     """Integrate the full-order model (fom_integrator.py) and return the same Result as
-    simulate_reduced (q and qdot of width 0). Collective; the Result is on every rank."""
+    simulate_reduced (q and qdot of width 0), and warns of it as `dbf-hpc run --method full` does
+    (run.result_warnings, warn_result: also a contact stiffer than the step resolves), on rank 0 of the
+    model's communicator. Collective; the Result is on every rank."""
     _check_settings(settings, say, "simulate_full")
     if not isinstance(fom, FullOrderModel):
         raise InputError(f"simulate_full integrates a FullOrderModel (FullOrderModel.build), got {type(fom).__name__}")
@@ -110,7 +128,9 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     observation = Observation(fom)
     recorder = FullRecorder(MemoryWriter(fom.constraints.shape, fom.probes.shape, 0), fom.constraints, observation)
     stats = integrate_full(fom, settings, observation.rows, recorder.block, say=say)
-    return world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)
+    result = world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)
+    warn_result(result, fom.constraints, "full", settings, fom.comm)   # every rank: the same Result
+    return result
 
 
 def _check_settings(settings, say, where: str) -> None:

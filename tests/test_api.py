@@ -535,3 +535,40 @@ def test_simulate_reduced_warns_once_where_atol_lets_w_err_by_over_a_percent_of_
     count = err.count("dbf-hpc: warning: [integrator] atol = 1e-09 (modal units")
     assert_all(count == (1 if MPI.COMM_WORLD.rank == 0 else 0), err)
     assert "atol = 1e-14" not in err
+
+
+def test_simulate_full_and_reduced_warn_of_their_result_as_a_run_does_once_from_rank_0(capfd):
+    # Warnings parity: `dbf-hpc run` warns after the integration of Hunt-Crossley damping beyond its range
+    # (alpha |v| > 1.5) and, full order, of a contact stiffer than the step resolves; the Python API said
+    # nothing of the same result. Here a stop at clearance 0 under the paper's base motion: alpha = 1000 s/m
+    # reaches alpha |v| of several (full order, 2e-6 s) and 24 (6 modes), a hertz contact of 1e12 N/m rings in
+    # 0.3 steps of 1e-5 s, and alpha = 1 s/m at 2e-6 s is within both. Every rank takes the same path; rank 0 prints.
+    from mpi4py import MPI
+
+    from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, FullOrderModel, IntegratorSettings, Reductor,
+                         law, simulate_full, simulate_reduced)
+    from dbf_hpc.run import HUNT_CROSSLEY_MAX
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    hunt_crossley = lambda alpha: law("deadband", clearance=0.0, k=1e6, damping="hunt_crossley", alpha=alpha)  # noqa
+    cases = ((hunt_crossley(1000.0), 2e-6, True, False), (law("hertz", clearance=0.0, k=1e12), 1e-5, False, True),
+             (hunt_crossley(1.0), 2e-6, False, False))
+    rank0 = MPI.COMM_WORLD.rank == 0
+    for stop, dt, overdamped, stiff in cases:
+        with FullOrderModel.build(beam, [Constraint(stop, x=0.25)], BaseMotion(amplitude=5e-3, frequency_hz=1.0)) as fom:
+            with Reductor(fom, BasisSettings(modes=6)) as reductor:
+                rom = reductor.reduce()
+            capfd.readouterr()
+            full = simulate_full(fom, IntegratorSettings(t_end=2e-3, dt=dt, sample_dt=1e-4))
+        reduced = simulate_reduced(rom, IntegratorSettings(t_end=2e-3, sample_dt=1e-4))
+        err = capfd.readouterr().err
+        assert_all((full.alpha_speed[0] > HUNT_CROSSLEY_MAX) == overdamped, full.alpha_speed)
+        assert_all((reduced.alpha_speed[0] > HUNT_CROSSLEY_MAX) == overdamped, reduced.alpha_speed)
+        hc = err.count("Hunt-Crossley damping reached alpha |v|")
+        assert_all(hc == (2 if overdamped and rank0 else 0), err)
+        if overdamped and rank0:   # the full-order line adds the dt dependence, as --method full's does
+            assert err.count("constraint 1 at x = 0.25 m: Hunt-Crossley") == 2 and err.count("full-order force and dissipated energy depend on dt") == 1, err
+        assert_all(err.count("is too stiff for dt") == (1 if stiff and rank0 else 0), err)
+        if stiff and rank0:        # the advice names the field the caller sets
+            assert "reduce IntegratorSettings dt to about" in err and "[integrator]" not in err, err
+        assert_all(("dbf-hpc: warning" in err) == ((overdamped or stiff) and rank0), err)
