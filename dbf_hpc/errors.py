@@ -117,9 +117,33 @@ def wait_for_rank0(world) -> None:
 WRITE_ERRORS = (OSError, RuntimeError)
 
 
+# The lists recording() yields: each warning is appended to every one open, on every rank
+_RECORDINGS = []
+
+
+@contextlib.contextmanager
+def recording():
+    """A list of the messages warn() gives while the block runs, on every rank alike (run.run: its
+    output stores them, and a --resume of it shows them again)."""
+    log = []
+    _RECORDINGS.append(log)
+    try:
+        yield log
+    finally:
+        _RECORDINGS.remove(log)
+
+
+def recorded() -> list:
+    """The messages warned so far in the innermost recording() open, or [] outside one."""
+    return list(_RECORDINGS[-1]) if _RECORDINGS else []
+
+
 def warn(message: str, comm) -> None:
     """`dbf-hpc: warning: message` on stderr, from rank 0 of `comm` (petsc4py or mpi4py); stdout
-    keeps the progress and the results. Not collective: every rank calls it on the same path."""
+    keeps the progress and the results. Not collective: every rank calls it on the same path (and
+    records it in any recording() open)."""
+    for log in _RECORDINGS:
+        log.append(message)
     rank = comm.getRank() if hasattr(comm, "getRank") else comm.rank
     if rank == 0:
         sys.stdout.flush()   # after the progress lines already printed

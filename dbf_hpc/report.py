@@ -114,6 +114,8 @@ def _run_lines(path: str, f) -> list:
                  f"{stats['rejected_steps']} rejected, {stats['snes_failures']} Newton failures")
     lines.append("  wall time: " + ", ".join(f"{k} {v:.3g} s" for k, v in walls.items()))
     lines += _estimate_lines(f)
+    # what the run warned, that its result may be wrong (an output written before they were stored has none)
+    lines += [f"  warning: {w}" for w in str(f.attrs.get("warnings", "")).split("\n") if w]
     return lines + _constraint_lines(f) + _probe_lines(f)
 
 

@@ -30,7 +30,8 @@ from .accuracy import (KINDS_NOTE, RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_
 from .basis import SUSPICIOUS_HZ
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
-                     decided_on_rank0, petsc_failure, termination_signals, wait_for_rank0, warn, write_failure)
+                     decided_on_rank0, petsc_failure, recorded, recording, termination_signals, wait_for_rank0, warn,
+                     write_failure)
 from .fom import Observation
 from .fom_integrator import check_step, ignored_settings, integrate_full, step_count
 from .fom_integrator import options as full_options
@@ -98,9 +99,18 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     [initial] (continuation in a frequency sweep; the basis must be the same). With resume, a run
     that was killed continues from its last checkpoint (OUT.h5.checkpoint) and ends as an
     uninterrupted run would, and a finished output of the same question (finished_output) is kept:
-    its summary is read back and nothing is computed. method = "full" integrates the full-order
-    model instead: the reference the reduced model is measured against, same scene, same output
-    layout."""
+    its summary is read back, nothing is computed, and the warnings its run printed are printed
+    again. method = "full" integrates the full-order model instead: the reference the reduced model
+    is measured against, same scene, same output layout. The summary's "warnings" lists what the run
+    warned before its output was complete (the output's `warnings` attribute)."""
+    with recording() as warned:
+        return _run_recorded(scene, out, progress, comm, initial_state, resume, method, warned)
+
+
+def _run_recorded(scene: Scene, out, progress: bool, comm, initial_state, resume: bool, method: str,
+                  warned: list) -> dict:
+    """run, recording its warnings in `warned` (errors.recording): the output stores them (finish), and
+    a --resume of a finished output shows those this invocation has not (its summary's "warnings")."""
     if method not in ("rom", "full"):
         raise InputError(f"--method {method!r}: choose rom or full")
     if method == "full" and initial_state is not None:
@@ -137,6 +147,13 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
                 _drop_leftover_checkpoint(path)
             _say(say, f"{path} is already complete for this scene and setup: nothing to resume (`dbf-hpc info "
                       f"{path}` shows it; rerun without --resume to compute it again)")
+            # what its run warned, each line once (a requeued job's log said nothing of it); an output
+            # written before outputs stored them: what its summary shows (result_warnings)
+            stored = done["warnings"] if "warnings" in done else result_warnings(done, scene.constraints, method,
+                                                                                  settings)
+            for message in stored:
+                if message not in warned:
+                    warn(message, comm)
             TERMINATION.finished = True
             return done
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
@@ -734,6 +751,8 @@ def _stored_summary(f, path: str) -> dict:
                "timings": json.loads(f.attrs["wall_times"]), "probe_peak": f[layout.PROBE_PEAK][()].tolist(),
                "constraint_stats": {k: v[()].tolist() for k, v in f[layout.CONSTRAINT_STATS].items()}}
     summary["alpha_speed"] = summary["stats"].get("alpha_speed", [])
+    if "warnings" in f.attrs:   # (not in an output written before they were stored)
+        summary["warnings"] = [w for w in str(f.attrs["warnings"]).split("\n") if w]
     if "estimated_error" in f.attrs:
         summary["estimated_error"] = float(f.attrs["estimated_error"])
         summary["estimated_error_window"] = float(f.attrs["estimated_error_window"])
@@ -1196,6 +1215,10 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     summary = {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
                "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()},
                "alpha_speed": stats["alpha_speed"]}
+    # what the run warned (run.run records it) and what it warns of this result once the output is
+    # complete (result_warnings): stored, so that `info` and a --resume of the output show them
+    summary["warnings"] = list(dict.fromkeys(recorded() + result_warnings(summary, scene.constraints, method,
+                                                                            scene.integrator_settings())))
     if not write:   # some 80 datasets with their units, 50 ms a case, written to be removed (sweep._run_one)
         writer.discard()
         return summary
@@ -1210,7 +1233,8 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     if snap_t.size:
         datasets.update(node_vectors(geometry, snap_w, "snapshots"))
     datasets.update(extra_datasets or {})
-    attrs = {"field_kind": geometry[0], **cells_attrs(field), **(extra_attrs or {})}
+    attrs = {"field_kind": geometry[0], **cells_attrs(field), "warnings": "\n".join(summary["warnings"]),
+             **(extra_attrs or {})}
     if model is not None:
         info = model.basis_info
         datasets.update({layout.BASIS_OMEGA: info["omega"], layout.BASIS_ENRICHMENT_OMEGA: info["enrichment_omega"],

@@ -695,3 +695,37 @@ def test_dbf_keys_given_to_a_comparator_enrichment_are_warned_as_unused(shared_t
     err = capfd.readouterr().err
     if MPI.COMM_WORLD.rank == 0:
         assert 'dbf-hpc: warning: [basis] dbf_derivative is not used by enrichment = "none"' in err, err
+
+
+@pytest.mark.parametrize("method", ["rom", "full"])
+def test_a_finished_output_stores_its_warnings_and_a_resume_of_it_or_info_shows_each_once(shared_tmp_path, capfd,
+                                                                                         method):
+    # Warnings parity: a requeued `--resume` of a finished output computed nothing and printed none of the
+    # warnings its run had printed (a loose atol, a stop never reached), and the output kept no trace of
+    # them. The output's `warnings` attribute now holds them; a resume prints each once (those this
+    # invocation prints before looking at the output, here --method full's ignored rtol, are not doubled),
+    # and `dbf-hpc info` lists them. A clearance of 1 m is never reached; atol 1e-4 is loose for it.
+    from dbf_hpc.report import describe
+
+    sets = ["constraint.clearance=1", "integrator.t_end=0.01", "basis.estimate=false", "output.snapshots=0",
+            "basis.cache=off", "integrator.atol=1e-4" if method == "rom" else "integrator.rtol=1e-8"]
+    expected = ("[integrator] atol = 0.0001 (modal units" if method == "rom" else
+                "[integrator] rtol = 1e-08 is the reduced model's", "constraint 1 at x = 0.25 m never reached its stop")
+    path = str(shared_tmp_path / f"warned-{method}.h5")
+    capfd.readouterr()
+    first = run(load_scene(PAPER, sets), path, progress=False, method=method)
+    printed = capfd.readouterr().err
+    again = run(load_scene(PAPER, sets), path, progress=False, method=method, resume=True)
+    reprinted = capfd.readouterr().err
+    assert again["stats"] == first["stats"]   # nothing computed again
+    assert again["warnings"] == first["warnings"] and len(first["warnings"]) == 2, first["warnings"]
+    assert [w[:len(e)] for w, e in zip(first["warnings"], expected)] == list(expected), first["warnings"]
+    for err in (printed, reprinted):
+        lines = [line for line in err.splitlines() if line.startswith("dbf-hpc: warning: ")]
+        assert_all(lines == ([f"dbf-hpc: warning: {w}" for w in first["warnings"]] if MPI.COMM_WORLD.rank == 0
+                             else []), err)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(path, "r") as f:
+            assert f.attrs["warnings"].split("\n") == first["warnings"]
+        info = [line for line in describe(path) if "warning" in line]
+        assert info == [f"  warning: {w}" for w in first["warnings"]], info
