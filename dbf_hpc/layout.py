@@ -195,8 +195,10 @@ def reference() -> str:
              "A sweep summary (`dbf-hpc sweep`) holds a row per case: `cases/parameters/<section.key>` (NaN or "
              "null where a listed case leaves the base scene's value), `cases/status`, `cases/error`, "
              "`cases/wall_time` (s), `cases/warnings` (what `dbf-hpc run` warns of the case, that its result may be "
-             "wrong: a stop never reached, a forcing above the basis, impacts a fixed step does not resolve; one "
-             "line each, empty for none), `cases/stats/<statistic>` (case x constraint, units as above) and "
+             "wrong, in its order: a coarse fixed step or sample interval, a forcing above the basis, a loose atol "
+             "(these the sweep prints once for the cases they concern, before they run), a stop never reached, "
+             "Hunt-Crossley damping beyond its range, impacts a fixed step does not resolve; one line each, empty "
+             "for none), `cases/stats/<statistic>` (case x constraint, units as above) and "
              "`cases/probe_peak` (m, case x probe); with supports of two directions also `work_rate`, "
              "`work_rate_ci95`, `wear_volume` and `wear_volume_ci95` among the statistics.", ""]
     return "\n".join(lines)

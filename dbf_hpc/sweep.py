@@ -26,7 +26,9 @@ in increasing order, each value once ("up" runs it as listed, "down" reversed).
 How it runs (collective on COMM_WORLD):
 1. Every case's scene is validated before any work: a bad value stops the sweep at once, as does a
    case a run would refuse as endless (timestepping.check_work); a run's warnings before any work
-   (a coarse fixed step or sample interval) are given for the cases they concern.
+   (a coarse fixed step or sample interval) are given once for the cases they concern (and, with a
+   loose atol, once the models are built: _warn_loose_atol), and each case's record keeps them with
+   the rest of what its run would warn (cases/warnings).
 2. Each distinct reduced model (cases that differ only in law, excitation history or integrator
    share one) is built once on all ranks; the ranks keep only its small arrays. A model that
    cannot be built fails its cases, recorded with the error; the others go on.
@@ -75,7 +77,7 @@ from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
 from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, atol_reach, coarse_samples_warning,
                   coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks, hunt_crossley_warnings,
-                  idle_warnings, loose_atol_message, run_case, scene_callbacks, unresolved_warnings)
+                  idle_warnings, loose_atol, loose_atol_message, run_case, scene_callbacks, unresolved_warnings)
 from .scene import load_scene, parse_override
 from .simulate import snapshot_cap_warning
 from . import __version__
@@ -627,16 +629,33 @@ def _warn_loose_atol(sweep, pending, models: dict, world) -> None:
 
 
 def _case_warnings(scene, model, summary: dict) -> list:
-    """What `dbf-hpc run` warns of the same case, that its result may be wrong (red team: a clearance
-    in mm given as m, a basis below the forcing, impacts a fixed step does not resolve: each run
-    warned, and a sweep of the same cases said nothing): printed by the rank that ran the case, and
-    kept in its record and the summary (cases/warnings)."""
+    """What `dbf-hpc run` warns of the same case, in its order, that its result may be wrong (red team: a
+    clearance in mm given as m, a basis below the forcing, impacts a fixed step does not resolve: each run
+    warned, and a sweep of the same cases said nothing): kept in its record and the summary
+    (cases/warnings), and printed by the rank that ran the case but for those the sweep printed once for
+    its cases before they ran (_said_for_the_sweep: a coarse step or samples, a loose atol; red team:
+    cases/warnings held no trace of these)."""
     settings = scene.integrator_settings()
+    coarse, loose = _said_for_the_sweep(scene, model)
+    above = forcing_warning(scene.fastest_forcing_hz(), model.basis_info.get("omega", ()))
     out = idle_warnings(summary, scene.constraints) + hunt_crossley_warnings(summary, scene.constraints, "rom")
     if not settings.adaptive:
         out += unresolved_warnings(summary, scene.constraints, settings.dt)
-    above = forcing_warning(scene.fastest_forcing_hz(), model.basis_info.get("omega", ()))
-    return [above, *out] if above else out
+    return [*coarse, *(w for w in (above, loose) if w), *out]
+
+
+def _said_for_the_sweep(scene, model) -> tuple:
+    """(the coarse step and samples warnings, the loose-atol warning or None) of a case, as its run gives
+    them: the sweep prints them once, naming its cases (load_sweep, _warn_loose_atol). Not collective."""
+    try:
+        settings = scene.integrator_settings()
+    except InputError:   # (the case fails on its own)
+        return [], None
+    fastest = scene.fastest_forcing_hz()
+    coarse = [w for w in (None if settings.adaptive else coarse_step_warning(settings, fastest),
+                          coarse_samples_warning(settings, fastest)) if w]
+    usable = model is not None and not isinstance(model, str) and settings.adaptive
+    return coarse, loose_atol(model, settings.atol, scene.constraints) if usable else None
 
 
 def _drop_stale_checkpoint(case_out: str, ident: dict) -> None:
@@ -681,8 +700,11 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
                 broken = index
             done += 1
             tell(f"  case {index + 1}: {record['status']}")
+            coarse, loose = _said_for_the_sweep(sweep["run_scenes"][index], models.get(
+                _model_key(sweep["run_scenes"][index])))
             for message in record.get("warnings", []):   # -q silences the progress, not these
-                print(f"dbf-hpc: warning: case {index + 1}: {message}", file=sys.stderr, flush=True)
+                if message not in (*coarse, loose):
+                    print(f"dbf-hpc: warning: case {index + 1}: {message}", file=sys.stderr, flush=True)
             if len(PARKED) > parked:
                 # an HDF5 write of the case failed (a full disk): its file is kept open (errors.park),
                 # and HDF5 crashed (signal 11) at the next failed write of this process (red team): the

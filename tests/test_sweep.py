@@ -1304,3 +1304,40 @@ def test_a_sweep_warns_once_naming_the_cases_whose_atol_lets_w_err_by_over_a_per
                                                            "atol = 1e-09") and "(case 1, the worst)" in lines[0], err)
     else:
         assert_all(not lines, err)
+
+
+def test_each_case_keeps_the_warnings_the_sweep_said_once_for_its_cases_and_they_are_not_said_again(
+        shared_tmp_path, capfd):
+    # Warnings parity: a loose atol (run.loose_atol) and a sample interval that aliases the forcing are said once
+    # by the sweep, naming the cases, before they run; cases/warnings, where `dbf-hpc info` and a reader of the
+    # summary look, held no trace of them. Each case's row now holds them in the order its run would print them,
+    # and the rank that runs a case does not print them a second time. The chain of small masses forced at
+    # 10 Hz: atol 1e-9 is loose for its 1 um stop (1e-14 is not), and samples 0.06 s apart are fewer than 2 a
+    # period.
+    from conftest import small_mass_chain
+
+    scene = small_mass_chain(shared_tmp_path)
+    path = str(shared_tmp_path / "said.toml")
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "w") as f:
+            f.write(f'scene = "{scene}"\noutput = "said.h5"\n[axes]\n"integrator.atol" = [1e-9, 1e-14]\n'
+                    f'"output.sample_dt" = [1e-4, 0.06]\n"integrator.t_end" = [0.2]\n')
+    MPI.COMM_WORLD.Barrier()
+    capfd.readouterr()
+    result = run_sweep(path, progress=False)
+    assert result["failed"] == 0
+    err = "".join(MPI.COMM_WORLD.allgather(capfd.readouterr().err))
+    assert_all(err.count("[integrator] atol = 1e-09 (modal units") == 1, err)
+    assert_all(err.count("fewer than 2: the sampled series") == 1, err)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(result["output"]) as f:
+            atol = f["cases/parameters/integrator.atol"][:]
+            sample_dt = f["cases/parameters/output.sample_dt"][:]
+            warned = [w.decode().split("\n") if w else [] for w in f["cases/warnings"][:]]
+        for a, dt, lines in zip(atol, sample_dt, warned):
+            expected = ([f"[output] sample_dt = {dt:g} s takes"] if dt > 1e-3 else []) + \
+                ([f"[integrator] atol = {a:g} (modal units"] if a > 1e-12 else [])
+            assert [line[:len(e)] for line, e in zip(lines, expected)] == expected and len(lines) == len(expected), \
+                (a, dt, lines)
+        assert sum(len(lines) for lines in warned) == 4
