@@ -76,8 +76,8 @@ from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
 from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, atol_reach, coarse_samples_warning,
-                  coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks, hunt_crossley_warnings,
-                  idle_warnings, loose_atol, loose_atol_message, run_case, scene_callbacks, unresolved_warnings)
+                  coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks, loose_atol,
+                  loose_atol_message, result_warnings, run_case, scene_callbacks)
 from .scene import load_scene, parse_override
 from .simulate import snapshot_cap_warning
 from . import __version__
@@ -638,9 +638,8 @@ def _case_warnings(scene, model, summary: dict) -> list:
     settings = scene.integrator_settings()
     coarse, loose = _said_for_the_sweep(scene, model)
     above = forcing_warning(scene.fastest_forcing_hz(), model.basis_info.get("omega", ()))
-    out = idle_warnings(summary, scene.constraints) + hunt_crossley_warnings(summary, scene.constraints, "rom")
-    if not settings.adaptive:
-        out += unresolved_warnings(summary, scene.constraints, settings.dt)
+    # the result's, as the run words them (result_warnings; the unresolved impacts' advice named dt alone)
+    out = result_warnings(summary, scene.constraints, "rom", settings)
     return [*coarse, *(w for w in (above, loose) if w), *out]
 
 
