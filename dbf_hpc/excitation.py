@@ -56,6 +56,7 @@ class RandomProcess:
 
     def __init__(self, psd: float, band, seed: int, components: int = 256):
         f_low, f_high = band
+        self.band = (float(f_low), float(f_high))
         df = (f_high - f_low) / components
         self.frequency = f_low + (np.arange(components) + 0.5) * df
         self.amplitude = np.full(components, np.sqrt(2 * psd * df))
@@ -351,7 +352,7 @@ class CorrelatedProcess:
                              f"components, or shorten the span or coarsen its elements")
         df = (f_high - f_low) / K
         shift = (np.arange(count) + 0.5) / count
-        self.count = count
+        self.count, self.band = count, (float(f_low), float(f_high))
         self.frequency = f_low + (np.arange(K)[None, :] + shift[:, None]) * df      # (n, K)
         self.amplitude = np.sqrt(2 * turbulence.density(self.frequency) * df)
         self.phase = np.random.default_rng(turbulence.seed).uniform(0, 2 * np.pi, (count, K))
@@ -371,6 +372,13 @@ class CorrelatedProcess:
             out[i:i + chunk] = np.einsum("tmk,mk->tm", np.cos(t[:, None, None] * self.omega + self.phase),
                                          self.amplitude)
         return out
+
+
+def fastest_hz(*histories) -> float:
+    """The highest frequency (Hz) time functions contain: a Harmonic's frequency, a random process's upper
+    band edge; 0 for none (scene.fastest_forcing_hz from the histories: the Python API's models)."""
+    return max([0.0, *(float(h.band[1]) if hasattr(h, "band") else float(getattr(h, "frequency_hz", 0.0))
+                       for h in histories)])
 
 
 def time_functions(excitation) -> tuple:

@@ -47,28 +47,29 @@ def snapshot_cap_warning(count: int, settings: IntegratorSettings, key: str = "[
             f"snapshots; for more, reduce sample_dt")
 
 
-# the loose-atol lines simulate_reduced has printed in this process: once each (a script's loop of runs)
+# the lines simulate_reduced has warned before a run in this process: once each (a script's loop of runs)
 _WARNED = set()
 
 
 def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshots: int = 0, say=None) -> Result:
     """Integrate a reduced model (rom_integrator.py) and return its samples, statistics and, with
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Warns, as `dbf-hpc
-    run` does (run.loose_atol), where an adaptive run's atol lets w err by over 1 % of a clearance (or
-    of the motion's scale, run.motion_reach), and where `snapshots` exceeds the samples
-    (snapshot_cap_warning): once per process and message, on rank 0 of COMM_WORLD (the model is
-    replicated: a script calls this on every rank, and the line is printed once). After the integration
-    it warns of the result as `dbf-hpc run` does (run.result_warnings: a stop never reached,
-    Hunt-Crossley damping beyond its range, impacts a fixed step does not resolve), on rank 0 of
-    COMM_WORLD, each call. Not collective."""
+    run` does, where an adaptive run's atol lets w err by over 1 % of a clearance (or of the motion's
+    scale, run.motion_reach; run.loose_atol), where a fixed step or the samples are too coarse for the
+    forcing (coarse_warnings), and where `snapshots` exceeds the samples (snapshot_cap_warning): once per
+    process and message, on rank 0 of COMM_WORLD (the model is replicated: a script calls this on every
+    rank, and the line is printed once). After the integration it warns of the result as `dbf-hpc run`
+    does (run.result_warnings: a stop never reached, Hunt-Crossley damping beyond its range, impacts a
+    fixed step does not resolve), on rank 0 of COMM_WORLD, each call. Not collective."""
     _check_settings(settings, say, "simulate_reduced")
-    if settings.adaptive and hasattr(model, "probe_sample_shape"):
+    if hasattr(model, "probe_sample_shape"):
         from .run import loose_atol
 
-        loose = loose_atol(model, settings.atol)
-        if loose and loose not in _WARNED:
-            _WARNED.add(loose)
-            warn(loose, PETSc.COMM_WORLD)
+        loose = loose_atol(model, settings.atol) if settings.adaptive else None
+        for message in [*coarse_warnings(model, settings, not settings.adaptive), loose]:
+            if message and message not in _WARNED:
+                _WARNED.add(message)
+                warn(message, PETSc.COMM_WORLD)
     capped = snapshot_cap_warning(snapshots, settings, "simulate_reduced snapshots") if isinstance(snapshots, int) else None
     if capped and capped not in _WARNED:
         _WARNED.add(capped)
@@ -76,6 +77,25 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
     result = integrate_samples(model, settings, snapshots, say)
     warn_result(result, model.constraints, "rom", settings, PETSc.COMM_WORLD)
     return result
+
+
+def coarse_warnings(model, settings: IntegratorSettings, fixed_step: bool) -> list:
+    """What `dbf-hpc run` warns before any work of the same settings (run.coarse_step_warning where the
+    steps are fixed, run.coarse_samples_warning), from the model's support motion and force histories,
+    naming the IntegratorSettings fields. Not collective."""
+    from .excitation import fastest_hz
+    from .run import coarse_samples_warning, coarse_step_warning
+
+    fastest = fastest_hz(model.support, model.force)
+    messages = (coarse_step_warning(settings, fastest) if fixed_step else None,
+                coarse_samples_warning(settings, fastest))
+    return [_api_names(m) for m in messages if m]
+
+
+def _api_names(message: str) -> str:
+    """A run's warning with the scene keys it advises named as the IntegratorSettings fields."""
+    return message.replace("[integrator] ", "IntegratorSettings ").replace("[output] sample_dt",
+                                                                         "IntegratorSettings sample_dt")
 
 
 def warn_result(result: Result, constraints, method: str, settings: IntegratorSettings, comm) -> None:
@@ -88,7 +108,7 @@ def warn_result(result: Result, constraints, method: str, settings: IntegratorSe
                "stats": result.solver}
     named = [types.SimpleNamespace(label=label, law=law) for label, law in zip(constraints.labels, constraints.laws.laws)]
     for message in result_warnings(summary, named, method, settings):
-        warn(message.replace("[integrator] ", "IntegratorSettings "), comm)
+        warn(_api_names(message), comm)
 
 
 @petsc_errors_as_one_line("the reduced integration", ("rom_",))
@@ -111,9 +131,10 @@ def integrate_samples(model: ReducedModel, settings: IntegratorSettings, snapsho
 @petsc_errors_as_one_line("the full-order integration", ("full_",))
 def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -> Result:
     """Integrate the full-order model (fom_integrator.py) and return the same Result as
-    simulate_reduced (q and qdot of width 0), and warns of it as `dbf-hpc run --method full` does
-    (run.result_warnings, warn_result: also a contact stiffer than the step resolves), on rank 0 of the
-    model's communicator. Collective; the Result is on every rank."""
+    simulate_reduced (q and qdot of width 0). Warns as `dbf-hpc run --method full` does, on rank 0 of the
+    model's communicator: before the integration of a setting it ignores and of a step or samples too coarse
+    for the forcing (coarse_warnings), after it of the result (run.result_warnings, warn_result: also a
+    contact stiffer than the step resolves). Collective; the Result is on every rank."""
     _check_settings(settings, say, "simulate_full")
     if not isinstance(fom, FullOrderModel):
         raise InputError(f"simulate_full integrates a FullOrderModel (FullOrderModel.build), got {type(fom).__name__}")
@@ -123,7 +144,8 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     values = {name: getattr(settings, name) for name in ("rtol", "atol", "scheme", "contact", "callbacks",
                                                          "max_step_scale") if getattr(settings, name) != defaults[name]}
     names = {name: f"IntegratorSettings {name}" for name in (*values, "dt")}
-    for message in ignored_settings(values, settings.dt, "simulate_full", names):
+    for message in [*ignored_settings(values, settings.dt, "simulate_full", names),
+                    *coarse_warnings(fom, settings, fixed_step=True)]:   # its steps are fixed
         warn(message, fom.comm)
     observation = Observation(fom)
     recorder = FullRecorder(MemoryWriter(fom.constraints.shape, fom.probes.shape, 0), fom.constraints, observation)

@@ -572,3 +572,43 @@ def test_simulate_full_and_reduced_warn_of_their_result_as_a_run_does_once_from_
         if stiff and rank0:        # the advice names the field the caller sets
             assert "reduce IntegratorSettings dt to about" in err and "[integrator]" not in err, err
         assert_all(("dbf-hpc: warning" in err) == ((overdamped or stiff) and rank0), err)
+
+
+def test_simulate_full_and_reduced_warn_before_the_run_of_a_step_or_samples_too_coarse_for_the_forcing(capfd):
+    # Warnings parity: `dbf-hpc run` warns before any work where a fixed step takes fewer than 20 steps a period
+    # of the fastest forcing, or the samples fewer than 2 (they alias it); the Python API said nothing. A force
+    # at 1000 Hz, or a random force up to 1000 Hz, with steps of 1e-4 s (10 a period) and samples 1e-3 s
+    # apart (1 a period): simulate_full warns of both (its steps are fixed), simulate_reduced of both with
+    # fixed steps and of the samples alone with adaptive ones, naming the IntegratorSettings fields.
+    import dataclasses
+
+    from mpi4py import MPI
+
+    import dbf_hpc.simulate as simulate
+    from dbf_hpc import (Beam, BasisSettings, Constraint, FullOrderModel, IntegratorSettings, PointForce,
+                         RandomForce, Reductor, law, simulate_full, simulate_reduced)
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    step = "IntegratorSettings dt = 0.0001 s takes 10 fixed steps per period of the 1000 Hz excitation"
+    samples = "IntegratorSettings sample_dt = 0.001 s takes 1 samples per period of the 1000 Hz excitation"
+    coarse = IntegratorSettings(t_end=5e-3, dt=1e-4, sample_dt=1e-3)
+    fine = IntegratorSettings(t_end=5e-3, dt=1e-5, sample_dt=1e-4)
+    warned = "dbf-hpc: warning: "
+    said = lambda err: tuple(next((e for e in (step, samples) if line.startswith(warned + e)), line)  # noqa: E731
+                             for line in err.splitlines() if "per period" in line)
+    for excitation in (PointForce(amplitude=1e-3, frequency_hz=1000.0, x=0.5),
+                       RandomForce(psd=1e-6, band=(10.0, 1000.0), seed=1)):
+        with FullOrderModel.build(beam, [Constraint(law("deadband", clearance=1e-6, k=1e6), x=0.25)], excitation) \
+                as fom:
+            with Reductor(fom, BasisSettings(modes=6)) as reductor:
+                rom = reductor.reduce()
+            for settings, expected in ((coarse, (step, samples)), (fine, ())):
+                capfd.readouterr()
+                simulate_full(fom, settings)
+                err = capfd.readouterr().err
+                assert_all(said(err) == (expected if MPI.COMM_WORLD.rank == 0 else ()), err)
+        for adaptive, expected in ((False, (step, samples)), (True, (samples,))):
+            simulate._WARNED.clear()   # (once a process: an earlier call may have said it)
+            simulate_reduced(rom, dataclasses.replace(coarse, adaptive=adaptive))
+            err = capfd.readouterr().err
+            assert_all(said(err) == (expected if MPI.COMM_WORLD.rank == 0 else ()), err)
