@@ -459,27 +459,36 @@ def _say_basis(say, basis, seconds: float, labels, comm, forcing_hz: float, rigi
         f", {f[rigid]:.4g} ... {f[-1]:.4g} Hz" if rigid < f.size else "")
     _say(say, f"basis: {modes} ({span}) {extra} ({seconds:.2f} s, "
               f"cache {basis.stats.get('cache')}{columns})")
-    warnings = basis.warnings(labels)
     flex = basis.flexibility_captured
     if flex.size and np.any(np.isfinite(flex)):
         j = int(np.nanargmin(flex))
         _say(say, f"static flexibility captured (a-priori indicator): min {flex[j]:.4f} at constraint "
                   f"{j // dimension + 1} ({labels[j]})")
-    low = flexibility_warning(flex, labels, dimension)
-    if low:
-        warnings.append(low)
-    # The rigid-body modes' 0 Hz comes out as round-off (1e-5 Hz on the free-free paper beam, 2e-6 of
-    # its top mode): they are not the lowest elastic frequency, and no sign of a unit slip (red team)
-    elastic = f[rigid_modes:] if rigid_modes else f[f > 1e-9 * f[-1]] if f[-1] > 0 else f
-    if elastic.size and elastic[0] < SUSPICIOUS_HZ:
-        warnings.append(f"the lowest elastic frequency is {elastic[0]:.3g} Hz: check the structure's units (SI: E in "
-                        f"Pa, lengths in m, rho in kg/m^3; matrices in N/m and kg, and the stiffness and mass files "
-                        f"not swapped)")
+    warnings = basis_warnings(basis, labels, rigid_modes, dimension)
     above = forcing_warning(forcing_hz, basis.omega)
     if above:
         warnings.append(above)
     for warning in warnings:
         warn(warning, comm)
+
+
+def basis_warnings(basis, labels, rigid_modes: int = 0, dimension: int = 1) -> list:
+    """What a run warns of its basis, whatever the forcing: its enrichment's (basis.warnings), a static
+    flexibility captured below accuracy.FLEXIBILITY_WARN, a lowest elastic frequency that suggests a unit
+    slip. A sweep warns them once for the cases of each model (sweep._prepare_models). Not collective."""
+    warnings = basis.warnings(labels)
+    low = flexibility_warning(basis.flexibility_captured, labels, dimension)
+    if low:
+        warnings.append(low)
+    # The rigid-body modes' 0 Hz comes out as round-off (1e-5 Hz on the free-free paper beam, 2e-6 of
+    # its top mode): they are not the lowest elastic frequency, and no sign of a unit slip (red team)
+    f = basis.omega / (2 * np.pi)
+    elastic = f[rigid_modes:] if rigid_modes else f[f > 1e-9 * f[-1]] if f.size and f[-1] > 0 else f
+    if elastic.size and elastic[0] < SUSPICIOUS_HZ:
+        warnings.append(f"the lowest elastic frequency is {elastic[0]:.3g} Hz: check the structure's units (SI: E in "
+                        f"Pa, lengths in m, rho in kg/m^3; matrices in N/m and kg, and the stiffness and mass files "
+                        f"not swapped)")
+    return warnings
 
 
 def forcing_warning(forcing_hz: float, omega) -> str | None:

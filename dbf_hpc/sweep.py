@@ -70,13 +70,13 @@ from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
 from .errors import (PARKED, TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park,
-                     replacing, decided_on_rank0, is_number, termination_signals, warn, write_failure)
+                     recording, replacing, decided_on_rank0, is_number, termination_signals, warn, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
 from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, atol_reach, coarse_samples_warning,
-                  coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks, loose_atol,
+                  basis_warnings, coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks, loose_atol,
                   loose_atol_message, result_warnings, run_case, scene_callbacks)
 from .scene import load_scene, parse_override
 from .simulate import snapshot_cap_warning
@@ -411,7 +411,10 @@ def _model_key(scene) -> str:
 
 def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | None = None) -> dict:
     """Each distinct reduced model of the pending cases, built once on COMM_WORLD (model key ->
-    the model, or the error that stopped it), added to `models`. Collective."""
+    the model, or the error that stopped it), added to `models`; what a run warns of each basis
+    (run.basis_warnings) is warned once naming the model's cases and kept, after what the model's build
+    warned (errors.recording: its matrix files ...), in sweep["basis_warnings"] (model key -> lines) for
+    their records. Collective."""
     models = {} if models is None else models
     for index in pending:
         scene = sweep["run_scenes"][index]
@@ -419,13 +422,23 @@ def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | No
         if key in models:
             continue
         try:
-            with scene.full_order_model(PETSc.COMM_WORLD) as fom:
+            with recording() as built, scene.full_order_model(PETSc.COMM_WORLD) as fom:
                 # what a run refuses of a gyroscopic structure, a case too (red team: a sweep ran modal damping
                 # ratios on the complex modes' real basis, and skipped the stability check with damping)
                 if fom.operators.G is not None:
                     gyroscopic_checks(scene, fom, "rom")
                 with Reductor(fom, scene.basis_settings(), cache_dir) as reductor:
                     models[key] = reductor.reduce(field=scene.output().snapshots > 0)
+                    # what a run warns of its basis (a flexibility captured below 99 %, a lowest frequency
+                    # that suggests a unit slip ...): the sweep said nothing of it (warnings parity)
+                    warned = basis_warnings(reductor.basis(), fom.constraints.component_labels,
+                                            fom.operators.rigid_modes, fom.constraints.dimension)
+            # with what its build warned (its matrix files ...: printed as they came), in the run's order
+            sweep.setdefault("basis_warnings", {})[key] = [*built, *warned]
+            cases = [i + 1 for i in pending if _model_key(sweep["run_scenes"][i]) == key]
+            for message in warned:   # once for the cases of the model, as the loose atol's line
+                warn(f"sweep: case{'s' if len(cases) > 1 else ''} {', '.join(map(str, cases))}: {message}",
+                     PETSc.COMM_WORLD)
         except Interrupted:   # a termination signal stops the sweep (red team: its cases were recorded as
             raise             # failed with the signal's line, and the sweep went on to its other models)
         except DbfError as e:
@@ -582,7 +595,9 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous, stop=N
             summary = run_case(scene, model, case_out, resume=True, ident=ident, keep=keep, remote=stop)
         record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
                       solver=summary["stats"], final_state=summary["final_state"],
-                      coordinates=model.coordinates_digest(), warnings=_case_warnings(scene, model, summary),
+                      coordinates=model.coordinates_digest(),
+                      warnings=_case_warnings(scene, model, summary, sweep.get("basis_warnings", {}).get(
+                          _model_key(scene), ())),
                       **_final_excitation(model, scene.integrator_settings().t_end))
     except Interrupted:
         raise
@@ -628,33 +643,35 @@ def _warn_loose_atol(sweep, pending, models: dict, world) -> None:
              f"{loose_atol_message(atol, *reach)}{f' (case {case}, the worst)' if len(cases) > 1 else ''}", world)
 
 
-def _case_warnings(scene, model, summary: dict) -> list:
+def _case_warnings(scene, model, summary: dict, basis_warned=()) -> list:
     """What `dbf-hpc run` warns of the same case, in its order, that its result may be wrong (red team: a
     clearance in mm given as m, a basis below the forcing, impacts a fixed step does not resolve: each run
     warned, and a sweep of the same cases said nothing): kept in its record and the summary
     (cases/warnings), and printed by the rank that ran the case but for those the sweep printed once for
     its cases before they ran (_said_for_the_sweep: a coarse step or samples, a loose atol; red team:
-    cases/warnings held no trace of these)."""
+    cases/warnings held no trace of these; a basis' warnings, basis_warned, it did not print at all)."""
     settings = scene.integrator_settings()
-    coarse, loose = _said_for_the_sweep(scene, model)
+    coarse, basis, loose = _said_for_the_sweep(scene, model, basis_warned)
     above = forcing_warning(scene.fastest_forcing_hz(), model.basis_info.get("omega", ()))
     # the result's, as the run words them (result_warnings; the unresolved impacts' advice named dt alone)
     out = result_warnings(summary, scene.constraints, "rom", settings)
-    return [*coarse, *(w for w in (above, loose) if w), *out]
+    return [*coarse, *basis, *(w for w in (above, loose) if w), *out]
 
 
-def _said_for_the_sweep(scene, model) -> tuple:
-    """(the coarse step and samples warnings, the loose-atol warning or None) of a case, as its run gives
-    them: the sweep prints them once, naming its cases (load_sweep, _warn_loose_atol). Not collective."""
+def _said_for_the_sweep(scene, model, basis_warned=()) -> tuple:
+    """(the coarse step and samples warnings, its basis' warnings (basis_warned), the loose-atol warning or
+    None) of a case, as its run gives them: the sweep prints them once, naming its cases (load_sweep,
+    _prepare_models, _warn_loose_atol). Not collective."""
+    basis_warned = list(basis_warned)
     try:
         settings = scene.integrator_settings()
     except InputError:   # (the case fails on its own)
-        return [], None
+        return [], basis_warned, None
     fastest = scene.fastest_forcing_hz()
     coarse = [w for w in (None if settings.adaptive else coarse_step_warning(settings, fastest),
                           coarse_samples_warning(settings, fastest)) if w]
     usable = model is not None and not isinstance(model, str) and settings.adaptive
-    return coarse, loose_atol(model, settings.atol, scene.constraints) if usable else None
+    return coarse, basis_warned, loose_atol(model, settings.atol, scene.constraints) if usable else None
 
 
 def _drop_stale_checkpoint(case_out: str, ident: dict) -> None:
@@ -699,10 +716,11 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
                 broken = index
             done += 1
             tell(f"  case {index + 1}: {record['status']}")
-            coarse, loose = _said_for_the_sweep(sweep["run_scenes"][index], models.get(
-                _model_key(sweep["run_scenes"][index])))
+            scene = sweep["run_scenes"][index]
+            coarse, basis, loose = _said_for_the_sweep(scene, models.get(_model_key(scene)),
+                                                       sweep.get("basis_warnings", {}).get(_model_key(scene), ()))
             for message in record.get("warnings", []):   # -q silences the progress, not these
-                if message not in (*coarse, loose):
+                if message not in (*coarse, *basis, loose):
                     print(f"dbf-hpc: warning: case {index + 1}: {message}", file=sys.stderr, flush=True)
             if len(PARKED) > parked:
                 # an HDF5 write of the case failed (a full disk): its file is kept open (errors.park),

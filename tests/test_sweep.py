@@ -1364,3 +1364,45 @@ def test_a_case_keeps_the_very_warnings_a_run_of_its_scene_stores_in_its_output(
     if MPI.COMM_WORLD.rank == 0:
         with h5py.File(result["output"]) as f:
             assert f["cases/warnings"][0].decode().split("\n") == ran["warnings"]
+
+
+def test_a_basis_a_run_warns_of_is_warned_once_for_the_cases_that_share_it_and_kept_in_each_row(shared_tmp_path,
+                                                                                                   capfd):
+    # Warnings parity: `dbf-hpc run` warns of its basis (here the lowest elastic frequency, 0.000254 Hz, of a
+    # chain whose stiffness and mass files are swapped, and the flexibility its 4 modes capture); a sweep of such
+    # cases said nothing of it. The sweep now says each once, naming the cases of that model, and each case's
+    # row keeps the lines the run of the same scene stores in its output (the run's order: the matrix files'
+    # warnings, the basis', the result's), none printed a second time per case.
+    import scipy.io
+    import scipy.sparse
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    n = 10
+    K = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr() * 1e5
+    scene, path = shared_tmp_path / "swapped.toml", shared_tmp_path / "swapped-sweep.toml"
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        scipy.io.mmwrite(str(shared_tmp_path / "K.mtx"), K, precision=17)
+        scipy.io.mmwrite(str(shared_tmp_path / "M.mtx"), scipy.sparse.identity(n, format="csr"))
+        scene.write_text('[structure]\nkind = "matrices"\nstiffness = "M.mtx"\nmass = "K.mtx"\n'
+                         '[excitation]\nkind = "force"\ndof = 2\namplitude = 1.0\nfrequency_hz = 1e-5\n'
+                         '[[constraint]]\ndof = 5\nclearance = 1e-3\nk = 1e5\n[basis]\nmodes = 4\ncache = "off"\n'
+                         'estimate = false\n[integrator]\nt_end = 0.01\n')
+        path.write_text(f'scene = "{scene}"\noutput = "swapped.h5"\n[axes]\n"excitation.amplitude" = [1.0, 2.0]\n')
+    MPI.COMM_WORLD.Barrier()
+    ran = run(load_scene(str(scene)), str(shared_tmp_path / "swapped-run.h5"), progress=False)
+    capfd.readouterr()
+    result = run_sweep(str(path), progress=False)
+    err = "".join(MPI.COMM_WORLD.allgather(capfd.readouterr().err))
+    units = [line for line in err.splitlines() if "lowest elastic frequency" in line]
+    assert_all(len(units) == 1 and units[0].startswith("dbf-hpc: warning: sweep: cases 1, 2: the lowest elastic "
+                                                       "frequency is 0.000254 Hz"), err)
+    assert any("lowest elastic frequency" in w for w in ran["warnings"]), ran["warnings"]
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(result["output"]) as f:
+            rows = [w.decode().split("\n") for w in f["cases/warnings"][:]]
+        # case 1 is the run's scene; case 2, of twice the force, differs in its result's line alone
+        assert rows[0] == ran["warnings"] and rows[1][:-1] == ran["warnings"][:-1], (rows, ran["warnings"])
+        assert "never reached its stop" in rows[1][-1] and len(ran["warnings"]) == 4, ran["warnings"]
