@@ -643,6 +643,24 @@ def _warn_loose_atol(sweep, pending, models: dict, world) -> None:
              f"{loose_atol_message(atol, *reach)}{f' (case {case}, the worst)' if len(cases) > 1 else ''}", world)
 
 
+def _warn_done(sweep, records, pending, world) -> None:
+    """What the finished cases a rerun keeps warned when they ran (their records' warnings), each line
+    once naming its cases, as `dbf-hpc run --resume` of a finished output prints its run's warnings
+    again (a requeued sweep's log said nothing of them); the coarse step and samples lines load_sweep
+    has just said for every case are not repeated. Every rank holds the records; rank 0 prints. Not
+    collective."""
+    lines, pending = {}, set(pending)
+    for index, record in enumerate(records):
+        if index in pending or record.get("status") != "ok":
+            continue
+        coarse = _said_for_the_sweep(sweep["run_scenes"][index], None)[0]
+        for message in record.get("warnings", []):
+            if message not in coarse:
+                lines.setdefault(message, []).append(index + 1)
+    for message, cases in lines.items():
+        warn(f"case{'s' if len(cases) > 1 else ''} {', '.join(map(str, cases))} (done before): {message}", world)
+
+
 def _case_warnings(scene, model, summary: dict, basis_warned=()) -> list:
     """What `dbf-hpc run` warns of the same case, in its order, that its result may be wrong (red team: a
     clearance in mm given as m, a basis below the forcing, impacts a fixed step does not resolve: each run
@@ -816,6 +834,7 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
             f"state a finished step ends in means another state in it")
         pending = sorted(set(pending) | stale)
         _prepare_models(sweep, pending, cache_dir, say, models)
+    _warn_done(sweep, records, pending, world)
     _warn_loose_atol(sweep, pending, models, world)
     chains = [c for c in sweep["chains"] if any(i in pending for i in c)]
     mine = chains[world.rank::world.size]

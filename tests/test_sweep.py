@@ -1406,3 +1406,28 @@ def test_a_basis_a_run_warns_of_is_warned_once_for_the_cases_that_share_it_and_k
         # case 1 is the run's scene; case 2, of twice the force, differs in its result's line alone
         assert rows[0] == ran["warnings"] and rows[1][:-1] == ran["warnings"][:-1], (rows, ran["warnings"])
         assert "never reached its stop" in rows[1][-1] and len(ran["warnings"]) == 4, ran["warnings"]
+
+
+def test_a_rerun_of_a_finished_sweep_says_again_what_its_cases_warned_each_line_once(shared_tmp_path, capfd):
+    # Warnings parity: `dbf-hpc run --resume` of a finished output prints its run's warnings again; a rerun of
+    # a finished sweep (a requeued job) computed nothing and said nothing of what its cases had warned. Now
+    # each line of the kept cases' rows is said once, naming its cases. Case 1's atol (1e-9) is loose for the
+    # chain's 1 um stop, case 2's (1e-14) is not.
+    from conftest import small_mass_chain
+
+    scene = small_mass_chain(shared_tmp_path)
+    path = str(shared_tmp_path / "again.toml")
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank == 0:
+        with open(path, "w") as f:
+            f.write(f'scene = "{scene}"\noutput = "again.h5"\n[axes]\n"integrator.atol" = [1e-9, 1e-14]\n')
+    MPI.COMM_WORLD.Barrier()
+    first = run_sweep(path, progress=False)
+    capfd.readouterr()
+    again = run_sweep(path)
+    out, err = capfd.readouterr()
+    assert first["failed"] == again["failed"] == 0
+    assert_all(MPI.COMM_WORLD.rank != 0 or "2 already done, 0 to run" in out, out)
+    lines = [line for line in err.splitlines() if "[integrator] atol = " in line]
+    assert_all(lines == [] if MPI.COMM_WORLD.rank else len(lines) == 1 and lines[0].startswith(
+        "dbf-hpc: warning: case 1 (done before): [integrator] atol = 1e-09 (modal units"), err)
