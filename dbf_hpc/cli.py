@@ -777,7 +777,7 @@ def _terminated(signum, frame):
 
 def _release_locks(others: bool = True) -> None:
     """Remove the output locks this process holds (output.HELD; rank 0's), and with `others` those
-    rank 0 holds (OutputLock.share): before an abort, which runs no `finally`. Called from the signal
+    rank 0 holds (OutputLock.expect): before an abort, which runs no `finally`. Called from the signal
     handler (_terminated), it imports nothing: a SIGTERM while the command still imported dbf_hpc.output
     (its first seconds, under load) had the handler's import find the module half made, and the
     ImportError, raised into that import, ended the job as an "internal error (ImportError)" (red

@@ -179,12 +179,35 @@ HELD: dict = {}
 
 def release_held_locks(others: bool = True) -> None:
     """Remove every lock this process holds (its own only: the file still names this process), and
-    with `others` those rank 0 of this job holds that this rank knows of (OutputLock.share: a rank
+    with `others` those rank 0 of this job holds that this rank knows of (OutputLock.expect: a rank
     that aborts the job ends rank 0 too, which may be stuck where it cannot remove its own). Not
     collective."""
     for lock in list(HELD.values()):
         if others or not lock.shared:
             lock.release()
+
+
+def _process_start(pid: int) -> str | None:
+    """When process `pid` of this host started, as "BOOT/TICKS" (the kernel's boot id and the process's
+    start in clock ticks since that boot: /proc), or None where that cannot be read (not Linux, no
+    such process). Two processes that ever held one pid on one host differ in it: a lock's job is
+    told from a later process that was given its pid, also after a reboot (red team: a lock naming a
+    killed job's pid blocked every later job for as long as another process had that pid)."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            boot = f.read().strip()
+        with open(f"/proc/{int(pid)}/stat") as f:
+            ticks = f.read().rsplit(")", 1)[1].split()[19]   # field 22, starttime (the fields after comm from 3)
+        return f"{boot}/{ticks}"
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def lock_owner() -> str:
+    """What this process writes into the locks it takes: "HOST PID START\n" (START: _process_start,
+    "-" where unknown). Every rank of a job learns rank 0's before rank 0 takes a lock
+    (OutputLock.expect)."""
+    return f"{socket.gethostname()} {os.getpid()} {_process_start(os.getpid()) or '-'}\n"
 
 
 # s after which a lock with no content counts as stale: acquire writes the host and pid the moment it
@@ -204,31 +227,40 @@ def _lock_text(path: str) -> str:
 class OutputLock:
     """An exclusive claim on an output: `PATH.lock`, created atomically (O_CREAT | O_EXCL works on
     NFS and Lustre, where HDF5's own file locking is often switched off), holding the host and pid
-    of the job. A second job on the same output is refused; a lock whose job is gone (same host, no
-    such process) is taken over. Rank 0 only. A lock made is registered in HELD at once (before its
-    content is written), so that a stop at any point removes it."""
+    of the job and when its process started (lock_owner). A second job on the same output is refused;
+    a lock whose job is gone (same host, no such process, or another process started since under its
+    pid) is taken over. Rank 0 only. A lock made is registered in HELD at once (before its content is
+    written), so that a stop at any point removes it; the other ranks know it before it is made
+    (expect)."""
 
     def __init__(self, path: str, what: str = "output"):
         self.path, self.lock, self.what = path, f"{path}.lock", what
         self.held, self.owner, self.written, self.shared = False, None, False, False
 
-    def share(self, comm) -> None:
-        """Every rank of `comm` learns the lock rank 0 holds (collective, after rank 0 acquired it): a
-        rank that aborts the job removes it (release_held_locks), as rank 0 may not get to. Rank 0's
+    def expect(self, comm) -> None:
+        """Every rank of `comm` learns the lock rank 0 is about to take (collective, before rank 0's
+        acquire): the content rank 0 will write (lock_owner). A rank that aborts the job removes the
+        lock if it holds that content (release_held_locks), as rank 0 may not get to: it may be
+        blocked in a collective call, where its signal handler does not run, until mpirun kills it.
+        Red team: when the lock was shared only after rank 0 took it, a SIGTERM to rank 1 just before
+        (a job's first seconds) left OUT.h5.lock behind. If rank 0 does not get the lock, the other
+        ranks forget() it; a lock another job holds names that job, so it is never removed. Rank 0's
         own release stays the normal way; the others end with forget()."""
         world = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
-        owner = world.bcast(self.owner if world.rank == 0 else None, root=0)
-        if world.rank != 0 and owner is not None:
+        # an allgather, not a bcast: rank 0 goes on to take the lock only once every rank has it (a
+        # bcast's root returns at once, and a rank stopped before it never learnt it: red team, measured)
+        owner = world.allgather(lock_owner() if world.rank == 0 else None)[0]
+        if world.rank != 0:
             self.held, self.owner, self.written, self.shared = True, owner, True, True
             HELD[id(self)] = self
 
     def forget(self) -> None:
-        """Stop knowing a lock another rank holds (share), without touching it."""
+        """Stop knowing a lock another rank holds (expect), without touching it."""
         HELD.pop(id(self), None)
         self.held = self.shared = False
 
     def acquire(self) -> None:
-        owner = f"{socket.gethostname()} {os.getpid()}\n"
+        owner = lock_owner()
         for _ in range(3):
             try:
                 fd = os.open(self.lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -273,8 +305,8 @@ class OutputLock:
             if not text.strip():
                 return (f"an empty lock, made by a job now starting or killed as it made it; it counts as gone "
                         f"{EMPTY_LOCK_AGE:g} s after it was made")
-            host, pid = text.split()
-            return f"pid {pid} on {host}"
+            host, pid = text.split()[:2]
+            return f"pid {int(pid)} on {host}"
         except (OSError, ValueError):
             return "unknown job"
 
@@ -287,16 +319,20 @@ class OutputLock:
 
     def _stale(self) -> str | None:
         """The lock's content when its job is gone: it ran on this host and its process no longer
-        exists (or is a zombie, which a killed job's rank can stay as where nothing reaps it)."""
+        exists, is a zombie (which a killed job's rank can stay as where nothing reaps it), or is
+        another process that got its pid later (its start, lock_owner, differs; a lock of an older
+        dbf-hpc, "HOST PID", has none to compare)."""
         try:
             text = _lock_text(self.lock)
             if not text.strip():   # made, never written: its job was killed between the two (red team), or is
                 # writing it now, which takes microseconds: older than EMPTY_LOCK_AGE it is gone
                 return text if time.time() - os.stat(self.lock).st_mtime > EMPTY_LOCK_AGE else None
-            host, pid = text.split()
-            if host != socket.gethostname():
+            host, pid, *start = text.split()
+            if host != socket.gethostname() or len(start) > 1:
                 return None
             os.kill(int(pid), 0)
+            if start and start[0] != "-" and _process_start(int(pid)) not in (None, start[0]):
+                return text   # pid reused since (or the host rebooted): the lock's process is gone
         except ProcessLookupError:
             return text
         except (OSError, ValueError):

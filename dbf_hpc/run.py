@@ -79,9 +79,13 @@ def claimed(path: str, comm):
     script that looks for OUT.h5.lock on another rank right after run() returns finds none); on an
     exception no rank waits for the others (they may be inside another collective)."""
     lock = OutputLock(path)
-    decided_on_rank0(comm, lock.acquire)
+    lock.expect(comm)   # before rank 0 takes it: a rank that aborts the job removes it (cli._abort)
     try:
-        lock.share(comm)   # a rank that aborts the job removes it (cli._abort)
+        decided_on_rank0(comm, lock.acquire)
+    except BaseException:
+        lock.forget()   # rank 0 took none (a no-op there: a failed acquire releases what it made)
+        raise
+    try:
         yield
     finally:
         if comm.getRank() == 0:

@@ -759,6 +759,7 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     output, folder = sweep["output"], sweep["output"] + ".cases"
     say = (lambda m: PETSc.Sys.Print(m)) if progress else (lambda m: None)
     lock = OutputLock(output, "sweep summary")
+    lock.expect(world)   # before rank 0 takes it: a rank that aborts the job removes it (cli._abort)
     problem = None
     if world.rank == 0:
         try:
@@ -776,9 +777,9 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
             lock.release()
     problem = world.bcast(problem, root=0)
     if problem:
+        lock.forget()
         raise InputError(problem)
     try:
-        lock.share(world)   # a rank that aborts the job removes it (cli._abort)
         result = _sweep(sweep, folder, output, world, say, progress)
     finally:
         if world.rank == 0:

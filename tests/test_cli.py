@@ -219,6 +219,40 @@ def test_a_termination_signal_before_the_integration_on_two_ranks_leaves_no_lock
 
 
 
+_TERMINATED_AS_RANK0_TAKES_THE_LOCK = """
+import os, signal, sys
+from mpi4py import MPI
+from dbf_hpc import cli, run
+
+decided = run.decided_on_rank0
+
+def terminated(comm, decide, *args):   # rank 1 is signalled just as rank 0 takes the output's lock
+    if getattr(decide, "__name__", "") == "acquire" and MPI.COMM_WORLD.rank == 1:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return decided(comm, decide, *args)
+
+run.decided_on_rank0 = terminated
+sys.exit(cli.main(["run", sys.argv[1], "-q", "-o", sys.argv[2], "--set", "basis.cache=off",
+                   "--set", "integrator.t_end=0.01"]))
+"""
+
+
+def test_a_termination_signal_to_rank_1_as_rank_0_takes_the_output_lock_leaves_no_lock(tmp_path):
+    # Red team: SIGTERM to rank 1 of `mpirun -n 2 dbf-hpc run` in its first seconds left OUT.h5.lock behind:
+    # rank 1 learnt rank 0's lock only after rank 0 had taken it, so it stopped not knowing it, and rank 0,
+    # blocked in the collective call that would have told it, was killed by mpirun before its own signal
+    # handler could run. Every rank now knows the lock before rank 0 takes it, and removes it as it aborts.
+    script = tmp_path / "terminated.py"
+    script.write_text(_TERMINATED_AS_RANK0_TAKES_THE_LOCK)
+    out_path = tmp_path / "beam.h5"
+    out, lines = mpirun_script(script, PAPER, out_path)
+    assert out.returncode != 0 and lines == [
+        "dbf-hpc: error: (rank 1) stopped by a termination signal before the integration began; nothing was "
+        "written: rerun to start again (the basis cache keeps what was finished)"], out.stderr
+    assert "Traceback" not in out.stderr
+    assert sorted(os.listdir(tmp_path)) == ["terminated.py"], "nothing written, and no lock left"
+
+
 def test_a_termination_signal_while_the_command_still_imports_its_modules_is_no_internal_error(monkeypatch):
     # Red team: SIGTERM to rank 1 of `mpirun -n 2 dbf-hpc run` in its first seconds (under load: the
     # imports) ended the job with "internal error (ImportError) on rank 1: cannot import name

@@ -235,6 +235,30 @@ def test_a_lock_left_by_a_dead_job_on_this_host_is_taken_over(tmp_path):
         OutputLock(target).acquire()
 
 
+def test_a_lock_whose_pid_another_process_got_since_is_taken_over_but_not_a_live_jobs(tmp_path):
+    # Red team: a killed job's lock named only its host and pid; once another process had that pid (pids
+    # are reused, and start again from 1 after a reboot) the lock blocked every job on the output for as
+    # long as that process lived. The lock holds when its process started (boot id, start ticks).
+    from dbf_hpc.output import lock_owner
+
+    target = str(tmp_path / "reused.h5")
+    host, pid, start = lock_owner().split()
+    assert pid == str(os.getpid()) and start != "-"       # Linux: /proc tells when a process started
+    boot, ticks = start.split("/")
+    for other in (f"{boot}/{int(ticks) + 1}", f"another-boot/{ticks}"):   # this pid, another process's start
+        with open(target + ".lock", "w") as f:
+            f.write(f"{host} {pid} {other}\n")
+        lock = OutputLock(target)
+        lock.acquire()
+        assert open(target + ".lock").read() == lock_owner()
+        lock.release()
+    with open(target + ".lock", "w") as f:       # the live job itself (this process): refused, named
+        f.write(lock_owner())
+    with pytest.raises(InputError, match=f"being written by another job \\(pid {pid} on {host}\\)"):
+        OutputLock(target).acquire()
+    os.remove(target + ".lock")
+
+
 def test_the_locks_a_process_holds_are_removed_before_an_abort_but_never_another_jobs(tmp_path):
     # An abort (cli._abort) runs no `finally`: the locks this process holds are released from
     # output.HELD first. Only its own: a lock removed by hand and made again by another job stays.
@@ -295,7 +319,7 @@ def test_a_job_that_found_a_lock_stale_leaves_the_live_lock_another_job_took_mea
     # had just made, and both wrote the output (once in 40 tries).
     import socket
 
-    from dbf_hpc.output import OutputLock
+    from dbf_hpc.output import OutputLock, lock_owner
 
     path = str(tmp_path / "out.h5")
     dead = f"{socket.gethostname()} 999999\n"
@@ -307,7 +331,7 @@ def test_a_job_that_found_a_lock_stale_leaves_the_live_lock_another_job_took_mea
     first.acquire()                       # took the dead job's lock over
     second._take_over(seen_by_second)     # the second job acts on what it saw before
     with open(path + ".lock") as f:
-        assert f.read() == f"{socket.gethostname()} {os.getpid()}\n"
+        assert f.read() == lock_owner() and lock_owner().split()[:2] == [socket.gethostname(), str(os.getpid())]
     with pytest.raises(InputError, match="is being written by another job"):
         second.acquire()
     first.release()
