@@ -38,7 +38,7 @@ from slepc4py import SLEPc
 from . import __version__, sealed
 from .basis import BasisSettings, ReducedBasis, build_basis, check_pairs
 from .checkpoint import arrays_sha256
-from .errors import WRITE_ERRORS, InputError, lock_problem, park, refused_lock, warn, write_failure
+from .errors import WRITE_ERRORS, InputError, lock_problem, park, refused_lock, temporary_tag, warn, write_failure
 from .output import check_free_space, has_hdf5_signature
 from .operators import Operators
 
@@ -398,12 +398,6 @@ DEFAULT_DIR = "~/.cache/dbf_hpc"
 _NAME = re.compile(r"^basis-([0-9a-f]{20})\.h5(\.tmp-(?:[A-Za-z0-9._-]+-)?\d+)?$")
 
 
-def temporary_tag() -> str:
-    """<host>-<pid> of this process, for a temporary file's name: jobs on two hosts sharing a cache
-    directory (a parallel file system) may have one pid (red team). Not collective."""
-    import socket
-
-    return f"{re.sub(r'[^A-Za-z0-9.-]', '_', socket.gethostname())}-{os.getpid()}"
 # A temporary file untouched this long is a killed job's (a write of 10^5 x 1000 columns takes seconds);
 # a younger one may be another job's write in progress, and is kept
 STALE_TEMPORARY_S = 600.0

@@ -447,13 +447,14 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
     prefers. They are marked (shapes/repeated, an XDMF note on each, a printed line). Both files are
     written to temporary files and renamed into place together: a write that fails (a full disk)
     leaves neither a partial file nor a new .h5 beside an old .xdmf, and is one DbfError on every
-    rank. Collective (rank 0 writes)."""
+    rank; temporary files a killed earlier run of this host left are removed first
+    (errors.remove_dead_temporaries). Collective (rank 0 writes)."""
     import h5py
     import numpy as np
     from petsc4py import PETSc
 
     from . import xdmf
-    from .errors import WRITE_ERRORS, DbfError, park, write_failure
+    from .errors import WRITE_ERRORS, DbfError, park, remove_dead_temporaries, temporary_tag, write_failure
     from .run import cells_attrs
 
     h5 = os.path.splitext(path)[0] + ".h5"
@@ -464,7 +465,10 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
     if world.rank == 0:
         # Red team: a full disk at the .h5 was "internal error (RuntimeError)" from h5py, then a
         # segfault as the failed file was freed (serial), with the .h5.tmp file left behind.
-        tmp_h5, tmp_xdmf = f"{h5}.tmp-{os.getpid()}", f"{path}.tmp-{os.getpid()}"
+        # and a SIGKILL while it wrote left SHAPES.h5.tmp-<pid>: the next run removes those of dead writers
+        for target in (h5, path):
+            remove_dead_temporaries(target)
+        tmp_h5, tmp_xdmf = f"{h5}.tmp-{temporary_tag()}", f"{path}.tmp-{temporary_tag()}"
         field = fom.operators.field_map()
         geometry = field.geometry()
         f = None

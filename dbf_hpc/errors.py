@@ -204,12 +204,77 @@ def write_failure(exc: Exception) -> str:
     return "No space left on device" if "errno = 28" in text or "No space left" in text else text.splitlines()[0]
 
 
+def temporary_tag() -> str:
+    """<host>-<pid> of this process, for a temporary file's name: jobs on two hosts sharing a directory
+    (a parallel file system) may have one pid (red team). Not collective."""
+    import re
+    import socket
+
+    return f"{re.sub(r'[^A-Za-z0-9.-]', '_', socket.gethostname())}-{os.getpid()}"
+
+
+def process_gone(pid: int) -> bool:
+    """Whether no process `pid` runs on this host (none, or a zombie: a killed job's rank can stay one
+    where nothing reaps it)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:      # another user's process: it exists
+        return False
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except (OSError, IndexError):
+        return False
+
+
+# A temporary file of the older name, PATH.tmp-<pid> (no host), untouched this long and whose pid is gone
+# here is a killed job's; another host's job cannot be told from it, so a younger one is kept
+STALE_TEMPORARY_S = 600.0
+
+
+def remove_dead_temporaries(path: str, suffix: str = "") -> None:
+    """Remove the temporary files of `path` (PATH.tmp-<host>-<pid>SUFFIX, as replacing names them) that a
+    process of this host wrote and that is gone: a SIGKILL leaves them, as no `finally` runs (red team:
+    `basis --xdmf` killed while writing left SHAPES.h5.tmp-<pid>). Files of a live process, of another
+    host, or named otherwise are kept. Not collective."""
+    import re
+    import time
+
+    folder = os.path.dirname(os.path.abspath(path))
+    prefix, host = f"{os.path.basename(path)}.tmp-", temporary_tag().rsplit("-", 1)[0]
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return
+    for name in names:
+        if not (name.startswith(prefix) and name.endswith(suffix)) or len(name) <= len(prefix) + len(suffix):
+            continue
+        match = re.fullmatch(r"(?:(.+)-)?(\d+)", name[len(prefix):len(name) - len(suffix)])
+        if match is None:
+            continue
+        tmp = os.path.join(folder, name)
+        try:
+            ours = (match.group(1) == host if match.group(1) is not None
+                    else time.time() - os.stat(tmp).st_mtime > STALE_TEMPORARY_S)
+            if ours and process_gone(int(match.group(2))) and os.path.isfile(tmp):
+                os.remove(tmp)
+        except OSError:   # gone meanwhile, or not ours to remove: the write goes on
+            pass
+
+
 @contextlib.contextmanager
-def replacing(path: str, suffix: str = ""):
+def replacing(path: str, suffix: str = "", clean: bool = True):
     """A temporary path beside `path` (ending in `suffix`) to write; when the block ends it replaces
     `path` by an atomic rename. On a failure the temporary file is removed, and a write error (a full
-    disk, a read-only directory) becomes one DbfError naming `path` and the cause."""
-    tmp = f"{path}.tmp-{os.getpid()}{suffix}"
+    disk, a read-only directory) becomes one DbfError naming `path` and the cause. With `clean`,
+    temporary files of `path` that killed processes of this host left are removed first
+    (remove_dead_temporaries: it lists the folder, which a writer of many small files in one folder,
+    a sweep's case records, does not want per file)."""
+    if clean:
+        remove_dead_temporaries(path, suffix)
+    tmp = f"{path}.tmp-{temporary_tag()}{suffix}"
     try:
         yield tmp
         os.replace(tmp, path)

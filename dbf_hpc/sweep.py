@@ -300,7 +300,8 @@ def record_checksum(record: dict) -> str:
 
 
 def _write_json(path: str, content: dict) -> None:
-    with replacing(path) as tmp, open(tmp, "w") as f:
+    # clean=False: no listing of the case folder per record (a killed writer's record.tmp-* is left there)
+    with replacing(path, clean=False) as tmp, open(tmp, "w") as f:
         json.dump({**content, "sha256": record_checksum(content)}, f)
 
 

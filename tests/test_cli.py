@@ -877,6 +877,40 @@ def test_mode_shapes_and_a_stiffness_table_on_a_full_disk_are_one_line_and_leave
     assert sorted(os.listdir(small_disk)) == ["filler", "shapes.h5", "shapes.xdmf"]
 
 
+_KILLED_WRITING_SHAPES = """
+import os, signal, sys
+from dbf_hpc import cli, xdmf
+
+def killed(*args, **kwargs):   # the shapes' .h5 is written under its temporary name: SIGKILL, as a batch system's
+    os.kill(os.getpid(), signal.SIGKILL)
+
+xdmf.write = killed
+sys.exit(cli.main(["basis", sys.argv[1], "--xdmf", sys.argv[2]]))
+"""
+
+
+def test_basis_xdmf_after_a_run_killed_as_it_wrote_leaves_no_temporary_file_but_a_live_writers(tmp_path):
+    # Red team: `basis --xdmf` SIGKILLed while it wrote left SHAPES.h5.tmp-<pid> for good (no `finally` runs).
+    # The next run removes the temporary files of its two outputs whose writer is gone from this host; a
+    # live process's (another run writing now) and another host's (which cannot be told) are kept.
+    import socket
+
+    script = tmp_path / "killed.py"
+    script.write_text(_KILLED_WRITING_SHAPES)
+    shapes = tmp_path / "shapes.xdmf"
+    out, _ = mpirun_script(script, PAPER, shapes, ranks=1)
+    assert out.returncode != 0
+    left = [p for p in os.listdir(tmp_path) if ".tmp-" in p]
+    assert [p.split(".tmp-")[0] for p in left] == ["shapes.h5"], left    # what the kill left
+    host = socket.gethostname()
+    kept = [f"shapes.h5.tmp-{host}-{os.getpid()}", f"shapes.xdmf.tmp-another-host-{2**22 + 7}"]
+    for name in kept:
+        (tmp_path / name).write_text("being written")
+    out = dbf_hpc("basis", PAPER, "--xdmf", str(shapes), ranks=1)
+    assert out.returncode == 0, out.stderr
+    assert sorted(os.listdir(tmp_path)) == sorted(["killed.py", "shapes.h5", "shapes.xdmf", *kept])
+
+
 def test_a_full_order_run_the_disk_fills_under_stops_in_one_line_and_resumes_to_the_uninterrupted_result(
         small_disk, tmp_path):
     # The full-order reference writes from inside its integrator's callbacks; a write the full disk
