@@ -10,8 +10,9 @@ The Python API (README "Python API"; docs/design.md for the objects and the para
     simulate_reduced(rom, IntegratorSettings(...)) -> Result                         simulate.py
     simulate_full(fom, IntegratorSettings(...)) -> Result
 
-The names below load their modules on first use: PETSc starts then (the command line starts it
-itself first, with the options it was given).
+The names listed below by module are loaded with their module on first use, and PETSc starts then
+(the command line starts it itself first, with the options it was given); help(dbf_hpc.NAME) gives
+each one's own documentation. Only this list names them in help(dbf_hpc), as they load lazily.
 """
 
 __version__ = "0.2.4"
@@ -28,6 +29,23 @@ _API = {
     "DbfError": "errors", "InputError": "errors", "SolverError": "errors",
 }
 __all__ = sorted(_API)
+
+
+def _listing() -> str:
+    import textwrap
+
+    modules: dict = {}
+    for name, module in _API.items():
+        modules.setdefault(module, []).append(name)
+    lines = ["", "Names (module: names):", ""]
+    for module in sorted(modules):
+        lines += textwrap.wrap(", ".join(modules[module]), 96, initial_indent=f"    {module}: ",
+                               subsequent_indent=" " * (6 + len(module)))
+    return "\n".join(lines) + "\n"
+
+
+if __doc__:   # None under python -OO
+    __doc__ += _listing()
 
 
 def __getattr__(name):

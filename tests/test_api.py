@@ -612,3 +612,17 @@ def test_simulate_full_and_reduced_warn_before_the_run_of_a_step_or_samples_too_
             simulate_reduced(rom, dataclasses.replace(coarse, adaptive=adaptive))
             err = capfd.readouterr().err
             assert_all(said(err) == (expected if MPI.COMM_WORLD.rank == 0 else ()), err)
+
+
+def test_help_of_the_package_names_every_api_name_with_its_module():
+    # New-user pass: help(dbf_hpc) listed no name of the API (they load lazily, so pydoc saw only a
+    # truncated "__all__ = ['BaseMotion', 'BasisSettings', 'Beam', 'Constraint', 'Const...").
+    import pydoc
+
+    import dbf_hpc
+
+    text = pydoc.plain(pydoc.render_doc(dbf_hpc))
+    listing = text[text.index("Names (module: names):"):]
+    for name in dbf_hpc.__all__:
+        assert re.search(rf"\b{name}\b", listing), name
+    assert re.search(r"\bsimulate: simulate_reduced, simulate_full\b", listing), listing
