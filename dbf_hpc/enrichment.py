@@ -93,6 +93,8 @@ def _empty(count: int) -> tuple:
 
 @dataclass(frozen=True)
 class NoEnrichment(Enrichment):
+    """No enrichment column: the N reference modes alone ([basis] enrichment = "none"), a comparator
+    for accuracy studies (docs/method.md)."""
     kind = "none"
 
     def count(self, n_constraints: int) -> int:
@@ -104,6 +106,10 @@ class NoEnrichment(Enrichment):
 
 @dataclass(frozen=True)
 class StaticEnrichment(Enrichment):
+    """One static attachment mode K^-1 g_j (m/N, the deflection under a unit load at the constraint)
+    per constraint where the DBF would be ([basis] enrichment = "static"): the static correction of
+    industrial codes, a comparator for accuracy studies (docs/method.md). Needs K regular (no
+    rigid-body modes); its solves take the options prefix static_."""
     kind = "static"
     column_name = "static mode"
     prefix = "static_"   # -static_ksp_..., -static_pc_...

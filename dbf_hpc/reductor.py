@@ -49,7 +49,16 @@ def _turn(K: np.ndarray, M: np.ndarray, m: int, identity: bool):
 
 
 class Reductor:
-    """Owns the basis it obtains (destroyed with the reductor)."""
+    """Reduces a FullOrderModel: `settings` picks N reference modes, K phi = omega^2 M phi, and one
+    enrichment column per constraint: a DBF (the method), the derivative d phi / dk at k_j of the first
+    mode of the spring-perturbed structure K + k_j g_j g_j^T (paper Eqs. 13-17 and 34-39, k_j "auto" the
+    corner of Fig. 2; dbf.py), or a static mode K^-1 g_j, or none; Gram-Schmidt in M (Eqs. 18-19, 40),
+    hat-omega_j from Eq. 41. basis() builds it, reduce() projects the model onto it (a ReducedModel of
+    numpy arrays). cache_dir: a directory of cached bases, read and written (None: always built, never
+    cached; the command line's default is ~/.cache/dbf_hpc). Collective on the full-order model's
+    communicator, as are basis() and reduce(). Owns the basis it obtains (destroyed with the reductor,
+    destroy() or the end of its with block).
+    """
 
     def __init__(self, fom: FullOrderModel, settings: BasisSettings = BasisSettings(), cache_dir: str | None = None,
                  basis: ReducedBasis | None = None):

@@ -105,8 +105,12 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     uninterrupted run would, and a finished output of the same question (finished_output) is kept:
     its summary is read back, nothing is computed, and the warnings its run printed are printed
     again. method = "full" integrates the full-order model instead: the reference the reduced model
-    is measured against, same scene, same output layout. The summary's "warnings" lists what the run
-    warned before its output was complete (the output's `warnings` attribute)."""
+    is measured against, same scene, same output layout. `out` (default the scene's [output] file,
+    relative to the scene's folder), `progress`: the progress lines on stdout (rank 0 of comm). The
+    summary's "warnings" lists what the run warned before its output was complete (the output's
+    `warnings` attribute). Collective on comm (a petsc4py or mpi4py communicator, default
+    COMM_WORLD): every rank of it calls run with the same scene, and a DbfError is raised on all of
+    them."""
     with recording() as warned:
         return _run_recorded(scene, out, progress, comm, initial_state, resume, method, warned)
 

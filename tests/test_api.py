@@ -626,3 +626,18 @@ def test_help_of_the_package_names_every_api_name_with_its_module():
     for name in dbf_hpc.__all__:
         assert re.search(rf"\b{name}\b", listing), name
     assert re.search(r"\bsimulate: simulate_reduced, simulate_full\b", listing), listing
+
+
+def test_every_api_name_has_its_own_docstring_and_the_collective_entry_points_say_so():
+    # New-user pass: help(NoEnrichment) and help(StaticEnrichment) showed only the dataclass's generated
+    # "NoEnrichment()"; Reductor's said only that it owns its basis, and run's not that it is collective.
+    import inspect
+
+    import dbf_hpc
+
+    for name in dbf_hpc.__all__:
+        obj = getattr(dbf_hpc, name)
+        doc = inspect.getdoc(obj) or ""
+        assert doc and not doc.startswith(f"{name}("), (name, doc)
+    assert "Collective" in inspect.getdoc(dbf_hpc.run) and "Collective" in inspect.getdoc(dbf_hpc.Reductor)
+    assert "Eq. 41" in inspect.getdoc(dbf_hpc.Reductor) and "m/N" in inspect.getdoc(dbf_hpc.StaticEnrichment)
