@@ -29,7 +29,7 @@ from .fom import DAMPING_TWICE, FullOrderModel, InitialState
 from .laws import KEYS as LAW_KEYS
 from .laws import KEYS_2D, LAWS_2D, default_exponent, law_from_dict
 from .matrices import MatrixFiles
-from .schema import NUMBER, SECTIONS, valid_keys
+from .schema import CONSTRAINT, NUMBER, SECTIONS, valid_keys
 from .stats import BATCHES
 from .structure import BOUNDARIES, POINT_TOL, Beam
 from .timestepping import CALLBACKS, IntegratorSettings
@@ -380,8 +380,17 @@ def _type_name(types) -> str:
 
 def _sections(data: dict, path: str) -> dict:
     """Every section with its keys type-checked and defaults filled in."""
+    if "scene" in data and ("axes" in data or "case" in data):
+        raise InputError(f"{path}: is a sweep file (a base scene and its axes or cases), not a scene: run it with "
+                         f"dbf-hpc sweep {path}")
     for name in data:
         if name not in SCHEMA and name != "constraint":
+            if not isinstance(data[name], dict):   # a key above every section header: TOML puts it at the top
+                owners = [f"[{section}]" for section, keys in SCHEMA.items() if name in keys]
+                owners += ["[[constraint]]"] if name in CONSTRAINT[1] else []
+                raise InputError(f"{path}: '{name}' is outside any section (above the first [section] line); "
+                                 f"move it under {' or '.join(owners) if owners else 'its section'} "
+                                 f"(sections: {', '.join(SCHEMA)}, [[constraint]])")
             raise InputError(f"{path}: unknown section [{name}] (sections: {', '.join(SCHEMA)}, [[constraint]])")
     sections = {}
     for name, keys in SCHEMA.items():

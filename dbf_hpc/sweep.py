@@ -81,7 +81,7 @@ from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, atol_reach, coars
 from .scene import load_scene, parse_override
 from .simulate import snapshot_cap_warning
 from . import __version__
-from .schema import unit_of
+from .schema import SECTIONS, unit_of
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, STATISTICS, STATISTICS_2D, UNITS_2D as UNITS
 from .timestepping import check_work
 
@@ -112,6 +112,9 @@ def _read(path: str) -> dict:
         raise InputError(f"cannot read sweep {path!r}: {e.strerror}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: not valid TOML: {e}") from None
+    if "scene" not in data and any(key in SECTIONS or key == "constraint" for key in data):
+        raise InputError(f"{path}: is a scene, not a sweep file (scene = the base scene, and [axes] or [[case]]): "
+                         f"run it with dbf-hpc run {path}")
     for key in data:
         if key not in SWEEP_KEYS:
             raise InputError(f"{path}: unknown key '{key}' (sweep files have {', '.join(sorted(SWEEP_KEYS))})")

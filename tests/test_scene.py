@@ -472,3 +472,19 @@ def test_a_stop_farther_than_the_beams_length_is_refused_as_a_unit_slip(sets, me
     tube = {"structure": {**BEAM, "planes": 2}, "constraint": [{"x": 0.3, "law": "circular", "clearance": 2.0, "k": 1e6}]}
     with pytest.raises(InputError, match=r"\[\[constraint\]\] 1: clearance = 2 m is more than the beam's length"):
         validate(tube)
+
+
+@pytest.mark.parametrize("data,message", [
+    ({"t_end": 1.0}, r"^test.toml: 't_end' is outside any section \(above the first \[section\] line\); move it under "
+                     r"\[integrator\] \(sections: "),
+    ({"amplitude": 1e-3}, r"'amplitude' is outside any section .* move it under \[excitation\] or \[initial\] "),
+    ({"clearance": 1e-3}, r"'clearance' is outside any section .* move it under \[\[constraint\]\] "),
+    ({"scene": "paper_beam.toml", "axes": {"excitation.frequency_hz": [1.0, 1.1]}},
+     r"^test.toml: is a sweep file \(a base scene and its axes or cases\), not a scene: run it with dbf-hpc sweep "
+     r"test.toml$"),
+])
+def test_a_key_above_every_section_or_a_sweep_file_run_as_a_scene_is_named_as_such(data, message):
+    # New-user pass: t_end = 1.0 written above [structure] (TOML puts it at the top level) and `dbf-hpc run`
+    # of a sweep file (its top-level scene = "...") were both "unknown section [t_end]" / "[scene]".
+    with pytest.raises(InputError, match=message):
+        scene(**data)

@@ -1431,3 +1431,11 @@ def test_a_rerun_of_a_finished_sweep_says_again_what_its_cases_warned_each_line_
     lines = [line for line in err.splitlines() if "[integrator] atol = " in line]
     assert_all(lines == [] if MPI.COMM_WORLD.rank else len(lines) == 1 and lines[0].startswith(
         "dbf-hpc: warning: case 1 (done before): [integrator] atol = 1e-09 (modal units"), err)
+
+
+def test_a_scene_given_to_sweep_is_named_a_scene_with_the_command_that_runs_it():
+    # New-user pass: `dbf-hpc sweep jobs/paper_beam.toml` said "unknown key 'structure' (sweep files have ...)".
+    paper = os.path.join(ROOT, "jobs", "paper_beam.toml")
+    with pytest.raises(InputError, match=rf"^{re.escape(paper)}: is a scene, not a sweep file \(scene = the base "
+                                         rf"scene, and \[axes\] or \[\[case\]\]\): run it with dbf-hpc run "):
+        load_sweep(paper)
