@@ -13,6 +13,7 @@ scene describes (full_order_model) is collective.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import math
 import os
 import tomllib
@@ -251,7 +252,18 @@ def read_scene_bytes(path: str) -> bytes:
         with open(path, "rb") as f:
             return f.read()
     except OSError as e:
-        raise InputError(f"cannot read scene {path!r}: {e.strerror}") from None
+        raise InputError(f"cannot read scene {path!r}: {e.strerror}{relative_to_cwd(name, e)}") from None
+
+
+def relative_to_cwd(name: str, e: OSError) -> str:
+    """Where a relative path that does not exist was looked for (new-user pass: `dbf-hpc run
+    jobs/paper_beam.toml` from inside jobs/ said only "No such file or directory")."""
+    if e.errno != errno.ENOENT or os.path.isabs(name):
+        return ""
+    try:
+        return f" (relative to the current directory {os.getcwd()})"
+    except OSError:   # the current directory was removed
+        return ""
 
 
 def load_scene(path: str, overrides=(), raw: bytes | None = None) -> Scene:

@@ -78,7 +78,7 @@ from .reductor import Reductor
 from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, atol_reach, coarse_samples_warning,
                   basis_warnings, coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks, loose_atol,
                   loose_atol_message, result_warnings, run_case, scene_callbacks)
-from .scene import load_scene, parse_override
+from .scene import load_scene, parse_override, relative_to_cwd
 from .simulate import snapshot_cap_warning
 from . import __version__
 from .schema import SECTIONS, unit_of
@@ -109,7 +109,7 @@ def _read(path: str) -> dict:
         with open(path, "rb") as f:
             data = tomllib.load(f)
     except OSError as e:
-        raise InputError(f"cannot read sweep {path!r}: {e.strerror}") from None
+        raise InputError(f"cannot read sweep {path!r}: {e.strerror}{relative_to_cwd(os.fspath(path), e)}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: not valid TOML: {e}") from None
     if "scene" not in data and any(key in SECTIONS or key == "constraint" for key in data):

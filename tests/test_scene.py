@@ -488,3 +488,13 @@ def test_a_key_above_every_section_or_a_sweep_file_run_as_a_scene_is_named_as_su
     # of a sweep file (its top-level scene = "...") were both "unknown section [t_end]" / "[scene]".
     with pytest.raises(InputError, match=message):
         scene(**data)
+
+
+def test_a_scene_path_that_does_not_exist_names_the_directory_it_was_looked_for_in(tmp_path, monkeypatch):
+    # New-user pass: `dbf-hpc run jobs/paper_beam.toml` from inside jobs/ said only "No such file or directory".
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError, match=rf"^cannot read scene 'jobs/paper_beam.toml': No such file or directory "
+                                         rf"\(relative to the current directory {re.escape(str(tmp_path))}\)$"):
+        load_scene("jobs/paper_beam.toml")
+    with pytest.raises(InputError, match=r"^cannot read scene '/no/such/scene.toml': No such file or directory$"):
+        load_scene("/no/such/scene.toml")   # an absolute path says all there is

@@ -1439,3 +1439,10 @@ def test_a_scene_given_to_sweep_is_named_a_scene_with_the_command_that_runs_it()
     with pytest.raises(InputError, match=rf"^{re.escape(paper)}: is a scene, not a sweep file \(scene = the base "
                                          rf"scene, and \[axes\] or \[\[case\]\]\): run it with dbf-hpc run "):
         load_sweep(paper)
+
+
+def test_a_sweep_path_that_does_not_exist_names_the_directory_it_was_looked_for_in(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError, match=rf"^cannot read sweep 'jobs/sweep.toml': No such file or directory "
+                                         rf"\(relative to the current directory {re.escape(str(tmp_path))}\)$"):
+        load_sweep("jobs/sweep.toml")
