@@ -234,6 +234,12 @@ def parse_override(text: str) -> tuple[str, str, object]:
     name, sep, raw = text.partition("=")
     section, dot, key = name.strip().partition(".")
     if not sep or not dot or not section or not key:
+        bare = name.strip()
+        owners = [f"{owner}.{bare}" for owner, keys in SCHEMA.items() if bare in keys]
+        owners += [f"constraint.{bare}"] if sep and not dot and bare in CONSTRAINT[1] else []
+        if sep and not dot and owners:   # new-user pass: --set t_end=1 named no section to put it in
+            raise InputError(f"--set {text!r}: expected section.key=value, here "
+                             f"{' or '.join(f'--set {o}={raw.strip()}' for o in owners)}")
         raise InputError(f"--set {text!r}: expected section.key=value")
     try:
         value = tomllib.loads(f"v = {raw.strip()}")["v"]

@@ -498,3 +498,15 @@ def test_a_scene_path_that_does_not_exist_names_the_directory_it_was_looked_for_
         load_scene("jobs/paper_beam.toml")
     with pytest.raises(InputError, match=r"^cannot read scene '/no/such/scene.toml': No such file or directory$"):
         load_scene("/no/such/scene.toml")   # an absolute path says all there is
+
+
+@pytest.mark.parametrize("item,message", [
+    ("t_end=1", r"^--set 't_end=1': expected section.key=value, here --set integrator.t_end=1$"),
+    ("amplitude=1e-3", r"here --set excitation.amplitude=1e-3 or --set initial.amplitude=1e-3$"),
+    ("k = 1e5", r"here --set constraint.k=1e5$"),
+    ("nonsense=1", r"^--set 'nonsense=1': expected section.key=value$"),
+])
+def test_a_set_without_its_section_names_the_section_that_has_the_key(item, message):
+    # New-user pass: --set t_end=1 said only "expected section.key=value".
+    with pytest.raises(InputError, match=message):
+        parse_override(item)
