@@ -13,6 +13,7 @@ scene describes (full_order_model) is collective.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import errno
 import math
 import os
@@ -396,6 +397,12 @@ def _type_name(types) -> str:
     return " or ".join(names[t] for t in types)
 
 
+def _sections_with(key: str) -> list:
+    """The sections that have `key`, as a scene writes them ("[integrator]", "[[constraint]]")."""
+    owners = [f"[{section}]" for section, keys in SCHEMA.items() if key in keys]
+    return owners + (["[[constraint]]"] if key in CONSTRAINT[1] else [])
+
+
 def _sections(data: dict, path: str) -> dict:
     """Every section with its keys type-checked and defaults filled in."""
     if "scene" in data and ("axes" in data or "case" in data):
@@ -404,8 +411,7 @@ def _sections(data: dict, path: str) -> dict:
     for name in data:
         if name not in SCHEMA and name != "constraint":
             if not isinstance(data[name], dict):   # a key above every section header: TOML puts it at the top
-                owners = [f"[{section}]" for section, keys in SCHEMA.items() if name in keys]
-                owners += ["[[constraint]]"] if name in CONSTRAINT[1] else []
+                owners = _sections_with(name)
                 raise InputError(f"{path}: '{name}' is outside any section (above the first [section] line); "
                                  f"move it under {' or '.join(owners) if owners else 'its section'} "
                                  f"(sections: {', '.join(SCHEMA)}, [[constraint]])")
@@ -417,7 +423,12 @@ def _sections(data: dict, path: str) -> dict:
             raise InputError(f"{path}: [{name}] must be a table")
         for key, value in given.items():
             if key not in keys:
-                raise InputError(f"{path}: unknown key '{key}' in [{name}] (valid keys: {valid_keys(name)})")
+                # new-user pass: a key of another section (modes under [integrator]) or a near miss
+                close = difflib.get_close_matches(key, keys, n=1, cutoff=0.8)
+                elsewhere = [owner for owner in _sections_with(key) if owner != f"[{name}]"]
+                where = (f"; did you mean '{close[0]}'?" if close else
+                         f"; {key} is a key of {' and '.join(elsewhere)}" if elsewhere else "")
+                raise InputError(f"{path}: unknown key '{key}' in [{name}] (valid keys: {valid_keys(name)}){where}")
             _check_type(f"{path}: [{name}]", key, value, keys[key][0])
         sections[name] = {key: given.get(key, default) for key, (_, default) in keys.items()}
     return sections
@@ -500,8 +511,9 @@ def _constraints(raw, path: str, at: _Positions, kind: str) -> tuple:
         known = (at.key, *LAW_KEYS, *(k for k in KEYS_2D if k not in LAW_KEYS), "wear_coefficient")
         for key in c:
             if key not in known:
+                close = difflib.get_close_matches(key, known, n=1, cutoff=0.8)
                 raise InputError(f"{where}: unknown key {key!r} (keys: {', '.join(known)}; docs/scene.md says which "
-                                 f"law takes which)")
+                                 f"law takes which)" + (f"; did you mean '{close[0]}'?" if close else ""))
         law = law_from_dict(where, {k: v for k, v in c.items() if k not in (at.key, "wear_coefficient")})
         wear = c.get("wear_coefficient")
         if wear is not None:

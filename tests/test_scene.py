@@ -510,3 +510,20 @@ def test_a_set_without_its_section_names_the_section_that_has_the_key(item, mess
     # New-user pass: --set t_end=1 said only "expected section.key=value".
     with pytest.raises(InputError, match=message):
         parse_override(item)
+
+
+@pytest.mark.parametrize("data,message", [
+    ({"integrator": {"modes": 10}}, r"unknown key 'modes' in \[integrator\] \(valid keys: .*\); modes is a key of "
+                                    r"\[basis\]$"),
+    ({"structure": {**BEAM, "clearance": 1e-3}}, r"unknown key 'clearance' in \[structure\] .*; clearance is a key of "
+                                                 r"\[\[constraint\]\]$"),
+    ({"basis": {"mode": 3}}, r"unknown key 'mode' in \[basis\] .*; did you mean 'modes'\?$"),
+    ({"integrator": {"tend": 1.0}}, r"; did you mean 't_end'\?$"),
+    ({"constraint": [{"x": 0.25, "clearence": 1e-3, "k": 1e6}]}, r"unknown key 'clearence' .*; did you mean "
+                                                                 r"'clearance'\?$"),
+    ({"integrator": {"zzz": 1.0}}, r"unknown key 'zzz' in \[integrator\] \(valid keys: [^;]*\)$"),
+])
+def test_an_unknown_key_names_its_near_miss_or_the_section_that_has_it(data, message):
+    # New-user pass: modes under [integrator] and a misspelt key got only the section's list of keys.
+    with pytest.raises(InputError, match=message):
+        scene(**data)
