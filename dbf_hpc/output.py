@@ -572,6 +572,9 @@ class OutputWriter:
         for name, (unit, meaning) in layout.DATASETS.items():
             if name in self.file:      # a dataset, or a group of datasets (the snapshots' vectors)
                 self.file[name].attrs.update({"unit": unit, "description": meaning})
+                if isinstance(self.file[name], h5py.Group):   # and each of its datasets (docs/outputs.md: every
+                    for member in self.file[name].values():    # dataset; new-user pass: these had none)
+                        member.attrs.update({"unit": unit, "description": meaning})
         for name, extra in (dataset_attrs or {}).items():
             self.file[name].attrs.update(extra)
         for key, value in attrs.items():

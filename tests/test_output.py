@@ -432,3 +432,18 @@ def test_a_refusal_for_room_names_the_room_it_asks_not_less_than_the_free_space(
     free = float(re.search(r"has ([\d.]+) MiB free", str(refused.value)).group(1))
     assert asked == pytest.approx(1.1 * 1.84 + 1, rel=1e-2) and asked > free
     output.check_free_space(str(tmp_path / "a.h5"), 1.7 * 2**20)   # 2.87 MiB asked: room enough
+
+
+def test_each_snapshot_vector_dataset_carries_its_own_unit_not_only_its_group(shared_tmp_path):
+    # New-user pass: docs/outputs.md says every dataset carries unit and description; the datasets
+    # snapshots/displacement/NNNNNN had none (only their group had), so a script reading a dataset's unit
+    # found no attribute.
+    import h5py
+
+    run(load_scene(PAPER, SHORT + ["output.snapshots=3"]), str(shared_tmp_path / "s.h5"), progress=False)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(shared_tmp_path / "s.h5") as f:
+            members = list(f["snapshots/displacement"].values())
+            assert len(members) == 3
+            for member in members:
+                assert member.attrs["unit"] == "m" and "displacement vectors" in member.attrs["description"]
