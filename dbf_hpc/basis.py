@@ -39,7 +39,11 @@ DBF_SOLVERS = ("ritz", "shared", "factor")
 @dataclass(frozen=True)
 class BasisSettings:
     """What determines the basis besides the operators and the constraint rows: the reference modes
-    (a count, or every mode below a frequency) and the enrichment with its parameters."""
+    (a count `modes`, or every mode below `max_frequency_hz`, Hz) and the enrichment with its
+    parameters: "dbf" (the method: dbf_stiffness k_j, "auto" for the corner of the paper's Fig. 2 or
+    N/m for every constraint; dbf_derivative and dbf_solver, docs/method.md), "static" or "none"
+    (comparators). gyroscopic_form: a gyroscopic structure's reduced model, "second_order" or the
+    paper's first-order "state_space" (Eqs. 4-21). docs/scene.md's [basis] table has each key."""
 
     modes: int | None = 6
     max_frequency_hz: float | None = None

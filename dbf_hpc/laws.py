@@ -294,7 +294,12 @@ _KIND_KEYS["hertz"] = _KIND_KEYS["power"]
 
 def law(kind: str = "deadband", **keys) -> Law:
     """A Law from the keys of a scene's [[constraint]] table, e.g. law("deadband", clearance=2.5e-3,
-    k=1e6) or law("hertz", clearance=1e-4, k=3e9, damping="hunt_crossley", alpha=0.2)."""
+    k=1e6) or law("hertz", clearance=1e-4, k=3e9, damping="hunt_crossley", alpha=0.2). Kinds:
+    deadband (the paper's Eq. 23), power (Eq. 42 is one), hertz, linear, cubic, table, friction, and
+    on a beam of two planes circular and flat_bar. Units (SI, as docs/scene.md's [[constraint]]
+    table): clearance m, k N/m^p for the side's exponent p (N/m for deadband, linear, circular and
+    flat_bar), k3 N/m^3, table [[z (m), force (N)], ...], c N s/m, alpha s/m, normal_force N,
+    v_reg m/s, angle deg. The force N(z, v) is on the structure, restoring (module docstring)."""
     return law_from_dict(None, {"law": kind, **keys})
 
 

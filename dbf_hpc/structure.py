@@ -52,7 +52,13 @@ BUCKLING_TOL = 1e-9
 
 @dataclass(frozen=True)
 class Beam:
-    """A uniform Euler-Bernoulli beam, SI units. `elements` is the target count (see beam_mesh)."""
+    """A uniform Euler-Bernoulli beam, SI units: length L (m), Young's modulus E (Pa), second moment of
+    area I (m^4), cross-section area A (m^2), density rho (kg/m^3); the paper's Table 1 beam is
+    Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0). `elements` is the target count
+    (see beam_mesh); left, right: "pinned", "clamped", "free" or "sliding"; supports: x (m) of
+    intermediate rigid supports; planes: 1, or 2 (bending in y and z); axial_speed U (m/s),
+    transported_mass m_t (kg/m, default rho A) and tension T (N): an axially moving beam or a pipe
+    conveying fluid (the gyroscopic G; docs/scene.md [structure] says what is refused)."""
 
     length: float
     E: float

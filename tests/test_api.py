@@ -641,3 +641,19 @@ def test_every_api_name_has_its_own_docstring_and_the_collective_entry_points_sa
         assert doc and not doc.startswith(f"{name}("), (name, doc)
     assert "Collective" in inspect.getdoc(dbf_hpc.run) and "Collective" in inspect.getdoc(dbf_hpc.Reductor)
     assert "Eq. 41" in inspect.getdoc(dbf_hpc.Reductor) and "m/N" in inspect.getdoc(dbf_hpc.StaticEnrichment)
+
+
+def test_the_api_docstrings_name_the_units_and_the_papers_equations_a_user_needs():
+    # New-user pass: help(Beam) said only "SI units", help(law) named neither units nor Eqs. 23 / 42, and
+    # help(BasisSettings) not that max_frequency_hz is in Hz or what dbf_stiffness is.
+    import inspect
+
+    import dbf_hpc
+
+    doc = {name: inspect.getdoc(getattr(dbf_hpc, name)) for name in ("Beam", "law", "BasisSettings")}
+    for words in ("E (Pa)", "I (m^4)", "A (m^2)", "rho (kg/m^3)", "length L (m)", "tension T (N)"):
+        assert words in doc["Beam"], words
+    for words in ("Eq. 23", "Eq. 42", "clearance m", "k N/m^p", "alpha s/m"):
+        assert words in doc["law"], words
+    for words in ("max_frequency_hz`, Hz", "Fig. 2", "N/m"):
+        assert words in doc["BasisSettings"], words
