@@ -300,3 +300,30 @@ def test_an_initial_mode_of_a_repeated_frequency_is_refused_by_both_models(share
             with Reductor(fom, BasisSettings(modes=4)) as reductor, \
                     pytest.raises(InputError, match=rf"\[initial\] mode = {mode}: one of the 2 modes .*\({pair}\)"):
                 reductor.reduce()
+
+
+
+def test_the_support_motion_in_the_basis_is_each_modes_participation_in_the_rigid_rotation_of_a_pinned_beam(comm):
+    # The left support of the pinned-pinned beam moves: r = 1 - x/L (w) and -1/L (the slopes). Per M-orthonormal
+    # mode phi_i = sqrt(2 / m) sin(i pi x / L) (m = rho A L) its inertia load is rho A int phi_i (1 - x/L) dx =
+    # sqrt(2 m) / (i pi) (the cubic elements hold r: exact up to the FE mode shape). r_q is V^T M r over the free
+    # DOFs alone (what support_jump turns into the relative state), here against r written out node by node, not
+    # the influence solve. Planted bug it catches: the reductor leaving r_q at zero (a sweep's support jump then
+    # broke the continuity of the total displacement and velocity).
+    with FullOrderModel.build(BEAM, [STOP], BaseMotion(5e-3, 1.0), comm=comm) as fom, \
+            Reductor(fom, BasisSettings(modes=6)) as reductor:
+        rom = reductor.reduce()
+        mesh, M = fom.operators.mesh, fom.operators.M
+        r, Mr = M.createVecRight(), M.createVecLeft()
+        lo, hi = r.getOwnershipRange()
+        for node, x in enumerate(mesh.x):
+            for dof, value in ((mesh.row[node, 0], 1 - x / BEAM.length), (mesh.row[node, 1], -1 / BEAM.length)):
+                if lo <= dof < hi:
+                    r.setValue(dof, value)
+        r.assemble()
+        M.mult(r, Mr)
+        r_q = reductor.basis().dot(Mr)
+        r.destroy(), Mr.destroy()
+    mass = BEAM.rho * BEAM.A * BEAM.length
+    np.testing.assert_allclose(np.abs(rom.base_load[:6]), np.sqrt(2 * mass) / (np.pi * np.arange(1, 7)), rtol=1e-5)
+    np.testing.assert_allclose(rom.r_q, r_q, rtol=1e-8, atol=1e-10 * np.abs(r_q).max())
