@@ -103,3 +103,20 @@ def test_damping_takes_a_frequency_as_repeated_exactly_where_the_reference_modes
             damping.modal_coefficients(omega)
     else:
         np.testing.assert_allclose(damping.modal_coefficients(omega), [1.0, 0.0, 0.0])
+
+
+def test_rayleigh_damping_projects_exactly_onto_a_basis_that_is_not_m_orthonormal():
+    # V^T (alpha M + beta K) V = alpha V^T M V + beta V^T K V for any V (a gyroscopic basis of the real and
+    # imaginary parts of complex modes is not M-orthonormal). Planted bug it catches: reduced_matrix taking
+    # I for the reduced mass even when it is given.
+    rng = np.random.default_rng(5)
+    n, r = 12, 4
+    A = rng.standard_normal((n, n))
+    M = A @ A.T + n * np.eye(n)
+    B = rng.standard_normal((n, n))
+    K = 1e3 * (B @ B.T + np.eye(n))
+    V = rng.standard_normal((n, r))
+    alpha, beta = 0.7, 2e-4
+    C = alpha * M + beta * K
+    np.testing.assert_allclose(Damping(rayleigh_alpha=alpha, rayleigh_beta=beta).reduced_matrix(V.T @ K @ V, V.T @ M @ V),
+                               V.T @ C @ V, rtol=1e-12, atol=1e-12 * np.abs(V.T @ C @ V).max())
