@@ -410,3 +410,19 @@ def test_a_psd_whose_load_peak_overflows_double_precision_is_refused_naming_psd(
             make(1e308)
     history = RandomForce(1e250, (0.0, 1000.0)).history()   # large but representable: still a load
     assert np.isfinite(history.value(np.array([0.0, 0.1]))).all()
+
+
+@pytest.mark.parametrize("lam", [5.0, 50.0])
+def test_the_coherence_factor_keeps_every_points_psd_exactly_and_its_coherence_to_the_variance_dropped(lam):
+    # H H^T ~ Gamma = exp(-|dx| / lambda) from the leading eigenvectors holding VARIANCE_KEPT of the trace, each
+    # row then rescaled: diag(H H^T) = 1 exactly (every node keeps the target PSD) and every coherence within the
+    # dropped share. Planted bug it catches: the rows not rescaled (each node's PSD 0.1 % low, which the 5 %
+    # sample-PSD tests cannot see).
+    from dbf_hpc.excitation import VARIANCE_KEPT, coherence_factor
+
+    x = np.linspace(0.0, 2.0, 41)
+    gamma = Turbulence(1.0, BAND, lam, seed=1).coherence(x)
+    H = coherence_factor(gamma)
+    np.testing.assert_allclose(np.diag(H @ H.T), 1.0, rtol=0, atol=1e-14)
+    assert np.abs(H @ H.T - gamma).max() < 4 * (1 - VARIANCE_KEPT)   # measured 2.2e-3 at lambda = 5 m
+    assert H.shape[1] < x.size          # a well correlated field: fewer histories than nodes (34 and 9 of 41)
