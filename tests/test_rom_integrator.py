@@ -152,3 +152,33 @@ def test_a_newton_solve_starved_by_the_users_own_option_names_that_option(callba
     assert "rtol" not in line and "reduce [integrator] dt" not in line, line
     # it failed in its first step, which the line then pinned on the input; the option did it
     assert "stopped at t = 0 s" in line and "points to the input" not in line, line
+
+
+@pytest.mark.parametrize("callbacks", ["python", "c"])
+@pytest.mark.parametrize("load", ["force", "support"])
+def test_a_harmonic_load_on_a_non_identity_reduced_mass_drives_the_exact_forced_response(callbacks, load):
+    # M q'' + K q = g sin(W t) from rest: q = g / (K - M W^2) (sin W t - (W / w) sin w t), w^2 = K / M, with
+    # g = s a for a force of amplitude a on the load shape s, and g = l a W^2 for a support moving as a sin(W t)
+    # (its inertia load -l Omega''). Planted bug it catches: the load shape not taken through M_r^-1 (the
+    # integrator's equations are M_r^-1 times the model's), which no test with a load had (their M_r = I).
+    import dataclasses
+
+    if callbacks == "c":
+        from dbf_hpc import _romc
+
+        if _romc.core is None:
+            pytest.skip("the C callbacks are not built")
+    mass, stiffness, a, f = 2.5, 40.0, 3e-3, 0.7
+    W, w = 2 * np.pi * f, np.sqrt(stiffness / mass)
+    if load == "force":
+        model = dataclasses.replace(oscillator(mass=mass, stiffness=stiffness, q0=0.0), force_shape=np.array([0.8]),
+                                    force=Harmonic(a, f))
+        g = 0.8 * a
+    else:
+        model = dataclasses.replace(oscillator(mass=mass, stiffness=stiffness, q0=0.0), base_load=np.array([1.3]),
+                                    support=Harmonic(a, f))
+        g = 1.3 * a * W * W
+    s, _ = run(model, t_end=1.0, rtol=1e-10, atol=1e-15, sample_dt=1e-2, callbacks=callbacks)
+    t = s[:, 0]
+    exact = g / (stiffness - mass * W * W) * (np.sin(W * t) - W / w * np.sin(w * t))
+    assert np.abs(s[:, 1] - exact).max() < 1e-6 * np.abs(exact).max()
