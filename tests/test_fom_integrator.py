@@ -448,3 +448,21 @@ def test_a_contact_problem_that_does_not_converge_names_the_constraint_its_law_a
                     r"iterations\), constraint 1 \(x = 0.5 m, circular: k = 1e\+09, mu = 5, v_reg = 1e-06\) moving most "
                     r"in the last sweep \([0-9.e-]+ m\): lower \[integrator\] dt \(now 0.001 s\), or check that law's "
                     r"stiffness, damping and friction regularization", line), line
+
+
+@pytest.mark.parametrize("s", [0.0, 0.13, 0.5, 0.77, 1.0])
+def test_samples_between_two_steps_reproduce_any_cubic_and_its_rate_exactly(s):
+    # The full-order loop samples between its steps with cubic Hermite weights on (u0, h v0, u1, h v1): exact for
+    # every cubic u(t), value and rate. Planted bugs it catches: a wrong coefficient in the value's or the rate's
+    # weights (each passed every test of this module: the samples of the other tests land on steps).
+    from dbf_hpc.fom_integrator import _hermite
+
+    h, t0 = 0.37, 1.1
+    c = np.array([0.3, -1.7, 2.2, 0.9])
+    u = lambda t: c[0] + c[1] * t + c[2] * t ** 2 + c[3] * t ** 3            # noqa: E731
+    du = lambda t: c[1] + 2 * c[2] * t + 3 * c[3] * t ** 2                   # noqa: E731
+    ends = np.array([u(t0), h * du(t0), u(t0 + h), h * du(t0 + h)])
+    value, rate = _hermite(s, h)
+    assert np.dot(value, ends) == pytest.approx(u(t0 + s * h), rel=1e-13, abs=1e-13)
+    # the rate's weights apply to (u0, v0, u1, v1), as the loop's blend uses them
+    assert np.dot(rate, [u(t0), du(t0), u(t0 + h), du(t0 + h)]) == pytest.approx(du(t0 + s * h), rel=1e-12)
