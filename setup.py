@@ -54,7 +54,7 @@ def c_extensions():
 
 setup(
     name="dbf_hpc",
-    version="0.2.4",
+    version="0.2.5",
     description="Discontinuous basis functions for structures with many nonlinear constraints, on PETSc/SLEPc",
     long_description=open("README.md", encoding="utf-8").read() if os.path.exists("README.md") else "",
     long_description_content_type="text/markdown",

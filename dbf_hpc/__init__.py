@@ -15,7 +15,7 @@ The names listed below by module are loaded with their module on first use, and 
 each one's own documentation. Only this list names them in help(dbf_hpc), as they load lazily.
 """
 
-__version__ = "0.2.4"
+__version__ = "0.2.5"
 
 _API = {
     "Beam": "structure", "MatrixFiles": "matrices", "Constraint": "constraints", "ConstraintSet": "constraints",
