@@ -305,3 +305,42 @@ def write_binary_vec(vec, path: str) -> None:
     viewer = PETSc.Viewer().createBinary(path, mode="w", comm=vec.getComm())
     vec.view(viewer)
     viewer.destroy()
+
+
+@contextlib.contextmanager
+def ends_a_hang(seconds: float = 120):
+    """A hang inside (the bug a test checks for) ends the job after `seconds`, with where it waited
+    (faulthandler's traceback), instead of stopping CI."""
+    import faulthandler
+
+    faulthandler.dump_traceback_later(seconds, exit=True)
+    try:
+        yield
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+
+
+def fifo_at(path) -> None:
+    """A named pipe at `path` (what was there removed), made by rank 0; every rank sees it after."""
+    if MPI.COMM_WORLD.rank == 0:
+        if os.path.lexists(path):
+            os.remove(path)
+        os.mkfifo(path)
+    MPI.COMM_WORLD.Barrier()
+
+
+# A steel micro-beam 100 um long, free vibration in its first mode (1e-7 m): scales far below the paper's
+MICRO_BEAM = """
+[structure]
+kind = "beam"
+length = 1e-4
+elements = 20
+E = 2e11
+I = 8.333e-22
+A = 1e-10
+rho = 7800.0
+
+[initial]
+mode = 1
+amplitude = 1e-7
+"""

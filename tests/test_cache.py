@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from conftest import assert_all
+from conftest import assert_all, ends_a_hang, fifo_at
 from dbf_hpc.cache import seal
 from dbf_hpc.modes import counters
 from dbf_hpc.reductor import Reductor
@@ -114,20 +114,13 @@ def test_a_named_pipe_at_the_cache_file_is_rebuilt_over_not_waited_on(shared_tmp
     # Red team: a FIFO at a basis cache entry hung the run before its basis (rank 0's check of the
     # file's seal opened it, and the open waited for a writer for ever; the other ranks waited for rank
     # 0). It cannot be read: rebuilt, and the basis stored in its place, on every rank alike.
-    import faulthandler
     import stat
 
     first, _, _ = obtain(scene(), shared_tmp_path)
     path = _cache_file(shared_tmp_path)
-    if MPI.COMM_WORLD.rank == 0:
-        os.remove(path)
-        os.mkfifo(path)
-    MPI.COMM_WORLD.Barrier()
-    faulthandler.dump_traceback_later(120, exit=True)   # the bug: a hang, ended here with where it waited
-    try:
+    fifo_at(path)
+    with ends_a_hang():
         Kr, solves, state = obtain(scene(), shared_tmp_path)
-    finally:
-        faulthandler.cancel_dump_traceback_later()
     assert solves > 0 and state == "stored"
     np.testing.assert_allclose(Kr, first, rtol=1e-10, atol=1e-10 * np.abs(first).max())
     assert_all(stat.S_ISREG(os.stat(path).st_mode))

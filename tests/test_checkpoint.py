@@ -15,7 +15,7 @@ import pytest
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from conftest import assert_all, tmpfs_disk
+from conftest import assert_all, ends_a_hang, fifo_at, tmpfs_disk
 from dbf_hpc import sealed
 from dbf_hpc.checkpoint import SEAL
 from dbf_hpc.errors import InputError, SolverError
@@ -110,21 +110,14 @@ def test_a_crafted_file_in_place_of_the_checkpoint_is_refused(stopped):
 def test_a_named_pipe_in_place_of_the_checkpoint_is_refused_not_waited_on(stopped):
     # Red team: a FIFO at OUT.h5.checkpoint hung --resume (rank 0's look at the file opened it, and the
     # open waits for a writer for ever; the other ranks waited for rank 0): one line on every rank now
-    import faulthandler
 
     sets, out, checkpoint = stopped
-    if MPI.COMM_WORLD.rank == 0:
-        os.remove(checkpoint)
-        os.mkfifo(checkpoint)
-    MPI.COMM_WORLD.Barrier()
-    faulthandler.dump_traceback_later(120, exit=True)   # the bug: a hang, ended here with where it waited
-    try:
+    fifo_at(checkpoint)
+    with ends_a_hang():
         with pytest.raises(InputError, match="cannot be read \\(OSError\\); remove it or choose another output name$"):
             resume(sets, out)
         with pytest.raises(InputError, match="is not a regular file"):   # nor replaced by a run from the start
             run(load_scene(PAPER, sets), out, progress=False)
-    finally:
-        faulthandler.cancel_dump_traceback_later()
 
 
 def test_an_unsealed_checkpoint_of_dbf_hpc_is_refused_and_a_run_from_the_start_replaces_it(stopped):

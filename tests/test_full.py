@@ -10,6 +10,7 @@ from dbf_hpc.errors import InputError
 from dbf_hpc.run import run
 from dbf_hpc.scene import load_scene
 from exact import pinned_beam_base_response
+from conftest import MICRO_BEAM
 from test_run import EI, PAPER, RHOA, two_plane_tube_with_three_holes, without_constraints
 
 
@@ -370,22 +371,6 @@ def test_a_contact_stiffer_than_the_step_resolves_warns_even_when_it_never_opens
                 assert 0.8 < half_period / duration < 1.2, (half_period, duration)
         else:
             assert count == 0, err
-
-
-MICRO_BEAM = """
-[structure]
-kind = "beam"
-length = 1e-4
-elements = 20
-E = 2e11
-I = 8.333e-22
-A = 1e-10
-rho = 7800.0
-
-[initial]
-mode = 1
-amplitude = 1e-7
-"""
 
 
 def test_a_micro_beams_free_vibration_of_a_few_microseconds_is_sampled_at_the_sample_times(shared_tmp_path):

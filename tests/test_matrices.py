@@ -12,7 +12,7 @@ import scipy.sparse
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from conftest import assert_all, to_numpy, write_binary_vec
+from conftest import assert_all, ends_a_hang, to_numpy, write_binary_vec
 from dbf_hpc.errors import DbfError, InputError
 from dbf_hpc.matrices import MatrixFiles, file_digest, load_matrix, load_node_map, load_operators
 from dbf_hpc.modes import reference_modes
@@ -76,7 +76,6 @@ def test_a_file_that_rank_1s_node_cannot_read_is_every_ranks_one_line_error(beam
     # (a node that does not see the file system as rank 0 does, a file replaced while the ranks read
     # it) was rank 1's InputError alone, while rank 0 went on into the matrix's collective assembly:
     # the job hung. Here rank 1 is given its own path, as its node would see it.
-    import faulthandler
 
     _, _, _, paths = beam_files
     name, what = seen.split(" ", 1)
@@ -92,13 +91,9 @@ def test_a_file_that_rank_1s_node_cannot_read_is_every_ranks_one_line_error(beam
             with open(mine[name], "w") as f:
                 f.write(text[:len(text) // 2].rsplit("\n", 1)[0] + "\n")
     fmt = "bin" if name == "K.bin" else "mtx"
-    faulthandler.dump_traceback_later(120, exit=True)   # a hang (the bug) ends the job, with where it waited
-    try:
-        with pytest.raises(InputError) as refused:
-            ops = load_operators(MatrixFiles(mine[f"K.{fmt}"], mine[f"M.{fmt}"], influence=mine["r.npy"]))
-            ops.destroy()
-    finally:
-        faulthandler.cancel_dump_traceback_later()
+    with ends_a_hang(), pytest.raises(InputError) as refused:
+        ops = load_operators(MatrixFiles(mine[f"K.{fmt}"], mine[f"M.{fmt}"], influence=mine["r.npy"]))
+        ops.destroy()
     line = str(refused.value)
     assert MPI.COMM_WORLD.allgather(line) == [line] * MPI.COMM_WORLD.size, "the ranks refused with other lines"
     assert expected in line and "\n" not in line, line

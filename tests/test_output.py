@@ -7,7 +7,7 @@ import time
 import pytest
 from mpi4py import MPI
 
-from conftest import assert_all
+from conftest import assert_all, ends_a_hang, fifo_at
 from dbf_hpc.errors import InputError
 from dbf_hpc.output import OutputLock, check_output_path
 from dbf_hpc.run import run
@@ -53,39 +53,25 @@ def test_a_pipe_at_the_output_path_is_refused_not_waited_on(shared_tmp_path):
     # Red team: `-o out.h5` where out.h5 is a named pipe (a FIFO) hung the run before any work, on any
     # rank count: the look at whether the file is dbf-hpc's opened it, and the open waited for a writer
     # for ever. A pipe, socket or device is not a file to replace: refused in one line, left as it is.
-    import faulthandler
     import stat
 
     target = shared_tmp_path / "out.h5"
-    if MPI.COMM_WORLD.rank == 0:
-        os.mkfifo(target)
-    MPI.COMM_WORLD.Barrier()
-    faulthandler.dump_traceback_later(120, exit=True)   # the bug: a hang, ended here with where it waited
-    try:
-        with pytest.raises(InputError, match="exists and is not a regular file"):
-            run(load_scene(PAPER, SHORT), str(target), progress=False)
-    finally:
-        faulthandler.cancel_dump_traceback_later()
+    fifo_at(target)
+    with ends_a_hang(), pytest.raises(InputError, match="exists and is not a regular file"):
+        run(load_scene(PAPER, SHORT), str(target), progress=False)
     assert_all(stat.S_ISFIFO(os.stat(target).st_mode))
 
 
 def test_a_pipe_at_the_output_lock_is_refused_not_waited_on(shared_tmp_path):
     # Red team: a named pipe at OUT.h5.lock hung the run before any work: the lock exists, so its
     # content was read to tell a live job from a stale one, and the open waited for a writer for ever.
-    import faulthandler
     import stat
 
     out = shared_tmp_path / "out.h5"
     lock = shared_tmp_path / "out.h5.lock"
-    if MPI.COMM_WORLD.rank == 0:
-        os.mkfifo(lock)
-    MPI.COMM_WORLD.Barrier()
-    faulthandler.dump_traceback_later(120, exit=True)   # the bug: a hang, ended here with where it waited
-    try:
-        with pytest.raises(InputError, match=f"remove {lock}"):
-            run(load_scene(PAPER, SHORT), str(out), progress=False)
-    finally:
-        faulthandler.cancel_dump_traceback_later()
+    fifo_at(lock)
+    with ends_a_hang(), pytest.raises(InputError, match=f"remove {lock}"):
+        run(load_scene(PAPER, SHORT), str(out), progress=False)
     assert_all(stat.S_ISFIFO(os.stat(lock).st_mode) and not out.exists())
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from conftest import assert_all, rank0_files
+from conftest import MICRO_BEAM, assert_all, rank0_files
 from dbf_hpc.errors import InputError
 from dbf_hpc.laws import ConstraintLaws
 from dbf_hpc.run import run
@@ -603,25 +603,6 @@ def test_more_snapshots_than_output_samples_take_every_sample_and_warn_naming_th
     assert "snapshots" not in err, err
 
 
-MICRO_BEAM = """
-[structure]
-kind = "beam"
-length = 1e-4
-elements = 20
-E = 2e11
-I = 8.333e-22
-A = 1e-10
-rho = 7800.0
-[initial]
-mode = 1
-amplitude = 1e-7
-[basis]
-modes = 4
-[output]
-probes = [5e-5]
-"""
-
-
 def test_an_atol_above_a_micro_beams_whole_motion_is_warned_and_the_advised_one_gives_the_exact_vibration(
         shared_tmp_path, capfd):
     # Red team: a 100 um steel micro-beam without constraints, started at 0.1 um in its first mode, ran at the
@@ -632,7 +613,7 @@ def test_an_atol_above_a_micro_beams_whole_motion_is_warned_and_the_advised_one_
     period = 2 * np.pi / omega
     path = shared_tmp_path / "micro_rom.toml"
     if MPI.COMM_WORLD.rank == 0:
-        path.write_text(MICRO_BEAM)
+        path.write_text(MICRO_BEAM + "\n[basis]\nmodes = 4\n\n[output]\nprobes = [5e-5]\n")
     MPI.COMM_WORLD.Barrier()
     sets = [f"integrator.t_end={5 * period}", f"output.sample_dt={period / 50}"]
     errors, advised = {}, None

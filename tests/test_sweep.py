@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from conftest import assert_all, rank0_files
+from conftest import assert_all, ends_a_hang, fifo_at, rank0_files
 from dbf_hpc.errors import DbfError, InputError
 from dbf_hpc.modes import counters
 from dbf_hpc.report import describe
@@ -20,13 +20,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAPER = os.path.join(ROOT, "jobs", "paper_beam.toml")
 
 
-def write_sweep(folder, body):
-    path = folder / "sweep.toml"
+def write_sweep(folder, body, scene=PAPER, name="sweep.toml", output="summary.h5"):
+    path = folder / name
     # every rank is done with the file this one replaces (red team, 2 ranks on a loaded machine: rank 1 still
     # read the first sweep of a test when rank 0 wrote the second, failed alone, and the job hung)
     MPI.COMM_WORLD.Barrier()
     if MPI.COMM_WORLD.rank == 0:
-        path.write_text(f'scene = "{PAPER}"\noutput = "summary.h5"\n' + body)
+        path.write_text(f'scene = "{scene}"\noutput = "{output}"\n' + body)
     MPI.COMM_WORLD.Barrier()
     return str(path)
 
@@ -195,22 +195,15 @@ def test_a_rerun_retries_failed_cases_and_reruns_a_case_file_that_is_not_a_recor
 def test_a_named_pipe_in_place_of_a_case_record_reruns_the_case_not_waits_on_it(shared_tmp_path):
     # Red team: a FIFO at a case's record hung the rerun of the sweep (rank 0's look at the records
     # opened it, and the open waits for a writer for ever). It is no record: the case runs again.
-    import faulthandler
     import stat
 
     path, files = _swept(shared_tmp_path, '[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n'
                                           '"integrator.t_end" = [0.05]\n', 2)
     kept = os.path.getmtime(files[1])
     MPI.COMM_WORLD.Barrier()
-    if MPI.COMM_WORLD.rank == 0:
-        os.remove(files[0])
-        os.mkfifo(files[0])
-    MPI.COMM_WORLD.Barrier()
-    faulthandler.dump_traceback_later(120, exit=True)   # the bug: a hang, ended here with where it waited
-    try:
+    fifo_at(files[0])
+    with ends_a_hang():
         second = run_sweep(path, progress=False)
-    finally:
-        faulthandler.cancel_dump_traceback_later()
     assert second["failed"] == 0
     assert_all(stat.S_ISREG(os.stat(files[0]).st_mode) and json.load(open(files[0]))["status"] == "ok"
                and os.path.getmtime(files[1]) == kept, "the case of the pipe reran, the other stayed")
@@ -1289,12 +1282,7 @@ def test_a_sweep_warns_once_naming_the_cases_whose_atol_lets_w_err_by_over_a_per
     from conftest import small_mass_chain
 
     scene = small_mass_chain(shared_tmp_path)
-    path = str(shared_tmp_path / "atol.toml")
-    MPI.COMM_WORLD.Barrier()
-    if MPI.COMM_WORLD.rank == 0:
-        with open(path, "w") as f:
-            f.write(f'scene = "{scene}"\noutput = "atol.h5"\n[axes]\n"integrator.atol" = [1e-9, 1e-10, 1e-14]\n')
-    MPI.COMM_WORLD.Barrier()
+    path = write_sweep(shared_tmp_path, '[axes]\n"integrator.atol" = [1e-9, 1e-10, 1e-14]\n', scene, "atol.toml", "atol.h5")
     capfd.readouterr()
     assert run_sweep(path, progress=False)["failed"] == 0
     err = capfd.readouterr().err
@@ -1317,13 +1305,8 @@ def test_each_case_keeps_the_warnings_the_sweep_said_once_for_its_cases_and_they
     from conftest import small_mass_chain
 
     scene = small_mass_chain(shared_tmp_path)
-    path = str(shared_tmp_path / "said.toml")
-    MPI.COMM_WORLD.Barrier()
-    if MPI.COMM_WORLD.rank == 0:
-        with open(path, "w") as f:
-            f.write(f'scene = "{scene}"\noutput = "said.h5"\n[axes]\n"integrator.atol" = [1e-9, 1e-14]\n'
-                    f'"output.sample_dt" = [1e-4, 0.06]\n"integrator.t_end" = [0.2]\n')
-    MPI.COMM_WORLD.Barrier()
+    path = write_sweep(shared_tmp_path, '[axes]\n"integrator.atol" = [1e-9, 1e-14]\n"output.sample_dt" = [1e-4, 0.06]\n'
+                       '"integrator.t_end" = [0.2]\n', scene, "said.toml", "said.h5")
     capfd.readouterr()
     result = run_sweep(path, progress=False)
     assert result["failed"] == 0
@@ -1416,12 +1399,7 @@ def test_a_rerun_of_a_finished_sweep_says_again_what_its_cases_warned_each_line_
     from conftest import small_mass_chain
 
     scene = small_mass_chain(shared_tmp_path)
-    path = str(shared_tmp_path / "again.toml")
-    MPI.COMM_WORLD.Barrier()
-    if MPI.COMM_WORLD.rank == 0:
-        with open(path, "w") as f:
-            f.write(f'scene = "{scene}"\noutput = "again.h5"\n[axes]\n"integrator.atol" = [1e-9, 1e-14]\n')
-    MPI.COMM_WORLD.Barrier()
+    path = write_sweep(shared_tmp_path, '[axes]\n"integrator.atol" = [1e-9, 1e-14]\n', scene, "again.toml", "again.h5")
     first = run_sweep(path, progress=False)
     capfd.readouterr()
     again = run_sweep(path)
