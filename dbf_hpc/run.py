@@ -987,12 +987,19 @@ def _reopen(path: str, state: dict) -> OutputWriter:
                           f"--resume") from None
 
 
+RESUME_ADVICE = "rerun with --resume to finish from the last checkpoint"
+
+
 def _left_behind(message: str, writer, checkpoint: Checkpoint | None, failed_write: bool = False) -> str:
     """Close the output after a failure (park it after a failed write: OutputWriter.abort); the
     message says what is left behind. A run that failed before its second sample leaves nothing (its
     one sample is the initial state)."""
     if writer is None:
         return message
+    if not (checkpoint is not None and os.path.exists(checkpoint.path)):
+        # red team: a run too short for a checkpoint, stopped in its estimates, was told to finish "from the
+        # last checkpoint"; there is none, and a --resume runs it again from the start
+        message = message.replace(RESUME_ADVICE, "rerun it (it was too short for a checkpoint: --resume starts it over)")
     samples = writer.count + writer.pending
     writer.abort(failed_write)
     if samples <= 1 and not (checkpoint is not None and os.path.exists(checkpoint.path)):

@@ -270,6 +270,35 @@ def test_sigterm_during_the_error_estimate_says_so_and_a_resume_finishes_the_run
         assert a.attrs["estimated_error"] == b.attrs["estimated_error"]
 
 
+def test_sigterm_in_the_estimate_of_a_run_too_short_for_a_checkpoint_says_a_rerun_starts_over(shared_tmp_path,
+                                                                                               monkeypatch):
+    # Red team: a run too short to write a checkpoint, stopped in its error estimate, was told "rerun with
+    # --resume to finish from the last checkpoint": there is none, and --resume integrates it again from
+    # t = 0. The line says so; the resumed output is the uninterrupted run's.
+    from dbf_hpc import run as run_module
+
+    sets = ["integrator.t_end=0.05", "output.checkpoint_dt=1", f"basis.cache={shared_tmp_path / 'cache'}"]
+    whole, out = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
+    run(load_scene(PAPER, sets), whole, progress=False)
+    original = run_module._estimate
+
+    def terminated(*args, **kwargs):   # rank 0 only: the estimate is rank 0's
+        os.kill(os.getpid(), signal.SIGTERM)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(run_module, "_estimate", terminated)
+    with pytest.raises(SolverError, match=r"during the error estimates, after the integration; rerun it \(it was too "
+                                          r"short for a checkpoint: --resume starts it over\) \(the samples up to"):
+        run(load_scene(PAPER, sets), out, progress=False)
+    monkeypatch.setattr(run_module, "_estimate", original)
+    assert_all(not os.path.exists(out) and not os.path.exists(out + ".checkpoint"))
+    summary = resume(sets, out)
+    assert summary["stats"]["final_time"] == pytest.approx(0.05) and "estimated_error" in summary
+    MPI.COMM_WORLD.Barrier()
+    with h5py.File(whole) as a, h5py.File(out) as b:
+        assert np.array_equal(a["constraints/displacement"][:], b["constraints/displacement"][:])
+
+
 def test_a_changed_damping_file_of_a_matrices_structure_is_refused_naming_the_files(shared_tmp_path):
     # Red team: the resume identity held the matrix files' K and M (the basis cache's fingerprint) but
     # not the damping file's bytes: the resumed output was half one damping, half the other.
