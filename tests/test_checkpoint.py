@@ -238,15 +238,21 @@ checkpoint_dt = 0.05
         run(load_scene(scene, sets), out, progress=False, resume=True)
 
 
-def test_sigterm_during_the_error_estimate_says_so_and_a_resume_finishes_the_run(shared_tmp_path, monkeypatch):
+@pytest.mark.parametrize("checkpoint_dt,stopped_line", [
+    (0.01, r"rerun with --resume to finish from the last checkpoint \(samples so far in .*partial"),
+    (1.0, r"rerun it \(it was too short for a checkpoint: --resume starts it over\) \(the samples up to")])
+def test_sigterm_during_the_error_estimate_says_so_and_a_resume_finishes_the_run(shared_tmp_path, monkeypatch,
+                                                                                 checkpoint_dt, stopped_line):
     # A batch system's time limit can fall after the integration, in the a-posteriori estimate (the
     # statistics' estimate of a long run costs about what the run did). The one line says where the
     # run stopped and that --resume finishes it (not "before the integration began; nothing was
     # written"); the partial output and the checkpoint stay, and the resumed output is the
-    # uninterrupted run's.
+    # uninterrupted run's. Red team: a run too short to write a checkpoint (checkpoint_dt = 1 s) was told
+    # to finish "from the last checkpoint": there is none, and --resume integrates it again from t = 0;
+    # its line says so.
     from dbf_hpc import run as run_module
 
-    sets = ["integrator.t_end=0.05", "output.checkpoint_dt=0.01", f"basis.cache={shared_tmp_path / 'cache'}"]
+    sets = ["integrator.t_end=0.05", f"output.checkpoint_dt={checkpoint_dt}", f"basis.cache={shared_tmp_path / 'cache'}"]
     whole, out = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
     run(load_scene(PAPER, sets), whole, progress=False)
     original = run_module._estimate
@@ -256,11 +262,12 @@ def test_sigterm_during_the_error_estimate_says_so_and_a_resume_finishes_the_run
         return original(*args, **kwargs)
 
     monkeypatch.setattr(run_module, "_estimate", terminated)
-    with pytest.raises(SolverError, match="during the error estimates, after the integration; rerun with --resume "
-                                          r"to finish from the last checkpoint \(samples so far in .*partial"):
+    with pytest.raises(SolverError, match="during the error estimates, after the integration; " + stopped_line):
         run(load_scene(PAPER, sets), out, progress=False)
     monkeypatch.setattr(run_module, "_estimate", original)
-    assert_all(not os.path.exists(out) and os.path.exists(out + ".partial") and os.path.exists(out + ".checkpoint"))
+    checkpointed = checkpoint_dt < 0.05
+    assert_all(not os.path.exists(out) and os.path.exists(out + ".checkpoint") == checkpointed
+               and (os.path.exists(out + ".partial") or not checkpointed))
     summary = resume(sets, out)
     assert summary["stats"]["final_time"] == pytest.approx(0.05) and "estimated_error" in summary
     MPI.COMM_WORLD.Barrier()
@@ -268,35 +275,6 @@ def test_sigterm_during_the_error_estimate_says_so_and_a_resume_finishes_the_run
         assert bool(b.attrs["complete"]) and a["time"].shape == b["time"].shape
         assert np.array_equal(a["constraints/displacement"][:], b["constraints/displacement"][:])
         assert a.attrs["estimated_error"] == b.attrs["estimated_error"]
-
-
-def test_sigterm_in_the_estimate_of_a_run_too_short_for_a_checkpoint_says_a_rerun_starts_over(shared_tmp_path,
-                                                                                               monkeypatch):
-    # Red team: a run too short to write a checkpoint, stopped in its error estimate, was told "rerun with
-    # --resume to finish from the last checkpoint": there is none, and --resume integrates it again from
-    # t = 0. The line says so; the resumed output is the uninterrupted run's.
-    from dbf_hpc import run as run_module
-
-    sets = ["integrator.t_end=0.05", "output.checkpoint_dt=1", f"basis.cache={shared_tmp_path / 'cache'}"]
-    whole, out = str(shared_tmp_path / "whole.h5"), str(shared_tmp_path / "stopped.h5")
-    run(load_scene(PAPER, sets), whole, progress=False)
-    original = run_module._estimate
-
-    def terminated(*args, **kwargs):   # rank 0 only: the estimate is rank 0's
-        os.kill(os.getpid(), signal.SIGTERM)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(run_module, "_estimate", terminated)
-    with pytest.raises(SolverError, match=r"during the error estimates, after the integration; rerun it \(it was too "
-                                          r"short for a checkpoint: --resume starts it over\) \(the samples up to"):
-        run(load_scene(PAPER, sets), out, progress=False)
-    monkeypatch.setattr(run_module, "_estimate", original)
-    assert_all(not os.path.exists(out) and not os.path.exists(out + ".checkpoint"))
-    summary = resume(sets, out)
-    assert summary["stats"]["final_time"] == pytest.approx(0.05) and "estimated_error" in summary
-    MPI.COMM_WORLD.Barrier()
-    with h5py.File(whole) as a, h5py.File(out) as b:
-        assert np.array_equal(a["constraints/displacement"][:], b["constraints/displacement"][:])
 
 
 def test_a_changed_damping_file_of_a_matrices_structure_is_refused_naming_the_files(shared_tmp_path):
