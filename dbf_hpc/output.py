@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 
 from . import __version__, layout
-from .errors import PARKED, WRITE_ERRORS, InputError, lock_problem, park
+from .errors import PARKED, WRITE_ERRORS, InputError, lock_problem, park, process_gone
 
 BLOCK = 1024  # samples buffered between writes
 
@@ -330,17 +330,12 @@ class OutputLock:
             host, pid, *start = text.split()
             if host != socket.gethostname() or len(start) > 1:
                 return None
-            os.kill(int(pid), 0)
+            if process_gone(int(pid)):
+                return text
             if start and start[0] != "-" and _process_start(int(pid)) not in (None, start[0]):
                 return text   # pid reused since (or the host rebooted): the lock's process is gone
-        except ProcessLookupError:
-            return text
-        except (OSError, ValueError):
             return None
-        try:
-            with open(f"/proc/{int(pid)}/stat") as f:
-                return text if f.read().rsplit(")", 1)[1].split()[0] == "Z" else None
-        except (OSError, IndexError):
+        except (OSError, ValueError):
             return None
 
     def _take_over(self, stale: str) -> None:
