@@ -45,8 +45,8 @@ from .reductor import Reductor
 from .rom import ReducedModel
 from .rom_integrator import c_counters, effective_callbacks, integrate_reduced
 from .scene import Scene
-from .schema import SECTIONS
 from .excitation import Harmonic
+from .schema import SECTIONS
 from .simulate import snapshot_cap_warning, snapshot_samples
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
 from .timestepping import STEPS_PER_PERIOD, check_work, refuse_settings_options
@@ -819,6 +819,11 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
     return summary
 
 
+# A stop's advice where the run can be finished from its checkpoint (_left_behind rewrites it where none
+# was written yet)
+RESUME_ADVICE = "rerun with --resume to finish from the last checkpoint"
+
+
 def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: bool = False, ident=None,
              extra_stats=None, ranks: int = 1, timings=None, estimator=None, keep: bool = True,
              remote: RemoteStop | None = None) -> dict:
@@ -875,7 +880,7 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     stats.update(extra_stats or {})
     try:
         with _stop_on_sigterm(estimator is not None, "stopped by a termination signal during the error estimates, "
-                              "after the integration; rerun with --resume to finish from the last checkpoint",
+                              f"after the integration; {RESUME_ADVICE}",
                               remote):
             estimate = _estimate(estimator, writer, settings, timings, say)
             long_run = _estimate_statistics(estimator, estimate, writer, model.constraints, settings, timings, say)
@@ -910,8 +915,8 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
 # A termination signal after the integration and its estimates, before the output is written (the
 # samples' statistics, the snapshots): red team, the command's own handler said "before the
 # integration began; nothing was written" while the .partial and the checkpoint stayed.
-AFTER_INTEGRATION = ("stopped by a termination signal after the integration, before its output was written; rerun "
-                     "with --resume to finish from the last checkpoint")
+AFTER_INTEGRATION = (f"stopped by a termination signal after the integration, before its output was written; "
+                     f"{RESUME_ADVICE}")
 
 
 def _estimate(estimator, writer, settings, timings: dict, say):
@@ -985,9 +990,6 @@ def _reopen(path: str, state: dict) -> OutputWriter:
     except (OSError, KeyError, ValueError, RuntimeError) as e:   # RuntimeError: metadata a failed write damaged
         raise Unresumable(f"{path}.partial cannot be resumed ({str(e).splitlines()[0]}); rerun without "
                           f"--resume") from None
-
-
-RESUME_ADVICE = "rerun with --resume to finish from the last checkpoint"
 
 
 def _left_behind(message: str, writer, checkpoint: Checkpoint | None, failed_write: bool = False) -> str:
@@ -1407,8 +1409,7 @@ class _EstimateControl:
         pass
 
     def stop_message(self, t: float) -> str:
-        return ("stopped by a termination signal during the error estimate, after the integration; rerun with "
-                "--resume to finish from the last checkpoint")
+        return f"stopped by a termination signal during the error estimate, after the integration; {RESUME_ADVICE}"
 
 
 def _full_estimate(scene: Scene, fom, settings, observation, recorder, timings: dict, say) -> Estimate | None:
