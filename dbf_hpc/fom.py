@@ -33,6 +33,43 @@ from .petsctools import destroy, petsc_comm, petsc_errors_as_one_line, values_at
 from .structure import Beam, assemble_beam, distributed_load, span_node_loads
 
 
+# The laws with a stop at a clearance (table, linear, cubic and friction act from z = 0)
+STOP_LAWS = ("deadband", "power", "hertz", "circular", "flat_bar")
+
+
+def check_displacement(value: float, length: float, where: str, what: str) -> None:
+    """A displacement given (m) is at most the beam's length (m): a linear (small-deflection) beam
+    carries motions far smaller than itself, and one larger is a unit slip (mm given as m). Red team:
+    the paper beam's 5 mm support motion given as amplitude = 5, and an initial displacement of 3 m,
+    ran to the end without a word on a 1 m beam."""
+    if abs(value) > length:
+        raise InputError(f"{where}: amplitude = {value:g} m, {what}, is more than the beam's length "
+                         f"({length:g} m): a linear (small-deflection) beam model cannot carry it; check its "
+                         f"unit (m: 5 mm is 5e-3)")
+
+
+def check_stops_within_reach(constraints, length: float, name) -> None:
+    """A stop farther than the beam's length (m) (on a side that has one: k > 0) is refused, as a support
+    motion or an initial displacement longer than the beam is (check_displacement): a linear
+    (small-deflection) beam never reaches it, and it is a unit slip (2.5 mm given as 2.5). It only drew
+    the idle-stop warning after the whole run (run.idle_warnings: a linear run's result under a scene
+    that describes impacts). name(i): how the message names constraint i (0-based)."""
+    for i, c in enumerate(constraints):
+        law = c.law
+        if law.kind not in STOP_LAWS:
+            continue
+        one_d = hasattr(law, "k_minus")
+        ks = (law.k_minus, law.k_plus) if one_d else (law.k, law.k)
+        gaps = (law.clearance_minus, law.clearance_plus)
+        for side, gap, k in zip(("minus", "plus"), gaps, ks):
+            if k > 0 and gap > length:
+                key = f"clearance_{side}" if one_d and gaps[0] != gaps[1] else "clearance"
+                other = f", or set k_{side} = 0 for a side without a stop" if key != "clearance" else ""
+                raise InputError(f"{name(i)}: {key} = {gap:g} m is more than the beam's length "
+                                 f"({length:g} m): a linear (small-deflection) beam never reaches that stop; check its "
+                                 f"unit (m: 2.5 mm is 2.5e-3){other}")
+
+
 @dataclass(frozen=True)
 class InitialState:
     """The state at t = 0: at rest in relative coordinates, or displaced by `amplitude` (m, peak over
@@ -132,7 +169,13 @@ class FullOrderModel:
         if planes == 1 and (getattr(excitation, "direction", (1.0, 0.0)) != (1.0, 0.0) or not initial.planar):
             raise InputError("FullOrderModel.build: a direction (dy, dz) or an initial velocity applies to a beam of "
                              "two planes (Beam(planes=2)); this structure moves along one direction only")
-        if isinstance(structure, Beam):
+        if isinstance(structure, Beam):   # what a scene refuses (scene.py), the API refuses too
+            check_stops_within_reach(constraints, structure.length, lambda i: f"FullOrderModel.build: constraint {i + 1}")
+            if excitation.kind == "base":
+                check_displacement(excitation.amplitude, structure.length, "FullOrderModel.build: BaseMotion",
+                                   "the support's motion")
+            check_displacement(initial.amplitude, structure.length, "FullOrderModel.build: InitialState",
+                               "the peak initial displacement")
             ops = _beam_operators(structure, constraints, excitation, comm)
             beam = dataclasses.asdict(structure)
             if planes == 1:

@@ -107,6 +107,37 @@ def test_a_harmonic_load_of_no_frequency_or_of_no_place_on_the_structure_is_refu
         make(dbf_hpc)
 
 
+@pytest.mark.parametrize("make,message", [
+    (lambda d, beam: ([d.Constraint(d.law("deadband", clearance=2.5, k=1e6), x=0.25)], d.NoExcitation(), d.InitialState()),
+     r"^FullOrderModel.build: constraint 1: clearance = 2.5 m is more than the beam's length \(1 m\)"),
+    (lambda d, beam: ([d.Constraint(d.law("deadband", clearance_minus=1e-3, clearance_plus=3.0, k=1e6), x=0.25)],
+                      d.NoExcitation(), d.InitialState()),
+     r"^FullOrderModel.build: constraint 1: clearance_plus = 3 m .*, or set k_plus = 0 for a side without a stop$"),
+    (lambda d, beam: ([], d.BaseMotion(amplitude=5.0, frequency_hz=20.0), d.InitialState()),
+     r"^FullOrderModel.build: BaseMotion: amplitude = 5 m, the support's motion, is more than the beam's length"),
+    (lambda d, beam: ([], d.NoExcitation(), d.InitialState(amplitude=3.0)),
+     r"^FullOrderModel.build: InitialState: amplitude = 3 m, the peak initial displacement, is more than"),
+])
+def test_the_api_refuses_a_stop_or_a_motion_farther_than_the_beams_length_as_a_scene_does(make, message):
+    # A linear (small-deflection) beam never moves by its own length: a stop, a support motion or an initial
+    # displacement beyond it is a unit slip (2.5 mm given as 2.5). A scene refused them (scene.py); the API
+    # built the model, ran it, and only warned after the run that the stop was never reached.
+    import dbf_hpc
+
+    beam = dbf_hpc.Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    constraints, excitation, initial = make(dbf_hpc, beam)
+    before = undestroyed_petsc_objects()
+    with pytest.raises(dbf_hpc.InputError, match=message):
+        dbf_hpc.FullOrderModel.build(beam, constraints, excitation, initial=initial)
+    assert undestroyed_petsc_objects() == before
+    # at the length itself, and a side without a stop, it is the user's to judge
+    kept = [dbf_hpc.Constraint(dbf_hpc.law("deadband", clearance=1.0, k=1e6), x=0.25),
+            dbf_hpc.Constraint(dbf_hpc.law("deadband", clearance_minus=1e-3, clearance_plus=5.0, k_minus=1e6, k_plus=0.0),
+                               x=0.5)]
+    with dbf_hpc.FullOrderModel.build(beam, kept, initial=dbf_hpc.InitialState(amplitude=1.0)) as fom:
+        assert fom.constraints.count == 2
+
+
 def test_the_models_are_refused_by_the_simulation_of_the_other_kind():
     from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, FullOrderModel, InputError, IntegratorSettings,
                          Reductor, law, simulate_full, simulate_reduced)
