@@ -136,15 +136,8 @@ def _run_recorded(scene: Scene, out, progress: bool, comm, initial_state, resume
         refuse_settings_options("rom_", settings.adaptive)
     # The warnings below say a result may be wrong: -q (progress=False) silences the progress, not them
     # (red team: --method full -q at 2.5 steps a period of the forcing wrote a wrong response with no word)
-    if method == "full" or not settings.adaptive:
-        _warn_coarse_step(settings, scene.fastest_forcing_hz(), comm)
-    for message in (unused_estimate_keys_warning(scene), unused_dbf_keys_warning(scene)):
-        if message:
-            warn(message, comm)
-    _warn_coarse_samples(settings, scene.fastest_forcing_hz(), comm)
-    capped = snapshot_cap_warning(scene.output().snapshots, settings)
-    if capped:
-        warn(capped, comm)
+    for message in scene_warnings(scene, settings, method):
+        warn(message, comm)
     TERMINATION.finished = False
     with claimed(path, comm):
         digests = scene.file_digests(comm)   # once: the request and the run's identity hold the same bytes
@@ -167,6 +160,21 @@ def _run_recorded(scene: Scene, out, progress: bool, comm, initial_state, resume
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
     _warn_result(summary, scene.constraints, method, settings, comm)
     return summary
+
+
+def scene_warnings(scene: Scene, settings, method: str = "rom") -> list:
+    """What a run warns before any work, from its scene and integrator settings alone, in the order it
+    says them: a fixed step too coarse for the forcing (coarse_step_warning; a full-order run's steps are
+    always fixed), [basis] keys it does not read (unused_estimate_keys_warning, unused_dbf_keys_warning),
+    samples too coarse for the forcing (coarse_samples_warning) and more snapshots than samples
+    (simulate.snapshot_cap_warning). The one list `dbf-hpc run` (run.run) says and a sweep says once for the
+    cases it concerns and keeps in each case's row (sweep.load_sweep, sweep._said_for_the_sweep): a case
+    says what the run of its scene says. Not collective."""
+    fastest = scene.fastest_forcing_hz()
+    messages = (coarse_step_warning(settings, fastest) if method == "full" or not settings.adaptive else None,
+                unused_estimate_keys_warning(scene), unused_dbf_keys_warning(scene),
+                coarse_samples_warning(settings, fastest), snapshot_cap_warning(scene.output().snapshots, settings))
+    return [message for message in messages if message]
 
 
 def _warn_result(summary: dict, constraints, method: str, settings, comm) -> None:
@@ -387,12 +395,21 @@ def loose_atol(model, atol: float, constraints=None) -> str | None:
     that integrates a reduced model says it once: `dbf-hpc run` and run.run (_run), a sweep (one line
     naming its cases, sweep._warn_loose_atol) and simulate_reduced. Where no clearance is within
     reach, the same bound against the motion's own scale (motion_reach: a micro-beam without
-    constraints; `run` and simulate_reduced, not yet a sweep). Not collective."""
+    constraints). Not collective."""
+    finding = loose_atol_finding(model, atol, constraints)
+    return None if finding is None else finding[2]
+
+
+def loose_atol_finding(model, atol: float, constraints=None) -> tuple | None:
+    """(kind, ratio, line) of loose_atol: kind "clearance" (atol_reach's worst constraint) or "motion"
+    (motion_reach, where no clearance is within reach), ratio the reach over that length, line loose_atol's;
+    or None. A sweep says the line once for the cases of each kind, with its worst case's numbers
+    (sweep._warn_loose_atol). Not collective."""
     worst = atol_reach(model, atol, constraints)
     if worst is not None:
-        return loose_atol_message(atol, *worst)
+        return "clearance", worst[0], loose_atol_message(atol, *worst)
     motion = motion_reach(model, atol)
-    return None if motion is None else loose_motion_message(atol, *motion)
+    return None if motion is None else ("motion", motion[0], loose_motion_message(atol, *motion))
 
 
 def motion_reach(model, atol: float) -> tuple | None:
@@ -508,18 +525,12 @@ def forcing_warning(forcing_hz: float, omega) -> str | None:
     return None
 
 
-def _warn_coarse_step(settings, fastest_hz: float, comm) -> None:
-    """A warning when a fixed step takes fewer than STEPS_PER_PERIOD steps per period of the fastest
-    forcing (red team: --method full with dt = 0.3 s under a 10 Hz force took one step of 0.05 s and
-    reported a 727 N peak force and 0 impacts, with no word; generalized-alpha is unconditionally
-    stable, so nothing else fails). The scheme's phase error is (omega dt)^2 / 12 per radian."""
-    message = coarse_step_warning(settings, fastest_hz)
-    if message:
-        warn(message, comm)
-
-
 def coarse_step_warning(settings, fastest_hz: float) -> str | None:
-    """_warn_coarse_step's message, or None (a sweep warns it for its cases too)."""
+    """A warning when a fixed step takes fewer than STEPS_PER_PERIOD steps per period of the fastest
+    forcing, or None (red team: --method full with dt = 0.3 s under a 10 Hz force took one step of 0.05 s
+    and reported a 727 N peak force and 0 impacts, with no word; generalized-alpha is unconditionally
+    stable, so nothing else fails). The scheme's phase error is (omega dt)^2 / 12 per radian. Said by a
+    run and a sweep (scene_warnings) and by the Python API (simulate.coarse_warnings)."""
     if fastest_hz > 0 and settings.dt * fastest_hz * STEPS_PER_PERIOD > 1:
         return (f"[integrator] dt = {settings.dt:g} s takes {1 / (settings.dt * fastest_hz):.2g} fixed steps per "
                 f"period of the {fastest_hz:g} Hz excitation, fewer than {STEPS_PER_PERIOD}: the step does not "
@@ -528,17 +539,11 @@ def coarse_step_warning(settings, fastest_hz: float) -> str | None:
     return None
 
 
-def _warn_coarse_samples(settings, fastest_hz: float, comm) -> None:
-    """A warning when the samples are fewer than two per period of the fastest forcing (Nyquist): the
-    sampled series alias the response (red team: a 99 Hz force sampled every 0.01 s wrote a 1 Hz
-    oscillation, and probes/peak, the peak over the samples, missed the response's, with no word)."""
-    message = coarse_samples_warning(settings, fastest_hz)
-    if message:
-        warn(message, comm)
-
-
 def coarse_samples_warning(settings, fastest_hz: float) -> str | None:
-    """_warn_coarse_samples' message, or None (a sweep warns it for its cases too)."""
+    """A warning when the samples are fewer than two per period of the fastest forcing (Nyquist), or
+    None: the sampled series alias the response (red team: a 99 Hz force sampled every 0.01 s wrote a 1 Hz
+    oscillation, and probes/peak, the peak over the samples, missed the response's, with no word). Said
+    by a run and a sweep (scene_warnings) and by the Python API (simulate.coarse_warnings)."""
     if fastest_hz > 0 and 2 * settings.sample_dt * fastest_hz > 1:
         return (f"[output] sample_dt = {settings.sample_dt:g} s takes {1 / (settings.sample_dt * fastest_hz):.2g} "
                 f"samples per period of the {fastest_hz:g} Hz excitation, fewer than 2: the sampled series (time, "

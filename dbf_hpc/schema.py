@@ -201,7 +201,7 @@ SECTIONS = {
                                       "does not use it (fixed step dt). Small masses and displacements in SI (a MEMS "
                                       "part) make the default loose: `run` (and run.run, simulate_reduced, and a "
                                       "sweep, once naming its cases) warns where atol lets w at a constraint err by "
-                                      "over 1 % of its clearance (without one, `run` and simulate_reduced: of the "
+                                      "over 1 % of its clearance (without one, of the "
                                       "motion's scale, the initial displacement, the support's amplitude or the "
                                       "static deflection under the force), naming the atol to set"),
         "contact": Key((str,), "implicit", "", '"implicit" (with its exact Jacobian) or "explicit" (the paper\'s '

@@ -26,9 +26,11 @@ in increasing order, each value once ("up" runs it as listed, "down" reversed).
 How it runs (collective on COMM_WORLD):
 1. Every case's scene is validated before any work: a bad value stops the sweep at once, as does a
    case a run would refuse as endless (timestepping.check_work); a run's warnings before any work
-   (a coarse fixed step or sample interval) are given once for the cases they concern (and, with a
-   loose atol, once the models are built: _warn_loose_atol), and each case's record keeps them with
-   the rest of what its run would warn (cases/warnings).
+   (run.scene_warnings: a coarse fixed step or sample interval, more snapshots than samples, estimate
+   windows or DBF keys the case does not read) are given once for the cases they concern (and, with a
+   loose atol, of a clearance or of a micro-structure's whole motion, once the models are built:
+   _warn_loose_atol), and each case's record keeps them with the rest of what its run would warn
+   (cases/warnings).
 2. Each distinct reduced model (cases that differ only in law, excitation history or integrator
    share one) is built once on all ranks; the ranks keep only its small arrays. A model that
    cannot be built fails its cases, recorded with the error; the others go on.
@@ -75,11 +77,9 @@ from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
-from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, atol_reach, coarse_samples_warning,
-                  basis_warnings, coarse_step_warning, finished_output, forcing_warning, gyroscopic_checks, loose_atol,
-                  loose_atol_message, result_warnings, run_case, scene_callbacks)
+from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, basis_warnings, finished_output, forcing_warning,
+                  gyroscopic_checks, loose_atol_finding, result_warnings, run_case, scene_callbacks, scene_warnings)
 from .scene import load_scene, parse_override, relative_to_cwd
-from .simulate import snapshot_cap_warning
 from . import __version__
 from .schema import SECTIONS, unit_of
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, STATISTICS, STATISTICS_2D, UNITS_2D as UNITS
@@ -209,13 +209,11 @@ def load_sweep(path: str, overrides=()) -> dict:
                 check_work(settings, fastest, adaptive=settings.adaptive)
         except InputError as e:
             raise InputError(f"{path}: case {i + 1} ({', '.join(own)}): {e}") from None
-        # and what a run warns before any work, that its result will be wrong (red team: a fixed dt of 5
-        # steps a period ran every case of a sweep silently, where `dbf-hpc run` said so)
-        for message in ((None if settings is None or settings.adaptive else coarse_step_warning(settings, fastest)),
-                        None if settings is None else coarse_samples_warning(settings, fastest),
-                        None if settings is None else snapshot_cap_warning(loaded.output().snapshots, settings)):
-            if message:
-                warnings.setdefault(message, []).append(i + 1)
+        # and what a run warns before any work (run.scene_warnings; red team: a fixed dt of 5 steps a period
+        # ran every case of a sweep silently, where `dbf-hpc run` said so, and so did estimate windows or DBF
+        # keys the case does not read)
+        for message in ([] if settings is None else scene_warnings(loaded, settings)):
+            warnings.setdefault(message, []).append(i + 1)
         sets.append([*overrides, *own])
         scenes.append(loaded)
         coordinates.append(_coordinates_key(loaded))
@@ -600,7 +598,7 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous, stop=N
         record.update(status="ok", stats=summary["constraint_stats"], probe_peak=summary["probe_peak"],
                       solver=summary["stats"], final_state=summary["final_state"],
                       coordinates=model.coordinates_digest(),
-                      warnings=_case_warnings(scene, model, summary, sweep.get("basis_warnings", {}).get(
+                      warnings=_case_warnings(scene, built, summary, sweep.get("basis_warnings", {}).get(
                           _model_key(scene), ())),
                       **_final_excitation(model, scene.integrator_settings().t_end))
     except Interrupted:
@@ -622,44 +620,53 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous, stop=N
 
 
 def _warn_loose_atol(sweep, pending, models: dict, world) -> None:
-    """The warning `dbf-hpc run` prints where atol lets w err by over 1 % of a clearance (run.loose_atol),
-    once for the sweep: one line naming every pending case it concerns, with the worst case's numbers
-    (its advised atol is enough for all). Every rank holds every model (_prepare_models) and computes
-    the same; rank 0 prints. Not collective."""
-    worst, cases = None, []
+    """The warning `dbf-hpc run` prints where atol lets w err by over 1 % of a clearance, or of the
+    motion's own scale where no clearance is within reach (a micro-beam: run.loose_atol, whose
+    loose_atol_finding decides it for both), once for the sweep: per kind, one line naming every pending
+    case it concerns, with the worst case's numbers (its advised atol is enough for all). Each case is
+    judged as its own run: its laws, support motion and force from [initial] (_said_for_the_sweep). Every
+    rank holds every model (_prepare_models) and computes the same; rank 0 prints. Not collective."""
+    found = {}
     for index in pending:
         scene = sweep["run_scenes"][index]
-        model = models.get(_model_key(scene))
-        try:
-            settings = scene.integrator_settings()
-        except InputError:   # the case fails on its own, and is recorded so (not the whole sweep: CI caught it)
-            continue
-        if isinstance(model, str) or model is None or not settings.adaptive:
-            continue
-        reach = atol_reach(model, settings.atol, scene.constraints)
-        if reach is not None:
+        finding = _loose_finding(scene, models.get(_model_key(scene)))
+        if finding is not None:
+            kind, ratio, line = finding
+            cases, worst = found.get(kind, ([], None))
             cases.append(index + 1)
-            if worst is None or reach[0] > worst[1][0]:
-                worst = (settings.atol, reach, index + 1)
-    if worst is not None:
-        atol, reach, case = worst
+            found[kind] = (cases, worst if worst is not None and worst[0] >= ratio else (ratio, line, index + 1))
+    for cases, (_, line, case) in found.values():
         warn(f"sweep: case{'s' if len(cases) > 1 else ''} {', '.join(map(str, cases))}: "
-             f"{loose_atol_message(atol, *reach)}{f' (case {case}, the worst)' if len(cases) > 1 else ''}", world)
+             f"{line}{f' (case {case}, the worst)' if len(cases) > 1 else ''}", world)
+
+
+def _loose_finding(scene, model) -> tuple | None:
+    """run.loose_atol_finding of the case's run: its model (the built one, `model`) with its own laws and
+    excitation history, from [initial] as `dbf-hpc run` of its scene starts; None where the case has
+    fixed steps, no model (its build failed) or settings it refuses (it fails on its own, recorded so).
+    Not collective."""
+    try:
+        settings = scene.integrator_settings()
+    except InputError:   # the case fails on its own, and is recorded so (not the whole sweep: CI caught it)
+        return None
+    if isinstance(model, str) or model is None or not settings.adaptive:
+        return None
+    return loose_atol_finding(_continued(model, scene, None), settings.atol, scene.constraints)
 
 
 def _warn_done(sweep, records, pending, world) -> None:
     """What the finished cases a rerun keeps warned when they ran (their records' warnings), each line
     once naming its cases, as `dbf-hpc run --resume` of a finished output prints its run's warnings
-    again (a requeued sweep's log said nothing of them); the coarse step and samples lines load_sweep
-    has just said for every case are not repeated. Every rank holds the records; rank 0 prints. Not
-    collective."""
+    again (a requeued sweep's log said nothing of them); the lines before any work (run.scene_warnings)
+    load_sweep has just said for every case are not repeated. Every rank holds the records; rank 0
+    prints. Not collective."""
     lines, pending = {}, set(pending)
     for index, record in enumerate(records):
         if index in pending or record.get("status") != "ok":
             continue
-        coarse = _said_for_the_sweep(sweep["run_scenes"][index], None)[0]
+        before = _said_for_the_sweep(sweep["run_scenes"][index], None)[0]
         for message in record.get("warnings", []):
-            if message not in coarse:
+            if message not in before:
                 lines.setdefault(message, []).append(index + 1)
     for message, cases in lines.items():
         warn(f"case{'s' if len(cases) > 1 else ''} {', '.join(map(str, cases))} (done before): {message}", world)
@@ -670,30 +677,29 @@ def _case_warnings(scene, model, summary: dict, basis_warned=()) -> list:
     clearance in mm given as m, a basis below the forcing, impacts a fixed step does not resolve: each run
     warned, and a sweep of the same cases said nothing): kept in its record and the summary
     (cases/warnings), and printed by the rank that ran the case but for those the sweep printed once for
-    its cases before they ran (_said_for_the_sweep: a coarse step or samples, a loose atol; red team:
-    cases/warnings held no trace of these; a basis' warnings, basis_warned, it did not print at all)."""
+    its cases before they ran (_said_for_the_sweep: run.scene_warnings, a loose atol; red team:
+    cases/warnings held no trace of these; a basis' warnings, basis_warned, it did not print at all).
+    `model`: the case's built model (not continued: a run of its scene starts from [initial])."""
     settings = scene.integrator_settings()
-    coarse, basis, loose = _said_for_the_sweep(scene, model, basis_warned)
+    before, basis, loose = _said_for_the_sweep(scene, model, basis_warned)
     above = forcing_warning(scene.fastest_forcing_hz(), model.basis_info.get("omega", ()))
     # the result's, as the run words them (result_warnings; the unresolved impacts' advice named dt alone)
     out = result_warnings(summary, scene.constraints, "rom", settings)
-    return [*coarse, *basis, *(w for w in (above, loose) if w), *out]
+    return [*before, *basis, *(w for w in (above, loose) if w), *out]
 
 
 def _said_for_the_sweep(scene, model, basis_warned=()) -> tuple:
-    """(the coarse step and samples warnings, its basis' warnings (basis_warned), the loose-atol warning or
-    None) of a case, as its run gives them: the sweep prints them once, naming its cases (load_sweep,
-    _prepare_models, _warn_loose_atol). Not collective."""
+    """(what its run warns before any work (run.scene_warnings), its basis' warnings (basis_warned), the
+    loose-atol warning or None (_loose_finding)) of a case, as its run gives them: the sweep prints them
+    once, naming its cases (load_sweep, _prepare_models, _warn_loose_atol). `model`: the case's built
+    model (None: no loose-atol line). Not collective."""
     basis_warned = list(basis_warned)
     try:
         settings = scene.integrator_settings()
     except InputError:   # (the case fails on its own)
         return [], basis_warned, None
-    fastest = scene.fastest_forcing_hz()
-    coarse = [w for w in (None if settings.adaptive else coarse_step_warning(settings, fastest),
-                          coarse_samples_warning(settings, fastest)) if w]
-    usable = model is not None and not isinstance(model, str) and settings.adaptive
-    return coarse, basis_warned, loose_atol(model, settings.atol, scene.constraints) if usable else None
+    loose = _loose_finding(scene, model)
+    return scene_warnings(scene, settings), basis_warned, None if loose is None else loose[2]
 
 
 def _drop_stale_checkpoint(case_out: str, ident: dict) -> None:
@@ -739,10 +745,10 @@ def _run_chains(sweep, mine, pending, folder, cache_dir, models, identities, sto
             done += 1
             tell(f"  case {index + 1}: {record['status']}")
             scene = sweep["run_scenes"][index]
-            coarse, basis, loose = _said_for_the_sweep(scene, models.get(_model_key(scene)),
+            before, basis, loose = _said_for_the_sweep(scene, models.get(_model_key(scene)),
                                                        sweep.get("basis_warnings", {}).get(_model_key(scene), ()))
             for message in record.get("warnings", []):   # -q silences the progress, not these
-                if message not in (*coarse, *basis, loose):
+                if message not in (*before, *basis, loose):
                     print(f"dbf-hpc: warning: case {index + 1}: {message}", file=sys.stderr, flush=True)
             if len(PARKED) > parked:
                 # an HDF5 write of the case failed (a full disk): its file is kept open (errors.park),

@@ -1424,3 +1424,43 @@ def test_a_sweep_path_that_does_not_exist_names_the_directory_it_was_looked_for_
     with pytest.raises(InputError, match=rf"^cannot read sweep 'jobs/sweep.toml': No such file or directory "
                                          rf"\(relative to the current directory {re.escape(str(tmp_path))}\)$"):
         load_sweep("jobs/sweep.toml")
+
+
+@pytest.mark.parametrize("kind", ["unused_keys", "micro_beam"])
+def test_a_case_says_and_keeps_the_very_warnings_a_run_of_its_scene_gives_of_unused_keys_and_a_micro_motion(
+        shared_tmp_path, capfd, kind):
+    # Warnings parity: `dbf-hpc run` warns of [basis] keys it does not read (estimate windows with estimate =
+    # false, DBF keys with enrichment = "static") and of an atol above a micro-beam's whole motion (run.motion_reach,
+    # no clearance to compare with); a sweep of the same scene said none of them, and its row kept the micro-beam's
+    # line but never printed it. Now the sweep says each once naming its case, and the row is the run's list.
+    from conftest import MICRO_BEAM
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    if kind == "unused_keys":
+        scene, sets = PAPER, {"integrator.t_end": "0.01", "basis.modes": "4", "basis.estimate": "false",
+                              "basis.estimate_window": "0.005", "basis.enrichment": '"static"',
+                              "basis.dbf_stiffness": "1e5", "output.snapshots": "0", "basis.cache": '"off"'}
+        expected = ("[basis] estimate_window is not used: [basis] estimate = false",
+                    '[basis] dbf_stiffness is not used by enrichment = "static"')
+    else:
+        scene = shared_tmp_path / "micro_sweep.toml"
+        if MPI.COMM_WORLD.rank == 0:
+            scene.write_text(MICRO_BEAM + '\n[basis]\nmodes = 4\ncache = "off"\n\n[output]\nprobes = [5e-5]\n')
+        MPI.COMM_WORLD.Barrier()
+        scene, sets = str(scene), {"integrator.t_end": "2e-5", "output.sample_dt": "1e-7"}
+        expected = ("[integrator] atol = 1e-09 (modal units, m kg^(1/2)) lets w err by up to",)
+    ran = run(load_scene(scene, [f"{k}={v}" for k, v in sets.items()]), str(shared_tmp_path / f"{kind}.h5"),
+              progress=False)
+    capfd.readouterr()
+    path = write_sweep(shared_tmp_path, "[axes]\n" + "".join(f'"{k}" = [{v}]\n' for k, v in sets.items()), scene,
+                       f"{kind}.toml", f"{kind}-sweep.h5")
+    result = run_sweep(path, progress=False)
+    err = "".join(MPI.COMM_WORLD.allgather(capfd.readouterr().err))
+    assert result["failed"] == 0 and len(ran["warnings"]) == len(expected), ran["warnings"]
+    for line in expected:
+        assert any(w.startswith(line) for w in ran["warnings"]), (line, ran["warnings"])
+        assert_all(err.count(line) == 1 and re.search(r"warning: (sweep|\S+): case 1: " + re.escape(line), err), err)
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(result["output"]) as f:
+            assert f["cases/warnings"][0].decode().split("\n") == ran["warnings"]
