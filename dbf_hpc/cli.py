@@ -714,14 +714,17 @@ def _finish(comm, failure: str | None) -> int:
     return 1
 
 
-def _warn_unused(petsc_options, comm) -> None:
-    """One warning per PETSc option no solver read (collective)."""
+def _warn_unused(comm, said=()) -> None:
+    """One warning per PETSc option of the command (petsctools.command_option_names) no solver read, but
+    those the command has said already (`said`: `dbf-hpc run` says them itself and stores them in its
+    output, run.unused_option_lines). Collective."""
     from .errors import warn
-    from .petsctools import unused_options
+    from .petsctools import command_option_names, unused_option_warning, unused_options
 
-    for name in unused_options([t for t in petsc_options if t.startswith("-") and not _NUMBER.match(t)], comm):
-        warn(f"PETSc option {name} was not used: a misspelling, or a solver this command does not run (prefixes: "
-             f"modes_, dbf_, static_, buckling_, rom_, full_)", comm)
+    for name in unused_options(command_option_names(), comm):
+        message = unused_option_warning(name)
+        if message not in said:
+            warn(message, comm)
 
 
 TERMINATED = ("stopped by a termination signal before the integration began; nothing was written: rerun to start "
@@ -834,7 +837,7 @@ def main(argv=None) -> int:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from .errors import TERMINATION, DbfError, petsc_failure, termination_signals
+    from .errors import TERMINATION, DbfError, petsc_failure, recording, termination_signals
     from .petsctools import command_options
 
     comm = MPI.COMM_WORLD
@@ -849,10 +852,10 @@ def main(argv=None) -> int:
     for signum in termination_signals():   # SIGTERM, and Ctrl-C; integrations and sweeps install their own
         signal.signal(signum, _terminated)
     try:
-        with command_options(petsc_options, at_start, keep=program):
+        with command_options(petsc_options, at_start, keep=program), recording() as said:
             args.func(args)
             failure = None
-            _warn_unused(petsc_options, PETSc.COMM_WORLD)
+            _warn_unused(PETSc.COMM_WORLD, said)
     except DbfError as e:
         failure = str(e)
     except PETSc.Error as e:  # most often an option PETSc refused: one line, the ranks agree as on a DbfError

@@ -162,7 +162,7 @@ def reference() -> str:
               "basis, options, ranks, method, version; `dbf-hpc run --resume` on a finished output with the same "
               "identity computes nothing again), `warnings` (every `dbf-hpc: warning` line the run printed before its "
               "output was complete, and those it prints of its result once complete (a stop never reached, impacts a "
-              "fixed step does not resolve ...), one a line, empty for none: `dbf-hpc info` shows them, and "
+              "fixed step does not resolve ...) and of the command's PETSc options no solver read, one a line, empty for none: `dbf-hpc info` shows them, and "
               "`--resume` of the finished output prints them again), and `complete = true` once the run finished. A run of a scene with constraints also has its "
               "a-posteriori error estimate (docs/accuracy.md; not with `[basis] estimate = false`): "
               "`estimated_error` (1, the largest |w - w_rich| at any constraint over the largest |w_rich| at any "

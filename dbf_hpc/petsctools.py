@@ -202,6 +202,15 @@ def frames_released():
         raise
 
 
+_COMMANDS = []   # the option names ("-name") of each command_options block open, the innermost last
+
+
+def command_option_names() -> list:
+    """The PETSc options ("-name") of the command running now (its command_options block), [] outside one:
+    those whose use dbf-hpc checks (unused_options; run.run stores the lines in its output). Not collective."""
+    return list(_COMMANDS[-1]) if _COMMANDS else []
+
+
 @contextlib.contextmanager
 def command_options(tokens, at_start: bool, keep: bool = False):
     """One command's PETSc options (tokens as given: -name [value] ...) in the database while it runs,
@@ -217,6 +226,7 @@ def command_options(tokens, at_start: bool, keep: bool = False):
     and -log_view's option table lost every solver option; red team). Not collective."""
     options = PETSc.Options()
     pairs = option_pairs(tokens)
+    _COMMANDS.append([f"-{name}" for name, _ in pairs])
     before = {}
     for name, _ in pairs:
         if name.startswith(SOLVER_PREFIXES) and name not in before:
@@ -227,6 +237,7 @@ def command_options(tokens, at_start: bool, keep: bool = False):
     try:
         yield
     finally:
+        _COMMANDS.pop()
         if not keep:
             for name, value in before.items():
                 options.delValue(name)
@@ -254,25 +265,65 @@ def _petsc_library():
 READ_BY_PETSC_ITSELF = ("-options_left", "-options_view", "-options_file")
 
 
-def unused_options(names, comm) -> list:
-    """The options among `names` (as given, e.g. '-rom_ts_arkimex_typ') that no solver on any rank
-    read: a misspelling, or a solver this command does not run (not READ_BY_PETSC_ITSELF).
-    Collective; [] where PETSc cannot tell."""
+def _checked(names) -> list:
+    return [n for n in names if n.startswith("-") and len(n) > 1 and n not in READ_BY_PETSC_ITSELF]
+
+
+def options_read_here(names) -> np.ndarray:
+    """Per option of `names` (as given, e.g. '-rom_ts_arkimex_typ'; those unused_options checks), 1 where
+    a solver on this rank has read it so far (or PETSc cannot tell), else 0. Not collective."""
     import ctypes
 
-    from mpi4py import MPI
-
     lib = _petsc_library()
-    names = [n for n in names if n.startswith("-") and len(n) > 1 and n not in READ_BY_PETSC_ITSELF]
     used = []
-    for name in names:
+    for name in _checked(names):
         flag = ctypes.c_int(1)
         if lib is not None and lib.PetscOptionsUsed(None, name.lstrip("-").encode(), ctypes.byref(flag)) != 0:
             flag.value = 1
         used.append(bool(flag.value))
-    anywhere = np.zeros(len(names), dtype=np.int32)
-    comm.tompi4py().Allreduce(np.array(used, dtype=np.int32), anywhere, op=MPI.MAX)
-    return [name for name, u in zip(names, anywhere) if not u]
+    return np.array(used, dtype=np.int32)
+
+
+def options_read_anywhere(names, comm) -> np.ndarray:
+    """options_read_here of every rank of `comm` combined: 1 where a solver on any rank has read it.
+    Collective."""
+    from mpi4py import MPI
+
+    here = options_read_here(names)
+    anywhere = np.zeros_like(here)
+    comm.tompi4py().Allreduce(here, anywhere, op=MPI.MAX)
+    return anywhere
+
+
+def unused_options(names, comm) -> list:
+    """The options among `names` (as given, e.g. '-rom_ts_arkimex_typ') that no solver on any rank
+    read: a misspelling, or a solver this command does not run (not READ_BY_PETSC_ITSELF).
+    Collective; [] where PETSc cannot tell."""
+    return [name for name, u in zip(_checked(names), options_read_anywhere(names, comm)) if not u]
+
+
+def unread_options(names, read) -> list:
+    """unused_options where the ranks cannot meet: `read` is options_read_anywhere at an earlier point
+    of the command where every rank was present, and this rank's own reads since count too (run.py:
+    rank 0 checks as it writes the output, the other ranks done with their solvers and waiting). Not
+    collective."""
+    here = np.maximum(options_read_here(names), read)
+    return [name for name, u in zip(_checked(names), here) if not u]
+
+
+def unused_option_warning(name: str) -> str:
+    """The warning for a PETSc option no solver read (unused_options)."""
+    return (f"PETSc option {name} was not used: a misspelling, or a solver this command does not run (prefixes: "
+            f"modes_, dbf_, static_, buckling_, rom_, full_)")
+
+
+def mark_options_read(names) -> None:
+    """Read each of `names` once, so that PETSc counts it used: where the run that read them is done
+    already (run.run of a finished output, whose stored warnings say which no solver read). Not
+    collective."""
+    database = PETSc.Options()
+    for name in _checked(names):
+        database.getString(name.lstrip("-"), "")
 
 
 def natural_fill_is_small(A: PETSc.Mat) -> bool:

@@ -39,7 +39,8 @@ from .matrices import file_digest
 from .modes import counters
 from .output import (SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space, check_output_path,
                      free_bytes, is_dbf_checkpoint, is_dbf_partial, output_bytes)
-from .petsctools import petsc_comm, petsc_errors_as_one_line
+from .petsctools import (command_option_names, mark_options_read, options_read_anywhere, petsc_comm,
+                         petsc_errors_as_one_line, unread_options, unused_option_warning)
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
@@ -107,8 +108,9 @@ def run(scene: Scene, out: str | None = None, progress: bool = True, comm=None, 
     again. method = "full" integrates the full-order model instead: the reference the reduced model
     is measured against, same scene, same output layout. `out` (default the scene's [output] file,
     relative to the scene's folder), `progress`: the progress lines on stdout (rank 0 of comm). The
-    summary's "warnings" lists what the run warned before its output was complete (the output's
-    `warnings` attribute). Collective on comm (a petsc4py or mpi4py communicator, default
+    summary's "warnings" lists what the run warned (the output's `warnings` attribute: what it said
+    before its output was complete, of its result, and of the command's PETSc options no solver read,
+    petsctools.command_options). Collective on comm (a petsc4py or mpi4py communicator, default
     COMM_WORLD): every rank of it calls run with the same scene, and a DbfError is raised on all of
     them."""
     with recording() as warned:
@@ -152,13 +154,20 @@ def _run_recorded(scene: Scene, out, progress: bool, comm, initial_state, resume
             # written before outputs stored them: what its summary shows (result_warnings)
             stored = done["warnings"] if "warnings" in done else result_warnings(done, scene.constraints, method,
                                                                                   settings)
+            # the command's PETSc options were read by the run that wrote it, which stored the lines of those
+            # no solver read (finish): said again here, and the command does not call the others unused
+            mark_options_read(command_option_names())
             for message in stored:
                 if message not in warned:
                     warn(message, comm)
             TERMINATION.finished = True
             return done
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
-    _warn_result(summary, scene.constraints, method, settings, comm)
+    # what finish stored and the run has not said yet: its result's (result_warnings), the PETSc options no
+    # solver read (unused_option_lines); every rank records them (the command says none of them again)
+    for message in summary["warnings"]:
+        if message not in warned:
+            warn(message, comm)
     return summary
 
 
@@ -177,10 +186,22 @@ def scene_warnings(scene: Scene, settings, method: str = "rom") -> list:
     return [message for message in messages if message]
 
 
-def _warn_result(summary: dict, constraints, method: str, settings, comm) -> None:
-    """result_warnings, each a warning (after the output is complete)."""
-    for message in result_warnings(summary, constraints, method, settings):
-        warn(message, comm)
+def options_read(comm) -> tuple | None:
+    """(the command's PETSc options, whether a solver on any rank of comm has read each so far:
+    petsctools.options_read_anywhere), or None where the command gave none (petsctools.command_option_names:
+    the same on every rank, the same command line). Taken once every rank is done with its solvers, for
+    unused_option_lines as rank 0 writes the output. Collective."""
+    names = command_option_names()
+    return (names, options_read_anywhere(names, comm)) if names else None
+
+
+def unused_option_lines(options: tuple | None) -> list:
+    """The warning for each of the command's PETSc options no solver read (`options`: options_read, and this
+    rank's reads since), stored with the run's other warnings in its output (finish): `dbf-hpc info` shows
+    them and --resume of the finished output says them again. Not collective."""
+    if not options:
+        return []
+    return [unused_option_warning(name) for name in unread_options(*options)]
 
 
 def result_warnings(summary: dict, constraints, method: str, settings) -> list:
@@ -348,7 +369,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
     return _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident,
                         {"eigen_solves": counters["eigen_solves"] - solves, "cache": cache_state},
                         (rich, window, estimate.statistics_window, second) if rich is not None and initial_state is None
-                        else None)
+                        else None, options_read(comm))   # every rank's solvers but rank 0's integration are done
 
 
 # The most of a constraint's smallest clearance the adaptive steps' absolute tolerance may let w err
@@ -792,15 +813,16 @@ def _stored_summary(f, path: str) -> dict:
     return summary
 
 
-def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident, basis_stats, estimator=None) -> dict:
-    """Rank 0 integrates and writes; the others wait and learn the outcome."""
+def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident, basis_stats, estimator=None,
+                 options=None) -> dict:
+    """Rank 0 integrates and writes; the others wait and learn the outcome. `options`: options_read."""
     world = comm.tompi4py()
     summary, failure, sent = {}, None, 0
     remote = RemoteStop(world) if world.size > 1 and world.rank == 0 else None
     if world.rank == 0:
         try:
             summary = run_case(scene, model, path, say=say, resume=resume, ident=ident, extra_stats=basis_stats,
-                               ranks=world.size, timings=timings, estimator=estimator, remote=remote)
+                               ranks=world.size, timings=timings, estimator=estimator, remote=remote, options=options)
         except DbfError as exc:
             failure = (type(exc).__name__, str(exc))
     # The other ranks: a signal while rank 0 runs is sent to it (RemoteStop). Once rank 0's run has
@@ -831,7 +853,7 @@ RESUME_ADVICE = "rerun with --resume to finish from the last checkpoint"
 
 def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: bool = False, ident=None,
              extra_stats=None, ranks: int = 1, timings=None, estimator=None, keep: bool = True,
-             remote: RemoteStop | None = None) -> dict:
+             remote: RemoteStop | None = None, options: tuple | None = None) -> dict:
     """Integrate a reduced model on this rank alone and write the run's output to `path` (rank 0 of
     a run, or any rank of a sweep). Checkpoints every [output] checkpoint_dt; SIGTERM checkpoints
     and stops (errors.Interrupted); with resume, continues from a valid checkpoint. With estimator =
@@ -840,13 +862,16 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
     summary with the final state and excitation phase (for continuation). keep False (a sweep's
     case without keep_outputs): the samples go to path.partial for the checkpoints alone, and the
     finished run writes no output (finish). `remote`: how rank 0 of a run hears of a termination
-    signal on another rank during the integration."""
+    signal on another rank during the integration. `options` (a run's, options_read; None in a sweep's
+    case): the output stores a warning for each of the command's PETSc options no solver read (finish)."""
     settings, output = scene.integrator_settings(), scene.output()
     timings = {} if timings is None else timings
     checkpoint = Checkpoint(f"{path}.checkpoint", ident or {})
     done = finished_output(path, ident, scene) if resume else None
     if done is not None:   # a sweep's case that finished before its record was written
         _say(say, f"{path} is already complete for this case: nothing to resume")
+        if options:   # (a run's: read by the run that wrote it, whose stored warnings name those no solver read)
+            mark_options_read(options[0])
         return done
     writer = recorder = stepper = None
     try:
@@ -898,7 +923,8 @@ def run_case(scene: Scene, model: ReducedModel, path: str, *, say=None, resume: 
             timings["snapshots"] = time.perf_counter() - t
             summary = finish(scene, recorder, stats, timings, ranks, "rom", model.field_points, snap_t, snap_w, model,
                              {**(estimate.attrs() if estimate else {}), **(long_run.attrs() if long_run else {})},
-                             long_run.datasets(layout.STATISTICS_ERROR) if long_run else None, checkpoint, keep)
+                             long_run.datasets(layout.STATISTICS_ERROR) if long_run else None, checkpoint, keep,
+                             options)
             checkpoint.remove()
     except Interrupted as exc:
         raise Interrupted(_left_behind(str(exc), writer, checkpoint)) from None
@@ -1220,7 +1246,8 @@ def _initial_text(init) -> str:
 
 def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, ranks: int, method: str,
            field, snap_t, snap_w, model: ReducedModel | None = None, extra_attrs: dict | None = None,
-           extra_datasets: dict | None = None, checkpoint: Checkpoint | None = None, write: bool = True) -> dict:
+           extra_datasets: dict | None = None, checkpoint: Checkpoint | None = None, write: bool = True,
+           options: tuple | None = None) -> dict:
     """Rank 0: write the fixed-size data and the attributes, rename the file into place (and, with
     snapshots, an XDMF file beside it for ParaView), and return the run's summary. `field` is the
     PointValues the snapshots are taken at; `checkpoint` the run's (a failed write names it). With
@@ -1246,10 +1273,12 @@ def finish(scene: Scene, recorder: SampleRecorder, stats: dict, timings: dict, r
     summary = {"path": writer.path, "stats": stats, "timings": timings, "probe_peak": probe_peak.tolist(),
                "constraint_stats": {k: v.tolist() for k, v in constraint_stats.items()},
                "alpha_speed": stats["alpha_speed"]}
-    # what the run warned (run.run records it) and what it warns of this result once the output is
-    # complete (result_warnings): stored, so that `info` and a --resume of the output show them
+    # what the run warned (run.run records it), what it warns of this result once the output is complete
+    # (result_warnings) and of the command's PETSc options no solver read (unused_option_lines, `options`):
+    # stored, so that `info` and a --resume of the output show them
     summary["warnings"] = list(dict.fromkeys(recorded() + result_warnings(summary, scene.constraints, method,
-                                                                            scene.integrator_settings())))
+                                                                            scene.integrator_settings())
+                                             + unused_option_lines(options)))
     if not write:   # some 80 datasets with their units, 50 ms a case, written to be removed (sweep._run_one)
         writer.discard()
         return summary
@@ -1551,13 +1580,15 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
         raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint)) from None
     summary, failure = {}, None
+    options = options_read(fom.comm)   # every rank is done with its solvers
     if world.rank == 0:   # a failed or stopped write is every rank's error (they waited in bcast for ever)
         try:
             with _stop_on_sigterm(True, AFTER_INTEGRATION):
                 snap_t = settings.sample_times[sorted(snaps)] if snaps else np.zeros(0)
                 snap_w = np.array([snaps[i] for i in sorted(snaps)]).reshape(snap_t.size, field.positions.size)
                 summary = finish(scene, recorder, stats, timings, world.size, "full", field, snap_t, snap_w,
-                                 extra_attrs=estimate.attrs() if estimate else None, checkpoint=checkpoint)
+                                 extra_attrs=estimate.attrs() if estimate else None, checkpoint=checkpoint,
+                                 options=options)
                 checkpoint.remove()
             if estimate:
                 summary["estimated_error"], summary["estimated_error_window"] = estimate.value, estimate.window

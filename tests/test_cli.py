@@ -970,6 +970,34 @@ def test_unused_petsc_options_and_suspicious_units_draw_warnings(tmp_path):
     assert "basis: 6 modes (8.606e-06 ... " in out.stdout and "warning" not in out.stdout, out.stdout
 
 
+def test_an_unused_petsc_option_is_kept_in_the_output_and_said_again_by_resume_and_info(tmp_path):
+    # Warnings parity: the "was not used" line was printed by the command after the run had written its
+    # output, so the output's `warnings` did not hold it: `--resume` of the finished run (a requeued batch job)
+    # and `dbf-hpc info` did not repeat it, and the resume warned of -modes_eps_tol, which the run had read,
+    # as "not used" (nothing reads options when nothing is computed). Reduced and full-order runs alike.
+    import h5py
+
+    for method, extra, read in (("rom", (), "-modes_eps_tol"), ("full", ("--set", "integrator.dt=1e-4"),
+                                                                 "-full_alpha_radius")):
+        out = str(tmp_path / f"{method}.h5")
+        args = ("run", PAPER, "-o", out, "--method", method, "--set", "integrator.t_end=0.01", "--set",
+                "basis.modes=4", "--set", "basis.estimate=false", "--set", "output.snapshots=0", "--set",
+                f"basis.cache={tmp_path}", *extra, read, "0.9" if method == "full" else "1e-11",
+                "-rom_ts_arkimex_typ", "4")
+        line = "dbf-hpc: warning: PETSc option -rom_ts_arkimex_typ was not used: a misspelling"
+        for attempt in ("run", "resume"):
+            ran = dbf_hpc(*args, *(("--resume",) if attempt == "resume" else ()))
+            assert ran.returncode == 0, ran.stderr
+            assert ran.stderr.count(line) == 1, (method, attempt, ran.stderr)
+            assert f"{read} was not used" not in ran.stderr, (method, attempt, ran.stderr)
+            assert attempt == "run" or "already complete" in ran.stdout, ran.stdout
+        with h5py.File(out, "r") as f:
+            stored = str(f.attrs["warnings"]).split("\n")
+        assert sum(w.startswith("PETSc option -rom_ts_arkimex_typ was not used") for w in stored) == 1, stored
+        info = dbf_hpc("info", out, ranks=1)
+        assert "warning: PETSc option -rom_ts_arkimex_typ was not used" in info.stdout, info.stdout
+
+
 def test_options_petsc_reads_at_its_finalize_are_not_called_unused_but_a_misspelling_is():
     # Red team: -options_left and -options_view (read by PetscFinalize, after the command's check)
     # were reported as "not used: a misspelling"; -options_left's own report must still appear.
