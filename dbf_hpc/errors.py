@@ -138,11 +138,12 @@ def recorded() -> list:
     return list(_RECORDINGS[-1]) if _RECORDINGS else []
 
 
-def warn(message: str, comm) -> None:
+def warn(message: str, comm, record: bool = True) -> None:
     """`dbf-hpc: warning: message` on stderr, from rank 0 of `comm` (petsc4py or mpi4py); stdout
     keeps the progress and the results. Not collective: every rank calls it on the same path (and
-    records it in any recording() open)."""
-    for log in _RECORDINGS:
+    records it in any recording() open, unless record is False: a line of the installation, not of
+    the result, rom_integrator.say_fallback)."""
+    for log in _RECORDINGS if record else ():
         log.append(message)
     rank = comm.getRank() if hasattr(comm, "getRank") else comm.rank
     if rank == 0:

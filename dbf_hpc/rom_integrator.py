@@ -30,12 +30,10 @@ the per-step hook is due.
 """
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 from petsc4py import PETSc
 
-from .errors import InputError, SolverError
+from .errors import InputError, SolverError, warn
 from .petsctools import destroy
 from .rom import ReducedModel, applied
 from .timestepping import (ADAPT_DEFAULTS, LAW_SCALES, NO_DENSE_OUTPUT, IntegratorSettings, StepMonitor,
@@ -67,10 +65,31 @@ def c_core(callbacks: str, dimension: int = 1):
         return _romc.core
     if callbacks == "c":
         raise InputError(_romc.why)
-    if not _warned:
-        _warned.append(True)
-        print(f"dbf-hpc: warning: {_romc.why}; using the Python callbacks (slower)", file=sys.stderr)
+    say_fallback(callbacks, dimension, PETSc.COMM_WORLD)
     return None
+
+
+def fallback_warning(callbacks: str, dimension: int = 1) -> str | None:
+    """The line for callbacks = "auto" taking the Python callbacks where the C extension is not built or
+    is switched off (DBF_HPC_NO_C), or None: decided by the setting, the laws' `dimension` and the
+    installation, so the same on every rank. Not collective."""
+    from . import _romc
+    if callbacks != "auto" or not _covered(dimension) or _romc.core is not None:
+        return None
+    return f"{_romc.why}; using the Python callbacks (slower)"
+
+
+def say_fallback(callbacks: str, dimension: int, comm) -> None:
+    """fallback_warning once a process, from rank 0 of `comm` (errors.warn; not recorded in a run's
+    output: it is of the installation, not the result, and a stored list must not depend on what the
+    process ran before). Every rank decides it alike: the front ends call it on every rank before any
+    case runs (run.run, sweep.run_sweep), c_core on the rank that integrates (simulate_reduced, called on
+    every rank of a script, says it once). Red team: a sweep on 2 ranks, each rank integrating its own
+    cases, printed it once per rank. Not collective."""
+    message = fallback_warning(callbacks, dimension)
+    if message and not _warned:
+        _warned.append(True)
+        warn(message, comm, record=False)
 
 
 def effective_callbacks(callbacks: str, dimension: int = 1) -> str:

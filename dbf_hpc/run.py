@@ -44,7 +44,7 @@ from .petsctools import (command_option_names, mark_options_read, options_read_a
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
 from .reductor import Reductor
 from .rom import ReducedModel
-from .rom_integrator import c_counters, effective_callbacks, integrate_reduced
+from .rom_integrator import c_counters, effective_callbacks, integrate_reduced, say_fallback
 from .scene import Scene
 from .excitation import Harmonic
 from .schema import SECTIONS
@@ -162,6 +162,8 @@ def _run_recorded(scene: Scene, out, progress: bool, comm, initial_state, resume
                     warn(message, comm)
             TERMINATION.finished = True
             return done
+        if method == "rom":   # decided alike on every rank, though rank 0 alone integrates
+            say_fallback(settings.callbacks, law_dimension(scene), comm)
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
     # what finish stored and the run has not said yet: its result's (result_warnings), the PETSc options no
     # solver read (unused_option_lines); every rank records them (the command says none of them again)
@@ -690,11 +692,16 @@ def _continue_from(model: ReducedModel, initial_state) -> ReducedModel:
     return model.with_case(q0=q, p0=p)
 
 
+def law_dimension(scene: Scene) -> int:
+    """The most directions a constraint law of `scene` acts in (1 without constraints): what the C
+    callbacks cover (rom_integrator.c_core)."""
+    return max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
+
+
 def scene_callbacks(scene: Scene) -> str:
     """"c" or "python": the callbacks a reduced run of `scene` integrates with on this installation
     (rom_integrator.effective_callbacks: the same for either gyroscopic form)."""
-    dimension = max((getattr(c.law, "dimension", 1) for c in scene.constraints), default=1)
-    return effective_callbacks(scene.integrator_settings().callbacks, dimension)
+    return effective_callbacks(scene.integrator_settings().callbacks, law_dimension(scene))
 
 
 def run_identity(scene: Scene, basis_key: dict | None, comm, method: str, coordinates: str | None = None,

@@ -77,8 +77,10 @@ from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
+from .rom_integrator import say_fallback
 from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, basis_warnings, finished_output, forcing_warning,
-                  gyroscopic_checks, loose_atol_finding, result_warnings, run_case, scene_callbacks, scene_warnings)
+                  gyroscopic_checks, law_dimension, loose_atol_finding, result_warnings, run_case, scene_callbacks,
+                  scene_warnings)
 from .scene import load_scene, parse_override, relative_to_cwd
 from . import __version__
 from .schema import SECTIONS, unit_of
@@ -847,6 +849,12 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
         _prepare_models(sweep, pending, cache_dir, say, models)
     _warn_done(sweep, records, pending, world)
     _warn_loose_atol(sweep, pending, models, world)
+    for index in pending:   # every rank alike, rank 0 says it once: not each rank as it integrates its first case
+        try:
+            say_fallback(sweep["run_scenes"][index].integrator_settings().callbacks,
+                         law_dimension(sweep["run_scenes"][index]), world)
+        except InputError:   # (the case fails on its own, recorded so)
+            pass
     chains = [c for c in sweep["chains"] if any(i in pending for i in c)]
     mine = chains[world.rank::world.size]
     stopped = unwritten = None

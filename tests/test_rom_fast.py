@@ -221,10 +221,27 @@ def test_without_the_extension_callbacks_c_is_one_clear_line_and_auto_falls_back
     with pytest.raises(InputError, match="not built") as info:
         simulate_reduced(model, dataclasses.replace(settings, callbacks="c"))
     assert "\n" not in str(info.value)
-    result = simulate_reduced(model, dataclasses.replace(settings, callbacks="auto"))
-    assert result.solver["callbacks"] == "python"
+    for _ in range(2):   # a script's loop of runs: said once a process
+        result = simulate_reduced(model, dataclasses.replace(settings, callbacks="auto"))
+        assert result.solver["callbacks"] == "python"
     warning = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
-    assert len(warning) == 1 and "Python callbacks" in warning[0]
+    # once, by rank 0 (on 2 ranks, each rank calling simulate_reduced, each printed it: red team)
+    from mpi4py import MPI
+    assert len(warning) == (MPI.COMM_WORLD.rank == 0) and all("Python callbacks" in w for w in warning), warning
+
+
+@pytest.mark.launcher
+def test_a_sweep_on_two_ranks_says_once_that_it_uses_the_python_callbacks(tmp_path):
+    # Red team: each rank that integrated a case printed the fallback line: twice on 2 ranks. Every rank
+    # decides it alike before the cases run; rank 0 says it.
+    sweep = tmp_path / "fallback.toml"
+    sweep.write_text(f'scene = "{PAPER}"\noutput = "fallback.h5"\n[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n'
+                     f'"integrator.t_end" = [0.01]\n"basis.modes" = [4]\n"basis.cache" = ["{tmp_path}"]\n')
+    env = dict(os.environ, DBF_HPC_NO_C="1", OMPI_MCA_orte_execute_quiet="1", OMPI_MCA_rmaps_base_oversubscribe="1")
+    out = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "dbf_hpc.cli", "sweep", str(sweep), "-q"],
+                         capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stderr.count("DBF_HPC_NO_C is set") == 1 and "using the Python callbacks" in out.stderr, out.stderr
 
 
 @pytest.mark.launcher
