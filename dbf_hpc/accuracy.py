@@ -756,7 +756,7 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
     from .errors import wait_for_rank0
     from .simulate import integrate_samples
 
-    with Reductor(fom, basis_settings, cache_dir) as reductor:
+    with Reductor(fom, basis_settings, cache_dir, warn_basis=False) as reductor:
         model = reductor.reduce()
         rich = richer_model(fom, reductor.basis(), cache_dir)
     world = comm.tompi4py()

@@ -371,7 +371,8 @@ def _basis(args) -> int:
     comm = PETSc.COMM_WORLD
     say = PETSc.Sys.Print
     with scene.full_order_model(comm) as fom, \
-            Reductor(fom, scene.basis_settings(), None if args.no_cache else scene.cache_dir()) as reductor:
+            Reductor(fom, scene.basis_settings(), None if args.no_cache else scene.cache_dir(),
+                     warn_basis=False) as reductor:   # _print_basis says them
         labels = fom.constraints.component_labels
         start, solves = time.perf_counter(), counters["eigen_solves"]
         basis = reductor.basis()

@@ -17,7 +17,7 @@ from petsc4py import PETSc
 from .accuracy import constraint_kinds
 from .basis import BasisSettings, ReducedBasis
 from .cache import obtain_basis
-from .errors import InputError
+from .errors import InputError, warn
 from .fom import FullOrderModel
 from .modes import repeated_mode_refusal
 from .petsctools import destroy, petsc_errors_as_one_line
@@ -57,12 +57,17 @@ class Reductor:
     numpy arrays). cache_dir: a directory of cached bases, read and written (None: always built, never
     cached; the command line's default is ~/.cache/dbf_hpc). Collective on the full-order model's
     communicator, as are basis() and reduce(). Owns the basis it obtains (destroyed with the reductor,
-    destroy() or the end of its with block).
+    destroy() or the end of its with block). As basis() obtains it, says what `dbf-hpc run` says of it
+    (warnings(): a DBF stiffness far outside Fig. 2's transition, a static flexibility captured below 99 %,
+    a lowest elastic frequency that suggests a unit slip), from rank 0 of the model's communicator
+    (errors.warn, as simulate_reduced says its lines), unless warn_basis is False.
     """
 
     def __init__(self, fom: FullOrderModel, settings: BasisSettings = BasisSettings(), cache_dir: str | None = None,
-                 basis: ReducedBasis | None = None):
-        """With `basis`, that basis (already built, e.g. basis.richer_basis; the reductor owns it)."""
+                 basis: ReducedBasis | None = None, warn_basis: bool = True):
+        """With `basis`, that basis (already built, e.g. basis.richer_basis; the reductor owns it, and says
+        nothing of it). warn_basis False: basis() says nothing (the front ends that say the lines themselves,
+        after their progress line: run.run, the sweep, `dbf-hpc basis`; the tolerance mode's candidates)."""
         if not isinstance(fom, FullOrderModel):
             raise InputError(f"Reductor reduces a FullOrderModel (FullOrderModel.build), got {type(fom).__name__}")
         if not isinstance(settings, BasisSettings):
@@ -70,17 +75,31 @@ class Reductor:
         fom.operators   # an InputError for a destroyed model
         if cache_dir is not None and not isinstance(cache_dir, (str, os.PathLike)):
             raise InputError(f"Reductor cache_dir: give a directory path (str) or None, got {cache_dir!r}")
+        if not isinstance(warn_basis, (bool, np.bool_)):
+            raise InputError(f"Reductor warn_basis: give True or False, got {warn_basis!r}")
         self.fom, self.settings, self.cache_dir = fom, settings, cache_dir
-        self._basis = basis
+        self._basis, self._warn_basis = basis, bool(warn_basis)
 
     @petsc_errors_as_one_line("the basis", ("modes_", "dbf_", "static_"))
     def basis(self) -> ReducedBasis:
-        """The basis (obtained once). Collective."""
+        """The basis (obtained once, and its warnings() said then, unless warn_basis is False). Collective."""
         if self._basis is None:
             fom = self.fom
             self._basis = obtain_basis(fom.operators, fom.constraints.flat_rows, self.settings, fom.fingerprint,
                                        self.cache_dir, fom.constraints.component_labels)
+            if self._warn_basis:
+                for message in self.warnings():
+                    warn(message, fom.comm)
         return self._basis
+
+    def warnings(self) -> list:
+        """What `dbf-hpc run` warns of this basis whatever the forcing (run.basis_warnings: the same lines,
+        the same order). Collective (it obtains the basis); the list is the same on every rank."""
+        from .run import basis_warnings
+
+        fom = self.fom
+        return basis_warnings(self.basis(), fom.constraints.component_labels, fom.operators.rigid_modes,
+                              fom.constraints.dimension)
 
     @petsc_errors_as_one_line("Reductor.reduce", ("modes_", "dbf_", "static_"))
     def reduce(self, field: bool = False) -> ReducedModel:

@@ -344,7 +344,7 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
                       f"{pick.atol:g}: the first candidate whose estimate ({pick.estimate.value:.3g}) is at most "
                       f"{TOLERANCE_MARGIN:g} x the tolerance over [0, {pick.estimate.window:g}] s")
             t = time.perf_counter()
-        with Reductor(fom, scene.basis_settings(), scene.cache_dir()) as reductor:
+        with Reductor(fom, scene.basis_settings(), scene.cache_dir(), warn_basis=False) as reductor:   # _say_basis
             basis = reductor.basis()
             timings["basis"] = time.perf_counter() - t
             _say_basis(say, basis, timings["basis"], fom.constraints.component_labels, comm, scene.fastest_forcing_hz(),

@@ -431,7 +431,7 @@ def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | No
                 # ratios on the complex modes' real basis, and skipped the stability check with damping)
                 if fom.operators.G is not None:
                     gyroscopic_checks(scene, fom, "rom")
-                with Reductor(fom, scene.basis_settings(), cache_dir) as reductor:
+                with Reductor(fom, scene.basis_settings(), cache_dir, warn_basis=False) as reductor:
                     models[key] = reductor.reduce(field=scene.output().snapshots > 0)
                     # what a run warns of its basis (a flexibility captured below 99 %, a lowest frequency
                     # that suggests a unit slip ...): the sweep said nothing of it (warnings parity)

@@ -327,3 +327,36 @@ def test_the_support_motion_in_the_basis_is_each_modes_participation_in_the_rigi
     mass = BEAM.rho * BEAM.A * BEAM.length
     np.testing.assert_allclose(np.abs(rom.base_load[:6]), np.sqrt(2 * mass) / (np.pi * np.arange(1, 7)), rtol=1e-5)
     np.testing.assert_allclose(rom.r_q, r_q, rtol=1e-8, atol=1e-10 * np.abs(r_q).max())
+
+
+def test_a_reductor_says_the_very_lines_a_run_says_of_its_basis_once_from_rank_0(shared_tmp_path, capfd):
+    # Warnings parity: `dbf-hpc run` warns of its basis (run.basis_warnings; here 1 mode without enrichment
+    # captures 87.6 % of the stop's static flexibility: accuracy.flexibility_warning); the Python API's
+    # Reductor said nothing of it. It now says the run's very line as it obtains the basis, once, from rank 0
+    # of the model's communicator; warn_basis=False (the front ends that say it themselves) says nothing.
+    import os
+
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+
+    paper = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "jobs", "paper_beam.toml")
+    scene = load_scene(paper, ['basis.enrichment="none"', "basis.modes=1", "basis.estimate=false",
+                               "integrator.t_end=0.01", 'basis.cache="off"', "output.snapshots=0"])
+    ran = run(scene, str(shared_tmp_path / "flexibility.h5"), progress=False)
+    capfd.readouterr()
+    with scene.full_order_model(PETSc.COMM_WORLD) as fom:
+        with Reductor(fom, scene.basis_settings()) as reductor:
+            reductor.basis()
+            reductor.reduce()
+        with Reductor(fom, scene.basis_settings(), warn_basis=False) as quiet:
+            quiet.reduce()
+    err = capfd.readouterr().err
+    said = [line[len("dbf-hpc: warning: "):] for line in err.splitlines() if line.startswith("dbf-hpc: warning: ")]
+    if MPI.COMM_WORLD.rank == 0:
+        assert len(said) == 1 and said[0].startswith("the basis captures ") and said[0] in ran["warnings"], \
+            (said, ran["warnings"])
+    else:
+        assert said == [], said
