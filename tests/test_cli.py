@@ -998,6 +998,22 @@ def test_an_unused_petsc_option_is_kept_in_the_output_and_said_again_by_resume_a
         assert "warning: PETSc option -rom_ts_arkimex_typ was not used" in info.stdout, info.stdout
 
 
+def test_the_basis_command_says_the_very_basis_warnings_a_run_says_in_its_order(tmp_path):
+    # Warnings parity: `dbf-hpc basis` said the flexibility captured and the DBF stiffness lines, not the
+    # lowest elastic frequency that suggests a unit slip (E in GPa given as Pa) nor a forcing above the basis'
+    # modes, which `dbf-hpc run` of the same scene says: the basis command now says the run's lines in its order.
+    sets = ("--set", "basis.modes=1", "--set", 'basis.enrichment="none"', "--set", "structure.E=117", "--set",
+            f"basis.cache={tmp_path}")
+    basis = dbf_hpc("basis", PAPER, *sets)
+    ran = dbf_hpc("run", PAPER, "-o", str(tmp_path / "units.h5"), "-q", "--set", "integrator.t_end=0.01", "--set",
+                  "basis.estimate=false", "--set", "output.snapshots=0", *sets)
+    assert basis.returncode == 0 and ran.returncode == 0, basis.stderr + ran.stderr
+    said = [line for line in basis.stderr.splitlines() if line.startswith("dbf-hpc: warning: ")]
+    assert len(said) == 3 and "the lowest elastic frequency is 8.61e-06 Hz" in said[1], basis.stderr
+    assert "the excitation (1 Hz) lies above the highest reference mode" in said[2], basis.stderr
+    assert said == [line for line in ran.stderr.splitlines() if line in said], (said, ran.stderr)
+
+
 def test_options_petsc_reads_at_its_finalize_are_not_called_unused_but_a_misspelling_is():
     # Red team: -options_left and -options_view (read by PetscFinalize, after the command's check)
     # were reported as "not used: a misspelling"; -options_left's own report must still appear.
