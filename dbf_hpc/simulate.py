@@ -56,17 +56,18 @@ def simulate_reduced(model: ReducedModel, settings: IntegratorSettings, snapshot
     `snapshots` > 0 and a model reduced with field=True, that many field snapshots. Warns, as `dbf-hpc
     run` does, where an adaptive run's atol lets w err by over 1 % of a clearance (or of the motion's
     scale, run.motion_reach; run.loose_atol), where a fixed step or the samples are too coarse for the
-    forcing (coarse_warnings), and where `snapshots` exceeds the samples (snapshot_cap_warning): once per
-    process and message, on rank 0 of COMM_WORLD (the model is replicated: a script calls this on every
-    rank, and the line is printed once). After the integration it warns of the result as `dbf-hpc run`
-    does (run.result_warnings: a stop never reached, Hunt-Crossley damping beyond its range, impacts a
+    forcing (coarse_warnings), where the forcing lies above the basis' highest reference mode
+    (above_basis_warning, which the run says with its basis), and where `snapshots` exceeds the samples
+    (snapshot_cap_warning): once per process and message, on rank 0 of COMM_WORLD (the model is
+    replicated: a script calls this on every rank, and the line is printed once). After the integration it
+    warns of the result as `dbf-hpc run` does (run.result_warnings: a stop never reached, Hunt-Crossley damping beyond its range, impacts a
     fixed step does not resolve), on rank 0 of COMM_WORLD, each call. Not collective."""
     _check_settings(settings, say, "simulate_reduced")
     if hasattr(model, "probe_sample_shape"):
         from .run import loose_atol
 
         loose = loose_atol(model, settings.atol) if settings.adaptive else None
-        for message in [*coarse_warnings(model, settings, not settings.adaptive), loose]:
+        for message in [*coarse_warnings(model, settings, not settings.adaptive), above_basis_warning(model), loose]:
             if message and message not in _WARNED:
                 _WARNED.add(message)
                 warn(message, PETSc.COMM_WORLD)
@@ -90,6 +91,19 @@ def coarse_warnings(model, settings: IntegratorSettings, fixed_step: bool) -> li
     messages = (coarse_step_warning(settings, fastest) if fixed_step else None,
                 coarse_samples_warning(settings, fastest))
     return [_api_names(m) for m in messages if m]
+
+
+def above_basis_warning(model) -> str | None:
+    """What `dbf-hpc run` warns where the model's support motion or force lies above its basis' highest
+    reference mode (run.forcing_warning), naming the BasisSettings fields, or None: the reduced model's own
+    histories, so a case given another force (with_case) is judged by its own. Not collective."""
+    from .excitation import fastest_hz
+    from .run import forcing_warning
+
+    omega = np.asarray(getattr(model, "basis_info", {}).get("omega", ()), dtype=float)
+    message = forcing_warning(fastest_hz(model.support, model.force), omega)
+    return message and message.replace("(basis.modes or basis.max_frequency_hz)",
+                                       "(BasisSettings modes or max_frequency_hz)")
 
 
 def _api_names(message: str) -> str:

@@ -645,6 +645,38 @@ def test_simulate_full_and_reduced_warn_before_the_run_of_a_step_or_samples_too_
             assert_all(said(err) == (expected if MPI.COMM_WORLD.rank == 0 else ()), err)
 
 
+def test_simulate_reduced_warns_once_of_a_forcing_above_the_basis_as_a_run_does(capfd):
+    # Warnings parity: `dbf-hpc run` warns where the excitation lies above the basis' highest reference mode
+    # (run.forcing_warning: the basis cannot follow it); simulate_reduced said nothing, also of a case given
+    # another force (with_case). The paper's beam on 6 modes (top 39.2 Hz) under a 100 Hz force: once a
+    # process, from rank 0, naming the BasisSettings fields; a 1 Hz force draws none.
+    from mpi4py import MPI
+
+    import dbf_hpc.simulate as simulate
+    from dbf_hpc import (Beam, BasisSettings, Constraint, FullOrderModel, IntegratorSettings, PointForce, Reductor,
+                         law, simulate_reduced)
+    from dbf_hpc.excitation import Harmonic
+
+    beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+    with FullOrderModel.build(beam, [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)],
+                              PointForce(amplitude=1e-3, frequency_hz=1.0, x=0.5)) as fom:
+        with Reductor(fom, BasisSettings(modes=6)) as reductor:
+            rom = reductor.reduce()
+    top = rom.basis_info["omega"].max() / (2 * np.pi)
+    settings = IntegratorSettings(t_end=2e-3, sample_dt=1e-4)
+    simulate._WARNED.clear()
+    capfd.readouterr()
+    simulate_reduced(rom, settings)
+    assert_all("lies above" not in capfd.readouterr().err)
+    fast = rom.with_case(force=Harmonic(1e-3, 100.0))
+    for _ in range(2):
+        simulate_reduced(fast, settings)
+    said = [line for line in capfd.readouterr().err.splitlines() if "lies above" in line]
+    expected = [f"dbf-hpc: warning: the excitation (100 Hz) lies above the highest reference mode ({top:.4g} Hz): "
+                f"the basis cannot follow it; add modes (BasisSettings modes or max_frequency_hz)"]
+    assert_all(said == (expected if MPI.COMM_WORLD.rank == 0 else []), said)
+
+
 def test_help_of_the_package_names_every_api_name_with_its_module():
     # New-user pass: help(dbf_hpc) listed no name of the API (they load lazily, so pydoc saw only a
     # truncated "__all__ = ['BaseMotion', 'BasisSettings', 'Beam', 'Constraint', 'Const...").
