@@ -196,7 +196,7 @@ def reference() -> str:
              "null where a listed case leaves the base scene's value), `cases/status`, `cases/error`, "
              "`cases/wall_time` (s), `cases/warnings` (what `dbf-hpc run` warns of the case, that its result may be "
              "wrong, in its order: a coarse fixed step or sample interval, more snapshots than samples, estimate "
-             "windows or DBF keys the case does not read, what the model's matrix files and basis "
+             "windows or DBF keys the case does not read, what the model's matrix files, form and basis "
              "draw (a flexibility captured below 99 %, a lowest frequency that suggests a unit slip ...), a forcing "
              "above the basis, a loose atol (of a clearance, or of the whole motion of a structure without one in "
              "reach) (all these but the forcing the sweep prints once for the cases they "

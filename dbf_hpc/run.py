@@ -291,6 +291,16 @@ def _warn_gyroscopically_held(ops) -> None:
              f"counterpart", ops.comm)
 
 
+def form_warning(scene: Scene, fom) -> str | None:
+    """A warning where [basis] gyroscopic_form = "state_space" is given for a structure without G (a reduced
+    run: its reduced model is the second-order one), or None; a run and a sweep's model say it (red team:
+    the form was silently not used). Not collective."""
+    if fom.operators.G is None and scene["basis"]["gyroscopic_form"] == "state_space":
+        return ('[basis] gyroscopic_form = "state_space" is for gyroscopic structures (axial_speed, or a '
+                'matrices G); this one has no G, so its reduced model is the usual second-order one')
+    return None
+
+
 def gyroscopic_checks(scene: Scene, fom, method: str) -> None:
     """A gyroscopic structure (issue 19): refused above its critical speed (an unstable mode among the
     [basis] modes lowest, or the lowest 8, without and with its damping), and warned about if undamped
@@ -324,9 +334,8 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
                   f"{comm.getSize()} rank(s)")
         if fom.operators.G is not None:
             gyroscopic_checks(scene, fom, method)
-        elif scene["basis"]["gyroscopic_form"] == "state_space" and method == "rom":
-            warn('[basis] gyroscopic_form = "state_space" is for gyroscopic structures (axial_speed, or a '
-                 'matrices G); this one has no G, so its reduced model is the usual second-order one', comm)
+        elif method == "rom" and form_warning(scene, fom):
+            warn(form_warning(scene, fom), comm)
         if method == "full":
             return _run_full(scene, fom, path, settings, timings, say, resume, request, digests)
         t, solves = time.perf_counter(), counters["eigen_solves"]

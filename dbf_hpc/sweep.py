@@ -79,7 +79,7 @@ from .output import OutputLock, check_output_path, free_bytes
 from .reductor import Reductor
 from .rom_integrator import say_fallback
 from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, basis_warnings, finished_output, forcing_warning,
-                  gyroscopic_checks, law_dimension, loose_atol_finding, result_warnings, run_case, scene_callbacks,
+                  form_warning, gyroscopic_checks, law_dimension, loose_atol_finding, result_warnings, run_case, scene_callbacks,
                   scene_warnings)
 from .scene import load_scene, parse_override, relative_to_cwd
 from . import __version__
@@ -431,6 +431,8 @@ def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | No
                 # ratios on the complex modes' real basis, and skipped the stability check with damping)
                 if fom.operators.G is not None:
                     gyroscopic_checks(scene, fom, "rom")
+                elif form_warning(scene, fom):   # as a run says it (kept in the rows with the build's lines)
+                    warn(form_warning(scene, fom), PETSc.COMM_WORLD)
                 with Reductor(fom, scene.basis_settings(), cache_dir, warn_basis=False) as reductor:
                     models[key] = reductor.reduce(field=scene.output().snapshots > 0)
                     # what a run warns of its basis (a flexibility captured below 99 %, a lowest frequency

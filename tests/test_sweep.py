@@ -1426,18 +1426,24 @@ def test_a_sweep_path_that_does_not_exist_names_the_directory_it_was_looked_for_
         load_sweep("jobs/sweep.toml")
 
 
-@pytest.mark.parametrize("kind", ["unused_keys", "micro_beam"])
-def test_a_case_says_and_keeps_the_very_warnings_a_run_of_its_scene_gives_of_unused_keys_and_a_micro_motion(
+@pytest.mark.parametrize("kind", ["unused_keys", "micro_beam", "state_space_form"])
+def test_a_case_says_and_keeps_the_very_warnings_a_run_of_its_scene_gives_of_unused_keys_forms_and_micro_motion(
         shared_tmp_path, capfd, kind):
     # Warnings parity: `dbf-hpc run` warns of [basis] keys it does not read (estimate windows with estimate =
-    # false, DBF keys with enrichment = "static") and of an atol above a micro-beam's whole motion (run.motion_reach,
-    # no clearance to compare with); a sweep of the same scene said none of them, and its row kept the micro-beam's
-    # line but never printed it. Now the sweep says each once naming its case, and the row is the run's list.
+    # false, DBF keys with enrichment = "static", the state-space form on a structure without G) and of an atol
+    # above a micro-beam's whole motion (run.motion_reach, no clearance to compare with); a sweep of the same
+    # scene said none of them but the last, kept in its row and never printed. Now the sweep says each once
+    # naming its case (the form's line as the model is built), and the row is the run's list.
     from conftest import MICRO_BEAM
     from dbf_hpc.run import run
     from dbf_hpc.scene import load_scene
 
-    if kind == "unused_keys":
+    if kind == "state_space_form":
+        scene, sets = PAPER, {"integrator.t_end": "0.01", "basis.modes": "4", "basis.estimate": "false",
+                              "basis.gyroscopic_form": '"state_space"', "output.snapshots": "0",
+                              "basis.cache": '"off"'}
+        expected = ('[basis] gyroscopic_form = "state_space" is for gyroscopic structures',)
+    elif kind == "unused_keys":
         scene, sets = PAPER, {"integrator.t_end": "0.01", "basis.modes": "4", "basis.estimate": "false",
                               "basis.estimate_window": "0.005", "basis.enrichment": '"static"',
                               "basis.dbf_stiffness": "1e5", "output.snapshots": "0", "basis.cache": '"off"'}
@@ -1460,7 +1466,8 @@ def test_a_case_says_and_keeps_the_very_warnings_a_run_of_its_scene_gives_of_unu
     assert result["failed"] == 0 and len(ran["warnings"]) == len(expected), ran["warnings"]
     for line in expected:
         assert any(w.startswith(line) for w in ran["warnings"]), (line, ran["warnings"])
-        assert_all(err.count(line) == 1 and re.search(r"warning: (sweep|\S+): case 1: " + re.escape(line), err), err)
+        named = "" if kind == "state_space_form" else r"(sweep|\S+): case 1: "   # (said as the model is built)
+        assert_all(err.count(line) == 1 and re.search(r"warning: " + named + re.escape(line), err), err)
     if MPI.COMM_WORLD.rank == 0:
         with h5py.File(result["output"]) as f:
             assert f["cases/warnings"][0].decode().split("\n") == ran["warnings"]
