@@ -1662,3 +1662,115 @@ def test_a_free_vibration_from_one_mode_of_a_repeated_gyroscopic_frequency_is_re
             v.destroy()
     finally:
         ops.destroy()
+
+
+def test_complex_modes_are_mass_normalized_with_a_real_positive_largest_entry_and_a_diverging_mode_has_no_frequency():
+    # gyroscopic.py's convention (GyroscopicModes, normalize_complex): x^H M x = 1 and the largest entry
+    # (the lowest row among those within TIE_TOL of it) real and positive; [initial] mode starts from
+    # u = Re x, so the phase is a result. A phase turned by value / |value| instead of its conjugate
+    # left x^H M x = 1 and the frequencies as they were: no test saw it. A diverging mode's omega is 0
+    # (lambda = +sigma), not |lambda|: `dbf-hpc modes` prints it as the frequency.
+    from dbf_hpc.gyroscopic import TIE_TOL
+
+    ops = assemble_beam(Beam(elements=40, axial_speed=30.0, **BAND), comm=PETSc.COMM_SELF)
+    try:
+        M = to_dense(ops.M)
+        modes = gyroscopic_modes(ops, count=4)
+        x = [a.getArray() + 1j * b.getArray() for a, b in zip(modes.real, modes.imag)]
+        modes.destroy()
+    finally:
+        ops.destroy()
+    for z in x:
+        assert abs((z.conj() @ M @ z).real - 1) < 1e-12
+        row = np.flatnonzero(np.abs(z) >= (1 - TIE_TOL) * np.abs(z).max())[0]
+        assert z[row].real > 0 and abs(z[row].imag) < 1e-12 * abs(z[row])
+        assert np.abs(z.imag).max() > 1e-3 * np.abs(z).max()   # travelling: not a real shape turned real
+    m_t = 0.5 * RHOA
+    above = Beam(length=L, E=E, I=I, A=A, rho=RHO, elements=100, transported_mass=m_t,
+                 axial_speed=np.pi * (1 + 1e-3) / L * np.sqrt(EI / m_t))
+    ops = assemble_beam(above)
+    try:
+        modes = gyroscopic_modes(ops, count=2)
+        omega, frequency, lam = modes.omega.copy(), modes.frequency_hz.copy(), modes.eigenvalues.copy()
+        modes.destroy()
+    finally:
+        ops.destroy()
+    assert lam[0].real > 0 and omega[0] == 0 and frequency[0] == 0 and omega[1] == lam[1].imag > 0
+
+
+def test_a_slow_flutter_just_below_the_stabilizing_gyroscopic_coupling_is_named_unstable():
+    # Two DOFs of K = -I (unstable alone) held by G = [[0, g], [-g, 0]] (M = I) are stable for g >= 2; below,
+    # (lambda^2 - 1)^2 + g^2 lambda^2 = 0 gives lambda = (+-i g +- sqrt(4 - g^2)) / 2, |lambda| = 1: at
+    # g = 2 (1 - 1e-8) a flutter of growth rate sqrt(4 - g^2) / 2 = 1.4e-4 |lambda|. UNSTABLE_TOL (1e-6 of
+    # |lambda|) names it; a threshold of 1e-3 let it through as stable (no test grew this slowly). Six stiff
+    # DOFs (omega 10 ... 15 rad/s) pad the problem: a PEP of dimension 2 is below TOAR's subspace.
+    from dbf_hpc.gyroscopic import check_stable
+    from dbf_hpc.operators import Operators
+    from dbf_hpc.petsctools import destroy
+
+    g, n = 2 * (1 - 1e-8), 8
+    diagonal = np.array([-1.0, -1.0] + [(10.0 + j) ** 2 for j in range(n - 2)])
+
+    def matrix(values):
+        mat = PETSc.Mat().createAIJ([n, n], nnz=2, comm=PETSc.COMM_WORLD)
+        lo, hi = mat.getOwnershipRange()
+        for (i, j), v in values.items():
+            if lo <= i < hi:
+                mat.setValue(i, j, v)
+        mat.assemble()
+        return mat
+
+    K, M = matrix({(i, i): diagonal[i] for i in range(n)}), matrix({(i, i): 1.0 for i in range(n)})
+    G = matrix({(0, 1): g, (1, 0): -g})
+    ops = Operators(comm=PETSc.COMM_WORLD, K=K, M=M, G=G)
+    try:
+        modes = gyroscopic_modes(ops, count=2)
+        lam, unstable = modes.eigenvalues.copy(), modes.unstable
+        modes.destroy()
+        growing = lam[unstable[0]] if unstable else None
+        with pytest.raises(InputError, match=r"unstable at axial speed 1 m/s: mode \d is unstable \(flutter"):
+            check_stable(ops, 2, "1 m/s")
+    finally:
+        destroy(K, M, G)
+    sigma = np.sqrt(4 - g**2) / 2
+    assert len(unstable) == 1 and abs(growing.real / sigma - 1) < 1e-4 and abs(growing.imag - g / 2) < 1e-10
+
+
+def test_damping_that_undoes_gyroscopic_stabilization_names_the_fastest_growing_mode():
+    # Kelvin-Tait-Chetaev: two pairs of DOFs with K = -1 and -4 (unstable alone) held by G couplings 3 and
+    # 6 (above their thresholds 2 and 4: undamped every lambda = +-i omega) grow once damped (C = 0.1 and
+    # 0.3 on them). check_damped_stable names the worst growth, checked against numpy's eigenvalues of the
+    # dense companion form; keeping the smallest growth instead went unnoticed (one growing pair tested).
+    from dbf_hpc.gyroscopic import check_damped_stable, check_stable
+    from dbf_hpc.operators import Operators
+    from dbf_hpc.petsctools import destroy
+
+    n = 8
+    k = np.array([-1.0, -1.0, -4.0, -4.0] + [(10.0 + j) ** 2 for j in range(n - 4)])
+    c = np.array([0.1, 0.1, 0.3, 0.3] + [0.0] * (n - 4))
+    G = np.zeros((n, n))
+    G[0, 1], G[2, 3] = 3.0, 6.0
+    G -= G.T
+
+    def matrix(dense):
+        mat = PETSc.Mat().createAIJ([n, n], nnz=2, comm=PETSc.COMM_WORLD)
+        lo, hi = mat.getOwnershipRange()
+        for i, j in zip(*np.nonzero(dense)):
+            if lo <= i < hi:
+                mat.setValue(int(i), int(j), dense[i, j])
+        mat.assemble()
+        return mat
+
+    K, M, Gm, CG = matrix(np.diag(k)), matrix(np.eye(n)), matrix(G), matrix(np.diag(c) + G)
+    ops = Operators(comm=PETSc.COMM_WORLD, K=K, M=M, G=Gm)
+    try:
+        check_stable(ops, 4, "1 m/s")   # undamped: held
+        with pytest.raises(InputError) as refused:
+            check_damped_stable(ops, CG, 4, "1 m/s")
+    finally:
+        destroy(K, M, Gm, CG)
+    lam = np.linalg.eigvals(np.block([[np.zeros((n, n)), np.eye(n)], [-np.diag(k), -(np.diag(c) + G)]]))
+    growth = np.sort(lam.real[lam.real > 1e-9])
+    assert growth.size == 4 and growth[-1] > 1.5 * growth[0]   # two growing pairs, of distinct rates
+    named = float(re.search(r"growth rate ([-\d.e+]+) 1/s", str(refused.value)).group(1))
+    assert abs(named / growth[-1] - 1) < 1e-5, (named, growth)
