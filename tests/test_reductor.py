@@ -88,21 +88,35 @@ def test_an_initial_mode_shape_starts_at_the_requested_peak_displacement():
 
 
 @pytest.mark.parametrize("start", [dict(amplitude=1e308), dict(amplitude=-1e308), dict(velocity=1e308)])
-def test_an_initial_state_beyond_double_precision_is_refused_naming_the_initial_section(start):
+def test_an_initial_state_beyond_double_precision_is_refused_naming_the_initial_section(start, shared_tmp_path):
     # u(0) = amplitude x a mode shape of peak 1, projected with M: past 1e308 m it is inf. Red team: numpy's
     # overflow warning, then "the state is not finite at t = 0 s (step 0); reduce [integrator] dt or rtol".
+    # A beam refuses a displacement longer than itself when it is built (fom.check_displacement): the
+    # displacements go to a matrix model (no length), the velocity to the beam of two planes.
+    from conftest import twin_chains
+    from dbf_hpc.matrices import MatrixFiles
+
+    twin_chains(shared_tmp_path, copies=1)[0].destroy()   # one chain: distinct frequencies
+    chain = MatrixFiles(str(shared_tmp_path / "K.mtx"), str(shared_tmp_path / "M.mtx"))
     tube = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=40, planes=2)
-    stop = Constraint(law("circular", clearance=2.5e-3, k=1e6), x=0.25)
+    structure, stop = ((tube, Constraint(law("circular", clearance=2.5e-3, k=1e6), x=0.25)) if "velocity" in start else
+                       (chain, Constraint(law("deadband", clearance=1e-3, k=1e6), dof=3)))
     with warnings.catch_warnings():
         warnings.simplefilter("error")   # no RuntimeWarning on the way to the one line
-        with FullOrderModel.build(tube, [stop], initial=InitialState(mode=1, **start)) as fom, \
+        with FullOrderModel.build(structure, [stop], initial=InitialState(mode=1, **start)) as fom, \
                 Reductor(fom, BasisSettings(modes=4)) as reductor:
             with pytest.raises(InputError, match=r"^\[initial\] amplitude = .* m, velocity = .* m/s: the initial "
                                                  r"state in the basis is beyond double precision"):
                 reductor.reduce()
-    with FullOrderModel.build(tube, [stop], initial=InitialState(mode=1, amplitude=1e300)) as fom, \
+    with FullOrderModel.build(chain, [Constraint(law("deadband", clearance=1e-3, k=1e6), dof=3)],
+                              initial=InitialState(mode=1, amplitude=1e300)) as fom, \
             Reductor(fom, BasisSettings(modes=4)) as reductor:
         assert_all(np.isfinite(reductor.reduce().q0).all())   # large, finite: the integration's to judge
+    if "amplitude" in start:   # on the beam: refused as a unit slip before anything is built
+        with pytest.raises(InputError, match=r"^FullOrderModel.build: InitialState: amplitude = .* m, the peak initial "
+                                             r"displacement, is more than the beam's length \(1 m\)"):
+            FullOrderModel.build(tube, [Constraint(law("circular", clearance=2.5e-3, k=1e6), x=0.25)],
+                                 initial=InitialState(mode=1, **start))
 
 
 def test_reduce_refuses_a_field_flag_that_is_not_a_bool():
