@@ -1053,7 +1053,7 @@ class _Run:
         self.start = None           # (t, values, rates) at the observed rows at the start of a sampling step
         self.prev_u = self.prev_v = None
         self.scatter = self.full = None
-        self.failure = None
+        self.failure, self.failed_write = None, False
         self.t = None               # the time of the last control point
 
     @property
@@ -1150,11 +1150,12 @@ class _Run:
         monitor.report(step, t)
 
     def _word(self, action=None):
-        """Rank 0's failure (an OSError in a callback) and action, on every rank; a failure ends the run."""
+        """Rank 0's failure (an OSError in a callback, or its statistics' overflow) and action, on every
+        rank; a failure ends the run."""
         if self.world.size > 1:
-            action, self.failure = self.world.bcast((action, self.failure), root=0)
+            action, self.failure, self.failed_write = self.world.bcast((action, self.failure, self.failed_write), root=0)
         if self.failure:
-            raise WriteFailed(self.failure)
+            raise (WriteFailed if self.failed_write else SolverError)(self.failure)
         return action
 
     def _field(self, u) -> np.ndarray | None:
@@ -1175,14 +1176,17 @@ class _Run:
         return values
 
     def _call(self, callback, *args):
-        """A callback on this rank; a write error (a full disk) becomes the run's failure, said at the
-        next word from rank 0."""
+        """A callback on this rank; a write error (a full disk) or a SolverError (the statistics'
+        overflow) becomes the run's failure, said at the next word from rank 0."""
         if self.failure:
             return None
         try:
             return callback(*args)
         except WRITE_ERRORS as exc:
-            self.failure = f"cannot write the output: {write_failure(exc)}"
+            self.failure, self.failed_write = f"cannot write the output: {write_failure(exc)}", True
+            return None
+        except SolverError as exc:   # rank 0's statistics overflowed (stats._check_overflow): every rank's line
+            self.failure, self.failed_write = str(exc), isinstance(exc, WriteFailed)
             return None
 
     def destroy(self) -> None:

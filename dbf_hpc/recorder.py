@@ -89,8 +89,10 @@ class SampleRecorder:
         n = self.peak.size
         force = self._block_laws(t.size).force(z.ravel(), v.ravel()).reshape(t.size, n)
         if self.planar:
-            r, vn, f, fn, vt, contact = self.constraints.laws.radial(z, v, force)
-            self.impacts.add_block(t, r, vn, f, power=fn * np.abs(vn), work=fn * vt)
+            with np.errstate(over="ignore", invalid="ignore"):   # add_block says an overflow (stats._check_overflow)
+                r, vn, f, fn, vt, contact = self.constraints.laws.radial(z, v, force)
+                power, work = fn * np.abs(vn), fn * vt
+            self.impacts.add_block(t, r, vn, f, power=power, work=work)
             self._track_alpha_speed(vn, contact)
         else:
             self.impacts.add_block(t, z, v, force)

@@ -267,6 +267,25 @@ def impact_statistics(t, z, v, force, in_contact=None) -> dict[str, np.ndarray]:
     }
 
 
+def _check_overflow(t, z, v, force, squares) -> None:
+    """Refuse statistics whose squares (F^2, z^2, |F v|: squares (3, k, n) at the k times t) overflow
+    where z, v and F are finite (|F| beyond ~1e154 N): the RMS values would be inf. A state that is not
+    finite is left to the integrators' own check and line. Red team: a spring-mass chain shaken by
+    1e300 m printed numpy's overflow warnings before the full-order run's one line. Not collective."""
+    over = ~np.isfinite(squares).all(axis=0)
+    if not over.any():
+        return
+    over &= np.isfinite(z) & np.isfinite(v) & np.isfinite(force)
+    if over.any():
+        from .errors import SolverError
+
+        step, j = np.argwhere(over)[0]
+        raise SolverError(f"the statistics of constraint {j + 1} overflow at t = {float(t[step]):.6g} s: its force "
+                          f"({float(force[step, j]):.3g} N) or displacement ({float(z[step, j]):.3g} m) squared is beyond "
+                          f"double precision; check the excitation, the initial state and the laws for values "
+                          f"beyond double precision (units)")
+
+
 class ImpactAccumulator:
     """The same statistics as `impact_statistics`, accumulated point by point (the solver's steps)
     without storing the history: memory stays flat, and impacts shorter than an output sample are
@@ -290,8 +309,10 @@ class ImpactAccumulator:
         work-rate series, W) are given directly by 2-D supports."""
         z, v, force = (np.asarray(a, dtype=float) for a in (z, v, force))
         contact = force != 0 if in_contact is None else np.asarray(in_contact, dtype=bool)
-        now = (contact.astype(float), force * force, z * z,
-               np.abs(force * v) if power is None else np.asarray(power, dtype=float))
+        with np.errstate(over="ignore", invalid="ignore"):   # said below, or by the state check, not numpy
+            now = (contact.astype(float), force * force, z * z,
+                   np.abs(force * v) if power is None else np.asarray(power, dtype=float))
+        _check_overflow(np.array([t]), z[None], v[None], force[None], np.stack(now[1:])[:, None])
         if self.with_work:
             work = np.asarray(work, dtype=float)
             if self.work_prev is not None:
@@ -331,13 +352,15 @@ class ImpactAccumulator:
         series = np.empty((4, k + 1, n))       # contact, F^2, z^2, |F v|; row 0: the previous point
         now = series[:, 1:]
         np.not_equal(force, 0.0, out=now[0])
-        np.multiply(force, force, out=now[1])
-        np.multiply(z, z, out=now[2])
-        if power is None:
-            np.multiply(force, v, out=now[3])
-            np.abs(now[3], out=now[3])
-        else:
-            now[3] = np.asarray(power, dtype=float).reshape(k, n)
+        with np.errstate(over="ignore", invalid="ignore"):   # said below, or by the state check, not numpy
+            np.multiply(force, force, out=now[1])
+            np.multiply(z, z, out=now[2])
+            if power is None:
+                np.multiply(force, v, out=now[3])
+                np.abs(now[3], out=now[3])
+            else:
+                now[3] = np.asarray(power, dtype=float).reshape(k, n)
+        _check_overflow(t, z, v, force, now[1:])
         if self.with_work:
             work = np.asarray(work, dtype=float).reshape(k, n)
             wt = t if self.work_prev is None else np.concatenate(([self.t_prev], t))

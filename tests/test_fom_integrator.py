@@ -376,8 +376,9 @@ def test_repeated_full_order_runs_leave_no_factor_behind_in_petscs_garbage(capfd
 def test_a_state_beyond_double_precision_ends_the_run_with_its_one_line_and_no_numpy_warning(shared_tmp_path):
     # Red team: a base amplitude of 1e300 m under --method full printed numpy's "RuntimeWarning: overflow
     # encountered in matmul" with its source lines before the one-line error; the state is checked itself.
-    # On a matrix model: a beam refuses a support motion longer than itself when it is built. Without a
-    # constraint: with one, its force's square overflowed in the statistics first (numpy's warning; noted).
+    # On a matrix model: a beam refuses a support motion longer than itself when it is built. With a stop:
+    # its force's square overflowed in the impact statistics before the state did (numpy's warning, red
+    # team), now said in the run's one line (stats._check_overflow) or the state's, as here.
     import warnings
 
     from conftest import twin_chains
@@ -390,7 +391,8 @@ def test_a_state_beyond_double_precision_ends_the_run_with_its_one_line_and_no_n
     MPI.COMM_WORLD.Barrier()
     chain = MatrixFiles(str(shared_tmp_path / "K.mtx"), str(shared_tmp_path / "M.mtx"),
                         influence=str(shared_tmp_path / "r.txt"))
-    with FullOrderModel.build(chain, [], BaseMotion(amplitude=1e300, frequency_hz=1.0)) as fom:
+    stop = Constraint(law("deadband", clearance=1e-3, k=1e6), dof=3)
+    with FullOrderModel.build(chain, [stop], BaseMotion(amplitude=1e300, frequency_hz=1.0)) as fom:
         with warnings.catch_warnings():
             warnings.simplefilter("error")   # a RuntimeWarning would be an exception, not the SolverError
             with pytest.raises(SolverError, match=r"^the state is not finite at t = \S+ s"):

@@ -397,3 +397,33 @@ def test_work_rate_is_the_time_mean_of_a_linear_work_series_by_steps_by_blocks_a
             blocks = ImpactAccumulator.from_state(blocks.state())
         blocks.add_block(t[lo:hi], z[lo:hi], v[lo:hi], force[lo:hi], work=work[lo:hi])
     np.testing.assert_allclose(blocks.result()["work_rate"], exact, rtol=1e-12, atol=0)
+
+
+def test_statistics_whose_squares_overflow_are_refused_in_one_line_and_a_state_not_finite_is_left_to_the_integrator():
+    # F^2 of a finite 1e200 N force is inf: the RMS force would be inf. Red team: numpy's "overflow encountered
+    # in multiply" with its source lines, before the run's own line. The accumulator names the constraint and
+    # the time, numpy says nothing; a NaN or inf state is the integrators' to name ("the state is not finite").
+    import warnings
+
+    from dbf_hpc.errors import SolverError
+
+    t = np.array([0.0, 1e-3, 2e-3])
+    z = np.zeros((3, 2))
+    force = np.array([[0.0, 0.0], [0.0, 1e200], [0.0, 0.0]])
+    for block in (True, False):
+        acc = stats.ImpactAccumulator(2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(SolverError, match=r"^the statistics of constraint 2 overflow at t = 0.001 s: its force "
+                                                  r"\(1e\+200 N\) .* beyond double precision; check the excitation"):
+                if block:
+                    acc.add_block(t, z, z, force)
+                else:
+                    for i in range(3):
+                        acc.add(t[i], z[i], z[i], force[i])
+    acc = stats.ImpactAccumulator(2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        acc.add_block(t, z, z, np.where(force > 0, np.inf, force))   # not finite: no line from here
+        acc.add_block(t + 1.0, z, z, 1e150 * np.ones((3, 2)))         # large, its square finite: kept
+    assert np.isinf(acc.f2[1]) and np.isfinite(acc.f2[0])
