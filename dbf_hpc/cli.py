@@ -869,6 +869,13 @@ def main(argv=None) -> int:
     except Exception as e:  # a bug: say it in one line and end every rank
         if os.environ.get("DBF_HPC_DEBUG"):
             raise
+        origin = getattr(e, "dbf_hpc_origin", None)
+        if comm.size > 1 and origin is not None and origin != comm.rank:
+            # a copy of rank `origin`'s exception (errors.decided_on_rank0, agreed): that rank prints its
+            # line and aborts the job; this one says it only if that has not happened within 10 s
+            deadline = time.monotonic() + 10.0
+            while time.monotonic() < deadline:
+                time.sleep(0.05)
         print(f"dbf-hpc: internal error ({type(e).__name__}) on rank {comm.rank}: {e}. Set DBF_HPC_DEBUG=1 for a "
               f"traceback.",
               file=sys.stderr, flush=True)

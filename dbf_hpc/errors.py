@@ -66,40 +66,94 @@ class _Termination:
 TERMINATION = _Termination()
 
 
+class RankFailed(Exception):
+    """Another rank's exception that could not be copied (errors.decided_on_rank0, agreed): its type and
+    line. Not a DbfError: like the exception it stands for, it is a bug's, and ends the job."""
+
+
+def _portable(exc: BaseException) -> bytes:
+    """`exc` as bytes another rank rebuilds (_rebuilt): its class (by reference), args and attributes;
+    where those do not survive the round trip, a RankFailed naming it. Not collective."""
+    import pickle
+
+    try:
+        args = exc.args
+        if isinstance(exc, OSError) and exc.filename is not None:   # (not in its args)
+            args = (exc.errno, exc.strerror, exc.filename, *(() if exc.filename2 is None else (None, exc.filename2)))
+        payload = pickle.dumps((type(exc), args, dict(getattr(exc, "__dict__", {}))))
+        _rebuilt(payload, 0)   # checked here: a payload the other ranks cannot rebuild would fail there alone
+        return payload
+    except Exception:
+        text = (str(exc).splitlines() or [""])[0]
+        return pickle.dumps((RankFailed, (f"{type(exc).__name__}{': ' + text if text else ''}",), {}))
+
+
+def _rebuilt(payload: bytes, origin: int) -> BaseException:
+    """The exception _portable made bytes of, as rank `origin` raised it: same class, args and attributes
+    (an exception class whose __init__ takes other arguments, such as modes.RepeatedCut, is made
+    without calling it),
+    marked with dbf_hpc_origin = origin (cli.main: the rank that raised it reports it). Not collective."""
+    import pickle
+
+    cls, args, state = pickle.loads(payload)
+    try:
+        exc = cls(*args)
+    except TypeError:   # another __init__: made without it, its attributes set below
+        exc = cls.__new__(cls, *args)
+        exc.args = args
+    try:
+        exc.__dict__.update(state)
+        exc.dbf_hpc_origin = origin
+    except AttributeError:   # an exception type without a __dict__: its class and args are all it has
+        pass
+    return exc
+
+
 def decided_on_rank0(comm, decide, *args):
     """decide(*args) on rank 0 of `comm` (petsc4py or mpi4py), its value given to every rank, or its
-    InputError raised on every rank: a check of files that each rank made itself could differ
-    between the ranks' looks (a file edited or replaced meanwhile, a node that cannot read it), and
-    one rank's refusal left the others waiting in their next collective call. Collective."""
+    exception raised on every rank: a check of files that each rank made itself could differ between
+    the ranks' looks (a file edited or replaced meanwhile, a node that cannot read it), and one rank's
+    refusal left the others waiting in their next collective call. Rank 0 raises its own exception;
+    the others a copy of it (_rebuilt: the same class, message and attributes), so that every rank
+    takes the same `except` clause: an InputError is every rank's one line, and an OSError, ValueError
+    or KeyError (a bug, or an OS failure no check foresaw) ends the job on every rank (red team: only
+    an InputError reached the other ranks; any other exception on rank 0 left them waiting in the
+    broadcast for ever). Collective."""
     world = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
-    value = problem = None
+    value = failure = None
     if world.rank == 0:
         try:
             value = decide(*args)
-        except InputError as e:
-            problem = str(e)
-    value, problem = world.bcast((value, problem), root=0)
-    if problem:
-        raise InputError(problem)
+        except BaseException as e:   # whatever it is, the other ranks hear of it
+            failure = e
+    value, payload = world.bcast((None, _portable(failure)) if failure is not None else (value, None), root=0)
+    if failure is not None:
+        raise failure
+    if payload is not None:
+        raise _rebuilt(payload, 0) from None
     return value
 
 
 def agreed(comm, work, *args):
     """work(*args) on every rank of `comm` (petsc4py or mpi4py), each rank's value returned to it, or
-    one InputError raised on every rank: the first failing rank's line, in rank order. For what each
-    rank must read itself (its rows of a file every rank parses): a file one node cannot see, or one
-    replaced while the ranks read it, was that rank's error alone, and the others waited in the next
-    collective call for ever (red team: a stiffness file missing on rank 1's view). Collective."""
+    the first failing rank's exception, in rank order, raised on every rank (that rank's own, a copy
+    elsewhere: decided_on_rank0). For what each rank must read itself (its rows of a file every rank
+    parses): a file one node cannot see, or one replaced while the ranks read it, was that rank's error
+    alone, and the others waited in the next collective call for ever (red team: a stiffness file
+    missing on rank 1's view; and any exception but an InputError still was). Collective."""
     world = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
-    value = problem = None
+    value = failure = None
     try:
         value = work(*args)
-    except InputError as e:
-        problem = str(e)
-    problem = next((p for p in world.allgather(problem) if p), None)
-    if problem:
-        raise InputError(problem)
-    return value
+    except BaseException as e:
+        failure = e
+    payloads = world.allgather(None if failure is None else _portable(failure))
+    origin = next((rank for rank, p in enumerate(payloads) if p is not None), None)
+    if origin is None:
+        return value
+    if origin == world.rank:
+        raise failure
+    raise _rebuilt(payloads[origin], origin) from None
 
 
 def wait_for_rank0(world) -> None:

@@ -122,6 +122,41 @@ def test_an_error_on_rank_0_alone_while_rank_1_waits_in_a_barrier_ends_the_job_w
     assert "Traceback" not in out.stderr
 
 
+_RANK0_RAISES_AS_IT_DECIDES = """
+import errno, sys
+from mpi4py import MPI
+from dbf_hpc import cli, run
+from dbf_hpc.errors import SolverError
+
+def output_path(*args):   # rank 0 alone decides the output path for every rank (errors.decided_on_rank0)
+    assert MPI.COMM_WORLD.rank == 0
+    raise {raised}
+
+run.output_path = output_path
+sys.exit(cli.main(["run", sys.argv[1], "-q", "-o", sys.argv[2], "--set", "basis.cache=off"]))
+"""
+
+
+@pytest.mark.parametrize("raised, line", [
+    ('OSError(errno.EIO, "Input/output error")',
+     "dbf-hpc: internal error (OSError) on rank 0: [Errno 5] Input/output error. Set DBF_HPC_DEBUG=1 for a traceback."),
+    ('KeyError("complete")',
+     "dbf-hpc: internal error (KeyError) on rank 0: 'complete'. Set DBF_HPC_DEBUG=1 for a traceback."),
+    ('SolverError("rank 0 gave up")', "dbf-hpc: error: rank 0 gave up")], ids=["OSError", "KeyError", "SolverError"])
+def test_any_exception_on_rank_0_as_it_decides_for_every_rank_ends_the_job_with_one_line(tmp_path, raised, line):
+    # Red team: errors.decided_on_rank0 passed only an InputError on to the other ranks: anything else
+    # raised on rank 0 left rank 1 in the broadcast (for ever from Python; the command's 10 s wait
+    # ended the job, a SolverError with "(rank 0)", the line of a rank that failed alone). Now every
+    # rank raises it: a DbfError is the command's one line at once (exit 1), anything else rank 0's
+    # internal error line, the job aborted (rank 1 stays quiet: its copy is rank 0's).
+    script = tmp_path / "rank0_raises.py"
+    script.write_text(_RANK0_RAISES_AS_IT_DECIDES.format(raised=raised))
+    out, lines = mpirun_script(script, PAPER, tmp_path / "beam.h5", timeout=90)
+    assert out.returncode != 0 and lines == [line], out.stderr
+    assert "Traceback" not in out.stderr
+    assert sorted(os.listdir(tmp_path)) == ["rank0_raises.py"], "nothing written"
+
+
 def test_a_termination_signal_while_a_failed_rank_waits_for_the_others_keeps_its_error_line(tmp_path):
     # Red team: rank 0 failed alone and waited its 10 s for rank 1 (stuck in a collective call); a
     # SIGTERM then (a batch system's limit) took the command's handler, whose line "stopped by a
