@@ -85,6 +85,17 @@ class _Parser(argparse.ArgumentParser):
         return args
 
 
+def _named(give: str):
+    """argparse's type for a path argument: the value as given, or a refusal naming the argument and
+    what to give when it is empty or blank (red team: `run SCENE -o ""` wrote the scene's [output] file,
+    `stiffness -o ""` and `basis --xdmf ""` wrote nothing, each in silence)."""
+    def check(value: str) -> str:
+        if not value.strip():
+            raise argparse.ArgumentTypeError(f"an empty name ({value!r}): {give}")
+        return value
+    return check
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="dbf-hpc",
@@ -102,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.commands = sub.choices    # filled as the subcommands are added
     def command(name, func, help, description):
         p = sub.add_parser(name, help=help, description=description)
-        p.add_argument("scene", help="scene file (TOML)")
+        p.add_argument("scene", type=_named("give the scene file (TOML)"), help="scene file (TOML)")
         p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                        help="override a scene value, e.g. --set basis.modes=10 (repeatable)")
         p.set_defaults(func=func)
@@ -112,7 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
                   "Build (or reuse) the basis of modes and DBFs, integrate the reduced nonlinear model "
                   "with PETSc TS ARKIMEX, and write the HDF5 output (with --method full: the full-order "
                   "reference instead, same scene, same output layout).")
-    run.add_argument("-o", "--output", metavar="OUT.h5", help="output file (default: the scene's [output] file)")
+    run.add_argument("-o", "--output", metavar="OUT.h5", type=_named("give the output file, e.g. -o out.h5, or leave -o "
+                                                                     "out for the scene's [output] file"),
+                     help="output file (default: the scene's [output] file)")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     run.add_argument("--resume", action="store_true",
                      help="continue a killed run from its last checkpoint (OUT.h5.checkpoint); on an output "
@@ -125,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
                            description="Expand a sweep file (a base scene and axes or listed cases), build "
                                        "each distinct basis once, run the cases spread over the MPI ranks "
                                        "and write a summary HDF5. Rerunning resumes a killed sweep.")
-    sweep.add_argument("sweep", metavar="SWEEP.toml")
+    sweep.add_argument("sweep", metavar="SWEEP.toml", type=_named("give the sweep file (TOML)"))
     sweep.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sweep.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                        help="override a value of the base scene for every case (repeatable); an axis of one "
@@ -137,15 +150,17 @@ def build_parser() -> argparse.ArgumentParser:
                                       "and per constraint the extreme displacement and force. Also a "
                                       "sweep's summary (each case), and the OUT.h5.partial of a run that "
                                       "did not finish.")
-    info.add_argument("output", metavar="OUT.h5")
+    info.add_argument("output", metavar="OUT.h5", type=_named("give a run's output or a sweep's summary (HDF5)"))
     info.set_defaults(func=_info)
     plot = sub.add_parser("plot", help="the paper's figures for a run (or a sweep's), as PNG files",
                           description="Time histories, phase diagrams and forces at each constraint, "
                                       "probes, and beam snapshots (paper Figs. 4-13); on a beam of two "
                                       "planes also the supports' orbits. For a sweep's summary, the "
                                       "statistics against each varying parameter.")
-    plot.add_argument("output", metavar="OUT.h5")
-    plot.add_argument("-d", "--directory", default=".", help="where to write the PNGs (made if missing; default: .)")
+    plot.add_argument("output", metavar="OUT.h5", type=_named("give a run's output or a sweep's summary (HDF5)"))
+    plot.add_argument("-d", "--directory", default=".", type=_named("give the folder for the PNGs, e.g. -d figures, or "
+                                                                    "leave -d out for the current one"),
+                      help="where to write the PNGs (made if missing; default: .)")
     plot.add_argument("--window", metavar="T0:T1", help="time window of every figure (its samples and snapshots), "
                                                         "in s (either end may be left out, e.g. 9:)")
     plot.set_defaults(func=_plot)
@@ -156,7 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "Compute the reference modes and one discontinuous basis function per constraint, "
                     "in parallel over constraint groups, M-orthonormalize them, and cache the basis.")
     basis.add_argument("--no-cache", action="store_true", help="neither read nor write the basis cache")
-    basis.add_argument("--xdmf", metavar="SHAPES.xdmf", help="also write the basis vectors (modes, then the "
+    basis.add_argument("--xdmf", metavar="SHAPES.xdmf", type=_named("give a file name ending in .xdmf, e.g. --xdmf "
+                                                                     "shapes.xdmf"), help="also write the basis vectors (modes, then the "
                        "enrichment columns) as shapes ParaView opens: SHAPES.xdmf beside SHAPES.h5")
     sweep = command("stiffness", _stiffness, "omega(k) of a constraint's spring-perturbed problem (Fig. 2)",
                     "The first frequency of the structure with a linear spring of stiffness k at one "
@@ -168,8 +184,10 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--k", default="1e-4:1e6:41", metavar="LIST",
                        help="stiffnesses in N/m: a comma list, or START:STOP:COUNT (log-spaced); at most "
                             "10000; default 1e-4:1e6:41")
-    sweep.add_argument("-o", "--output", metavar="CSV", help="write k, omega, f to this CSV file")
-    sweep.add_argument("--plot", metavar="PNG", help="write the Fig. 2 plot to this PNG file")
+    sweep.add_argument("-o", "--output", metavar="CSV", type=_named("give the CSV file, e.g. -o stiffness.csv"),
+                       help="write k, omega, f to this CSV file")
+    sweep.add_argument("--plot", metavar="PNG", type=_named("give the PNG file, e.g. --plot fig2.png"),
+                       help="write the Fig. 2 plot to this PNG file")
     cache = sub.add_parser("cache", help="list or clear the basis cache",
                            description="List the cached bases (what each holds, its size and age) or remove them. Only the "
                                       "files the cache wrote are touched; a temporary file is removed "

@@ -33,6 +33,11 @@ def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf
     folder = os.path.dirname(os.path.abspath(path))
     if os.path.isdir(path):
         raise InputError(f"output {path!r} is a directory: give a file name, e.g. {os.path.join(path, 'out.h5')!r}")
+    if path.endswith(os.sep):   # red team: "out.h5/" was refused as "'out.h5/.partial': directory 'out.h5' does not exist"
+        raise InputError(f"output {path!r} ends in {os.sep!r}, as a directory's name does: give a file name, e.g. "
+                         f"{path.rstrip(os.sep) or 'out.h5'!r}")
+    if os.path.exists(folder) and not os.path.isdir(folder):   # red team: "directory 'x.h5' does not exist"
+        raise InputError(f"output {path!r}: {folder!r} is not a directory")
     if not os.path.isdir(folder):
         raise InputError(f"output {path!r}: directory {folder!r} does not exist")
     if not os.access(folder, os.W_OK):

@@ -58,6 +58,9 @@ def output_path(scene: Scene, override: str | None, resume: bool = False) -> str
     run writes and removes beside it, exists and is not dbf-hpc's (red team: a file named like them
     was replaced or deleted). A resume reads the checkpoint, and refuses a foreign one itself. An
     output another job is writing is refused first, naming that job (its lock, output.OutputLock)."""
+    if override is not None and not str(override).strip():   # red team: "" wrote the scene's [output] file
+        raise InputError(f"output {override!r} is an empty name: give a file name, or none for the scene's [output] "
+                         f"file")
     path = override or scene.output().file
     if not path:
         raise InputError("no output file: give [output] file in the scene or -o OUT.h5")

@@ -159,8 +159,11 @@ def load_sweep(path: str, overrides=()) -> dict:
     data = _read(path)
     folder = os.path.dirname(os.path.abspath(path))
     scene = os.path.join(folder, _typed(path, data, "scene", str, None))
-    output = os.path.join(folder, _typed(path, data, "output", str,
-                                         os.path.splitext(os.path.basename(path))[0] + ".h5"))
+    name = _typed(path, data, "output", str, os.path.splitext(os.path.basename(path))[0] + ".h5")
+    if not name.strip() or name.endswith(os.sep):   # red team: "" was refused as the sweep's folder, "a directory"
+        raise InputError(f"{path}: output {name!r} names no file: give the summary's file name, e.g. output = "
+                         f"\"{os.path.splitext(os.path.basename(path))[0]}.h5\" (the default)")
+    output = os.path.join(folder, name)
     keep = _typed(path, data, "keep_outputs", bool, False)
     axes, listed = data.get("axes", {}), data.get("case", [])
     if not isinstance(axes, dict) or not isinstance(listed, list):

@@ -91,6 +91,37 @@ def test_a_malformed_command_line_is_one_error_line_from_one_rank(argv):
     assert "usage" not in out.stdout + out.stderr and "Traceback" not in out.stderr
 
 
+@pytest.mark.parametrize("argv, named", [
+    (["run", PAPER, "-o", ""], "run: argument -o/--output: an empty name (''): give the output file, e.g. -o out.h5, "
+                               "or leave -o out for the scene's [output] file"),
+    (["run", PAPER, "--resume", "-o", " "], "run: argument -o/--output: an empty name (' '): give the output file"),
+    (["run", ""], "run: argument scene: an empty name (''): give the scene file (TOML)"),
+    (["sweep", ""], "sweep: argument SWEEP.toml: an empty name (''): give the sweep file (TOML)"),
+    (["info", ""], "info: argument OUT.h5: an empty name (''): give a run's output or a sweep's summary (HDF5)"),
+    (["plot", "x.h5", "-d", ""], "plot: argument -d/--directory: an empty name (''): give the folder for the PNGs"),
+    (["basis", PAPER, "--xdmf", ""], "basis: argument --xdmf: an empty name (''): give a file name ending in .xdmf"),
+    (["stiffness", PAPER, "-o", ""], "stiffness: argument -o/--output: an empty name (''): give the CSV file"),
+    (["stiffness", PAPER, "--plot", ""], "stiffness: argument --plot: an empty name (''): give the PNG file")])
+def test_an_empty_path_argument_is_one_line_naming_it_and_what_to_give(argv, named, capsys):
+    # Red team: `run SCENE -o ""` wrote the scene's [output] file, and `stiffness -o ""`, `--plot ""` and
+    # `basis --xdmf ""` wrote nothing, all in silence; `plot -d ""` said "cannot be made: No such file"
+    from dbf_hpc.cli import build_parser
+
+    with pytest.raises(SystemExit) as ended:
+        build_parser().parse_args(argv)
+    lines = capsys.readouterr().err.splitlines()
+    assert ended.value.code == 2 and len(lines) == 1 and lines[0].startswith(f"dbf-hpc: error: {named}"), lines
+
+
+def test_run_with_an_empty_output_name_writes_nothing_on_two_ranks(tmp_path):
+    scene = tmp_path / "scene.toml"
+    scene.write_text(open(PAPER).read().replace('file = "paper_beam.h5"', 'file = "default.h5"'))
+    out = dbf_hpc("run", str(scene), "-o", "", "--set", "basis.cache=off", "--set", "integrator.t_end=0.01")
+    assert out.returncode == 2 and out.stderr.startswith("dbf-hpc: error: run: argument -o/--output: an empty name")
+    assert len(out.stderr.splitlines()) == 1, out.stderr
+    assert sorted(os.listdir(tmp_path)) == ["scene.toml"]
+
+
 # A command whose rank 0 fails alone while rank 1 waits for it in the library's barrier
 # (errors.wait_for_rank0, as a run's integration and the tolerance mode's candidates do)
 _RANK0_FAILS_ALONE = """

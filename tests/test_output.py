@@ -1,6 +1,7 @@
 """Outputs (output.py, run.py): what is refused before any work, and the lock that keeps two jobs off
 one output where HDF5's own file locking is switched off (Lustre, NFS)."""
 import os
+import re
 import socket
 import time
 
@@ -33,6 +34,31 @@ def test_a_directory_as_output_is_refused_before_any_work(shared_tmp_path):
     with pytest.raises(InputError, match="is a directory: give a file name"):
         run(load_scene(PAPER, SHORT), str(shared_tmp_path), progress=False)
     assert_all(not list(shared_tmp_path.glob("*.partial")))
+
+
+@pytest.mark.parametrize("out", ["", "  "])
+def test_an_empty_output_name_is_refused_not_taken_for_the_scenes_output(shared_tmp_path, out, monkeypatch):
+    # Red team: run(scene, "") (and `dbf-hpc run SCENE -o ""`) wrote the scene's [output] file, in silence
+    monkeypatch.chdir(shared_tmp_path)   # (a blank name is a file of this folder)
+    scene = load_scene(PAPER, [*SHORT, f'output.file="{shared_tmp_path / "default.h5"}"'])
+    with pytest.raises(InputError, match=f"^output {re.escape(repr(out))} is an empty name: give a file name, or none "
+                                         f"for the scene's \\[output\\] file$"):
+        run(scene, out, progress=False)
+    assert_all(not os.listdir(shared_tmp_path))
+
+
+@pytest.mark.parametrize("name, refusal", [
+    ("out.h5/", "output '{tmp}/out.h5/' ends in '/', as a directory's name does: give a file name, e.g. '{tmp}/out.h5'"),
+    ("notes.txt/out.h5", "output '{tmp}/notes.txt/out.h5': '{tmp}/notes.txt' is not a directory")])
+def test_an_output_whose_folder_is_not_one_is_refused_saying_so(shared_tmp_path, name, refusal):
+    # Red team: "out.h5/" was refused as "output 'out.h5/.partial': directory 'out.h5' does not exist", and
+    # an output in a "folder" that is a file said that folder did not exist
+    if MPI.COMM_WORLD.rank == 0:
+        (shared_tmp_path / "notes.txt").write_text("notes")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=f"^{re.escape(refusal.format(tmp=shared_tmp_path))}$"):
+        run(load_scene(PAPER, SHORT), f"{shared_tmp_path}/{name}", progress=False)
+    assert_all(sorted(os.listdir(shared_tmp_path)) == ["notes.txt"])
 
 
 def test_an_existing_file_that_is_not_a_dbf_output_is_not_replaced(shared_tmp_path):

@@ -416,6 +416,16 @@ def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
         load_sweep(path)
 
 
+@pytest.mark.parametrize("output", ["", " ", "results/"])
+def test_a_summary_output_that_names_no_file_is_refused_naming_the_sweep_file(shared_tmp_path, output):
+    # Red team: output = "" was refused as "output '/.../' is a directory", naming neither the sweep file
+    # nor its output key
+    path = write_sweep(shared_tmp_path, '[axes]\n"constraint.clearance" = [1e-3]\n', output=output)
+    with pytest.raises(InputError, match=f"^{re.escape(path)}: output {re.escape(repr(output))} names no file: give "
+                                         f"the summary's file name, e.g. output = \"sweep.h5\""):
+        load_sweep(path)
+
+
 def test_a_listed_case_with_a_nested_table_is_refused_naming_the_sweep_not_a_set(shared_tmp_path):
     # Red team: [[case]] excitation = {frequency_hz = 1.0} was refused as `--set "excitation={...}"`, a flag
     # the command line did not hold
