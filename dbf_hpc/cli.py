@@ -260,7 +260,7 @@ def _info(args) -> int:
 def _plot(args) -> int:
     from mpi4py import MPI
 
-    from .errors import InputError
+    from .errors import InputError, not_a_regular_file
     from .plots import parse_window, plot_run, plot_sweep
     from .report import open_output
 
@@ -283,7 +283,8 @@ def _plot(args) -> int:
             os.makedirs(args.directory, exist_ok=True)
         except OSError as e:   # new-user pass: "-d run.h5" said "cannot be made: File exists"
             if os.path.lexists(args.directory) and not os.path.isdir(args.directory):
-                problem = (f"plot directory {args.directory!r} is a file, not a directory: give -d a folder "
+                kind = not_a_regular_file(args.directory) or "is a file"   # (a named pipe is no file either)
+                problem = (f"plot directory {args.directory!r} {kind}, not a directory: give -d a folder "
                            f"(made if missing)")
             else:
                 problem = f"plot directory {args.directory!r} cannot be made: {e.strerror or e}"

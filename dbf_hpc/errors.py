@@ -268,6 +268,54 @@ def temporary_tag() -> str:
     return f"{re.sub(r'[^A-Za-z0-9.-]', '_', socket.gethostname())}-{os.getpid()}"
 
 
+def not_a_regular_file(path: str) -> str | None:
+    """Why `path` is no regular file to read, in words that follow it ("does not exist", "is a named
+    pipe", "is a directory" ...), or None when it is one. A path that names a file and ends in '/' is
+    said so. Not collective. Red team: `info` on a named pipe, a device or a broken link said "does not
+    exist", and opening a named pipe waits for a writer for ever."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "is a symbolic link to a missing file" if os.path.islink(path) else "does not exist"
+    except NotADirectoryError:
+        trimmed = path.rstrip(os.sep)
+        return (f"ends in {os.sep!r} but {trimmed!r} is a file" if path.endswith(os.sep) and os.path.isfile(trimmed)
+                else "does not exist (a folder on its path is a file)")
+    except (OSError, ValueError) as e:   # no permission on a folder, a loop of links, a name too long
+        return f"cannot be looked at ({getattr(e, 'strerror', None) or e})"
+    for test, kind in ((stat.S_ISREG, None), (stat.S_ISDIR, "is a directory"), (stat.S_ISFIFO, "is a named pipe"),
+                       (stat.S_ISSOCK, "is a socket"), (stat.S_ISCHR, "is a character device"),
+                       (stat.S_ISBLK, "is a block device")):
+        if test(mode):
+            return kind
+    return "is not a regular file"
+
+
+def read_regular_file(path: str) -> bytes:
+    """The bytes of the regular file `path`, or an OSError (as open() raises, and one whose strerror
+    says what the path is instead: a named pipe, a directory, a device). Never waits on a named pipe:
+    it is opened without blocking and refused (red team: `dbf-hpc run FIFO` waited for a writer for
+    ever). Not collective."""
+    import errno
+    import stat
+
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = not_a_regular_file(path) or "is not a regular file"
+            raise OSError(errno.EISDIR if stat.S_ISDIR(mode) else errno.EINVAL,
+                          f"{kind.removeprefix('is ')}, not a regular file")
+        with os.fdopen(fd, "rb") as f:
+            fd = None
+            return f.read()
+    finally:
+        if fd is not None:
+            os.close(fd)
+
+
 def process_gone(pid: int) -> bool:
     """Whether no process `pid` runs on this host (none, or a zombie: a killed job's rank can stay one
     where nothing reaps it)."""

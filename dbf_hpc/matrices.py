@@ -26,7 +26,7 @@ from typing import Optional
 import numpy as np
 from petsc4py import PETSc
 
-from .errors import InputError, agreed, decided_on_rank0, warn
+from .errors import InputError, agreed, decided_on_rank0, not_a_regular_file, warn
 from .operators import Operators, PointValues
 from .petsctools import aij_from_owned_triplets, owned_rows, petsc_comm
 
@@ -35,8 +35,8 @@ SYMMETRY_TOL = 1e-10
 
 
 def _readable(path: str, what: str) -> None:
-    if not os.path.isfile(path):
-        raise InputError(f"{what} file {path!r} " + ("is a directory" if os.path.isdir(path) else "does not exist"))
+    if not_a_regular_file(path):   # what it is (red team: a named pipe "does not exist")
+        raise InputError(f"{what} file {path!r} {not_a_regular_file(path)}")
     if not os.access(path, os.R_OK):
         raise InputError(f"{what} file {path!r} is not readable")
     if os.path.getsize(path) == 0 and _format(path) != "mtx":   # (an empty .mtx has no header: said so)
@@ -783,8 +783,8 @@ def file_digest(path: str, comm, what: str = "input") -> str:
 def _digest(path: str, what: str) -> str:
     # red team: a scene's missing matrix file (a typo) was "internal error (FileNotFoundError) on rank 0"
     # in `dbf-hpc run`, which hashes the inputs before it loads them
-    if not os.path.isfile(path):
-        raise InputError(f"{what} file {path!r} " + ("is a directory" if os.path.isdir(path) else "does not exist"))
+    if not_a_regular_file(path):
+        raise InputError(f"{what} file {path!r} {not_a_regular_file(path)}")
     h = hashlib.sha256()
     try:
         with open(path, "rb") as f:

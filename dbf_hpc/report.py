@@ -10,7 +10,7 @@ import numpy as np
 
 from . import layout
 from .accuracy import KINDS_NOTE, percent
-from .errors import InputError, lock_problem
+from .errors import InputError, lock_problem, not_a_regular_file
 from .output import OutputLock, has_hdf5_signature
 
 # The impact statistics a tube-vibration engineer reads first, with how to print them.
@@ -23,13 +23,15 @@ HEADLINE = (("impacts", "{:.0f} impacts"), ("impact_rate", "{:.3g}/s"), ("contac
 def open_output(path: str):
     """(open h5py file, complete?) of a run's output, or of its .partial file when only that exists
     (or when it is the file named)."""
-    if os.path.isfile(path):
+    kind = not_a_regular_file(path)
+    if kind is None:
         target = path
-    elif os.path.isfile(path + ".partial"):
+    elif not os.path.lexists(path) and not_a_regular_file(path + ".partial") is None:
         target = path + ".partial"
-    else:
-        raise InputError(f"{path!r} " + ("is a directory: give a dbf-hpc output file" if os.path.isdir(path)
-                                         else "does not exist"))
+    else:   # red team: a named pipe, a device or a broken link "does not exist" (and a pipe is never opened)
+        raise InputError(f"{path!r} {kind}" + ("" if kind.startswith("does not exist") else
+                                               f": give it without the {os.sep!r}" if kind.startswith("ends in") else
+                                               ", not a dbf-hpc output: give a run's output or a sweep's summary"))
     try:
         f = h5py.File(target, "r")
     except OSError as e:

@@ -25,7 +25,7 @@ from .basis import DBF_SOLVERS, ENRICHMENTS, BasisSettings
 from .constraints import Constraint, check_wear_coefficient
 from .damping import Damping
 from .accuracy import EstimateSettings
-from .errors import InputError
+from .errors import InputError, read_regular_file
 from .excitation import BaseMotion, NoExcitation, PointForce, RandomForce, Turbulence
 from .fom import DAMPING_TWICE, FullOrderModel, InitialState, check_displacement, check_stops_within_reach
 from .laws import KEYS as LAW_KEYS
@@ -255,9 +255,8 @@ def read_scene_bytes(path: str) -> bytes:
     name = os.fspath(path) if isinstance(path, (str, os.PathLike)) else None
     if not isinstance(name, str) or not name:
         raise InputError(f"load_scene: give the path of a scene file (a str), got {path!r}")
-    try:
-        with open(path, "rb") as f:
-            return f.read()
+    try:   # a named pipe is refused, not waited on (red team: `dbf-hpc run FIFO` hung)
+        return read_regular_file(name)
     except OSError as e:
         raise InputError(f"cannot read scene {path!r}: {e.strerror}{relative_to_cwd(name, e)}") from None
 

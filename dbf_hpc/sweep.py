@@ -72,7 +72,8 @@ from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
 from .errors import (PARKED, TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park,
-                     recording, replacing, decided_on_rank0, is_number, termination_signals, warn, write_failure)
+                     read_regular_file, recording, replacing, decided_on_rank0, is_number, termination_signals, warn,
+                     write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
@@ -107,9 +108,8 @@ def _typed(path: str, data: dict, key: str, kind, default):
 
 
 def _read(path: str) -> dict:
-    try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
+    try:   # a named pipe is refused, not waited on (red team: `dbf-hpc sweep FIFO` hung)
+        data = tomllib.loads(read_regular_file(path).decode())
     except OSError as e:
         raise InputError(f"cannot read sweep {path!r}: {e.strerror}{relative_to_cwd(os.fspath(path), e)}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:

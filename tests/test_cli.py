@@ -586,6 +586,19 @@ def test_bad_run_input_is_one_line(args, message):
     assert out.returncode != 0 and len(lines) == 1 and message in lines[0], out.stderr
 
 
+@pytest.mark.parametrize("command", ["info", "plot", "run", "sweep"])
+def test_a_named_pipe_given_to_a_command_is_one_line_saying_so_never_waited_on(tmp_path, command):
+    # Red team: `info FIFO` and `plot FIFO` said "does not exist"; `run FIFO` and `sweep FIFO` (the scene, the
+    # sweep file) waited for a writer for ever
+    fifo = tmp_path / "given"
+    os.mkfifo(fifo)
+    out = dbf_hpc(command, str(fifo), timeout=60)
+    said = (f"{str(fifo)!r} is a named pipe, not a dbf-hpc output" if command in ("info", "plot") else
+            f"cannot read {'scene' if command == 'run' else 'sweep'} {str(fifo)!r}: a named pipe, not a regular file")
+    assert out.returncode == 1 and out.stderr.splitlines() == [f"dbf-hpc: error: {said}" + (
+        ": give a run's output or a sweep's summary" if command in ("info", "plot") else "")], out.stderr
+
+
 def test_full_order_run_on_two_ranks_writes_the_common_layout(tmp_path):
     out = tmp_path / "full.h5"
     run = dbf_hpc("run", PAPER, "--method", "full", "-o", str(out), "--set", "integrator.t_end=0.01",

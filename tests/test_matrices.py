@@ -451,6 +451,9 @@ def test_a_matrix_file_the_run_cannot_hash_is_an_input_error_on_every_rank(share
         file_digest(missing, PETSc.COMM_WORLD, "stiffness")
     with pytest.raises(InputError, match=r"^mass file .* is a directory$"):
         MatrixFiles(beam_files[3]["K.bin"], str(shared_tmp_path)).fingerprint(PETSc.COMM_WORLD)
+    # red team: a named pipe (and a device) "does not exist"
+    with pytest.raises(InputError, match=r"^stiffness file '/dev/null' is a character device$"):
+        file_digest("/dev/null", PETSc.COMM_WORLD, "stiffness")
     scene = validate({"structure": {"kind": "matrices", "stiffness": missing, "mass": beam_files[3]["M.bin"]}})
     with pytest.raises(InputError, match=rf"^stiffness file '{missing}' does not exist$"):
         scene.file_digests(PETSc.COMM_WORLD)

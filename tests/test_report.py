@@ -184,3 +184,37 @@ def test_info_of_a_sweep_counts_its_failed_cases_sums_a_cases_impacts_and_names_
                         "peak force 7 N, max work rate 0.5 W +- 0.05 W (constraint 2)"), lines
     assert lines[3] == "  case 2 (frequency_hz 20): FAILED: the stop was never reached"
     assert lines[4].endswith("max work rate 0.3 W +- 0.03 W (constraint 3)")
+
+
+@pytest.mark.parametrize("make, said", [
+    ("fifo", "is a named pipe, not a dbf-hpc output: give a run's output or a sweep's summary"),
+    ("directory", "is a directory, not a dbf-hpc output: give a run's output or a sweep's summary"),
+    ("broken link", "is a symbolic link to a missing file, not a dbf-hpc output: give a run's output or a sweep's "
+                    "summary"),
+    ("file/", "ends in '/' but '{file}' is a file: give it without the '/'")])
+def test_info_and_plot_on_what_is_no_regular_file_say_what_it_is_and_never_wait_on_it(shared_tmp_path, make, said):
+    # Red team: `dbf-hpc info FIFO` (and plot, a directory with a .partial beside it, a device, a broken link,
+    # an output given with a trailing '/') said "does not exist"
+    from conftest import ends_a_hang, fifo_at
+
+    path = str(shared_tmp_path / "out.h5")
+    if make == "fifo":
+        fifo_at(path)
+    elif MPI.COMM_WORLD.rank == 0:
+        open(path + ".partial", "w").close()   # not taken for the run's .partial when the output is there
+        if make == "directory":
+            (shared_tmp_path / "out.h5").mkdir()
+        elif make == "broken link":
+            (shared_tmp_path / "out.h5").symlink_to(shared_tmp_path / "gone.h5")
+        else:
+            open(path, "w").close()
+    MPI.COMM_WORLD.Barrier()
+    given = path + "/" if make == "file/" else path
+    with ends_a_hang(60), pytest.raises(InputError) as refused:
+        open_output(given)
+    assert str(refused.value) == f"{given!r} " + said.format(file=path)
+
+
+def test_info_on_a_character_device_says_so():
+    with pytest.raises(InputError, match="^'/dev/null' is a character device, not a dbf-hpc output"):
+        open_output("/dev/null")

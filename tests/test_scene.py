@@ -241,6 +241,21 @@ def test_matrices_structure_uses_dofs_and_needs_its_files():
                   "constraint": [{"x": 0.3, "law": "linear", "k": 1.0}]}, "t.toml")
 
 
+@pytest.mark.parametrize("kind, said", [("fifo", "a named pipe"), ("directory", "a directory"),
+                                         ("device", "a character device")])
+def test_a_scene_that_is_no_regular_file_is_refused_saying_what_it_is_never_waited_on(shared_tmp_path, kind, said):
+    # Red team: `dbf-hpc run FIFO` waited for a writer for ever (the scene's open); a directory said "Is a directory"
+    from conftest import ends_a_hang, fifo_at
+    from dbf_hpc.scene import load_scene_collective
+
+    path = {"fifo": str(shared_tmp_path / "scene.toml"), "directory": str(shared_tmp_path), "device": "/dev/null"}[kind]
+    if kind == "fifo":
+        fifo_at(path)
+    with ends_a_hang(60), pytest.raises(InputError, match=f"^cannot read scene {re.escape(repr(path))}: {said}, not a "
+                                                          f"regular file$"):
+        load_scene_collective(path)
+
+
 def test_unreadable_or_malformed_files_are_errors(tmp_path):
     with pytest.raises(InputError, match="cannot read scene"):
         load_scene(str(tmp_path / "missing.toml"))

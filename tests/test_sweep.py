@@ -426,6 +426,15 @@ def test_a_summary_output_that_names_no_file_is_refused_naming_the_sweep_file(sh
         load_sweep(path)
 
 
+def test_a_sweep_file_that_is_a_named_pipe_is_refused_not_waited_on(shared_tmp_path):
+    # Red team: `dbf-hpc sweep FIFO` waited for a writer for ever
+    path = str(shared_tmp_path / "sweep.toml")
+    fifo_at(path)
+    with ends_a_hang(60), pytest.raises(InputError, match=f"^cannot read sweep {re.escape(repr(path))}: a named "
+                                                          f"pipe, not a regular file$"):
+        run_sweep(path, progress=False)
+
+
 def test_a_listed_case_with_a_nested_table_is_refused_naming_the_sweep_not_a_set(shared_tmp_path):
     # Red team: [[case]] excitation = {frequency_hz = 1.0} was refused as `--set "excitation={...}"`, a flag
     # the command line did not hold
