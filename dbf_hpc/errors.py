@@ -343,18 +343,25 @@ def remove_dead_temporaries(path: str, suffix: str = "") -> None:
     `basis --xdmf` killed while writing left SHAPES.h5.tmp-<pid>). Files of a live process, of another
     host, or named otherwise are kept. Not collective."""
     import re
+
+    remove_dead_temporaries_in(os.path.dirname(os.path.abspath(path)), re.escape(os.path.basename(path)),
+                               re.escape(suffix))
+
+
+def remove_dead_temporaries_in(folder: str, names: str, suffix: str = "") -> None:
+    """remove_dead_temporaries for every file of `folder` whose name matches the regular expression
+    `names` (and `suffix`, also one), listing the folder once: a sweep's case records
+    (sweep._sweep). Not collective."""
+    import re
     import time
 
-    folder = os.path.dirname(os.path.abspath(path))
-    prefix, host = f"{os.path.basename(path)}.tmp-", temporary_tag().rsplit("-", 1)[0]
+    host = temporary_tag().rsplit("-", 1)[0]
     try:
-        names = os.listdir(folder)
+        listed = os.listdir(folder)
     except OSError:
         return
-    for name in names:
-        if not (name.startswith(prefix) and name.endswith(suffix)) or len(name) <= len(prefix) + len(suffix):
-            continue
-        match = re.fullmatch(r"(?:(.+)-)?(\d+)", name[len(prefix):len(name) - len(suffix)])
+    for name in listed:
+        match = re.fullmatch(rf"(?:{names})\.tmp-(?:(.+)-)?(\d+)(?:{suffix})", name)
         if match is None:
             continue
         tmp = os.path.join(folder, name)

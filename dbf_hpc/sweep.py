@@ -35,7 +35,8 @@ How it runs (collective on COMM_WORLD):
    share one) is built once on all ranks; the ranks keep only its small arrays. A model that
    cannot be built fails its cases, recorded with the error; the others go on.
 3. The cases (chains) are dealt round-robin to the ranks; each rank integrates its cases alone.
-4. Each finished case leaves a small result file (`OUT.cases/case-NNNNN.json`, written atomically)
+4. Each finished case leaves a small result file (`OUT.cases/case-NNNNN.json`, written atomically;
+   a rerun removes the temporary files of records a killed sweep left: errors.remove_dead_temporaries_in)
    with the identity of the case (its validated scene, the bytes of the files it reads, the rank
    count and callbacks, and in a chain its predecessors' identities): a rerun skips the cases that
    are done and still the same (with keep_outputs, whose complete output of that identity is still
@@ -72,8 +73,8 @@ from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
 from .errors import (PARKED, TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park,
-                     read_regular_file, recording, replacing, decided_on_rank0, is_number, termination_signals, warn,
-                     write_failure)
+                     read_regular_file, recording, remove_dead_temporaries_in, replacing, decided_on_rank0, is_number,
+                     termination_signals, warn, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import OutputLock, check_output_path, free_bytes
@@ -306,7 +307,8 @@ def record_checksum(record: dict) -> str:
 
 
 def _write_json(path: str, content: dict) -> None:
-    # clean=False: no listing of the case folder per record (a killed writer's record.tmp-* is left there)
+    # clean=False: no listing of the case folder per record (a killed writer's case-NNNNN.json.tmp-* is removed
+    # once, as the sweep starts its cases: _sweep)
     with replacing(path, clean=False) as tmp, open(tmp, "w") as f:
         json.dump({**content, "sha256": record_checksum(content)}, f)
 
@@ -814,6 +816,10 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     # sweep ran; the summary mixed clearances, and the records, under the old scene's identity, were
     # reused once restored)
     scenes = sweep["scenes"]
+    # the records a sweep killed (SIGKILL) as it wrote them left at their temporary names, which no `finally`
+    # removed (red team: they piled up in the case folder): each rank removes those of dead processes of its
+    # host, once, before any rank of this sweep writes one; a live process's (another rank's) is kept
+    remove_dead_temporaries_in(folder, r"case-\d{5}\.json")
     digests = _file_digests(scenes)
     identities = _identities(sweep, scenes, digests)
     # rank 0's reading for all: which cases are pending decides collective calls (_prepare_models)

@@ -84,6 +84,43 @@ def test_rerunning_a_killed_sweep_skips_the_finished_cases(shared_tmp_path):
         assert json.load(f)["status"] == "ok"
 
 
+def test_a_rerun_removes_the_record_temporaries_a_killed_sweep_left_but_no_live_writers(shared_tmp_path):
+    # Red team: a sweep SIGKILLed as a rank wrote its case's record left case-NNNNN.json.tmp-<host>-<pid> in
+    # the case folder for good (no `finally` runs, and the record writer does not list the folder per record).
+    # A rerun removes those whose process is gone from this host; a live process's (another job's rank
+    # writing now), another host's (which cannot be told) and other files are kept.
+    import socket
+    import subprocess
+
+    from dbf_hpc.errors import temporary_tag
+
+    path = write_sweep(shared_tmp_path, '[axes]\n"integrator.t_end" = [0.05]\n')
+    folder = shared_tmp_path / "summary.h5.cases"
+    host = temporary_tag().rsplit("-", 1)[0]
+    live = None
+    if MPI.COMM_WORLD.rank == 0:
+        gone = subprocess.Popen(["true"])
+        gone.wait()
+        live = subprocess.Popen(["sleep", "120"])
+        folder.mkdir()
+        dead = [f"case-00000.json.tmp-{host}-{gone.pid}", f"case-00007.json.tmp-{host}-{gone.pid}"]
+        kept = [f"case-00000.json.tmp-{host}-{live.pid}", f"case-00000.json.tmp-another-host-{gone.pid}",
+                f"notes.json.tmp-{host}-{gone.pid}", f"case-00000.json.tmp-{socket.gethostname()}x-{gone.pid}"]
+        for name in dead + kept:
+            (folder / name).write_text('{"index": 0')   # cut short by the kill
+    MPI.COMM_WORLD.Barrier()
+    try:
+        result = run_sweep(path, progress=False)
+        assert result["failed"] == 0
+        left = rank0_files(folder)
+    finally:
+        if live is not None:
+            live.kill()
+            live.wait()
+    expected = MPI.COMM_WORLD.bcast(sorted(["case-00000.json", *kept]) if live is not None else None)
+    assert left == expected, left
+
+
 def _write_record(path: str, record: dict) -> None:
     """A crafted case record with a valid checksum: what the sweep must see through is its content."""
     from dbf_hpc.sweep import record_checksum
