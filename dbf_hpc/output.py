@@ -57,6 +57,29 @@ def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf
     return path
 
 
+# The largest pid Linux gives (pid_max's limit, 2**22): a name holding a pid is at most this long
+LONGEST_PID = "4194304"
+
+
+def check_name_length(path: str, beside: list, what: str = "output") -> None:
+    """Refuse, before any work, an output whose name fits its folder but one of the names `beside` (the
+    files written next to it: OUT.h5.checkpoint.tmp ...) would not (longer than the folder's NAME_MAX,
+    in bytes). Red team: a 241-byte output name was accepted, and every run of it (--resume too) failed at
+    its first checkpoint, "File name too long"."""
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    size = len(os.fsencode(os.path.basename(path)))
+    longest = max(beside, key=lambda name: len(os.fsencode(os.path.basename(name))))
+    over = len(os.fsencode(os.path.basename(longest))) - limit
+    if over > 0:
+        raise InputError(f"{what} {path!r}: a name of {size} bytes, too long for the files written beside it "
+                         f"({os.path.basename(longest)[size:]!r} added to it would exceed the {limit} bytes a name "
+                         f"may have there): give a name of at most {size - over} bytes")
+
+
 def free_bytes(folder: str) -> int:
     stat = os.statvfs(folder)
     return stat.f_bavail * stat.f_frsize

@@ -13,6 +13,7 @@ import dataclasses
 import json
 import os
 import signal
+import socket
 import sys
 import time
 
@@ -30,15 +31,15 @@ from .accuracy import (KINDS_NOTE, RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_
 from .basis import SUSPICIOUS_HZ
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
-                     decided_on_rank0, petsc_failure, recorded, recording, termination_signals, wait_for_rank0, warn,
-                     write_failure)
+                     decided_on_rank0, petsc_failure, recorded, recording, temporary_tag, termination_signals,
+                     wait_for_rank0, warn, write_failure)
 from .fom import Observation
 from .fom_integrator import check_step, ignored_settings, integrate_full, step_count
 from .fom_integrator import options as full_options
 from .matrices import file_digest
 from .modes import counters
-from .output import (SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space, check_output_path,
-                     free_bytes, is_dbf_checkpoint, is_dbf_partial, output_bytes)
+from .output import (LONGEST_PID, SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space,
+                     check_name_length, check_output_path, free_bytes, is_dbf_checkpoint, is_dbf_partial, output_bytes)
 from .petsctools import (command_option_names, mark_options_read, options_read_anywhere, petsc_comm,
                          petsc_errors_as_one_line, unread_options, unused_option_warning)
 from .recorder import FullRecorder, ReducedRecorder, SampleRecorder
@@ -68,6 +69,11 @@ def output_path(scene: Scene, override: str | None, resume: bool = False) -> str
     # ("another process has it open for writing") named neither the job nor its lock (red team)
     OutputLock(path).refuse_if_held()
     check_output_path(path, scene.inputs())
+    # the longest names the run writes beside it: its checkpoint's temporary file, the lock a next job sets
+    # aside (OutputLock._take_over), the ParaView file's temporary file
+    check_name_length(path, [f"{path}.checkpoint.tmp", f"{path}.lock.stale-{socket.gethostname()}-{LONGEST_PID}",
+                             *([f"{xdmf.sidecar(path)}.tmp-{temporary_tag().rsplit('-', 1)[0]}-{LONGEST_PID}"]
+                               if scene.output().snapshots else [])])
     check_output_path(f"{path}.partial", scene.inputs(), replaceable=is_dbf_partial)
     if not resume:
         check_output_path(f"{path}.checkpoint", scene.inputs(), replaceable=is_dbf_checkpoint)

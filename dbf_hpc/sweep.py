@@ -63,6 +63,7 @@ import itertools
 import json
 import os
 import signal
+import socket
 import sys
 import time
 import tomllib
@@ -77,7 +78,7 @@ from .errors import (PARKED, TERMINATION, WRITE_ERRORS, DbfError, InputError, In
                      termination_signals, warn, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
-from .output import OutputLock, check_output_path, free_bytes
+from .output import LONGEST_PID, OutputLock, check_name_length, check_output_path, free_bytes
 from .reductor import Reductor
 from .rom_integrator import say_fallback
 from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, basis_warnings, finished_output, forcing_warning,
@@ -783,6 +784,8 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     if world.rank == 0:
         try:
             check_output_path(output, [("sweep file", os.path.abspath(path)), ("base scene", sweep["scene"])])
+            check_name_length(output, [f"{output}.partial", f"{output}.lock.stale-{socket.gethostname()}-{LONGEST_PID}"],
+                              "sweep summary")
             lock.acquire()
             os.makedirs(folder, exist_ok=True)
         except InputError as e:

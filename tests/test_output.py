@@ -61,6 +61,24 @@ def test_an_output_whose_folder_is_not_one_is_refused_saying_so(shared_tmp_path,
     assert_all(sorted(os.listdir(shared_tmp_path)) == ["notes.txt"])
 
 
+def test_an_output_name_too_long_for_the_files_beside_it_is_refused_before_any_work(shared_tmp_path):
+    # Red team: a 241-byte name was accepted, and the run (and every --resume of it) failed at its first
+    # checkpoint: "Unable to create file (... OUT.h5.checkpoint.tmp ... File name too long)". The longest
+    # name written beside the output decides (the lock a next job sets aside, OUT.h5.lock.stale-HOST-PID).
+    import socket
+
+    longest = len(os.fsencode(f".lock.stale-{socket.gethostname()}-4194304"))
+    limit = os.pathconf(shared_tmp_path, "PC_NAME_MAX") - longest
+    too_long = str(shared_tmp_path / ("c" * (limit + 1 - 3) + ".h5"))
+    with pytest.raises(InputError, match=f"a name of {limit + 1} bytes, too long for the files written beside it "
+                                         f".* give a name of at most {limit} bytes$"):
+        run(load_scene(PAPER, SHORT), too_long, progress=False)
+    assert_all(not os.listdir(shared_tmp_path))
+    just = str(shared_tmp_path / ("c" * (limit - 3) + ".h5"))
+    run(load_scene(PAPER, SHORT), just, progress=False)
+    assert_all(os.path.isfile(just))
+
+
 def test_an_existing_file_that_is_not_a_dbf_output_is_not_replaced(shared_tmp_path):
     target = shared_tmp_path / "notes.h5"
     if MPI.COMM_WORLD.rank == 0:

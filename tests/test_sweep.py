@@ -463,6 +463,16 @@ def test_a_summary_output_that_names_no_file_is_refused_naming_the_sweep_file(sh
         load_sweep(path)
 
 
+def test_a_summary_name_too_long_for_its_partial_file_is_refused_before_any_case_runs(shared_tmp_path):
+    # Red team: a summary name that left no room for OUT.h5.partial ran every case, then failed to write it
+    name = "s" * (os.pathconf(shared_tmp_path, "PC_NAME_MAX") - 5) + ".h5"
+    path = write_sweep(shared_tmp_path, '[axes]\n"integrator.t_end" = [0.01]\n', output=name)
+    with pytest.raises(InputError, match="^sweep summary .*: a name of .* bytes, too long for the files written "
+                                         "beside it"):
+        run_sweep(path, progress=False)
+    assert_all(rank0_files(shared_tmp_path) == ["sweep.toml"])
+
+
 def test_a_sweep_file_that_is_a_named_pipe_is_refused_not_waited_on(shared_tmp_path):
     # Red team: `dbf-hpc sweep FIFO` waited for a writer for ever
     path = str(shared_tmp_path / "sweep.toml")
