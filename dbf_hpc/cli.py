@@ -282,8 +282,9 @@ def _plot(args) -> int:
         try:
             os.makedirs(args.directory, exist_ok=True)
         except OSError as e:   # new-user pass: "-d run.h5" said "cannot be made: File exists"
-            if os.path.lexists(args.directory) and not os.path.isdir(args.directory):
-                kind = not_a_regular_file(args.directory) or "is a file"   # (a named pipe is no file either)
+            given = args.directory.rstrip(os.sep) or args.directory   # (red team: "-d run.h5/", "File exists")
+            if os.path.lexists(given) and not os.path.isdir(given):
+                kind = not_a_regular_file(given) or "is a file"   # (a named pipe is no file either)
                 problem = (f"plot directory {args.directory!r} {kind}, not a directory: give -d a folder "
                            f"(made if missing)")
             else:

@@ -1364,6 +1364,13 @@ def test_a_plot_directory_that_is_a_file_is_refused_saying_so_and_the_file_is_ke
     out = dbf_hpc("plot", str(run_out), "-d", str(run_out), ranks=1)
     assert _one_line(out) and "is a file, not a directory" in out.stderr, out.stderr
     assert run_out.read_bytes() == before
+    # red team: with a trailing '/' it said "cannot be made: File exists"; a named pipe "is a file"
+    out = dbf_hpc("plot", str(run_out), "-d", f"{run_out}/", ranks=1)
+    assert _one_line(out) and f"{str(run_out) + '/'!r} is a file, not a directory" in out.stderr, out.stderr
+    os.mkfifo(tmp_path / "pipe")
+    out = dbf_hpc("plot", str(run_out), "-d", str(tmp_path / "pipe"), ranks=1)
+    assert _one_line(out) and "is a named pipe, not a directory: give -d a folder" in out.stderr, out.stderr
+    assert run_out.read_bytes() == before
 
 
 
