@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 
 from . import sealed
-from .errors import WRITE_ERRORS, InputError, park
+from .errors import WRITE_ERRORS, InputError, not_a_regular_file, park
 
 FORMAT = "dbf-hpc-checkpoint-2"
 SEAL = b"dbf-hpc checkpoint sha256 "   # the tag of the file's seal (sealed.py)
@@ -93,6 +93,9 @@ class Checkpoint:
         for one that belongs to another run or is corrupt."""
         if not os.path.exists(self.path):
             return None
+        kind = not_a_regular_file(self.path)
+        if kind:   # red team: a directory or a named pipe there "cannot be read (OSError)"
+            raise InputError(f"{self.path} {kind}, not a checkpoint: remove it or choose another output name")
         problem = sealed.seal_problem(self.path, SEAL)   # before HDF5 parses it (it may crash on damage)
         if problem:
             from .output import is_dbf_checkpoint

@@ -19,18 +19,23 @@ import h5py
 import numpy as np
 
 from . import __version__, layout
-from .errors import PARKED, WRITE_ERRORS, InputError, lock_problem, park, process_gone
+from .errors import PARKED, WRITE_ERRORS, InputError, lock_problem, not_a_regular_file, park, process_gone
 
 BLOCK = 1024  # samples buffered between writes
 
 
-def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf-hpc output") -> str:
+def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf-hpc output",
+                      beside: str | None = None) -> str:
     """Refuse, before any work, an output that cannot or must not be written: a directory, a file in
     a missing or read-only directory, one of the run's inputs ((what, path) pairs), or an existing
     file that `replaceable(path)` (default: is_dbf_output) does not accept: a successful run
     replaces only its own kind of file (`kind`, as the refusal names it). replaceable=False accepts any
-    existing regular file (CSV, PNG); a pipe, socket or device is never replaced."""
+    existing regular file (CSV, PNG); a pipe, socket or device is never replaced. `beside`: the output
+    that `path` is written beside (OUT.h5 of OUT.h5.partial), which the refusal of a directory names."""
     folder = os.path.dirname(os.path.abspath(path))
+    if beside is not None and os.path.isdir(path):   # red team: "give a file name, e.g. 'OUT.h5.partial/out.h5'"
+        raise InputError(f"output {beside!r}: {path!r}, which the run writes beside it, is a directory: remove it or "
+                         f"choose another output name")
     if os.path.isdir(path):
         raise InputError(f"output {path!r} is a directory: give a file name, e.g. {os.path.join(path, 'out.h5')!r}")
     if path.endswith(os.sep):   # red team: "out.h5/" was refused as "'out.h5/.partial': directory 'out.h5' does not exist"
@@ -297,7 +302,7 @@ class OutputLock:
                 if stale is not None:   # "" too: an empty lock
                     self._take_over(stale)
                     continue
-                raise InputError(self._busy(self._holder())) from None
+                raise InputError(self._not_a_lock() or self._busy(self._holder())) from None
             except OSError as e:
                 raise InputError(f"{self.what} {self.path!r}: cannot create {self.lock}: {e.strerror or e}") from None
             self.held, self.owner, self.written = True, owner, False
@@ -314,6 +319,14 @@ class OutputLock:
                 raise
             return
         raise InputError(f"{self.what} {self.path!r}: cannot take the lock {self.lock}; remove it if no job runs")
+
+    def _not_a_lock(self) -> str | None:
+        """The refusal of a lock path that is no regular file (a directory, a link to a missing file): no
+        job made it. Red team: it was "being written by another job (unknown job)"."""
+        kind = not_a_regular_file(self.lock)
+        if kind is None or kind.startswith("does not exist"):
+            return None
+        return f"{self.what} {self.path!r}: its lock {self.lock!r} {kind}, which no dbf-hpc job made: remove {self.lock}"
 
     def _busy(self, holder: str) -> str:
         return (f"{self.what} {self.path!r} is being written by another job ({holder}); wait for it, or remove "

@@ -74,9 +74,9 @@ def output_path(scene: Scene, override: str | None, resume: bool = False) -> str
     check_name_length(path, [f"{path}.checkpoint.tmp", f"{path}.lock.stale-{socket.gethostname()}-{LONGEST_PID}",
                              *([f"{xdmf.sidecar(path)}.tmp-{temporary_tag().rsplit('-', 1)[0]}-{LONGEST_PID}"]
                                if scene.output().snapshots else [])])
-    check_output_path(f"{path}.partial", scene.inputs(), replaceable=is_dbf_partial)
+    check_output_path(f"{path}.partial", scene.inputs(), replaceable=is_dbf_partial, beside=path)
     if not resume:
-        check_output_path(f"{path}.checkpoint", scene.inputs(), replaceable=is_dbf_checkpoint)
+        check_output_path(f"{path}.checkpoint", scene.inputs(), replaceable=is_dbf_checkpoint, beside=path)
     if scene.output().snapshots:
         xdmf.check_sidecar(path, scene.inputs())
     return path

@@ -8,7 +8,7 @@ import time
 import pytest
 from mpi4py import MPI
 
-from conftest import assert_all, ends_a_hang, fifo_at
+from conftest import assert_all, ends_a_hang, fifo_at, rank0_files
 from dbf_hpc.errors import InputError
 from dbf_hpc.output import OutputLock, check_output_path
 from dbf_hpc.run import run
@@ -117,6 +117,40 @@ def test_a_pipe_at_the_output_lock_is_refused_not_waited_on(shared_tmp_path):
     with ends_a_hang(), pytest.raises(InputError, match=f"remove {lock}"):
         run(load_scene(PAPER, SHORT), str(out), progress=False)
     assert_all(stat.S_ISFIFO(os.stat(lock).st_mode) and not out.exists())
+
+
+@pytest.mark.parametrize("what", ["directory", "broken link"])
+def test_a_lock_that_no_job_made_is_refused_as_what_it_is_not_as_another_jobs(shared_tmp_path, what):
+    # Red team: a directory (or a link to a missing file) at OUT.h5.lock was "being written by another job
+    # (unknown job)"
+    out, lock = shared_tmp_path / "out.h5", shared_tmp_path / "out.h5.lock"
+    if MPI.COMM_WORLD.rank == 0:
+        lock.mkdir() if what == "directory" else lock.symlink_to(shared_tmp_path / "gone")
+    MPI.COMM_WORLD.Barrier()
+    said = "is a directory" if what == "directory" else "is a symbolic link to a missing file"
+    with pytest.raises(InputError, match=f"^output {re.escape(repr(str(out)))}: its lock {re.escape(repr(str(lock)))} "
+                                         f"{said}, which no dbf-hpc job made: remove {re.escape(str(lock))}$"):
+        run(load_scene(PAPER, SHORT), str(out), progress=False)
+    assert_all(os.path.lexists(lock) and not out.exists())
+
+
+@pytest.mark.parametrize("resume", [False, True])
+@pytest.mark.parametrize("beside", [".partial", ".checkpoint"])
+def test_a_directory_where_the_run_writes_beside_its_output_is_refused_naming_the_output(shared_tmp_path, beside,
+                                                                                         resume):
+    # Red team: a directory at OUT.h5.partial was refused with "give a file name, e.g. 'OUT.h5.partial/out.h5'",
+    # and at OUT.h5.checkpoint (--resume) with "cannot be read (OSError)"
+    out = shared_tmp_path / "out.h5"
+    if MPI.COMM_WORLD.rank == 0:
+        (shared_tmp_path / f"out.h5{beside}").mkdir()
+    MPI.COMM_WORLD.Barrier()
+    said = (f"{out}.checkpoint is a directory, not a checkpoint: remove it or choose another output name"
+            if beside == ".checkpoint" and resume else
+            f"output {str(out)!r}: {str(out) + beside!r}, which the run writes beside it, is a directory: remove it or "
+            f"choose another output name")
+    with pytest.raises(InputError, match=f"^{re.escape(said)}$"):
+        run(load_scene(PAPER, SHORT), str(out), progress=False, resume=resume)
+    assert_all(rank0_files(shared_tmp_path) == [f"out.h5{beside}"])
 
 
 @pytest.mark.parametrize("resume", [False, True])
