@@ -707,7 +707,7 @@ def _finish(comm, failure: str | None) -> int:
     with "stopped ... before the integration began; nothing was written"): a rank that succeeded
     and is signalled waits 10 s more for the others, then aborts the job as a failed one does.
     """
-    from .errors import termination_signals
+    from .errors import one_line, termination_signals
 
     signalled, previous = [], {}
     try:
@@ -722,7 +722,7 @@ def _finish(comm, failure: str | None) -> int:
             now = time.monotonic()
             if (failure and now > deadline) or (signalled and now > signalled[0] + 10.0):
                 cause = failure or "stopped by a termination signal while the other ranks had not ended"
-                print(f"dbf-hpc: error: (rank {comm.rank}) {cause}", file=sys.stderr, flush=True)
+                print(f"dbf-hpc: error: (rank {comm.rank}) {one_line(cause)}", file=sys.stderr, flush=True)
                 _abort(comm, 1)
             time.sleep(0.005)
         failures = comm.allgather(failure)
@@ -733,7 +733,7 @@ def _finish(comm, failure: str | None) -> int:
     if first is None:
         return 0
     if comm.rank == first:
-        print(f"dbf-hpc: error: {failure}", file=sys.stderr, flush=True)
+        print(f"dbf-hpc: error: {one_line(failure)}", file=sys.stderr, flush=True)
     return 1
 
 
@@ -860,7 +860,7 @@ def main(argv=None) -> int:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from .errors import TERMINATION, DbfError, petsc_failure, recording, termination_signals
+    from .errors import TERMINATION, DbfError, one_line, petsc_failure, recording, termination_signals
     from .petsctools import command_options
 
     comm = MPI.COMM_WORLD
@@ -896,8 +896,8 @@ def main(argv=None) -> int:
             deadline = time.monotonic() + 10.0
             while time.monotonic() < deadline:
                 time.sleep(0.05)
-        print(f"dbf-hpc: internal error ({type(e).__name__}) on rank {comm.rank}: {e}. Set DBF_HPC_DEBUG=1 for a "
-              f"traceback.",
+        print(f"dbf-hpc: internal error ({type(e).__name__}) on rank {comm.rank}: {one_line(e)}. Set DBF_HPC_DEBUG=1 "
+              f"for a traceback.",
               file=sys.stderr, flush=True)
         if comm.size > 1:
             _abort(comm, 70)

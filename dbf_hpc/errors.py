@@ -192,6 +192,12 @@ def recorded() -> list:
     return list(_RECORDINGS[-1]) if _RECORDINGS else []
 
 
+def one_line(text) -> str:
+    """`text` on one line: a line break in it (a file name holding one, which a message quotes as given)
+    written as \\n, so that an error or a warning stays the one line the command promises. Not collective."""
+    return str(text).replace("\r", "\\r").replace("\n", "\\n")
+
+
 def warn(message: str, comm, record: bool = True) -> None:
     """`dbf-hpc: warning: message` on stderr, from rank 0 of `comm` (petsc4py or mpi4py); stdout
     keeps the progress and the results. Not collective: every rank calls it on the same path (and
@@ -202,7 +208,7 @@ def warn(message: str, comm, record: bool = True) -> None:
     rank = comm.getRank() if hasattr(comm, "getRank") else comm.rank
     if rank == 0:
         sys.stdout.flush()   # after the progress lines already printed
-        print(f"dbf-hpc: warning: {message}", file=sys.stderr, flush=True)
+        print(f"dbf-hpc: warning: {one_line(message)}", file=sys.stderr, flush=True)
 
 
 def is_number(value) -> bool:

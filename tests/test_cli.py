@@ -122,6 +122,21 @@ def test_run_with_an_empty_output_name_writes_nothing_on_two_ranks(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["scene.toml"]
 
 
+def test_the_error_line_of_a_message_quoting_a_name_with_a_line_break_is_one_line(capsys):
+    # Red team: messages quote some file names as given ("cannot write NAME: ..."); a line break in the name
+    # split the command's error line in two
+    from mpi4py import MPI
+
+    from dbf_hpc.cli import _finish
+
+    comm = MPI.COMM_WORLD.Dup()
+    try:
+        assert _finish(comm, "cannot write new\nline.csv: No space left on device") == 1
+    finally:
+        comm.Free()
+    assert capsys.readouterr().err == "dbf-hpc: error: cannot write new\\nline.csv: No space left on device\n"
+
+
 # A command whose rank 0 fails alone while rank 1 waits for it in the library's barrier
 # (errors.wait_for_rank0, as a run's integration and the tolerance mode's candidates do)
 _RANK0_FAILS_ALONE = """

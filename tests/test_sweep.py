@@ -548,6 +548,18 @@ def test_a_case_whose_fixed_step_cannot_resolve_its_forcing_is_warned_as_a_run_w
         assert re.search(r"warning: .*: cases 1, 2: \[output\] sample_dt = 0.8 s takes 1.2 samples", err), err
 
 
+def test_a_warning_naming_a_sweep_file_with_a_line_break_in_its_name_stays_one_line(shared_tmp_path, capfd):
+    # Red team: a sweep file named "coarse\nsweep.toml" split its cases' warning over two lines; an error
+    # or warning is one line, a line break in a name it quotes written \n
+    path = write_sweep(shared_tmp_path, '[axes]\n"output.sample_dt" = [0.8]\n"output.snapshots" = [0]\n',
+                       name="coarse\nsweep.toml")
+    load_sweep(path)
+    err = capfd.readouterr().err
+    if MPI.COMM_WORLD.rank == 0:
+        lines = [line for line in err.splitlines() if line]
+        assert len(lines) == 1 and lines[0].startswith("dbf-hpc: warning: ") and "coarse\\nsweep.toml: case 1:" in lines[0], err
+
+
 def test_a_case_with_more_snapshots_than_samples_is_warned_as_a_run_would(shared_tmp_path, capfd):
     # the paper scene's 50 snapshots over 0.5 s at 0.05 s are its 11 samples: `dbf-hpc run` says so, a sweep too
     path = write_sweep(shared_tmp_path, '[axes]\n"integrator.t_end" = [0.5]\n"output.sample_dt" = [0.05, 0.001]\n')
