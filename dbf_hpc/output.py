@@ -52,6 +52,9 @@ def check_output_path(path: str, inputs=(), replaceable=None, kind: str = "a dbf
     if not os.path.isfile(path):   # red team: a named pipe there hung the look below (its open waits for a writer)
         raise InputError(f"output {path!r} exists and is not a regular file (a pipe, socket or device): choose another "
                          f"name")
+    if not os.access(path, os.R_OK):   # red team: another user's output "is not a dbf-hpc output: remove it"
+        raise InputError(f"output {path!r} exists and this user may not read it (permission denied), so whether "
+                         f"dbf-hpc wrote it cannot be told: choose another name, or ask its owner")
     for what, source in inputs:
         if source and os.path.exists(source) and os.path.samefile(path, source):
             raise InputError(f"output {path!r} is the {what} this run reads: choose another output name")

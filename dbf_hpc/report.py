@@ -36,6 +36,9 @@ def open_output(path: str):
         f = h5py.File(target, "r")
     except OSError as e:
         why = str(e).splitlines()[0]
+        if not os.access(target, os.R_OK):   # red team: a file this user may not read "is not an HDF5 file"
+            raise InputError(f"{target!r} cannot be read: permission denied (ask its owner, or read it as a user "
+                             f"who may)") from None
         raise InputError(f"cannot open {target!r}: {lock_problem(e)}" if lock_problem(e) else
                          f"{target!r} cannot be read ({why}): a run killed before HDF5 wrote its first samples "
                          f"leaves it so; rerun the run (`--resume` continues from its checkpoint if one exists)"

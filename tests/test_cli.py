@@ -614,6 +614,35 @@ def test_a_named_pipe_given_to_a_command_is_one_line_saying_so_never_waited_on(t
         ": give a run's output or a sweep's summary" if command in ("info", "plot") else "")], out.stderr
 
 
+def test_an_output_this_user_may_not_read_is_said_so_not_called_foreign_or_not_hdf5(tmp_path):
+    # Red team (as user nobody): `info` on a run's output it may not read said "is not an HDF5 file", and a run
+    # onto it "exists and is not a dbf-hpc output: remove it or choose another name", advice to remove
+    # another user's good file
+    import shutil
+    import tempfile
+
+    if os.geteuid() != 0 or shutil.which("setpriv") is None:
+        pytest.skip("needs root and setpriv to run as another user")
+    shared = tempfile.mkdtemp(dir="/tmp")   # (pytest's folders are root's alone)
+    try:
+        os.chmod(shared, 0o777)
+        out = os.path.join(shared, "theirs.h5")
+        assert dbf_hpc("run", PAPER, "-o", out, *SHORT, ranks=1).returncode == 0
+        os.chmod(out, 0o600)
+        before = open(out, "rb").read()
+        as_nobody = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable, "-m", "dbf_hpc.cli"]
+        for args, said in ((["info", out], f"{out!r} cannot be read: permission denied (ask its owner, or read it as "
+                                            f"a user who may)"),
+                           (["run", PAPER, "-o", out, *SHORT], f"output {out!r} exists and this user may not read it "
+                                                               f"(permission denied), so whether dbf-hpc wrote it "
+                                                               f"cannot be told: choose another name, or ask its owner")):
+            done = subprocess.run(as_nobody + args, capture_output=True, text=True, timeout=120, cwd=ROOT, env=mpi_env())
+            assert done.returncode == 1 and done.stderr.splitlines() == [f"dbf-hpc: error: {said}"], done.stderr
+        assert open(out, "rb").read() == before and sorted(os.listdir(shared)) == ["theirs.h5", "theirs.xdmf"]
+    finally:
+        shutil.rmtree(shared)
+
+
 def test_full_order_run_on_two_ranks_writes_the_common_layout(tmp_path):
     out = tmp_path / "full.h5"
     run = dbf_hpc("run", PAPER, "--method", "full", "-o", str(out), "--set", "integrator.t_end=0.01",
