@@ -780,27 +780,29 @@ def run_sweep(path: str, progress: bool = True, overrides=()) -> dict:
     say = (lambda m: PETSc.Sys.Print(m)) if progress else (lambda m: None)
     lock = OutputLock(output, "sweep summary")
     lock.expect(world)   # before rank 0 takes it: a rank that aborts the job removes it (cli._abort)
-    problem = None
-    if world.rank == 0:
-        try:
+
+    def claim():   # rank 0: whatever it raises, every rank raises (decided_on_rank0; red team: anything but an
+        try:       # InputError or OSError left the other ranks in the broadcast after it)
             check_output_path(output, [("sweep file", os.path.abspath(path)), ("base scene", sweep["scene"])])
             check_name_length(output, [f"{output}.partial", f"{output}.lock.stale-{socket.gethostname()}-{LONGEST_PID}"],
                               "sweep summary")
             lock.acquire()
             os.makedirs(folder, exist_ok=True)
-        except InputError as e:
-            problem = str(e)
         except OSError as e:   # red team: "[Errno 17] File exists: '...cases'", and the lock left behind
+            lock.release()
             what = "is a file, not a directory" if os.path.lexists(folder) and not os.path.isdir(folder) else \
                 f"cannot be made ({e.strerror or e})"
-            problem = (f"the sweep's case folder {folder!r} {what}: move it away, or give the sweep another "
-                       f"output")
-        if problem:
+            raise InputError(f"the sweep's case folder {folder!r} {what}: move it away, or give the sweep another "
+                             f"output") from None
+        except BaseException:
             lock.release()
-    problem = world.bcast(problem, root=0)
-    if problem:
-        lock.forget()
-        raise InputError(problem)
+            raise
+
+    try:
+        decided_on_rank0(world, claim)
+    except BaseException:
+        lock.forget()   # (a no-op on rank 0, which released it)
+        raise
     try:
         result = _sweep(sweep, folder, output, world, say, progress)
     finally:

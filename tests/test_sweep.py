@@ -338,6 +338,22 @@ def test_a_case_folder_that_cannot_be_made_is_one_line_on_every_rank_and_leaves_
     assert_all(sorted(os.listdir(shared_tmp_path)) == ["summary.h5.cases", "sweep.toml"], "no lock left behind")
 
 
+def test_any_exception_as_rank_0_claims_the_summary_ends_the_sweep_on_every_rank_and_leaves_no_lock(shared_tmp_path,
+                                                                                                   monkeypatch):
+    # Red team: rank 0's claim of the summary (its checks, its lock, the case folder) passed on an InputError or
+    # an OSError; anything else (a bug) left the other ranks waiting in the broadcast after it for ever
+    from dbf_hpc import sweep as sweep_module
+
+    path = write_sweep(shared_tmp_path, '[axes]\n"integrator.t_end" = [0.01]\n')
+    if MPI.COMM_WORLD.rank == 0:
+        def looked(*args):
+            raise ValueError("rank 0's look went wrong")
+        monkeypatch.setattr(sweep_module, "check_output_path", looked)
+    with ends_a_hang(60), pytest.raises(ValueError, match="rank 0's look went wrong"):
+        run_sweep(path, progress=False)
+    assert_all(rank0_files(shared_tmp_path) == ["sweep.toml"])
+
+
 def test_a_summary_that_would_not_fit_on_the_disk_is_refused_before_hdf5_writes_it(shared_tmp_path, monkeypatch):
     # Red team (a 3 MB tmpfs filled during a case; the failed cases' removed files left a few kB): the
     # summary's write failed, and its close crashed HDF5 (signal 11) because the failed case's file
