@@ -166,9 +166,7 @@ def _run_recorded(scene: Scene, out, progress: bool, comm, initial_state, resume
             # the command's PETSc options were read by the run that wrote it, which stored the lines of those
             # no solver read (finish): said again here, and the command does not call the others unused
             mark_options_read(command_option_names())
-            for message in stored:
-                if message not in warned:
-                    warn(message, comm)
+            _say_unsaid(stored, warned, comm)
             TERMINATION.finished = True
             return done
         if method == "rom":   # decided alike on every rank, though rank 0 alone integrates
@@ -176,10 +174,16 @@ def _run_recorded(scene: Scene, out, progress: bool, comm, initial_state, resume
         summary = _run(scene, path, settings, say, comm, initial_state, resume, method, request, digests)
     # what finish stored and the run has not said yet: its result's (result_warnings), the PETSc options no
     # solver read (unused_option_lines); every rank records them (the command says none of them again)
-    for message in summary["warnings"]:
+    _say_unsaid(summary["warnings"], warned, comm)
+    return summary
+
+
+def _say_unsaid(messages: list, warned: list, comm) -> None:
+    """Each of `messages` (a finished output's stored warnings) this invocation has not said yet
+    (`warned`, its recording), once the output is complete. Not collective: every rank on this path."""
+    for message in messages:
         if message not in warned:
             warn(message, comm)
-    return summary
 
 
 def scene_warnings(scene: Scene, settings, method: str = "rom") -> list:

@@ -356,7 +356,7 @@ from mpi4py import MPI
 from dbf_hpc import cli, run, sweep
 
 who, command = int(sys.argv[1]), sys.argv[2:]
-module, name = (run, "_warn_result") if command[0] == "run" else (sweep, "_write_summary")
+module, name = (run, "_say_unsaid") if command[0] == "run" else (sweep, "_write_summary")
 original = getattr(module, name)
 
 def terminated(*args, **kwargs):   # run: the output is complete; sweep: the summary is being written
