@@ -179,8 +179,9 @@ def _run_recorded(scene: Scene, out, progress: bool, comm, initial_state, resume
 
 
 def _say_unsaid(messages: list, warned: list, comm) -> None:
-    """Each of `messages` (a finished output's stored warnings) this invocation has not said yet
-    (`warned`, its recording), once the output is complete. Not collective: every rank on this path."""
+    """Each of `messages` (the warnings an output stores: a finished one's, or this run's own) that this
+    invocation has not said yet (`warned`, its recording), once the output is complete. Not collective:
+    every rank on this path."""
     for message in messages:
         if message not in warned:
             warn(message, comm)
