@@ -418,13 +418,15 @@ def _check_shapes_path(path: str, scene) -> None:
     written (new, or dbf-hpc's own files)."""
     from . import xdmf
     from .errors import InputError
-    from .output import check_output_path, is_dbf_shapes
+    from .output import check_output_path, check_replaced_name, is_dbf_shapes
 
     if not path.endswith(".xdmf"):
         raise InputError(f"--xdmf {path!r}: give a name ending in .xdmf (its data go to the .h5 of the same name)")
     check_output_path(os.path.splitext(path)[0] + ".h5", scene.inputs(), replaceable=is_dbf_shapes,
                       kind="the mode shapes of an earlier `dbf-hpc basis --xdmf`")
     check_output_path(path, scene.inputs(), replaceable=xdmf.is_dbf_xdmf)
+    for target in (os.path.splitext(path)[0] + ".h5", path):   # both written through temporary files
+        check_replaced_name(target, what="--xdmf")
 
 
 def _is_stiffness_table(path: str) -> bool:
@@ -476,7 +478,7 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
     from petsc4py import PETSc
 
     from . import xdmf
-    from .errors import WRITE_ERRORS, DbfError, park, remove_dead_temporaries, temporary_tag, write_failure
+    from .errors import WRITE_ERRORS, DbfError, park, remove_dead_temporaries, temporary_path, write_failure
     from .run import cells_attrs
 
     h5 = os.path.splitext(path)[0] + ".h5"
@@ -490,7 +492,7 @@ def _write_shapes(path: str, fom, reductor, basis) -> None:
         # and a SIGKILL while it wrote left SHAPES.h5.tmp-<pid>: the next run removes those of dead writers
         for target in (h5, path):
             remove_dead_temporaries(target)
-        tmp_h5, tmp_xdmf = f"{h5}.tmp-{temporary_tag()}", f"{path}.tmp-{temporary_tag()}"
+        tmp_h5, tmp_xdmf = temporary_path(h5), temporary_path(path)
         field = fom.operators.field_map()
         geometry = field.geometry()
         f = None
@@ -613,7 +615,7 @@ def _stiffness(args) -> int:
     from petsc4py import PETSc
 
     from .errors import InputError
-    from .output import check_output_path
+    from .output import check_output_path, check_replaced_name
     from .scene import load_scene_collective
 
     scene = load_scene_collective(args.scene, args.set)
@@ -621,9 +623,10 @@ def _stiffness(args) -> int:
         raise InputError(f"--constraint {args.constraint}: the scene has {len(scene.constraints)} constraint(s)")
     ks = parse_stiffnesses(args.k)
     from .plots import is_dbf_png
-    for path, own in ((args.output, _is_stiffness_table), (args.plot, is_dbf_png)):
+    for path, own, suffix in ((args.output, _is_stiffness_table, ""), (args.plot, is_dbf_png, ".png")):
         if path:
             check_output_path(path, scene.inputs(), replaceable=own)
+            check_replaced_name(path, suffix)
     basis = scene["basis"]
     with scene.full_order_model(PETSc.COMM_WORLD) as fom:
         ops = fom.operators

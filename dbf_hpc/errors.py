@@ -265,13 +265,19 @@ def write_failure(exc: Exception) -> str:
     return "No space left on device" if "errno = 28" in text or "No space left" in text else text.splitlines()[0]
 
 
-def temporary_tag() -> str:
-    """<host>-<pid> of this process, for a temporary file's name: jobs on two hosts sharing a directory
-    (a parallel file system) may have one pid (red team). Not collective."""
+def temporary_tag(pid: int | str | None = None) -> str:
+    """<host>-<pid> of this process (or of `pid`), for a temporary file's name: jobs on two hosts sharing
+    a directory (a parallel file system) may have one pid (red team). Not collective."""
     import re
     import socket
 
-    return f"{re.sub(r'[^A-Za-z0-9.-]', '_', socket.gethostname())}-{os.getpid()}"
+    return f"{re.sub(r'[^A-Za-z0-9.-]', '_', socket.gethostname())}-{os.getpid() if pid is None else pid}"
+
+
+def temporary_path(path: str, suffix: str = "", pid: int | str | None = None) -> str:
+    """The temporary file `replacing` writes beside `path` (of this process, or of `pid`: the longest
+    a name check must allow for is output.LONGEST_PID's)."""
+    return f"{path}.tmp-{temporary_tag(pid)}{suffix}"
 
 
 def not_a_regular_file(path: str) -> str | None:
@@ -390,7 +396,7 @@ def replacing(path: str, suffix: str = "", clean: bool = True):
     a sweep's case records, does not want per file)."""
     if clean:
         remove_dead_temporaries(path, suffix)
-    tmp = f"{path}.tmp-{temporary_tag()}{suffix}"
+    tmp = temporary_path(path, suffix)
     try:
         yield tmp
         os.replace(tmp, path)

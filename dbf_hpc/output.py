@@ -19,7 +19,8 @@ import h5py
 import numpy as np
 
 from . import __version__, layout
-from .errors import PARKED, WRITE_ERRORS, InputError, lock_problem, not_a_regular_file, park, process_gone
+from .errors import (PARKED, WRITE_ERRORS, InputError, lock_problem, not_a_regular_file, park, process_gone,
+                     temporary_path)
 
 BLOCK = 1024  # samples buffered between writes
 
@@ -86,6 +87,14 @@ def check_name_length(path: str, beside: list, what: str = "output") -> None:
         raise InputError(f"{what} {path!r}: a name of {size} bytes, too long for the files written beside it "
                          f"({os.path.basename(longest)[size:]!r} added to it would exceed the {limit} bytes a name "
                          f"may have there): give a name of at most {size - over} bytes")
+
+
+def check_replaced_name(path: str, suffix: str = "", what: str = "output") -> None:
+    """Refuse, before any work, an output written through a temporary file (errors.replacing: a CSV, a
+    PNG, an XDMF file) whose temporary name would be too long for its folder. Red team: `stiffness -o`
+    and `--plot`, `basis --xdmf` with a 245-byte name solved everything, then failed "File name too
+    long". Not collective."""
+    check_name_length(path, [temporary_path(path, suffix, pid=LONGEST_PID)], what)
 
 
 def free_bytes(folder: str) -> int:

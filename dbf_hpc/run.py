@@ -31,7 +31,7 @@ from .accuracy import (KINDS_NOTE, RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_
 from .basis import SUSPICIOUS_HZ
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
-                     decided_on_rank0, petsc_failure, recorded, recording, temporary_tag, termination_signals,
+                     decided_on_rank0, petsc_failure, recorded, recording, temporary_path, termination_signals,
                      wait_for_rank0, warn, write_failure)
 from .fom import Observation
 from .fom_integrator import check_step, ignored_settings, integrate_full, step_count
@@ -72,7 +72,7 @@ def output_path(scene: Scene, override: str | None, resume: bool = False) -> str
     # the longest names the run writes beside it: its checkpoint's temporary file, the lock a next job sets
     # aside (OutputLock._take_over), the ParaView file's temporary file
     check_name_length(path, [f"{path}.checkpoint.tmp", f"{path}.lock.stale-{socket.gethostname()}-{LONGEST_PID}",
-                             *([f"{xdmf.sidecar(path)}.tmp-{temporary_tag().rsplit('-', 1)[0]}-{LONGEST_PID}"]
+                             *([temporary_path(xdmf.sidecar(path), pid=LONGEST_PID)]
                                if scene.output().snapshots else [])])
     check_output_path(f"{path}.partial", scene.inputs(), replaceable=is_dbf_partial, beside=path)
     if not resume:

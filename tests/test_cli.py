@@ -1315,6 +1315,37 @@ def test_a_table_figure_or_shapes_file_replaces_only_its_own_kind(tmp_path):
         assert out.returncode == 0, out.stderr
 
 
+def test_a_table_figure_or_shapes_name_too_long_for_its_temporary_file_is_refused_before_any_work(tmp_path):
+    # Red team: stiffness -o / --plot and basis --xdmf with a name a few bytes under the folder's limit
+    # solved everything and printed the table, then failed "File name too long" at the temporary file
+    # written beside it (NAME.tmp-HOST-PID[.png]). The longest temporary name decides.
+    import socket
+
+    from dbf_hpc.errors import temporary_path
+    from dbf_hpc.output import LONGEST_PID
+
+    def longest(suffix: str) -> int:   # the limit on the given name, for a suffix of the temporary file
+        extra = len(os.fsencode(temporary_path("", suffix, pid=LONGEST_PID)))
+        return os.pathconf(tmp_path, "PC_NAME_MAX") - extra
+
+    assert socket.gethostname() in temporary_path("x", pid=LONGEST_PID)
+    csv, png, h5 = longest(""), longest(".png"), longest("")
+    for args, size in ((("stiffness", PAPER, "--k", "1,10", "-o", str(tmp_path / ("k" * (csv - 3) + ".csv"))), csv),
+                       (("stiffness", PAPER, "--k", "1,10", "--plot", str(tmp_path / ("k" * (png - 3) + ".png"))),
+                        png),
+                       (("basis", PAPER, "--xdmf", str(tmp_path / ("s" * (h5 - 2) + ".xdmf"))), h5)):   # its .h5: h5 + 1
+        out = dbf_hpc(*args)
+        assert _one_line(out) and "too long for the files written beside it" in out.stderr, out.stderr
+        assert f"a name of {size + 1} bytes" in out.stderr and f"give a name of at most {size} bytes" in out.stderr, \
+            out.stderr
+        assert "omega" not in out.stdout and "shapes" not in out.stdout, out.stdout   # nothing was solved
+        assert not os.listdir(tmp_path), os.listdir(tmp_path)
+    just_csv, just_png = tmp_path / ("k" * (csv - 4) + ".csv"), tmp_path / ("k" * (png - 4) + ".png")
+    out = dbf_hpc("stiffness", PAPER, "--k", "1,10", "-o", str(just_csv), "--plot", str(just_png))
+    assert out.returncode == 0, out.stderr
+    assert just_csv.is_file() and just_png.read_bytes()[:4] == b"\x89PNG"
+
+
 def test_the_paraview_file_beside_an_output_never_replaces_what_dbf_hpc_did_not_write(tmp_path):
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "run.xdmf"), *SHORT)
     assert _one_line(out) and "ends in .xdmf" in out.stderr and not os.listdir(tmp_path)
