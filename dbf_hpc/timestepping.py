@@ -113,9 +113,12 @@ class IntegratorSettings:
             raise InputError(f"[integrator] atol = {self.atol:g} is below {ATOL_FLOOR:g}, below any state a model "
                              f"resolves (modal units, m kg^(1/2)), and overflows the error norm near rest: give at "
                              f"least {ATOL_FLOOR:g} (rtol alone controls the error where the state is larger)")
-        if not RTOL_FLOOR <= self.rtol < 1:
-            raise InputError(f"[integrator] rtol = {self.rtol:g} cannot be met in double precision: give a value "
-                             f"from {RTOL_FLOOR:g} to 1")
+        if self.rtol >= 1:   # red team: "rtol = 1 cannot be met in double precision: give a value from 1e-14 to 1"
+            raise InputError(f"[integrator] rtol = {self.rtol:g} is a relative error of 100 % or more, no error "
+                             f"control: give a value below 1 (e.g. 1e-6)")
+        if self.rtol < RTOL_FLOOR:
+            raise InputError(f"[integrator] rtol = {self.rtol:g} cannot be met in double precision: give at least "
+                             f"{RTOL_FLOOR:g}")
         if self.callbacks not in CALLBACKS:
             raise InputError(f"[integrator] callbacks {self.callbacks!r}: choose one of {', '.join(CALLBACKS)}")
         if self.scheme not in ARKIMEX_TYPES:
@@ -221,7 +224,14 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
     scale = step_scale(settings.dt, fastest_hz)
     nominal = max(scale * MIN_STEP_FRACTION, TIME_ULPS * float(np.spacing(settings.t_end)))
     if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples); dt does not raise the cap
-        ts.setStepLimits(nominal, max(nominal, settings.sample_dt * 10))
+        cap = settings.sample_dt * 10
+        if cap * settings.max_step_scale <= nominal:   # PETSc's "Maximum time step ... must greater than
+            # minimum time step ...; check the -rom_ options" blamed options nobody gave (red team: t_end = 1e-9 s)
+            raise InputError(f"[integrator] t_end = {settings.t_end:g} s: its output samples, {settings.sample_dt:g} s "
+                             f"apart, cap an adaptive step at {cap * settings.max_step_scale:g} s, not above the "
+                             f"smallest step it may take ({nominal:g} s): give a longer t_end or [output] sample_dt, "
+                             f"or a fixed step ([integrator] adaptive = false)")
+        ts.setStepLimits(nominal, max(nominal, cap))
     ts.getSNES().setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
     with options_defaults(prefix, defaults):
         ts.setOptionsPrefix(prefix)

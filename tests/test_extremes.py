@@ -179,3 +179,19 @@ def test_a_friction_regularized_over_a_vanishing_speed_stops_at_the_step_floor_n
                                "basis.estimate=false"], raw=text.encode())
     with pytest.raises(SolverError, match=r"at its floor .*friction regularization \(k, alpha, c; v_reg\)"):
         run(scene, str(shared_tmp_path / "friction.h5"), progress=False)
+
+
+def test_a_run_shorter_than_its_smallest_adaptive_step_is_refused_and_one_just_longer_runs(shared_tmp_path):
+    # Red team: t_end = 1e-9 s (the samples t_end / 1e4 apart cap a step at 1e-12 s, the floor of the paper
+    # beam's steps) was "PETSc error 63 in TSAdaptSetStepLimits() ...; check the -rom_ options", options
+    # nobody gave. It is one line naming the samples and the floor, and no output is left.
+    from dbf_hpc.errors import InputError
+
+    with pytest.raises(InputError, match=r"^\[integrator\] t_end = 1e-09 s: its output samples, 1e-13 s apart, "
+                                         r"cap an adaptive step at 1e-12 s, not above the smallest step it may take"):
+        paper(shared_tmp_path, "tiny.h5", "integrator.t_end=1e-9")
+    assert not [name for name in os.listdir(shared_tmp_path) if name.startswith("tiny")]
+    _, summary, f = paper(shared_tmp_path, "short.h5", "integrator.t_end=1e-7")   # samples 1e-11 s apart
+    if f is not None:
+        assert f["time"][-1] == pytest.approx(1e-7, rel=1e-12) and np.all(np.isfinite(f["reduced/q"][:]))
+        f.close()

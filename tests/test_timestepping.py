@@ -8,9 +8,16 @@ from dbf_hpc.errors import InputError
 from dbf_hpc.timestepping import IntegratorSettings, check_work
 
 
-@pytest.mark.parametrize("rtol", [1e-300, 0.0, 1.5])
+@pytest.mark.parametrize("rtol", [1e-300, 0.0])
 def test_a_tolerance_double_precision_cannot_meet_is_refused(rtol):
-    with pytest.raises(InputError, match="cannot be met in double precision"):
+    with pytest.raises(InputError, match="cannot be met in double precision: give at least 1e-14$"):
+        IntegratorSettings(t_end=1.0, rtol=rtol)
+
+
+@pytest.mark.parametrize("rtol", [1.0, 1.5])
+def test_a_relative_tolerance_of_100_percent_or_more_is_refused_as_no_error_control(rtol):
+    # Red team: rtol = 1 was "cannot be met in double precision: give a value from 1e-14 to 1"
+    with pytest.raises(InputError, match="is a relative error of 100 % or more, no error control: give a value below 1"):
         IntegratorSettings(t_end=1.0, rtol=rtol)
 
 
