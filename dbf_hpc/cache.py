@@ -17,7 +17,14 @@ cannot check (k_j, k_auto, the branches, f_exact) carries a sha256 written with 
 holds the kind of enrichment and only the settings and solver options that kind uses. A gyroscopic
 basis in the second-order form (gyroscopic_basis.py) is cached too: its file adds the complex-mode
 count and the columns of each constraint, and on load its reduced model must still have the stored
-complex frequencies; the state-space basis (state_space.py) is not cached. The error estimate's richer
+complex frequencies. So is the state-space basis (state_space.py; its own algorithm name in the key):
+its file holds the velocity and displacement parts Psi_v, Psi_w (n x r each, no V), the raw DBFs d_R,
+d_I (n x N_L each) and their varpi (what the error estimate's richer basis reuses), and the attribute
+form = "state_space"; on load Psi^T A Psi = I, its reduced A_r eta' + B_r eta = 0 (conservative B)
+must have the stored complex frequencies, each DBF pair its stored hat-omega (Eq. 20) and each raw
+DBF's state vectors must lie in span Psi (_state_space_problem). Two builds of it may differ at
+round-off (4e-8 measured on a CI machine), and a --resume, whose checkpoint holds what the reduced
+coordinates mean, needs the very basis its run had: the cache gives it. The error estimate's richer
 bases take their reference modes from the cache too (obtain_modes): an entry of that many modes without
 enrichment or constraint rows.
 
@@ -41,6 +48,7 @@ from .checkpoint import arrays_sha256
 from .errors import WRITE_ERRORS, InputError, lock_problem, park, refused_lock, temporary_tag, warn, write_failure
 from .output import check_free_space, has_hdf5_signature
 from .operators import Operators
+from .petsctools import destroy
 
 # Bump when the construction changes what a basis is (an older file then has another key).
 # 4: enrichment strategies; hat-omega of every enrichment column as enrichment_omega. 5: f_exact of
@@ -80,12 +88,14 @@ def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool
               whole: str = "refuse") -> str:
     """sha256 of everything that determines the basis (the options only of the solvers its kind uses),
     and the package version (a release may build it otherwise without a new ALGORITHM).
-    A gyroscopic basis (second-order form) has its own algorithm name: its operators' fingerprint
+    A gyroscopic basis has its own algorithm name, one per form (second order, state space: settings.key()
+    has no gyroscopic_form, which only a gyroscopic structure reads): its operators' fingerprint
     already holds U, m_t and T (a beam) or G's bytes (matrices). `whole` = "extend" (obtain_modes: a
     count inside a repeated frequency taken to its end) is part of the key; a user's count ("refuse")
     keeps the key it had (red team: the estimate's 6 modes stored for a count of 5 served a run asking
     5 modes alone, which without the cache is refused, as 5 cut a pair)."""
-    content = {"algorithm": ALGORITHM + ("-gyroscopic" if gyroscopic else ""), "version": __version__,
+    form = "-state-space" if gyroscopic and settings.gyroscopic_form == "state_space" else ""
+    content = {"algorithm": ALGORITHM + ("-gyroscopic" if gyroscopic else "") + form, "version": __version__,
                "operators": fingerprint,
                "rows": [int(r) for r in rows], "settings": settings.key(),
                "options": solver_options(settings.strategy.solver_prefixes),
@@ -109,30 +119,61 @@ def _say(comm, message: str) -> None:
 
 
 
-def save(basis: ReducedBasis, path: str, key: str, comm, defect: float = 0.0) -> str | None:
-    """Write the basis to `path` atomically (a temporary file, fsync, then rename), rank 0 writing
-    every rank's rows in turn (memory: one rank's block). `defect` is the basis's own max|V^T M V - I|
-    (load allows that much plus VERIFY_TOL). Returns None, or why it could not be written (every rank
-    gets the same answer; no temporary file is left). Collective."""
-    world = comm.tompi4py()
+def _is_state_space(basis_or_settings, ops: Operators | None = None) -> bool:
+    """Whether a basis is the state-space one (state_space.py), or settings ask for it on `ops`."""
+    if ops is None:
+        return getattr(basis_or_settings, "form", "") == "state_space"
+    return ops.G is not None and basis_or_settings.gyroscopic_form == "state_space"
+
+
+def _columns(basis) -> tuple:
+    """(global rows n, this rank's first row, {dataset: this rank's rows of its columns}) of a basis: V
+    (n x r), or the state-space basis' velocity and displacement parts (n x r each) and its raw DBFs
+    d_R, d_I (n x N_L each: what the error estimate's richer basis reuses, state_space.richer_state_space_basis).
+    Collective (a BV's dense matrix)."""
+    if _is_state_space(basis):
+        from .state_space import _local
+
+        lo, hi = basis.displacement[0].getOwnershipRange()
+
+        def local(vecs):
+            return _local(vecs) if vecs else np.zeros((hi - lo, 0))
+
+        return basis.displacement[0].getSize(), lo, {
+            "velocity": local(basis.velocity), "displacement": local(basis.displacement),
+            "dbf_raw_real": local([d[0] for d in basis.raw]), "dbf_raw_imag": local([d[1] for d in basis.raw])}
     dense = basis.vectors.getMat()
-    lo, hi = dense.getOwnershipRange()
+    lo, _ = dense.getOwnershipRange()
     local = dense.getDenseArray().copy()
     basis.vectors.restoreMat(dense)
-    n = basis.vectors.getSizes()[0][1]
+    return basis.vectors.getSizes()[0][1], lo, {"V": local}
+
+
+def save(basis, path: str, key: str, comm, defect: float = 0.0) -> str | None:
+    """Write the basis (a ReducedBasis, or a state_space.StateSpaceBasis: _columns) to `path` atomically
+    (a temporary file, fsync, then rename), rank 0 writing every rank's rows in turn (memory: one
+    rank's block). `defect` is the basis's own max|V^T M V - I| (state space: max|Psi^T A Psi - I|;
+    load allows that much plus VERIFY_TOL). Returns None, or why it could not be written (every rank
+    gets the same answer; no temporary file is left). Collective."""
+    world = comm.tompi4py()
+    n, lo, local = _columns(basis)
+    state = _is_state_space(basis)
     tmp = f"{path}.tmp-{temporary_tag()}"
-    error, f, V = None, None, None
+    error, f, V = None, None, {}
     if world.rank == 0:
         try:
-            check_free_space(path, 8.0 * n * basis.size, "basis cache")
+            check_free_space(path, 8.0 * n * sum(block.shape[1] for block in local.values()), "basis cache")
             f = h5py.File(tmp, "w", userblock_size=sealed.USERBLOCK)
-            V = f.create_dataset("V", shape=(n, basis.size), dtype="f8")
+            V = {name: f.create_dataset(name, shape=(n, block.shape[1]), dtype="f8") for name, block in local.items()}
             arrays = {name: np.asarray(getattr(basis, name)) for name in ARRAYS}
             if basis.complex_modes:   # a gyroscopic basis: Re and Im columns (gyroscopic_basis.py)
                 arrays["constraint_columns"] = np.asarray(basis.stats["constraint_columns"], dtype=np.int64)
                 arrays["complex_omega"] = np.asarray(basis.stats["complex_omega"], dtype=float)
                 arrays["complex_modes"] = np.int64(basis.complex_modes)
                 f.attrs["complex_modes"] = basis.complex_modes
+            if state:   # varpi of each raw DBF (state_space._basis), and the form
+                arrays["dbf_varpi"] = np.asarray([d[2] for d in basis.raw], dtype=float)
+                f.attrs["form"] = "state_space"
             for name, value in arrays.items():
                 if name != "complex_modes":
                     f.create_dataset(name, data=value)
@@ -147,20 +188,21 @@ def save(basis: ReducedBasis, path: str, key: str, comm, defect: float = 0.0) ->
         except WRITE_ERRORS as e:
             error = write_failure(e)
     for rank in range(world.size):
-        start, block = (lo, local) if rank == 0 else (world.recv(source=rank) if world.rank == 0 else (None, None))
+        start, blocks = (lo, local) if rank == 0 else (world.recv(source=rank) if world.rank == 0 else (None, None))
         if world.rank == rank and rank > 0:
             world.send((lo, local), dest=0)
         if world.rank == 0 and error is None:
             try:
-                V[start:start + block.shape[0], :] = block
+                for name, block in blocks.items():
+                    V[name][start:start + block.shape[0], :] = block
             except WRITE_ERRORS as e:
                 error = write_failure(e)
     if world.rank == 0:
-        error = _close_and_rename(f, V, tmp, path, error)
+        error = _close_and_rename(f, list(V.values()), tmp, path, error)
     return world.bcast(error, root=0)
 
 
-def _close_and_rename(f, V, tmp: str, path: str, error: str | None) -> str | None:
+def _close_and_rename(f, datasets: list, tmp: str, path: str, error: str | None) -> str | None:
     """Rank 0: finish the temporary file and move it into place, or remove it."""
     try:
         if f is not None:
@@ -172,7 +214,7 @@ def _close_and_rename(f, V, tmp: str, path: str, error: str | None) -> str | Non
             os.replace(tmp, path)
     except WRITE_ERRORS as e:
         error = write_failure(e)
-        park(f, V)
+        park(f, *datasets)
     if error is not None and os.path.exists(tmp):
         os.remove(tmp)
     return error
@@ -180,17 +222,21 @@ def _close_and_rename(f, V, tmp: str, path: str, error: str | None) -> str | Non
 
 def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings, checked: bytes,
           whole: str = "refuse"):
-    """(problem or None, the small arrays, this rank's block of V) of a cache file whose user block
-    is `checked` (the file rank 0 checked: another job may have stored the entry again since, and
-    each rank would read its own file, a mix of two bases). A count of modes asked (not
-    max_frequency_hz) must be the count held, or with `whole` = "extend" at most it."""
+    """(problem or None, the small arrays, {dataset: this rank's rows}: V, or the state-space basis'
+    parts (_columns)) of a cache file whose user block is `checked` (the file rank 0 checked: another
+    job may have stored the entry again since, and each rank would read its own file, a mix of two
+    bases). A count of modes asked (not max_frequency_hz) must be the count held, or with `whole` =
+    "extend" at most it."""
     lo, hi = ops.K.getOwnershipRange()
+    state = _is_state_space(settings, ops)
     try:
         with h5py.File(path, "r") as f:
             if sealed.user_block_of_open(f) != checked:
                 return "was stored again by another job while this one read it", {}, None
             if f.attrs.get("key") != key:
                 return "was made for other operators or settings", {}, None
+            if (f.attrs.get("form") == "state_space") != state:
+                return "has the wrong shape", {}, None
             arrays = {name: f[name][...] for name in ARRAYS}
             defect = float(f.attrs["orthonormality_defect"])
             if not (np.isfinite(defect) and defect >= 0.0):
@@ -212,13 +258,21 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings, ch
                 if (counts.size != enriched or np.any((counts < 1) | (counts > 2))
                         or arrays["complex_omega"].size != arrays["complex_modes"]):
                     return "has the wrong shape", {}, None
+            names = ("V",)
+            if state:   # the velocity and displacement parts, and the raw DBFs with their varpi
+                names = ("velocity", "displacement", "dbf_raw_real", "dbf_raw_imag")
+                arrays["dbf_varpi"] = f["dbf_varpi"][...]
+                if arrays["dbf_varpi"].size != enriched:
+                    return "has the wrong shape", {}, None
             stored = dict(arrays)
             if "complex_modes" in stored:
                 stored["complex_modes"] = np.int64(stored["complex_modes"])
             if f.attrs.get("arrays_sha256") != arrays_sha256(stored):
                 return "fails its checksum (corrupt, or written by an older version)", {}, None
+            width = arrays["omega"].size + columns
+            shapes = {name: (ops.size, enriched if name.startswith("dbf_raw") else width) for name in names}
             if (arrays["enrichment_omega"].size != columns
-                    or f["V"].shape != (ops.size, arrays["omega"].size + columns)
+                    or any(f[name].shape != shape for name, shape in shapes.items())
                     or any(arrays[name].size != enriched for name in ("dbf_k", "dbf_k_auto", "dbf_branch"))
                     or arrays["flexibility_exact"].size != len(rows)):
                 return "has the wrong shape", {}, None
@@ -227,7 +281,7 @@ def _read(path: str, key: str, ops: Operators, rows, settings: BasisSettings, ch
                     held < settings.modes or (whole == "refuse" and held != settings.modes)):
                 # an entry of 0.2.3's error estimate (a repeated frequency taken whole) under a run's key
                 return f"holds {held} modes, not the {settings.modes} asked", {}, None
-            return None, {**arrays, "orthonormality_defect": defect}, f["V"][lo:hi, :]
+            return None, {**arrays, "orthonormality_defect": defect}, {name: f[name][lo:hi, :] for name in names}
     except (OSError, KeyError, ValueError) as e:
         return f"cannot be read ({lock_problem(e) or type(e).__name__})", {}, None
 
@@ -241,14 +295,25 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows,
     world = ops.comm.tompi4py()
     # the seal first, on rank 0 alone: HDF5 must not parse a damaged file (it may crash the process)
     problem, checked = world.bcast(sealed.check(path, SEAL, "this cache") if world.rank == 0 else None, root=0)
-    arrays, block = {}, None
+    arrays, blocks = {}, None
     if not problem:
-        problem, arrays, block = _read(path, key, ops, np.asarray(rows, dtype=np.int64), settings, checked,
-                                       whole)
+        problem, arrays, blocks = _read(path, key, ops, np.asarray(rows, dtype=np.int64), settings, checked,
+                                        whole)
     problem = next((p for p in world.allgather(problem) if p), None)
     if problem:
         _say(ops.comm, f"basis cache {path} {problem}; rebuilding it")
         return None
+    if _is_state_space(settings, ops):
+        basis = _state_space_basis(ops, settings, arrays, blocks, path)
+        problem = _state_space_problem(basis, ops, arrays["orthonormality_defect"])
+        if problem:
+            _say(ops.comm, f"basis cache {path} does not match the operators ({problem}: corrupt or stale); "
+                           f"rebuilding it")
+            basis.destroy()
+            return None
+        _touch(path, world)
+        return basis
+    block = blocks["V"]
     r = block.shape[1]
     V = SLEPc.BV().create(comm=ops.comm)
     template = ops.K.createVecRight()
@@ -282,12 +347,106 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows,
         _say(ops.comm, f"basis cache {path} does not match the operators (corrupt or stale); rebuilding it")
         basis.destroy()
         return None
+    _touch(path, world)
+    return basis
+
+
+def _touch(path: str, world) -> None:
+    """Rank 0 marks a cache hit's file used: its modification time is its last use, what `cache clear
+    --older-than` reads."""
     if world.rank == 0:
-        try:   # its modification time is its last use, what `cache clear --older-than` reads
+        try:
             os.utime(path)
         except OSError:   # a read-only cache serves all the same
             pass
-    return basis
+
+
+def _state_space_basis(ops: Operators, settings: BasisSettings, arrays: dict, blocks: dict, path: str):
+    """The state_space.StateSpaceBasis a checked file's arrays and this rank's rows make (its Vecs in K's
+    layout, owned by it). Collective."""
+    from .state_space import StateSpaceBasis
+
+    def vecs(block):
+        out = []
+        for j in range(block.shape[1]):
+            v = ops.K.createVecRight()
+            v.array[:] = block[:, j]
+            out.append(v)
+        return out
+
+    raw = [(dr, di, float(varpi)) for dr, di, varpi in zip(vecs(blocks["dbf_raw_real"]), vecs(blocks["dbf_raw_imag"]),
+                                                        arrays["dbf_varpi"])]
+    stats = {"cache": "hit", "cache_file": path, "complex_modes": arrays["complex_modes"],
+             "constraint_columns": arrays["constraint_columns"].tolist(),
+             "complex_omega": arrays["complex_omega"].tolist()}
+    return StateSpaceBasis(velocity=vecs(blocks["velocity"]), displacement=vecs(blocks["displacement"]),
+                           comm=ops.comm, raw=raw, settings=settings, stats=stats,
+                           **{name: arrays[name] for name in ARRAYS})
+
+
+def _state_space_problem(basis, ops: Operators, defect: float) -> str | None:
+    """Why a state-space basis read from the cache is not the one these operators and settings make
+    (None if it is), checked as build_state_space_basis made it (state_space.py), the same on every rank:
+    Psi^T A Psi = I (to VERIFY_TOL beyond its stored defect); every stored omega_j an eigenfrequency of
+    the reduced A_r eta' + B_r eta = 0 with the conservative B (exact for Re and Im of a complex state
+    mode, as for the second-order basis); each DBF's hat-omega (Eq. 20) its <B Psi^R, Psi^I> on these
+    operators; each raw DBF's state vectors [-varpi d_I; d_R], [varpi d_R; d_I] inside span Psi (what
+    the error estimate's richer basis reuses: a column left out is below DROP_TOL of them); the captured
+    flexibility plausible. Collective."""
+    from .state_space import DROP_TOL, _state_parts, conservative_state_matrix
+
+    A_r = basis.state_energy(ops)
+    if not (np.all(np.isfinite(A_r)) and np.abs(A_r - np.eye(basis.size)).max() < VERIFY_TOL + defect):
+        return "Psi^T A Psi is not I"
+    B_r = conservative_state_matrix(basis, ops)
+    if not np.all(np.isfinite(B_r)):
+        return "its reduced B is not finite"
+    lam = np.linalg.eigvals(-np.linalg.solve(A_r, B_r))
+    found = lam.imag[lam.imag > 0]
+    if not (found.size and all(np.min(np.abs(found - w)) <= VERIFY_TOL * 100 * w for w in np.unique(basis.omega))):
+        return "its reduced model lacks the stored complex frequencies"
+    first, hat = basis.mode_count, []
+    for count in basis.stats["constraint_columns"]:
+        hat += [B_r[first + 1, first] if count == 2 else 0.0] * count
+        first += count
+    scale = VERIFY_TOL * 100 * float(np.abs(basis.omega).max(initial=0.0))
+    if not np.allclose(hat, basis.enrichment_omega, rtol=VERIFY_TOL * 100, atol=scale):
+        return "its DBF columns do not have the stored hat-omega"
+    for dr, di, varpi in basis.raw:
+        parts = _state_parts(dr, di, varpi)
+        try:
+            residuals = [_residual_a_norm(basis, ops, *p) for p in parts]
+            norms = [_residual_a_norm(None, ops, *p) for p in parts]
+        finally:
+            for p in parts:
+                destroy(*p)
+        if not all(np.isfinite(residuals)) or max(residuals) > 10 * DROP_TOL * np.hypot(*norms):
+            return "a DBF it reuses is not in its span"
+    basis.set_flexibility(np.asarray(basis.flexibility_exact), ops)
+    if not _flexibility_plausible(basis.flexibility_captured):
+        return "its captured flexibility exceeds the exact one"
+    return None
+
+
+def _residual_a_norm(basis, ops: Operators, v, w) -> float:
+    """The A-norm of the state (v, w) less its A-projection onto span Psi (basis None: of the state
+    itself). Collective."""
+    v, w = v.copy(), w.copy()
+    Mv, Kw = v.duplicate(), w.duplicate()
+    try:
+        if basis is not None:
+            for _ in range(2):   # twice, as the Gram-Schmidt that built the basis
+                ops.M.mult(v, Mv)
+                ops.K.mult(w, Kw)
+                c = [Mv.dot(a) + Kw.dot(b) for a, b in zip(basis.velocity, basis.displacement)]
+                for cj, a, b in zip(c, basis.velocity, basis.displacement):
+                    v.axpy(-cj, a)
+                    w.axpy(-cj, b)
+        ops.M.mult(v, Mv)
+        ops.K.mult(w, Kw)
+        return float(np.sqrt(abs(v.dot(Mv) + w.dot(Kw))))
+    finally:
+        destroy(v, w, Mv, Kw)
 
 
 def _holds_complex_modes(K_r: np.ndarray, G_r: np.ndarray, omega: np.ndarray) -> bool:
@@ -337,8 +496,7 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
     check_pairs(ops, settings.modes)   # before a cache hit too: one stored before the check
     rows = np.asarray(rows, dtype=np.int64)
     gyroscopic = ops.G is not None
-    # the state-space basis (state_space.py) is not cached; a gyroscopic second-order one is
-    if not cache_dir or (gyroscopic and settings.gyroscopic_form != "second_order"):
+    if not cache_dir:
         basis = build_basis(ops, rows, settings, labels, whole)
         basis.stats["cache"] = "off"
         return basis
@@ -351,7 +509,8 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
             _mark_used(solver_options(settings.strategy.solver_prefixes, observers=True))
             return basis
     basis = build_basis(ops, rows, settings, labels, whole)
-    defect = float(np.abs(basis.project(ops.M) - np.eye(basis.size)).max(initial=0.0))
+    A_r = basis.state_energy(ops) if _is_state_space(basis) else basis.project(ops.M)
+    defect = float(np.abs(A_r - np.eye(basis.size)).max(initial=0.0))
     error = _prepare_directory(cache_dir, ops.comm) or save(basis, path, key, ops.comm, defect)
     if error:
         if not quiet:
@@ -405,7 +564,8 @@ STALE_TEMPORARY_S = 600.0
 
 def entries(cache_dir: str) -> list:
     """The files of the cache in `cache_dir`: path, size (bytes), modified (time), and what each holds
-    (settings, dbf-hpc version, shape), or the problem reading it ("problem"; "foreign": a file named
+    (settings, dbf-hpc version, shape: V's, or a state-space basis' displacement part's, and form:
+    "state_space" or "second_order"), or the problem reading it ("problem"; "foreign": a file named
     like a basis that save() did not write, which clear() never removes). Files not named as save()
     names them are not listed. Not collective."""
     out = []
@@ -424,13 +584,15 @@ def entries(cache_dir: str) -> list:
         else:
             try:
                 with h5py.File(path, "r") as f:
-                    key, V = f.attrs.get("key", ""), f.get("V")
+                    # a state-space basis (save) holds its displacement part where another holds V
+                    form = "state_space" if f.attrs.get("form") == "state_space" else "second_order"
+                    key, V = f.attrs.get("key", ""), f.get("displacement" if form == "state_space" else "V")
                     if not (isinstance(key, str) and key[:20] == match.group(1) and isinstance(V, h5py.Dataset)
                             and V.ndim == 2):
                         entry.update(problem="not a basis this cache wrote: kept", foreign=True)
                     else:
                         entry.update(settings=f.attrs.get("settings", ""),
-                                     version=f.attrs.get("dbf_hpc_version", "?"), shape=V.shape)
+                                     version=f.attrs.get("dbf_hpc_version", "?"), shape=V.shape, form=form)
             except (OSError, KeyError, RuntimeError) as e:
                 if refused_lock(e):      # readable where locks work: never removed for it
                     entry.update(problem=lock_problem(e), foreign=True)

@@ -227,7 +227,8 @@ def _cache(args) -> int:
     print(f"{folder}: {len(found)} file(s), {sum(e['size'] for e in found) / 2**20:.3g} MiB")
     for e in found:
         when = datetime.datetime.fromtimestamp(e["modified"]).strftime("%Y-%m-%d %H:%M")
-        what = e.get("problem") or f"V {e['shape'][0]} x {e['shape'][1]}, dbf-hpc {e['version']}, {e['settings']}"
+        name = "state space Psi_v, Psi_w" if e.get("form") == "state_space" else "V"
+        what = e.get("problem") or f"{name} {e['shape'][0]} x {e['shape'][1]}, dbf-hpc {e['version']}, {e['settings']}"
         print(f"  {os.path.basename(e['path'])}  {e['size'] / 2**20:8.3g} MiB  {when}  {what}")
     return 0
 

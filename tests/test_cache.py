@@ -315,9 +315,9 @@ def test_a_gyroscopic_basis_is_cached_and_its_speed_is_part_of_the_key(shared_tm
     # U enters the key through the beam's fingerprint: another speed is another basis
     _, solves, state, other = gyroscopic_basis(shared_tmp_path, speed=31.0)
     assert solves > 0 and state == "stored" and other != path
-    # the paper's state-space form is not cached
+    # the paper's state-space form is cached apart: another basis of the same settings and operators
     _, solves, state, _ = gyroscopic_basis(shared_tmp_path, form="state_space")
-    assert solves > 0 and state == "off"
+    assert solves > 0 and state == "stored"
 
 
 def test_a_gyroscopic_basis_of_another_speed_under_this_key_is_detected_and_rebuilt(shared_tmp_path):
@@ -338,6 +338,166 @@ def test_a_gyroscopic_basis_of_another_speed_under_this_key_is_detected_and_rebu
     rebuilt, solves, state, _ = gyroscopic_basis(shared_tmp_path / "b", **slow)
     assert solves > 0 and state == "stored"
     assert np.abs(rebuilt - reference).max() < 1e-10 * np.abs(reference).max()
+
+
+def state_space_basis(cache_dir, speed=30.0, tension=2000.0, enrichment="dbf"):
+    """What a moving band's state-space basis gives, gathered on every rank: its reduced model's A_r, B_r
+    and constraint rows (g^T Psi_w, g^T Psi_v), its raw DBFs (d_R, d_I) and varpi (what the error
+    estimate's richer basis reuses), hat-omega; the eigen-solves on the busiest rank, the cache state,
+    the file."""
+    from dbf_hpc import Beam, Constraint, FullOrderModel, law
+    from dbf_hpc.basis import BasisSettings
+    from test_gyroscopic import BAND
+
+    def gathered(vecs):
+        local = np.column_stack([v.getArray(readonly=True) for v in vecs]) if vecs else np.zeros((0, 0))
+        return np.vstack([b for b in MPI.COMM_WORLD.allgather(local) if b.size] or [np.zeros((0, 0))])
+
+    beam = Beam(elements=40, axial_speed=speed, **{**BAND, "tension": tension})
+    stops = [Constraint(law("deadband", clearance=5e-4, k=1e5), x=x) for x in (0.3, 0.75)]
+    settings = BasisSettings(modes=4, gyroscopic_form="state_space", enrichment=enrichment)
+    with FullOrderModel.build(beam, stops) as fom, Reductor(fom, settings, str(cache_dir)) as reductor:
+        before = counters["eigen_solves"]
+        basis = reductor.basis()
+        solves = MPI.COMM_WORLD.allreduce(counters["eigen_solves"] - before, op=MPI.MAX)
+        model = reductor.reduce()
+        assert basis.form == "state_space" and basis.complex_modes == 4
+        return {"A": model.A, "B_state": model.B_state, "B": model.B, "B_velocity": model.B_velocity,
+                "raw_real": gathered([d[0] for d in basis.raw]), "raw_imag": gathered([d[1] for d in basis.raw]),
+                "varpi": np.array([d[2] for d in basis.raw]), "hat_omega": basis.enrichment_omega.copy(),
+                "flexibility": basis.flexibility_captured.copy(), "solves": solves,
+                "cache": basis.stats.get("cache"), "path": basis.stats.get("cache_file"),
+                "complex_omega": basis.stats["complex_omega"], "columns": basis.stats["constraint_columns"]}
+
+
+@pytest.mark.parametrize("enrichment", ["dbf", "none"])
+def test_a_state_space_basis_is_cached_and_a_hit_gives_the_same_reduced_model_bit_for_bit(shared_tmp_path,
+                                                                                       enrichment):
+    # A state-space run rebuilt its basis at every invocation (it was not cached); two builds of it on a
+    # CI machine differed at 4e-8, and a --resume there found its checkpoint's coordinates changed. A hit
+    # solves nothing and gives the very numbers stored: the reduced model and the raw DBFs the error
+    # estimate's richer basis reuses.
+    first = state_space_basis(shared_tmp_path, enrichment=enrichment)
+    assert first["solves"] > 0 and first["cache"] == "stored"
+    again = state_space_basis(shared_tmp_path, enrichment=enrichment)
+    assert again["solves"] == 0 and again["cache"] == "hit" and again["path"] == first["path"]
+    for name in ("A", "B_state", "B", "B_velocity", "raw_real", "raw_imag", "varpi", "hat_omega", "flexibility"):
+        assert np.array_equal(first[name], again[name]), name
+    assert again["complex_omega"] == first["complex_omega"] and again["columns"] == first["columns"]
+    assert first["raw_real"].shape[1] == first["varpi"].size == (2 if enrichment == "dbf" else 0)
+    if enrichment == "dbf":   # the second-order basis of the same settings is another entry, not this one
+        _, solves, state, other = gyroscopic_basis(shared_tmp_path)
+        assert solves > 0 and state == "stored" and other != first["path"]
+
+
+def _replace_in_state_space_file(path, change):
+    """Rank 0 changes the cache file (change(h5py.File)) and seals it again: what is checked is the
+    basis itself, not the seal."""
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(path, "r+") as f:
+            change(f)
+        seal(path)
+    MPI.COMM_WORLD.Barrier()
+
+
+def _scale_column(name, j, factor):
+    def change(f):
+        f[name][:, j] *= factor
+    return change
+
+
+# each damage and the cause the line names
+STATE_SPACE_DAMAGE = {"flipped byte": "fails its file checksum", "truncated": "fails its file checksum",
+                      "velocity column": "Psi^T A Psi is not I", "displacement column": "Psi^T A Psi is not I",
+                      "raw DBF": "a DBF it reuses is not in its span", "hat-omega": "fails its checksum (corrupt",
+                      "DBF columns swapped": "its DBF columns do not have the stored hat-omega"}
+
+
+@pytest.mark.parametrize("damage", list(STATE_SPACE_DAMAGE))
+def test_a_damaged_state_space_cache_file_is_refused_and_rebuilt(shared_tmp_path, damage, capfd):
+    # Every damage a cache file can have is a line naming the file and its cause and a rebuild, never a
+    # basis used: bytes flipped or cut (the seal), a column of either part scaled (Psi^T A Psi = I), a raw
+    # DBF the richer basis would reuse (in span Psi), a hat-omega (its checksum), the two constraints' DBF
+    # columns swapped (an A-orthonormal basis of the same span: only their hat-omega on these operators
+    # tells).
+    reference = state_space_basis(shared_tmp_path)
+    path = reference["path"]
+    assert reference["A"].shape == (12, 12)   # 4 complex modes and 2 DBFs, Re and Im of each
+    if damage == "flipped byte" and MPI.COMM_WORLD.rank == 0:
+        with open(path, "r+b") as f:
+            f.seek(os.path.getsize(path) // 2)
+            byte = f.read(1)
+            f.seek(-1, os.SEEK_CUR)
+            f.write(bytes([byte[0] ^ 0x10]))
+    elif damage == "truncated" and MPI.COMM_WORLD.rank == 0:
+        os.truncate(path, os.path.getsize(path) // 2)
+    elif damage == "velocity column":
+        _replace_in_state_space_file(path, _scale_column("velocity", 1, 1.001))
+    elif damage == "displacement column":
+        _replace_in_state_space_file(path, _scale_column("displacement", 8, 1 + 1e-6))
+    elif damage == "raw DBF":   # another direction: V^T A V and the frequencies cannot see it
+        def change(f):
+            f["dbf_raw_real"][:, 0] += f["dbf_raw_real"][:, 0][::-1]
+        _replace_in_state_space_file(path, change)
+    elif damage == "DBF columns swapped":
+        def change(f):
+            for name in ("velocity", "displacement"):
+                V = f[name][...]
+                f[name][...] = V[:, [0, 1, 2, 3, 4, 5, 6, 7, 10, 11, 8, 9]]
+        _replace_in_state_space_file(path, change)
+    elif damage == "hat-omega":
+        def change(f):
+            f["enrichment_omega"][0] *= 1.01
+        _replace_in_state_space_file(path, change)
+    MPI.COMM_WORLD.Barrier()
+    capfd.readouterr()
+    rebuilt = state_space_basis(shared_tmp_path)
+    out = capfd.readouterr().out
+    assert rebuilt["solves"] > 0 and rebuilt["cache"] == "stored"
+    if MPI.COMM_WORLD.rank == 0:
+        assert f"basis cache {path}" in out and STATE_SPACE_DAMAGE[damage] in out and "rebuilding it" in out, out
+    scale = np.abs(reference["B_state"]).max()
+    assert np.abs(rebuilt["B_state"] - reference["B_state"]).max() < 1e-8 * scale
+    assert state_space_basis(shared_tmp_path)["cache"] == "hit"   # the rebuilt file serves
+
+
+def test_a_state_space_basis_of_another_speed_under_this_key_is_refused_and_rebuilt(shared_tmp_path, capfd):
+    # 20 m/s under 1883 N has the 30 m/s band's K and M (test_a_gyroscopic_basis_of_another_speed_...):
+    # Psi^T A Psi = I and the flexibility hold for the other file's Psi, but its reduced model no longer
+    # has the stored complex frequencies
+    path = state_space_basis(shared_tmp_path)["path"]
+    slow = dict(speed=20.0, tension=2000.0 - 7800.0 * 3e-5 * (30.0**2 - 20.0**2))
+    reference = state_space_basis(shared_tmp_path / "b", **slow)
+    other = reference["path"]
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(other, "r") as f:
+            key = f.attrs["key"]
+        os.replace(path, other)
+        with h5py.File(other, "r+") as f:
+            f.attrs["key"] = key
+        seal(other)
+    MPI.COMM_WORLD.Barrier()
+    capfd.readouterr()
+    rebuilt = state_space_basis(shared_tmp_path / "b", **slow)
+    out = capfd.readouterr().out
+    assert rebuilt["solves"] > 0 and rebuilt["cache"] == "stored"
+    if MPI.COMM_WORLD.rank == 0:
+        assert "does not match the operators (its reduced model lacks the stored complex frequencies" in out, out
+    assert np.abs(rebuilt["B_state"] - reference["B_state"]).max() < 1e-8 * np.abs(reference["B_state"]).max()
+
+
+def test_cache_list_shows_a_state_space_entry_and_clear_removes_it(shared_tmp_path):
+    # A state-space file holds its two parts, not V: `cache list` would call it a foreign file, and
+    # `cache clear` never remove it. Not collective (rank 0 lists and clears).
+    from dbf_hpc import cache
+
+    first = state_space_basis(shared_tmp_path)
+    if MPI.COMM_WORLD.rank == 0:
+        (entry,) = cache.entries(str(shared_tmp_path))
+        assert "problem" not in entry and entry["form"] == "state_space", entry
+        assert entry["shape"] == (first["raw_real"].shape[0], 12) and entry["path"] == first["path"]
+        assert cache.clear(str(shared_tmp_path))[0] == 1 and not os.path.exists(first["path"])
+    MPI.COMM_WORLD.Barrier()
 
 
 def test_clear_on_a_read_only_cache_is_one_error_saying_what_it_could_not_remove(tmp_path):

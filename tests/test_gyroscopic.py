@@ -1081,6 +1081,57 @@ def test_a_state_space_scene_writes_its_form_and_resumes_from_a_checkpoint_with_
     assert any("2 DBFs; state space: 12 real states" in line for line in describe(whole))
 
 
+def test_a_state_space_run_resumes_its_checkpoint_with_the_cached_basis_where_a_rebuild_would_differ(
+        shared_tmp_path, monkeypatch, capfd):
+    # CI: two builds of the same state-space basis differed at 4e-8 (cause unknown), and as that basis was
+    # not cached, a --resume rebuilt it and found its checkpoint's coordinates changed. Here every build
+    # after the first differs so (one column scaled by 1 + 4e-8): without the cached basis the resume is
+    # refused (what this machine would do); with it the resume reads the stored basis (a hit), and its
+    # model's coordinates digest is the checkpoint's, so it continues from the checkpoint to the end.
+    import os
+
+    from dbf_hpc import state_space
+    from dbf_hpc.errors import InputError
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_checkpoint import interrupted_run
+
+    from dbf_hpc._romc import core
+
+    path = os.path.join(os.path.dirname(__file__), "..", "jobs", "pipe_conveying_fluid.toml")
+    cache = shared_tmp_path / "cache"
+    t_end = 0.5 if core is not None else 0.03    # (a termination signal before the end: about a second)
+    sets = ["basis.gyroscopic_form=state_space", f"integrator.t_end={t_end}", "basis.estimate=false",
+            "output.checkpoint_dt=0.005", f"basis.cache={cache}"]
+    out = str(shared_tmp_path / "stopped.h5")
+    interrupted_run(load_scene(path, sets), out)   # builds the basis and stores it
+    stored = MPI.COMM_WORLD.bcast([str(p) for p in cache.glob("basis-*.h5")], root=0)
+    assert len(stored) == 1
+    build = state_space.build_state_space_basis
+
+    def rebuilt(*args, **kwargs):
+        basis = build(*args, **kwargs)
+        basis.velocity[0].scale(1 + 4e-8)
+        return basis
+
+    monkeypatch.setattr(state_space, "build_state_space_basis", rebuilt)
+    if MPI.COMM_WORLD.rank == 0:
+        os.replace(stored[0], stored[0] + ".away")
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(InputError, match=r"coordinates differ"):
+        run(load_scene(path, sets), out, progress=False, resume=True)
+    if MPI.COMM_WORLD.rank == 0:
+        os.replace(stored[0] + ".away", stored[0])   # the first build's file again
+    MPI.COMM_WORLD.Barrier()
+    capfd.readouterr()
+    summary = run(load_scene(path, sets), out, progress=True, resume=True)
+    said = capfd.readouterr().out
+    assert summary["stats"]["cache"] == "hit" and summary["stats"]["eigen_solves"] == 0
+    assert summary["stats"]["final_time"] == pytest.approx(t_end) and summary["stats"]["form"] == "state_space"
+    if MPI.COMM_WORLD.rank == 0:
+        assert "resuming from the checkpoint at t = " in said, said
+
+
 def grouped_columns(groups, form):
     """The basis columns (every rank's rows, velocity then displacement parts in the state-space form)
     of a band with two stops, the DBFs solved by `groups` constraint groups, and the DBF stiffnesses."""
@@ -1244,7 +1295,7 @@ def test_state_space_c_callbacks_on_two_direction_friction_holes_under_turbulenc
     # them: one reduced model and one richer model, each integrated with either callbacks by the run's
     # own output path (run_case) with the same fixed steps: the samples and the estimate are the Python
     # callbacks' to round-off. One basis for both (CI, 2 ranks: two runs that each built their
-    # state-space basis, which is not cached, differed by 4e-8 at 1e-10, though the runs here agree
+    # state-space basis, before it was cached, differed by 4e-8 at 1e-10, though the runs here agree
     # bit for bit): what is compared is the callbacks, not the basis' reproducibility.
     import h5py
 
