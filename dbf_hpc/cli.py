@@ -403,8 +403,11 @@ def _basis(args) -> int:
         enriched = (f" + {basis.constraint_omega().size} {strategy.column_name}s" if strategy.column_name
                     else " (no enrichment)")
         columns = (f" (Re and Im: {basis.size} real columns)" if basis.complex_modes else "")
+        normal = "M-orthonormal"
+        if getattr(basis, "form", "") == "state_space":   # A = diag(M, K) (state_space.py), as `run` says
+            columns, normal = f" (Re and Im of the state vectors: {basis.size} real states)", "A-orthonormal"
         say(f"basis: {basis.complex_modes or basis.mode_count} {'complex' if basis.complex_modes else 'reference'} "
-            f"modes{enriched}{columns}, M-orthonormal "
+            f"modes{enriched}{columns}, {normal} "
             f"({elapsed:.3f} s, {comm.tompi4py().allreduce(counters['eigen_solves'] - solves, op=MPI.MAX)} "
             f"eigen-solves on the busiest rank, cache {basis.stats.get('cache')})")
         _print_basis(say, basis, labels, fom.constraints.dimension, fom.operators.rigid_modes,

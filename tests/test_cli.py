@@ -453,6 +453,19 @@ def test_basis_is_cached_and_reused_without_eigen_solves(tmp_path):
     assert 0.01 < float(k) < 1.0
 
 
+def test_basis_of_a_state_space_scene_is_cached_and_says_it_is_a_orthonormal(tmp_path):
+    # The state-space basis was not cached (every command rebuilt it), and `dbf-hpc basis` called its
+    # state vectors "M-orthonormal" real columns: they are orthonormal in A = diag(M, K).
+    pipe = os.path.join(ROOT, "jobs", "pipe_conveying_fluid.toml")
+    args = ("basis", pipe, "--set", f"basis.cache={tmp_path}", "--set", "basis.gyroscopic_form=state_space")
+    first, second = dbf_hpc(*args), dbf_hpc(*args)
+    assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
+    assert "cache stored" in first.stdout and "cache hit" in second.stdout and "0 eigen-solves" in second.stdout
+    for out in (first, second):
+        assert "(Re and Im of the state vectors: 12 real states), A-orthonormal" in out.stdout, out.stdout
+        assert "M-orthonormal" not in out.stdout, out.stdout
+
+
 def test_a_solver_option_that_found_a_cached_basis_is_not_called_unused(tmp_path):
     # The option is part of the cache key, so the hit used it; red team: the hit warned that
     # -modes_eps_tol was "not used: a misspelling, or a solver this command does not run".
