@@ -1299,11 +1299,30 @@ def _one_line(out):
     return out.returncode == 1 and len(lines) == 1 and lines[0].startswith("dbf-hpc: error:")
 
 
-def test_a_table_figure_or_shapes_file_replaces_only_its_own_kind(tmp_path):
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    """The finished output of `run PAPER -o run.h5 SHORT` on 2 ranks (and its ParaView file run.xdmf),
+    made once for the five tests that plot it or check that other commands keep it (each ran its own,
+    the same run)."""
+    folder = tmp_path_factory.mktemp("short_run")
+    out = dbf_hpc("run", PAPER, "-o", str(folder / "run.h5"), *SHORT)
+    assert out.returncode == 0, out.stderr
+    return folder
+
+
+def _copy_of(short_run, folder):
+    """folder/run.h5 and folder/run.xdmf, copies of the short run's (the .xdmf names run.h5 beside it)."""
+    import shutil
+
+    for name in ("run.h5", "run.xdmf"):
+        shutil.copyfile(short_run / name, folder / name)
+    return folder / "run.h5"
+
+
+def test_a_table_figure_or_shapes_file_replaces_only_its_own_kind(tmp_path, short_run):
     # Red team: stiffness -o / --plot overwrote any file (a finished run's .h5 became a CSV), plot -d
     # replaced foreign PNGs, and basis --xdmf run.xdmf replaced the run's output run.h5.
-    run_out = tmp_path / "run.h5"
-    assert dbf_hpc("run", PAPER, "-o", str(run_out), *SHORT).returncode == 0
+    run_out = _copy_of(short_run, tmp_path)
     before = run_out.read_bytes()
     foreign = tmp_path / "mine.png"
     foreign.write_bytes(b"\x89PNG not a dbf-hpc figure")
@@ -1436,18 +1455,16 @@ def test_info_on_a_partial_file_names_it_and_its_checkpoint(tmp_path):
         assert "constraint 1:" in out.stdout and "at 0:" not in out.stdout
 
 
-def test_a_plot_window_without_samples_is_refused(tmp_path):
-    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "w.h5"), *SHORT)
-    assert out.returncode == 0
+def test_a_plot_window_without_samples_is_refused(tmp_path, short_run):
+    run_out = _copy_of(short_run, tmp_path)
     for window in ("0.1:0.05", "5:6", "nan:1", "a:b", "0.01"):   # "0.01": which end?
-        out = dbf_hpc("plot", str(tmp_path / "w.h5"), "-d", str(tmp_path / "figs"), "--window", window, ranks=1)
+        out = dbf_hpc("plot", str(run_out), "-d", str(tmp_path / "figs"), "--window", window, ranks=1)
         assert _one_line(out), (window, out.stderr)
 
 
-def test_a_plot_directory_that_is_a_file_is_refused_saying_so_and_the_file_is_kept(tmp_path):
+def test_a_plot_directory_that_is_a_file_is_refused_saying_so_and_the_file_is_kept(tmp_path, short_run):
     # New-user pass: "plot run.h5 -d run.h5" said "cannot be made: File exists".
-    run_out = tmp_path / "w.h5"
-    assert dbf_hpc("run", PAPER, "-o", str(run_out), *SHORT).returncode == 0
+    run_out = _copy_of(short_run, tmp_path)
     before = run_out.read_bytes()
     out = dbf_hpc("plot", str(run_out), "-d", str(run_out), ranks=1)
     assert _one_line(out) and "is a file, not a directory" in out.stderr, out.stderr
@@ -1486,13 +1503,12 @@ def test_a_plot_window_on_a_sweep_summary_is_refused_not_ignored(tmp_path):
     assert dbf_hpc("plot", str(tmp_path / "s.h5"), "-d", str(tmp_path / "figs"), ranks=1).returncode == 0
 
 
-def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp_path):
-    out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "w.h5"), *SHORT)
-    assert out.returncode == 0, out.stderr
+def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp_path, short_run):
+    run_out = _copy_of(short_run, tmp_path)
     figs = tmp_path / "figs"
-    assert dbf_hpc("plot", str(tmp_path / "w.h5"), "-d", str(figs), ranks=1).returncode == 0
+    assert dbf_hpc("plot", str(run_out), "-d", str(figs), ranks=1).returncode == 0
     whole = (figs / "time_histories.png").read_bytes()
-    out = dbf_hpc("plot", str(tmp_path / "w.h5"), "-d", str(figs), "--window", "0.005:", ranks=1)
+    out = dbf_hpc("plot", str(run_out), "-d", str(figs), "--window", "0.005:", ranks=1)
     assert out.returncode == 0, out.stderr
     windowed = sorted(p.name for p in figs.glob("*-*s.png"))
     assert {"time_histories_0.005-0.01s.png", "phase_0.005-0.01s.png", "forces_0.005-0.01s.png",
@@ -1500,14 +1516,13 @@ def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp
     assert (figs / "time_histories.png").read_bytes() == whole
 
 
-def test_plot_of_an_output_with_a_dataset_missing_is_one_line_naming_it_damaged(tmp_path):
+def test_plot_of_an_output_with_a_dataset_missing_is_one_line_naming_it_damaged(tmp_path, short_run):
     # Red team: a finished run's file with one dataset gone (the solid's snapshot vectors, edited by
     # hand or cut short by a full disk) was "internal error (KeyError)" in plot; info already said
     # "is damaged". The velocities at the constraints are what the phase diagrams read.
     import h5py
 
-    target = tmp_path / "d.h5"
-    assert dbf_hpc("run", PAPER, "-o", str(target), *SHORT).returncode == 0
+    target = _copy_of(short_run, tmp_path)
     with h5py.File(target, "a") as f:
         del f["constraints/velocity"]
     out = dbf_hpc("plot", str(target), "-d", str(tmp_path / "figs"), ranks=1)
