@@ -19,6 +19,9 @@ from petsc4py import PETSc
 def pytest_configure(config):
     config.addinivalue_line("markers", "parallel: needs 2 MPI ranks; runs in the 2-rank pass")
     config.addinivalue_line("markers", "launcher: starts its own mpirun jobs; runs in the serial pass")
+    config.addinivalue_line("markers", "serial: what it checks is one rank's own computation, which the "
+                            "2-rank pass would repeat on every rank (or on rank 0 alone), its collective "
+                            "set-up covered by other tests there; runs in the serial pass")
     if MPI.COMM_WORLD.rank > 0:  # one report, from rank 0
         reporter = config.pluginmanager.getplugin("terminalreporter")
         if reporter is not None:
@@ -57,11 +60,14 @@ def pytest_collection_modifyitems(config, items):
     parallel = MPI.COMM_WORLD.size >= 2
     skip_parallel = pytest.mark.skip(reason="needs 2 MPI ranks (runs in the 2-rank pass)")
     skip_launcher = pytest.mark.skip(reason="starts mpirun itself (runs in the serial pass)")
+    skip_serial = pytest.mark.skip(reason="one rank's own computation, the same on 2 (runs in the serial pass)")
     for item in items:
         if "parallel" in item.keywords and not parallel:
             item.add_marker(skip_parallel)
         if "launcher" in item.keywords and parallel:
             item.add_marker(skip_launcher)
+        if item.get_closest_marker("serial") is not None and parallel:
+            item.add_marker(skip_serial)
 
 
 @pytest.fixture(autouse=True, scope="session")

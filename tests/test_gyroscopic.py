@@ -616,6 +616,7 @@ def test_dbf_reduced_band_after_impacts_has_the_full_order_statistics():
     assert abs(np.sqrt(np.mean(rom.probes**2)) / np.sqrt(np.mean(full.probes**2)) - 1) < 0.01
 
 
+@pytest.mark.serial   # the two integrations of one reduced model, repeated on every rank (conftest)
 def test_c_and_python_callbacks_agree_on_a_gyroscopic_model_whose_damping_matrix_is_not_symmetric():
     from dbf_hpc import IntegratorSettings, simulate_reduced
     from dbf_hpc._romc import core
@@ -981,6 +982,7 @@ STATE_LAWS = {   # the band's two supports (x = 0.3, 0.75 m) for the C / Python 
 }
 
 
+@pytest.mark.serial   # the two integrations of one reduced model, repeated on every rank (conftest)
 @pytest.mark.parametrize("contact", ["implicit", "explicit"])
 @pytest.mark.parametrize("laws", list(STATE_LAWS))
 def test_state_space_c_callbacks_are_the_python_callbacks_step_for_step_through_impacts(laws, contact):
@@ -1017,6 +1019,7 @@ def test_state_space_c_callbacks_are_the_python_callbacks_step_for_step_through_
         assert np.allclose(c.statistics[name], py.statistics[name], rtol=1e-10, atol=0.0), name
 
 
+@pytest.mark.serial   # the two integrations of one reduced model, repeated on every rank (conftest)
 def test_state_space_c_callbacks_under_petscs_own_newton_are_the_python_callbacks():
     # -rom_snes_type newtonls moves the stage solve from the C Newton to PETSc's (KSPPREONLY with the
     # C LU of the first-order stage Jacobian as the PC): the same trajectory and Newton iterations as
