@@ -22,6 +22,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAPER = os.path.join(ROOT, "jobs", "paper_beam.toml")
 FOUR = os.path.join(ROOT, "jobs", "paper_beam_4.toml")
 needs_c = pytest.mark.skipif(_romc.core is None, reason=f"{_romc.why}")
+# The C callbacks against the Python ones on one reduced model: each rank would compare the same two
+# integrations (the callbacks run on rank 0 alone in a run), so these are `serial` (conftest): the 2-rank
+# pass keeps what is collective here, a run's checkpoint and resume with either callbacks and the
+# fallback said once, by rank 0.
 
 LAWS = [
     law("deadband", clearance=2.5e-3, k=1e6),
@@ -66,6 +70,7 @@ def _first_contact(result):
 
 
 @needs_c
+@pytest.mark.serial
 @pytest.mark.parametrize("damped", [False, True])
 def test_laws_in_c_give_the_bits_of_laws_py_over_random_and_edge_states(paper, damped):
     laws = [x for x in LAWS if damped or x.damping == "none"]
@@ -88,6 +93,7 @@ def test_laws_in_c_give_the_bits_of_laws_py_over_random_and_edge_states(paper, d
 
 
 @needs_c
+@pytest.mark.serial
 @pytest.mark.parametrize("arrow", [True, False])
 def test_the_c_jacobian_is_the_python_jacobian_and_its_structured_inverse_is_exact(four, arrow):
     # Four constraints of the paper's beam, some in contact, Hunt-Crossley damping so that dN/dv
@@ -140,6 +146,7 @@ def test_the_c_jacobian_is_the_python_jacobian_and_its_structured_inverse_is_exa
 
 
 @needs_c
+@pytest.mark.serial
 def test_c_callbacks_give_the_python_trajectory_before_the_first_impact_and_the_same_statistics(paper):
     model, settings = paper
     runs = {cb: simulate_reduced(model, dataclasses.replace(settings, callbacks=cb)) for cb in ("python", "c")}
@@ -163,6 +170,7 @@ def test_c_callbacks_give_the_python_trajectory_before_the_first_impact_and_the_
 
 
 @needs_c
+@pytest.mark.serial
 def test_c_callbacks_record_the_hunt_crossley_alpha_v_in_contact_that_the_python_ones_do(paper):
     # run.hunt_crossley_warnings reads it from the C monitor's steps as from recorder.py's: the paper's
     # beam strikes its stop at 0.024 m/s, so alpha = 1000 s/m reaches alpha v = 24, far outside the
@@ -183,6 +191,7 @@ def test_c_callbacks_record_the_hunt_crossley_alpha_v_in_contact_that_the_python
 
 
 @needs_c
+@pytest.mark.serial
 @pytest.mark.parametrize("scheme", ARKIMEX_TYPES)
 def test_every_arkimex_type_runs_with_the_c_callbacks_as_with_the_python_ones(paper, scheme):
     model, settings = paper
@@ -196,6 +205,7 @@ def test_every_arkimex_type_runs_with_the_c_callbacks_as_with_the_python_ones(pa
 
 
 @needs_c
+@pytest.mark.serial
 def test_petsc_newton_with_the_exact_solve_when_snes_options_are_given(paper):
     model, settings = paper
     settings = dataclasses.replace(settings, t_end=0.01, callbacks="c")
@@ -256,6 +266,7 @@ def test_the_command_line_says_in_one_line_that_the_c_callbacks_are_missing(tmp_
 
 
 @needs_c
+@pytest.mark.serial
 @pytest.mark.parametrize("mass", [1.0, 2.5])
 def test_a_non_identity_reduced_mass_is_integrated_alike_by_both_callbacks(mass):
     from test_rom_integrator import oscillator
@@ -361,6 +372,7 @@ def _planar_scales(laws, z, v):
 
 
 @needs_c
+@pytest.mark.serial
 def test_two_direction_and_friction_laws_in_c_agree_with_laws_py_to_round_off(tube2d, paper):
     # circular and flat_bar with friction and contact damping: random states in and out of contact, the
     # axis (u = 0), the edge of contact (|u| = c); values to 1e-13 of the largest force, the 2 x 2 blocks
@@ -402,6 +414,7 @@ def test_two_direction_and_friction_laws_in_c_agree_with_laws_py_to_round_off(tu
 
 
 @needs_c
+@pytest.mark.serial
 def test_the_c_jacobian_of_two_direction_laws_is_the_python_jacobian_and_its_structured_inverse_is_exact(tube2d):
     # the 2 x 2 blocks in the MatShell's product and in Woodbury's capacitance (friction makes them
     # unsymmetric), against the Python dense Jacobian; J (J^-1 x) = x
@@ -454,6 +467,7 @@ def test_the_c_jacobian_of_two_direction_laws_is_the_python_jacobian_and_its_str
 
 
 @needs_c
+@pytest.mark.serial
 def test_the_load_matrix_forcing_in_c_is_the_python_forcing_of_the_turbulence_histories(tube2d):
     # X(t) by Horner's rule over the equally spaced frequencies against excitation.CorrelatedProcess's
     # cosines, times V^T W: to 1e-13 of the force at times up to 100 s
@@ -476,6 +490,7 @@ def test_the_load_matrix_forcing_in_c_is_the_python_forcing_of_the_turbulence_hi
 
 
 @needs_c
+@pytest.mark.serial
 def test_c_callbacks_follow_the_python_trajectory_of_a_two_plane_beam_under_turbulence_with_friction(tube2d):
     # The same fixed steps: the C and Python callbacks differ by round-off in the laws and the
     # forcing, which contacts amplify (3e-9 of the peak after 0.06 s, measured); the statistics the
@@ -497,6 +512,7 @@ def test_c_callbacks_follow_the_python_trajectory_of_a_two_plane_beam_under_turb
 
 
 @needs_c
+@pytest.mark.serial
 def test_c_callbacks_record_the_normal_alpha_v_of_a_two_direction_support_that_the_python_ones_do(tube2d):
     # The third support (flat bars, Hunt-Crossley alpha = 0.2 s/m) is the only damped one: alpha |v.n| over
     # the steps in contact, the same in C as in recorder.py, 0 at the others
