@@ -1175,14 +1175,21 @@ def test_a_stop_not_reached_by_a_near_miss_draws_no_unit_warning(tmp_path):
 def test_a_fixed_step_that_does_not_resolve_the_impacts_draws_a_warning_and_one_that_does_not(tmp_path):
     # Red team: at k = 1e12 N/m the full-order peak force was k times a penetration set by dt (96 kN at
     # dt = 1e-5 s, 3 kN at 5e-7 s) with no word. The paper beam's chatter lasts ~15 us an impact.
-    common = ("run", PAPER, "--method", "full", "--set", "integrator.t_end=0.25")
-    coarse = dbf_hpc(*common, "-o", str(tmp_path / "coarse.h5"), "--set", "constraint.k_minus=1e12",
-                     "--set", "constraint.k_plus=1e12", ranks=1)
+    import h5py
+
+    common = ("run", PAPER, "--method", "full")
+    coarse = dbf_hpc(*common, "--set", "integrator.t_end=0.25", "-o", str(tmp_path / "coarse.h5"),
+                     "--set", "constraint.k_minus=1e12", "--set", "constraint.k_plus=1e12", ranks=1)
     assert coarse.returncode == 0, coarse.stderr
     assert "the impacts of constraint 1 at x = 0.25 m last 1 fixed steps" in coarse.stderr, coarse.stderr
-    fine = dbf_hpc(*common, "-o", str(tmp_path / "fine.h5"), "--set", "integrator.dt=2e-6", "--set",
-                   "output.sample_dt=2e-6", ranks=1)
-    assert fine.returncode == 0 and "fixed steps" not in fine.stdout + fine.stderr, fine.stderr   # 7.6 steps an impact
+    # To 0.12 s, not 0.25 s: 88 impacts already (their mean 7.6 steps, as over 0.25 s), in half the
+    # 2 us steps, which took 35 s of 0.25 s's measured under load. (STEPS_PER_IMPACT = 10 fails here.)
+    fine = dbf_hpc(*common, "--set", "integrator.t_end=0.12", "-o", str(tmp_path / "fine.h5"),
+                   "--set", "integrator.dt=2e-6", "--set", "output.sample_dt=2e-6", ranks=1)
+    assert fine.returncode == 0 and "fixed steps" not in fine.stdout + fine.stderr, fine.stderr
+    with h5py.File(tmp_path / "fine.h5") as f:   # it does impact, each over 5 to 10 steps
+        impacts, duration = f["constraints/stats/impacts"][0], f["constraints/stats/impact_duration_mean"][0]
+    assert impacts >= 10 and 5 < duration / 2e-6 < 10, (impacts, duration)
 
 
 def test_cache_commands_refuse_a_bad_age_or_directory_and_clear_an_empty_one(tmp_path):
