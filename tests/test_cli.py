@@ -38,6 +38,15 @@ def dbf_hpc(*args, ranks=2, timeout=120):
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=mpi_env())
 
 
+def dbf_hpc_alone(*args, timeout=120):
+    """`dbf-hpc ARGS` as one process without mpirun, as the README runs the commands that read files
+    (info, plot, cache): under `mpirun -n 1` mpirun's own start-up was most of such a call (1 to 2 s,
+    about thirty calls). Tests still run them under mpirun -n 2 where the ranks are what they check
+    (test_a_named_pipe_..., test_full_order_run_on_two_ranks_writes_the_common_layout)."""
+    cmd = [sys.executable, "-m", "dbf_hpc.cli", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=mpi_env())
+
+
 def test_help_and_version_print_once_under_mpirun():
     out = dbf_hpc("--help")
     assert out.returncode == 0 and out.stdout.count("usage: dbf-hpc") == 1, out.stdout   # rank 0 only
@@ -523,10 +532,10 @@ def test_readme_main_job_runs_the_paper_beam_on_two_ranks(tmp_path):
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "paper.h5"), "--set", f"basis.cache={tmp_path}")
     assert out.returncode == 0, out.stderr
     assert "done:" in out.stdout and (tmp_path / "paper.h5").exists()
-    info = dbf_hpc("info", str(tmp_path / "paper.h5"), ranks=1)
+    info = dbf_hpc_alone("info", str(tmp_path / "paper.h5"))
     assert info.returncode == 0 and "constraint 1 at 0.25" in info.stdout
     figures = tmp_path / "figs"     # made by plot (README's own command runs on a fresh clone)
-    plot = dbf_hpc("plot", str(tmp_path / "paper.h5"), "-d", str(figures), ranks=1)
+    plot = dbf_hpc_alone("plot", str(tmp_path / "paper.h5"), "-d", str(figures))
     assert plot.returncode == 0, plot.stderr
     for name in ("time_histories.png", "phase.png", "forces.png", "probes.png", "snapshots.png"):
         assert (figures / name).read_bytes()[:4] == b"\x89PNG"
@@ -1079,15 +1088,15 @@ def test_info_reads_statistics_a_sweep_summary_and_a_partial_run(tmp_path):
     out = tmp_path / "s.h5"
     run = dbf_hpc("run", PAPER, "-o", str(out), "-q", "--set", "integrator.t_end=1", "--set", f"basis.cache={tmp_path}")
     assert run.returncode == 0, run.stderr
-    info = dbf_hpc("info", str(out), ranks=1)
+    info = dbf_hpc_alone("info", str(out))
     assert re.search(r"constraint 1 at 0.25 m: .* \d+ impacts, [\d.]+/s, in contact", info.stdout), info.stdout
     process = _start("run", PAPER, "-o", str(tmp_path / "p.h5"), "-q", "--set", "integrator.t_end=20",
                      "--set", "output.checkpoint_dt=1", "--set", f"basis.cache={tmp_path}")   # killed long before its end
     _wait_for(str(tmp_path / "p.h5.checkpoint"), process)
     _kill_group(process, signal.SIGKILL)
-    partial = dbf_hpc("info", str(tmp_path / "p.h5"), ranks=1)
+    partial = dbf_hpc_alone("info", str(tmp_path / "p.h5"))
     assert partial.returncode == 0 and "INCOMPLETE" in partial.stdout and "--resume" in partial.stdout
-    plot = dbf_hpc("plot", str(tmp_path / "p.h5"), "-d", str(tmp_path / "figs"), ranks=1)
+    plot = dbf_hpc_alone("plot", str(tmp_path / "p.h5"), "-d", str(tmp_path / "figs"))
     assert plot.returncode == 1 and "did not finish" in plot.stderr
 
 
@@ -1130,7 +1139,7 @@ def test_an_unused_petsc_option_is_kept_in_the_output_and_said_again_by_resume_a
         with h5py.File(out, "r") as f:
             stored = str(f.attrs["warnings"]).split("\n")
         assert sum(w.startswith("PETSc option -rom_ts_arkimex_typ was not used") for w in stored) == 1, stored
-        info = dbf_hpc("info", out, ranks=1)
+        info = dbf_hpc_alone("info", out)
         assert "warning: PETSc option -rom_ts_arkimex_typ was not used" in info.stdout, info.stdout
 
 
@@ -1200,9 +1209,9 @@ def test_cache_commands_refuse_a_bad_age_or_directory_and_clear_an_empty_one(tmp
                           (("list", "--dir", str(tmp_path / "missing")), "no such directory"),
                           (("clear", "--dir", str(tmp_path / "file")), "is not a directory"),
                           (("list", "--dir", ""), "give the cache directory")):
-        out = dbf_hpc("cache", *args, ranks=1)
+        out = dbf_hpc_alone("cache", *args)
         assert _one_line(out) and message in out.stderr, (args, out.stderr)
-    out = dbf_hpc("cache", "clear", "--dir", str(tmp_path), "--older-than", "0", ranks=1)
+    out = dbf_hpc_alone("cache", "clear", "--dir", str(tmp_path), "--older-than", "0")
     assert out.returncode == 0 and "removed 0 file(s)" in out.stdout and (tmp_path / "file").exists()
 
 
@@ -1227,16 +1236,16 @@ def test_cache_clear_removes_only_the_files_the_cache_wrote(tmp_path):
         p.write_bytes(b"x")
     os.utime(stale, (1e9, 1e9))
     os.utime(stale_host, (1e9, 1e9))
-    listed = dbf_hpc("cache", "list", "--dir", str(tmp_path), ranks=1)
+    listed = dbf_hpc_alone("cache", "list", "--dir", str(tmp_path))
     assert listed.returncode == 0 and "7 file(s)" in listed.stdout and "not a basis this cache wrote" in listed.stdout
     # A basis used today is not "unused for a day", however long ago it was written
     os.utime(cached, (1e9, 1e9))
     out = dbf_hpc("basis", PAPER, "--set", "basis.modes=2", "--set", f"basis.cache={tmp_path}", ranks=1)
     assert out.returncode == 0 and cached.stat().st_mtime > 1e9 + 86400, out.stdout
-    out = dbf_hpc("cache", "clear", "--dir", str(tmp_path), "--older-than", "1", ranks=1)
+    out = dbf_hpc_alone("cache", "clear", "--dir", str(tmp_path), "--older-than", "1")
     assert out.returncode == 0 and "removed 2 file(s)" in out.stdout and cached.exists() and not stale.exists()
     assert not stale_host.exists()
-    out = dbf_hpc("cache", "clear", "--dir", str(tmp_path), ranks=1)
+    out = dbf_hpc_alone("cache", "clear", "--dir", str(tmp_path))
     assert out.returncode == 0 and "removed 1 file(s)" in out.stdout, out.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["basis-0123456789abcdef0123.h5", "basis-notes.txt",
                                                                  "basis-0123456789abcdef4567.h5",
@@ -1278,7 +1287,7 @@ def test_a_sweep_with_a_failed_case_writes_its_summary_and_exits_non_zero(tmp_pa
     out = dbf_hpc("sweep", str(sweep), "-q")
     assert _one_line(out) and "1 of 2 cases failed" in out.stderr and "retries them" in out.stderr, out.stderr
     assert (tmp_path / "s.h5").exists()
-    info = dbf_hpc("info", str(tmp_path / "s.h5"), ranks=1)
+    info = dbf_hpc_alone("info", str(tmp_path / "s.h5"))
     assert info.returncode == 0 and "ars443" in info.stdout, info.stdout
 
 
@@ -1343,14 +1352,14 @@ def test_a_table_figure_or_shapes_file_replaces_only_its_own_kind(tmp_path, shor
     figures = tmp_path / "figs"
     figures.mkdir()
     (figures / "probes.png").write_bytes(b"\x89PNG mine")
-    out = dbf_hpc("plot", str(run_out), "-d", str(figures), ranks=1)
+    out = dbf_hpc_alone("plot", str(run_out), "-d", str(figures))
     assert _one_line(out) and "is not a dbf-hpc plot" in out.stderr
     assert (figures / "probes.png").read_bytes() == b"\x89PNG mine"
     for _ in range(2):       # its own files are replaced by a rerun
         out = dbf_hpc("stiffness", PAPER, "--k", "1,10", "-o", str(tmp_path / "k.csv"), "--plot",
                       str(tmp_path / "k.png"))
         assert out.returncode == 0, out.stderr
-        out = dbf_hpc("plot", str(run_out), "-d", str(tmp_path / "own"), ranks=1)
+        out = dbf_hpc_alone("plot", str(run_out), "-d", str(tmp_path / "own"))
         assert out.returncode == 0, out.stderr
 
 
@@ -1404,7 +1413,7 @@ def test_the_paraview_file_beside_an_output_never_replaces_what_dbf_hpc_did_not_
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "shapes.h5"), *SHORT)
     assert _one_line(out) and "mode shapes of a `dbf-hpc basis --xdmf`" in out.stderr, out.stderr
     assert ((tmp_path / "shapes.h5").read_bytes(), (tmp_path / "shapes.xdmf").read_bytes()) == shapes
-    out = dbf_hpc("info", str(tmp_path / "shapes.h5"), ranks=1)
+    out = dbf_hpc_alone("info", str(tmp_path / "shapes.h5"))
     assert _one_line(out) and "mode shapes" in out.stderr, out.stderr
     out = dbf_hpc("run", PAPER, "-o", str(tmp_path / "good.h5"), *SHORT)
     assert out.returncode == 0 and (tmp_path / "good.xdmf").exists()
@@ -1456,7 +1465,7 @@ def test_info_on_a_partial_file_names_it_and_its_checkpoint(tmp_path):
     target = tmp_path / "part.h5"
     _killed_after_a_checkpoint(target, "--set", "integrator.t_end=20", "--set", "output.checkpoint_dt=0.01", "-q")
     for name in (target, f"{target}.partial"):
-        out = dbf_hpc("info", str(name), ranks=1)
+        out = dbf_hpc_alone("info", str(name))
         assert out.returncode == 0 and f"{target}.partial: INCOMPLETE" in out.stdout, out.stdout
         assert "a checkpoint exists" in out.stdout and ".partial.partial" not in out.stdout
         assert "constraint 1:" in out.stdout and "at 0:" not in out.stdout
@@ -1465,7 +1474,7 @@ def test_info_on_a_partial_file_names_it_and_its_checkpoint(tmp_path):
 def test_a_plot_window_without_samples_is_refused(tmp_path, short_run):
     run_out = _copy_of(short_run, tmp_path)
     for window in ("0.1:0.05", "5:6", "nan:1", "a:b", "0.01"):   # "0.01": which end?
-        out = dbf_hpc("plot", str(run_out), "-d", str(tmp_path / "figs"), "--window", window, ranks=1)
+        out = dbf_hpc_alone("plot", str(run_out), "-d", str(tmp_path / "figs"), "--window", window)
         assert _one_line(out), (window, out.stderr)
 
 
@@ -1473,14 +1482,14 @@ def test_a_plot_directory_that_is_a_file_is_refused_saying_so_and_the_file_is_ke
     # New-user pass: "plot run.h5 -d run.h5" said "cannot be made: File exists".
     run_out = _copy_of(short_run, tmp_path)
     before = run_out.read_bytes()
-    out = dbf_hpc("plot", str(run_out), "-d", str(run_out), ranks=1)
+    out = dbf_hpc_alone("plot", str(run_out), "-d", str(run_out))
     assert _one_line(out) and "is a file, not a directory" in out.stderr, out.stderr
     assert run_out.read_bytes() == before
     # red team: with a trailing '/' it said "cannot be made: File exists"; a named pipe "is a file"
-    out = dbf_hpc("plot", str(run_out), "-d", f"{run_out}/", ranks=1)
+    out = dbf_hpc_alone("plot", str(run_out), "-d", f"{run_out}/")
     assert _one_line(out) and f"{str(run_out) + '/'!r} is a file, not a directory" in out.stderr, out.stderr
     os.mkfifo(tmp_path / "pipe")
-    out = dbf_hpc("plot", str(run_out), "-d", str(tmp_path / "pipe"), ranks=1)
+    out = dbf_hpc_alone("plot", str(run_out), "-d", str(tmp_path / "pipe"))
     assert _one_line(out) and "is a named pipe, not a directory: give -d a folder" in out.stderr, out.stderr
     assert run_out.read_bytes() == before
 
@@ -1495,7 +1504,7 @@ def test_a_run_whose_snapshot_data_cannot_be_read_is_plotted_as_one_line_naming_
     run_out = tmp_path / "w.h5"
     assert dbf_hpc("run", PAPER, "-o", str(run_out), "--set", "basis.estimate=false", *SHORT, ranks=1).returncode == 0
     damage_data_address(str(run_out), "snapshots/w")
-    out = dbf_hpc("plot", str(run_out), "-d", str(tmp_path / "figs"), ranks=1)
+    out = dbf_hpc_alone("plot", str(run_out), "-d", str(tmp_path / "figs"))
     assert _one_line(out) and "is damaged (Can't read data (addr overflow" in out.stderr, out.stderr
 
 def test_a_plot_window_on_a_sweep_summary_is_refused_not_ignored(tmp_path):
@@ -1504,18 +1513,18 @@ def test_a_plot_window_on_a_sweep_summary_is_refused_not_ignored(tmp_path):
     sweep.write_text(f'scene = "{PAPER}"\noutput = "s.h5"\n[axes]\n"excitation.frequency_hz" = [0.9, 1.1]\n'
                      '"integrator.t_end" = [0.01]\n')
     assert dbf_hpc("sweep", str(sweep), "-q", "--set", f"basis.cache={tmp_path}", ranks=1).returncode == 0
-    out = dbf_hpc("plot", str(tmp_path / "s.h5"), "-d", str(tmp_path / "figs"), "--window", "0:0.005", ranks=1)
+    out = dbf_hpc_alone("plot", str(tmp_path / "s.h5"), "-d", str(tmp_path / "figs"), "--window", "0:0.005")
     assert _one_line(out) and "a sweep's summary has no time axis" in out.stderr, out.stderr
     assert not (tmp_path / "figs").exists()
-    assert dbf_hpc("plot", str(tmp_path / "s.h5"), "-d", str(tmp_path / "figs"), ranks=1).returncode == 0
+    assert dbf_hpc_alone("plot", str(tmp_path / "s.h5"), "-d", str(tmp_path / "figs")).returncode == 0
 
 
 def test_a_windowed_plot_writes_beside_the_whole_run_figures_never_over_them(tmp_path, short_run):
     run_out = _copy_of(short_run, tmp_path)
     figs = tmp_path / "figs"
-    assert dbf_hpc("plot", str(run_out), "-d", str(figs), ranks=1).returncode == 0
+    assert dbf_hpc_alone("plot", str(run_out), "-d", str(figs)).returncode == 0
     whole = (figs / "time_histories.png").read_bytes()
-    out = dbf_hpc("plot", str(run_out), "-d", str(figs), "--window", "0.005:", ranks=1)
+    out = dbf_hpc_alone("plot", str(run_out), "-d", str(figs), "--window", "0.005:")
     assert out.returncode == 0, out.stderr
     windowed = sorted(p.name for p in figs.glob("*-*s.png"))
     assert {"time_histories_0.005-0.01s.png", "phase_0.005-0.01s.png", "forces_0.005-0.01s.png",
@@ -1532,7 +1541,7 @@ def test_plot_of_an_output_with_a_dataset_missing_is_one_line_naming_it_damaged(
     target = _copy_of(short_run, tmp_path)
     with h5py.File(target, "a") as f:
         del f["constraints/velocity"]
-    out = dbf_hpc("plot", str(target), "-d", str(tmp_path / "figs"), ranks=1)
+    out = dbf_hpc_alone("plot", str(target), "-d", str(tmp_path / "figs"))
     assert _one_line(out) and "is damaged" in out.stderr and "constraints/velocity" not in out.stdout, out.stderr
     assert "internal error" not in out.stderr
 
@@ -1557,7 +1566,7 @@ def test_a_checkpoint_is_not_resumed_in_a_basis_rebuilt_with_its_repeated_modes_
                                cwd=ROOT, env=mpi_env(), start_new_session=True)   # the 2-rank basis, cached
     _wait_for(f"{target}.checkpoint", process)
     _kill_group(process, signal.SIGTERM)
-    assert dbf_hpc("cache", "clear", "--dir", str(tmp_path / "cache"), ranks=1).returncode == 0
+    assert dbf_hpc_alone("cache", "clear", "--dir", str(tmp_path / "cache")).returncode == 0
     out = dbf_hpc("run", str(scene), "-q", "-o", str(target), "--resume", ranks=1)
     assert _one_line(out) and "(coordinates differ; the basis was rebuilt since" in out.stderr, out.stderr
 
