@@ -47,6 +47,7 @@ def coulomb_free_decay(t, omega, delta, x0):
     return x, turn, stopped_at
 
 
+@pytest.mark.serial   # a one-DOF model every rank holds whole: the same integration on each rank (conftest)
 @pytest.mark.parametrize("callbacks", ["python", "c"])
 def test_free_decay_with_coulomb_friction_loses_4_mu_n_over_k_a_cycle_and_stops_in_the_dead_zone(callbacks):
     if callbacks == "c" and _romc.core is None:
@@ -119,6 +120,7 @@ def den_hartog_steady_state(k, m, P0, F, omega):
     return X, phi, half
 
 
+@pytest.mark.serial   # a one-DOF model every rank holds whole: the same integration on each rank (conftest)
 @pytest.mark.parametrize("callbacks", ["python", "c"])
 def test_forced_oscillator_with_coulomb_friction_follows_den_hartogs_steady_state_without_stops(callbacks):
     if callbacks == "c" and _romc.core is None:

@@ -10,6 +10,7 @@ from dbf_hpc.structure import Beam, assemble_beam, distributed_load
 BEAM = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=80)
 
 
+@pytest.mark.serial   # numpy only: the same 400 001 samples on each rank (conftest)
 def test_random_forcing_has_the_requested_variance_and_band():
     process = RandomProcess(psd=0.5, band=(2.0, 12.0), seed=7, components=400)
     assert np.sum(process.amplitude**2) / 2 == pytest.approx(0.5 * 10.0, rel=1e-12)   # S (f_high - f_low)

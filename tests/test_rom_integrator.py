@@ -14,6 +14,11 @@ from dbf_hpc.rom import ReducedModel
 from dbf_hpc.rom_integrator import integrate_reduced
 from dbf_hpc.timestepping import IntegratorSettings
 
+# Hand-built models every rank holds whole, integrated on PETSc.COMM_SELF: the 2-rank pass repeated
+# each test on both ranks (about 10 s of it measured under load); the collective side of the reduced
+# runs is tested there by test_run, test_rom_fast and test_api.
+pytestmark = pytest.mark.serial
+
 
 def oscillator(mass=1.0, stiffness=4.0, damping=0.0, spring=0.0, b=1.0, q0=1e-3):
     """One coordinate: mass q'' + damping q' + stiffness q = -spring b (b q), a linear-spring

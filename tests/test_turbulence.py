@@ -44,6 +44,7 @@ def long_sample(turbulence, planes=2, seconds=160.0, elements=20):
         return load.points.copy(), nodal_history(load, times)
 
 
+@pytest.mark.serial   # long_sample builds on COMM_SELF: the same samples on each rank (conftest)
 def test_sample_psd_at_a_node_is_the_flat_target_and_its_variance_is_the_integral():
     psd = 3.0
     x, p = long_sample(Turbulence(psd, BAND, correlation_length=0.5, seed=7, components=64))
@@ -56,6 +57,7 @@ def test_sample_psd_at_a_node_is_the_flat_target_and_its_variance_is_the_integra
         assert np.allclose(p[:, plane].var(axis=0), psd * (BAND[1] - BAND[0]), rtol=0.05)
 
 
+@pytest.mark.serial   # long_sample builds on COMM_SELF: the same samples on each rank (conftest)
 def test_knee_spectrum_is_flat_below_the_corner_and_falls_as_f_to_the_minus_slope_above():
     psd, corner, slope = 2.0, 20.0, 3.0
     x, p = long_sample(Turbulence(psd, BAND, 0.5, seed=3, components=128, spectrum="knee", corner_hz=corner,
@@ -67,6 +69,7 @@ def test_knee_spectrum_is_flat_below_the_corner_and_falls_as_f_to_the_minus_slop
         assert abs(np.mean(S[band]) / np.mean(target[band]) - 1) < 0.1, (lo, hi)
 
 
+@pytest.mark.serial   # long_sample builds on COMM_SELF: the same samples on each rank (conftest)
 def test_sample_coherence_between_two_nodes_is_exp_minus_distance_over_lambda_and_y_z_are_independent():
     lam = 0.5
     x, p = long_sample(Turbulence(1.0, BAND, lam, seed=11, components=64))
