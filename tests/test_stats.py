@@ -6,6 +6,10 @@ import pytest
 from dbf_hpc import stats
 from dbf_hpc.stats import DESCRIPTIONS, STATISTICS, UNITS, impact_statistics
 
+# stats.py is numpy on one rank's samples (no MPI, no PETSc): the 2-rank pass repeated every test on
+# both ranks (6 s of it measured under load). Serial pass only (conftest).
+pytestmark = pytest.mark.serial
+
 A = 1e-3      # amplitude, m
 D = 0.6e-3    # clearance, m (< A)
 F = 50.0      # frequency, Hz
