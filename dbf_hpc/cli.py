@@ -27,6 +27,8 @@ import time
 
 from . import __version__
 
+# seconds the other ranks wait before they exit on a malformed command line, which only rank 0 says
+USAGE_ERROR_GRACE_S = 2.0
 # the first line of a `stiffness -o` table (a rerun replaces only such a file)
 STIFFNESS_HEADER = "# k [N/m],omega [rad/s],f [Hz]"
 
@@ -71,6 +73,9 @@ class _Parser(argparse.ArgumentParser):
             command = self.prog.split(" ", 1)[1] if " " in self.prog else None
             where = f"{command}: " if command else ""
             print(f"dbf-hpc: error: {where}{message} (see {self.prog} --help)", file=sys.stderr, flush=True)
+        else:   # a launcher that ends the job at the first non-zero exit (srun --kill-on-bad-exit, mpirun
+            # without its grace period) could kill rank 0 before it said the line: rank 0 exits first
+            time.sleep(USAGE_ERROR_GRACE_S)
         sys.exit(2)
 
     def _print_message(self, message, file=None):

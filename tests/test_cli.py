@@ -47,6 +47,19 @@ def dbf_hpc_alone(*args, timeout=120):
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=mpi_env())
 
 
+def test_a_malformed_command_line_is_said_under_a_launcher_that_kills_at_the_first_bad_exit():
+    # Only rank 0 says a usage error (it runs before MPI starts). Under a launcher that ends the job at the
+    # first non-zero exit (mpirun without its grace period, srun --kill-on-bad-exit) rank 1's immediate exit
+    # killed rank 0 before it printed, in about 1 of 25 tries: rank 1 now exits after it.
+    for _ in range(8):
+        cmd = ["mpirun", "--mca", "odls_base_sigkill_timeout", "0", "-n", "2", sys.executable, "-m", "dbf_hpc.cli",
+               "run", "--no-such-flag", "x.toml"]
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd=ROOT, env=mpi_env())
+        lines = [line for line in out.stderr.splitlines() if line.strip()]
+        assert out.returncode == 2 and len(lines) == 1, out.stderr
+        assert lines[0].startswith("dbf-hpc: error: run: unrecognized arguments: --no-such-flag"), out.stderr
+
+
 def test_help_and_version_print_once_under_mpirun():
     out = dbf_hpc("--help")
     assert out.returncode == 0 and out.stdout.count("usage: dbf-hpc") == 1, out.stdout   # rank 0 only
