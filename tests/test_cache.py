@@ -44,6 +44,19 @@ def obtain(s, cache_dir):
     return Kr, solves, state
 
 
+def stored_under_key(path, other) -> None:
+    """Rank 0 moves the cache file `path` onto `other`, with other's key and a valid seal: a whole file of
+    another question stored under this one's key (a stale entry its checksum cannot see). Collective."""
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(other, "r") as f:
+            key = f.attrs["key"]
+        os.replace(path, other)
+        with h5py.File(other, "r+") as f:
+            f.attrs["key"] = key
+        seal(other)
+    MPI.COMM_WORLD.Barrier()
+
+
 def test_a_cache_hit_performs_no_eigen_solve(shared_tmp_path):
     first, solves, state = obtain(scene(), shared_tmp_path)
     assert solves > 0 and state == "stored"
@@ -327,14 +340,7 @@ def test_a_gyroscopic_basis_of_another_speed_under_this_key_is_detected_and_rebu
     _, _, _, path = gyroscopic_basis(shared_tmp_path, speed=30.0)
     slow = dict(speed=20.0, tension=2000.0 - 7800.0 * 3e-5 * (30.0**2 - 20.0**2))
     reference, _, _, other = gyroscopic_basis(shared_tmp_path / "b", **slow)
-    if MPI.COMM_WORLD.rank == 0:
-        with h5py.File(other, "r") as f:
-            key = f.attrs["key"]
-        os.replace(path, other)
-        with h5py.File(other, "r+") as f:
-            f.attrs["key"] = key
-        seal(other)                               # a whole file: the complex frequencies must see it
-    MPI.COMM_WORLD.Barrier()
+    stored_under_key(path, other)            # a whole file: the complex frequencies must see it
     rebuilt, solves, state, _ = gyroscopic_basis(shared_tmp_path / "b", **slow)
     assert solves > 0 and state == "stored"
     assert np.abs(rebuilt - reference).max() < 1e-10 * np.abs(reference).max()
@@ -469,14 +475,7 @@ def test_a_state_space_basis_of_another_speed_under_this_key_is_refused_and_rebu
     slow = dict(speed=20.0, tension=2000.0 - 7800.0 * 3e-5 * (30.0**2 - 20.0**2))
     reference = state_space_basis(shared_tmp_path / "b", **slow)
     other = reference["path"]
-    if MPI.COMM_WORLD.rank == 0:
-        with h5py.File(other, "r") as f:
-            key = f.attrs["key"]
-        os.replace(path, other)
-        with h5py.File(other, "r+") as f:
-            f.attrs["key"] = key
-        seal(other)
-    MPI.COMM_WORLD.Barrier()
+    stored_under_key(path, other)
     capfd.readouterr()
     rebuilt = state_space_basis(shared_tmp_path / "b", **slow)
     out = capfd.readouterr().out
