@@ -393,7 +393,7 @@ def _state_space_problem(basis, ops: Operators, defect: float) -> str | None:
     operators; each raw DBF's state vectors [-varpi d_I; d_R], [varpi d_R; d_I] inside span Psi (what
     the error estimate's richer basis reuses: a column left out is below DROP_TOL of them); the captured
     flexibility plausible. Collective."""
-    from .state_space import DROP_TOL, _state_parts, conservative_state_matrix
+    from .state_space import DROP_TOL, _local, _state_parts, conservative_state_matrix
 
     A_r = basis.state_energy(ops)
     if not (np.all(np.isfinite(A_r)) and np.abs(A_r - np.eye(basis.size)).max() < VERIFY_TOL + defect):
@@ -412,11 +412,12 @@ def _state_space_problem(basis, ops: Operators, defect: float) -> str | None:
     scale = VERIFY_TOL * 100 * float(np.abs(basis.omega).max(initial=0.0))
     if not np.allclose(hat, basis.enrichment_omega, rtol=VERIFY_TOL * 100, atol=scale):
         return "its DBF columns do not have the stored hat-omega"
+    span = (_local(basis.velocity), _local(basis.displacement))   # local rows, once for all the DBFs
     for dr, di, varpi in basis.raw:
         parts = _state_parts(dr, di, varpi)
         try:
-            residuals = [_residual_a_norm(basis, ops, *p) for p in parts]
-            norms = [_residual_a_norm(None, ops, *p) for p in parts]
+            residuals = [_residual_a_norm(ops, *p, span) for p in parts]
+            norms = [_residual_a_norm(ops, *p) for p in parts]
         finally:
             for p in parts:
                 destroy(*p)
@@ -428,20 +429,22 @@ def _state_space_problem(basis, ops: Operators, defect: float) -> str | None:
     return None
 
 
-def _residual_a_norm(basis, ops: Operators, v, w) -> float:
-    """The A-norm of the state (v, w) less its A-projection onto span Psi (basis None: of the state
-    itself). Collective."""
+def _residual_a_norm(ops: Operators, v, w, span=None) -> float:
+    """The A-norm of the state (v, w) less its A-projection onto span Psi (`span`: this rank's rows of
+    Psi_v and Psi_w, as state_space._local gives them; None: of the state itself). Collective."""
+    comm = ops.comm.tompi4py()
     v, w = v.copy(), w.copy()
     Mv, Kw = v.duplicate(), w.duplicate()
     try:
-        if basis is not None:
+        if span is not None:
+            Pv, Pw = span
             for _ in range(2):   # twice, as the Gram-Schmidt that built the basis
                 ops.M.mult(v, Mv)
                 ops.K.mult(w, Kw)
-                c = [Mv.dot(a) + Kw.dot(b) for a, b in zip(basis.velocity, basis.displacement)]
-                for cj, a, b in zip(c, basis.velocity, basis.displacement):
-                    v.axpy(-cj, a)
-                    w.axpy(-cj, b)
+                c = comm.allreduce(Pv.T @ Mv.getArray(readonly=True) + Pw.T @ Kw.getArray(readonly=True))
+                with v as va, w as wa:   # (get/restore: the Vecs' state moves on)
+                    va -= Pv @ c
+                    wa -= Pw @ c
         ops.M.mult(v, Mv)
         ops.K.mult(w, Kw)
         return float(np.sqrt(abs(v.dot(Mv) + w.dot(Kw))))
