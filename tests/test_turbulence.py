@@ -433,3 +433,22 @@ def test_the_coherence_factor_keeps_every_points_psd_exactly_and_its_coherence_t
     np.testing.assert_allclose(np.diag(H @ H.T), 1.0, rtol=0, atol=1e-14)
     assert np.abs(H @ H.T - gamma).max() < 4 * (1 - VARIANCE_KEPT)   # measured 2.2e-3 at lambda = 5 m
     assert H.shape[1] < x.size          # a well correlated field: fewer histories than nodes (34 and 9 of 41)
+
+
+@pytest.mark.parametrize("lam", [0.05, 0.5, 5.0, 50.0])
+def test_the_coherence_factors_histories_hold_the_kept_share_of_the_loads_variance_and_are_the_fewest_that_do(lam):
+    # The load's variance over the span is trace(Gamma); the field generated from H holds the part of it in
+    # H's column space, trace(P Gamma) (P the orthogonal projector onto span H). It must be at least
+    # VARIANCE_KEPT, with no history to spare: the best one history fewer (Gamma's leading eigenvectors) holds
+    # less. Planted bug this catches, which the coherence test above does not: one history too few (the
+    # dropped share just above 0.1 %, each coherence still within 4 times it).
+    from dbf_hpc.excitation import VARIANCE_KEPT, coherence_factor
+
+    x = np.linspace(0.0, 2.0, 41)
+    gamma = Turbulence(1.0, BAND, lam, seed=1).coherence(x)
+    H = coherence_factor(gamma)
+    Q, _ = np.linalg.qr(H)
+    held = np.trace(Q.T @ gamma @ Q) / np.trace(gamma)
+    assert held >= VARIANCE_KEPT, (lam, held)
+    best_fewer = np.sort(np.linalg.eigvalsh(gamma))[::-1][:H.shape[1] - 1].sum() / np.trace(gamma)
+    assert best_fewer < VARIANCE_KEPT, (lam, H.shape[1], best_fewer)
