@@ -348,8 +348,10 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
                   f"{comm.getSize()} rank(s)")
         if fom.operators.G is not None:
             gyroscopic_checks(scene, fom, method)
-        elif method == "rom" and form_warning(scene, fom):
-            warn(form_warning(scene, fom), comm)
+        elif method == "rom":
+            form = form_warning(scene, fom)
+            if form:
+                warn(form, comm)
         if method == "full":
             return _run_full(scene, fom, path, settings, timings, say, resume, request, digests)
         t, solves = time.perf_counter(), counters["eigen_solves"]

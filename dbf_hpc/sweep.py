@@ -437,8 +437,10 @@ def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | No
                 # ratios on the complex modes' real basis, and skipped the stability check with damping)
                 if fom.operators.G is not None:
                     gyroscopic_checks(scene, fom, "rom")
-                elif form_warning(scene, fom):   # as a run says it (kept in the rows with the build's lines)
-                    warn(form_warning(scene, fom), PETSc.COMM_WORLD)
+                else:   # as a run says it (kept in the rows with the build's lines)
+                    form = form_warning(scene, fom)
+                    if form:
+                        warn(form, PETSc.COMM_WORLD)
                 with Reductor(fom, scene.basis_settings(), cache_dir, warn_basis=False) as reductor:
                     models[key] = reductor.reduce(field=scene.output().snapshots > 0)
                     # what a run warns of its basis (a flexibility captured below 99 %, a lowest frequency
