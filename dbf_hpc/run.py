@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import math
 import os
 import signal
 import socket
@@ -37,7 +38,7 @@ from .fom import Observation
 from .fom_integrator import check_step, ignored_settings, integrate_full, step_count
 from .fom_integrator import options as full_options
 from .matrices import file_digest
-from .modes import counters
+from .modes import REPEATED_TOL, count_below, counters
 from .output import (LONGEST_PID, SNAPSHOT_OVERHEAD_BYTES, OutputLock, OutputWriter, check_free_space,
                      check_name_length, check_output_path, free_bytes, is_dbf_checkpoint, is_dbf_partial, output_bytes)
 from .petsctools import (command_option_names, mark_options_read, options_read_anywhere, petsc_comm,
@@ -51,7 +52,8 @@ from .excitation import Harmonic
 from .schema import SECTIONS
 from .simulate import snapshot_cap_warning, snapshot_samples
 from .stats import DESCRIPTIONS_2D as DESCRIPTIONS, UNITS_2D as UNITS
-from .timestepping import STEPS_PER_PERIOD, check_work, refuse_settings_options
+from .timestepping import (MIN_STEP_FRACTION, STEPS_PER_PERIOD, TIME_ULPS, cap_refusal, cap_refused_below_hz, check_work,
+                           refuse_settings_options)
 
 
 def output_path(scene: Scene, override: str | None, resume: bool = False) -> str:
@@ -339,6 +341,45 @@ def gyroscopic_checks(scene: Scene, fom, method: str) -> None:
                          "[basis] modes")
 
 
+# How far below the frequency where timestepping.cap_refusal starts to refuse the highest reference mode must
+# lie for cap_refusal_before_basis to refuse: the inertia counts exact eigenvalues, the basis' computed ones
+# are right to about 5e-6 in frequency (modes.TRUST_TOL); a mode within this margin is left to the integrator.
+CAP_MARGIN = 1e-4
+
+
+def cap_refusal_before_basis(scene: Scene, fom, settings) -> str | None:
+    """The line timestepping.configure refuses an adaptive reduced run with whose output samples cap its
+    step at or below its floor (timestepping.cap_refusal: red team, t_end = 1e-9 s), said before any basis
+    is built where it is certain, else None (the integrator checks again, as before). The floor depends on
+    the highest reference mode's frequency F, known only once the modes are solved; before them:
+    timestepping.cap_refused_below_hz gives the F up to which the settings are refused (usually none: no
+    work), and the refusal is made here only where F certainly lies below it (CAP_MARGIN) and the line
+    does not depend on F (F up to 1/STEPS_PER_PERIOD of 1/dt, where the floor is dt x MIN_STEP_FRACTION):
+    by [basis] max_frequency_hz, which bounds F, or for [basis] modes = N by counting the eigenvalues of
+    (K, M) below it (modes.count_below: one factorization, no eigensolve; N of them: F is below it). Never
+    a run the integrator would accept. Not made (left to the integrator) for a gyroscopic structure
+    (complex modes), the tolerance mode (its candidates' modes) and where the inertia cannot be counted.
+    Collective on the model's communicator."""
+    below = cap_refused_below_hz(settings)
+    if not settings.adaptive or below is None:
+        return None
+    same = math.inf if TIME_ULPS * float(np.spacing(settings.t_end)) >= settings.dt * MIN_STEP_FRACTION else \
+        1.0 / (STEPS_PER_PERIOD * settings.dt)   # up to here the floor, and so the line, is F's alone
+    limit = min(below, same) * (1 - CAP_MARGIN)
+    if limit == math.inf:
+        return cap_refusal(settings)
+    if fom.operators.G is not None or scene.estimate_settings().tolerance is not None:
+        return None
+    basis = scene.basis_settings()
+    if basis.modes is None:
+        return cap_refusal(settings) if basis.max_frequency_hz * (1 + REPEATED_TOL) < limit else None
+    sigma = (2 * math.pi * limit) ** 2 if limit < 1e150 else math.inf
+    if not math.isfinite(sigma):
+        return None
+    count = fom.comm.tompi4py().bcast(count_below(fom.operators, sigma), root=0)
+    return cap_refusal(settings) if count is not None and count >= basis.modes else None
+
+
 def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bool, method: str,
          request: str | None = None, digests: dict | None = None) -> dict:
     timings, t = {}, time.perf_counter()
@@ -352,6 +393,10 @@ def _run(scene: Scene, path: str, settings, say, comm, initial_state, resume: bo
             form = form_warning(scene, fom)
             if form:
                 warn(form, comm)
+        if method == "rom":   # before any basis (the integrator checks again)
+            refusal = cap_refusal_before_basis(scene, fom, settings)
+            if refusal:
+                raise InputError(refusal)
         if method == "full":
             return _run_full(scene, fom, path, settings, timings, say, resume, request, digests)
         t, solves = time.perf_counter(), counters["eigen_solves"]

@@ -81,9 +81,9 @@ from .matrices import file_digest
 from .output import LONGEST_PID, OutputLock, check_name_length, check_output_path, free_bytes
 from .reductor import Reductor
 from .rom_integrator import say_fallback
-from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, basis_warnings, finished_output, forcing_warning,
-                  form_warning, gyroscopic_checks, law_dimension, loose_atol_finding, result_warnings, run_case, scene_callbacks,
-                  scene_warnings)
+from .run import (STOP_TAG, RemoteStop, _interrupt_on_sigterm, basis_warnings, cap_refusal_before_basis, finished_output,
+                  forcing_warning, form_warning, gyroscopic_checks, law_dimension, loose_atol_finding, result_warnings,
+                  run_case, scene_callbacks, scene_warnings)
 from .scene import load_scene, parse_override, relative_to_cwd
 from . import __version__
 from .schema import SECTIONS, unit_of
@@ -441,6 +441,12 @@ def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | No
                     form = form_warning(scene, fom)
                     if form:
                         warn(form, PETSc.COMM_WORLD)
+                # what a run refuses before its basis (run.cap_refusal_before_basis), a case too: it fails with
+                # the line, and a model all of whose cases fail so is not built
+                if _refused_before_basis(sweep, [i for i in pending if _model_key(sweep["run_scenes"][i]) == key],
+                                         fom):
+                    models[key] = "its every case is refused before its basis"
+                    continue
                 with Reductor(fom, scene.basis_settings(), cache_dir, warn_basis=False) as reductor:
                     models[key] = reductor.reduce(field=scene.output().snapshots > 0)
                     # what a run warns of its basis (a flexibility captured below 99 %, a lowest frequency
@@ -459,6 +465,25 @@ def _prepare_models(sweep: dict, pending, cache_dir: str, say, models: dict | No
             models[key] = str(e)
     say(f"reduced models ready: {len(models)}")
     return models
+
+
+def _refused_before_basis(sweep: dict, cases, fom) -> bool:
+    """Whether every one of `cases` (indices of the pending cases of one model) is refused before the basis
+    as its run would be (run.cap_refusal_before_basis), its line kept in sweep["refused"] (index -> line)
+    for _run_one. A case whose settings are refused otherwise fails on its own. Collective (every rank
+    has the same cases)."""
+    lines = {}
+    for index in cases:
+        scene = sweep["run_scenes"][index]
+        try:
+            settings = scene.integrator_settings()
+        except InputError:
+            continue
+        if settings not in lines:   # one count of the eigenvalues per distinct settings
+            lines[settings] = cap_refusal_before_basis(scene, fom, settings)
+        if lines[settings]:
+            sweep.setdefault("refused", {})[index] = lines[settings]
+    return bool(cases) and all(index in sweep.get("refused", {}) for index in cases)
 
 
 def _stale_chains(sweep, records, pending: set, models: dict, cache_dir: str) -> set:
@@ -593,6 +618,8 @@ def _run_one(sweep, index, folder, cache_dir, models, identity, previous, stop=N
     case_out = os.path.join(folder, f"case-{index:05d}.h5")
     try:
         scene = sweep["run_scenes"][index]
+        if index in sweep.get("refused", {}):   # before the basis, as its run (_prepare_models)
+            raise InputError(sweep["refused"][index])
         built = models[_model_key(scene)]
         if isinstance(built, str):
             raise DbfError(built)

@@ -199,6 +199,45 @@ def step_scale(dt: float, fastest_hz: float = 0.0) -> float:
     return dt
 
 
+def step_floor(settings: IntegratorSettings, fastest_hz: float = 0.0) -> float:
+    """The least step an adaptive run may take (s), before the options: MIN_STEP_FRACTION of
+    step_scale(dt, fastest_hz), never below TIME_ULPS rounding units of t_end."""
+    return max(step_scale(settings.dt, fastest_hz) * MIN_STEP_FRACTION, TIME_ULPS * float(np.spacing(settings.t_end)))
+
+
+def step_cap(settings: IntegratorSettings) -> float:
+    """The most an adaptive step may take (s), before the options: 10 samples times max_step_scale."""
+    return settings.sample_dt * 10 * settings.max_step_scale
+
+
+def cap_refusal(settings: IntegratorSettings, fastest_hz: float = 0.0) -> str | None:
+    """The line an adaptive run is refused with whose step cap (step_cap) is not above its floor
+    (step_floor with `fastest_hz`, the model's highest reference mode), or None. PETSc's own "Maximum
+    time step ... must greater than minimum time step ...; check the -rom_ options" blamed options
+    nobody gave (red team: t_end = 1e-9 s). Not collective."""
+    cap, floor = step_cap(settings), step_floor(settings, fastest_hz)
+    if cap > floor:
+        return None
+    return (f"[integrator] t_end = {settings.t_end:g} s: its output samples, {settings.sample_dt:g} s apart, cap an "
+            f"adaptive step at {cap:g} s, not above the smallest step it may take ({floor:g} s): give a longer t_end "
+            f"or [output] sample_dt, or a fixed step ([integrator] adaptive = false)")
+
+
+def cap_refused_below_hz(settings: IntegratorSettings) -> float | None:
+    """The highest reference-mode frequency (Hz) up to which cap_refusal refuses these settings, from
+    the settings alone (the frequency is known only once the basis is): None where no frequency is
+    refused (the usual case: the cap is above [integrator] dt x MIN_STEP_FRACTION), math.inf where
+    every one is (the cap within TIME_ULPS rounding units of t_end). The floor is the larger of dt and
+    1/STEPS_PER_PERIOD of the period, times MIN_STEP_FRACTION: a cap C at most dt x MIN_STEP_FRACTION
+    is refused for a frequency f up to MIN_STEP_FRACTION / (STEPS_PER_PERIOD C). Not collective."""
+    cap = step_cap(settings)
+    if cap <= TIME_ULPS * float(np.spacing(settings.t_end)):
+        return math.inf
+    if cap > settings.dt * MIN_STEP_FRACTION:
+        return None
+    return MIN_STEP_FRACTION / (STEPS_PER_PERIOD * cap)
+
+
 def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults: dict, adaptive: bool,
               start: dict | None = None, steps: "StepMonitor | None" = None, fastest_hz: float = 0.0) -> None:
     """What every integrator's TS gets: time span, first step, tolerances, the failure policy, the
@@ -222,15 +261,12 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
     ts.setMaxSNESFailures(-1 if adaptive else 1)
     ts.setMaxStepRejections(50)  # consecutive, within one step: bounds the retries of a hopeless step
     scale = step_scale(settings.dt, fastest_hz)
-    nominal = max(scale * MIN_STEP_FRACTION, TIME_ULPS * float(np.spacing(settings.t_end)))
+    nominal = step_floor(settings, fastest_hz)
     if adaptive:  # a fixed step needs no limits (and dt may exceed 10 samples); dt does not raise the cap
+        refusal = cap_refusal(settings, fastest_hz)
+        if refusal:   # run.cap_refusal_before_basis says it before the basis where it is certain
+            raise InputError(refusal)
         cap = settings.sample_dt * 10
-        if cap * settings.max_step_scale <= nominal:   # PETSc's "Maximum time step ... must greater than
-            # minimum time step ...; check the -rom_ options" blamed options nobody gave (red team: t_end = 1e-9 s)
-            raise InputError(f"[integrator] t_end = {settings.t_end:g} s: its output samples, {settings.sample_dt:g} s "
-                             f"apart, cap an adaptive step at {cap * settings.max_step_scale:g} s, not above the "
-                             f"smallest step it may take ({nominal:g} s): give a longer t_end or [output] sample_dt, "
-                             f"or a fixed step ([integrator] adaptive = false)")
         ts.setStepLimits(nominal, max(nominal, cap))
     ts.getSNES().setTolerances(rtol=1e-10, atol=1e-14, max_it=20)
     with options_defaults(prefix, defaults):

@@ -710,3 +710,37 @@ def test_a_finished_output_stores_its_warnings_and_a_resume_of_it_or_info_shows_
             assert f.attrs["warnings"].split("\n") == first["warnings"]
         info = [line for line in describe(path) if "warning" in line]
         assert info == [f"  warning: {w}" for w in first["warnings"]], info
+
+
+def test_a_run_whose_samples_cap_its_step_below_its_floor_is_refused_before_any_basis_and_one_above_runs(
+        shared_tmp_path):
+    # t_end = 1e-9 s on the paper's beam: samples 1e-13 s apart cap a step at 1e-12 s, the floor dt x 1e-8 of
+    # every run whose highest reference mode is below 1 / (20 dt) = 500 Hz. The refusal came from the
+    # integrator, after the modes and the DBFs (minutes on a big scene). Now it comes before them, with the
+    # same line: no eigensolve, no cache entry, no output. The modes' frequency is counted by the inertia
+    # (mode 42 is 480 Hz); 43 modes (503 Hz) lower the floor below the cap, and the run must still run.
+    from dbf_hpc.modes import counters
+    from dbf_hpc.reductor import Reductor
+    from dbf_hpc.simulate import simulate_reduced
+
+    cache = shared_tmp_path / "cap_cache"
+    for modes in (6, 42):
+        scene = load_scene(PAPER, [f"basis.cache={cache}", "integrator.t_end=1e-9", f"basis.modes={modes}"])
+        solves = counters["eigen_solves"]
+        with pytest.raises(InputError) as refused:
+            run(scene, str(shared_tmp_path / "capped.h5"), progress=False)
+        assert counters["eigen_solves"] == solves, modes
+        assert str(refused.value).startswith("[integrator] t_end = 1e-09 s: its output samples, 1e-13 s apart, cap "
+                                             "an adaptive step at 1e-12 s, not above the smallest step it may take "
+                                             "(1e-12 s)"), str(refused.value)
+        MPI.COMM_WORLD.Barrier()
+        assert not os.path.exists(cache) and not [n for n in os.listdir(shared_tmp_path) if n.startswith("capped")]
+    # the integrator's own line, once the basis is known, is the same
+    with scene.full_order_model() as fom, Reductor(fom, scene.basis_settings()) as reductor:
+        model = reductor.reduce()
+    with pytest.raises(InputError) as integrator:
+        simulate_reduced(model, scene.integrator_settings())
+    assert str(integrator.value) == str(refused.value)
+    accepted = load_scene(PAPER, ["basis.cache=off", "integrator.t_end=1e-9", "basis.modes=43", "basis.estimate=false"])
+    summary = run(accepted, str(shared_tmp_path / "accepted.h5"), progress=False)
+    assert summary["stats"]["steps"] >= 1000   # 10 samples a step at most

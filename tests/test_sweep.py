@@ -1565,3 +1565,24 @@ def test_a_case_says_and_keeps_the_very_warnings_a_run_of_its_scene_gives_of_unu
     if MPI.COMM_WORLD.rank == 0:
         with h5py.File(result["output"]) as f:
             assert f["cases/warnings"][0].decode().split("\n") == ran["warnings"]
+
+
+def test_a_case_whose_samples_cap_its_step_below_its_floor_fails_before_its_basis_and_the_others_run(
+        shared_tmp_path):
+    # What `dbf-hpc run` refuses before the basis (run.cap_refusal_before_basis: t_end = 1e-9 s on the paper's
+    # beam), a case fails with before it too, with the run's line: a model whose every case is so refused is
+    # not built (no eigensolve), and a case that runs (t_end = 1e-7 s) is not held up by another's refusal.
+    cache = shared_tmp_path / "cap_cache"
+    body = (f'[axes]\n"integrator.t_end" = [{{t}}]\n"basis.modes" = [6]\n"basis.estimate" = [false]\n'
+            f'"output.snapshots" = [0]\n"basis.cache" = ["{cache}"]\n')
+    solves = counters["eigen_solves"]
+    result = run_sweep(write_sweep(shared_tmp_path, body.format(t="1e-9"), name="cap.toml", output="cap.h5"),
+                       progress=False)
+    assert result["failed"] == 1 and counters["eigen_solves"] == solves and not os.path.exists(cache)
+    with h5py.File(result["output"]) as f:
+        errors = [e.decode() if isinstance(e, bytes) else e for e in f["cases/error"][:]]
+    assert errors[0].startswith("[integrator] t_end = 1e-09 s: its output samples, 1e-13 s apart, cap an adaptive "
+                                "step at 1e-12 s, not above the smallest step it may take (1e-12 s)"), errors
+    both = run_sweep(write_sweep(shared_tmp_path, body.format(t="1e-9, 1e-7"), name="cap2.toml", output="cap2.h5"),
+                     progress=False)
+    assert both["failed"] == 1 and both["cases"] == 2, both

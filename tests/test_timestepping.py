@@ -1,5 +1,6 @@
 """The time-stepping layer (timestepping.py): settings validated once, and runs that cannot finish
 in reasonable time refused before any work, with what to change."""
+import math
 import re
 
 import pytest
@@ -444,3 +445,27 @@ def test_a_sample_is_taken_at_a_step_only_within_round_off_of_it_however_short_t
     assert list(monitor.samples_due(0.95e-8)) == [], "the sample at 1e-8 s is 0.5 ns after this step"
     assert [(i, exact) for i, _, exact in monitor.samples_due(1e-8 * (1 + 1e-15))] == [(1, True)]
     assert [i for i, _, exact in monitor.samples_due(3.5e-8) if not exact] == [2, 3]
+
+
+@pytest.mark.parametrize("t_end, dt, sample_dt, scale, below", [
+    (1e-9, 1e-4, 1e-13, 1.0, 500.0),        # the red team's t_end = 1e-9 s: refused up to the 500 Hz mode
+    (1e-9, 1e-4, 1e-13, 0.25, 2000.0),      # the estimate's richer run: a cap 4 times lower
+    (2e-9, 1e-4, 2e-13, 1.0, None),         # a cap above dt x 1e-8: never refused
+    (10.0, 1e-4, 1e-3, 1.0, None),          # the paper's run
+    (1.0, 1e-3, 1e-3, 1e-20, math.inf)])    # a cap within t_end's rounding units: refused at any frequency
+def test_the_frequency_up_to_which_a_step_cap_is_refused_is_where_the_integrators_refusal_changes(
+        t_end, dt, sample_dt, scale, below):
+    # cap_refused_below_hz decides from the settings alone (before the basis, run.cap_refusal_before_basis)
+    # what configure's cap_refusal decides with the highest reference mode's frequency: refused below it,
+    # accepted above it, at every frequency, never at any where it is None.
+    from dbf_hpc.timestepping import cap_refusal, cap_refused_below_hz
+
+    settings = IntegratorSettings(t_end=t_end, dt=dt, sample_dt=sample_dt, max_step_scale=scale)
+    found = cap_refused_below_hz(settings)
+    assert found == (pytest.approx(below, rel=1e-12) if below not in (None, math.inf) else below)
+    for hz in (0.0, 1.0, 9.8, 100.0, 499.0, 501.0, 1999.0, 2001.0, 1e4, 1e7, 1e12):
+        refused = cap_refusal(settings, hz) is not None
+        if found is None or hz > found * (1 + 1e-9):
+            assert not refused, (hz, cap_refusal(settings, hz))
+        elif hz < found * (1 - 1e-9):
+            assert refused, hz
