@@ -249,6 +249,24 @@ def rich_settings(settings, window: float):
                                max_step_scale=settings.max_step_scale / RICH_STEP)
 
 
+def rich_step_refusal(rich_model, settings, window: float) -> str | None:
+    """Why the richer run (rich_settings) cannot be made where its adaptive step's cap, RICH_STEP times
+    lower than the run's, is not above its floor (timestepping.cap_refusal with the richer model's highest
+    mode), else None. Red team: t_end = 2e-9 s on the paper's beam ran, and its estimate's richer run was
+    then refused as "[integrator] t_end = 2e-10 s: ..." (its window, not t_end), the whole run lost to a
+    .partial; the estimate is not available instead, saying why, as where the richer model fails. Not
+    collective."""
+    from .rom_integrator import highest_mode_hz
+    from .timestepping import cap_refusal, step_cap, step_floor
+
+    rich, hz = rich_settings(settings, window), highest_mode_hz(rich_model)
+    if not rich.adaptive or cap_refusal(rich, hz) is None:
+        return None
+    return (f"the richer run's adaptive step, capped {RICH_STEP} times lower than the run's at {step_cap(rich):g} s, "
+            f"would not be above its floor ({step_floor(rich, hz):g} s): give a longer [output] sample_dt or t_end for an "
+            f"estimate")
+
+
 def rich_note(rich_model, settings, end: float) -> str:
     """What the richer run was: its basis vectors, and its rtol, or its fixed step for a run of fixed
     steps (whose rtol steers nothing). Not collective."""
@@ -326,6 +344,9 @@ def _nested(rich_model, settings, times: np.ndarray, w: np.ndarray, end: float) 
     from .simulate import integrate_samples
 
     start = time.perf_counter()
+    refusal = rich_step_refusal(rich_model, settings, end)
+    if refusal:
+        return Estimate(np.nan, end, 0.0, refusal)
     try:
         result = integrate_samples(rich_model, rich_settings(settings, end))
     except Interrupted:
@@ -519,6 +540,9 @@ def statistics_estimate(rich_model, settings, read, times, end: float, laws=None
     k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
     reduced, reduced_ci = window_statistics(*read(0, k), laws)
     nan = {name: np.full(value.shape, np.nan) for name, value in reduced.items()}
+    refusal = rich_step_refusal(rich_model, settings, float(times[k - 1]))
+    if refusal:
+        return StatisticsEstimate(end, sampling, reduced, reduced_ci, nan, nan, time.perf_counter() - start, refusal)
     try:
         result = integrate_samples(rich_model, rich_settings(settings, float(times[k - 1])))
     except Interrupted:
@@ -776,6 +800,9 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
             if want > run.time[-1] * (1 + 1e-12):   # twice the first contact is beyond the probe: go on to it
                 run = integrate_samples(model, dataclasses.replace(settings, t_end=want))
             end = estimate_window(run.time, contact, settings.t_end, window)
+            refusal = rich_step_refusal(rich, settings, end)
+            if refusal:   # the tolerance mode needs the estimate (not a NaN among the candidates' values)
+                raise InputError(refusal)
             result = nested_estimate(rich, settings, run.time, run.displacement, end)
         # every failure of rank 0's integration is every rank's (red team: a PETSc error, a bad -rom_
         # option, escaped on rank 0 alone; its Ibarrier at the command's end met the others' in

@@ -249,6 +249,13 @@ def c_counters(ts) -> np.ndarray | None:
     return None if fast is None else np.array([fast.counters[name] for name in C_COUNTERS], dtype=np.int64)
 
 
+def highest_mode_hz(model) -> float:
+    """The frequency of the model's highest reference mode (Hz; |omega| of a complex one), 0 without
+    modes: what scales an adaptive run's step floor (timestepping.configure). Not collective."""
+    omega = np.abs(np.asarray(getattr(model, "basis_info", {}).get("omega", ()), dtype=complex))
+    return float(omega.max()) / (2 * np.pi) if omega.size else 0.0
+
+
 def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=None, on_step=None, say=None,
                       resume: dict | None = None, *, recorder=None, due=None) -> dict:
     """Integrate from t = 0 (model.q0, model.p0) to t_end, calling record(t, q, p) at every sample
@@ -331,9 +338,7 @@ def integrate_reduced(model: ReducedModel, settings: IntegratorSettings, record=
         defaults = {"ts_adapt_type": "basic" if settings.adaptive else "none", "snes_linesearch_type": "basic"}
         if settings.adaptive:
             defaults.update(ADAPT_DEFAULTS)
-        omega = np.abs(np.asarray(model.basis_info.get("omega", ()), dtype=complex))
-        configure(ts, settings, PREFIX, defaults, settings.adaptive, resume, steps,
-                  float(omega.max()) / (2 * np.pi) if omega.size else 0.0)
+        configure(ts, settings, PREFIX, defaults, settings.adaptive, resume, steps, highest_mode_hz(model))
         c_newton = c_newton and ts.getSNES().getType() == "shell"
         if c_newton and not _user_viewers():
             # the *ViewFromOptions queries inside every stage solve cost more than the solve: off

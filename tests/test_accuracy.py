@@ -986,3 +986,38 @@ def test_the_estimates_richer_run_is_ten_times_tighter_in_rtol_down_to_the_floor
         size = 13
 
     assert rich_note(Model(), settings, 0.5) == f"against 13 basis vectors at rtol {rich:g}"
+
+
+def test_a_run_whose_richer_run_cannot_step_below_its_cap_keeps_its_output_and_says_the_estimate_is_not_available(
+        shared_tmp_path):
+    # t_end = 2e-9 s on the paper's beam: samples 2e-13 s apart cap the run's step at 2e-12 s, above its floor
+    # (dt x 1e-8 = 1e-12 s), and the richer run's, 4 times lower, at 5e-13 s, below it. Red team: the run
+    # integrated, then its estimate was refused as "[integrator] t_end = 2e-10 s ..." (the window, not t_end),
+    # and the finished run was left as a .partial. Now the run is written, its estimate not available, saying why.
+    import os
+
+    import h5py
+    from mpi4py import MPI
+
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_run import ROOT
+
+    path = str(shared_tmp_path / "capped_richer.h5")
+    summary = run(load_scene(f"{ROOT}/jobs/paper_beam.toml", ["integrator.t_end=2e-9", "basis.cache=off"]), path,
+                  progress=False)
+    assert math.isnan(summary["estimated_error"])
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(path) as f:
+            note = f.attrs["estimated_error_note"]
+            assert f["time"][-1] == pytest.approx(2e-9, rel=1e-12)
+        assert note.startswith("the richer run's adaptive step, capped 4 times lower than the run's at 5e-13 s, would "
+                               "not be above its floor (1e-12 s)"), note
+    assert_all(not os.path.exists(path + ".partial"), "a .partial was left")
+    # the tolerance mode needs the estimate: refused, naming the richer run's cap (not "t_end = 2e-10 s")
+    from dbf_hpc.errors import InputError
+    with pytest.raises(InputError, match=r"^\[basis\] tolerance: the candidate with 6 modes failed: the richer run's "
+                                         r"adaptive step, capped 4 times lower"):
+        run(load_scene(f"{ROOT}/jobs/paper_beam.toml", ["integrator.t_end=2e-9", "basis.cache=off",
+                                                        "basis.tolerance=0.1"]), str(shared_tmp_path / "tol.h5"),
+            progress=False)
