@@ -614,9 +614,9 @@ def richer_model(fom, basis, cache_dir: str | None = None):
     enrichment columns, each named by its constraint component), or the reason it cannot be made (a
     string). Where the structure has too few DOFs for N + N_L modes and the columns, twice the modes
     (RICH_MODES) as before. With cache_dir, its reference modes come from the basis cache
-    (cache.obtain_modes; not for complex modes). Collective."""
+    (cache.obtain_modes), or for complex modes the whole richer basis (cache.obtain_richer). Collective."""
     from .basis import richer_basis
-    from .cache import obtain_modes
+    from .cache import obtain_modes, obtain_richer
     from .errors import DbfError
     from .petsctools import destroy
     from .reductor import Reductor
@@ -631,7 +631,9 @@ def richer_model(fom, basis, cache_dir: str | None = None):
     for count in dict.fromkeys((rich_modes(modes, len(labels)), RICH_MODES * modes)):
         more = None
         try:
-            if cached:
+            if fom.operators.G is not None:   # complex modes: the whole richer basis cached (either form)
+                rich = obtain_richer(fom.operators, basis, count, fom.fingerprint, cache_dir)
+            elif cached:
                 more = obtain_modes(fom.operators, count, fom.fingerprint, cache_dir)
                 rich = richer_basis(fom.operators, basis, count, labels, reference=more)
             else:

@@ -26,7 +26,8 @@ DBF's state vectors must lie in span Psi (_state_space_problem). Two builds of i
 round-off (4e-8 measured on a CI machine), and a --resume, whose checkpoint holds what the reduced
 coordinates mean, needs the very basis its run had: the cache gives it. The error estimate's richer
 bases take their reference modes from the cache too (obtain_modes): an entry of that many modes without
-enrichment or constraint rows.
+enrichment or constraint rows; a gyroscopic structure's richer basis (complex modes, either form) is an
+entry of its own, whole (obtain_richer), so that a resumed run's estimate is the uninterrupted run's.
 
 All functions are collective on ops.comm.
 """
@@ -85,7 +86,7 @@ def _mark_used(options: dict) -> None:
 
 
 def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool = False,
-              whole: str = "refuse") -> str:
+              whole: str = "refuse", richer_of: dict | None = None) -> str:
     """sha256 of everything that determines the basis (the options only of the solvers its kind uses),
     and the package version (a release may build it otherwise without a new ALGORITHM).
     A gyroscopic basis has its own algorithm name, one per form (second order, state space: settings.key()
@@ -93,13 +94,16 @@ def basis_key(fingerprint: dict, rows, settings: BasisSettings, gyroscopic: bool
     already holds U, m_t and T (a beam) or G's bytes (matrices). `whole` = "extend" (obtain_modes: a
     count inside a repeated frequency taken to its end) is part of the key; a user's count ("refuse")
     keeps the key it had (red team: the estimate's 6 modes stored for a count of 5 served a run asking
-    5 modes alone, which without the cache is refused, as 5 cut a pair)."""
+    5 modes alone, which without the cache is refused, as 5 cut a pair). `richer_of`: the settings key of
+    the run's basis whose error-estimate richer basis this is (obtain_richer: its enrichment columns are
+    that basis', not its own)."""
     form = "-state-space" if gyroscopic and settings.gyroscopic_form == "state_space" else ""
     content = {"algorithm": ALGORITHM + ("-gyroscopic" if gyroscopic else "") + form, "version": __version__,
                "operators": fingerprint,
                "rows": [int(r) for r in rows], "settings": settings.key(),
                "options": solver_options(settings.strategy.solver_prefixes),
-               **({"whole": whole} if whole != "refuse" else {})}
+               **({"whole": whole} if whole != "refuse" else {}),
+               **({"richer_of": richer_of} if richer_of is not None else {})}
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -534,7 +538,7 @@ def obtain_modes(ops: Operators, count: int, fingerprint: dict, cache_dir: str |
     on load (V^T M V = I, the frequencies); it holds the very numbers the solve gave, so a richer basis
     made from it is the one a solve makes, bit for bit. An odd count on a beam of two planes is its
     whole pairs' (basis.check_pairs). Solved without the cache where there is none and on a gyroscopic
-    structure (its richer bases solve their own complex modes). A cache that cannot be written keeps
+    structure (its richer bases are kept whole: obtain_richer). A cache that cannot be written keeps
     nothing and says nothing: the run's own basis has warned of it, or was read from it. Collective."""
     from .basis import modes_per_frequency
     from .modes import ModalBasis, reference_modes
@@ -550,6 +554,44 @@ def obtain_modes(ops: Operators, count: int, fingerprint: dict, cache_dir: str |
     basis = obtain_basis(ops, np.zeros(0, dtype=np.int64), BasisSettings(modes=count, enrichment="none"),
                          fingerprint, cache_dir, quiet=True, whole="extend")
     return ModalBasis(omega=basis.omega, vectors=basis.vectors)
+
+
+def obtain_richer(ops: Operators, basis, count: int, fingerprint: dict, cache_dir: str | None):
+    """The error estimate's richer basis of a gyroscopic structure's `basis` (basis.richer_basis: the
+    complex modes 1..`count`, more where `count` ends inside a repeated frequency, and `basis`' own
+    enrichment columns; either form) from the cache when a valid one exists, else built, and cached if
+    cache_dir. Its key: the richer settings (`count` modes, whole="extend") and the settings of the
+    basis it enriches (basis_key's richer_of); the load checks of a basis of its form apply. A resumed
+    run's estimate is then the uninterrupted run's, bit for bit (its complex modes were solved again,
+    another round-off), and a second run solves no eigenproblem for it. Without G: richer_basis (the
+    real modes come from obtain_modes). A cache that cannot be written keeps nothing and says nothing,
+    as obtain_modes. Collective."""
+    from dataclasses import replace
+
+    from .basis import richer_basis
+
+    if not cache_dir or ops.G is None:
+        return richer_basis(ops, basis, count)
+    rows = np.asarray(basis.constraint_rows, dtype=np.int64)
+    settings = replace(basis.settings, modes=count, max_frequency_hz=None)
+    key = basis_key(fingerprint, rows, settings, True, "extend", richer_of=basis.settings.key())
+    path = cache_path(cache_dir, key)
+    exists = ops.comm.tompi4py().bcast(os.path.exists(path) if ops.comm.rank == 0 else None, root=0)
+    if exists:
+        rich = load(path, key, ops, settings, rows, "extend")
+        if rich is not None:
+            rich.settings = replace(settings, modes=rich.complex_modes)   # as built: the count taken whole
+            _mark_used(solver_options(settings.strategy.solver_prefixes, observers=True))
+            return rich
+    rich = richer_basis(ops, basis, count)
+    A_r = rich.state_energy(ops) if _is_state_space(rich) else rich.project(ops.M)
+    defect = float(np.abs(A_r - np.eye(rich.size)).max(initial=0.0))
+    error = _prepare_directory(cache_dir, ops.comm) or save(rich, path, key, ops.comm, defect)
+    if error:
+        rich.stats["cache"] = "unwritable"
+    else:
+        rich.stats.update(cache="stored", cache_file=path)
+    return rich
 
 
 DEFAULT_DIR = "~/.cache/dbf_hpc"

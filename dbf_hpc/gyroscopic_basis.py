@@ -510,6 +510,7 @@ def richer_gyroscopic_basis(ops: Operators, basis: ReducedBasis, modes: int) -> 
 
     more = stable_modes(ops, count=modes, whole="extend")
     modes = more.count
+    complex_omega = [float(w) for w in more.omega[:modes]]
     first = basis.mode_count
     builder = _Builder(ops, 2 * modes + basis.enrichment_count)
     template = ops.K.createVecRight()
@@ -526,8 +527,11 @@ def richer_gyroscopic_basis(ops: Operators, basis: ReducedBasis, modes: int) -> 
     finally:
         destroy(more, template)
     settings = replace(basis.settings, modes=modes, max_frequency_hz=None)
+    # what a gyroscopic basis carries (build_gyroscopic_basis), so that the cache can keep it (cache.obtain_richer)
+    stats = {"cache": "off", "complex_modes": modes, "complex_omega": complex_omega,
+             "constraint_columns": list(basis.stats["constraint_columns"])}
     rich = ReducedBasis(vectors=V, omega=np.array(omega), enrichment_omega=basis.enrichment_omega.copy(),
                         dbf_k=basis.dbf_k, dbf_branch=basis.dbf_branch, constraint_rows=basis.constraint_rows,
-                        dbf_k_auto=basis.dbf_k_auto, settings=settings, stats={"cache": "off"})
+                        dbf_k_auto=basis.dbf_k_auto, settings=settings, stats=stats)
     rich.set_flexibility(basis.flexibility_exact, rich.project(ops.K))
     return rich

@@ -1833,3 +1833,57 @@ def test_damping_that_undoes_gyroscopic_stabilization_names_the_fastest_growing_
     assert growth.size == 4 and growth[-1] > 1.5 * growth[0]   # two growing pairs, of distinct rates
     named = float(re.search(r"growth rate ([-\d.e+]+) 1/s", str(refused.value)).group(1))
     assert abs(named / growth[-1] - 1) < 1e-5, (named, growth)
+
+
+@pytest.mark.parametrize("form", ["state_space", "second_order"])
+def test_the_estimates_richer_basis_of_complex_modes_is_cached_so_a_resumed_run_estimates_as_the_uninterrupted_one(
+        shared_tmp_path, monkeypatch, form):
+    # The estimate's richer basis of a gyroscopic structure solved its complex modes at every run (the cache
+    # kept real modes only: cache.obtain_modes skipped G), and two builds may differ at round-off (a state-space
+    # basis at 4e-8 in CI): a --resume's estimate was not the uninterrupted run's, and every run paid for the
+    # eigensolve. Now the richer basis is a cache entry of its own (cache.obtain_richer). Here every build
+    # after the first is made to differ (a column scaled by 1 + 4e-8): the resumed run reads the stored one,
+    # solves no eigenproblem, and its estimate (over samples before its checkpoint) is the uninterrupted one's.
+    import os
+
+    from dbf_hpc import gyroscopic_basis, state_space
+    from dbf_hpc.cache import entries
+    from dbf_hpc.run import run
+    from dbf_hpc.scene import load_scene
+    from test_checkpoint import interrupted_run
+
+    from dbf_hpc._romc import core
+
+    path = os.path.join(os.path.dirname(__file__), "..", "jobs", "pipe_conveying_fluid.toml")
+    cache = shared_tmp_path / f"richer-cache-{form}"
+    t_end = 0.5 if core is not None else 0.03    # (a termination signal before the end: about a second)
+    sets = [f"basis.gyroscopic_form={form}", f"integrator.t_end={t_end}", "output.checkpoint_dt=0.005",
+            "basis.estimate_window=0.005", f"basis.cache={cache}"]
+    whole = run(load_scene(path, sets), str(shared_tmp_path / f"whole-{form}.h5"), progress=False)
+    assert np.isfinite(whole["estimated_error"]) and whole["estimated_error"] > 0
+    # the run's basis and its richer basis (twice the complex modes), each an entry `dbf-hpc cache list` shows
+    listed = MPI.COMM_WORLD.bcast(sorted(e["settings"] for e in entries(str(cache))) if MPI.COMM_WORLD.rank == 0
+                                  else None, root=0)
+    assert len(listed) == 2 and any('"modes": 8' in s for s in listed), listed
+    built = []
+
+    def perturbed(builder):
+        def rebuilt(*args, **kwargs):
+            rich = builder(*args, **kwargs)
+            built.append(1)
+            if form == "state_space":
+                rich.velocity[0].scale(1 + 4e-8)
+            else:
+                column = rich.vectors.getColumn(0)
+                column.scale(1 + 4e-8)
+                rich.vectors.restoreColumn(0, column)
+            return rich
+        return rebuilt
+
+    monkeypatch.setattr(state_space, "richer_state_space_basis", perturbed(state_space.richer_state_space_basis))
+    monkeypatch.setattr(gyroscopic_basis, "richer_gyroscopic_basis", perturbed(gyroscopic_basis.richer_gyroscopic_basis))
+    stopped = str(shared_tmp_path / f"stopped-{form}.h5")
+    interrupted_run(load_scene(path, sets), stopped)
+    resumed = run(load_scene(path, sets), stopped, progress=False, resume=True)
+    assert not built and resumed["stats"]["eigen_solves"] == 0
+    assert resumed["estimated_error"] == whole["estimated_error"]
