@@ -560,8 +560,9 @@ def obtain_richer(ops: Operators, basis, count: int, fingerprint: dict, cache_di
     """The error estimate's richer basis of a gyroscopic structure's `basis` (basis.richer_basis: the
     complex modes 1..`count`, more where `count` ends inside a repeated frequency, and `basis`' own
     enrichment columns; either form) from the cache when a valid one exists, else built, and cached if
-    cache_dir. Its key: the richer settings (`count` modes, whole="extend") and the settings of the
-    basis it enriches (basis_key's richer_of); the load checks of a basis of its form apply. A resumed
+    cache_dir. Its key: the richer settings (`count` modes, whole="extend") and the basis it enriches
+    (basis_key's richer_of: its settings and the bits of its frequencies, which a rebuild at another
+    round-off changes); the load checks of a basis of its form apply. A resumed
     run's estimate is then the uninterrupted run's, bit for bit (its complex modes were solved again,
     another round-off), and a second run solves no eigenproblem for it. Without G: richer_basis (the
     real modes come from obtain_modes). A cache that cannot be written keeps nothing and says nothing,
@@ -574,7 +575,11 @@ def obtain_richer(ops: Operators, basis, count: int, fingerprint: dict, cache_di
         return richer_basis(ops, basis, count)
     rows = np.asarray(basis.constraint_rows, dtype=np.int64)
     settings = replace(basis.settings, modes=count, max_frequency_hz=None)
-    key = basis_key(fingerprint, rows, settings, True, "extend", richer_of=basis.settings.key())
+    # the run's basis by its settings and the bits of its frequencies: a run's basis rebuilt (the cache cleared:
+    # another round-off) has other columns, which the richer basis must hold (rank 0's key on every rank)
+    frequencies = {name: np.asarray(getattr(basis, name), dtype=float) for name in ("omega", "enrichment_omega")}
+    enriched = {"settings": basis.settings.key(), "frequencies": arrays_sha256(frequencies)}
+    key = ops.comm.tompi4py().bcast(basis_key(fingerprint, rows, settings, True, "extend", richer_of=enriched), root=0)
     path = cache_path(cache_dir, key)
     exists = ops.comm.tompi4py().bcast(os.path.exists(path) if ops.comm.rank == 0 else None, root=0)
     if exists:
