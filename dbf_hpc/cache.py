@@ -46,7 +46,8 @@ from slepc4py import SLEPc
 from . import __version__, sealed
 from .basis import BasisSettings, ReducedBasis, build_basis, check_pairs
 from .checkpoint import arrays_sha256
-from .errors import WRITE_ERRORS, InputError, lock_problem, park, refused_lock, temporary_tag, warn, write_failure
+from .errors import (WRITE_ERRORS, InputError, decided_on_rank0, from_rank0, lock_problem, park, refused_lock,
+                     temporary_tag, warn, write_failure)
 from .output import check_free_space, has_hdf5_signature
 from .operators import Operators
 from .petsctools import destroy
@@ -158,12 +159,14 @@ def save(basis, path: str, key: str, comm, defect: float = 0.0) -> str | None:
     (a temporary file, fsync, then rename), rank 0 writing every rank's rows in turn (memory: one
     rank's block). `defect` is the basis's own max|V^T M V - I| (state space: max|Psi^T A Psi - I|;
     load allows that much plus VERIFY_TOL). Returns None, or why it could not be written (every rank
-    gets the same answer; no temporary file is left). Collective."""
+    gets the same answer; no temporary file is left). Any other exception rank 0 meets (a bug, an h5py
+    error no write foresaw) is raised on every rank (errors.from_rank0), the temporary file removed.
+    Collective."""
     world = comm.tompi4py()
     n, lo, local = _columns(basis)
     state = _is_state_space(basis)
     tmp = f"{path}.tmp-{temporary_tag()}"
-    error, f, V = None, None, {}
+    error, unexpected, f, V = None, [], None, {}
     if world.rank == 0:
         try:
             check_free_space(path, 8.0 * n * sum(block.shape[1] for block in local.values()), "basis cache")
@@ -191,6 +194,9 @@ def save(basis, path: str, key: str, comm, defect: float = 0.0) -> str | None:
             error = "not enough free space on its file system"
         except WRITE_ERRORS as e:
             error = write_failure(e)
+        except BaseException as e:   # every rank raises it below (red team: it left the others in the bcast)
+            error = type(e).__name__
+            unexpected.append(e)
     for rank in range(world.size):
         start, blocks = (lo, local) if rank == 0 else (world.recv(source=rank) if world.rank == 0 else (None, None))
         if world.rank == rank and rank > 0:
@@ -201,13 +207,20 @@ def save(basis, path: str, key: str, comm, defect: float = 0.0) -> str | None:
                     V[name][start:start + block.shape[0], :] = block
             except WRITE_ERRORS as e:
                 error = write_failure(e)
+            except BaseException as e:
+                error = type(e).__name__
+                unexpected.append(e)
     if world.rank == 0:
-        error = _close_and_rename(f, list(V.values()), tmp, path, error)
-    return world.bcast(error, root=0)
+        try:
+            error = _close_and_rename(f, list(V.values()), tmp, path, error)
+        except BaseException as e:
+            unexpected[:] = unexpected or [e]
+    return from_rank0(world, error, unexpected)
 
 
 def _close_and_rename(f, datasets: list, tmp: str, path: str, error: str | None) -> str | None:
-    """Rank 0: finish the temporary file and move it into place, or remove it."""
+    """Rank 0: finish the temporary file and move it into place, or remove it (also when it raises)."""
+    done = False
     try:
         if f is not None:
             f.close()
@@ -216,11 +229,13 @@ def _close_and_rename(f, datasets: list, tmp: str, path: str, error: str | None)
             with open(tmp, "rb") as handle:
                 os.fsync(handle.fileno())
             os.replace(tmp, path)
+        done = True
     except WRITE_ERRORS as e:
         error = write_failure(e)
         park(f, *datasets)
-    if error is not None and os.path.exists(tmp):
-        os.remove(tmp)
+    finally:
+        if (error is not None or not done) and os.path.exists(tmp):
+            os.remove(tmp)
     return error
 
 
@@ -298,7 +313,7 @@ def load(path: str, key: str, ops: Operators, settings: BasisSettings, rows,
     and the frequencies on these operators."""
     world = ops.comm.tompi4py()
     # the seal first, on rank 0 alone: HDF5 must not parse a damaged file (it may crash the process)
-    problem, checked = world.bcast(sealed.check(path, SEAL, "this cache") if world.rank == 0 else None, root=0)
+    problem, checked = decided_on_rank0(world, sealed.check, path, SEAL, "this cache")
     arrays, blocks = {}, None
     if not problem:
         problem, arrays, blocks = _read(path, key, ops, np.asarray(rows, dtype=np.int64), settings, checked,
@@ -480,8 +495,9 @@ def cache_path(cache_dir: str, key: str) -> str:
 
 
 def _prepare_directory(cache_dir: str, comm) -> str | None:
-    """Rank 0 creates the cache directory; every rank learns whether it could. Collective."""
-    error = None
+    """Rank 0 creates the cache directory; every rank learns whether it could (or raises what rank 0
+    met otherwise: errors.from_rank0). Collective."""
+    error, unexpected = None, []
     if comm.rank == 0:
         try:
             if os.path.exists(cache_dir) and not os.path.isdir(cache_dir):
@@ -492,7 +508,9 @@ def _prepare_directory(cache_dir: str, comm) -> str | None:
                     error = "not writable"
         except OSError as e:
             error = write_failure(e)
-    return comm.tompi4py().bcast(error, root=0)
+        except BaseException as e:   # (a bug) every rank raises it
+            unexpected.append(e)
+    return from_rank0(comm, error, unexpected)
 
 
 def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dict, cache_dir: str | None,
@@ -518,7 +536,11 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
     basis = build_basis(ops, rows, settings, labels, whole)
     A_r = basis.state_energy(ops) if _is_state_space(basis) else basis.project(ops.M)
     defect = float(np.abs(A_r - np.eye(basis.size)).max(initial=0.0))
-    error = _prepare_directory(cache_dir, ops.comm) or save(basis, path, key, ops.comm, defect)
+    try:
+        error = _prepare_directory(cache_dir, ops.comm) or save(basis, path, key, ops.comm, defect)
+    except BaseException:   # raised on every rank alike (errors.from_rank0): the basis is no one's
+        basis.destroy()
+        raise
     if error:
         if not quiet:
             warn(f"cannot write the basis cache in {cache_dir}: {error}", ops.comm)

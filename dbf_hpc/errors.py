@@ -2,7 +2,7 @@
 
 Each carries one line for the user: what is wrong and what to change. The command prints that line
 and exits non-zero; anything else is a bug and ends the whole MPI job. Nothing here is
-collective but decided_on_rank0, agreed and wait_for_rank0: whoever raises makes sure every rank
+collective but decided_on_rank0, from_rank0, agreed and wait_for_rank0: whoever raises makes sure every rank
 raises the same error on the same path.
 """
 import contextlib
@@ -120,18 +120,39 @@ def decided_on_rank0(comm, decide, *args):
     an InputError reached the other ranks; any other exception on rank 0 left them waiting in the
     broadcast for ever). Collective."""
     world = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
-    value = failure = None
+    value, caught = None, []
     if world.rank == 0:
         try:
             value = decide(*args)
         except BaseException as e:   # whatever it is, the other ranks hear of it
-            failure = e
-    value, payload = world.bcast((None, _portable(failure)) if failure is not None else (value, None), root=0)
-    if failure is not None:
-        raise failure
-    if payload is not None:
-        raise _rebuilt(payload, 0) from None
-    return value
+            caught.append(e)
+    return from_rank0(world, value, caught)
+
+
+def from_rank0(comm, value=None, caught: list | None = None):
+    """The end of a block rank 0 of `comm` (petsc4py or mpi4py) ran alone: rank 0's `value` on every
+    rank, or the exception rank 0 caught in it raised on every rank, as decided_on_rank0 does (rank 0
+    its own, the others a copy: _rebuilt). `caught`: a list holding that exception on rank 0 (empty
+    where there was none; the other ranks' is not looked at), emptied here: an exception kept in a variable of a
+    frame its own traceback holds is a reference cycle, freed only by a garbage collection, on rank 0
+    alone, and with it the PETSc objects those frames hold (red team: a full-order run's, freed as the
+    process ended, on rank 0 alone, and PETSc's collective clean-up of its garbage hung the job's end).
+    For a block that cannot be one decide() call, as the other ranks take part in it (cache.save: their
+    rows sent to rank 0) or wait in their own way (run._run_reduced). Red team: such blocks passed on a
+    DbfError or a write error, and any other exception (a bug, an h5py ValueError) left rank 0 alone
+    with it and the others waiting in the broadcast after the block for ever (the Python API and a
+    2-rank pytest pass do not abort the job as `python -m mpi4py` does). Collective."""
+    world = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+    failure = caught.pop() if caught and world.rank == 0 else None
+    try:
+        value, payload = world.bcast((None, _portable(failure)) if failure is not None else (value, None), root=0)
+        if failure is not None:
+            raise failure
+        if payload is not None:
+            raise _rebuilt(payload, 0) from None
+        return value
+    finally:
+        failure = None   # (the cycle above)
 
 
 def agreed(comm, work, *args):
@@ -151,9 +172,12 @@ def agreed(comm, work, *args):
     origin = next((rank for rank, p in enumerate(payloads) if p is not None), None)
     if origin is None:
         return value
-    if origin == world.rank:
-        raise failure
-    raise _rebuilt(payloads[origin], origin) from None
+    try:
+        if origin == world.rank:
+            raise failure
+        raise _rebuilt(payloads[origin], origin) from None
+    finally:
+        failure = None   # (a reference cycle otherwise: from_rank0)
 
 
 def wait_for_rank0(world) -> None:

@@ -326,6 +326,28 @@ def ends_a_hang(seconds: float = 120):
         faulthandler.cancel_dump_traceback_later()
 
 
+def two_ranks_of(script: str, *args, seconds: int = 60):
+    """The Python `script` (its text) run by `mpirun -n 2` under `timeout`, this checkout first on the
+    path: the finished process (stdout, stderr as text). For a test of what every rank does when one
+    rank fails alone: a regression hangs the ranks left waiting, and the timeout ends that job (exit
+    124) where a hang inside the 2-rank pass would stop it until the suite's own limit. Mark such a
+    test `launcher` (serial pass)."""
+    import sys
+    import tempfile
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "OMPI_MCA_orte_execute_quiet": "1", "OMPI_MCA_rmaps_base_oversubscribe": "1",
+           "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    with tempfile.NamedTemporaryFile("w", suffix=".py", delete=False) as f:
+        f.write(script)
+    try:
+        return subprocess.run(["timeout", "--kill-after=10", str(seconds), "mpirun", "-n", "2", sys.executable,
+                               f.name, *map(str, args)], capture_output=True, text=True, env=env, cwd=root,
+                              timeout=seconds + 30)
+    finally:
+        os.remove(f.name)
+
+
 def fifo_at(path) -> None:
     """A named pipe at `path` (what was there removed), made by rank 0; every rank sees it after."""
     if MPI.COMM_WORLD.rank == 0:

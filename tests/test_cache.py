@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from conftest import assert_all, ends_a_hang, fifo_at
+from conftest import assert_all, ends_a_hang, fifo_at, two_ranks_of
 from dbf_hpc.cache import seal
 from dbf_hpc.modes import counters
 from dbf_hpc.reductor import Reductor
@@ -728,3 +728,49 @@ def test_the_estimates_whole_pair_in_the_cache_does_not_serve_a_run_asking_a_cou
         assert refused()
     finally:
         ops.destroy()
+
+
+# Rank 0 of a 2-rank job meets an exception no write foresaw (a ValueError from h5py's create_dataset or
+# os.replace) as it writes the basis cache (cache.save), through the Python API; every rank says what it
+# raised, then the files
+_UNEXPECTED_AS_RANK_0_SAVES = """
+import os, sys
+import h5py
+from mpi4py import MPI
+from dbf_hpc import BasisSettings, Beam, Constraint, FullOrderModel, Reductor, law
+
+folder, where, rank = sys.argv[1], sys.argv[2], MPI.COMM_WORLD.rank
+def refuse(*args, **kwargs):
+    raise ValueError(f"rank 0's {where} refused")
+if rank == 0 and where == "create_dataset":   # as it opens the file
+    h5py.Group.create_dataset = refuse
+if rank == 0 and where == "os.replace":       # as it moves the finished file into place
+    os.replace = refuse
+beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+try:
+    with FullOrderModel.build(beam, [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)]) as fom:
+        with Reductor(fom, BasisSettings(modes=4), folder) as reductor:
+            reductor.basis()
+    said = f"rank {rank}: no error"
+except Exception as e:
+    said = f"rank {rank}: {type(e).__name__}: {e} (origin {getattr(e, 'dbf_hpc_origin', None)})"
+said = MPI.COMM_WORLD.gather(said, root=0)   # (rank 0 prints: the ranks' own lines interleave)
+if rank == 0:
+    for line in said + [f"files {sorted(os.listdir(folder))}"]:
+        print(line, flush=True)
+"""
+
+
+@pytest.mark.launcher
+@pytest.mark.parametrize("where", ["create_dataset", "os.replace"])
+def test_an_unexpected_error_while_rank_0_writes_the_cache_is_raised_on_every_rank_and_leaves_no_file(tmp_path,
+                                                                                                      where):
+    # Red team: save() passed on a write error (OSError, RuntimeError) or a full disk, nothing else; any
+    # other exception on rank 0 (a bug, an h5py ValueError) left rank 0 alone with it and rank 1 waiting
+    # in the broadcast for ever (the Python API does not abort as `python -m mpi4py` does), and its
+    # temporary file behind. Now every rank raises it (rank 0 its own, rank 1 a copy naming rank 0).
+    out = two_ranks_of(_UNEXPECTED_AS_RANK_0_SAVES, tmp_path, where)
+    assert out.returncode == 0, f"exit {out.returncode} (124: a rank waited for ever)\n{out.stdout}{out.stderr}"
+    assert out.stdout.splitlines() == [f"rank 0: ValueError: rank 0's {where} refused (origin None)",
+                                       f"rank 1: ValueError: rank 0's {where} refused (origin 0)",
+                                       "files []"], out.stdout + out.stderr
