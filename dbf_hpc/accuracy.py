@@ -777,7 +777,7 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
     the richer run's samples. Returns the estimate (the same on every rank). Collective."""
     from petsc4py import PETSc
 
-    from .errors import DbfError, petsc_failure
+    from .errors import DbfError, from_rank0, petsc_failure
     from .reductor import Reductor
     from .errors import wait_for_rank0
     from .simulate import integrate_samples
@@ -787,6 +787,7 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
         rich = richer_model(fom, reductor.basis(), cache_dir)
     world = comm.tompi4py()
     result = failure = None
+    unexpected = []
     if world.rank == 0:
         try:
             if isinstance(rich, str):
@@ -813,8 +814,10 @@ def _measure(fom, basis_settings, cache_dir, settings, window: float | None, com
             failure = (isinstance(e, InputError), str(e))
         except PETSc.Error as e:
             failure = (False, f"the reduced integration: {petsc_failure(e)}; check the -rom_ options")
+        except BaseException as e:   # anything else (a bug) too: every rank raises it (errors.from_rank0)
+            unexpected.append(e)
     wait_for_rank0(world)
-    result, failure = world.bcast((result, failure), root=0)
+    result, failure = from_rank0(world, (result, failure), unexpected)
     if failure:
         raise (InputError if failure[0] else SolverError)(
             f"[basis] tolerance: the candidate with {basis_settings.modes} modes failed: {failure[1]}")

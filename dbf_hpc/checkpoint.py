@@ -78,15 +78,17 @@ class Checkpoint:
             sealed.seal(tmp, SEAL)
             with open(tmp, "rb") as handle:
                 os.fsync(handle.fileno())
-        except WRITE_ERRORS:
+            os.replace(tmp, self.path)
+        except BaseException as e:
             # Red team (a full disk while a checkpoint was written): closing the file after the failed
             # write, as `with` did, or freeing it later crashed HDF5 (signal 11); it is kept instead
-            # (errors.park), and the half-written file is removed
-            park(f)
+            # (errors.park), and the half-written file is removed, also after any other failure (red
+            # team: a failed rename, or a bug, left OUT.h5.checkpoint.tmp behind)
+            if isinstance(e, WRITE_ERRORS):
+                park(f)
             if os.path.isfile(tmp) and not os.path.islink(tmp):   # this write's own file (a directory there stays)
                 os.remove(tmp)
             raise
-        os.replace(tmp, self.path)
 
     def read(self) -> dict | None:
         """The stored state, or None if there is no checkpoint. An InputError, naming the cause,

@@ -69,7 +69,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from .errors import TERMINATION, WRITE_ERRORS, InputError, SolverError, WriteFailed, write_failure
+from .errors import TERMINATION, WRITE_ERRORS, InputError, SolverError, WriteFailed, from_rank0, write_failure
 from .fom import FullOrderModel
 from .petsctools import destroy, natural_fill_is_small, options_defaults
 from .timestepping import LAW_SCALES, IntegratorSettings, StepMonitor, check_outcome
@@ -974,7 +974,7 @@ class FullIntegrator:
         P = self.P
         af = P.af
         world = self.world
-        result = None
+        result, unexpected = None, []
         if world.rank == 0:
             # numpy's overflow warnings off: the state and the contact force are checked for finiteness
             # here and in the Newton loop, which end the run with one line (red team: a base amplitude of
@@ -993,8 +993,12 @@ class FullIntegrator:
                         self._track_stiffness(problem, y, D)
                 except SolverError as e:
                     result = e
+                except BaseException as e:   # (a bug) every rank raises it: errors.from_rank0
+                    unexpected.append(e)
         if world.size > 1:
-            result = world.bcast(result, root=0)
+            result = from_rank0(world, result, unexpected)
+        elif unexpected:
+            raise unexpected.pop()
         if isinstance(result, SolverError):
             raise SolverError(str(result))
         return result
@@ -1054,6 +1058,7 @@ class _Run:
         self.prev_u = self.prev_v = None
         self.scatter = self.full = None
         self.failure, self.failed_write = None, False
+        self.unexpected = []        # rank 0: what else a callback raised (_call), every rank's at the next _word
         self.t = None               # the time of the last control point
 
     @property
@@ -1151,9 +1156,13 @@ class _Run:
 
     def _word(self, action=None):
         """Rank 0's failure (an OSError in a callback, or its statistics' overflow) and action, on every
-        rank; a failure ends the run."""
+        rank; a failure ends the run. Anything else a callback raised on rank 0 is raised on every rank
+        (errors.from_rank0)."""
         if self.world.size > 1:
-            action, self.failure, self.failed_write = self.world.bcast((action, self.failure, self.failed_write), root=0)
+            action, self.failure, self.failed_write = from_rank0(self.world, (action, self.failure, self.failed_write),
+                                                                 self.unexpected)
+        elif self.unexpected:
+            raise self.unexpected.pop()
         if self.failure:
             raise (WriteFailed if self.failed_write else SolverError)(self.failure)
         return action
@@ -1187,6 +1196,10 @@ class _Run:
             return None
         except SolverError as exc:   # rank 0's statistics overflowed (stats._check_overflow): every rank's line
             self.failure, self.failed_write = str(exc), isinstance(exc, WriteFailed)
+            return None
+        except BaseException as exc:   # (a bug, an h5py error no write foresaw) raised on every rank by _word;
+            self.failure = type(exc).__name__   # red team: on rank 0 alone, rank 1 hung
+            self.unexpected.append(exc)
             return None
 
     def destroy(self) -> None:

@@ -32,8 +32,8 @@ from .accuracy import (KINDS_NOTE, RICH_STEP, TOLERANCE_MARGIN, Estimate, blind_
 from .basis import SUSPICIOUS_HZ
 from .checkpoint import Checkpoint, arrays_sha256, identity
 from .errors import (TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, SolverError, Unresumable, WriteFailed,
-                     decided_on_rank0, petsc_failure, recorded, recording, temporary_path, termination_signals,
-                     wait_for_rank0, warn, write_failure)
+                     decided_on_rank0, from_rank0, petsc_failure, recorded, recording, temporary_path,
+                     termination_signals, wait_for_rank0, warn, write_failure)
 from .fom import Observation
 from .fom_integrator import check_step, ignored_settings, integrate_full, step_count
 from .fom_integrator import options as full_options
@@ -157,8 +157,7 @@ def _run_recorded(scene: Scene, out, progress: bool, comm, initial_state, resume
         request = request_identity(scene, comm, method, initial_state, digests)
         done = finished_output(path, identity(request=request), scene, comm) if resume else None
         if done is not None:   # a requeued batch job whose run had finished: nothing is computed again
-            if comm.getRank() == 0:
-                _drop_leftover_checkpoint(path)
+            decided_on_rank0(comm, _drop_leftover_checkpoint, path)
             _say(say, f"{path} is already complete for this scene and setup: nothing to resume (`dbf-hpc info "
                       f"{path}` shows it; rerun without --resume to compute it again)")
             # what its run warned, each line once (a requeued job's log said nothing of it); an output
@@ -814,9 +813,8 @@ def finished_output(path: str, ident: dict, scene: Scene, comm=None) -> dict | N
     from its last sample). An output that cannot be read is not finished: the run computes it again.
     With comm, rank 0 reads and every rank gets the answer (collective); without, this rank reads
     (not collective)."""
-    if comm is not None:
-        world = comm.tompi4py()
-        return world.bcast(finished_output(path, ident, scene) if world.rank == 0 else None, root=0)
+    if comm is not None:   # whatever else rank 0's look raises, every rank raises (decided_on_rank0)
+        return decided_on_rank0(comm, finished_output, path, ident, scene)
     if not os.path.isfile(path) or os.path.exists(f"{path}.partial"):
         return None
     if scene.output().snapshots and not os.path.isfile(xdmf.sidecar(path)):
@@ -894,7 +892,7 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
                  options=None) -> dict:
     """Rank 0 integrates and writes; the others wait and learn the outcome. `options`: options_read."""
     world = comm.tompi4py()
-    summary, failure, sent = {}, None, 0
+    summary, failure, unexpected, sent = {}, None, [], 0
     remote = RemoteStop(world) if world.size > 1 and world.rank == 0 else None
     if world.rank == 0:
         try:
@@ -902,6 +900,8 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
                                ranks=world.size, timings=timings, estimator=estimator, remote=remote, options=options)
         except DbfError as exc:
             failure = (type(exc).__name__, str(exc))
+        except BaseException as exc:   # a bug, an h5py error no write foresaw: every rank raises it (from_rank0;
+            unexpected.append(exc)     # red team: it left the other ranks in _wait_telling for ever)
     # The other ranks: a signal while rank 0 runs is sent to it (RemoteStop). Once rank 0's run has
     # ended, the outcome is its: a signal on any rank is not acted on until every rank knows it (red
     # team: the command's handler, taking it here, said "before the integration began; nothing was
@@ -914,7 +914,7 @@ def _run_reduced(scene, model, path, settings, timings, say, comm, resume, ident
         sent = world.reduce(sent, root=0)
         if remote is not None:
             remote.drain(sent)
-        failure = world.bcast(failure, root=0)
+        failure = from_rank0(world, failure, unexpected)
         summary = world.bcast(summary if not failure else None, root=0)
     if failure:
         kinds = {kind.__name__: kind for kind in (InputError, Unresumable, SolverError, Interrupted)}
@@ -1566,24 +1566,34 @@ def _full_estimate(scene: Scene, fom, settings, observation, recorder, timings: 
     except SolverError as exc:   # every rank's (integrate_full's errors are collective)
         failure = f"the run at a fixed step of {rich.dt:g} s failed: {exc}"
     seconds = time.perf_counter() - start
-    if world.rank != 0:
-        return None
-    note = f"against the same model at a fixed step of {rich.dt:g} s: the step's error, not the mesh's"
-    kinds = constraint_kinds(fom.operators, fom.constraints)
-    note += KINDS_NOTE if kinds else ""
-    k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
-    if failure:
-        estimate = Estimate(np.nan, end, seconds, failure)
-    elif sum(b.size for b in rich_times) != k or not np.allclose(np.concatenate(rich_times), times[:k], rtol=0,
-                                                                  atol=1e-9 * max(end, 1e-300)):
-        estimate = Estimate(np.nan, end, seconds, "the run at the shorter step is not sampled alike")
-    else:
-        recorder.writer.flush()
-        w = recorder.writer.series[layout.CONSTRAINT_DISPLACEMENT][:k]
-        estimate = Estimate(relative_difference(w, np.concatenate(blocks), kinds), end, seconds, note, kinds=kinds)
-    estimate = blind_to_contact(estimate, contact)
-    timings["estimate"] = seconds
-    _say(say, estimate.line())
+
+    def judged() -> Estimate:   # rank 0: its samples against the richer run's
+        note = f"against the same model at a fixed step of {rich.dt:g} s: the step's error, not the mesh's"
+        kinds = constraint_kinds(fom.operators, fom.constraints)
+        note += KINDS_NOTE if kinds else ""
+        k = int(np.searchsorted(times, end * (1 + 1e-12), side="right"))
+        if failure:
+            estimate = Estimate(np.nan, end, seconds, failure)
+        elif sum(b.size for b in rich_times) != k or not np.allclose(np.concatenate(rich_times), times[:k], rtol=0,
+                                                                      atol=1e-9 * max(end, 1e-300)):
+            estimate = Estimate(np.nan, end, seconds, "the run at the shorter step is not sampled alike")
+        else:
+            recorder.writer.flush()
+            w = recorder.writer.series[layout.CONSTRAINT_DISPLACEMENT][:k]
+            estimate = Estimate(relative_difference(w, np.concatenate(blocks), kinds), end, seconds, note,
+                                kinds=kinds)
+        estimate = blind_to_contact(estimate, contact)
+        timings["estimate"] = seconds
+        _say(say, estimate.line())
+        return estimate
+
+    estimate, unexpected = None, []
+    if world.rank == 0:
+        try:
+            estimate = judged()
+        except BaseException as exc:   # (a bug, a failed flush) every rank raises it: they go on to a bcast
+            unexpected.append(exc)
+    from_rank0(world, None, unexpected)
     return estimate
 
 
@@ -1602,7 +1612,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
     checkpoint = Checkpoint(f"{path}.checkpoint", run_identity(scene, {"fingerprint": fom.fingerprint}, fom.comm,
                                                                 "full", request=request, digests=digests))
     recorder = control = state = None
-    snaps, opened = {}, None
+    snaps, opened, unexpected = {}, None, []
     if world.rank == 0:
         try:
             state = checkpoint.read() if resume else None
@@ -1627,7 +1637,9 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
             opened = (type(exc).__name__, str(exc))
         except WRITE_ERRORS as exc:
             opened = ("SolverError", f"cannot write {path}.partial: {write_failure(exc)}")
-    opened = world.bcast(opened, root=0)  # every rank stops if rank 0 cannot write or resume
+        except BaseException as exc:   # (a bug) every rank raises it: from_rank0
+            unexpected.append(exc)
+    opened = from_rank0(world, opened, unexpected)  # every rank stops if rank 0 cannot write or resume
     if opened:
         raise (InputError if opened[0] == "InputError" else SolverError)(opened[1])
     scalars = world.bcast({k: state[k] for k in _RESUME_SCALARS} if state else None, root=0)
@@ -1656,7 +1668,7 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
         estimate = _full_estimate(scene, fom, settings, observation, recorder, timings, say)
     except DbfError as exc:   # SIGTERM during the estimate: the samples and the last checkpoint stay
         raise type(exc)(_left_behind(str(exc), recorder.writer if recorder else None, checkpoint)) from None
-    summary, failure = {}, None
+    summary, failure, unexpected = {}, None, []
     options = options_read(fom.comm)   # every rank is done with its solvers
     if world.rank == 0:   # a failed or stopped write is every rank's error (they waited in bcast for ever)
         try:
@@ -1673,12 +1685,15 @@ def _run_full(scene: Scene, fom, path: str, settings, timings: dict, say, resume
             failure = ("Interrupted", _left_behind(str(exc), recorder.writer, checkpoint))
         except DbfError as exc:
             failure = (type(exc).__name__, str(exc))
+        except BaseException as exc:   # (a bug, an h5py error no write foresaw) every rank raises it: from_rank0
+            failure = ("DbfError", type(exc).__name__)
+            unexpected.append(exc)
         if failure is None:
             _say(say, f"done: {stats['steps']} steps ({stats['factorizations']} factorization(s), "
                       f"{stats['contact_steps']} steps with contact) in {timings['integration']:.2f} s; wrote "
                       f"{summary['path']}")
     with _interrupt_on_sigterm(None):   # the other ranks: a signal now is rank 0's to act on
-        failure, summary = world.bcast((failure, summary), root=0)
+        failure, summary = from_rank0(world, (failure, summary), unexpected)
     if failure:
         kinds = {kind.__name__: kind for kind in (InputError, Unresumable, SolverError, Interrupted)}
         raise kinds.get(failure[0], DbfError)(failure[1])

@@ -15,7 +15,7 @@ import types
 import numpy as np
 from petsc4py import PETSc
 
-from .errors import InputError, check_number, warn
+from .errors import InputError, check_number, decided_on_rank0, warn
 from .fom import FullOrderModel, Observation
 from .fom_integrator import ignored_settings, integrate_full
 from .output import MemoryWriter
@@ -164,7 +164,7 @@ def simulate_full(fom: FullOrderModel, settings: IntegratorSettings, say=None) -
     observation = Observation(fom)
     recorder = FullRecorder(MemoryWriter(fom.constraints.shape, fom.probes.shape, 0), fom.constraints, observation)
     stats = integrate_full(fom, settings, observation.rows, recorder.block, say=say)
-    result = world.bcast(Result.from_recorder(recorder, stats) if world.rank == 0 else None, root=0)
+    result = decided_on_rank0(world, Result.from_recorder, recorder, stats)   # what it raises, every rank raises
     warn_result(result, fom.constraints, "full", settings, fom.comm)   # every rank: the same Result
     return result
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from conftest import MICRO_BEAM, assert_all, rank0_files
+from conftest import MICRO_BEAM, assert_all, rank0_files, two_ranks_of
 from dbf_hpc.errors import InputError
 from dbf_hpc.laws import ConstraintLaws
 from dbf_hpc.run import run
@@ -744,3 +744,56 @@ def test_a_run_whose_samples_cap_its_step_below_its_floor_is_refused_before_any_
     accepted = load_scene(PAPER, ["basis.cache=off", "integrator.t_end=1e-9", "basis.modes=43", "basis.estimate=false"])
     summary = run(accepted, str(shared_tmp_path / "accepted.h5"), progress=False)
     assert summary["stats"]["steps"] >= 1000   # 10 samples a step at most
+
+
+# Rank 0 of a 2-rank run() (the Python API) meets an exception no write foresaw, a ValueError from h5py's
+# create_dataset (as it opens the output) or from os.replace (as it moves a checkpoint or the finished
+# output into place); every rank says what it raised, then rank 0 lists the folder
+_UNEXPECTED_AS_RANK_0_WRITES = """
+import os, sys
+import h5py
+from mpi4py import MPI
+import dbf_hpc
+
+folder, method, where, paper, rank = *sys.argv[1:5], MPI.COMM_WORLD.rank
+sets = sys.argv[5:]
+def refuse(*args, **kwargs):
+    raise ValueError(f"rank 0's {where} refused")
+if rank == 0 and where == "create_dataset":
+    h5py.Group.create_dataset = refuse
+if rank == 0 and where == "os.replace":
+    os.replace = refuse
+scene = dbf_hpc.load_scene(paper, ["integrator.t_end=0.05", "structure.elements=20", "basis.cache=off",
+                                   "basis.estimate=false", "output.snapshots=0", *sets])
+try:
+    dbf_hpc.run(scene, os.path.join(folder, "out.h5"), progress=False, method=method)
+    said = f"rank {rank}: no error"
+except Exception as e:
+    said = f"rank {rank}: {type(e).__name__}: {e} (origin {getattr(e, 'dbf_hpc_origin', None)})"
+said = MPI.COMM_WORLD.gather(said, root=0)   # (rank 0 prints: the ranks' own lines interleave)
+if rank == 0:
+    for line in said + [f"files {sorted(os.listdir(folder))}"]:
+        print(line, flush=True)
+"""
+
+
+@pytest.mark.launcher
+@pytest.mark.parametrize("method, where, sets", [
+    ("rom", "create_dataset", []), ("full", "create_dataset", []), ("full", "os.replace", []),
+    ("full", "os.replace", ["output.checkpoint_dt=0.01"])], ids=["rom", "full-open", "full-finish", "full-checkpoint"])
+def test_an_unexpected_error_while_rank_0_writes_a_runs_output_is_raised_on_every_rank(tmp_path, method, where, sets):
+    # Red team: rank 0 writes a run's output while the others wait (run._run_reduced: in _wait_telling;
+    # _run_full: in the broadcast after it opens or finishes the output; the full-order loop: at rank 0's
+    # next word, fom_integrator._Run._word, after a checkpoint); only a DbfError or a write error reached
+    # them, and any other exception (a bug, an h5py ValueError) left rank 0 alone with it and the other
+    # ranks waiting for ever (the Python API does not abort as `python -m mpi4py` does). Now every rank
+    # raises it (rank 0 its own, rank 1 a copy naming rank 0), the lock is released, no checkpoint's
+    # temporary file is left, and the job ends (with the exception kept in a frame of its own traceback,
+    # rank 0 freed the integration's PETSc objects alone at exit, and PETSc's clean-up there hung).
+    out = two_ranks_of(_UNEXPECTED_AS_RANK_0_WRITES, tmp_path, method, where, PAPER, *sets)
+    assert out.returncode == 0, f"exit {out.returncode} (124: a rank waited for ever)\n{out.stdout}{out.stderr}"
+    lines = out.stdout.splitlines()
+    assert lines[:2] == [f"rank 0: ValueError: rank 0's {where} refused (origin None)",
+                         f"rank 1: ValueError: rank 0's {where} refused (origin 0)"], out.stdout + out.stderr
+    # no output, lock or temporary file; the .partial stays, as a killed run's does (a rerun writes over it)
+    assert lines[2:] == ["files ['out.h5.partial']"], out.stdout
