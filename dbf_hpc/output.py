@@ -412,7 +412,10 @@ class OutputLock:
 
     def release(self) -> None:
         """Remove the lock if this process holds it (and its file is still ours: naming this process,
-        or not yet written; a lock removed by hand and made again by another job stays)."""
+        or not yet written; a lock removed by hand and made again by another job stays, and so does one
+        whose text is not even text). Raises nothing: rank 0 releases alone, and the other ranks wait in
+        a barrier after it (run.claimed; red team: a lock file replaced by bytes that are not UTF-8
+        raised UnicodeDecodeError on rank 0 alone there, and rank 1 waited for ever)."""
         HELD.pop(id(self), None)
         if self.held:
             try:
@@ -421,7 +424,7 @@ class OutputLock:
                     os.remove(self.lock)
             except FileNotFoundError:
                 pass
-            except OSError:
+            except (OSError, ValueError):   # (UnicodeDecodeError: not text, so not ours)
                 pass
         self.held = False
 

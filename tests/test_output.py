@@ -284,6 +284,20 @@ def test_an_empty_lock_of_a_job_killed_as_it_made_it_is_taken_over_once_older_th
     assert not os.path.exists(target + ".lock")
 
 
+@pytest.mark.serial
+def test_a_held_lock_replaced_by_bytes_that_are_not_text_is_left_and_its_release_raises_nothing(tmp_path):
+    # Red team: rank 0 releases the lock alone, then every rank meets in a barrier (run.claimed, the sweep's);
+    # a lock file overwritten with bytes that are not UTF-8 made release() raise UnicodeDecodeError on rank 0
+    # alone, and the other ranks waited in that barrier for ever. Not text is not ours: it stays.
+    target = str(tmp_path / "junk.h5")
+    lock = OutputLock(target)
+    lock.acquire()
+    with open(target + ".lock", "wb") as f:
+        f.write(b"\xff\xfe\x00 not a lock of ours")
+    lock.release()
+    assert not lock.held and open(target + ".lock", "rb").read() == b"\xff\xfe\x00 not a lock of ours"
+
+
 def test_a_lock_left_by_a_dead_job_on_this_host_is_taken_over(tmp_path):
     target = str(tmp_path / "old.h5")
     dead = 2**22 + 12345                       # above the default pid_max: no such process
