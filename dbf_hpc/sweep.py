@@ -74,8 +74,8 @@ from petsc4py import PETSc
 
 from .checkpoint import Checkpoint
 from .errors import (PARKED, TERMINATION, WRITE_ERRORS, DbfError, InputError, Interrupted, Unresumable, park,
-                     read_regular_file, recording, remove_dead_temporaries_in, replacing, decided_on_rank0, is_number,
-                     termination_signals, warn, write_failure)
+                     read_regular_file, recording, remove_dead_temporaries_in, replacing, decided_on_rank0, from_rank0,
+                     is_number, termination_signals, warn, write_failure)
 from .excitation import Harmonic, time_functions
 from .matrices import file_digest
 from .output import LONGEST_PID, OutputLock, check_name_length, check_output_path, free_bytes
@@ -857,7 +857,7 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
     digests = _file_digests(scenes)
     identities = _identities(sweep, scenes, digests)
     # rank 0's reading for all: which cases are pending decides collective calls (_prepare_models)
-    records, unkept = world.bcast(_look(sweep, folder, identities) if world.rank == 0 else None)
+    records, unkept = decided_on_rank0(world, _look, sweep, folder, identities)   # (what it raises: every rank)
     # a failed case is retried: its cause may have been the machine's (a full disk), since mended
     pending = {i for i in range(n) if records[i].get("identity") != identities[i] or records[i].get("status") != "ok"}
     pending |= unkept
@@ -933,17 +933,22 @@ def _sweep(sweep, folder, output, world, say, progress) -> dict:
                               f"same command to continue (finished cases are kept, a running one resumes from its "
                               f"checkpoint)")
         failed = problem = None
+        unexpected = []
         if world.rank == 0:
             try:
                 failed = _write_summary(sweep, folder, output)
-            except WRITE_ERRORS as e:   # every rank hears of it (the case files stay: a rerun only writes this)
+            except BaseException as e:   # every rank hears of it (the case files stay: a rerun only writes this)
                 if os.path.isfile(f"{output}.partial") and not os.path.islink(f"{output}.partial"):
                     os.remove(f"{output}.partial")
-                problem = (f"cannot write the sweep summary {output}: {write_failure(e)}; the cases are kept in "
-                           f"{folder}")
+                if not isinstance(e, WRITE_ERRORS):   # (a bug) every rank raises it: errors.from_rank0
+                    problem = type(e).__name__
+                    unexpected.append(e)
+                else:
+                    problem = (f"cannot write the sweep summary {output}: {write_failure(e)}; the cases are kept "
+                               f"in {folder}")
             if progress and problem is None:
                 print(f"dbf-hpc sweep: wrote {output} ({n} cases, {failed} failed)", flush=True)
-        failed, problem = world.bcast((failed, problem), root=0)
+        failed, problem = from_rank0(world, (failed, problem), unexpected)
     if problem:
         raise DbfError(problem)
     TERMINATION.finished = True

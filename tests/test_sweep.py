@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from conftest import assert_all, ends_a_hang, fifo_at, rank0_files
+from conftest import assert_all, ends_a_hang, fifo_at, rank0_files, two_ranks_of
 from dbf_hpc.errors import DbfError, InputError
 from dbf_hpc.modes import counters
 from dbf_hpc.report import describe
@@ -1586,3 +1586,48 @@ def test_a_case_whose_samples_cap_its_step_below_its_floor_fails_before_its_basi
     both = run_sweep(write_sweep(shared_tmp_path, body.format(t="1e-9, 1e-7"), name="cap2.toml", output="cap2.h5"),
                      progress=False)
     assert both["failed"] == 1 and both["cases"] == 2, both
+
+
+# Rank 0 of a 2-rank run_sweep (the Python API) meets an exception no write foresaw as it writes the
+# summary (here a ValueError from _units, after the summary's .partial was made); every rank says what it
+# raised, then rank 0 lists the folder
+_UNEXPECTED_AS_RANK_0_SUMMARIZES = """
+import os, sys
+from mpi4py import MPI
+from dbf_hpc import sweep
+
+folder, paper, rank = sys.argv[1], sys.argv[2], MPI.COMM_WORLD.rank
+def refuse(*args, **kwargs):
+    raise ValueError("rank 0's summary refused")
+if rank == 0:
+    sweep._units = refuse
+path = os.path.join(folder, "sweep.toml")
+if rank == 0:
+    with open(path, "w") as f:
+        f.write(f'scene = "{paper}"\\noutput = "summary.h5"\\n[axes]\\n"excitation.frequency_hz" = [0.9, 1.1]\\n')
+MPI.COMM_WORLD.Barrier()
+try:
+    sweep.run_sweep(path, progress=False, overrides=["integrator.t_end=0.05", "structure.elements=20", "basis.cache=off",
+                                                     "basis.estimate=false", "output.snapshots=0"])
+    said = f"rank {rank}: no error"
+except Exception as e:
+    said = f"rank {rank}: {type(e).__name__}: {e} (origin {getattr(e, 'dbf_hpc_origin', None)})"
+said = MPI.COMM_WORLD.gather(said, root=0)   # (rank 0 prints: the ranks' own lines interleave)
+if rank == 0:
+    for line in said + [f"files {sorted(os.listdir(folder))}"]:
+        print(line, flush=True)
+"""
+
+
+@pytest.mark.launcher
+def test_an_unexpected_error_while_rank_0_writes_the_sweep_summary_is_raised_on_every_rank(tmp_path):
+    # Red team: the summary's write passed on a write error (OSError, RuntimeError) alone; any other
+    # exception on rank 0 left it alone with it, its summary.h5.partial behind, and the other ranks
+    # waiting in the broadcast after it for ever (the Python API does not abort as `python -m mpi4py`
+    # does). Now every rank raises it (rank 0 its own, rank 1 a copy naming rank 0), and only the case
+    # records are kept (a rerun writes the summary from them).
+    out = two_ranks_of(_UNEXPECTED_AS_RANK_0_SUMMARIZES, tmp_path, PAPER)
+    assert out.returncode == 0, f"exit {out.returncode} (124: a rank waited for ever)\n{out.stdout}{out.stderr}"
+    assert out.stdout.splitlines() == ["rank 0: ValueError: rank 0's summary refused (origin None)",
+                                       "rank 1: ValueError: rank 0's summary refused (origin 0)",
+                                       "files ['summary.h5.cases', 'sweep.toml']"], out.stdout + out.stderr
