@@ -17,7 +17,7 @@ from petsc4py import PETSc
 from .accuracy import constraint_kinds
 from .basis import BasisSettings, ReducedBasis
 from .cache import obtain_basis
-from .errors import InputError, warn
+from .errors import InputError, decided_on_rank0, warn
 from .fom import FullOrderModel
 from .modes import repeated_mode_refusal
 from .petsctools import destroy, petsc_errors_as_one_line
@@ -200,13 +200,14 @@ class Reductor:
         # rank 0's numbers on every rank, as the DBFs' small problems (dbf_ritz): LAPACK on unlike nodes
         # may differ in the last bits, and each rank turns its own rows of V
         comm = basis.vectors.getComm().tompi4py()
-        turn = None
-        if comm.rank == 0:
+
+        def turned():
             try:
-                turn = _turn(K, M, m, identity)
+                return _turn(K, M, m, identity)
             except (np.linalg.LinAlgError, ValueError):   # eigh did not converge: kept as projected, on every rank
-                turn = None
-        turn = comm.bcast(turn, root=0)
+                return None
+
+        turn = decided_on_rank0(comm, turned)   # anything else it raises (a bug), every rank raises
         if turn is None:
             return False
         T, w, K_turned = turn

@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import pytest
 
-from conftest import assert_all
+from conftest import assert_all, two_ranks_of
 from dbf_hpc import (Beam, BaseMotion, BasisSettings, Constraint, Damping, FullOrderModel, InitialState,
                      Reductor, law)
 from dbf_hpc.errors import InputError
@@ -374,3 +374,44 @@ def test_a_reductor_says_the_very_lines_a_run_says_of_its_basis_once_from_rank_0
             (said, ran["warnings"])
     else:
         assert said == [], said
+
+
+# Rank 0 of a 2-rank Reductor (the Python API) meets an exception no check foresaw as it computes the turn
+# within the basis' span (Reductor._turn_in_span: rank 0's numbers for every rank), which every basis takes
+# here (PROJECTION_TOL below any defect); every rank says what it raised
+_UNEXPECTED_AS_RANK_0_TURNS = """
+from mpi4py import MPI
+from dbf_hpc import Beam, BasisSettings, Constraint, FullOrderModel, Reductor, law
+from dbf_hpc import reductor
+
+rank = MPI.COMM_WORLD.rank
+reductor.PROJECTION_TOL = -1.0
+def refuse(*args, **kwargs):
+    raise FloatingPointError("rank 0's turn refused")
+if rank == 0:
+    reductor._turn = refuse
+beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
+try:
+    with FullOrderModel.build(beam, [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)]) as fom:
+        with Reductor(fom, BasisSettings(modes=4)) as r:
+            r.reduce()
+    said = f"rank {rank}: no error"
+except Exception as e:
+    said = f"rank {rank}: {type(e).__name__}: {e} (origin {getattr(e, 'dbf_hpc_origin', None)})"
+said = MPI.COMM_WORLD.gather(said, root=0)   # (rank 0 prints: the ranks' own lines interleave)
+if rank == 0:
+    for line in said:
+        print(line, flush=True)
+"""
+
+
+@pytest.mark.launcher
+def test_an_unexpected_error_while_rank_0_turns_the_basis_within_its_span_is_raised_on_every_rank():
+    # Red team: rank 0 computes the turn and broadcasts it; a LinAlgError or ValueError (eigh did not
+    # converge) was every rank's "not turned", and anything else (a bug) left rank 0 alone with it and the
+    # other ranks waiting in the broadcast for ever (the Python API does not abort as `python -m mpi4py`
+    # does). Now every rank raises it, rank 0 its own and rank 1 a copy naming rank 0.
+    out = two_ranks_of(_UNEXPECTED_AS_RANK_0_TURNS)
+    assert out.returncode == 0, f"exit {out.returncode} (124: a rank waited for ever)\n{out.stdout}{out.stderr}"
+    assert out.stdout.splitlines() == ["rank 0: FloatingPointError: rank 0's turn refused (origin None)",
+                                       "rank 1: FloatingPointError: rank 0's turn refused (origin 0)"], out.stdout
