@@ -382,6 +382,8 @@ def _check_type(where: str, key: str, value, types) -> None:
         raise InputError(f"{where}: {key} must be {_type_name(types)}, got {value!r}")
     if not isinstance(value, types):
         raise InputError(f"{where}: {key} must be {_type_name(types)}, got {value!r}")
+    if isinstance(value, str) and "\x00" in value:   # red team: a NUL in [output] file was an internal ValueError
+        raise InputError(f"{where}: {key} contains a NUL character, which no file name or name may hold; remove it")
     numbers = value if isinstance(value, list) else [value]
     if key == "correlation_length" and isinstance(value, float) and math.isinf(value):
         return   # turbulence: inf is a fully correlated load; -inf is refused as not > 0 (_check_turbulence)

@@ -106,6 +106,8 @@ def _typed(path: str, data: dict, key: str, kind, default):
     if not isinstance(value, kind) or isinstance(value, bool) != (kind is bool):
         raise InputError(f"{path}: {key} must be {'true or false' if kind is bool else 'a ' + kind.__name__}, "
                          f"got {value!r}")
+    if isinstance(value, str) and "\x00" in value:   # red team: a NUL in output was an internal ValueError
+        raise InputError(f"{path}: {key} contains a NUL character, which no file name may hold; remove it")
     return value
 
 

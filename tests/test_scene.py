@@ -145,6 +145,17 @@ def test_an_empty_basis_cache_directory_is_refused_not_taken_as_the_scenes_folde
     assert scene(basis={"cache": "bases"}).cache_dir() == os.path.join(os.getcwd(), "bases")
 
 
+@pytest.mark.parametrize("section, key", [("output", "file"), ("basis", "cache"), ("structure", "stiffness")])
+def test_a_name_holding_a_nul_character_is_refused_naming_its_key(section, key):
+    # Red team: output.file = "a\u0000b.h5" (TOML allows the escape) ended in "internal error (ValueError):
+    # embedded null byte"; no file name can hold one
+    values = {"kind": "matrices", "stiffness": "K\x00.bin", "mass": "M.bin"} if section == "structure" else \
+        {key: "a\x00b"}
+    with pytest.raises(InputError, match=rf"^test.toml: \[{section}\]: {key} contains a NUL character, which no file "
+                                         r"name or name may hold; remove it$"):
+        scene(**{section: values})
+
+
 @pytest.mark.parametrize("window", [1e-300, 1e-5])
 def test_a_statistics_window_shorter_than_its_batch_means_need_is_refused_before_the_run(window):
     # Red team: estimate_statistics_window = 1e-300 s stopped the run after its integration ("IntegratorSettings

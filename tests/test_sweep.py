@@ -469,6 +469,16 @@ def test_a_bad_case_stops_the_sweep_before_any_work(shared_tmp_path):
         load_sweep(path)
 
 
+@pytest.mark.parametrize("key", ["scene", "output"])
+def test_a_sweep_file_name_holding_a_nul_character_is_refused_naming_its_key(shared_tmp_path, key):
+    # Red team: output = "sw\u0000.h5" (a TOML escape) ended in "internal error (ValueError): embedded null byte"
+    body = '[axes]\n"constraint.clearance" = [1e-3]\n'
+    path = write_sweep(shared_tmp_path, body, **{key: "a\\u0000b"})
+    with pytest.raises(InputError, match=f"^{re.escape(path)}: {key} contains a NUL character, which no file name may "
+                                         f"hold; remove it$"):
+        load_sweep(path)
+
+
 @pytest.mark.parametrize("output", ["", " ", "results/"])
 def test_a_summary_output_that_names_no_file_is_refused_naming_the_sweep_file(shared_tmp_path, output):
     # Red team: output = "" was refused as "output '/.../' is a directory", naming neither the sweep file
