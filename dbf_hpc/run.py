@@ -354,9 +354,11 @@ def cap_refusal_before_basis(scene: Scene, fom, settings) -> str | None:
     timestepping.cap_refused_below_hz gives the F up to which the settings are refused (usually none: no
     work), and the refusal is made here only where F certainly lies below it (CAP_MARGIN) and the line
     does not depend on F (F up to 1/STEPS_PER_PERIOD of 1/dt, where the floor is dt x MIN_STEP_FRACTION):
-    by [basis] max_frequency_hz, which bounds F, or for [basis] modes = N by counting the eigenvalues of
-    (K, M) below it (modes.count_below: one factorization, no eigensolve; N of them: F is below it). Never
-    a run the integrator would accept. Not made (left to the integrator) for a gyroscopic structure
+    by [basis] max_frequency_hz, which bounds F where no eigenvalue of (K, M) lies within 2 REPEATED_TOL
+    above its own (two inertia counts: a repeated eigenvalue, or a chain of eigenvalues each within
+    REPEATED_TOL of the next, at the cutoff is kept whole, beyond it), or for [basis] modes = N by counting
+    the eigenvalues of (K, M) below it (modes.count_below: one factorization, no eigensolve; N of them: F
+    is below it). Never a run the integrator would accept. Not made (left to the integrator) for a gyroscopic structure
     (complex modes), the tolerance mode (its candidates' modes) and where the inertia cannot be counted.
     Collective on the model's communicator."""
     below = cap_refused_below_hz(settings)
@@ -370,12 +372,24 @@ def cap_refusal_before_basis(scene: Scene, fom, settings) -> str | None:
     if fom.operators.G is not None or scene.estimate_settings().tolerance is not None:
         return None
     basis = scene.basis_settings()
+    comm = fom.comm.tompi4py()
     if basis.modes is None:
-        return cap_refusal(settings) if basis.max_frequency_hz * (1 + REPEATED_TOL) < limit else None
+        if not basis.max_frequency_hz * (1 + REPEATED_TOL) < limit:
+            return None
+        # max_frequency_hz bounds F only where no eigenvalue lies just above its lambda: the basis keeps a repeated
+        # eigenvalue at the cutoff whole, and modes.reference_modes' "whole" chains eigenvalues each within
+        # REPEATED_TOL of the next (red team: 250 modes 1e-6 apart in lambda made F 1.2e-4 above the cutoff, and a
+        # run the integrator accepts was refused). None found within 2 REPEATED_TOL above it: the chain ends below.
+        lam = (2 * math.pi * basis.max_frequency_hz) ** 2 if basis.max_frequency_hz < 1e150 else math.inf
+        if not math.isfinite(lam * (1 + 2 * REPEATED_TOL)):
+            return None
+        below_max = comm.bcast(count_below(fom.operators, lam), root=0)
+        below_gap = comm.bcast(count_below(fom.operators, lam * (1 + 2 * REPEATED_TOL)), root=0)
+        return cap_refusal(settings) if below_max is not None and below_max == below_gap else None
     sigma = (2 * math.pi * limit) ** 2 if limit < 1e150 else math.inf
     if not math.isfinite(sigma):
         return None
-    count = fom.comm.tompi4py().bcast(count_below(fom.operators, sigma), root=0)
+    count = comm.bcast(count_below(fom.operators, sigma), root=0)
     return cap_refusal(settings) if count is not None and count >= basis.modes else None
 
 

@@ -746,6 +746,55 @@ def test_a_run_whose_samples_cap_its_step_below_its_floor_is_refused_before_any_
     assert summary["stats"]["steps"] >= 1000   # 10 samples a step at most
 
 
+
+def test_a_max_frequency_cutoff_inside_a_chain_of_close_frequencies_is_left_to_the_integrator_not_refused_before_the_basis(
+        shared_tmp_path):
+    # [basis] max_frequency_hz bounds the highest reference mode F only where nothing lies just above the cutoff:
+    # the basis keeps a repeated eigenvalue at it whole, and "whole" chains eigenvalues each within REPEATED_TOL of
+    # the next. Red team: 250 modes of a diagonal (K, M), lambda 0.98e-6 apart (1.2e-4 from first to last in
+    # frequency), cut at 1.0000001 Hz: the basis held all 250 (measured: F = 1.000122 Hz), above the frequency up
+    # to which the samples refuse the step cap, so the integrator accepts the run; cap_refusal_before_basis refused
+    # it by the cutoff alone. The truth here is the closed form: the diagonal's eigenvalues and modes.whole_count.
+    import math
+
+    from dbf_hpc.modes import whole_count
+    from dbf_hpc.run import cap_refusal_before_basis
+    from dbf_hpc.timestepping import cap_refusal, cap_refused_below_hz
+
+    lam = np.concatenate([(2 * np.pi) ** 2 * (1 + 0.98e-6) ** np.arange(250),
+                          (2 * np.pi * 10) ** 2 * (1 + 0.01 * np.arange(1, 11))])   # a gap, then 10 more
+    if MPI.COMM_WORLD.rank == 0:
+        for name, diagonal in (("K", lam), ("M", np.ones(lam.size))):
+            (shared_tmp_path / f"{name}.mtx").write_text(
+                f"%%MatrixMarket matrix coordinate real symmetric\n{lam.size} {lam.size} {lam.size}\n" +
+                "".join(f"{i + 1} {i + 1} {v!r}\n" for i, v in enumerate(diagonal)))
+        (shared_tmp_path / "chain.toml").write_text(
+            '[structure]\nkind = "matrices"\nstiffness = "K.mtx"\nmass = "M.mtx"\n\n'
+            '[excitation]\nkind = "force"\ndof = 250\namplitude = 1.0\nfrequency_hz = 0.5\n\n'
+            '[basis]\nmax_frequency_hz = 1.0000001\ncache = "off"\n\n[integrator]\nt_end = 1.0\n\n'
+            '[[constraint]]\ndof = 250\nlaw = "deadband"\nclearance = 1e-3\nk = 1e3\n')
+    MPI.COMM_WORLD.Barrier()
+    dt = 1 / (20 * 1.00011)   # the floor is dt x 1e-8 up to 1.00011 Hz; the cap a hair below it
+    sets = [f"integrator.dt={dt!r}", f"integrator.t_end={dt * 1e-8 * (1 - 1e-6) * 1000!r}"]
+    scene = load_scene(str(shared_tmp_path / "chain.toml"), sets)
+    settings = scene.integrator_settings()
+    lam_max = (2 * math.pi * 1.0000001) ** 2
+    kept = whole_count(lam, int(np.count_nonzero(lam <= lam_max)))
+    F = math.sqrt(lam[kept - 1]) / (2 * math.pi)
+    assert kept == 250 and F > cap_refused_below_hz(settings) and cap_refusal(settings, F) is None   # accepted
+    with scene.full_order_model() as fom:
+        assert cap_refusal_before_basis(scene, fom, settings) is None
+    # a cutoff with a gap above it is still refused before the basis (the paper's beam, modes 40 to 42 at 436,
+    # 458 and 481 Hz: those up to 470 Hz, below the 500 Hz up to which its samples are refused)
+    if MPI.COMM_WORLD.rank == 0:
+        (shared_tmp_path / "paper.toml").write_text(open(PAPER).read().replace("\nmodes = 6 ", "\n# modes = 6 "))
+    MPI.COMM_WORLD.Barrier()
+    paper = load_scene(str(shared_tmp_path / "paper.toml"), ["integrator.t_end=1e-9", "basis.max_frequency_hz=470"])
+    with paper.full_order_model() as fom:
+        refusal = cap_refusal_before_basis(paper, fom, paper.integrator_settings())
+    assert refusal is not None and refusal.startswith("[integrator] t_end = 1e-09 s: its output samples"), refusal
+
+
 # Rank 0 of a 2-rank run() (the Python API) meets an exception no write foresaw, a ValueError from h5py's
 # create_dataset (as it opens the output) or from os.replace (as it moves a checkpoint or the finished
 # output into place); every rank says what it raised, then rank 0 lists the folder
