@@ -63,3 +63,24 @@ def test_the_first_failing_rank_in_rank_order_is_the_one_every_rank_raises():
 
     with pytest.raises(InputError, match="^rank 0 refused$"):
         agreed(MPI.COMM_WORLD, work)
+
+
+def test_a_recording_inside_another_that_holds_the_same_messages_ends_itself_and_the_outer_keeps_recording():
+    # recording() removed its list with list.remove, which compares by ==: an inner recording ending with the
+    # outer one's messages (both empty) removed the outer list, which then missed every later warning, and its
+    # own end raised ValueError (red team: a rerun sweep whose pending cases were all refused before their basis
+    # ended in "internal error (ValueError) on rank 0: list.remove(x): x not in list")
+    from dbf_hpc.errors import recorded, recording, warn
+
+    with recording() as outer:
+        with recording() as inner:
+            pass
+        warn("after the inner one", MPI.COMM_WORLD)
+        assert recorded() == ["after the inner one"]
+    assert outer == ["after the inner one"] and inner == [] and recorded() == []
+    with recording() as outer:
+        warn("both", MPI.COMM_WORLD)
+        with recording() as inner:
+            warn("inner", MPI.COMM_WORLD)
+        assert recorded() == ["both", "inner"]
+    assert outer == ["both", "inner"] and inner == ["inner"] and recorded() == []
