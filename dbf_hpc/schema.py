@@ -186,7 +186,8 @@ SECTIONS = {
                    "-rom_ts_arkimex_type overrides scheme.", {
         "t_end": Key(NUMBER, 1.0, "s", "end of the run"),
         "dt": Key(NUMBER, 1e-4, "s", "the fixed step, or the first step of an adaptive run (at most 10 sample "
-                                     "intervals, its steps' upper limit; --method full: at least 1e-30 s, as t_end)"),
+                                     "intervals, its steps' upper limit, and at least its steps' floor; --method "
+                                     "full: at least 1e-30 s, as t_end)"),
         "scheme": Key((str, int), "3", "", "the reduced model's ARKIMEX type: 1bee, a2, l2, ars122, 2c, 2d, 2e, "
                                            "prssp2, 3, bpr3, ars443, 4, 5"),
         "adaptive": Key((bool,), True, "", "adaptive steps (error control by rtol, atol) or the fixed step dt"),

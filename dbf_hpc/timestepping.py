@@ -275,8 +275,11 @@ def configure(ts: PETSc.TS, settings: IntegratorSettings, prefix: str, defaults:
     if adaptive and settings.max_step_scale < 1:   # after the options: it scales -<prefix>ts_adapt_dt_max too
         low, high = ts.getStepLimits()
         ts.setStepLimits(low, max(low, high * settings.max_step_scale))
-    if adaptive and not start:   # the first step is dt, within the limits (PETSc takes it as given)
-        ts.setTimeStep(min(settings.dt, ts.getStepLimits()[1]))
+    if adaptive and not start:   # the first step is dt, within the limits (PETSc takes it as given): at most the
+        # cap, at least the floor (red team: dt = 5e-324 s, a denormal, made the implicit stages' shift a/dt infinite:
+        # every Newton solve failed at t = 0, and the run ended after its basis blaming the constraint laws)
+        low, high = ts.getStepLimits()
+        ts.setTimeStep(max(low, min(settings.dt, high)))
     if adaptive and steps is not None:
         # the floor the controller has, which -<prefix>ts_adapt_dt_min raises (a crawl there went
         # unseen; red team); below the nominal floor a run crawls whatever the floor
