@@ -748,6 +748,9 @@ def _check_integrator_and_output(sections: dict, path: str, at: _Positions, give
     for key in ("sample_dt", "checkpoint_dt"):
         if o[key] is not None and not o[key] > 0:
             raise InputError(f"{where}: {key} must be positive, got {o[key]!r}")
+    if o["sample_dt"] is None and not float(i["t_end"]) / 10000 > 0:   # red team: t_end = 5e-324 (a denormal)
+        raise InputError(f"{path}: [integrator] t_end = {float(i['t_end']):g} s: its default [output] sample_dt, "
+                         f"t_end / 10000, is 0 in double precision: give a longer t_end")
     _check_statistics_window(sections["basis"]["estimate_statistics_window"], float(i["t_end"]),
                              float(o["sample_dt"] or i["t_end"] / 10000), f"{path}: [basis]")
     if o["snapshots"] < 0:

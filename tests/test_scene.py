@@ -156,6 +156,16 @@ def test_a_name_holding_a_nul_character_is_refused_naming_its_key(section, key):
         scene(**{section: values})
 
 
+@pytest.mark.parametrize("t_end", [5e-324, 2e-320])
+def test_a_t_end_whose_default_sample_interval_is_zero_in_double_precision_is_refused_naming_t_end(t_end):
+    # Red team: t_end = 5e-324 s (a denormal): its default sample_dt, t_end / 10000, is 0, and the run said
+    # "IntegratorSettings sample_dt must be above 0, got 0.0" (a Python API class nobody named); from about
+    # 2.5e-320 s the samples are not 0 (5e-324 s apart: such a run is refused later, by its step cap)
+    with pytest.raises(InputError, match=r"^test.toml: \[integrator\] t_end = \S+ s: its default \[output\] sample_dt, "
+                                         r"t_end / 10000, is 0 in double precision: give a longer t_end$"):
+        scene(integrator={"t_end": t_end})
+    assert scene(integrator={"t_end": 3e-320}).output().sample_dt > 0
+
 @pytest.mark.parametrize("window", [1e-300, 1e-5])
 def test_a_statistics_window_shorter_than_its_batch_means_need_is_refused_before_the_run(window):
     # Red team: estimate_statistics_window = 1e-300 s stopped the run after its integration ("IntegratorSettings
