@@ -219,10 +219,18 @@ def recorded() -> list:
     return list(_RECORDINGS[-1]) if _RECORDINGS else []
 
 
+# The control characters one_line writes as escapes (all but the tab): a line break would split the one line, and
+# a NUL or an escape sequence quoted from a name would reach the terminal or a log raw (red team: a sweep's axis
+# "damping.zeta\u0000" was refused as "unknown key 'zeta<NUL>'", the NUL byte written to stderr)
+_CONTROLS = {c: f"\\x{c:02x}" for c in [*range(0x09), *range(0x0b, 0x20), 0x7f]}
+_CONTROLS.update({ord("\n"): "\\n", ord("\r"): "\\r"})
+
+
 def one_line(text) -> str:
     """`text` on one line: a line break in it (a file name holding one, which a message quotes as given)
-    written as \\n, so that an error or a warning stays the one line the command promises. Not collective."""
-    return str(text).replace("\r", "\\r").replace("\n", "\\n")
+    written as \\n (\\r), any other control character but the tab as \\xNN, so that an error or a warning
+    stays the one line of text the command promises. Not collective."""
+    return str(text).translate(_CONTROLS)
 
 
 def warn(message: str, comm, record: bool = True) -> None:

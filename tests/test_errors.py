@@ -84,3 +84,25 @@ def test_a_recording_inside_another_that_holds_the_same_messages_ends_itself_and
             warn("inner", MPI.COMM_WORLD)
         assert recorded() == ["both", "inner"]
     assert outer == ["both", "inner"] and inner == ["inner"] and recorded() == []
+
+
+@pytest.mark.launcher   # starts the command as a process of its own (not under the 2-rank pass's mpirun)
+def test_a_control_character_quoted_in_an_error_line_is_written_as_an_escape_not_raw(tmp_path):
+    # Red team: a scene key "ze\u0000ta" (a TOML escape) was refused as "unknown key 'ze<NUL>ta' in [damping]",
+    # the NUL byte written raw to stderr (and an escape sequence would reach the terminal); a line break was
+    # already written as \n
+    import subprocess
+    import sys
+
+    from dbf_hpc.errors import one_line
+    from test_run import PAPER
+
+    assert one_line("a\x00b\nc\rd\te\x1b[31m\x7f") == "a\\x00b\\nc\\rd\te\\x1b[31m\\x7f"
+    scene = tmp_path / "nul.toml"
+    scene.write_text(open(PAPER).read().replace("[integrator]", '[damping]\n"ze\\u0000ta" = 0.01\n\n[integrator]'))
+    ended = subprocess.run([sys.executable, "-m", "dbf_hpc", "run", str(scene), "-o", str(tmp_path / "o.h5")],
+                           capture_output=True, timeout=120)
+    assert ended.returncode != 0 and b"\x00" not in ended.stderr, ended.stderr
+    assert ended.stderr.decode().splitlines() == [f"dbf-hpc: error: {scene}: unknown key 'ze\\x00ta' in [damping] "
+                                                  f"(valid keys: zeta, rayleigh_alpha, rayleigh_beta); did you "
+                                                  f"mean 'zeta'?"], ended.stderr
