@@ -326,12 +326,32 @@ def ends_a_hang(seconds: float = 120):
         faulthandler.cancel_dump_traceback_later()
 
 
+# Defined in every script two_ranks_of runs: what each rank raised, said by rank 0 in rank order
+EVERY_RANK_SAYS = '''
+def every_rank_says(act, folder=None):
+    """act() on every rank; rank 0 then prints each rank's outcome (no error, or its exception's class,
+    message and dbf_hpc_origin) in rank order, and the files in `folder`."""
+    import os
+    from mpi4py import MPI
+    rank = MPI.COMM_WORLD.rank
+    try:
+        act()
+        said = f"rank {rank}: no error"
+    except Exception as e:
+        said = f"rank {rank}: {type(e).__name__}: {e} (origin {getattr(e, 'dbf_hpc_origin', None)})"
+    said = MPI.COMM_WORLD.gather(said, root=0)   # (rank 0 prints: the ranks' own lines interleave)
+    if rank == 0:
+        for line in said + ([f"files {sorted(os.listdir(folder))}"] if folder is not None else []):
+            print(line, flush=True)
+'''
+
+
 def two_ranks_of(script: str, *args, seconds: int = 60):
     """The Python `script` (its text) run by `mpirun -n 2` under `timeout`, this checkout first on the
     path: the finished process (stdout, stderr as text). For a test of what every rank does when one
     rank fails alone: a regression hangs the ranks left waiting, and the timeout ends that job (exit
     124) where a hang inside the 2-rank pass would stop it until the suite's own limit. Mark such a
-    test `launcher` (serial pass)."""
+    test `launcher` (serial pass). The script may call every_rank_says (EVERY_RANK_SAYS)."""
     import sys
     import tempfile
 
@@ -339,7 +359,7 @@ def two_ranks_of(script: str, *args, seconds: int = 60):
     env = {**os.environ, "OMPI_MCA_orte_execute_quiet": "1", "OMPI_MCA_rmaps_base_oversubscribe": "1",
            "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
     with tempfile.NamedTemporaryFile("w", suffix=".py", delete=False) as f:
-        f.write(script)
+        f.write(EVERY_RANK_SAYS + script)
     try:
         return subprocess.run(["timeout", "--kill-after=10", str(seconds), "mpirun", "-n", "2", sys.executable,
                                f.name, *map(str, args)], capture_output=True, text=True, env=env, cwd=root,

@@ -747,17 +747,13 @@ if rank == 0 and where == "create_dataset":   # as it opens the file
 if rank == 0 and where == "os.replace":       # as it moves the finished file into place
     os.replace = refuse
 beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
-try:
+def act():
     with FullOrderModel.build(beam, [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)]) as fom:
         with Reductor(fom, BasisSettings(modes=4), folder) as reductor:
             reductor.basis()
-    said = f"rank {rank}: no error"
-except Exception as e:
-    said = f"rank {rank}: {type(e).__name__}: {e} (origin {getattr(e, 'dbf_hpc_origin', None)})"
-said = MPI.COMM_WORLD.gather(said, root=0)   # (rank 0 prints: the ranks' own lines interleave)
-if rank == 0:
-    for line in said + [f"files {sorted(os.listdir(folder))}"]:
-        print(line, flush=True)
+
+
+every_rank_says(act, folder)
 """
 
 

@@ -391,17 +391,13 @@ def refuse(*args, **kwargs):
 if rank == 0:
     reductor._turn = refuse
 beam = Beam(length=1.0, E=117e9, I=8.78e-16, A=2.9e-7, rho=11800.0, elements=20)
-try:
+def act():
     with FullOrderModel.build(beam, [Constraint(law("deadband", clearance=2.5e-3, k=1e6), x=0.25)]) as fom:
         with Reductor(fom, BasisSettings(modes=4)) as r:
             r.reduce()
-    said = f"rank {rank}: no error"
-except Exception as e:
-    said = f"rank {rank}: {type(e).__name__}: {e} (origin {getattr(e, 'dbf_hpc_origin', None)})"
-said = MPI.COMM_WORLD.gather(said, root=0)   # (rank 0 prints: the ranks' own lines interleave)
-if rank == 0:
-    for line in said:
-        print(line, flush=True)
+
+
+every_rank_says(act)
 """
 
 

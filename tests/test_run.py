@@ -814,15 +814,11 @@ if rank == 0 and where == "os.replace":
     os.replace = refuse
 scene = dbf_hpc.load_scene(paper, ["integrator.t_end=0.05", "structure.elements=20", "basis.cache=off",
                                    "basis.estimate=false", "output.snapshots=0", *sets])
-try:
+def act():
     dbf_hpc.run(scene, os.path.join(folder, "out.h5"), progress=False, method=method)
-    said = f"rank {rank}: no error"
-except Exception as e:
-    said = f"rank {rank}: {type(e).__name__}: {e} (origin {getattr(e, 'dbf_hpc_origin', None)})"
-said = MPI.COMM_WORLD.gather(said, root=0)   # (rank 0 prints: the ranks' own lines interleave)
-if rank == 0:
-    for line in said + [f"files {sorted(os.listdir(folder))}"]:
-        print(line, flush=True)
+
+
+every_rank_says(act, folder)
 """
 
 

@@ -1616,16 +1616,12 @@ if rank == 0:
     with open(path, "w") as f:
         f.write(f'scene = "{paper}"\\noutput = "summary.h5"\\n[axes]\\n"excitation.frequency_hz" = [0.9, 1.1]\\n')
 MPI.COMM_WORLD.Barrier()
-try:
+def act():
     sweep.run_sweep(path, progress=False, overrides=["integrator.t_end=0.05", "structure.elements=20", "basis.cache=off",
                                                      "basis.estimate=false", "output.snapshots=0"])
-    said = f"rank {rank}: no error"
-except Exception as e:
-    said = f"rank {rank}: {type(e).__name__}: {e} (origin {getattr(e, 'dbf_hpc_origin', None)})"
-said = MPI.COMM_WORLD.gather(said, root=0)   # (rank 0 prints: the ranks' own lines interleave)
-if rank == 0:
-    for line in said + [f"files {sorted(os.listdir(folder))}"]:
-        print(line, flush=True)
+
+
+every_rank_says(act, folder)
 """
 
 
