@@ -526,14 +526,23 @@ def obtain_basis(ops: Operators, rows, settings: BasisSettings, fingerprint: dic
         basis.stats["cache"] = "off"
         return basis
     key = basis_key(fingerprint, rows, settings, gyroscopic, whole)
+    return _cached_or_built(ops, cache_dir, key, lambda path: load(path, key, ops, settings, rows, whole),
+                            lambda: build_basis(ops, rows, settings, labels, whole), settings, quiet)
+
+
+def _cached_or_built(ops: Operators, cache_dir: str, key: str, read, build, settings: BasisSettings,
+                     quiet: bool = False):
+    """The entry `key` of cache_dir read by read(path) (a checked basis, or None: absent, damaged or not
+    this question's), else build() stored there (save). A cache that cannot be written is a warning
+    (none with quiet), never an error; the stats say where the basis came from. Collective."""
     path = cache_path(cache_dir, key)
     exists = ops.comm.tompi4py().bcast(os.path.exists(path) if ops.comm.rank == 0 else None, root=0)
     if exists:
-        basis = load(path, key, ops, settings, rows, whole)
+        basis = read(path)
         if basis is not None:
             _mark_used(solver_options(settings.strategy.solver_prefixes, observers=True))
             return basis
-    basis = build_basis(ops, rows, settings, labels, whole)
+    basis = build()
     A_r = basis.state_energy(ops) if _is_state_space(basis) else basis.project(ops.M)
     defect = float(np.abs(A_r - np.eye(basis.size)).max(initial=0.0))
     try:
@@ -602,23 +611,14 @@ def obtain_richer(ops: Operators, basis, count: int, fingerprint: dict, cache_di
     frequencies = {name: np.asarray(getattr(basis, name), dtype=float) for name in ("omega", "enrichment_omega")}
     enriched = {"settings": basis.settings.key(), "frequencies": arrays_sha256(frequencies)}
     key = ops.comm.tompi4py().bcast(basis_key(fingerprint, rows, settings, True, "extend", richer_of=enriched), root=0)
-    path = cache_path(cache_dir, key)
-    exists = ops.comm.tompi4py().bcast(os.path.exists(path) if ops.comm.rank == 0 else None, root=0)
-    if exists:
+
+    def read(path: str):
         rich = load(path, key, ops, settings, rows, "extend")
         if rich is not None:
             rich.settings = replace(settings, modes=rich.complex_modes)   # as built: the count taken whole
-            _mark_used(solver_options(settings.strategy.solver_prefixes, observers=True))
-            return rich
-    rich = richer_basis(ops, basis, count)
-    A_r = rich.state_energy(ops) if _is_state_space(rich) else rich.project(ops.M)
-    defect = float(np.abs(A_r - np.eye(rich.size)).max(initial=0.0))
-    error = _prepare_directory(cache_dir, ops.comm) or save(rich, path, key, ops.comm, defect)
-    if error:
-        rich.stats["cache"] = "unwritable"
-    else:
-        rich.stats.update(cache="stored", cache_file=path)
-    return rich
+        return rich
+
+    return _cached_or_built(ops, cache_dir, key, read, lambda: richer_basis(ops, basis, count), settings, quiet=True)
 
 
 DEFAULT_DIR = "~/.cache/dbf_hpc"
